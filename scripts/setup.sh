@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Everything a fresh Debian/Ubuntu machine needs for wtopo: system libraries, a virtual
+# environment in .venv, the CPU build of torch (never the multi-GB CUDA wheel), and wtopo itself.
+# Idempotent: a second run only checks.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+if command -v apt-get >/dev/null 2>&1 && ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then
+  # open3d-cpu links libusb-1.0; libgomp1 for its OpenMP kernels
+  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  $SUDO apt-get update -qq && $SUDO DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 libgomp1 >/dev/null
+fi
+PY=${PYTHON:-python3}
+[ -x .venv/bin/python ] || "$PY" -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip
+# CPU machines: the torch 2.13.0 CPU build first, so the dependency range below installs nothing more.
+.venv/bin/python -c "import torch" 2>/dev/null || .venv/bin/python -m pip install -q "torch==2.13.0"
+.venv/bin/python -m pip install -q -e ".[test]"

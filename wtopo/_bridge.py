@@ -1,0 +1,257 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The one torch <-> Warp bridge every differentiable op goes through.
+
+An op describes itself as a :class:`WarpOp`: a ``run`` callable that takes Warp views of the
+input tensors and returns Warp output arrays, recording its launches on the active
+:class:`warp.Tape` (plain ``wp.launch`` calls are recorded automatically; ops with explicit adjoint
+kernels register them with :meth:`warp.Tape.record_func`). :func:`apply` wraps that in a
+``torch.autograd.Function``:
+
+* forward: tensors are made contiguous and viewed as Warp arrays without a copy (inputs that
+  require grad get their own zeroed gradient buffer), launches run on the tensors' device and,
+  on CUDA, on torch's current stream;
+* backward: the upstream gradients are copied into the outputs' gradient buffers, the tape is
+  replayed backwards, the input gradients are cloned out, and ``tape.zero()`` resets every
+  buffer so the same graph can be differentiated again (``retain_graph`` and
+  ``torch.autograd.gradcheck`` call backward several times).
+
+Outputs flagged non-differentiable (indices, masks, counts) are marked so with
+``ctx.mark_non_differentiable`` and never receive a gradient.
+
+:func:`launch_split` runs a kernel whose threads write disjoint outputs in several chunks from
+Python threads: Warp's CPU backend runs each launch on one thread but releases the GIL, so on a
+2-core CPU this gives about 2x (measured, ``DESIGN.md``). On CUDA it is a single launch.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import warp as wp
+
+__all__ = [
+    "WarpOp",
+    "apply",
+    "warp_device",
+    "to_warp",
+    "launch_split",
+    "cpu_threads",
+    "float_dtype",
+    "vec_dtype",
+]
+
+_init_lock = threading.Lock()
+_initialized = False
+
+
+def _ensure_init() -> None:
+    global _initialized
+    if not _initialized:
+        with _init_lock:
+            if not _initialized:
+                wp.config.quiet = True
+                wp.init()
+                _initialized = True
+
+
+def warp_device(device: torch.device | str) -> wp.context.Device:
+    """Return the Warp device matching a torch device (``cpu`` or ``cuda:N``)."""
+    _ensure_init()
+    return wp.device_from_torch(torch.device(device))
+
+
+_VEC = {
+    (torch.float32, 1): wp.float32,
+    (torch.float64, 1): wp.float64,
+    (torch.float32, 2): wp.vec2,
+    (torch.float64, 2): wp.vec2d,
+    (torch.float32, 3): wp.vec3,
+    (torch.float64, 3): wp.vec3d,
+    (torch.float32, 4): wp.vec4,
+    (torch.float64, 4): wp.vec4d,
+}
+
+
+def float_dtype(t: torch.Tensor):
+    """Warp scalar type for a float32/float64 tensor."""
+    return _VEC[(t.dtype, 1)]
+
+
+def vec_dtype(t: torch.Tensor, n: int | None = None):
+    """Warp vector type ``vecN``/``vecNd`` for a tensor whose last dimension is ``n``."""
+    n = t.shape[-1] if n is None else n
+    return _VEC[(t.dtype, n)]
+
+
+def to_warp(t: torch.Tensor, dtype=None, *, requires_grad: bool = False) -> wp.array:
+    """View a tensor as a Warp array without copying (the tensor is made contiguous first).
+
+    ``dtype`` is a Warp scalar or vector type; a vector type consumes the tensor's last dimension.
+    With ``requires_grad`` a fresh zeroed gradient buffer is attached (never the tensor's ``.grad``).
+    """
+    _ensure_init()
+    t = t.detach().contiguous()
+    arr = wp.from_torch(t, dtype=dtype, requires_grad=False)
+    if requires_grad:
+        arr.requires_grad = True  # allocates a zeroed Warp-owned gradient buffer
+    return arr
+
+
+@dataclass(frozen=True)
+class WarpOp:
+    """What the bridge needs to run one differentiable op.
+
+    Args:
+        name: op name used in error messages.
+        run: ``run(*warp_inputs) -> tuple[wp.array, ...]``; called inside an active
+            :class:`warp.Tape` on the inputs' device. Differentiable outputs must be allocated with
+            ``requires_grad=True``.
+        in_dtypes: Warp dtype per input tensor (``None`` keeps the tensor's scalar dtype).
+        differentiable_inputs: per input, whether a gradient may flow into it.
+        differentiable_outputs: per output, whether it carries a gradient.
+    """
+
+    name: str
+    run: Callable[..., tuple]
+    in_dtypes: Sequence
+    differentiable_inputs: Sequence[bool]
+    differentiable_outputs: Sequence[bool]
+    extra: dict = field(default_factory=dict)
+
+
+class _WarpFunction(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, op: WarpOp, *tensors):
+        device = next(t.device for t in tensors if isinstance(t, torch.Tensor))
+        wdev = warp_device(device)
+        wp_inputs = []
+        for t, dt, diff in zip(tensors, op.in_dtypes, op.differentiable_inputs):
+            if not isinstance(t, torch.Tensor):
+                wp_inputs.append(t)
+                continue
+            req = bool(diff and t.requires_grad)
+            wp_inputs.append(to_warp(t, dt, requires_grad=req))
+        tape = wp.Tape()
+        stream = wp.stream_from_torch(device) if wdev.is_cuda else None
+        with wp.ScopedDevice(wdev):
+            if stream is not None:
+                with wp.ScopedStream(stream), tape:
+                    outs = op.run(*wp_inputs)
+            else:
+                with tape:
+                    outs = op.run(*wp_inputs)
+        if len(outs) != len(op.differentiable_outputs):
+            raise RuntimeError(f"{op.name}: run returned {len(outs)} outputs, expected {len(op.differentiable_outputs)}")
+        torch_outs = []
+        for o, diff in zip(outs, op.differentiable_outputs):
+            if diff and o.grad is None:
+                raise RuntimeError(f"{op.name}: differentiable output allocated without requires_grad")
+            torch_outs.append(wp.to_torch(o, requires_grad=False))
+        ctx.op = op
+        ctx.tape = tape
+        ctx.wp_inputs = wp_inputs
+        ctx.wp_outputs = outs
+        ctx.wdev = wdev
+        ctx.save_for_backward(*[t for t in tensors if isinstance(t, torch.Tensor)])
+        nondiff = [t for t, d in zip(torch_outs, op.differentiable_outputs) if not d]
+        if nondiff:
+            ctx.mark_non_differentiable(*nondiff)
+        return tuple(torch_outs)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, *grads):
+        op: WarpOp = ctx.op
+        _ = ctx.saved_tensors  # torch's in-place modification check
+        seeds = {}
+        for o, g, diff in zip(ctx.wp_outputs, grads, op.differentiable_outputs):
+            if not diff or g is None:
+                continue
+            seeds[o] = to_warp(g, o.dtype)
+        result: list = [None]
+        if seeds:
+            stream = wp.stream_from_torch(grads[0].device) if ctx.wdev.is_cuda else None
+            with wp.ScopedDevice(ctx.wdev):
+                if stream is not None:
+                    with wp.ScopedStream(stream):
+                        ctx.tape.backward(grads=seeds)
+                else:
+                    ctx.tape.backward(grads=seeds)
+        for a, diff in zip(ctx.wp_inputs, op.differentiable_inputs):
+            if isinstance(a, wp.array) and diff and a.requires_grad and seeds:
+                result.append(wp.to_torch(a.grad).clone())
+            else:
+                result.append(None)
+        ctx.tape.zero()
+        return tuple(result)
+
+
+def apply(op: WarpOp, *tensors) -> tuple[torch.Tensor, ...]:
+    """Run ``op`` on torch tensors and return torch outputs that carry gradients as declared."""
+    if len(tensors) != len(op.in_dtypes):
+        raise RuntimeError(f"{op.name}: got {len(tensors)} inputs, expected {len(op.in_dtypes)}")
+    return _WarpFunction.apply(op, *tensors)
+
+
+def cpu_threads() -> int:
+    """Number of Python threads CPU launches are split across (``WTOPO_NUM_THREADS`` or all cores)."""
+    env = os.environ.get("WTOPO_NUM_THREADS")
+    if env:
+        return max(1, int(env))
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
+
+
+_pool: ThreadPoolExecutor | None = None
+_loaded: set = set()
+
+
+def _get_pool(n: int) -> ThreadPoolExecutor:
+    global _pool
+    if _pool is None or _pool._max_workers < n:  # noqa: SLF001 - resize only when asked for more threads
+        _pool = ThreadPoolExecutor(max_workers=n, thread_name_prefix="wtopo-launch")
+    return _pool
+
+
+def launch_split(kernel, dim: int, inputs: list, outputs: list | None = None, *, device, min_chunk: int = 4096,
+                 record_tape: bool = False) -> None:
+    """Launch ``kernel`` over ``dim`` threads, split into chunks across CPU threads.
+
+    The kernel's first parameter must be ``offset: int``; thread ``tid`` handles item
+    ``offset + tid``. Its threads must write disjoint outputs (Warp's CPU ``atomic_add`` is not
+    atomic across concurrent launches). On CUDA, or when ``dim`` is small, this is one launch.
+    ``record_tape=False`` keeps the chunks off any active tape: callers register explicit adjoints.
+    """
+    outputs = outputs or []
+    device = wp.get_device(device)
+    if dim <= 0:
+        return
+    n = cpu_threads() if device.is_cpu else 1
+    n = int(min(n, max(1, dim // max(1, min_chunk))))
+    if n <= 1:
+        wp.launch(kernel, dim=dim, inputs=[0, *inputs], outputs=outputs, device=device, record_tape=record_tape)
+        return
+    bounds = np.linspace(0, dim, n + 1).astype(np.int64)
+
+    def _run(i):
+        lo, hi = int(bounds[i]), int(bounds[i + 1])
+        if hi > lo:
+            wp.launch(kernel, dim=hi - lo, inputs=[lo, *inputs], outputs=outputs, device=device,
+                      record_tape=record_tape)
+
+    # The first launch of a kernel (per device and argument types) compiles it, and generic
+    # kernels add overloads on the fly: run that one sequentially so threads never race on a build.
+    key = (kernel.key, str(device), tuple(getattr(a, "dtype", type(a)) for a in (*inputs, *outputs)))
+    if key not in _loaded:
+        for i in range(n):
+            _run(i)
+        _loaded.add(key)
+        return
+    futures = [_get_pool(n).submit(_run, i) for i in range(n)]
+    for f in futures:
+        f.result()
