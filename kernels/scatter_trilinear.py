@@ -1,0 +1,185 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Warp kernels for :func:`wtopo.ops.scatter_trilinear` and its adjoint :func:`wtopo.ops.sample_trilinear`.
+
+Grid node ``(i, j, k)`` of an ``R^3`` grid sits at ``(i, j, k) / R``; grids are stored flat as
+``[R^3, C]`` with node index ``(i*R + j)*R + k``. Nodes with an index of ``R`` (the cell between
+the last node and ``1.0``) do not exist: their weight is dropped (zero extension, never a periodic
+wrap). All kernels are generic over float32/float64 and *accumulate* into their output, so they
+serve both as forward passes (into zeroed arrays) and as explicit adjoints (into gradient buffers).
+They are never differentiated by the tape: :mod:`wtopo.scatter` registers them as each other's
+adjoints.
+"""
+
+from typing import Any
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def corner_weight(d: int, f: Any):
+    """Linear weight of the lower (``d = 0``) or upper (``d = 1``) node for fraction ``f``."""
+    if d == 0:
+        return type(f)(1.0) - f
+    return f
+
+
+@wp.func
+def corner_slope(d: int, f: Any):
+    """Derivative of :func:`corner_weight` with respect to ``f``."""
+    if d == 0:
+        return type(f)(-1.0)
+    return type(f)(1.0)
+
+
+@wp.kernel
+def scatter_trilinear_kernel(
+    points: wp.array[Any],
+    values: wp.array2d[Any],
+    resolution: int,
+    slab_lo: int,
+    slab_hi: int,
+    grid: wp.array2d[Any],
+):
+    """Add ``w * values[n]`` to the 8 nodes around point ``n`` whose first index is in ``[slab_lo, slab_hi)``.
+
+    On CPU each concurrent launch owns a disjoint slab of first indices, so plain read-modify-write
+    ``atomic_add`` is safe and every node sums its points in index order (deterministic). On CUDA
+    one launch covers all slabs and ``atomic_add`` is a hardware atomic.
+    """
+    n = wp.tid()
+    p = points[n]
+    r = type(p[0])(float(resolution))
+    ux = p[0] * r
+    uy = p[1] * r
+    uz = p[2] * r
+    fx0 = wp.floor(ux)
+    fy0 = wp.floor(uy)
+    fz0 = wp.floor(uz)
+    i0 = int(fx0)
+    j0 = int(fy0)
+    k0 = int(fz0)
+    if i0 + 1 < slab_lo or i0 >= slab_hi:
+        return
+    fx = ux - fx0
+    fy = uy - fy0
+    fz = uz - fz0
+    channels = values.shape[1]
+    for di in range(2):
+        i = i0 + di
+        if i >= slab_lo and i < slab_hi and i < resolution:
+            wx = corner_weight(di, fx)
+            for dj in range(2):
+                j = j0 + dj
+                if j < resolution:
+                    wxy = wx * corner_weight(dj, fy)
+                    for dk in range(2):
+                        k = k0 + dk
+                        if k < resolution:
+                            w = wxy * corner_weight(dk, fz)
+                            node = (i * resolution + j) * resolution + k
+                            for c in range(channels):
+                                wp.atomic_add(grid, node, c, w * values[n, c])
+
+
+@wp.kernel
+def sample_trilinear_kernel(
+    offset: int,
+    grid: wp.array2d[Any],
+    points: wp.array[Any],
+    resolution: int,
+    out: wp.array2d[Any],
+):
+    """Add the trilinear interpolation of ``grid`` at point ``n`` to ``out[n]`` (one thread per point)."""
+    n = offset + wp.tid()
+    p = points[n]
+    r = type(p[0])(float(resolution))
+    ux = p[0] * r
+    uy = p[1] * r
+    uz = p[2] * r
+    fx0 = wp.floor(ux)
+    fy0 = wp.floor(uy)
+    fz0 = wp.floor(uz)
+    i0 = int(fx0)
+    j0 = int(fy0)
+    k0 = int(fz0)
+    fx = ux - fx0
+    fy = uy - fy0
+    fz = uz - fz0
+    channels = out.shape[1]
+    for di in range(2):
+        i = i0 + di
+        if i < resolution:
+            wx = corner_weight(di, fx)
+            for dj in range(2):
+                j = j0 + dj
+                if j < resolution:
+                    wxy = wx * corner_weight(dj, fy)
+                    for dk in range(2):
+                        k = k0 + dk
+                        if k < resolution:
+                            w = wxy * corner_weight(dk, fz)
+                            node = (i * resolution + j) * resolution + k
+                            for c in range(channels):
+                                out[n, c] = out[n, c] + w * grid[node, c]
+
+
+@wp.kernel
+def trilinear_point_grad_kernel(
+    offset: int,
+    grid: wp.array2d[Any],
+    per_point: wp.array2d[Any],
+    points: wp.array[Any],
+    resolution: int,
+    adj_points: wp.array[Any],
+):
+    """Add ``sum_nodes dw/dp * <grid[node], per_point[n]>`` to ``adj_points[n]``.
+
+    This is the position gradient of both ops: for the scatter ``grid`` is the upstream gradient of
+    the grid and ``per_point`` the values; for the sample ``grid`` is the sampled grid and
+    ``per_point`` the upstream gradient of the samples.
+    """
+    n = offset + wp.tid()
+    p = points[n]
+    r = type(p[0])(float(resolution))
+    ux = p[0] * r
+    uy = p[1] * r
+    uz = p[2] * r
+    fx0 = wp.floor(ux)
+    fy0 = wp.floor(uy)
+    fz0 = wp.floor(uz)
+    i0 = int(fx0)
+    j0 = int(fy0)
+    k0 = int(fz0)
+    fx = ux - fx0
+    fy = uy - fy0
+    fz = uz - fz0
+    channels = per_point.shape[1]
+    gx = type(r)(0.0)
+    gy = type(r)(0.0)
+    gz = type(r)(0.0)
+    for di in range(2):
+        i = i0 + di
+        if i < resolution:
+            wx = corner_weight(di, fx)
+            sx = corner_slope(di, fx)
+            for dj in range(2):
+                j = j0 + dj
+                if j < resolution:
+                    wy = corner_weight(dj, fy)
+                    sy = corner_slope(dj, fy)
+                    for dk in range(2):
+                        k = k0 + dk
+                        if k < resolution:
+                            wz = corner_weight(dk, fz)
+                            sz = corner_slope(dk, fz)
+                            node = (i * resolution + j) * resolution + k
+                            s = type(r)(0.0)
+                            for c in range(channels):
+                                s += grid[node, c] * per_point[n, c]
+                            gx += sx * wy * wz * s
+                            gy += wx * sy * wz * s
+                            gz += wx * wy * sz * s
+    # d(u)/d(p) = R for every axis.
+    adj_points[n] = adj_points[n] + type(p)(gx * r, gy * r, gz * r)
