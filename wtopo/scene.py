@@ -1,0 +1,579 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Posed image sets (:class:`Scene`) and the similarity (:class:`Similarity`) that maps a scene
+into wtopo's internal frame, where the region of interest fits the unit cube ``[0, 1]^3`` with a
+margin so that Poisson reconstruction and marching cubes run on it directly.
+
+All world maths runs in float64 on the host; results go back to the caller's frame and units
+through :meth:`Similarity.to_world`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+
+from .camera import Camera
+
+__all__ = ["Scene", "Similarity"]
+
+_IMAGE_RANGE_TOL = 1e-4  # images outside [0, 1] by less than this (float rounding of composites) are clipped
+_UNIT_NORMAL_TOL = 1e-2  # normals must be unit (or 0 = invalid) within this (float32 exports)
+_HULL_GRID = (40, 56)  # visual-hull / frustum grid resolution per axis: coarse pass, refined pass
+_DEGENERATE_SPREAD = 1e-9  # camera centres closer than this (relative to the scene extent) coincide
+_COLINEAR_RATIO = 1e-6  # second / first singular value of the centred camera centres below this: colinear
+
+
+def _to_numpy64(x) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu().numpy().astype(np.float64)
+    return np.asarray(x, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class Similarity:
+    """A uniform scale plus translation between the user's (world) frame and wtopo's internal frame.
+
+    ``internal = scale * (world + translation)`` and ``world = internal / scale - translation``
+    (the convention of :meth:`wtopo.Camera.transformed`). Held in float64.
+
+    Args:
+        scale: positive uniform scale (internal units per world unit).
+        translation: world-frame offset, shape [3], world units.
+    """
+
+    scale: float
+    translation: tuple
+
+    def __post_init__(self):
+        s = float(self.scale)
+        if not math.isfinite(s) or s <= 0:
+            raise ValueError(f"Similarity.scale must be finite and > 0, got {self.scale!r}")
+        t = np.asarray(self.translation, dtype=np.float64).reshape(-1)
+        if t.shape != (3,) or not np.all(np.isfinite(t)):
+            raise ValueError(f"Similarity.translation must be 3 finite numbers, got {self.translation!r}")
+        object.__setattr__(self, "scale", s)
+        object.__setattr__(self, "translation", tuple(float(v) for v in t))
+
+    @staticmethod
+    def identity() -> Similarity:
+        """The identity map."""
+        return Similarity(1.0, (0.0, 0.0, 0.0))
+
+    @property
+    def t(self) -> np.ndarray:
+        """Translation as a float64 array [3]."""
+        return np.asarray(self.translation, dtype=np.float64)
+
+    def matrix(self) -> np.ndarray:
+        """The world-to-internal map as a homogeneous float64 matrix [4, 4]."""
+        m = np.eye(4)
+        m[:3, :3] *= self.scale
+        m[:3, 3] = self.scale * self.t
+        return m
+
+    def inverse(self) -> Similarity:
+        """The internal-to-world map as a :class:`Similarity`."""
+        return Similarity(1.0 / self.scale, tuple(-self.scale * self.t))
+
+    def compose(self, inner: Similarity) -> Similarity:
+        """``self`` applied after ``inner`` (x -> self(inner(x)))."""
+        # self(inner(x)) = s2 * (s1 * (x + t1) + t2) = s2 s1 (x + t1 + t2 / s1)
+        return Similarity(self.scale * inner.scale, tuple(inner.t + self.t / inner.scale))
+
+    def _map(self, x, forward: bool):
+        import trimesh
+
+        if isinstance(x, Camera):
+            if forward:
+                return x.transformed(self.scale, self.t)
+            inv = self.inverse()
+            return x.transformed(inv.scale, inv.t)
+        if isinstance(x, trimesh.Trimesh):
+            out = x.copy()
+            out.vertices = self._map(np.asarray(x.vertices, dtype=np.float64), forward)
+            return out
+        if isinstance(x, torch.Tensor):
+            y = self._map(x.detach().cpu().numpy().astype(np.float64), forward)
+            return torch.as_tensor(y, dtype=x.dtype, device=x.device)
+        a = np.asarray(x, dtype=np.float64)
+        if a.ndim == 0 or a.shape[-1] != 3:
+            raise ValueError(f"points must have shape [..., 3], got {list(a.shape)}")
+        if forward:
+            return self.scale * (a + self.t)
+        return a / self.scale - self.t
+
+    def to_internal(self, x):
+        """Map world points ([..., 3] numpy / torch, computed in float64 and returned in the input's
+        dtype), a :class:`~wtopo.Camera` or a ``trimesh.Trimesh`` into the internal frame."""
+        return self._map(x, True)
+
+    def to_world(self, x):
+        """Inverse of :meth:`to_internal` (same accepted types)."""
+        return self._map(x, False)
+
+    def length_to_internal(self, d):
+        """Scale a length (depth, distance, threshold) from world to internal units."""
+        return d * self.scale
+
+    def length_to_world(self, d):
+        """Scale a length from internal to world units."""
+        return d / self.scale
+
+
+def _as_float_tensor(name: str, x, shape_tail: tuple, n: int | None) -> torch.Tensor:
+    if isinstance(x, torch.Tensor):
+        t = x.detach()
+        if not t.is_floating_point():
+            t = t.float()
+        t = t.to(torch.float32)
+    else:
+        try:
+            t = torch.from_numpy(np.ascontiguousarray(np.asarray(x, dtype=np.float32)))
+        except (TypeError, ValueError):
+            raise TypeError(f"{name} must be a numeric array, got {type(x).__name__}") from None
+    want = len(shape_tail) + 1
+    if t.ndim != want or (n is not None and t.shape[0] != n) or any(
+            s is not None and s != a for s, a in zip(shape_tail, t.shape[1:])):
+        desc = "[" + ", ".join(["N" if n is None else str(n)] + ["*" if s is None else str(s) for s in shape_tail]) + "]"
+        raise ValueError(f"{name} must have shape {desc}, got {list(t.shape)}")
+    return t
+
+
+def _first_bad(name: str, t: torch.Tensor, bad: torch.Tensor, what: str):
+    idx = [int(i) for i in torch.nonzero(bad)[0].tolist()]
+    raise ValueError(f"{name} must be {what}, got {t[tuple(idx)].item()} at index {idx} (image {idx[0]})")
+
+
+def _camera_error(i: int, cam: Camera, msg: str) -> ValueError:
+    label = f" ({cam.name!r})" if getattr(cam, "name", "") else ""
+    return ValueError(f"cameras[{i}]{label}: {msg}")
+
+
+@dataclass
+class Scene:
+    """Posed images of one scene, validated on construction.
+
+    Args:
+        cameras: one :class:`~wtopo.Camera` per image, all of the images' size.
+        images: colours in [0, 1], shape [N, H, W, 3], float32 (numpy or torch; stored as a torch
+            tensor on the given device).
+        masks: foreground masks, shape [N, H, W], bool, or ``None``.
+        depths: z-depth in world units, shape [N, H, W], float32; 0 = invalid (NaN/inf entries are
+            stored as 0).
+        normals: world-frame unit normals, shape [N, H, W, 3], float32; 0 = invalid.
+        gt_mesh: ground-truth surface (``trimesh.Trimesh``) in the world frame, for metrics only.
+        bounds: region of interest ``(lower [3], upper [3])`` in world units, or ``None``.
+        points: initial points, shape [P, 3], world units (e.g. COLMAP ``points3D``).
+        point_colors: their colours in [0, 1], shape [P, 3].
+        background: constant background colour (3 floats in [0, 1]) the images were composited
+            on, or ``None`` (a real background is visible).
+        name: label.
+        train_indices: image indices used for fitting, or ``None`` (all).
+        test_indices: held-out image indices, or ``None``.
+        info: free-form metadata from the loader (e.g. DTU's ``scale_mat``).
+
+    Raises:
+        ValueError: a camera with NaN/inf entries, a non-orthonormal or reflecting rotation,
+            focal length <= 0 or a size other than the images' (the message names the camera index
+            and the value); arrays of the wrong shape or out of range.
+
+    Limitations:
+        All images share one size; rescale them first (or load with ``downscale``).
+    """
+
+    cameras: list
+    images: object
+    masks: object = None
+    depths: object = None
+    normals: object = None
+    gt_mesh: object = None
+    bounds: object = None
+    points: object = None
+    point_colors: object = None
+    background: object = None
+    name: str = ""
+    train_indices: object = None
+    test_indices: object = None
+    info: dict = field(default_factory=dict)
+    _norm_cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        cams = list(self.cameras) if not isinstance(self.cameras, Camera) else [self.cameras]
+        if len(cams) == 0:
+            raise ValueError("cameras must hold at least one Camera, got an empty list")
+        checked = []
+        for i, cam in enumerate(cams):
+            if not isinstance(cam, Camera):
+                raise TypeError(f"cameras[{i}] must be a wtopo.Camera, got {type(cam).__name__}")
+            try:  # re-validate: the fields may have been edited after construction
+                checked.append(Camera(cam.K, cam.world_to_camera, cam.width, cam.height, cam.distortion, cam.name))
+            except ValueError as e:
+                raise _camera_error(i, cam, str(e)) from None
+        self.cameras = checked
+        n = len(checked)
+
+        img = _as_float_tensor("images", self.images, (None, None, 3), n)
+        H, W = int(img.shape[1]), int(img.shape[2])
+        for i, cam in enumerate(checked):
+            if cam.width != W or cam.height != H:
+                raise _camera_error(i, cam, f"size {cam.width}x{cam.height} (WxH) does not match the images' {W}x{H}")
+        bad = ~torch.isfinite(img)
+        if bool(bad.any()):
+            _first_bad("images", img, bad, "finite")
+        bad = (img < -_IMAGE_RANGE_TOL) | (img > 1 + _IMAGE_RANGE_TOL)
+        if bool(bad.any()):
+            _first_bad("images", img, bad, "in [0, 1]")
+        self.images = img.clamp(0.0, 1.0).contiguous()
+        dev = self.images.device
+
+        if self.masks is not None:
+            m = self.masks
+            m = m.detach() if isinstance(m, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(np.asarray(m)))
+            if m.dtype != torch.bool:
+                if bool(((m != 0) & (m != 1)).any()):
+                    raise ValueError(f"masks must be bool or 0/1, got values such as {m[(m != 0) & (m != 1)][0].item()}")
+                m = m != 0
+            if tuple(m.shape) != (n, H, W):
+                raise ValueError(f"masks must have shape [{n}, {H}, {W}], got {list(m.shape)}")
+            self.masks = m.to(dev).contiguous()
+        if self.depths is not None:
+            d = _as_float_tensor("depths", self.depths, (H, W), n)
+            d = torch.where(torch.isfinite(d), d, torch.zeros_like(d))
+            if bool((d < 0).any()):
+                _first_bad("depths", d, d < 0, ">= 0 (0 = invalid)")
+            self.depths = d.to(dev).contiguous()
+        if self.normals is not None:
+            nm = _as_float_tensor("normals", self.normals, (H, W, 3), n)
+            nm = torch.where(torch.isfinite(nm), nm, torch.zeros_like(nm))
+            ln = nm.norm(dim=-1)
+            bad = (ln > _UNIT_NORMAL_TOL) & ((ln - 1).abs() > _UNIT_NORMAL_TOL)
+            if bool(bad.any()):
+                _first_bad("normals (norm)", ln, bad, "unit length or 0")
+            self.normals = nm.to(dev).contiguous()
+        if self.bounds is not None:
+            lo, hi = (_to_numpy64(b).reshape(-1) for b in self.bounds)
+            if lo.shape != (3,) or hi.shape != (3,) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+                raise ValueError(f"bounds must be two finite 3-vectors (lower, upper), got {self.bounds!r}")
+            if np.any(hi <= lo):
+                raise ValueError(f"bounds upper must exceed lower on every axis, got lower={lo.tolist()}, upper={hi.tolist()}")
+            self.bounds = (lo, hi)
+        if self.points is not None:
+            p = _to_numpy64(self.points)
+            if p.ndim != 2 or p.shape[1] != 3:
+                raise ValueError(f"points must have shape [P, 3], got {list(p.shape)}")
+            if not np.all(np.isfinite(p)):
+                idx = int(np.argwhere(~np.all(np.isfinite(p), axis=1))[0, 0])
+                raise ValueError(f"points must be finite, got {p[idx].tolist()} at index {idx}")
+            self.points = p
+            if self.point_colors is not None:
+                c = _to_numpy64(self.point_colors)
+                if c.shape != p.shape:
+                    raise ValueError(f"point_colors must have shape {list(p.shape)}, got {list(c.shape)}")
+                if not np.all((c >= 0) & (c <= 1)):
+                    raise ValueError(f"point_colors must be in [0, 1], got range [{c.min()}, {c.max()}]")
+                self.point_colors = c
+        elif self.point_colors is not None:
+            raise ValueError("point_colors given without points")
+        if self.background is not None:
+            b = _to_numpy64(self.background).reshape(-1)
+            if b.shape != (3,) or not np.all((b >= 0) & (b <= 1)):
+                raise ValueError(f"background must be 3 floats in [0, 1] or None, got {self.background!r}")
+            self.background = tuple(float(v) for v in b)
+        for nm_ in ("train_indices", "test_indices"):
+            v = getattr(self, nm_)
+            if v is not None:
+                a = np.asarray(v).reshape(-1)
+                if a.size and (not np.issubdtype(a.dtype, np.integer) or a.min() < 0 or a.max() >= n):
+                    raise ValueError(f"{nm_} must be integers in [0, {n - 1}], got {a.tolist()}")
+                setattr(self, nm_, a.astype(np.int64))
+        if self.gt_mesh is not None:
+            import trimesh
+
+            if not isinstance(self.gt_mesh, trimesh.Trimesh):
+                raise TypeError(f"gt_mesh must be a trimesh.Trimesh, got {type(self.gt_mesh).__name__}")
+
+    # -- basic properties ---------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    @property
+    def width(self) -> int:
+        """Image width in pixels."""
+        return int(self.images.shape[2])
+
+    @property
+    def height(self) -> int:
+        """Image height in pixels."""
+        return int(self.images.shape[1])
+
+    @property
+    def device(self) -> torch.device:
+        """Device of the image tensors."""
+        return self.images.device
+
+    @property
+    def camera_centers(self) -> np.ndarray:
+        """Camera centres in world units, shape [N, 3], float64."""
+        return np.stack([c.center for c in self.cameras])
+
+    def require_views(self, n: int, purpose: str = "fitting") -> None:
+        """Raise ``ValueError`` unless the scene has at least ``n`` cameras."""
+        if len(self.cameras) < n:
+            raise ValueError(f"{purpose} needs at least {n} cameras, got {len(self.cameras)}")
+
+    def to(self, device) -> Scene:
+        """The scene with its tensors on ``device``."""
+        mv = {k: (getattr(self, k).to(device) if getattr(self, k) is not None else None)
+              for k in ("images", "masks", "depths", "normals")}
+        return self._replace(**mv)
+
+    def _replace(self, **kw) -> Scene:
+        return replace(self, **kw)
+
+    # -- selection and resizing ---------------------------------------------------------------
+    def subset(self, indices) -> Scene:
+        """The scene restricted to the images ``indices`` (in that order); the train/test split is
+        re-indexed to the kept images."""
+        idx = np.asarray(indices).reshape(-1)
+        if idx.size == 0 or not np.issubdtype(idx.dtype, np.integer) or idx.min() < -len(self) or idx.max() >= len(self):
+            raise ValueError(f"indices must be a non-empty list of integers in [0, {len(self) - 1}], got {idx.tolist()}")
+        idx = idx % len(self)
+        ti = torch.as_tensor(idx, device=self.device)
+        pos = {int(j): k for k, j in enumerate(idx)}
+
+        def remap(split):
+            if split is None:
+                return None
+            return np.array([pos[int(j)] for j in split if int(j) in pos], dtype=np.int64)
+
+        return self._replace(
+            cameras=[self.cameras[int(i)] for i in idx],
+            images=self.images[ti],
+            masks=None if self.masks is None else self.masks[ti],
+            depths=None if self.depths is None else self.depths[ti],
+            normals=None if self.normals is None else self.normals[ti],
+            train_indices=remap(self.train_indices),
+            test_indices=remap(self.test_indices),
+        )
+
+    def split(self, which: str = "train") -> Scene:
+        """The ``"train"`` or ``"test"`` images as a scene (all images when no split is recorded)."""
+        if which not in ("train", "test"):
+            raise ValueError(f"which must be 'train' or 'test', got {which!r}")
+        idx = self.train_indices if which == "train" else self.test_indices
+        if idx is None:
+            return self.subset(np.arange(len(self)))
+        if len(idx) == 0:
+            raise ValueError(f"scene {self.name!r} has no {which} images")
+        return self.subset(idx)
+
+    def downscaled(self, factor: float) -> Scene:
+        """The scene with images resized by ``1 / factor`` (area averaging for colour, majority for
+        masks, nearest for depth and normals) and intrinsics scaled to match."""
+        f = float(factor)
+        if not math.isfinite(f) or f < 1:
+            raise ValueError(f"factor must be a finite number >= 1, got {factor!r}")
+        if f == 1:
+            return self._replace()
+        cams = [c.scaled(1.0 / f) for c in self.cameras]
+        h, w = cams[0].height, cams[0].width
+        fn = torch.nn.functional
+        img = fn.interpolate(self.images.permute(0, 3, 1, 2), size=(h, w), mode="area").permute(0, 2, 3, 1)
+        masks = depths = normals = None
+        if self.masks is not None:
+            masks = fn.interpolate(self.masks[:, None].float(), size=(h, w), mode="area")[:, 0] >= 0.5
+        if self.depths is not None:
+            depths = fn.interpolate(self.depths[:, None], size=(h, w), mode="nearest-exact")[:, 0]
+        if self.normals is not None:
+            normals = fn.interpolate(self.normals.permute(0, 3, 1, 2), size=(h, w),
+                                     mode="nearest-exact").permute(0, 2, 3, 1)
+        return self._replace(cameras=cams, images=img.contiguous(), masks=masks, depths=depths, normals=normals)
+
+    # -- frames ---------------------------------------------------------------------------------
+    def transformed(self, sim: Similarity) -> Scene:
+        """The scene seen through the similarity ``sim`` (cameras, depths, bounds, points, gt mesh)."""
+        if not isinstance(sim, Similarity):
+            raise TypeError(f"sim must be a wtopo.scene.Similarity, got {type(sim).__name__}")
+        bounds = None
+        if self.bounds is not None:
+            bounds = (sim.to_internal(self.bounds[0]), sim.to_internal(self.bounds[1]))
+        return self._replace(
+            cameras=[sim.to_internal(c) for c in self.cameras],
+            depths=None if self.depths is None else self.depths * float(sim.scale),
+            bounds=bounds,
+            points=None if self.points is None else sim.to_internal(self.points),
+            gt_mesh=None if self.gt_mesh is None else sim.to_internal(self.gt_mesh),
+        )
+
+    def normalization(self, *, margin: float = 0.1) -> Similarity:
+        """The similarity mapping the region of interest into ``[margin, 1 - margin]^3`` (centred,
+        longest side fills it).
+
+        The region of interest is, in order of preference: ``bounds``; the visual hull of the
+        masks; the points seen by at least half of the cameras (2nd-98th percentile box); the
+        region inside at least 90 % of the camera frusta. The ground-truth mesh is never used.
+        The estimate is equivariant under similarities of the input (float64 throughout), so a
+        scene scaled by 1e-3 or moved by 1e4 normalises to the same internal scene.
+
+        Args:
+            margin: empty border on every side of the unit cube, in (0, 0.5).
+
+        Raises:
+            ValueError: the region must come from the cameras but they are fewer than two,
+                coincide, or lie on one line; no region could be found.
+        """
+        m = float(margin)
+        if not (0 <= m < 0.5):
+            raise ValueError(f"margin must be in [0, 0.5), got {margin!r}")
+        if m not in self._norm_cache:
+            lo, hi = self.region_of_interest()
+            ext = float(np.max(hi - lo))
+            scale = (1.0 - 2.0 * m) / ext
+            center = 0.5 * (lo + hi)
+            self._norm_cache[m] = Similarity(scale, tuple(0.5 / scale - center))
+        return self._norm_cache[m]
+
+    def normalized(self, *, margin: float = 0.1) -> Scene:
+        """The scene in the internal frame of :meth:`normalization`; its ``info["world_from_internal"]``
+        holds the inverse :class:`Similarity` so results can be mapped back."""
+        sim = self.normalization(margin=margin)
+        out = self.transformed(sim)
+        out.info = {**self.info, "world_from_internal": sim.inverse(), "normalization": sim}
+        return out
+
+    def region_of_interest(self) -> tuple[np.ndarray, np.ndarray]:
+        """The world-frame box ``(lower [3], upper [3])`` (float64) that :meth:`normalization` fits."""
+        if self.bounds is not None:
+            return self.bounds[0].copy(), self.bounds[1].copy()
+        if self.masks is not None:
+            return _visual_hull_box(self.cameras, self.masks)
+        if self.points is not None and len(self.points) >= 8:
+            box = _points_box(self.cameras, self.points)
+            if box is not None:
+                return box
+        return _visual_hull_box(self.cameras, None)
+
+    # -- output ---------------------------------------------------------------------------------
+    def save(self, path) -> None:
+        """Write the scene in Blender / NeRF-synthetic format (``transforms_train.json``,
+        ``transforms_test.json``, RGBA PNGs; alpha = mask) plus ``gt_mesh.ply`` when present, so
+        :func:`wtopo.load_scene` reads it back. Non-centred or anisotropic intrinsics are written
+        as per-frame ``fl_x, fl_y, cx, cy`` beside ``camera_angle_x``."""
+        from .loaders.blender import write_blender
+
+        write_blender(self, path)
+
+
+# -- region-of-interest estimation (host, float64) ------------------------------------------------
+def _check_camera_spread(centers: np.ndarray, ref_len: float) -> None:
+    n = len(centers)
+    if n < 2:
+        raise ValueError(f"estimating the region of interest from cameras needs at least 2 cameras, got {n}; "
+                         "give Scene(bounds=...)")
+    c = centers - centers.mean(axis=0)
+    sv = np.linalg.svd(c, compute_uv=False)
+    if sv[0] == 0 or sv[0] <= _DEGENERATE_SPREAD * ref_len:
+        raise ValueError(f"all {n} camera centres coincide (cameras[0] at {centers[0].tolist()}); "
+                         "the region of interest cannot be estimated, give Scene(bounds=...)")
+    if sv[1] <= _COLINEAR_RATIO * sv[0]:
+        far = int(np.argmax(np.linalg.norm(c, axis=1)))
+        raise ValueError(f"all {n} camera centres lie on one line (e.g. cameras[0] at {centers[0].tolist()}, "
+                         f"cameras[{far}] at {centers[far].tolist()}); the region of interest cannot be "
+                         "estimated, give Scene(bounds=...)")
+
+
+def _pixel_ray_world(cam: Camera, u: float, v: float) -> np.ndarray:
+    """World direction of the ray through continuous pixel coordinates (u, v)."""
+    y = (v - cam.K[1, 2]) / cam.K[1, 1]
+    x = (u - cam.K[0, 2] - cam.K[0, 1] * y) / cam.K[0, 0]
+    xy = cam.undistort(np.array([[x, y]]))[0]
+    return cam.R.T @ np.array([xy[0], xy[1], 1.0])
+
+
+def _converge_point(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray | None:
+    """Least-squares point closest to the lines ``origins + t dirs`` (None when near-parallel)."""
+    d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    A = P.sum(axis=0)
+    b = np.einsum("nij,nj->i", P, origins)
+    w = np.linalg.eigvalsh(A)
+    if w[0] <= 1e-6 * w[-1]:
+        return None
+    return np.linalg.solve(A, b)
+
+
+def _project_all(cameras, pts: np.ndarray):
+    """Pixel (row, col) int indices and in-image flags of ``pts`` [M, 3] in every camera: ([N, M] x3)."""
+    rows, cols, ok = [], [], []
+    for cam in cameras:
+        uv, z = cam.project(pts)
+        u, v = uv[:, 0], uv[:, 1]
+        good = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        rows.append(np.clip(np.floor(v), 0, cam.height - 1).astype(np.int64))
+        cols.append(np.clip(np.floor(u), 0, cam.width - 1).astype(np.int64))
+        ok.append(good)
+    return np.stack(rows), np.stack(cols), np.stack(ok)
+
+
+def _carve(cameras, masks_np, lo, hi, res):
+    """Centres of the grid cells over [lo, hi] kept by the visual hull (masks) or frustum test."""
+    axes = [lo[k] + (np.arange(res) + 0.5) * (hi[k] - lo[k]) / res for k in range(3)]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    rows, cols, ok = _project_all(cameras, g)
+    n = len(cameras)
+    seen = ok.sum(axis=0)
+    if masks_np is None:
+        keep = seen >= math.ceil(0.9 * n)
+    else:
+        inside = masks_np[np.arange(n)[:, None], rows, cols]
+        rejected = (ok & ~inside).any(axis=0)
+        keep = ~rejected & (seen >= max(min(2, n), math.ceil(0.5 * n)))
+    return g[keep]
+
+
+def _visual_hull_box(cameras, masks) -> tuple[np.ndarray, np.ndarray]:
+    centers = np.stack([c.center for c in cameras])
+    _check_camera_spread(centers, float(np.max(np.abs(centers))))
+    masks_np = None
+    if masks is not None:
+        masks_np = masks.detach().cpu().numpy().astype(bool)
+        if not masks_np.any(axis=(1, 2)).all():
+            i = int(np.argmin(masks_np.any(axis=(1, 2))))
+            raise ValueError(f"masks[{i}] is empty; every image with a mask must show the object")
+        # rays through each mask's centroid converge on the object even for parallel optical axes
+        dirs = []
+        for cam, m in zip(cameras, masks_np):
+            r, c = np.nonzero(m)
+            dirs.append(_pixel_ray_world(cam, c.mean() + 0.5, r.mean() + 0.5))
+        focus = _converge_point(centers, np.stack(dirs))
+    else:
+        focus = _converge_point(centers, np.stack([c.forward for c in cameras]))
+    if focus is None:
+        raise ValueError("the cameras' viewing rays are parallel, so the region of interest cannot be "
+                         "estimated from them; give Scene(bounds=...) or init points")
+    radius = float(np.median(np.linalg.norm(centers - focus, axis=1)))
+    lo, hi = focus - radius, focus + radius
+    for res in _HULL_GRID:
+        kept = _carve(cameras, masks_np, lo, hi, res)
+        if len(kept) == 0:
+            what = "visual hull of the masks" if masks_np is not None else "intersection of the camera frusta"
+            raise ValueError(f"the {what} is empty around {focus.tolist()} (radius {radius:.6g}); "
+                             "give Scene(bounds=...)")
+        cell = (hi - lo) / res
+        lo, hi = kept.min(axis=0) - 1.5 * cell, kept.max(axis=0) + 1.5 * cell
+    return lo, hi
+
+
+def _points_box(cameras, points: np.ndarray):
+    _, _, ok = _project_all(cameras, points)
+    vis = points[ok.sum(axis=0) >= math.ceil(0.5 * len(cameras))]
+    if len(vis) < 8:
+        return None
+    lo, hi = np.percentile(vis, 2, axis=0), np.percentile(vis, 98, axis=0)
+    pad = 0.05 * (hi - lo).max()
+    if pad <= 0:
+        return None
+    return lo - pad, hi + pad
