@@ -1,0 +1,843 @@
+# SPDX-License-Identifier: Apache-2.0
+"""USD timeline of the surfel / proxy-mesh co-evolution (FORMATS.md 2.2).
+
+Stage layout (default prim ``/World``; time code = iteration)::
+
+    /World/Cameras/<cam>          UsdGeom.Camera per scene camera (static)
+    /World/Meshes/<name>          static UsdGeom.Mesh (ground truth, final mesh, ...)
+    /World/ProxyMesh              one UsdGeom.Mesh whose points, faceVertexCounts,
+                                  faceVertexIndices, normals and extent are time-sampled
+    /World/Surfels                UsdGeom.PointInstancer of a disk prototype
+    /World/Surfels/Prototypes/Disk
+    /World/Splats                 UsdVol.ParticleField3DGaussianSplat (when usd-core has it)
+
+Conventions:
+    * Coordinates are written as given (the caller's world or internal frame); ``up_axis`` and
+      ``meters_per_unit`` only describe them.
+    * Meshes: ``subdivisionScheme = none``, right-handed winding, per-vertex area-weighted
+      normals; no GeomSubsets (they hide topology changes in Hydra, OpenUSD#1044).  Arrays of
+      different lengths at neighbouring samples play back held (step animation).
+    * Surfels: the disk prototype has radius 1 in the surfel's tangent plane (local z = 0, normal
+      +z), so with per-instance ``scales = (s0, s1, 1)`` it draws the 1-sigma ellipse.
+      Per-instance primvars (``vertex`` interpolation, one value per instance): ``opacity``,
+      ``displayColor`` (SH DC base colour), ``weight`` (oriented-point weight), ``distance_to_mesh``
+      and ``events`` (int flags, :class:`SurfelEvent`).
+    * Splats: linear values (``opacities`` in [0, 1], linear ``scales`` with a third scale of
+      ``FLAT_SCALE``), ``radiance:sphericalHarmonicsCoefficients`` holds ``N * (d + 1)^2`` float3,
+      particle-major (all coefficients of particle 0, then particle 1, ...).
+    * Cameras (:func:`camera_to_usd` / :func:`camera_from_usd`): the focal length and apertures
+      are in tenths of a scene unit (UsdGeomCamera's unit) on a virtual film
+      ``FILM_WIDTH = 36`` tenths wide: pixel pitch ``36 / W`` horizontally and
+      ``focalLength / fy`` vertically, so ``fx, fy, cx, cy`` round-trip exactly; skew and
+      distortion (which UsdGeomCamera cannot express) are stored in ``wtopo:skew`` and
+      ``wtopo:distortion``.  The pose is a double-precision ``xformOp:transform`` equal to
+      ``camera_to_world`` with the y and z camera axes negated (OpenCV +y down / +z forward to
+      USD's +y up / -z forward).
+    * Samples are never authored twice in a row with the same value: an unchanged array is
+      skipped.  When a float array changes after skipped samples and keeps its length, the held
+      value is written once more at the last skipped time so linear interpolation does not blend
+      across the skipped interval.
+    * Size: surfels cost about ``64 + 44 + 12 K`` bytes per surfel per sample (instancer + splats,
+      ``K`` SH coefficients); the mesh ``~40`` bytes per vertex plus 12 per face, only when it
+      changes.  Above ``max_surfels`` surfels a sample keeps an evenly strided subset of
+      ``max_surfels`` (``np.linspace`` indices, so the subset is deterministic).
+
+Limitations:
+    The stage lives in memory until :meth:`TimelineWriter.flush` / :meth:`TimelineWriter.close`
+    (each writes the whole file atomically); memory grows with the file size.
+"""
+
+from __future__ import annotations
+
+import enum
+import os
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ._common import as_array, atomic_write, normalize_quats, sh_dc_to_rgb
+
+__all__ = ["TimelineWriter", "TimelineStats", "TimelineVerificationError", "SurfelEvent", "Timeline",
+           "TimelineSample", "read_timeline", "read_cameras", "camera_to_usd", "camera_from_usd", "FILM_WIDTH",
+           "FLAT_SCALE", "HAS_SPLAT_SCHEMA"]
+
+FILM_WIDTH = 36.0
+"""Horizontal aperture written for every camera, in tenths of a scene unit (a 36 mm film at
+``metersPerUnit = 0.01``); only ratios matter for the projection."""
+
+FLAT_SCALE = 1e-7
+"""Linear third (normal) scale of surfels written as 3D Gaussian splats (PLY: ``log(FLAT_SCALE)``)."""
+
+DISK_SEGMENTS = 16
+"""Polygon sides of the disk prototype (a regular 16-gon inscribed in the unit circle)."""
+
+_CAMERA_AXES = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV camera axes <-> USD camera axes (an involution)
+
+try:
+    from pxr import UsdVol as _UsdVol
+
+    HAS_SPLAT_SCHEMA = hasattr(_UsdVol, "ParticleField3DGaussianSplat")
+except ImportError:  # usd-core without UsdVol
+    HAS_SPLAT_SCHEMA = False
+"""True when the installed usd-core has ``UsdVol.ParticleField3DGaussianSplat`` (OpenUSD >= 26.03)."""
+
+
+class SurfelEvent(enum.IntFlag):
+    """Per-surfel event flags stored in ``primvars:events`` (bitwise OR)."""
+
+    SPAWNED = 1
+    """Created by densification since the previous sample."""
+    PRUNED = 2
+    """Marked for removal at this sample (still present in it)."""
+    FLIPPED = 4
+    """Normal sign flipped since the previous sample."""
+
+
+class TimelineVerificationError(RuntimeError):
+    """The written USD file, reopened, does not hold what was authored; the target is untouched."""
+
+
+@dataclass
+class TimelineStats:
+    """What :meth:`TimelineWriter.flush` wrote.
+
+    Attributes:
+        path: the file written.
+        samples: number of :meth:`TimelineWriter.add_sample` calls.
+        bytes: file size in bytes.
+        bytes_per_100_samples: ``100 * bytes / samples`` (``bytes`` when there are no samples).
+    """
+
+    path: str
+    samples: int
+    bytes: int
+    bytes_per_100_samples: float
+
+
+def _pxr():
+    from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+
+    return Gf, Sdf, Usd, UsdGeom, Vt
+
+
+def _identifier(name: str) -> str:
+    s = re.sub(r"[^A-Za-z0-9_]", "_", name)
+    return s if s and not s[0].isdigit() else "_" + s
+
+
+# -- cameras ------------------------------------------------------------------------------------
+def camera_to_usd(stage, path: str, camera, *, clipping_range=(0.01, 1000.0)):
+    """Author ``camera`` (a :class:`wtopo.Camera`) as a ``UsdGeom.Camera`` at ``path`` (conventions above).
+
+    Returns:
+        The ``UsdGeom.Camera``.
+    """
+    Gf, Sdf, Usd, UsdGeom, Vt = _pxr()
+    K = camera.K
+    fx, skew, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    pitch_x = FILM_WIDTH / camera.width
+    focal = fx * pitch_x
+    pitch_y = focal / fy
+    cam = UsdGeom.Camera.Define(stage, path)
+    cam.CreateProjectionAttr(UsdGeom.Tokens.perspective)
+    cam.CreateFocalLengthAttr(float(focal))
+    cam.CreateHorizontalApertureAttr(float(FILM_WIDTH))
+    cam.CreateVerticalApertureAttr(float(camera.height * pitch_y))
+    # Film-centre offsets: u grows with +x, v grows with -y (USD +y is up).
+    cam.CreateHorizontalApertureOffsetAttr(float((camera.width / 2 - cx) * pitch_x))
+    cam.CreateVerticalApertureOffsetAttr(float((cy - camera.height / 2) * pitch_y))
+    near, far = (float(v) for v in clipping_range)
+    if not 0 < near < far < float("inf"):
+        raise ValueError(f"clipping_range must satisfy 0 < near < far < inf, got {clipping_range!r}")
+    cam.CreateClippingRangeAttr(Gf.Vec2f(near, far))
+    xf = cam.AddTransformOp(precision=UsdGeom.XformOp.PrecisionDouble)
+    xf.Set(Gf.Matrix4d((camera.camera_to_world @ _CAMERA_AXES).T.tolist()))  # Gf is row-vector
+    prim = cam.GetPrim()
+    prim.CreateAttribute("wtopo:imageSize", Sdf.ValueTypeNames.Int2, custom=True).Set(
+        Gf.Vec2i(camera.width, camera.height))
+    if skew != 0:
+        prim.CreateAttribute("wtopo:skew", Sdf.ValueTypeNames.Double, custom=True).Set(float(skew))
+    if camera.distortion is not None:
+        prim.CreateAttribute("wtopo:distortion", Sdf.ValueTypeNames.DoubleArray, custom=True).Set(
+            Vt.DoubleArray([float(v) for v in camera.distortion]))
+    if camera.name:
+        prim.CreateAttribute("wtopo:name", Sdf.ValueTypeNames.String, custom=True).Set(camera.name)
+    return cam
+
+
+def camera_from_usd(usd_camera):
+    """Rebuild a :class:`wtopo.Camera` from a ``UsdGeom.Camera`` written by :func:`camera_to_usd`.
+
+    Cameras from other tools work too when they carry ``wtopo:imageSize`` or when the caller is
+    content with a width of ``round(horizontalAperture / verticalAperture * 1000)``-free default:
+    without ``wtopo:imageSize`` a 1000-pixel-wide image with square pixels is assumed.
+    """
+    from ..camera import Camera
+
+    prim = usd_camera.GetPrim()
+    size = prim.GetAttribute("wtopo:imageSize")
+    ha = usd_camera.GetHorizontalApertureAttr().Get()
+    va = usd_camera.GetVerticalApertureAttr().Get()
+    focal = usd_camera.GetFocalLengthAttr().Get()
+    if size and size.HasAuthoredValue():
+        w, h = (int(v) for v in size.Get())
+    else:
+        w = 1000
+        h = max(1, round(w * va / ha))
+    pitch_x, pitch_y = ha / w, va / h
+    fx, fy = focal / pitch_x, focal / pitch_y
+    cx = w / 2 - usd_camera.GetHorizontalApertureOffsetAttr().Get() / pitch_x
+    cy = h / 2 + usd_camera.GetVerticalApertureOffsetAttr().Get() / pitch_y
+    skew_attr = prim.GetAttribute("wtopo:skew")
+    skew = float(skew_attr.Get()) if skew_attr and skew_attr.HasAuthoredValue() else 0.0
+    K = np.array([[fx, skew, cx], [0, fy, cy], [0, 0, 1.0]])
+    from pxr import Usd
+
+    c2w_usd = np.array(usd_camera.ComputeLocalToWorldTransform(Usd.TimeCode.Default()), dtype=np.float64).T
+    c2w = c2w_usd @ _CAMERA_AXES
+    w2c = np.eye(4)
+    w2c[:3, :3] = c2w[:3, :3].T
+    w2c[:3, 3] = -c2w[:3, :3].T @ c2w[:3, 3]
+    dist = prim.GetAttribute("wtopo:distortion")
+    distortion = np.array(dist.Get(), dtype=np.float64) if dist and dist.HasAuthoredValue() else None
+    name_attr = prim.GetAttribute("wtopo:name")
+    name = name_attr.Get() if name_attr and name_attr.HasAuthoredValue() else prim.GetName()
+    return Camera(K, w2c, w, h, distortion, name)
+
+
+def read_cameras(path_or_stage) -> list:
+    """All ``UsdGeom.Camera`` prims of a stage (or file), in stage order, as :class:`wtopo.Camera`."""
+    _, _, Usd, UsdGeom, _ = _pxr()
+    stage = Usd.Stage.Open(os.fspath(path_or_stage)) if isinstance(path_or_stage, (str, os.PathLike)) else path_or_stage
+    return [camera_from_usd(UsdGeom.Camera(p)) for p in stage.Traverse() if p.IsA(UsdGeom.Camera)]
+
+
+# -- geometry helpers ---------------------------------------------------------------------------
+def _vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals (unit; +z for isolated vertices) [V, 3] float32."""
+    v = verts.astype(np.float64)
+    n = np.zeros_like(v)
+    if faces.size:
+        fn = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
+        for k in range(3):
+            np.add.at(n, faces[:, k], fn)
+    ln = np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.where(ln > 0, n / np.where(ln > 0, ln, 1), np.array([0.0, 0.0, 1.0]))
+    return n.astype(np.float32)
+
+
+def _extent(points: np.ndarray, pad: float = 0.0) -> np.ndarray:
+    if len(points) == 0:
+        return np.zeros((2, 3), np.float32)
+    return np.stack([points.min(0) - pad, points.max(0) + pad]).astype(np.float32)
+
+
+def _mesh_arrays(verts, faces, prefix: str) -> tuple[np.ndarray, np.ndarray]:
+    verts = as_array(f"{prefix}verts", verts, shape=(None, 3))
+    faces = as_array(f"{prefix}faces", faces, shape=(None, 3), dtype=np.int32)
+    if faces.size and (faces.min() < 0 or faces.max() >= len(verts)):
+        raise ValueError(f"{prefix}faces must index [0, {len(verts)}), got range [{faces.min()}, {faces.max()}]")
+    return verts, faces
+
+
+class _Track:
+    """One time-sampled attribute: skips repeats, writes hold keys (module docstring)."""
+
+    def __init__(self, attr, make_vt, interpolates: bool):
+        self.attr, self.make_vt, self.interpolates = attr, make_vt, interpolates
+        self.last = None
+        self.last_vt = None
+        self.skipped_at = None
+        self.count = 0
+
+    def unchanged(self, t: float) -> None:
+        if self.last is not None:
+            self.skipped_at = t
+
+    def set(self, value: np.ndarray, t: float) -> None:
+        if self.last is not None and value.shape == self.last.shape and np.array_equal(value, self.last):
+            self.skipped_at = t
+            return
+        if self.skipped_at is not None and self.interpolates and value.shape == self.last.shape:
+            self.attr.Set(self.last_vt, self.skipped_at)
+            self.count += 1
+        vt = self.make_vt(value)
+        self.attr.Set(vt, t)
+        self.count += 1
+        self.last, self.last_vt, self.skipped_at = value, vt, None
+
+
+def _export_layer(layer, path: str) -> None:
+    """Write ``layer`` to ``path`` (a separate function so tests can simulate a silent failed save)."""
+    if not layer.Export(path):
+        raise TimelineVerificationError(f"Sdf.Layer.Export reported failure writing {path}")
+
+
+class TimelineWriter:
+    """Writes the co-evolution timeline as a ``.usdc`` stage (layout and conventions: module docstring).
+
+    Args:
+        path: output file (``.usdc``, ``.usda`` or ``.usd``); only written by :meth:`flush` /
+            :meth:`close`, atomically.
+        up_axis: ``"Y"`` or ``"Z"``, the up axis of the given coordinates.
+        meters_per_unit: size of one scene unit in metres (e.g. 0.001 for DTU millimetres).
+        time_codes_per_second: playback rate, in iterations per second (time code = iteration).
+        max_surfels: surfels per sample above which an evenly strided subset is written.
+        splats: also write ``UsdVol.ParticleField3DGaussianSplat`` (ignored when usd-core lacks it).
+
+    Example::
+
+        w = TimelineWriter(out_dir / "timeline.usdc")
+        w.add_cameras(scene.cameras)
+        for it in ...:
+            w.add_sample(it, mesh_verts=v, mesh_faces=f, means=m, quats=q, scales=s,
+                         opacities=o, colors_or_sh=sh)
+        w.add_mesh("final", v, f)
+        stats = w.close()
+
+    Limitations:
+        The whole stage is kept in memory until written (see the module docstring for sizes).
+    """
+
+    def __init__(self, path: str | os.PathLike, *, up_axis: str = "Y", meters_per_unit: float = 1.0,
+                 time_codes_per_second: float = 100.0, max_surfels: int = 100_000, splats: bool = True):
+        Gf, Sdf, Usd, UsdGeom, Vt = _pxr()
+        self.path = os.fspath(path)
+        if os.path.splitext(self.path)[1] not in (".usdc", ".usda", ".usd"):
+            raise ValueError(f"path must end in .usdc, .usda or .usd, got {self.path!r}")
+        if up_axis not in ("Y", "Z"):
+            raise ValueError(f"up_axis must be 'Y' or 'Z', got {up_axis!r}")
+        if not (meters_per_unit > 0 and np.isfinite(meters_per_unit)):
+            raise ValueError(f"meters_per_unit must be > 0 and finite, got {meters_per_unit!r}")
+        if not (time_codes_per_second > 0 and np.isfinite(time_codes_per_second)):
+            raise ValueError(f"time_codes_per_second must be > 0 and finite, got {time_codes_per_second!r}")
+        if isinstance(max_surfels, bool) or int(max_surfels) != max_surfels or max_surfels < 1:
+            raise ValueError(f"max_surfels must be a positive integer, got {max_surfels!r}")
+        self.max_surfels = int(max_surfels)
+        self.stage = Usd.Stage.CreateInMemory()
+        st = self.stage
+        UsdGeom.SetStageUpAxis(st, UsdGeom.Tokens.y if up_axis == "Y" else UsdGeom.Tokens.z)
+        UsdGeom.SetStageMetersPerUnit(st, float(meters_per_unit))
+        st.SetTimeCodesPerSecond(float(time_codes_per_second))
+        st.SetFramesPerSecond(float(time_codes_per_second))
+        world = UsdGeom.Xform.Define(st, "/World")
+        st.SetDefaultPrim(world.GetPrim())
+        self._iterations: list[int] = []
+        self._cam_names: set[str] = set()
+        self._closed = False
+        self._proxy = None
+        self._instancer = None
+        self._splat = None
+        self._splat_k = None
+        self._tracks: dict[str, _Track] = {}
+        self._splats = bool(splats) and HAS_SPLAT_SCHEMA
+
+    # -- static content ------------------------------------------------------------------------
+    def add_cameras(self, cameras, images=None, *, clipping_range=(0.01, 1000.0)) -> list[str]:
+        """Add scene cameras as ``UsdGeom.Camera`` prims under ``/World/Cameras``.
+
+        Args:
+            cameras: list of :class:`wtopo.Camera`.
+            images: optional [N, H, W, 3] (or list of [H, W, 3]) float in [0, 1] or uint8 images,
+                one per camera; saved as PNG in ``<stem>_images/`` beside the output file and
+                referenced from each camera's ``wtopo:image`` asset attribute (relative path).
+            clipping_range: (near, far) in scene units.
+
+        Returns:
+            The prim paths written.
+        """
+        from ..camera import Camera
+
+        Gf, Sdf, Usd, UsdGeom, Vt = _pxr()
+        self._check_open()
+        cameras = list(cameras)
+        for i, c in enumerate(cameras):
+            if not isinstance(c, Camera):
+                raise TypeError(f"cameras[{i}] must be a wtopo.Camera, got {type(c).__name__}")
+        if images is not None and len(images) != len(cameras):
+            raise ValueError(f"images must hold one image per camera ({len(cameras)}), got {len(images)}")
+        UsdGeom.Scope.Define(self.stage, "/World/Cameras")
+        paths = []
+        for i, c in enumerate(cameras):
+            base = _identifier(os.path.splitext(os.path.basename(c.name))[0] if c.name else f"camera_{i:04d}")
+            name, k = base, 1
+            while name in self._cam_names:
+                name, k = f"{base}_{k}", k + 1
+            self._cam_names.add(name)
+            cam = camera_to_usd(self.stage, f"/World/Cameras/{name}", c, clipping_range=clipping_range)
+            if images is not None:
+                rel = self._save_image(images[i], name)
+                cam.GetPrim().CreateAttribute("wtopo:image", Sdf.ValueTypeNames.Asset, custom=True).Set(
+                    Sdf.AssetPath(rel))
+            paths.append(str(cam.GetPath()))
+        return paths
+
+    def _save_image(self, image, name: str) -> str:
+        from PIL import Image
+
+        img = image.detach().cpu().numpy() if hasattr(image, "detach") else np.asarray(image)
+        if img.ndim != 3 or img.shape[2] not in (3, 4):
+            raise ValueError(f"images must be [H, W, 3|4] each, got shape {list(img.shape)}")
+        if img.dtype != np.uint8:
+            img = (np.clip(np.nan_to_num(img.astype(np.float64)), 0, 1) * 255 + 0.5).astype(np.uint8)
+        stem = os.path.splitext(os.path.basename(self.path))[0]
+        folder = os.path.join(os.path.dirname(os.path.abspath(self.path)), f"{stem}_images")
+        os.makedirs(folder, exist_ok=True)
+        Image.fromarray(img).save(os.path.join(folder, f"{name}.png"))
+        return f"./{stem}_images/{name}.png"
+
+    def add_mesh(self, name: str, verts, faces, *, color=(0.7, 0.7, 0.7)) -> str:
+        """Add a static (untimed) mesh at ``/World/Meshes/<name>`` (e.g. ``"ground_truth"``, ``"final"``).
+
+        Args:
+            name: prim name (invalid characters become ``_``).
+            verts: [V, 3] float vertices, scene units.
+            faces: [F, 3] int vertex indices.
+            color: display colour (3 floats in [0, 1]).
+
+        Returns:
+            The prim path.
+        """
+        Gf, Sdf, Usd, UsdGeom, Vt = _pxr()
+        self._check_open()
+        verts, faces = _mesh_arrays(verts, faces, "")
+        UsdGeom.Scope.Define(self.stage, "/World/Meshes")
+        mesh = UsdGeom.Mesh.Define(self.stage, f"/World/Meshes/{_identifier(name)}")
+        self._mesh_schema(mesh, color)
+        mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(verts))
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.reshape(-1)))
+        mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(_vertex_normals(verts, faces)))
+        mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(_extent(verts)))
+        return str(mesh.GetPath())
+
+    @staticmethod
+    def _mesh_schema(mesh, color) -> None:
+        Gf, Sdf, Usd, UsdGeom, Vt = _pxr()
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+        mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+        mesh.CreateDisplayColorAttr(Vt.Vec3fArray([Gf.Vec3f(*(float(c) for c in color))]))
+
+    # -- time samples --------------------------------------------------------------------------
+    def _track(self, key: str, attr, make_vt, interpolates: bool) -> _Track:
+        if key not in self._tracks:
+            self._tracks[key] = _Track(attr, make_vt, interpolates)
+        return self._tracks[key]
+
+    def _ensure_proxy(self):
+        Gf, Sdf, Usd, UsdGeom, Vt = _pxr()
+        if self._proxy is None:
+            m = UsdGeom.Mesh.Define(self.stage, "/World/ProxyMesh")
+            self._mesh_schema(m, (0.8, 0.6, 0.3))
+            v3, ia = Vt.Vec3fArray.FromNumpy, Vt.IntArray.FromNumpy
+            self._track("mesh.points", m.CreatePointsAttr(), v3, True)
+            self._track("mesh.counts", m.CreateFaceVertexCountsAttr(), ia, False)
+            self._track("mesh.indices", m.CreateFaceVertexIndicesAttr(), lambda a: ia(a.reshape(-1)), False)
+            self._track("mesh.normals", m.CreateNormalsAttr(), v3, True)
+            self._track("mesh.extent", m.CreateExtentAttr(), v3, True)
+            self._proxy = m
+        return self._proxy
+
+    def _ensure_instancer(self):
+        Gf, Sdf, Usd, UsdGeom, Vt = _pxr()
+        if self._instancer is not None:
+            return self._instancer
+        inst = UsdGeom.PointInstancer.Define(self.stage, "/World/Surfels")
+        UsdGeom.Scope.Define(self.stage, "/World/Surfels/Prototypes")
+        disk = UsdGeom.Mesh.Define(self.stage, "/World/Surfels/Prototypes/Disk")
+        a = np.linspace(0, 2 * np.pi, DISK_SEGMENTS, endpoint=False)
+        ring = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1).astype(np.float32)
+        disk.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        disk.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(ring))
+        disk.CreateFaceVertexCountsAttr(Vt.IntArray([DISK_SEGMENTS]))
+        disk.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.arange(DISK_SEGMENTS, dtype=np.int32)))
+        disk.CreateNormalsAttr(Vt.Vec3fArray([Gf.Vec3f(0, 0, 1)]))
+        disk.SetNormalsInterpolation(UsdGeom.Tokens.constant)
+        disk.CreateDoubleSidedAttr(True)
+        disk.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-1, -1, 0), Gf.Vec3f(1, 1, 0)]))
+        inst.CreatePrototypesRel().SetTargets([disk.GetPath()])
+        v3, fa, ia = Vt.Vec3fArray.FromNumpy, Vt.FloatArray.FromNumpy, Vt.IntArray.FromNumpy
+        self._track("inst.positions", inst.CreatePositionsAttr(), v3, True)
+        self._track("inst.orientations", inst.CreateOrientationsAttr(), Vt.QuathArray.FromNumpy, True)
+        self._track("inst.scales", inst.CreateScalesAttr(), v3, True)
+        self._track("inst.protoIndices", inst.CreateProtoIndicesAttr(), ia, False)
+        self._track("inst.extent", inst.CreateExtentAttr(), v3, True)
+        pv = UsdGeom.PrimvarsAPI(inst)
+        vtx = UsdGeom.Tokens.vertex
+        names = Sdf.ValueTypeNames
+        self._track("inst.opacity", pv.CreatePrimvar("opacity", names.FloatArray, vtx).GetAttr(), fa, True)
+        self._track("inst.color", pv.CreatePrimvar("displayColor", names.Color3fArray, vtx).GetAttr(), v3, True)
+        self._track("inst.weight", pv.CreatePrimvar("weight", names.FloatArray, vtx).GetAttr(), fa, True)
+        self._track("inst.distance", pv.CreatePrimvar("distance_to_mesh", names.FloatArray, vtx).GetAttr(), fa, True)
+        self._track("inst.events", pv.CreatePrimvar("events", names.IntArray, vtx).GetAttr(), ia, False)
+        self._instancer = inst
+        return inst
+
+    def _ensure_splat(self, k: int):
+        Gf, Sdf, Usd, UsdGeom, Vt = _pxr()
+        if self._splat is None:
+            sp = _UsdVol.ParticleField3DGaussianSplat.Define(self.stage, "/World/Splats")
+            sp.CreateRadianceSphericalHarmonicsDegreeAttr(int(round(np.sqrt(k))) - 1)
+            v3 = Vt.Vec3fArray.FromNumpy
+            self._track("splat.positions", sp.CreatePositionsAttr(), v3, True)
+            self._track("splat.orientations", sp.CreateOrientationsAttr(), Vt.QuatfArray.FromNumpy, True)
+            self._track("splat.scales", sp.CreateScalesAttr(), v3, True)
+            self._track("splat.opacities", sp.CreateOpacitiesAttr(), Vt.FloatArray.FromNumpy, True)
+            self._track("splat.sh", sp.CreateRadianceSphericalHarmonicsCoefficientsAttr(),
+                        lambda a: v3(a.reshape(-1, 3)), True)
+            self._track("splat.extent", sp.CreateExtentAttr(), v3, True)
+            self._splat, self._splat_k = sp, k
+        elif k != self._splat_k:
+            raise ValueError(f"colors_or_sh must keep K = {self._splat_k} SH coefficients across samples "
+                             f"(radiance:sphericalHarmonicsDegree is uniform), got K = {k}")
+        return self._splat
+
+    def add_sample(self, iteration: int, *, mesh_verts=None, mesh_faces=None, means=None, quats=None, scales=None,
+                   opacities=None, colors_or_sh=None, point_weight=None, distance_to_mesh=None,
+                   events=None) -> None:
+        """Record the state at ``iteration`` (time code = iteration; must increase).
+
+        Pass the mesh (``mesh_verts`` and ``mesh_faces``) and/or the surfels (``means``, ``quats``,
+        ``scales``, ``opacities``, ``colors_or_sh`` together); a part left out is unchanged since
+        the previous sample.  Values equal to the previous sample are not authored again.
+
+        Args:
+            iteration: non-negative int, larger than the previous sample's.
+            mesh_verts: proxy-mesh vertices [V, 3] float, scene units.
+            mesh_faces: proxy-mesh faces [F, 3] int.
+            means: surfel centres [N, 3].
+            quats: surfel rotations [N, 4] (w, x, y, z), any norm.
+            scales: linear tangent scales [N, 2].
+            opacities: opacities [N] in [0, 1].
+            colors_or_sh: RGB [N, 3] in [0, 1] or SH coefficients [N, K, 3] (K fixed for the run).
+            point_weight: oriented-point weight per surfel [N] (default 1).
+            distance_to_mesh: unsigned distance from each surfel centre to the proxy mesh [N]
+                (default 0).
+            events: :class:`SurfelEvent` flags per surfel [N] int (default 0).
+
+        Raises:
+            TypeError, ValueError: bad shapes, non-finite values, a non-increasing iteration, or
+                only part of the mesh / surfel arrays given.
+        """
+        from .ply import surfel_arrays
+
+        Gf, Sdf, Usd, UsdGeom, Vt = _pxr()
+        self._check_open()
+        if isinstance(iteration, bool) or int(iteration) != iteration or iteration < 0:
+            raise ValueError(f"iteration must be a non-negative integer, got {iteration!r}")
+        it = int(iteration)
+        if self._iterations and it <= self._iterations[-1]:
+            raise ValueError(f"iteration must increase, got {it} after {self._iterations[-1]}")
+        if (mesh_verts is None) != (mesh_faces is None):
+            raise ValueError("mesh_verts and mesh_faces must be given together")
+        surf = (means, quats, scales, opacities, colors_or_sh)
+        if any(a is None for a in surf) and not all(a is None for a in surf):
+            raise ValueError("means, quats, scales, opacities and colors_or_sh must be given together")
+        mesh = None if mesh_verts is None else _mesh_arrays(mesh_verts, mesh_faces, "mesh_")
+        s = extras = None
+        if means is not None:
+            s = surfel_arrays(means, quats, scales, opacities, colors_or_sh)
+            n = len(s)
+            extras = [
+                np.ones(n, np.float32) if point_weight is None else as_array("point_weight", point_weight, shape=(n,)),
+                np.zeros(n, np.float32) if distance_to_mesh is None
+                else as_array("distance_to_mesh", distance_to_mesh, shape=(n,)),
+                np.zeros(n, np.int32) if events is None else as_array("events", events, shape=(n,), dtype=np.int32),
+            ]
+        elif any(a is not None for a in (point_weight, distance_to_mesh, events)):
+            raise ValueError("point_weight, distance_to_mesh and events need the surfel arrays (means, ...)")
+        t = float(it)
+        if mesh is not None:  # prims are defined outside the change block (UsdStage cannot inside it)
+            self._ensure_proxy()
+        if s is not None:
+            self._ensure_instancer()
+            if self._splats:
+                self._ensure_splat(s.sh.shape[1])
+        with Sdf.ChangeBlock():
+            self._write_mesh(mesh, t)
+            self._write_surfels(s, extras, t)
+        self._iterations.append(it)
+
+    def _write_mesh(self, mesh, t: float) -> None:
+        if mesh is None:
+            for key in ("points", "counts", "indices", "normals", "extent"):
+                if f"mesh.{key}" in self._tracks:
+                    self._tracks[f"mesh.{key}"].unchanged(t)
+            return
+        verts, faces = mesh
+        tr = self._tracks
+        tr["mesh.points"].set(verts, t)
+        tr["mesh.counts"].set(np.full(len(faces), 3, np.int32), t)
+        tr["mesh.indices"].set(faces, t)
+        tr["mesh.normals"].set(_vertex_normals(verts, faces), t)
+        tr["mesh.extent"].set(_extent(verts), t)
+
+    def _write_surfels(self, s, extras, t: float) -> None:
+        keys = [k for k in self._tracks if k.startswith(("inst.", "splat."))]
+        if s is None:
+            for k in keys:
+                self._tracks[k].unchanged(t)
+            return
+        weight, dist, events = extras
+        if len(s) > self.max_surfels:  # documented decimation: deterministic strided subset
+            idx = np.linspace(0, len(s) - 1, self.max_surfels).round().astype(np.int64)
+            s = type(s)(s.means[idx], s.quats[idx], s.scales[idx], s.opacities[idx], s.sh[idx])
+            weight, dist, events = weight[idx], dist[idx], events[idx]
+        n = len(s)
+        tr = self._tracks
+        xyzw = np.ascontiguousarray(s.quats[:, [1, 2, 3, 0]])  # Gf quaternions are (imaginary, real) in NumPy
+        scale3 = np.concatenate([s.scales, np.ones((n, 1), np.float32)], axis=1)
+        radius = float(s.scales.max()) if n else 0.0
+        tr["inst.positions"].set(s.means, t)
+        tr["inst.orientations"].set(xyzw.astype(np.float16), t)
+        tr["inst.scales"].set(scale3, t)
+        tr["inst.protoIndices"].set(np.zeros(n, np.int32), t)
+        tr["inst.extent"].set(_extent(s.means, radius), t)
+        tr["inst.opacity"].set(s.opacities, t)
+        tr["inst.color"].set(sh_dc_to_rgb(s.sh[:, 0]).astype(np.float32), t)
+        tr["inst.weight"].set(weight, t)
+        tr["inst.distance"].set(dist, t)
+        tr["inst.events"].set(events, t)
+        if self._splats:
+            scale3[:, 2] = FLAT_SCALE
+            tr["splat.positions"].set(s.means, t)
+            tr["splat.orientations"].set(xyzw, t)
+            tr["splat.scales"].set(scale3, t)
+            tr["splat.opacities"].set(s.opacities, t)
+            tr["splat.sh"].set(s.sh, t)
+            tr["splat.extent"].set(_extent(s.means, 3 * radius), t)
+
+    # -- output --------------------------------------------------------------------------------
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RuntimeError(f"TimelineWriter for {self.path} is closed")
+
+    @property
+    def iterations(self) -> list[int]:
+        """Iterations sampled so far."""
+        return list(self._iterations)
+
+    def flush(self) -> TimelineStats:
+        """Write the stage so far to :attr:`path`: temporary file, reopen and verify, rename.
+
+        Raises:
+            TimelineVerificationError: the reopened file differs from what was authored (prim
+                count, per-sample array lengths, face indices out of range, non-finite values,
+                sample counts); the temporary file is removed and ``path`` left untouched.
+        """
+        self._check_open()
+        st = self.stage
+        if self._iterations:
+            st.SetStartTimeCode(float(self._iterations[0]))
+            st.SetEndTimeCode(float(self._iterations[-1]))
+        st.GetRootLayer().customLayerData = {"wtopo:samples": len(self._iterations)}
+        expected_prims = sum(1 for _ in st.TraverseAll())
+        expected_counts = {k: tr.count for k, tr in self._tracks.items()}
+        attr_paths = {k: tr.attr.GetPath() for k, tr in self._tracks.items()}
+        ext = os.path.splitext(self.path)[1]
+
+        def verify(tmp: str) -> None:
+            _verify_file(tmp, expected_prims, {str(attr_paths[k]): c for k, c in expected_counts.items()})
+
+        atomic_write(self.path, lambda tmp: _export_layer(st.GetRootLayer(), tmp), verify=verify, suffix=ext)
+        size = os.path.getsize(self.path)
+        n = len(self._iterations)
+        return TimelineStats(self.path, n, size, 100.0 * size / n if n else float(size))
+
+    def close(self) -> TimelineStats:
+        """:meth:`flush`, then release the in-memory stage; later calls raise ``RuntimeError``."""
+        stats = self.flush()
+        self._closed = True
+        self.stage = None
+        self._tracks = {}
+        return stats
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None and not self._closed:
+            self.close()
+
+
+# -- verification and reading -------------------------------------------------------------------
+def _all_times(attrs) -> list[float]:
+    times = set()
+    for a in attrs:
+        times.update(a.GetTimeSamples())
+    return sorted(times)
+
+
+def _check_finite(what: str, value) -> None:
+    a = np.asarray(value)
+    if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+        raise TimelineVerificationError(f"{what} holds non-finite values")
+
+
+def _verify_file(path: str, expected_prims: int, expected_counts: dict[str, int]) -> None:
+    """Reopen ``path`` and check it holds what the writer authored (see :meth:`TimelineWriter.flush`)."""
+    _, Sdf, Usd, UsdGeom, _ = _pxr()
+    if os.path.getsize(path) == 0:
+        raise TimelineVerificationError(f"{path} is empty after saving (OpenUSD#3659)")
+    layer = Sdf.Layer.OpenAsAnonymous(path)  # bypass the layer registry: read what is on disk
+    if layer is None:
+        raise TimelineVerificationError(f"{path} cannot be reopened as a USD layer")
+    stage = Usd.Stage.Open(layer)
+    prims = list(stage.TraverseAll())
+    if len(prims) != expected_prims:
+        raise TimelineVerificationError(f"{path} holds {len(prims)} prims, expected {expected_prims}")
+    for attr_path, count in expected_counts.items():
+        attr = stage.GetAttributeAtPath(attr_path)
+        got = attr.GetNumTimeSamples() if attr else -1
+        if got != count:
+            raise TimelineVerificationError(f"{attr_path} has {got} time samples, expected {count}")
+    for prim in prims:
+        if prim.IsA(UsdGeom.Mesh):
+            _verify_mesh(UsdGeom.Mesh(prim))
+        elif prim.IsA(UsdGeom.PointInstancer):
+            _verify_lengths(prim, ["positions", "orientations", "scales", "protoIndices", "primvars:opacity",
+                                   "primvars:displayColor", "primvars:weight", "primvars:distance_to_mesh",
+                                   "primvars:events"], {})
+        elif HAS_SPLAT_SCHEMA and prim.IsA(_UsdVol.ParticleField3DGaussianSplat):
+            k = (prim.GetAttribute("radiance:sphericalHarmonicsDegree").Get() + 1) ** 2
+            _verify_lengths(prim, ["positions", "orientations", "scales", "opacities"],
+                            {"radiance:sphericalHarmonicsCoefficients": k})
+        elif prim.IsA(UsdGeom.Camera):
+            xf = UsdGeom.Camera(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+            _check_finite(f"{prim.GetPath()} transform", np.array(xf))
+
+
+def _verify_mesh(mesh) -> None:
+    attrs = [mesh.GetPointsAttr(), mesh.GetFaceVertexCountsAttr(), mesh.GetFaceVertexIndicesAttr(),
+             mesh.GetNormalsAttr(), mesh.GetExtentAttr()]
+    from pxr import Usd
+
+    for t in _all_times(attrs) or [Usd.TimeCode.Default()]:
+        pts, counts, idx, nrm, ext = (np.asarray(a.Get(t)) if a.Get(t) is not None else None for a in attrs)
+        where = f"{mesh.GetPath()} at time {t}"
+        if pts is None or counts is None or idx is None:
+            raise TimelineVerificationError(f"{where}: points / faceVertexCounts / faceVertexIndices missing")
+        if int(counts.sum()) != len(idx):
+            raise TimelineVerificationError(f"{where}: faceVertexCounts sum {counts.sum()} != {len(idx)} indices")
+        if len(idx) and (idx.min() < 0 or idx.max() >= len(pts)):
+            raise TimelineVerificationError(f"{where}: face indices [{idx.min()}, {idx.max()}] outside "
+                                            f"[0, {len(pts)}) points")
+        if nrm is not None and len(nrm) not in (len(pts), 1):
+            raise TimelineVerificationError(f"{where}: {len(nrm)} normals for {len(pts)} points")
+        for nm, v in (("points", pts), ("normals", nrm), ("extent", ext)):
+            if v is not None:
+                _check_finite(f"{where} {nm}", v)
+
+
+def _verify_lengths(prim, names: list[str], multiples: dict[str, int]) -> None:
+    attrs = [prim.GetAttribute(n) for n in names + list(multiples)]
+    for t in _all_times(attrs):
+        values = [np.asarray(a.Get(t)) for a in attrs]
+        n = len(values[0])
+        for name, v in zip(names + list(multiples), values):
+            want = n * multiples.get(name, 1)
+            if len(v) != want:
+                raise TimelineVerificationError(f"{prim.GetPath()} at time {t}: {name} has {len(v)} values, "
+                                                f"expected {want}")
+            _check_finite(f"{prim.GetPath()} {name} at time {t}", v)
+
+
+@dataclass
+class TimelineSample:
+    """The proxy mesh and surfel count at one sampled iteration.
+
+    Attributes:
+        iteration: the time code.
+        verts: [V, 3] float32 (empty when no mesh has been sampled yet).
+        faces: [F, 3] int32.
+        num_surfels: surfels written at this sample (after decimation).
+    """
+
+    iteration: int
+    verts: np.ndarray
+    faces: np.ndarray
+    num_surfels: int
+
+
+@dataclass
+class Timeline:
+    """What :func:`read_timeline` returns.
+
+    Attributes:
+        samples: one :class:`TimelineSample` per sampled iteration, ascending.
+        meshes: static meshes by prim name, each ``(verts [V, 3] float32, faces [F, 3] int32)``.
+        cameras: the scene cameras (:class:`wtopo.Camera`).
+        up_axis: ``"Y"`` or ``"Z"``.
+        meters_per_unit: stage metersPerUnit.
+        time_codes_per_second: stage timeCodesPerSecond.
+    """
+
+    samples: list[TimelineSample]
+    meshes: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    cameras: list = field(default_factory=list)
+    up_axis: str = "Y"
+    meters_per_unit: float = 1.0
+    time_codes_per_second: float = 24.0
+
+    @property
+    def iterations(self) -> list[int]:
+        """Sampled iterations, ascending."""
+        return [s.iteration for s in self.samples]
+
+
+def _mesh_at(mesh, t) -> tuple[np.ndarray, np.ndarray]:
+    pts = mesh.GetPointsAttr().Get(t)
+    idx = mesh.GetFaceVertexIndicesAttr().Get(t)
+    counts = mesh.GetFaceVertexCountsAttr().Get(t)
+    verts = np.asarray(pts, np.float32).reshape(-1, 3) if pts is not None else np.zeros((0, 3), np.float32)
+    idx = np.asarray(idx, np.int32) if idx is not None else np.zeros(0, np.int32)
+    counts = np.asarray(counts, np.int32) if counts is not None else np.zeros(0, np.int32)
+    if np.all(counts == 3):
+        return verts, idx.reshape(-1, 3)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])  # fan-triangulate polygons from other tools
+    tris = [[idx[s], idx[s + j], idx[s + j + 1]] for s, c in zip(starts, counts) for j in range(1, c - 1)]
+    return verts, np.asarray(tris, np.int32).reshape(-1, 3)
+
+
+def read_timeline(path: str | os.PathLike) -> Timeline:
+    """Read a timeline written by :class:`TimelineWriter`: per-sample proxy meshes, static meshes, cameras.
+
+    Every time code at which anything (mesh or surfels) was sampled gives one
+    :class:`TimelineSample`, with the mesh value held from the latest mesh sample.
+    """
+    _, Sdf, Usd, UsdGeom, _ = _pxr()
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(path)
+    stage = Usd.Stage.Open(path)
+    if stage is None:
+        raise ValueError(f"{path} is not a USD stage")
+    proxy = stage.GetPrimAtPath("/World/ProxyMesh")
+    proxy = UsdGeom.Mesh(proxy) if proxy and proxy.IsA(UsdGeom.Mesh) else None
+    inst = stage.GetPrimAtPath("/World/Surfels")
+    inst = UsdGeom.PointInstancer(inst) if inst and inst.IsA(UsdGeom.PointInstancer) else None
+    attrs = []
+    if proxy is not None:
+        attrs += [proxy.GetPointsAttr(), proxy.GetFaceVertexIndicesAttr()]
+    if inst is not None:
+        attrs += [inst.GetPositionsAttr()]
+    mesh_times = _all_times(attrs[:2]) if proxy is not None else []
+    samples = []
+    for t in _all_times(attrs):
+        if proxy is not None and mesh_times and t >= mesh_times[0]:
+            verts, faces = _mesh_at(proxy, Usd.TimeCode(t))
+        else:
+            verts, faces = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
+        pos = inst.GetPositionsAttr().Get(Usd.TimeCode(t)) if inst is not None else None
+        samples.append(TimelineSample(int(round(t)), verts, faces, 0 if pos is None else len(pos)))
+    meshes = {}
+    scope = stage.GetPrimAtPath("/World/Meshes")
+    if scope:
+        for child in scope.GetChildren():
+            if child.IsA(UsdGeom.Mesh):
+                meshes[child.GetName()] = _mesh_at(UsdGeom.Mesh(child), Usd.TimeCode.Default())
+    up = UsdGeom.GetStageUpAxis(stage)
+    return Timeline(samples, meshes, read_cameras(stage), "Z" if up == UsdGeom.Tokens.z else "Y",
+                    float(UsdGeom.GetStageMetersPerUnit(stage)), float(stage.GetTimeCodesPerSecond()))
