@@ -1,0 +1,450 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Warp kernels of marching cubes: lookup tables, column count/write passes and the vertex adjoint.
+
+The extraction is discrete (``enable_backward=False`` for the whole module); the only gradient,
+vertex position w.r.t. the field, is the explicit adjoint :func:`vertex_adjoint_kernel`.
+
+Layout of one thread's work: a *column* is the line of nodes ``(i, j, 0..Z-1)``; thread ``col``
+walks it upwards.  Node ``(i, j, k)`` owns its three "lower" edges (to ``+x``, ``+y``, ``+z``), so
+every crossed edge has exactly one owner and vertices are welded without a hash.  Column
+``(i, j)`` also owns the cells whose lowest corner is ``(i, j, k)``.
+
+Corner ``c`` of a cell, bit ``c`` of its case code (set = inside, ``field < level``):
+``0 (0,0,0), 1 (1,0,0), 2 (1,1,0), 3 (0,1,0)``, corners 4..7 the same one layer up.  Edge ``e``
+joins corners ``EDGE_CORNERS[e]`` (lower corner first) along axis ``EDGE_AXIS[e]``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+# Per case code, its triangles as hexadecimal edge numbers, three per triangle.  This is Paul
+# Bourke's public-domain table (the one Warp's ``MC_TRI_LOCAL_INDICES`` also holds) with each
+# triangle's winding reversed: with bit = inside, the reversed order makes normals point from the
+# inside corners to the outside ones, i.e. towards increasing field.  The table separates inside
+# corners on ambiguous faces consistently in both cells sharing the face, so the mesh has no cracks.
+TRIANGLE_TABLE = (
+    "", "038", "091", "138918", "1a2", "0381a2", "9a2092", "23828aa89", "32b", "02b80b", "1092b3", "12b1b99b8",
+    "31ab3a", "01a0a88ab", "30939bb9a", "9a8ab8", "487", "403743", "091874", "491417713", "1a2874", "3743401a2",
+    "9a2920874", "29a279237749", "87432b", "b74b42240", "9108742b3", "4b79b492b912", "31a3ab748", "1ab1b414074b",
+    "4879b09abb30", "4b749b9ab", "945", "945038", "045105", "845853351", "1a2945", "3801a2459", "5a2524420",
+    "25a352345384", "9452b3", "02b0b8459", "0450512b3", "2512852b8458", "ab3a31945", "45901881a8ab", "5045b05abb30",
+    "5845a8ab8", "987597", "903935537", "087071175", "135375", "987975a21", "a21905503537", "820852875a25",
+    "25a235375", "75979832b", "9759279022b7", "2b3081187175", "b12b71751", "985875a31ab3", "50759070b1a0b0a",
+    "b0ab30a05870507", "b5a75b", "a56", "03856a", "91056a", "13818956a", "156216", "156162380", "956960062",
+    "589528562382", "2b3a56", "b80b02a56", "0912b356a", "56a12992b9b8", "6b3635531", "0b805b01556b", "36b063056095",
+    "6956b9b89", "56a487", "4034376a5", "10956a874", "a56179137749", "621615487", "152562340374", "874950056062",
+    "793749392569296", "32b748a56", "56a4274022b7", "0914872b356a", "91292b9b474b56a", "87435b31556b",
+    "5b156b1b074b0b4", "095056063b36874", "6956b949779b", "a946a4", "46a4a9038", "a10a06604", "8138618466a1",
+    "194142246", "380192294246", "042462", "823842462", "a94a46b32", "0282b84a946a", "32b0610466a1",
+    "6146a14182b181b", "946963931b36", "81b801b16941614", "36b306046", "684b86", "76a7a88a9", "03707a0a96a7",
+    "a7617a187108", "a76a17137", "162186198876", "296219697039793", "708760620", "723627", "2b3a86a98876",
+    "2702b70796a797a", "10818717a6a72b3", "b12b71a16617", "869876961b36163", "019b76", "70876030bb06", "76b", "7b6",
+    "380b67", "091b67", "891813b67", "a2167b", "1a238067b", "20929a67b", "67b23aa38a89", "732672", "780706602",
+    "267273091", "126168189867", "a67a71173", "a671a7178180", "0730a709a67a", "7a678a89a", "648b68", "3b6360064",
+    "8b6864910", "964936913b63", "64868b21a", "1a23b00b6064", "48b4b609229a", "a39a23934b63436", "832824426",
+    "024426", "109243264483", "149124264", "83181686461a", "a01a60640", "43648363a093a39", "a4964a", "4597b6",
+    "038459b67", "5105047b6", "b67843345351", "945a217b6", "67b1a2038459", "7b65a44a2420", "384345352a25b67",
+    "732726594", "945068026678", "326367105504", "682678281458185", "945a61167173", "1a6167170807945",
+    "4a045a0a367a3a7", "7a678a5a44a8", "65969bb98", "3b6036065059", "08b0b50515b6", "63b653513", "1a29b598bb65",
+    "03b0b60695961a2", "b58b65850a25052", "63b65323aa35", "598582526328", "965906026", "185108586328682", "165261",
+    "1631a6368596869", "a01a60905506", "0835a6", "a65", "ba57b5", "ba5b57803", "57b5ba109", "a57a7b918813",
+    "b21b17715", "0381721577b2", "95797292027b", "7257b2529382928", "2a5253357", "802825857a52", "91053a57332a",
+    "928912827a52725", "153357", "078017157", "930953573", "978579", "54858aa8b", "54050b5bab03", "0918a48baa54",
+    "a4ba54b43914341", "21525828b485", "0b403b4b521b5b1", "05209525b485b58", "95423b", "2a5325354348", "52a542402",
+    "32a3a5358485091", "52a542129924", "854835315", "054150", "854835950053", "954", "47b4b99ba", "03847997b9ba",
+    "1ba14b1047b4", "34138414a7b4a4b", "47b94b9b2921", "94797b9b121b038", "b47b24204", "b47b24843342",
+    "2a9297273794", "97a947a72807270", "3a732a7a410a4a0", "12a847", "419471731", "419471018817", "430734", "478",
+    "98aa8b", "3903b9ba9", "0a108a8ba", "3a1ba3", "1b219b98b", "3903b919229b", "0b28b0", "3b2", "2832a8a98",
+    "92a029", "2832a808118a", "12a", "183981", "019", "083", "",
+)
+
+EDGE_CORNERS = ((0, 1), (1, 2), (3, 2), (0, 3), (4, 5), (5, 6), (7, 6), (4, 7), (0, 4), (1, 5), (2, 6), (3, 7))
+EDGE_AXIS = (0, 1, 0, 1, 0, 1, 0, 1, 2, 2, 2, 2)
+
+
+def _flatten(table):
+    ranges, edges = [0], []
+    for row in table:
+        edges.extend(int(ch, 16) for ch in row)
+        ranges.append(len(edges))
+    return tuple(ranges), tuple(edges)
+
+
+#: ``TRI_EDGES[TRI_RANGE[c]:TRI_RANGE[c + 1]]`` are the edges of case ``c``'s triangles.
+TRI_RANGE, TRI_EDGES = _flatten(TRIANGLE_TABLE)
+#: Rows ``(lower corner, upper corner, axis)`` per edge, the kernels' ``edges`` table.
+EDGE_TABLE = tuple((a, b, ax) for (a, b), ax in zip(EDGE_CORNERS, EDGE_AXIS))
+
+# Node mask bits (``node_mask``, one byte per node).  The vertices a node owns are stored in bit
+# order: its node vertex first, then its x, y, z edge vertices.
+NODE_VERTEX = wp.constant(1)  # node value == level and some 6-neighbour is inside: one vertex on the node
+EDGE_X = wp.constant(2)  # edge to (i+1, j, k) crossed, its outside end strictly above level
+EDGE_Y = wp.constant(4)
+EDGE_Z = wp.constant(8)
+ON_LEVEL = wp.constant(16)  # node value == level exactly (outside by the tie rule)
+KIND_NODE = wp.constant(3)  # vert_kind of a node vertex; 0, 1, 2 = edge vertex along that axis
+
+vec8i = wp.types.vector(length=8, dtype=wp.int32)
+
+
+@wp.func
+def popcount4(m: int):
+    """Number of vertices a node owns: set bits among its four low mask bits."""
+    return (m & 1) + ((m >> 1) & 1) + ((m >> 2) & 1) + ((m >> 3) & 1)
+
+
+@wp.func
+def inside_bit(v: Any, level: Any):
+    """1 when ``v`` is inside (``v < level``); a value equal to the level counts as outside."""
+    return wp.where(v < level, 1, 0)
+
+
+@wp.func
+def layer_bits(v0: Any, v1: Any, v2: Any, v3: Any, level: Any):
+    """Inside bits of the four node columns of one layer, in corner order 0..3."""
+    return inside_bit(v0, level) | (inside_bit(v1, level) << 1) | (inside_bit(v2, level) << 2) | (
+        inside_bit(v3, level) << 3)
+
+
+@wp.func
+def layer_eq(v0: Any, v1: Any, v2: Any, v3: Any, level: Any):
+    """Bits of the four node columns of one layer whose value equals the level exactly."""
+    return wp.where(v0 == level, 1, 0) | wp.where(v1 == level, 2, 0) | wp.where(v2 == level, 4, 0) | wp.where(
+        v3 == level, 8, 0)
+
+
+@wp.func
+def inside_neighbours(field: wp.array3d[Any], level: Any, i: int, j: int, k: int):
+    """Number of the 6 grid neighbours of node ``(i, j, k)`` that are inside."""
+    n = int(0)
+    if i > 0:
+        n += inside_bit(field[i - 1, j, k], level)
+    if i + 1 < field.shape[0]:
+        n += inside_bit(field[i + 1, j, k], level)
+    if j > 0:
+        n += inside_bit(field[i, j - 1, k], level)
+    if j + 1 < field.shape[1]:
+        n += inside_bit(field[i, j + 1, k], level)
+    if k > 0:
+        n += inside_bit(field[i, j, k - 1], level)
+    if k + 1 < field.shape[2]:
+        n += inside_bit(field[i, j, k + 1], level)
+    return n
+
+
+@wp.func
+def strict_crossing(v: Any, w: Any, level: Any):
+    """1 when the edge ``v``-``w`` is crossed and neither end lies exactly on the level."""
+    return wp.where(inside_bit(v, level) != inside_bit(w, level) and v != level and w != level, 1, 0)
+
+
+@wp.func
+def node_mask_of(field: wp.array3d[Any], level: Any, i: int, j: int, k: int, v: Any, vx: Any, vy: Any, vz: Any,
+                 hx: int, hy: int, hz: int):
+    """Mask bits of node ``(i, j, k)`` of value ``v`` whose +x/+y/+z neighbours hold ``vx, vy, vz``.
+
+    ``hx, hy, hz`` are 1 where that neighbour exists.  A node exactly on the level owns no edge
+    vertex: every crossed edge ending in it shares its single node vertex instead (tie rule), so
+    coincident vertices and the zero-area faces between them never arise.
+    """
+    m = int(0)
+    if v == level:
+        m = ON_LEVEL
+        if inside_neighbours(field, level, i, j, k) > 0:
+            m = m | NODE_VERTEX
+    else:
+        m = wp.where(hx * strict_crossing(v, vx, level) != 0, EDGE_X, 0)
+        m = m | wp.where(hy * strict_crossing(v, vy, level) != 0, EDGE_Y, 0)
+        m = m | wp.where(hz * strict_crossing(v, vz, level) != 0, EDGE_Z, 0)
+    return m
+
+
+@wp.func
+def edge_key(case: int, eqbits: int, e: int, edges: wp.array2d[wp.int32]):
+    """Cell-local identity of the vertex on crossed edge ``e``: ``12 + corner`` for a node vertex, else ``e``."""
+    c0 = edges[e, 0]
+    out = wp.where(((case >> c0) & 1) == 0, c0, edges[e, 1])
+    return wp.where(((eqbits >> out) & 1) != 0, 12 + out, e)
+
+
+@wp.func
+def count_nondegenerate(case: int, eqbits: int, tri_range: wp.array[wp.int32], tri_edges: wp.array[wp.int32],
+                        edges: wp.array2d[wp.int32]):
+    """Triangles of a cell with corners on the level whose three vertices stay distinct."""
+    n = int(0)
+    for r in range(tri_range[case], tri_range[case + 1], 3):
+        ka = edge_key(case, eqbits, tri_edges[r], edges)
+        kb = edge_key(case, eqbits, tri_edges[r + 1], edges)
+        kc = edge_key(case, eqbits, tri_edges[r + 2], edges)
+        if ka != kb and kb != kc and ka != kc:
+            n += 1
+    return n
+
+
+@wp.kernel
+def count_columns_kernel(
+    offset: int,
+    field: wp.array3d[Any],
+    level: Any,
+    tri_range: wp.array[wp.int32],
+    tri_edges: wp.array[wp.int32],
+    edges: wp.array2d[wp.int32],
+    node_mask: wp.array3d[wp.uint8],
+    cell_case: wp.array3d[wp.uint8],
+    col_verts: wp.array[wp.int32],
+    col_faces: wp.array[wp.int32],
+):
+    """Pass 1, one thread per node column: node masks, cell case codes and the column's counts."""
+    col = wp.tid() + offset
+    nx = field.shape[0]
+    ny = field.shape[1]
+    nz = field.shape[2]
+    i = col // ny
+    j = col - i * ny
+    hx = wp.where(i + 1 < nx, 1, 0)
+    hy = wp.where(j + 1 < ny, 1, 0)
+    i1 = i + hx
+    j1 = j + hy
+    cells = hx * hy  # this column also owns a column of cells
+    # Values of the four node columns (i,j), (i+1,j), (i+1,j+1), (i,j+1) in corner order, at layer k.
+    a0 = field[i, j, 0]
+    a1 = field[i1, j, 0]
+    a2 = field[i1, j1, 0]
+    a3 = field[i, j1, 0]
+    lay = layer_bits(a0, a1, a2, a3, level)
+    eq = layer_eq(a0, a1, a2, a3, level)
+    nv = int(0)
+    nf = int(0)
+    for k in range(nz - 1):
+        b0 = field[i, j, k + 1]
+        b1 = field[i1, j, k + 1]
+        b2 = field[i1, j1, k + 1]
+        b3 = field[i, j1, k + 1]
+        m = node_mask_of(field, level, i, j, k, a0, a1, a3, b0, hx, hy, 1)
+        node_mask[i, j, k] = wp.uint8(m)
+        nv += popcount4(m)
+        lay_b = layer_bits(b0, b1, b2, b3, level)
+        eq_b = layer_eq(b0, b1, b2, b3, level)
+        if cells != 0:
+            case = lay | (lay_b << 4)
+            cell_case[i, j, k] = wp.uint8(case)
+            eqbits = eq | (eq_b << 4)
+            if eqbits == 0:
+                nf += (tri_range[case + 1] - tri_range[case]) // 3
+            else:
+                nf += count_nondegenerate(case, eqbits, tri_range, tri_edges, edges)
+        a0 = b0
+        a1 = b1
+        a2 = b2
+        a3 = b3
+        lay = lay_b
+        eq = eq_b
+    m_top = node_mask_of(field, level, i, j, nz - 1, a0, a1, a3, a0, hx, hy, 0)
+    node_mask[i, j, nz - 1] = wp.uint8(m_top)
+    nv += popcount4(m_top)
+    col_verts[col] = nv
+    col_faces[col] = nf
+
+
+@wp.func
+def vertex_id(case: int, e: int, bases: vec8i, masks: vec8i, edges: wp.array2d[wp.int32]):
+    """Global index of the vertex on crossed edge ``e`` of a cell with corner vertex bases ``bases``."""
+    c0 = edges[e, 0]
+    out = wp.where(((case >> c0) & 1) == 0, c0, edges[e, 1])
+    rank = popcount4(masks[c0] & ((2 << edges[e, 2]) - 1))  # owner's vertices stored before this edge's
+    return wp.where((masks[out] & ON_LEVEL) != 0, bases[out], bases[c0] + rank)
+
+
+@wp.func
+def write_node_vertices(field: wp.array3d[Any], level: Any, lower: Any, spacing: Any, i: int, j: int, k: int,
+                        m: int, base: int, verts: wp.array[Any], vert_node: wp.array[wp.int32],
+                        vert_kind: wp.array[wp.uint8]):
+    """Write the vertices node ``(i, j, k)`` owns (mask ``m``) from index ``base`` on."""
+    v = field[i, j, k]
+    lin = (i * field.shape[1] + j) * field.shape[2] + k
+    x = lower[0] + spacing[0] * type(v)(i)
+    y = lower[1] + spacing[1] * type(v)(j)
+    z = lower[2] + spacing[2] * type(v)(k)
+    one = type(v)(1.0)
+    zero = type(v)(0.0)
+    idx = base
+    if (m & NODE_VERTEX) != 0:
+        verts[idx] = type(lower)(x, y, z)
+        vert_node[idx] = lin
+        vert_kind[idx] = wp.uint8(KIND_NODE)
+        idx += 1
+    if (m & EDGE_X) != 0:
+        # t = (level - a) / (b - a) lies in (0, 1]: the ends are strictly on both sides (rounding is
+        # monotone); the clamp only guards the degenerate 0/0 a NaN-free field cannot produce.
+        t = wp.clamp((level - v) / (field[i + 1, j, k] - v), zero, one)
+        verts[idx] = type(lower)(x + spacing[0] * t, y, z)
+        vert_node[idx] = lin
+        vert_kind[idx] = wp.uint8(0)
+        idx += 1
+    if (m & EDGE_Y) != 0:
+        t = wp.clamp((level - v) / (field[i, j + 1, k] - v), zero, one)
+        verts[idx] = type(lower)(x, y + spacing[1] * t, z)
+        vert_node[idx] = lin
+        vert_kind[idx] = wp.uint8(1)
+        idx += 1
+    if (m & EDGE_Z) != 0:
+        t = wp.clamp((level - v) / (field[i, j, k + 1] - v), zero, one)
+        verts[idx] = type(lower)(x, y, z + spacing[2] * t)
+        vert_node[idx] = lin
+        vert_kind[idx] = wp.uint8(2)
+
+
+@wp.kernel
+def write_columns_kernel(
+    offset: int,
+    field: wp.array3d[Any],
+    level: Any,
+    lower: Any,
+    spacing: Any,
+    tri_range: wp.array[wp.int32],
+    tri_edges: wp.array[wp.int32],
+    edges: wp.array2d[wp.int32],
+    node_mask: wp.array3d[wp.uint8],
+    cell_case: wp.array3d[wp.uint8],
+    col_verts: wp.array[wp.int32],
+    col_faces: wp.array[wp.int32],
+    vert_start: wp.array[wp.int32],
+    face_start: wp.array[wp.int32],
+    verts: wp.array[Any],
+    vert_node: wp.array[wp.int32],
+    vert_kind: wp.array[wp.uint8],
+    faces: wp.array2d[wp.int32],
+):
+    """Pass 2, one thread per node column: write its vertices and its cells' faces.
+
+    Vertex bases of the four node columns a cell touches are kept as running sums up the
+    columns, starting from the exclusive prefix sums ``vert_start``, so no per-node index array
+    is needed.  Columns without vertices or faces return at once.
+    """
+    col = wp.tid() + offset
+    if col_verts[col] == 0 and col_faces[col] == 0:
+        return
+    nx = field.shape[0]
+    ny = field.shape[1]
+    nz = field.shape[2]
+    i = col // ny
+    j = col - i * ny
+    hx = wp.where(i + 1 < nx, 1, 0)
+    hy = wp.where(j + 1 < ny, 1, 0)
+    i1 = i + hx
+    j1 = j + hy
+    cells = hx * hy
+    base0 = vert_start[col]
+    base1 = vert_start[i1 * ny + j]
+    base2 = vert_start[i1 * ny + j1]
+    base3 = vert_start[i * ny + j1]
+    m0 = int(node_mask[i, j, 0])
+    m1 = int(node_mask[i1, j, 0])
+    m2 = int(node_mask[i1, j1, 0])
+    m3 = int(node_mask[i, j1, 0])
+    fo = face_start[col]
+    for k in range(nz):
+        if (m0 & 15) != 0:
+            write_node_vertices(field, level, lower, spacing, i, j, k, m0, base0, verts, vert_node, vert_kind)
+        if k + 1 < nz:
+            n0 = int(node_mask[i, j, k + 1])
+            n1 = int(node_mask[i1, j, k + 1])
+            n2 = int(node_mask[i1, j1, k + 1])
+            n3 = int(node_mask[i, j1, k + 1])
+            up0 = base0 + popcount4(m0)
+            up1 = base1 + popcount4(m1)
+            up2 = base2 + popcount4(m2)
+            up3 = base3 + popcount4(m3)
+            if cells != 0:
+                case = int(cell_case[i, j, k])
+                r0 = tri_range[case]
+                r1 = tri_range[case + 1]
+                if r1 > r0:
+                    bases = vec8i(base0, base1, base2, base3, up0, up1, up2, up3)
+                    masks = vec8i(m0, m1, m2, m3, n0, n1, n2, n3)
+                    for r in range(r0, r1, 3):
+                        ia = vertex_id(case, tri_edges[r], bases, masks, edges)
+                        ib = vertex_id(case, tri_edges[r + 1], bases, masks, edges)
+                        ic = vertex_id(case, tri_edges[r + 2], bases, masks, edges)
+                        if ia != ib and ib != ic and ia != ic:  # drops faces collapsed by a node vertex
+                            faces[fo, 0] = ia
+                            faces[fo, 1] = ib
+                            faces[fo, 2] = ic
+                            fo += 1
+            base0 = up0
+            base1 = up1
+            base2 = up2
+            base3 = up3
+            m0 = n0
+            m1 = n1
+            m2 = n2
+            m3 = n3
+
+
+@wp.func
+def guard(d: Any, eps: Any):
+    """``d`` with its magnitude clamped to at least ``eps`` (sign kept): bounds 1/d in the adjoint."""
+    return wp.where(wp.abs(d) < eps, wp.where(d < type(d)(0.0), -eps, eps), d)
+
+
+@wp.kernel
+def vertex_adjoint_kernel(
+    field: wp.array3d[Any],
+    level: Any,
+    spacing: Any,
+    eps: Any,
+    vert_node: wp.array[wp.int32],
+    vert_kind: wp.array[wp.uint8],
+    adj_verts: wp.array[Any],
+    adj_field: wp.array3d[Any],
+):
+    """Explicit adjoint of the vertex positions w.r.t. the field, one thread per vertex.
+
+    Edge vertex between node values ``a`` (owner) and ``b`` along axis ``d``:
+    ``p_d = x_a + spacing_d * t`` with ``t = (level - a) / (b - a)``, so
+    ``dt/da = (level - b) / (b - a)^2`` and ``dt/db = (a - level) / (b - a)^2``; ``|b - a|`` is
+    clamped to ``eps`` so both stay bounded by ``1 / eps``.  A node vertex (value == level) takes
+    the mean of the one-sided derivatives of the crossed edges meeting in it (each moves the
+    vertex towards its inside neighbour by ``spacing / (level - f_neighbour)`` per unit of field).
+    """
+    v = wp.tid()
+    ny = field.shape[1]
+    nz = field.shape[2]
+    lin = vert_node[v]
+    kind = int(vert_kind[v])
+    i = lin // (ny * nz)
+    rem = lin - i * ny * nz
+    j = rem // nz
+    k = rem - j * nz
+    g = adj_verts[v]
+    a = field[i, j, k]
+    if kind != KIND_NODE:
+        di = wp.where(kind == 0, 1, 0)
+        dj = wp.where(kind == 1, 1, 0)
+        dk = wp.where(kind == 2, 1, 0)
+        b = field[i + di, j + dj, k + dk]
+        d = guard(b - a, eps)
+        gt = g[kind] * spacing[kind] / (d * d)
+        wp.atomic_add(adj_field, i, j, k, gt * (level - b))
+        wp.atomic_add(adj_field, i + di, j + dj, k + dk, gt * (a - level))
+    else:
+        acc = type(a)(0.0)
+        cnt = int(0)
+        for q in range(6):
+            axis = q // 2
+            sgn = 1 - 2 * (q - 2 * axis)  # +1 then -1 along each axis
+            ni = i + wp.where(axis == 0, sgn, 0)
+            nj = j + wp.where(axis == 1, sgn, 0)
+            nk = k + wp.where(axis == 2, sgn, 0)
+            if ni >= 0 and ni < field.shape[0] and nj >= 0 and nj < ny and nk >= 0 and nk < nz:
+                fm = field[ni, nj, nk]
+                if fm < level:
+                    acc += type(a)(sgn) * spacing[axis] * g[axis] / guard(a - fm, eps)
+                    cnt += 1
+        if cnt > 0:
+            wp.atomic_add(adj_field, i, j, k, acc / type(a)(cnt))
