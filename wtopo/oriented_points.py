@@ -113,6 +113,11 @@ def oriented_points(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tens
         if bad.numel():  # host sync: validation only
             i = int(bad[0])
             raise ValueError(f"normal_sign must hold +-1, got {normal_sign[i].item()} at index {i}")
+    if n == 0:
+        # No launch on empty inputs (Warp cannot view zero-size tensors); keep the inputs in the
+        # graph so backward gives zero-size gradients of the right shape.
+        zero = means.sum() * 0 + quats.sum() * 0 + scales.sum() * 0 + opacities.sum() * 0
+        return OrientedPoints(zero + means.new_zeros(0, 3), zero + means.new_zeros(0, 3), zero + means.new_zeros(0))
     params = (offset, opacity_threshold, center_weight, offset_weight, QUAT_EPS)
     pts, nrm, w = _bridge.apply(_op(dtype, samples, params), means, quats, scales, opacities, sign)
     return OrientedPoints(pts.view(n * samples, 3), nrm.view(n * samples, 3), w.view(n * samples))
