@@ -59,8 +59,8 @@ import numpy as np
 from ._common import as_array, atomic_write, normalize_quats, sh_dc_to_rgb
 
 __all__ = ["TimelineWriter", "TimelineStats", "TimelineVerificationError", "SurfelEvent", "Timeline",
-           "TimelineSample", "read_timeline", "read_cameras", "camera_to_usd", "camera_from_usd", "FILM_WIDTH",
-           "FLAT_SCALE", "HAS_SPLAT_SCHEMA"]
+           "TimelineSample", "read_timeline", "read_cameras", "read_surfels", "mesh_at", "camera_to_usd",
+           "camera_from_usd", "FILM_WIDTH", "FLAT_SCALE", "HAS_SPLAT_SCHEMA"]
 
 FILM_WIDTH = 36.0
 """Horizontal aperture written for every camera, in tenths of a scene unit (a 36 mm film at
@@ -169,9 +169,8 @@ def camera_to_usd(stage, path: str, camera, *, clipping_range=(0.01, 1000.0)):
 def camera_from_usd(usd_camera):
     """Rebuild a :class:`wtopo.Camera` from a ``UsdGeom.Camera`` written by :func:`camera_to_usd`.
 
-    Cameras from other tools work too when they carry ``wtopo:imageSize`` or when the caller is
-    content with a width of ``round(horizontalAperture / verticalAperture * 1000)``-free default:
-    without ``wtopo:imageSize`` a 1000-pixel-wide image with square pixels is assumed.
+    Cameras written by other tools (no ``wtopo:imageSize``) are read as 1000 pixels wide with
+    square pixels and the height given by the aperture ratio.
     """
     from ..camera import Camera
 
@@ -787,7 +786,7 @@ class Timeline:
         return [s.iteration for s in self.samples]
 
 
-def _mesh_at(mesh, t) -> tuple[np.ndarray, np.ndarray]:
+def _read_mesh(mesh, t) -> tuple[np.ndarray, np.ndarray]:
     pts = mesh.GetPointsAttr().Get(t)
     idx = mesh.GetFaceVertexIndicesAttr().Get(t)
     counts = mesh.GetFaceVertexCountsAttr().Get(t)
@@ -827,7 +826,7 @@ def read_timeline(path: str | os.PathLike) -> Timeline:
     samples = []
     for t in _all_times(attrs):
         if proxy is not None and mesh_times and t >= mesh_times[0]:
-            verts, faces = _mesh_at(proxy, Usd.TimeCode(t))
+            verts, faces = _read_mesh(proxy, Usd.TimeCode(t))
         else:
             verts, faces = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
         pos = inst.GetPositionsAttr().Get(Usd.TimeCode(t)) if inst is not None else None
@@ -837,7 +836,62 @@ def read_timeline(path: str | os.PathLike) -> Timeline:
     if scope:
         for child in scope.GetChildren():
             if child.IsA(UsdGeom.Mesh):
-                meshes[child.GetName()] = _mesh_at(UsdGeom.Mesh(child), Usd.TimeCode.Default())
+                meshes[child.GetName()] = _read_mesh(UsdGeom.Mesh(child), Usd.TimeCode.Default())
     up = UsdGeom.GetStageUpAxis(stage)
     return Timeline(samples, meshes, read_cameras(stage), "Z" if up == UsdGeom.Tokens.z else "Y",
                     float(UsdGeom.GetStageMetersPerUnit(stage)), float(stage.GetTimeCodesPerSecond()))
+
+
+def _sample_time(times: list[float], iteration: int | None, what: str) -> float:
+    """The latest sample time at or before ``iteration`` (the last one when ``None``)."""
+    if not times:
+        raise ValueError(f"the timeline has no {what} samples")
+    if iteration is None:
+        return times[-1]
+    before = [t for t in times if t <= iteration]
+    if not before:
+        raise ValueError(f"iteration {iteration} precedes the first {what} sample ({int(times[0])})")
+    return before[-1]
+
+
+def read_surfels(path: str | os.PathLike, iteration: int | None = None):
+    """The surfels of a timeline at ``iteration`` (latest sample at or before it; last when ``None``).
+
+    Reads ``/World/Splats`` (full SH) when present, else the point instancer (colour from
+    ``displayColor`` as the SH DC term).  Decimated samples return the written subset.
+
+    Returns:
+        :class:`wtopo.io.SurfelArrays`.
+    """
+    from .ply import SurfelArrays
+    from ._common import rgb_to_sh_dc
+
+    _, _, Usd, UsdGeom, _ = _pxr()
+    stage = Usd.Stage.Open(os.fspath(path))
+    splat = stage.GetPrimAtPath("/World/Splats")
+    inst = stage.GetPrimAtPath("/World/Surfels")
+    src = splat if splat and splat.GetAttribute("positions").GetNumTimeSamples() else inst
+    if not src:
+        raise ValueError(f"{path} holds no surfels (/World/Splats or /World/Surfels)")
+    pos_attr = src.GetAttribute("positions")
+    tc = Usd.TimeCode(_sample_time(list(pos_attr.GetTimeSamples()), iteration, "surfel"))
+    get = lambda name: np.asarray(src.GetAttribute(name).Get(tc))  # noqa: E731
+    means = get("positions").astype(np.float32).reshape(-1, 3)
+    n = len(means)
+    quats = normalize_quats(get("orientations").astype(np.float32).reshape(n, 4)[:, [3, 0, 1, 2]])
+    scales = get("scales").astype(np.float32).reshape(n, 3)[:, :2]
+    if src == splat:
+        opac = get("opacities").astype(np.float32)
+        sh = get("radiance:sphericalHarmonicsCoefficients").astype(np.float32).reshape(n, -1, 3)
+    else:
+        opac = get("primvars:opacity").astype(np.float32)
+        sh = rgb_to_sh_dc(get("primvars:displayColor").astype(np.float32).reshape(n, 3))[:, None, :]
+    return SurfelArrays(means, quats, np.ascontiguousarray(scales), opac, np.ascontiguousarray(sh, np.float32))
+
+
+def mesh_at(timeline: Timeline, iteration: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The proxy mesh of ``timeline`` at ``iteration`` (latest sample at or before it; last when ``None``)."""
+    times = [s.iteration for s in timeline.samples if len(s.faces)]
+    t = _sample_time(times, iteration, "mesh")
+    s = next(s for s in timeline.samples if s.iteration == t)
+    return s.verts, s.faces
