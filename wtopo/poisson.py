@@ -22,12 +22,19 @@ from .scatter import check_unit_points, sample_unchecked, scatter_unchecked
 
 __all__ = ["PoissonField", "PoissonContext", "poisson_indicator"]
 
-# chi is divided by max(mean |chi|, NORM_FLOOR). For any non-degenerate point set mean |chi| is
-# orders of magnitude above 1e-10 (it scales like the total weight / R^2); for an empty set or all
-# weights zero chi is exactly 0 and the floor keeps 0 / 0 from happening.
+# chi is divided by mean |chi| only where that exceeds NORM_FLOOR. For any non-degenerate point set
+# mean |chi| is orders of magnitude above 1e-10 (it scales like the total weight / R^2); for an
+# empty set or all weights zero chi is exactly 0 and is returned as is, never divided by ~0.
 NORM_FLOOR = 1e-10
-# Guard on the total weight in the weighted mean of chi at the points (0 when every weight is 0).
-WEIGHT_FLOOR = 1e-30
+# The level (weighted mean of chi at the points) is 0 when the total weight is below this. 1e-20
+# keeps 1 / total weight, and hence every gradient, finite in float32.
+WEIGHT_FLOOR = 1e-20
+
+
+def _safe_divide(num: torch.Tensor, den: torch.Tensor, floor: float) -> torch.Tensor:
+    """``num / den`` where ``den > floor``, else ``num``; finite gradients either way (double ``where``)."""
+    ok = den > floor
+    return num / torch.where(ok, den, torch.ones_like(den))
 
 
 class PoissonField(NamedTuple):
@@ -35,7 +42,7 @@ class PoissonField(NamedTuple):
 
     Attributes:
         chi: indicator field, shape ``[R, R, R]``, dtype of the points; negative inside, 0 at the
-            points (weighted mean), positive outside, scaled so that its mean absolute value is 1.
+            points (weighted mean), positive outside, scaled so that its mean absolute value is 1 (0 for a degenerate input).
         lower: position (in the points' frame) of node ``(0, 0, 0)``: ``(-padding,) * 3``.
         upper: position of node ``(R-1, R-1, R-1)``: ``(1 + padding,) * 3``.
     """
@@ -110,8 +117,9 @@ def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torc
     is splatted trilinearly (normals are used as given: a zero normal contributes nothing),
     ``laplacian(chi) = div(V)`` is solved spectrally with the DC term zeroed and a Gaussian of
     standard deviation ``sigma`` **voxels** applied to ``V`` (``sigma = 0``: no smoothing). chi is
-    then shifted so that its weight-averaged value at the points is 0 and divided by
-    ``max(mean |chi|, 1e-10)``: outward normals give chi < 0 inside.
+    then shifted so that its weight-averaged value at the points is 0 and divided by its mean
+    absolute value (left as is when that is below ``1e-10``, i.e. for a zero field): outward
+    normals give chi < 0 inside.
 
     Args:
         points: positions, shape ``[N, 3]``, float32 or float64, in ``[0, 1]^3`` (anything in the
@@ -168,8 +176,9 @@ def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torc
     chi_h = (wx * vh[0] + wy * vh[1] + wz * vh[2]) * s * (-1j)
     chi = torch.fft.irfftn(chi_h, s=(r, r, r), dim=(0, 1, 2))
     at_points = sample_unchecked(chi[..., None], q)[:, 0]
-    level = (weights * at_points).sum() / weights.sum().clamp_min(WEIGHT_FLOOR)
+    wsum = weights.sum()
+    level = _safe_divide((weights * at_points).sum(), wsum, WEIGHT_FLOOR) * (wsum > WEIGHT_FLOOR)
     chi = chi - level
-    chi = chi / chi.abs().mean().clamp_min(NORM_FLOOR)
+    chi = _safe_divide(chi, chi.abs().mean(), NORM_FLOOR)
     lo, hi = -padding, 1.0 + padding
     return PoissonField(chi, (lo, lo, lo), (hi, hi, hi))

@@ -27,5 +27,7 @@ def poisson_indicator_ref(points, normals, weights, resolution, *, sigma, paddin
     chi_h[0, 0, 0] = 0
     chi = torch.fft.ifftn(chi_h).real
     at = sample_trilinear_ref(chi[..., None], q)[:, 0]
-    chi = chi - (weights * at).sum() / weights.sum().clamp_min(1e-30)
-    return chi / chi.abs().mean().clamp_min(1e-10)
+    if weights.sum() > 1e-20:
+        chi = chi - (weights * at).sum() / weights.sum()
+    scale = chi.abs().mean()
+    return chi / scale if scale > 1e-10 else chi

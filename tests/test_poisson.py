@@ -1,0 +1,229 @@
+# SPDX-License-Identifier: Apache-2.0
+"""poisson_indicator: reference, gradcheck, sphere recovery, padding, and the STABILITY.md section 3/4 cases."""
+
+import numpy as np
+import pytest
+import torch
+from reference.poisson import poisson_indicator_ref
+from skimage.measure import marching_cubes
+
+from wtopo.ops import poisson_indicator
+from wtopo.poisson import PoissonContext
+
+# float32 op vs float32 reference: same FFT sizes, different FFT routines (rfftn vs fftn) and
+# summation orders; measured max error ~1e-6 on chi of mean |chi| = 1.
+ATOL_F32 = 2e-5
+# float64: measured ~3e-15.
+ATOL_F64 = 1e-12
+# fp32 vs fp64 of the op on a 32^3 sphere: measured ~2e-6 relative to max |chi| (STABILITY asks ~1e-5).
+REL_F32_F64 = 1e-5
+
+
+def _sphere(n, radius, centre=0.5, dtype=torch.float32, device="cpu", seed=0):
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    d = d / d.norm(dim=1, keepdim=True)
+    return (centre + radius * d).to(device, dtype), d.to(device, dtype)
+
+
+def _radii(field, centre=0.5):
+    chi = field.chi.detach().cpu().double().numpy()
+    verts, faces, _, _ = marching_cubes(chi, 0.0)
+    h = (field.upper[0] - field.lower[0]) / (chi.shape[0] - 1)
+    verts = field.lower[0] + verts * h
+    return np.linalg.norm(verts - centre, axis=1), verts, faces, h
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("resolution", [8, 9, 16])
+def test_forward_and_vjp_match_reference(device, dtype, resolution):
+    """Match the pure-torch reference in chi and in the VJP w.r.t. points, normals, weights."""
+    g = torch.Generator().manual_seed(resolution)
+    p = torch.rand(40, 3, generator=g, dtype=dtype).to(device).requires_grad_()
+    n = torch.randn(40, 3, generator=g, dtype=dtype).to(device).requires_grad_()
+    w = torch.rand(40, generator=g, dtype=dtype).to(device).requires_grad_()
+    out = poisson_indicator(p, n, w, resolution, sigma=0.7, padding=0.1).chi
+    ref = poisson_indicator_ref(p, n, w, resolution, sigma=0.7, padding=0.1)
+    atol = ATOL_F32 if dtype == torch.float32 else ATOL_F64
+    torch.testing.assert_close(out, ref, atol=atol, rtol=0)
+    up = torch.randn_like(ref)
+    ga = torch.autograd.grad(out, (p, n, w), up)
+    gb = torch.autograd.grad(ref, (p, n, w), up)
+    for a, b in zip(ga, gb):
+        assert b.abs().sum() > 0
+        torch.testing.assert_close(a, b, atol=atol * b.abs().max().item(), rtol=1e-4)
+
+
+def test_gradcheck_float64(device):
+    """Pass float64 gradcheck w.r.t. points, normals and weights on an 8^3 grid."""
+    g = torch.Generator().manual_seed(1)
+    p = torch.rand(8, 3, generator=g, dtype=torch.float64).to(device).requires_grad_()
+    n = torch.randn(8, 3, generator=g, dtype=torch.float64).to(device).requires_grad_()
+    w = (0.5 + torch.rand(8, generator=g, dtype=torch.float64)).to(device).requires_grad_()
+    assert torch.autograd.gradcheck(lambda a, b, c: poisson_indicator(a, b, c, 8, sigma=0.5, padding=0.1).chi,
+                                    (p, n, w))
+
+
+@pytest.mark.parametrize("resolution", [32, 48])
+@pytest.mark.parametrize("radius", [0.3, 0.49])
+def test_sphere_radius_recovered_within_one_voxel(device, resolution, radius):
+    """Recover a sphere's radius within one voxel from points sampled on it (inside negative)."""
+    p, n = _sphere(20_000, radius, device=device)
+    field = poisson_indicator(p, n, torch.ones(len(p), device=device), resolution, sigma=1.0, padding=0.1)
+    rad, verts, faces, h = _radii(field)
+    assert len(faces) > 100
+    assert np.abs(rad - radius).max() < h
+    assert field.chi[resolution // 2, resolution // 2, resolution // 2] < 0
+
+
+def test_sphere_049_does_not_leak(device):
+    """Keep a radius-0.49 sphere from leaking across the periodic boundary: chi > 0 on the whole box shell."""
+    r = 32
+    p, n = _sphere(20_000, 0.49, device=device)
+    field = poisson_indicator(p, n, torch.ones(len(p), device=device), r, sigma=1.0, padding=0.1)
+    chi = field.chi
+    shell = torch.cat([chi[0].flatten(), chi[-1].flatten(), chi[:, 0].flatten(), chi[:, -1].flatten(),
+                       chi[:, :, 0].flatten(), chi[:, :, -1].flatten()])
+    assert (shell > 0).all()
+    _, verts, _, h = _radii(field)
+    assert verts.min() > 0.01 - h and verts.max() < 0.99 + h
+
+
+def test_fp32_matches_fp64(device):
+    """Agree between float32 and float64 within ~1e-5 relative on chi."""
+    p, n = _sphere(5000, 0.3, dtype=torch.float64, device=device)
+    w = torch.ones(len(p), dtype=torch.float64, device=device)
+    c64 = poisson_indicator(p, n, w, 32, sigma=1.0, padding=0.1).chi
+    c32 = poisson_indicator(p.float(), n.float(), w.float(), 32, sigma=1.0, padding=0.1).chi
+    err = (c32.double() - c64).abs().max() / c64.abs().max()
+    assert err < REL_F32_F64
+
+
+def test_empty_and_zero_weight_sets_give_zero_field(device):
+    """Return chi = 0 (no NaN) and finite zero-size / zero gradients for no points or all-zero weights."""
+    p = torch.zeros(0, 3, device=device, requires_grad=True)
+    field = poisson_indicator(p, torch.zeros(0, 3, device=device), torch.zeros(0, device=device), 16,
+                              sigma=1.0, padding=0.1)
+    assert field.chi.shape == (16, 16, 16) and (field.chi == 0).all()
+    (gp,) = torch.autograd.grad(field.chi.sum(), p)
+    assert gp.shape == (0, 3)
+    p, n = _sphere(100, 0.3, device=device)
+    p.requires_grad_()
+    w = torch.zeros(100, device=device, requires_grad=True)
+    field = poisson_indicator(p, n, w, 16, sigma=1.0, padding=0.1)
+    assert (field.chi == 0).all()
+    gp, gw = torch.autograd.grad((field.chi * torch.randn_like(field.chi)).sum(), (p, w))
+    assert torch.isfinite(gp).all() and torch.isfinite(gw).all()
+
+
+def test_zero_normals_contribute_nothing_and_nan_normals_raise(device):
+    """Ignore zero-length normals (same chi as without those points); raise on NaN normals."""
+    p, n = _sphere(2000, 0.3, device=device, dtype=torch.float64)
+    w = torch.ones(2000, dtype=torch.float64, device=device)
+    extra = torch.rand(50, 3, dtype=torch.float64, device=device) * 0.2 + 0.4
+    base = poisson_indicator(p, n, w, 16, sigma=1.0, padding=0.1).chi
+    # Extra zero-normal points change nothing but the weighted level; give them zero weight.
+    with_zero = poisson_indicator(torch.cat([p, extra]), torch.cat([n, torch.zeros_like(extra)]),
+                                  torch.cat([w, torch.zeros(50, dtype=torch.float64, device=device)]), 16,
+                                  sigma=1.0, padding=0.1).chi
+    torch.testing.assert_close(base, with_zero, atol=1e-12, rtol=0)
+    n_bad = n.clone()
+    n_bad[7, 2] = float("nan")
+    with pytest.raises(ValueError, match=r"normals.*\[7, 2\]"):
+        poisson_indicator(p, n_bad, w, 16, sigma=1.0, padding=0.1)
+
+
+@pytest.mark.parametrize("padding", [0.0, 0.1])
+def test_points_on_boundary_are_finite(device, padding):
+    """Accept points exactly on the faces of the unit cube (and of the padded box) with finite output."""
+    g = torch.Generator().manual_seed(2)
+    p = torch.rand(200, 3, generator=g, dtype=torch.float64)
+    p[:50, 0] = 0.0
+    p[50:100, 1] = 1.0
+    p[100:110] = 1.0 + padding
+    p[110:120] = -padding
+    p = p.to(device).requires_grad_()
+    n = torch.randn(200, 3, generator=g, dtype=torch.float64).to(device)
+    field = poisson_indicator(p, n, torch.ones(200, dtype=torch.float64, device=device), 16, sigma=1.0,
+                              padding=padding)
+    assert torch.isfinite(field.chi).all() and field.chi.abs().max() > 0
+    (gp,) = torch.autograd.grad((field.chi * torch.randn_like(field.chi)).sum(), p)
+    assert torch.isfinite(gp).all() and gp.abs().sum() > 0
+
+
+@pytest.mark.parametrize("value", [-0.2, 1.2, float("nan")])
+def test_points_outside_padded_box_raise(device, value):
+    """Raise ValueError naming the index of a point outside [-padding, 1 + padding]."""
+    p = torch.full((4, 3), 0.5, device=device)
+    p[2, 0] = value
+    with pytest.raises(ValueError, match=r"points.*\[2, 0\]"):
+        poisson_indicator(p, torch.ones(4, 3, device=device), torch.ones(4, device=device), 8, sigma=1.0,
+                          padding=0.1)
+
+
+@pytest.mark.parametrize("bad", ["weights", "resolution", "sigma", "padding", "dtype"])
+def test_invalid_arguments_raise(device, bad):
+    """Raise ValueError/TypeError naming the argument."""
+    p = torch.rand(4, 3, device=device)
+    n = torch.ones(4, 3, device=device)
+    w = torch.ones(4, device=device)
+    kw = dict(sigma=1.0, padding=0.1)
+    r = 8
+    if bad == "weights":
+        w[1] = -1.0
+    elif bad == "resolution":
+        r = 3
+    elif bad == "sigma":
+        kw["sigma"] = -1.0
+    elif bad == "padding":
+        kw["padding"] = float("inf")
+    else:
+        n = n.double()
+    with pytest.raises((ValueError, TypeError), match="normals" if bad == "dtype" else bad):
+        poisson_indicator(p, n, w, r, **kw)
+
+
+def test_all_points_in_one_voxel_finite(device):
+    """Keep chi and gradients finite when every point falls in one voxel."""
+    p = (0.5 + torch.rand(500, 3, dtype=torch.float64) * 0.01).to(device).requires_grad_()
+    n = torch.randn(500, 3, dtype=torch.float64, device=device)
+    field = poisson_indicator(p, n, torch.ones(500, dtype=torch.float64, device=device), 16, sigma=1.0,
+                              padding=0.1)
+    assert torch.isfinite(field.chi).all()
+    (gp,) = torch.autograd.grad((field.chi * torch.randn_like(field.chi)).sum(), p)
+    assert torch.isfinite(gp).all() and gp.abs().sum() > 0
+
+
+@pytest.mark.parametrize("resolution", [8, 16, 24, 33])
+@pytest.mark.parametrize("sigma", [0.0, 1.0, 50.0])
+def test_resolutions_and_sigmas_are_finite(device, resolution, sigma):
+    """Give a finite field, negative at the sphere centre unless smoothed flat, for any R and sigma."""
+    p, n = _sphere(3000, 0.3, device=device)
+    field = poisson_indicator(p, n, torch.ones(3000, device=device), resolution, sigma=sigma, padding=0.1)
+    assert field.chi.shape == (resolution,) * 3
+    assert torch.isfinite(field.chi).all()
+    c = (resolution - 1) // 2
+    if sigma <= 1.0:
+        assert field.chi[c, c, c] < 0
+    assert field.lower == (-0.1,) * 3 and field.upper == (1.1,) * 3
+
+
+def test_context_caches_operators(device):
+    """Reuse the spectral operator for the same resolution, sigma, device and dtype."""
+    ctx = PoissonContext(max_entries=2)
+    p, n = _sphere(100, 0.3, device=device)
+    w = torch.ones(100, device=device)
+    a = poisson_indicator(p, n, w, 16, sigma=1.0, padding=0.1, context=ctx).chi
+    op = ctx.operator(16, 1.0, torch.device(device), torch.float32)
+    b = poisson_indicator(p, n, w, 16, sigma=1.0, padding=0.1, context=ctx).chi
+    assert ctx.operator(16, 1.0, torch.device(device), torch.float32) is op
+    torch.testing.assert_close(a, b, atol=0, rtol=0)
+
+
+def test_sphere_at_256_recovered(device):
+    """Recover a sphere within one voxel at 256^3 (the production resolution), in bounded time."""
+    p, n = _sphere(200_000, 0.35, device=device, seed=3)
+    field = poisson_indicator(p, n, torch.ones(len(p), device=device), 256, sigma=2.0, padding=0.1)
+    rad, _, faces, h = _radii(field)
+    assert len(faces) > 10_000
+    assert np.abs(rad - 0.35).max() < h
