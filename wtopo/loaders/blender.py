@@ -1,0 +1,183 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Blender / NeRF-synthetic datasets: ``transforms_{train,val,test}.json`` + PNG images.
+
+Reading follows bmild/nerf ``load_blender.py`` and 3DGS ``readCamerasFromTransforms``:
+``transform_matrix`` is camera-to-world in OpenGL axes, ``fx = fy = W / (2 tan(camera_angle_x / 2))``,
+principal point at the image centre, RGBA composited onto a white or black background (alpha
+becomes the mask). Per-frame or top-level ``fl_x, fl_y, cx, cy`` (and ``k1 k2 p1 p2 k3``) override
+that, which is how :func:`write_blender` stores general cameras.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import numpy as np
+
+from ._common import ImageStack, make_camera, opencv_c2w_from_w2c_gl, opengl_c2w_to_w2c, parse_background, read_image
+
+__all__ = ["load_blender", "write_blender"]
+
+_SPLITS = ("train", "val", "test")
+
+
+def _intrinsics(meta: dict, frame: dict, w: int, h: int):
+    def get(k):
+        return frame.get(k, meta.get(k))
+
+    fx, fy = get("fl_x"), get("fl_y")
+    if fx is None:
+        ax = get("camera_angle_x")
+        if ax is None:
+            raise ValueError("transforms file gives neither camera_angle_x nor fl_x")
+        fx = 0.5 * w / math.tan(0.5 * float(ax))
+    if fy is None:
+        ay = get("camera_angle_y")
+        fy = 0.5 * h / math.tan(0.5 * float(ay)) if ay is not None else fx
+    cx, cy = get("cx"), get("cy")
+    cx = 0.5 * w if cx is None else float(cx)
+    cy = 0.5 * h if cy is None else float(cy)
+    K = np.array([[float(fx), float(get("skew") or 0.0), cx], [0, float(fy), cy], [0, 0, 1.0]])
+    d = [float(get(k) or 0.0) for k in ("k1", "k2", "p1", "p2", "k3")]
+    return K, (d if any(d) else None)
+
+
+def _image_path(root: str, file_path: str) -> str:
+    p = os.path.normpath(os.path.join(root, file_path))
+    if os.path.splitext(p)[1].lower() in (".png", ".jpg", ".jpeg") and os.path.isfile(p):
+        return p
+    for ext in (".png", ".jpg", ".jpeg", ".PNG", ".JPG"):
+        if os.path.isfile(p + ext):
+            return p + ext
+    raise FileNotFoundError(f"image for file_path {file_path!r} not found under {root} (tried .png/.jpg)")
+
+
+def load_blender(path: str, *, splits=("train", "test"), background=None, downscale: float = 1):
+    """Read a Blender / NeRF-synthetic dataset directory.
+
+    Args:
+        path: directory holding ``transforms_<split>.json``.
+        splits: which of ``train``, ``val``, ``test`` to read (missing files are skipped); frames
+            come in this order and ``train`` / ``test`` become the scene's split indices.
+        background: ``"white"``, ``"black"``, 3 floats or ``None`` (the file's ``background`` key
+            when written by :func:`write_blender`, else white as in NeRF).
+        downscale: image size divisor (>= 1).
+
+    Returns:
+        :class:`wtopo.Scene` in the dataset's world frame.
+    """
+    from ..scene import Scene
+
+    for s in splits:
+        if s not in _SPLITS:
+            raise ValueError(f"splits must be a subset of {_SPLITS}, got {splits!r}")
+    metas = {}
+    for s in splits:
+        p = os.path.join(path, f"transforms_{s}.json")
+        if os.path.isfile(p):
+            with open(p) as fh:
+                metas[s] = json.load(fh)
+    if not metas:
+        raise FileNotFoundError(f"no transforms_{{{','.join(splits)}}}.json in {path}")
+    first = next(iter(metas.values()))
+    bg = parse_background(background, None)
+    if bg is None:
+        bg = parse_background(first.get("background", "white")) if "background" in first else (1.0, 1.0, 1.0)
+    stack = ImageStack(downscale, bg)
+    index = {}
+    any_alpha = False
+    for s, meta in metas.items():
+        index[s] = []
+        for frame in meta.get("frames", []):
+            ip = _image_path(path, frame["file_path"])
+            img = read_image(ip)
+            any_alpha |= img.shape[-1] == 4
+            h, w = img.shape[:2]
+            K, dist = _intrinsics(meta, frame, w, h)
+            i = len(stack.cameras)
+            name = os.path.relpath(ip, path)
+            cam = make_camera(i, name, K, opengl_c2w_to_w2c(frame["transform_matrix"]), w, h, dist)
+            index[s].append(i)
+            stack.add(cam, img)
+    cams, images, masks = stack.arrays()
+    train = np.asarray(index.get("train", []), dtype=np.int64)
+    test = np.asarray(index.get("test", []), dtype=np.int64)
+    if len(test) == 0:
+        train = test = None
+    bounds = first.get("bounds")
+    gt = None
+    mesh_path = os.path.join(path, "gt_mesh.ply")
+    if os.path.isfile(mesh_path):
+        import trimesh
+
+        gt = trimesh.load(mesh_path, process=False, force="mesh")
+    return Scene(cams, images, masks=masks, background=bg if any_alpha or "background" in first else None,
+                 bounds=None if bounds is None else (bounds[0], bounds[1]), gt_mesh=gt,
+                 name=first.get("name", os.path.basename(os.path.normpath(path))),
+                 train_indices=train, test_indices=test)
+
+
+def _frame(camera, file_path: str) -> dict:
+    K = camera.K
+    fr = {
+        "file_path": file_path,
+        "rotation": 0.0,
+        "transform_matrix": opencv_c2w_from_w2c_gl(camera).tolist(),
+        "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
+        "w": camera.width, "h": camera.height,
+    }
+    if K[0, 1] != 0:
+        fr["skew"] = float(K[0, 1])
+    if camera.distortion is not None:
+        fr.update({k: float(v) for k, v in zip(("k1", "k2", "p1", "p2", "k3"), camera.distortion)})
+    return fr
+
+
+def write_blender(scene, path: str) -> None:
+    """Write ``scene`` as a Blender / NeRF-synthetic dataset (see :meth:`wtopo.Scene.save`).
+
+    Images are 8-bit RGBA PNGs (alpha = mask; RGB when the scene has no masks) under ``train/``, ``test/`` (and
+    ``val/`` for images in neither split); ``gt_mesh.ply`` holds the ground-truth mesh.
+    """
+    from PIL import Image
+
+    os.makedirs(path, exist_ok=True)
+    n = len(scene)
+    if scene.train_indices is None and scene.test_indices is None:
+        groups = {"train": list(range(n)), "test": []}
+    else:
+        train = [] if scene.train_indices is None else [int(i) for i in scene.train_indices]
+        test = [] if scene.test_indices is None else [int(i) for i in scene.test_indices]
+        rest = sorted(set(range(n)) - set(train) - set(test))
+        groups = {"train": train, "test": test}
+        if rest:
+            groups["val"] = rest
+    images = (scene.images.detach().cpu().numpy() * 255.0 + 0.5).clip(0, 255).astype(np.uint8)
+    masks = None if scene.masks is None else scene.masks.detach().cpu().numpy()
+    cam0 = scene.cameras[0]
+    for split, idx in groups.items():
+        os.makedirs(os.path.join(path, split), exist_ok=True)
+        frames = []
+        for k, i in enumerate(idx):
+            rel = f"{split}/r_{k}"
+            if masks is None:  # no alpha channel: the loader must not invent an all-true mask
+                im = Image.fromarray(images[i], "RGB")
+            else:
+                im = Image.fromarray(np.concatenate([images[i], masks[i].astype(np.uint8)[..., None] * 255], axis=-1),
+                                     "RGBA")
+            im.save(os.path.join(path, rel + ".png"))
+            frames.append(_frame(scene.cameras[i], "./" + rel))
+        meta = {
+            "camera_angle_x": 2.0 * math.atan(0.5 * cam0.width / cam0.K[0, 0]),
+            "name": scene.name,
+            "background": None if scene.background is None else list(scene.background),
+            "frames": frames,
+        }
+        if scene.bounds is not None:
+            meta["bounds"] = [scene.bounds[0].tolist(), scene.bounds[1].tolist()]
+        with open(os.path.join(path, f"transforms_{split}.json"), "w") as fh:
+            json.dump(meta, fh, indent=1)
+    if scene.gt_mesh is not None:
+        scene.gt_mesh.export(os.path.join(path, "gt_mesh.ply"))
