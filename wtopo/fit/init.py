@@ -1,0 +1,70 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Stage 1: the initial surfels, from the scene's points or from the cameras' common volume.
+
+Without points, candidate positions fill the normalised region of interest and are kept where
+the masks' visual hull (or, without masks, 90 % of the camera frusta) contains them, the test
+:meth:`wtopo.Scene.normalization` uses to find the region itself.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from ..scene import _carve
+from .config import InitConfig
+from .surfels import Surfels
+
+__all__ = ["initial_surfels", "common_volume_points"]
+
+_MAX_INIT_SCALE = 0.05  # no initial surfel wider than 5 % of the unit cube (isolated points)
+
+
+def common_volume_points(scene, n: int, generator: torch.Generator) -> np.ndarray:
+    """About ``n`` points [P, 3] inside the cameras' common volume of the normalised ``scene``."""
+    masks = None if scene.masks is None else scene.masks.detach().cpu().numpy().astype(bool)
+    lo, hi = np.zeros(3), np.ones(3)
+    res = 16
+    kept = _carve(scene.cameras, masks, lo, hi, res)
+    # refine the grid until it holds enough cells (the hull may fill a small part of the cube)
+    while len(kept) < n and res < 128:
+        res *= 2
+        kept = _carve(scene.cameras, masks, lo, hi, res)
+    if len(kept) == 0:
+        raise ValueError("the cameras' common volume (visual hull of the masks, or 90 % of the frusta) is empty "
+                         "inside the normalised scene; give the scene init points or bounds")
+    cell = (hi - lo) / res
+    idx = torch.randint(0, len(kept), (n,), generator=generator).numpy()
+    jitter = (torch.rand(n, 3, generator=generator).numpy() - 0.5) * cell
+    return kept[idx] + jitter
+
+
+def initial_surfels(scene, cfg: InitConfig, source: str, *, sh_degree: int, device: torch.device,
+                    generator: torch.Generator) -> Surfels:
+    """Surfels for stage 1 in the internal frame of the normalised ``scene``.
+
+    Scales are the mean distance to ``cfg.scale_neighbours`` nearest neighbours; rotations random;
+    colours the scene's point colours or mid grey.
+    """
+    if source == "points":
+        if scene.points is None or len(scene.points) == 0:
+            raise ValueError("init.source is 'points' but the scene has no points")
+        pts = np.asarray(scene.points, np.float64)
+        cols = (np.asarray(scene.point_colors, np.float64) if scene.point_colors is not None
+                else np.full_like(pts, 0.5))
+    elif source == "cameras":
+        pts = common_volume_points(scene, int(cfg.num_points), generator)
+        cols = np.full_like(pts, 0.5)
+    else:
+        raise ValueError(f"init source must be 'points' or 'cameras', got {source!r}")
+    k = min(cfg.scale_neighbours + 1, len(pts))
+    if k > 1:
+        d, _ = cKDTree(pts).query(pts, k=k)
+        scale = np.clip(d[:, 1:].mean(axis=1), 1e-6, _MAX_INIT_SCALE)
+    else:
+        scale = np.full(len(pts), 0.01)
+    return Surfels.from_points(torch.as_tensor(pts, dtype=torch.float32, device=device),
+                               torch.as_tensor(cols, dtype=torch.float32, device=device),
+                               scales=torch.as_tensor(scale, dtype=torch.float32, device=device),
+                               opacity=cfg.opacity, sh_degree=sh_degree, generator=generator)

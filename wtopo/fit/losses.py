@@ -1,0 +1,155 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Loss terms of the fit, pure torch.
+
+Every term is finite for any input the renderers produce: masks are applied before ``log`` (so
+invalid pixels get exactly zero gradient), zero vectors are never normalised without an epsilon,
+and a term over an empty mask is ``0`` (connected to the graph), never the NaN of an empty mean.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from ..metrics import ssim
+
+__all__ = [
+    "masked_mean",
+    "l1",
+    "photometric",
+    "mask_loss",
+    "depth_to_points",
+    "depth_normals",
+    "normal_consistency",
+    "distortion",
+    "scale_regularizer",
+    "mesh_depth_loss",
+    "mesh_normal_loss",
+    "safe_normalize",
+]
+
+_NORMAL_EPS = 1e-8  # below this length a normal is treated as absent (zero alpha)
+
+
+def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of ``values`` over ``mask`` (same leading shape); ``0`` with the graph kept when empty."""
+    m = mask.to(values.dtype)
+    while m.ndim < values.ndim:
+        m = m.unsqueeze(-1)
+    m = m.expand_as(values)
+    count = m.sum()
+    return (values * m).sum() / count.clamp_min(1.0)
+
+
+def safe_normalize(v: torch.Tensor, eps: float = _NORMAL_EPS) -> torch.Tensor:
+    """``v / |v|`` over the last axis with ``|v|`` clamped to ``eps`` (zero stays zero, finite gradient)."""
+    return v / v.norm(dim=-1, keepdim=True).clamp_min(eps)
+
+
+def l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean absolute difference."""
+    return (pred - target).abs().mean()
+
+
+def photometric(pred: torch.Tensor, target: torch.Tensor, dssim: float) -> torch.Tensor:
+    """``(1 - dssim) * L1 + dssim * (1 - SSIM)`` of images [H, W, 3] (SSIM of :func:`wtopo.metrics.ssim`)."""
+    loss = (1.0 - dssim) * l1(pred, target)
+    if dssim > 0:
+        loss = loss + dssim * (1.0 - ssim(pred, target))
+    return loss
+
+
+def mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Binary cross-entropy between rendered opacity [H, W] and an object mask [H, W] bool."""
+    a = alpha.clamp(1e-6, 1 - 1e-6)  # BCE is infinite at exactly 0 / 1
+    return F.binary_cross_entropy(a, mask.to(alpha.dtype))
+
+
+def depth_to_points(depth: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
+    """World points [H, W, 3] of z-depths [H, W] along rays whose camera-z component is 1."""
+    return origins + directions * depth[..., None]
+
+
+def depth_normals(depth: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor,
+                  valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normals [H, W, 3] from a depth map by central differences, facing the camera, and their mask.
+
+    Border pixels and pixels whose four neighbours are not all ``valid`` get a zero normal and
+    ``False`` in the mask (2DGS pads borders with zero).
+    """
+    p = depth_to_points(torch.where(valid, depth, torch.zeros_like(depth)), origins, directions)
+    dx = p[1:-1, 2:] - p[1:-1, :-2]
+    dy = p[2:, 1:-1] - p[:-2, 1:-1]
+    n = torch.cross(dx, dy, dim=-1)
+    inner = valid[1:-1, 2:] & valid[1:-1, :-2] & valid[2:, 1:-1] & valid[:-2, 1:-1] & valid[1:-1, 1:-1]
+    inner = inner & (n.norm(dim=-1) > _NORMAL_EPS)
+    n = safe_normalize(n)
+    # face the camera: the normal points against the viewing ray
+    facing = (n * directions[1:-1, 1:-1]).sum(-1, keepdim=True)
+    n = torch.where(facing > 0, -n, n)
+    n = torch.where(inner[..., None], n, torch.zeros_like(n))
+    out = F.pad(n.permute(2, 0, 1), (1, 1, 1, 1)).permute(1, 2, 0)
+    mask = F.pad(inner, (1, 1, 1, 1), value=False)
+    return out, mask
+
+
+def normal_consistency(rendered: torch.Tensor, from_depth: torch.Tensor, alpha: torch.Tensor,
+                       mask: torch.Tensor) -> torch.Tensor:
+    """Alpha-weighted ``1 - <n_rendered, n_depth>`` over ``mask`` (2DGS).
+
+    ``rendered`` [H, W, 3] is the alpha-weighted rendered normal (its length is about the alpha), so
+    ``<rendered, n_depth>`` is weighted by coverage without normalising zero vectors.
+    """
+    dot = (rendered * from_depth.detach()).sum(-1)
+    return masked_mean(alpha.detach() - dot, mask)
+
+
+def distortion(dist: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean of the rendered depth-distortion map [H, W] (over ``mask`` when given)."""
+    return dist.mean() if mask is None else masked_mean(dist, mask)
+
+
+def scale_regularizer(scales: torch.Tensor, max_anisotropy: float) -> torch.Tensor:
+    """Scale regulariser of linear scales [N, 2] or [N, 3].
+
+    With three scales: the shortest axis (PGSR's flattening of 3D Gaussians). With two (2D
+    surfels, flat by construction): ``relu(max / min - max_anisotropy)``, which stops needles.
+    Zero surfels give 0.
+    """
+    if scales.shape[0] == 0:
+        return scales.sum() * 0.0
+    if scales.shape[-1] == 3:
+        return scales.min(dim=-1).values.mean()
+    ratio = scales.max(dim=-1).values / scales.min(dim=-1).values.clamp_min(1e-12)
+    return F.relu(ratio - max_anisotropy).mean()
+
+
+def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: torch.Tensor, *,
+                    eps: float, form: str = "log_ratio", extent: float = 1.0) -> torch.Tensor:
+    """Agreement of surfel depth and proxy-mesh depth [H, W] on ``mask`` (pixels both cover).
+
+    ``form="log_ratio"``: ``|log d_s - log d_m|``; ``"log1p_abs"``: ``log1p(|d_m - d_s| / extent)``.
+    Depths are masked before the ``log`` and clamped to ``eps`` (scene units), so invalid pixels
+    have exactly zero gradient. Empty mask -> 0.
+    """
+    ds = torch.where(mask, surfel_depth, torch.ones_like(surfel_depth)).clamp_min(eps)
+    dm = torch.where(mask, mesh_depth, torch.ones_like(mesh_depth)).clamp_min(eps)
+    if form == "log_ratio":
+        err = (torch.log(ds) - torch.log(dm)).abs()
+    elif form == "log1p_abs":
+        err = torch.log1p((dm - ds).abs() / extent)
+    else:
+        raise ValueError(f"form must be 'log_ratio' or 'log1p_abs', got {form!r}")
+    return masked_mean(err, mask)
+
+
+def mesh_normal_loss(surfel_normal: torch.Tensor, mesh_normal: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """``1 - |<n_surfel, n_mesh>|`` on ``mask``, both [H, W, 3].
+
+    The rendered normal is normalised safely; the absolute value makes the term independent of
+    the proxy mesh's orientation (a face seen from behind agrees as well). Empty mask -> 0.
+    """
+    ns = safe_normalize(torch.where(mask[..., None], surfel_normal, torch.zeros_like(surfel_normal)))
+    nm = torch.where(mask[..., None], mesh_normal, torch.zeros_like(mesh_normal))
+    dot = (ns * nm).sum(-1).abs()
+    return masked_mean(1.0 - dot, mask)

@@ -1,0 +1,120 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The differentiable proxy mesh: oriented points -> Poisson indicator -> marching cubes -> ray cast.
+
+:class:`ProxyMesh` keeps what is worth keeping between iterations (the BVH of the ray caster,
+refitted when only vertex positions change) and returns ``None`` when a surfel state yields no
+surface, so the caller skips the mesh losses for that iteration instead of ray casting nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..raycast import MeshRaycaster, MeshRender
+from .config import MeshConfig
+from .surfels import Surfels
+
+__all__ = ["ProxyMesh", "ProxyResult", "poisson_mesh"]
+
+_BOX_GROWTH = 0.1  # "initial_mesh" Poisson box: the TSDF mesh's box grown by 10 % (public code)
+
+
+def poisson_mesh(points: torch.Tensor, normals: torch.Tensor, weights: torch.Tensor, resolution: int, *,
+                 sigma: float, padding: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Zero level set of the Poisson indicator of oriented points in ``[0, 1]^3``.
+
+    Returns ``(verts [V, 3], faces [F, 3] int32)`` in the points' frame, differentiable w.r.t. the
+    points, normals and weights; ``F = 0`` when the field has no zero crossing.
+    """
+    from ..marching_cubes import marching_cubes
+    from ..poisson import poisson_indicator
+
+    field = poisson_indicator(points, normals, weights, int(resolution), sigma=sigma, padding=padding)
+    return marching_cubes(field.chi, 0.0, lower=field.lower, upper=field.upper)
+
+
+@dataclass
+class ProxyResult:
+    """One proxy mesh.
+
+    Attributes:
+        verts: vertices [V, 3] in the internal frame, differentiable w.r.t. the surfel parameters.
+        faces: int32 [F, 3], discrete.
+    """
+
+    verts: torch.Tensor
+    faces: torch.Tensor
+
+    @property
+    def num_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+
+class ProxyMesh:
+    """Builds the proxy mesh from surfels and renders it.
+
+    Args:
+        cfg: proxy mesh settings.
+        box: ``(lower [3], upper [3])`` of the Poisson domain in the internal frame; ``None`` for
+            the unit cube.
+        prior: optional ``(points [P, 3], normals [P, 3])`` splatted into the Poisson input with
+            weight ``cfg.surface_prior`` (the public TopoSurfel code's surface prior).
+    """
+
+    def __init__(self, cfg: MeshConfig, *, box: tuple[np.ndarray, np.ndarray] | None = None,
+                 prior: tuple[torch.Tensor, torch.Tensor] | None = None):
+        self.cfg = cfg
+        self.raycaster = MeshRaycaster()
+        if box is None:
+            self.lower, self.size = np.zeros(3), 1.0
+        else:
+            lo, hi = np.asarray(box[0], np.float64), np.asarray(box[1], np.float64)
+            side = float(np.max(hi - lo)) * (1 + 2 * _BOX_GROWTH)
+            self.lower, self.size = 0.5 * (lo + hi) - 0.5 * side, side
+        self.prior = prior
+
+    def _to_box(self, p: torch.Tensor) -> torch.Tensor:
+        return (p - torch.as_tensor(self.lower, dtype=p.dtype, device=p.device)) / self.size
+
+    def _from_box(self, p: torch.Tensor) -> torch.Tensor:
+        return p * self.size + torch.as_tensor(self.lower, dtype=p.dtype, device=p.device)
+
+    def build(self, surfels: Surfels) -> ProxyResult | None:
+        """The proxy mesh of the current surfels (``None`` when it has no faces).
+
+        Differentiable w.r.t. the surfel means, rotations, scales and opacities.
+        """
+        from ..oriented_points import oriented_points
+
+        c = self.cfg
+        op = oriented_points(surfels.means, surfels.quats, surfels.scales, surfels.opacities,
+                             samples=int(c.samples_per_surfel), offset=c.offset, opacity_threshold=c.opacity_threshold,
+                             center_weight=1.0, offset_weight=c.offset_weight,
+                             normal_sign=surfels.buffers["normal_sign"])
+        pts, nrm, w = self._to_box(op.points), op.normals, op.weights
+        if self.prior is not None and c.surface_prior > 0:
+            pp, pn = self.prior
+            pts = torch.cat([pts, self._to_box(pp.to(pts))])
+            nrm = torch.cat([nrm, pn.to(nrm)])
+            w = torch.cat([w, torch.full((pp.shape[0],), float(c.surface_prior), dtype=w.dtype, device=w.device)])
+        # points outside the Poisson domain carry no weight (their gradient is exactly 0)
+        inside = ((pts >= 0) & (pts <= 1)).all(dim=-1)
+        w = torch.where(inside, w, torch.zeros_like(w))
+        pts = torch.where(inside[:, None], pts, torch.full_like(pts, 0.5))
+        if not bool((w > 0).any()):  # host sync: one per iteration, decides whether a mesh exists
+            return None
+        verts, faces = poisson_mesh(pts, nrm, w, int(c.resolution), sigma=c.sigma, padding=c.padding)
+        if faces.shape[0] == 0:
+            return None
+        return ProxyResult(self._from_box(verts), faces)
+
+    def render(self, mesh: ProxyResult, camera) -> MeshRender:
+        """Ray cast the proxy mesh from ``camera`` (BVH refitted or rebuilt as needed)."""
+        return self.raycaster.raycast(mesh.verts, mesh.faces, camera)
+
+    def closest(self, mesh: ProxyResult, points: torch.Tensor):
+        """``(face_id, distance, closest)`` of ``points`` [P, 3] on the proxy mesh (discrete)."""
+        return self.raycaster.closest_faces(mesh.verts.detach(), mesh.faces, points.detach())

@@ -1,0 +1,200 @@
+# SPDX-License-Identifier: Apache-2.0
+"""TSDF fusion of rendered surfel depth (Open3D 0.19 ``ScalableTSDFVolume``) and the TSDF
+re-initialisation of the surfels.
+
+Bounds, voxel size, truncation and the per-view depth cut-off are derived from the cameras and
+the current surfels, never given by hand: the bounds are a robust box around the opaque surfels
+(clipped to the normalised scene), the voxel size divides the box's longest side into
+``resolution`` voxels, the truncation is a fixed number of voxels, and each view's depth cut-off is
+the farthest corner of the bounds from that camera.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import trimesh
+
+from ..camera import Camera
+from .surfels import Surfels
+
+__all__ = ["TSDFEmptyError", "FusionBounds", "auto_bounds", "fuse_depths", "mesh_to_surfels", "cleanup_mesh",
+           "hybrid_keep"]
+
+_BOX_PERCENTILE = 0.5  # percent of surfels ignored on each side when boxing them (floaters)
+_BOX_MARGIN = 0.05  # box grows by this fraction of its longest side on every side
+_SCENE_LIMIT = (-0.25, 1.25)  # the normalised scene fits [0, 1]^3 with margin; never fuse beyond this
+
+
+class TSDFEmptyError(RuntimeError):
+    """TSDF fusion produced no surface."""
+
+
+@dataclass
+class FusionBounds:
+    """Automatic fusion parameters in the internal frame."""
+
+    lower: np.ndarray
+    upper: np.ndarray
+    voxel: float
+    truncation: float
+
+    def to_dict(self) -> dict:
+        return {"lower": self.lower.tolist(), "upper": self.upper.tolist(), "voxel": self.voxel,
+                "truncation": self.truncation}
+
+
+def auto_bounds(points: torch.Tensor | np.ndarray, weights: torch.Tensor | np.ndarray | None, *,
+                resolution: int, truncation_voxels: float) -> FusionBounds:
+    """Bounds around ``points`` [N, 3] (surfel centres, weighted by opacity when given).
+
+    Points with weight below 0.5 of the maximum are ignored; the box spans the
+    ``[0.5, 99.5]`` percentiles plus a 5 % margin, clipped to the normalised scene.
+    """
+    p = points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else np.asarray(points)
+    if weights is not None:
+        w = weights.detach().cpu().numpy() if isinstance(weights, torch.Tensor) else np.asarray(weights)
+        sel = w >= 0.5 * w.max() if w.size else np.zeros(0, bool)
+        if sel.sum() >= 8:
+            p = p[sel]
+    if p.shape[0] == 0:
+        lo, hi = np.zeros(3), np.ones(3)
+    else:
+        lo = np.percentile(p, _BOX_PERCENTILE, axis=0)
+        hi = np.percentile(p, 100 - _BOX_PERCENTILE, axis=0)
+    side = float(np.max(hi - lo))
+    side = side if side > 1e-6 else 1.0
+    lo = np.clip(lo - _BOX_MARGIN * side, *_SCENE_LIMIT)
+    hi = np.clip(hi + _BOX_MARGIN * side, *_SCENE_LIMIT)
+    voxel = float(np.max(hi - lo)) / resolution
+    return FusionBounds(lo, hi, voxel, truncation_voxels * voxel)
+
+
+def _far_depth(camera: Camera, bounds: FusionBounds) -> float:
+    corners = np.array([[x, y, z] for x in (bounds.lower[0], bounds.upper[0])
+                        for y in (bounds.lower[1], bounds.upper[1]) for z in (bounds.lower[2], bounds.upper[2])])
+    _, z = camera.project(corners)
+    return float(max(z.max(), 1e-6)) + bounds.truncation
+
+
+def fuse_depths(cameras: Sequence[Camera], depths: Sequence[np.ndarray], colors: Sequence[np.ndarray],
+                bounds: FusionBounds) -> trimesh.Trimesh:
+    """Fuse z-depth maps into a TSDF and extract its mesh, cropped to ``bounds``.
+
+    Args:
+        cameras: one camera per depth map (internal frame).
+        depths: z-depth [H, W] float (0 = no measurement), internal units.
+        colors: RGB [H, W, 3] float in [0, 1].
+        bounds: from :func:`auto_bounds`.
+
+    Returns:
+        A vertex-coloured mesh in the internal frame.
+
+    Raises:
+        TSDFEmptyError: no surface (every depth empty, or depths in other units than the cameras).
+    """
+    import open3d as o3d
+
+    vol = o3d.pipelines.integration.ScalableTSDFVolume(
+        voxel_length=bounds.voxel, sdf_trunc=bounds.truncation,
+        color_type=o3d.pipelines.integration.TSDFVolumeColorType.RGB8)
+    n_valid = 0
+    for cam, dep, col in zip(cameras, depths, colors):
+        dep = np.ascontiguousarray(np.nan_to_num(np.asarray(dep, np.float32), nan=0.0, posinf=0.0, neginf=0.0))
+        if not (dep > 0).any():
+            continue
+        n_valid += 1
+        # Open3D puts pixel centres at integer coordinates; wtopo at +0.5 (camera.py).
+        intr = o3d.camera.PinholeCameraIntrinsic(cam.width, cam.height, cam.K[0, 0], cam.K[1, 1],
+                                                 cam.K[0, 2] - 0.5, cam.K[1, 2] - 0.5)
+        rgb = np.ascontiguousarray((np.clip(np.asarray(col), 0, 1) * 255).astype(np.uint8))
+        rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(rgb), o3d.geometry.Image(dep), depth_scale=1.0,
+            depth_trunc=_far_depth(cam, bounds), convert_rgb_to_intensity=False)
+        vol.integrate(rgbd, intr, cam.world_to_camera)
+    mesh = vol.extract_triangle_mesh()
+    v = np.asarray(mesh.vertices)
+    f = np.asarray(mesh.triangles)
+    if n_valid == 0 or f.shape[0] == 0:
+        raise TSDFEmptyError(
+            f"TSDF fusion of {len(depths)} depth maps ({n_valid} with valid pixels) produced no surface; "
+            f"voxel {bounds.voxel:.4g}, truncation {bounds.truncation:.4g} (internal units). Depths must be "
+            "z-depths in the cameras' units (Open3D #4419: a wrong depth scale or a cut-off below the scene).")
+    c = np.asarray(mesh.vertex_colors)
+    tm = trimesh.Trimesh(v, f, vertex_colors=(np.clip(c, 0, 1) * 255).astype(np.uint8) if c.size else None,
+                         process=True)
+    inside = np.all((tm.vertices >= bounds.lower - bounds.voxel) & (tm.vertices <= bounds.upper + bounds.voxel), axis=1)
+    if not inside.all():
+        tm.update_faces(inside[tm.faces].all(axis=1))
+        tm.remove_unreferenced_vertices()
+    if len(tm.faces) == 0:
+        raise TSDFEmptyError("TSDF mesh lies entirely outside the automatic bounds")
+    return tm
+
+
+def cleanup_mesh(mesh: trimesh.Trimesh, *, largest_component: bool = True) -> trimesh.Trimesh:
+    """Merge vertices, drop degenerate faces, keep the largest component, fill small holes."""
+    mesh = mesh.copy()
+    mesh.merge_vertices()
+    mesh.update_faces(mesh.nondegenerate_faces())
+    mesh.remove_unreferenced_vertices()
+    if largest_component and len(mesh.faces):
+        parts = mesh.split(only_watertight=False)
+        if len(parts) > 1:
+            mesh = max(parts, key=lambda m: len(m.faces))
+    if not mesh.is_watertight:
+        trimesh.repair.fill_holes(mesh)
+    trimesh.repair.fix_normals(mesh)
+    return mesh
+
+
+def mesh_to_surfels(mesh: trimesh.Trimesh, *, max_faces: int, device: torch.device | str, sh_degree: int,
+                    opacity: float) -> Surfels:
+    """One surfel per triangle of ``mesh`` (decimated to at most ``max_faces``).
+
+    Centre at the centroid, normal = face normal, first tangent along the first edge, both scales
+    ``sqrt(area / pi) / 2`` of the triangle's area (a disc of one sigma covers a quarter of it),
+    colour the mean of the vertex colours.
+    """
+    if len(mesh.faces) > max_faces:
+        import open3d as o3d
+
+        om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
+                                       o3d.utility.Vector3iVector(mesh.faces))
+        if mesh.visual.kind == "vertex":
+            om.vertex_colors = o3d.utility.Vector3dVector(np.asarray(mesh.visual.vertex_colors)[:, :3] / 255.0)
+        om = om.simplify_quadric_decimation(target_number_of_triangles=int(max_faces))
+        cols = np.asarray(om.vertex_colors)
+        mesh = trimesh.Trimesh(np.asarray(om.vertices), np.asarray(om.triangles),
+                               vertex_colors=(cols * 255).astype(np.uint8) if cols.size else None, process=False)
+    v = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32)
+    f = torch.as_tensor(np.asarray(mesh.faces), dtype=torch.long)
+    tri = v[f]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    cr = torch.cross(e1, e2, dim=-1)
+    area = 0.5 * cr.norm(dim=-1)
+    keep = area > 1e-12
+    tri, cr, area, e1, f = tri[keep], cr[keep], area[keep], e1[keep], f[keep]
+    if mesh.visual.kind == "vertex":
+        vc = torch.as_tensor(np.asarray(mesh.visual.vertex_colors)[:, :3] / 255.0, dtype=torch.float32)
+        col = vc[f].mean(dim=1)
+    else:
+        col = torch.full((f.shape[0], 3), 0.5)
+    scale = 0.5 * torch.sqrt(area / np.pi)
+    s = Surfels.from_points(tri.mean(dim=1), col, scales=scale, normals=cr, tangents=e1, opacity=opacity,
+                            sh_degree=sh_degree)
+    return _to(s, device)
+
+
+def _to(s: Surfels, device) -> Surfels:
+    return Surfels.from_state_dict(s.state_dict(), device)
+
+
+def hybrid_keep(old: Surfels, distance: torch.Tensor, max_distance: float) -> dict:
+    """Parameters and buffers of the old surfels farther than ``max_distance`` from the TSDF mesh."""
+    idx = torch.nonzero(distance > max_distance).flatten()
+    return old.take(idx)
+
