@@ -1,0 +1,175 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Metrics against shapes and images with known answers."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from skimage.metrics import structural_similarity
+
+from wtopo import metrics
+
+N_SAMPLES = 40_000
+# Sampling noise of a mean over 40k area samples is ~1e-3 of the measured spread; tessellation of a
+# level-5 icosphere moves its surface by <= 2e-4 of the radius.  2e-3 covers both with room.
+MEAN_TOL = 2e-3
+# Fractions (precision / recall) over 40k samples: binomial std <= 2.5e-3; 4 sigma plus tessellation.
+FRACTION_TOL = 1.2e-2
+EXACT_TOL = 1e-9  # exact-distance cases (planar faces): only float64 rounding
+
+
+def _sphere(radius=1.0, center=(0, 0, 0), sub=5):
+    m = trimesh.creation.icosphere(subdivisions=sub, radius=radius)
+    m.apply_translation(center)
+    return m
+
+
+def _box(side, center=(0, 0, 0)):
+    m = trimesh.creation.box(extents=(side, side, side))
+    m.apply_translation(center)
+    return m
+
+
+def test_identical_meshes_give_zero_distance_and_full_f_score():
+    """Score a mesh against itself: chamfer 0, F = 1, normal consistency 1."""
+    m = _sphere(sub=3)
+    r = metrics.chamfer(m, m, n_samples=5000)
+    assert r.chamfer < EXACT_TOL and r.chamfer_rel < EXACT_TOL
+    f = metrics.f_score(m, m, 1e-6, n_samples=5000)
+    assert (f.precision, f.recall, f.f_score) == (1.0, 1.0, 1.0)
+    assert metrics.normal_consistency(m, m, n_samples=5000) == pytest.approx(1.0, abs=1e-9)
+
+
+def test_concentric_boxes_match_closed_form():
+    """Compare chamfer of concentric cubes (side 2 and 2.4) with an independent quadrature."""
+    a, b = _box(2.0), _box(2.4)
+    r = metrics.chamfer(a, b, n_samples=N_SAMPLES)
+    # a -> b: every point of the inner cube is exactly 0.2 from the outer one
+    np.testing.assert_allclose(r.accuracy, 0.2, atol=EXACT_TOL)
+    # b -> a: point (x, y, 1.2) on an outer face is sqrt(max(|x|-1,0)^2 + max(|y|-1,0)^2 + 0.2^2) away
+    g = (np.arange(2000) + 0.5) / 2000 * 2.4 - 1.2
+    x, y = np.meshgrid(g, g)
+    d = np.sqrt(np.maximum(np.abs(x) - 1, 0) ** 2 + np.maximum(np.abs(y) - 1, 0) ** 2 + 0.04)
+    np.testing.assert_allclose(r.completeness, d.mean(), atol=MEAN_TOL * 0.2)
+    np.testing.assert_allclose(r.diagonal, 2.4 * math.sqrt(3), rtol=1e-12)
+    np.testing.assert_allclose(r.chamfer_rel, 0.5 * (0.2 + d.mean()) / (2.4 * math.sqrt(3)), rtol=MEAN_TOL)
+
+
+def _offset_sphere_distance_mean(delta):
+    # distance from p on the unit sphere to the unit sphere centred delta along z: |sqrt(1+d^2-2dz) - 1|;
+    # area is uniform in z on a sphere (Archimedes), so average over z in [-1, 1]
+    z = (np.arange(200_000) + 0.5) / 200_000 * 2 - 1
+    return np.abs(np.sqrt(1 + delta ** 2 - 2 * delta * z) - 1).mean()
+
+
+def test_offset_spheres_match_closed_form():
+    """Compare chamfer, F-score and normals of two offset unit spheres with closed forms."""
+    delta, tau = 0.3, 0.1
+    a, b = _sphere(), _sphere(center=(0, 0, delta))
+    r = metrics.chamfer(a, b, n_samples=N_SAMPLES)
+    want = _offset_sphere_distance_mean(delta)
+    np.testing.assert_allclose([r.accuracy, r.completeness, r.chamfer], want, atol=MEAN_TOL)
+    # |p - c| in [1 - tau, 1 + tau]  <=>  z in [(d^2 - 2 tau - tau^2) / 2d, (d^2 + 2 tau - tau^2) / 2d]
+    z_lo = (delta ** 2 - 2 * tau - tau ** 2) / (2 * delta)
+    z_hi = (delta ** 2 + 2 * tau - tau ** 2) / (2 * delta)
+    frac = (min(z_hi, 1) - max(z_lo, -1)) / 2
+    f = metrics.f_score(a, b, tau, n_samples=N_SAMPLES)
+    np.testing.assert_allclose([f.precision, f.recall, f.f_score], frac, atol=FRACTION_TOL)
+    # concentric spheres 0.1 apart: nothing within 0.05, everything within 0.15
+    c, d = _sphere(sub=4), _sphere(1.1, sub=4)
+    assert metrics.f_score(c, d, 0.05, n_samples=5000).f_score == 0.0
+    assert metrics.f_score(c, d, 0.15, n_samples=5000).f_score == 1.0
+    # concentric: closest-face normals are the same radial direction
+    assert metrics.normal_consistency(c, d, n_samples=5000) > 0.999
+
+
+def test_point_to_surface_distance_matches_trimesh():
+    """Check the exact point-to-triangle distance against trimesh's closest-point query."""
+    rng = np.random.default_rng(3)
+    tri = rng.normal(size=(3000, 3, 3))
+    p = rng.normal(size=(3000, 3)) * 2
+    ours = metrics._closest_on_triangles(p, tri[:, 0], tri[:, 1], tri[:, 2])
+    np.testing.assert_allclose(ours, trimesh.triangles.closest_point(tri, p), atol=1e-12)
+
+
+def test_cube_and_subdivision():
+    """Compare a cube with its 1-to-4 subdivision: same surface, known vertex distances and topology."""
+    a = _box(2.0)
+    v, f = trimesh.remesh.subdivide(a.vertices, a.faces)
+    b = trimesh.Trimesh(v, f, process=False)
+    assert metrics.chamfer(a, b, n_samples=5000).chamfer < EXACT_TOL
+    r = metrics.chamfer_vertices(a, b)
+    # 26 vertices: 8 corners (0), 12 cube-edge midpoints (1 from a corner), 6 face centres (sqrt 2)
+    np.testing.assert_allclose(r.accuracy, 0.0, atol=EXACT_TOL)
+    np.testing.assert_allclose(r.completeness, (12 + 6 * math.sqrt(2)) / 26, rtol=1e-12)
+    sa, sb = metrics.mesh_stats(a), metrics.mesh_stats(b)
+    assert (sa["n_vertices"], sa["n_edges"], sa["n_faces"], sa["euler"]) == (8, 18, 12, 2)
+    assert (sb["n_vertices"], sb["n_edges"], sb["n_faces"], sb["euler"]) == (26, 72, 48, 2)
+    for s in (sa, sb):
+        assert s["watertight"] and s["winding_consistent"] and s["n_components"] == 1 and s["genus"] == 0
+        np.testing.assert_allclose(s["area"], 24.0, rtol=1e-12)
+        np.testing.assert_allclose(s["volume"], 8.0, rtol=1e-12)
+
+
+def test_mesh_stats_topology_cases():
+    """Count boundary edges, components and genus of open, split and toroidal meshes."""
+    s = _sphere(sub=2)
+    open_ = trimesh.Trimesh(s.vertices, s.faces[1:], process=False)
+    st = metrics.mesh_stats(open_)
+    assert st["boundary_edges"] == 3 and not st["watertight"] and st["volume"] is None and st["euler"] == 1
+    two = trimesh.util.concatenate([_sphere(sub=1), _sphere(center=(5, 0, 0), sub=1)])
+    st = metrics.mesh_stats(two)
+    assert st["n_components"] == 2 and st["euler"] == 4 and st["genus"] is None
+    torus = trimesh.creation.torus(major_radius=1.0, minor_radius=0.3)
+    st = metrics.mesh_stats(torus)
+    assert st["watertight"] and st["euler"] == 0 and st["genus"] == 1
+    flipped = trimesh.Trimesh(s.vertices, np.concatenate([s.faces[:1, ::-1], s.faces[1:]]), process=False)
+    assert not metrics.mesh_stats(flipped)["winding_consistent"]
+
+
+def test_psnr_known_values():
+    """Check PSNR of a constant offset (20 dB for 0.1) and with a mask."""
+    t = torch.rand(2, 16, 20, 3) * 0.8
+    p = t + 0.1
+    np.testing.assert_allclose(metrics.psnr(p, t).item(), 20.0, rtol=1e-5)
+    m = torch.zeros(2, 16, 20, dtype=torch.bool)
+    m[:, :8] = True
+    p2 = t.clone()
+    p2[:, :8] += 0.01
+    p2[:, 8:] += 0.5  # outside the mask: ignored
+    np.testing.assert_allclose(metrics.psnr(p2, t, mask=m).item(), 40.0, rtol=1e-4)
+    assert metrics.psnr(t[0], t[0]).item() == math.inf
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_ssim_matches_skimage(dtype):
+    """Compare SSIM (Gaussian 11 / 1.5, K1 0.01, K2 0.03) with scikit-image and check its gradient."""
+    g = torch.Generator().manual_seed(0)
+    t = torch.rand(24, 30, 3, generator=g, dtype=dtype)
+    p = (t + 0.1 * torch.randn(24, 30, 3, generator=g, dtype=dtype)).clamp(0, 1).requires_grad_(True)
+    ours = metrics.ssim(p, t)
+    ref = structural_similarity(p.detach().numpy(), t.numpy(), gaussian_weights=True, sigma=1.5,
+                                use_sample_covariance=False, data_range=1.0, channel_axis=-1)
+    np.testing.assert_allclose(ours.item(), ref, rtol=1e-5 if dtype == torch.float32 else 1e-10)
+    ours.backward()
+    assert torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0
+    np.testing.assert_allclose(metrics.ssim(t, t).item(), 1.0, rtol=1e-6)
+    batch = torch.stack([t, t.flip(0)])
+    np.testing.assert_allclose(metrics.ssim(batch, batch).item(), 1.0, rtol=1e-6)
+
+
+def test_metric_argument_errors():
+    """Reject malformed meshes, thresholds and images with named ValueErrors."""
+    m = _sphere(sub=1)
+    with pytest.raises(ValueError, match="tau"):
+        metrics.f_score(m, m, 0.0)
+    with pytest.raises(ValueError, match="faces"):
+        metrics.chamfer((m.vertices, m.faces + 1000), m)
+    with pytest.raises(ValueError, match="area"):
+        metrics.chamfer((np.zeros((3, 3)), np.array([[0, 1, 2]])), m)
+    with pytest.raises(ValueError, match="same shape"):
+        metrics.psnr(torch.rand(4, 4, 3), torch.rand(5, 4, 3))
+    with pytest.raises(ValueError, match="at least 11x11"):
+        metrics.ssim(torch.rand(8, 8, 3), torch.rand(8, 8, 3))
