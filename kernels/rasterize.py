@@ -1,0 +1,516 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Warp kernels of the Gaussian-surfel rasterizer (2D Gaussian splatting, ray-splat intersection).
+
+Kernels are generic over float32/float64 (``typing.Any`` arrays). The per-surfel
+:func:`prepare_surfels_kernel` is differentiated by Warp's autodiff (straight-line code); the
+per-pixel compositing kernels have explicit adjoints (:func:`render_backward_kernel`, reverse
+traversal with the saved final transmittance) and compile with ``enable_backward=False``.
+
+Camera parameter array ``cam`` (op dtype, length :data:`CAM_SIZE`):
+``[0:9]`` world-to-camera rotation (row-major), ``[9:12]`` translation, ``12 fx, 13 fy, 14 cx,
+15 cy, 16 skew``, ``[17:22]`` OpenCV ``k1 k2 p1 p2 k3``, ``[22:25]`` camera centre (world),
+``25 near, 26 far``.
+
+Per-surfel quantities the pixel kernels read (written by :func:`prepare_surfels_kernel`):
+``uax = t_u / s_u`` and ``vax = t_v / s_v`` (tangent axes divided by the scales, so the local
+coordinates of a world offset ``x`` are ``(dot(x, uax), dot(x, vax))``), ``nrm`` the plane normal
+(local +z), ``nrm_face`` the normal flipped to face the camera, ``m2`` the projected centre in
+pixels (lens distortion applied), ``zc`` the centre's z-depth and ``color`` the evaluated colour.
+"""
+
+from typing import Any
+
+import warp as wp
+
+CAM_SIZE = 27
+ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped (3DGS/2DGS convention)
+ALPHA_MAX = 0.99  # alpha clamp: keeps 1 / (1 - alpha) <= 100 in the reverse traversal (2DGS)
+T_MIN = 1.0e-4  # early stop once the transmittance would fall below this (2DGS)
+FILTER_INV_SQUARE = 2.0  # screen-space low-pass: rho2d = 2 |pixel - centre|^2, sigma = 1/sqrt(2) px (2DGS)
+SCALE_MIN = 1.0e-30  # scales are clamped here so 1 / s stays finite in float32
+PARALLEL_EPS = 1.0e-12  # |dot(ray, normal)| below this: the ray is parallel to the surfel plane
+RHO_BIG = 1.0e30  # rho3d of a parallel ray or an overflowing intersection: the filter branch wins
+QUAT_MIN_SQ = 1.0e-30  # |q|^2 below this: identity rotation (documented fallback, zero gradient)
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+
+
+@wp.func
+def quat_axes(q: Any):
+    """Tangent axes and normal (columns of the rotation) of a (w, x, y, z) quaternion of any norm."""
+    w = q[0]
+    x = q[1]
+    y = q[2]
+    z = q[3]
+    one = type(w)(1.0)
+    two = type(w)(2.0)
+    n2 = w * w + x * x + y * y + z * z
+    if n2 < type(w)(QUAT_MIN_SQ):
+        w = one
+        x = type(w)(0.0)
+        y = type(w)(0.0)
+        z = type(w)(0.0)
+    else:
+        inv = one / wp.sqrt(n2)
+        w = w * inv
+        x = x * inv
+        y = y * inv
+        z = z * inv
+    tu = wp.vector(one - two * (y * y + z * z), two * (x * y + w * z), two * (x * z - w * y))
+    tv = wp.vector(two * (x * y - w * z), one - two * (x * x + z * z), two * (y * z + w * x))
+    n = wp.vector(two * (x * z + w * y), two * (y * z - w * x), one - two * (x * x + y * y))
+    return tu, tv, n
+
+
+@wp.func
+def cam_rotate(cam: wp.array[Any], v: Any):
+    """World-to-camera rotation applied to ``v``."""
+    return wp.vector(
+        cam[0] * v[0] + cam[1] * v[1] + cam[2] * v[2],
+        cam[3] * v[0] + cam[4] * v[1] + cam[5] * v[2],
+        cam[6] * v[0] + cam[7] * v[1] + cam[8] * v[2],
+    )
+
+
+@wp.func
+def cam_point(cam: wp.array[Any], p: Any):
+    """World point ``p`` in camera coordinates."""
+    r = cam_rotate(cam, p)
+    return wp.vector(r[0] + cam[9], r[1] + cam[10], r[2] + cam[11])
+
+
+@wp.func
+def cam_center(cam: wp.array[Any]):
+    """Camera centre in world coordinates."""
+    return wp.vector(cam[22], cam[23], cam[24])
+
+
+@wp.func
+def project_pixel(cam: wp.array[Any], pc: Any):
+    """Pixel coordinates of a camera-frame point with ``pc.z > 0`` (OpenCV distortion applied)."""
+    one = type(pc[0])(1.0)
+    two = type(pc[0])(2.0)
+    x = pc[0] / pc[2]
+    y = pc[1] / pc[2]
+    r2 = x * x + y * y
+    radial = one + r2 * (cam[17] + r2 * (cam[18] + r2 * cam[21]))
+    xd = x * radial + two * cam[19] * x * y + cam[20] * (r2 + two * x * x)
+    yd = y * radial + cam[19] * (r2 + two * y * y) + two * cam[20] * x * y
+    return wp.vector(cam[12] * xd + cam[16] * yd + cam[14], cam[13] * yd + cam[15])
+
+
+@wp.func
+def sh_color(sh: wp.array2d[Any], i: int, degree: int, d: Any):
+    """3DGS real spherical harmonics of ``degree`` (0..3) in unit direction ``d``, plus 0.5."""
+    x = d[0]
+    y = d[1]
+    z = d[2]
+    c = sh[i, 0] * type(x)(SH_C0)
+    if degree > 0:
+        c = c - sh[i, 1] * (type(x)(SH_C1) * y) + sh[i, 2] * (type(x)(SH_C1) * z) - sh[i, 3] * (type(x)(SH_C1) * x)
+        if degree > 1:
+            xx = x * x
+            yy = y * y
+            zz = z * z
+            c = c + sh[i, 4] * (type(x)(1.0925484305920792) * x * y)
+            c = c + sh[i, 5] * (type(x)(-1.0925484305920792) * y * z)
+            c = c + sh[i, 6] * (type(x)(0.31539156525252005) * (type(x)(2.0) * zz - xx - yy))
+            c = c + sh[i, 7] * (type(x)(-1.0925484305920792) * x * z)
+            c = c + sh[i, 8] * (type(x)(0.5462742152960396) * (xx - yy))
+            if degree > 2:
+                c = c + sh[i, 9] * (type(x)(-0.5900435899266435) * y * (type(x)(3.0) * xx - yy))
+                c = c + sh[i, 10] * (type(x)(2.890611442640554) * x * y * z)
+                c = c + sh[i, 11] * (type(x)(-0.4570457994644658) * y * (type(x)(4.0) * zz - xx - yy))
+                c = c + sh[i, 12] * (type(x)(0.3731763325901154) * z * (type(x)(2.0) * zz - type(x)(3.0) * xx - type(x)(3.0) * yy))
+                c = c + sh[i, 13] * (type(x)(-0.4570457994644658) * x * (type(x)(4.0) * zz - xx - yy))
+                c = c + sh[i, 14] * (type(x)(1.445305721320277) * z * (xx - yy))
+                c = c + sh[i, 15] * (type(x)(-0.5900435899266435) * x * (xx - type(x)(3.0) * yy))
+    half = type(x)(0.5)
+    zero = type(x)(0.0)
+    return wp.vector(wp.max(c[0] + half, zero), wp.max(c[1] + half, zero), wp.max(c[2] + half, zero))
+
+
+@wp.kernel
+def prepare_surfels_kernel(
+    offset: int,
+    means: wp.array[Any],
+    quats: wp.array[Any],
+    scales: wp.array[Any],
+    sh: wp.array2d[Any],
+    cam: wp.array[Any],
+    sh_degree: int,
+    uax: wp.array[Any],
+    vax: wp.array[Any],
+    nrm: wp.array[Any],
+    nrm_face: wp.array[Any],
+    m2: wp.array[Any],
+    zc: wp.array[Any],
+    color: wp.array[Any],
+):
+    """Per-surfel frame, projected centre, depth and colour (differentiated by Warp autodiff)."""
+    i = wp.tid() + offset
+    p = means[i]
+    f_ref = p[0]
+    tu, tv, n = quat_axes(quats[i])
+    s = scales[i]
+    su = wp.max(s[0], type(f_ref)(SCALE_MIN))
+    sv = wp.max(s[1], type(f_ref)(SCALE_MIN))
+    uax[i] = tu / su
+    vax[i] = tv / sv
+    nrm[i] = n
+    o = cam_center(cam)
+    view = p - o
+    # facing the camera: dot(normal, centre - camera) < 0
+    if wp.dot(n, view) > type(f_ref)(0.0):
+        nrm_face[i] = -n
+    else:
+        nrm_face[i] = n
+    pc = cam_point(cam, p)
+    zc[i] = pc[2]
+    if pc[2] > cam[25]:
+        m2[i] = project_pixel(cam, pc)
+    else:
+        m2[i] = wp.vector(type(f_ref)(0.0), type(f_ref)(0.0))  # culled by the near plane; never read
+    if sh_degree < 0:
+        color[i] = sh[i, 0]
+    else:
+        vl2 = wp.dot(view, view)
+        d = wp.vector(type(f_ref)(0.0), type(f_ref)(0.0), type(f_ref)(1.0))
+        if vl2 > type(f_ref)(1.0e-30):
+            d = view / wp.sqrt(vl2)
+        color[i] = sh_color(sh, i, sh_degree, d)
+
+
+@wp.func
+def pixel_tile_coords(g: int, tile_size: int, tiles_x: int):
+    """Pixel (column, row) of thread ``g`` in tile-major order."""
+    tpix = tile_size * tile_size
+    tile = g // tpix
+    local = g - tile * tpix
+    px = (tile % tiles_x) * tile_size + local % tile_size
+    py = (tile // tiles_x) * tile_size + local // tile_size
+    return tile, px, py
+
+
+@wp.func
+def splat_hit(o: Any, d: Any, p: Any, U: Any, V: Any, n: Any, m2: Any, zc: Any, pix: Any):
+    """Ray-splat intersection and screen-space filter at one pixel.
+
+    Returns ``(rho, z, branch3d, u, v, t)``: the Gaussian exponent ``rho = min(rho3d, rho2d)``,
+    the contribution's z-depth (intersection depth in the 3D branch, centre depth in the filter
+    branch), which branch won and the local coordinates / ray parameter of the intersection.
+    """
+    a = o - p
+    dn = wp.dot(d, n)
+    an = wp.dot(a, n)
+    rho3d = type(zc)(RHO_BIG)
+    t = type(zc)(0.0)
+    u = type(zc)(0.0)
+    v = type(zc)(0.0)
+    if wp.abs(dn) > type(zc)(PARALLEL_EPS):
+        t = -an / dn
+        x = a + t * d
+        u = wp.dot(x, U)
+        v = wp.dot(x, V)
+        r = u * u + v * v
+        if wp.isfinite(r):
+            rho3d = r
+    diff = pix - m2
+    rho2d = type(zc)(FILTER_INV_SQUARE) * wp.dot(diff, diff)
+    branch3d = rho3d <= rho2d
+    rho = rho2d
+    z = zc
+    if branch3d:
+        rho = rho3d
+        z = t
+    return rho, z, branch3d, u, v, t
+
+
+@wp.func
+def ndc_depth(z: Any, near: Any, far: Any):
+    """2DGS distortion depth mapping ``far / (far - near) * (1 - near / z)`` and its derivative."""
+    k = far / (far - near)
+    return k * (type(z)(1.0) - near / z), k * near / (z * z)
+
+
+@wp.kernel(enable_backward=False)
+def render_forward_kernel(
+    offset: int,
+    worker: int,
+    tile_start: wp.array[wp.int32],
+    tile_end: wp.array[wp.int32],
+    ids: wp.array[wp.int32],
+    rays: wp.array2d[Any],
+    cam: wp.array[Any],
+    means: wp.array[Any],
+    uax: wp.array[Any],
+    vax: wp.array[Any],
+    nrm: wp.array[Any],
+    nrm_face: wp.array[Any],
+    m2: wp.array[Any],
+    zc: wp.array[Any],
+    color: wp.array[Any],
+    opacity: wp.array[Any],
+    background: wp.array[Any],
+    tile_size: int,
+    tiles_x: int,
+    rgb: wp.array2d[Any],
+    alpha: wp.array2d[Any],
+    depth: wp.array2d[Any],
+    median: wp.array2d[Any],
+    normal: wp.array2d[Any],
+    distortion: wp.array2d[Any],
+    t_final: wp.array2d[Any],
+    sums: wp.array2d[Any],
+    last: wp.array2d[wp.int32],
+    median_idx: wp.array2d[wp.int32],
+    visibility: wp.array2d[wp.int32],
+):
+    """Front-to-back compositing of one pixel over its tile's depth-sorted surfel list."""
+    tile, px, py = pixel_tile_coords(wp.tid() + offset, tile_size, tiles_x)
+    if px >= rgb.shape[1] or py >= rgb.shape[0]:
+        return
+    d = rays[py, px]
+    f_ref = d[0]
+    o = cam_center(cam)
+    near = cam[25]
+    far = cam[26]
+    pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
+    zero = type(f_ref)(0.0)
+    T = type(f_ref)(1.0)
+    c = wp.vector(zero, zero, zero)
+    nacc = wp.vector(zero, zero, zero)
+    dsum = zero
+    m1 = zero
+    m2s = zero
+    dist = zero
+    med = zero
+    med_k = int(-1)
+    end = tile_start[tile]
+    for k in range(tile_start[tile], tile_end[tile]):
+        i = ids[k]
+        rho, z, b3, u, v, t = splat_hit(o, d, means[i], uax[i], vax[i], nrm[i], m2[i], zc[i], pix)
+        a = wp.min(type(f_ref)(ALPHA_MAX), opacity[i] * wp.exp(type(f_ref)(-0.5) * rho))
+        if a < type(f_ref)(ALPHA_MIN) or z < near:
+            continue
+        test_t = T * (type(f_ref)(1.0) - a)
+        if test_t < type(f_ref)(T_MIN):
+            break
+        w = a * T
+        c = c + w * color[i]
+        nacc = nacc + w * nrm_face[i]
+        dsum = dsum + w * z
+        m, dm = ndc_depth(z, near, far)
+        dist = dist + w * (m * m * (type(f_ref)(1.0) - T) + m2s - type(f_ref)(2.0) * m * m1)
+        m1 = m1 + w * m
+        m2s = m2s + w * m * m
+        if T > type(f_ref)(0.5):
+            med = z
+            med_k = k
+        T = test_t
+        end = k + 1
+        wp.atomic_add(visibility, worker, i, 1)  # plain add on CPU: one worker per buffer
+    acc = type(f_ref)(1.0) - T
+    rgb[py, px] = c + T * background[0]
+    alpha[py, px] = acc
+    if acc > zero:
+        depth[py, px] = dsum / acc
+    else:
+        depth[py, px] = zero
+    median[py, px] = med
+    normal[py, px] = nacc
+    distortion[py, px] = dist
+    t_final[py, px] = T
+    sums[py, px] = wp.vector(dsum, m1, m2s)
+    last[py, px] = end
+    median_idx[py, px] = med_k
+
+
+@wp.kernel(enable_backward=False)
+def render_backward_kernel(
+    offset: int,
+    worker: int,
+    tile_start: wp.array[wp.int32],
+    ids: wp.array[wp.int32],
+    rays: wp.array2d[Any],
+    cam: wp.array[Any],
+    means: wp.array[Any],
+    uax: wp.array[Any],
+    vax: wp.array[Any],
+    nrm: wp.array[Any],
+    nrm_face: wp.array[Any],
+    m2: wp.array[Any],
+    zc: wp.array[Any],
+    color: wp.array[Any],
+    opacity: wp.array[Any],
+    background: wp.array[Any],
+    tile_size: int,
+    tiles_x: int,
+    t_final: wp.array2d[Any],
+    sums: wp.array2d[Any],
+    last: wp.array2d[wp.int32],
+    median_idx: wp.array2d[wp.int32],
+    g_rgb: wp.array2d[Any],
+    g_alpha: wp.array2d[Any],
+    g_depth: wp.array2d[Any],
+    g_median: wp.array2d[Any],
+    g_normal: wp.array2d[Any],
+    g_dist: wp.array2d[Any],
+    d_means: wp.array2d[Any],
+    d_uax: wp.array2d[Any],
+    d_vax: wp.array2d[Any],
+    d_nrm: wp.array2d[Any],
+    d_nrm_face: wp.array2d[Any],
+    d_m2: wp.array2d[Any],
+    d_zc: wp.array2d[Any],
+    d_color: wp.array2d[Any],
+    d_opacity: wp.array2d[Any],
+    d_shift: wp.array2d[Any],
+):
+    """Reverse traversal of one pixel: per-surfel gradients into this worker's buffers.
+
+    Every output is a sum over contributions of ``w_i f_i`` (colour, depth, normal, 1, m, m^2)
+    plus ``T_end * background``; the suffix sum ``rg = sum_{j>i} w_j (g . f_j) + T_end g . bg``
+    gives ``dL/dalpha_i = T_i (g . f_i) - rg / (1 - alpha_i)`` with ``T_i`` recovered from the
+    saved final transmittance. Distortion ``= A M2 - M1^2`` (equal to the forward's pairwise sum)
+    and depth ``= D / A`` are differentiated through their aggregates.
+    """
+    tile, px, py = pixel_tile_coords(wp.tid() + offset, tile_size, tiles_x)
+    if px >= t_final.shape[1] or py >= t_final.shape[0]:
+        return
+    start = tile_start[tile]
+    end = last[py, px]
+    if end <= start:
+        return
+    d = rays[py, px]
+    f_ref = d[0]
+    zero = type(f_ref)(0.0)
+    one = type(f_ref)(1.0)
+    o = cam_center(cam)
+    near = cam[25]
+    far = cam[26]
+    pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
+    T = t_final[py, px]
+    acc = one - T
+    s = sums[py, px]
+    gc = g_rgb[py, px]
+    gn = g_normal[py, px]
+    gdist = g_dist[py, px]
+    gdepth = g_depth[py, px]
+    gmed = g_median[py, px]
+    med_k = median_idx[py, px]
+    # aggregate gradients: A = sum w, D = sum w z, M1 = sum w m, M2 = sum w m^2
+    g_d = zero
+    g_a = g_alpha[py, px] + gdist * s[2]
+    if acc > zero:
+        g_d = gdepth / acc
+        g_a = g_a - gdepth * s[0] / (acc * acc)
+    g_m1 = type(f_ref)(-2.0) * gdist * s[1]
+    g_m2 = gdist * acc
+    rg = T * wp.dot(gc, background[0])
+    # camera rotation rows and inverse intrinsics for the screen-shift gradient
+    fx = cam[12]
+    fy = cam[13]
+    sk = cam[16]
+    k = end - 1
+    while k >= start:
+        i = ids[k]
+        p = means[i]
+        U = uax[i]
+        V = vax[i]
+        n = nrm[i]
+        rho, z, b3, u, v, t = splat_hit(o, d, p, U, V, n, m2[i], zc[i], pix)
+        op = opacity[i]
+        G = wp.exp(type(f_ref)(-0.5) * rho)
+        raw = op * G
+        a = wp.min(type(f_ref)(ALPHA_MAX), raw)
+        if a >= type(f_ref)(ALPHA_MIN) and z >= near:
+            T = T / (one - a)
+            w = a * T
+            col = color[i]
+            nf = nrm_face[i]
+            m, dm = ndc_depth(z, near, far)
+            gf = wp.dot(gc, col) + g_d * z + wp.dot(gn, nf) + g_a + g_m1 * m + g_m2 * m * m
+            g_alpha_i = T * gf - rg / (one - a)
+            rg = rg + w * gf
+            wp.atomic_add(d_color, worker, i, w * gc)
+            wp.atomic_add(d_nrm_face, worker, i, w * gn)
+            gz = w * (g_d + (g_m1 + type(f_ref)(2.0) * m * g_m2) * dm)
+            if k == med_k:
+                gz = gz + gmed
+            g_raw = zero
+            if raw < type(f_ref)(ALPHA_MAX):
+                g_raw = g_alpha_i
+            wp.atomic_add(d_opacity, worker, i, g_raw * G)
+            g_rho = type(f_ref)(-0.5) * G * op * g_raw
+            if b3:
+                gu = type(f_ref)(2.0) * u * g_rho
+                gv = type(f_ref)(2.0) * v * g_rho
+                a_vec = o - p
+                dn = wp.dot(d, n)
+                an = wp.dot(a_vec, n)
+                x = a_vec + t * d
+                gx = gu * U + gv * V
+                wp.atomic_add(d_uax, worker, i, gu * x)
+                wp.atomic_add(d_vax, worker, i, gv * x)
+                gt = gz + wp.dot(gx, d)
+                inv_dn = one / dn
+                ga = gx - (gt * inv_dn) * n
+                wp.atomic_sub(d_means, worker, i, ga)
+                c2 = gt * an * inv_dn * inv_dn
+                wp.atomic_add(d_nrm, worker, i, (c2 * d - (gt * inv_dn) * a_vec))
+                gd = t * gx + c2 * n
+                # d' = d - R^T [Kinv2 shift, 0]  =>  dL/dshift = -Kinv2^T (R gd)[:2]
+                gcx = cam[0] * gd[0] + cam[1] * gd[1] + cam[2] * gd[2]
+                gcy = cam[3] * gd[0] + cam[4] * gd[1] + cam[5] * gd[2]
+                wp.atomic_add(d_shift, worker, i, wp.vector(-gcx / fx, gcx * sk / (fx * fy) - gcy / fy))
+            else:
+                diff = pix - m2[i]
+                gm = (type(f_ref)(-2.0) * type(f_ref)(FILTER_INV_SQUARE) * g_rho) * diff
+                wp.atomic_add(d_m2, worker, i, gm)
+                wp.atomic_add(d_shift, worker, i, gm)
+                wp.atomic_add(d_zc, worker, i, gz)
+        k = k - 1
+
+
+@wp.kernel(enable_backward=False)
+def reduce_gradients_kernel(
+    offset: int,
+    d_means: wp.array2d[Any],
+    d_uax: wp.array2d[Any],
+    d_vax: wp.array2d[Any],
+    d_nrm: wp.array2d[Any],
+    d_nrm_face: wp.array2d[Any],
+    d_m2: wp.array2d[Any],
+    d_zc: wp.array2d[Any],
+    d_color: wp.array2d[Any],
+    d_opacity: wp.array2d[Any],
+    d_shift: wp.array2d[Any],
+    g_means: wp.array[Any],
+    g_uax: wp.array[Any],
+    g_vax: wp.array[Any],
+    g_nrm: wp.array[Any],
+    g_nrm_face: wp.array[Any],
+    g_m2: wp.array[Any],
+    g_zc: wp.array[Any],
+    g_color: wp.array[Any],
+    g_opacity: wp.array[Any],
+    g_shift: wp.array[Any],
+):
+    """Sum the per-worker gradient buffers of one surfel into the tape's gradient arrays."""
+    i = wp.tid() + offset
+    for w in range(d_uax.shape[0]):
+        g_uax[i] = g_uax[i] + d_uax[w, i]
+        g_vax[i] = g_vax[i] + d_vax[w, i]
+        g_nrm[i] = g_nrm[i] + d_nrm[w, i]
+        g_nrm_face[i] = g_nrm_face[i] + d_nrm_face[w, i]
+        g_m2[i] = g_m2[i] + d_m2[w, i]
+        g_zc[i] = g_zc[i] + d_zc[w, i]
+        g_color[i] = g_color[i] + d_color[w, i]
+        if g_means.shape[0] > 0:
+            g_means[i] = g_means[i] + d_means[w, i]
+        if g_opacity.shape[0] > 0:
+            g_opacity[i] = g_opacity[i] + d_opacity[w, i]
+        if g_shift.shape[0] > 0:
+            g_shift[i] = g_shift[i] + d_shift[w, i]

@@ -1,0 +1,232 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Discrete kernels of the surfel rasterizer: screen bounds, tile intersections, tile ranges.
+
+Bounds are computed in float64 whatever the op dtype. A surfel's footprint is the union of
+
+* the 3D disk ``u^2 + v^2 <= rr`` in its plane, where ``rr = 2 ln(255 opacity)`` is the exponent at
+  which ``opacity * exp(-rr / 2) = 1/255`` (no pixel outside it can pass the alpha threshold);
+  its image is bounded with the dual conic of the disk in undistorted normalised coordinates and
+  mapped to tiles through per-tile-column / per-tile-row tables of the pixel rays' normalised
+  coordinates (so any lens model that :meth:`wtopo.Camera.pixel_rays` encodes is handled); a disk
+  reaching the camera plane has an unbounded image and covers every tile;
+* the screen-space filter disk ``2 |pixel - centre|^2 <= rr`` around the projected centre.
+
+Tile counts are therefore bounded by the number of tiles whatever the scale.
+"""
+
+from typing import Any
+
+import warp as wp
+
+from .rasterize import ALPHA_MIN, FILTER_INV_SQUARE, SCALE_MIN, cam_point, project_pixel, quat_axes
+
+wp.set_module_options({"enable_backward": False})
+
+RR_REL_MARGIN = 1.0e-4  # widen the cutoff exponent so the bound stays conservative under rounding
+PIXEL_MARGIN = 1.0e-3  # pixels added to the filter-disk radius for the same reason
+RADIUS_CAP = 1.0e9  # radii are clamped before the int conversion (no overflow for huge surfels)
+KEY_TILE_SHIFT = 4294967296  # 2^32: sort key = tile * 2^32 + depth rank
+
+
+@wp.func
+def first_at_least(table: wp.array[wp.float64], value: wp.float64):
+    """Index of the first entry >= value in a non-decreasing table (len if none)."""
+    lo = int(0)
+    hi = table.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if table[mid] < value:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@wp.func
+def last_at_most(table: wp.array[wp.float64], value: wp.float64):
+    """Index of the last entry <= value in a non-decreasing table (-1 if none)."""
+    lo = int(0)
+    hi = table.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if table[mid] <= value:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo - 1
+
+
+@wp.func
+def cam_rotate64(cam: wp.array[Any], v: wp.vec3d):
+    """World-to-camera rotation applied to a float64 vector."""
+    return wp.vec3d(
+        wp.float64(cam[0]) * v[0] + wp.float64(cam[1]) * v[1] + wp.float64(cam[2]) * v[2],
+        wp.float64(cam[3]) * v[0] + wp.float64(cam[4]) * v[1] + wp.float64(cam[5]) * v[2],
+        wp.float64(cam[6]) * v[0] + wp.float64(cam[7]) * v[1] + wp.float64(cam[8]) * v[2],
+    )
+
+
+@wp.func
+def pixel_to_tile_range(center: wp.float64, radius: wp.float64, size: int, tile_size: int):
+    """Tiles [lo, hi] covering pixel centres within ``radius`` of ``center`` (lo > hi: none)."""
+    lo_f = wp.ceil(center - radius - wp.float64(0.5))
+    hi_f = wp.floor(center + radius - wp.float64(0.5))
+    lo_f = wp.max(lo_f, wp.float64(0.0))
+    hi_f = wp.min(hi_f, wp.float64(size - 1))
+    if lo_f > hi_f:
+        return 1, 0
+    return int(lo_f) // tile_size, int(hi_f) // tile_size
+
+
+@wp.kernel
+def bin_surfels_kernel(
+    offset: int,
+    means: wp.array[Any],
+    quats: wp.array[Any],
+    scales: wp.array[Any],
+    opacities: wp.array[Any],
+    cam: wp.array[Any],
+    colx_min: wp.array[wp.float64],
+    colx_max: wp.array[wp.float64],
+    rowy_min: wp.array[wp.float64],
+    rowy_max: wp.array[wp.float64],
+    width: int,
+    height: int,
+    tile_size: int,
+    rect: wp.array[wp.vec4i],
+    counts: wp.array[wp.int32],
+    radii: wp.array[wp.int32],
+    means2d: wp.array[Any],
+):
+    """Tile rectangle, tile count, pixel radius and projected centre of one surfel."""
+    i = wp.tid() + offset
+    p = means[i]
+    x0c = p[0]
+    rect[i] = wp.vec4i(0, 0, 0, 0)
+    counts[i] = 0
+    radii[i] = 0
+    means2d[i] = wp.vector(type(x0c)(0.0), type(x0c)(0.0))
+    pc_op = cam_point(cam, p)
+    op = wp.float64(opacities[i])
+    near = wp.float64(cam[25])
+    pcz = wp.float64(pc_op[2])
+    if op < wp.float64(ALPHA_MIN) or not (pcz > near):
+        return
+    m2 = project_pixel(cam, pc_op)
+    means2d[i] = m2
+    tiles_x = (width + tile_size - 1) // tile_size
+    tiles_y = (height + tile_size - 1) // tile_size
+    rr = wp.float64(2.0) * wp.log(wp.float64(255.0) * op)
+    rr = rr * wp.float64(1.0 + RR_REL_MARGIN) + wp.float64(1.0e-6)
+    # screen-space filter disk
+    r2d = wp.sqrt(rr / wp.float64(FILTER_INV_SQUARE)) + wp.float64(PIXEL_MARGIN)
+    ax0, ax1 = pixel_to_tile_range(wp.float64(m2[0]), r2d, width, tile_size)
+    ay0, ay1 = pixel_to_tile_range(wp.float64(m2[1]), r2d, height, tile_size)
+    radius = r2d
+    # 3D disk: dual conic C* = h0 h0^T + h1 h1^T - h2 h2^T of the disk's image
+    q = quats[i]
+    tu, tv, n = quat_axes(wp.vec4d(wp.float64(q[0]), wp.float64(q[1]), wp.float64(q[2]), wp.float64(q[3])))
+    sc = scales[i]
+    r = wp.sqrt(rr)
+    su = wp.max(wp.float64(sc[0]), wp.float64(SCALE_MIN))
+    sv = wp.max(wp.float64(sc[1]), wp.float64(SCALE_MIN))
+    h0 = cam_rotate64(cam, tu) * (r * su)
+    h1 = cam_rotate64(cam, tv) * (r * sv)
+    h2 = wp.vec3d(wp.float64(pc_op[0]), wp.float64(pc_op[1]), pcz)
+    ext_z = wp.sqrt(h0[2] * h0[2] + h1[2] * h1[2])
+    bx0 = int(0)
+    bx1 = tiles_x - 1
+    by0 = int(0)
+    by1 = tiles_y - 1
+    full = True
+    if pcz > ext_z:
+        c22 = ext_z * ext_z - pcz * pcz
+        c00 = h0[0] * h0[0] + h1[0] * h1[0] - h2[0] * h2[0]
+        c11 = h0[1] * h0[1] + h1[1] * h1[1] - h2[1] * h2[1]
+        c02 = h0[0] * h0[2] + h1[0] * h1[2] - h2[0] * h2[2]
+        c12 = h0[1] * h0[2] + h1[1] * h1[2] - h2[1] * h2[2]
+        xc = c02 / c22
+        yc = c12 / c22
+        hx = wp.sqrt(wp.max(xc * xc - c00 / c22, wp.float64(0.0)))
+        hy = wp.sqrt(wp.max(yc * yc - c11 / c22, wp.float64(0.0)))
+        if wp.isfinite(xc) and wp.isfinite(yc) and wp.isfinite(hx) and wp.isfinite(hy):
+            full = False
+            bx0 = first_at_least(colx_max, xc - hx)
+            bx1 = last_at_most(colx_min, xc + hx)
+            by0 = first_at_least(rowy_max, yc - hy)
+            by1 = last_at_most(rowy_min, yc + hy)
+            radius = wp.max(radius, wp.max(hx * wp.float64(cam[12]), hy * wp.float64(cam[13])))
+    if full:
+        radius = wp.float64(wp.max(width, height))
+    # union of the two rectangles (either may be empty)
+    x0 = tiles_x
+    x1 = int(-1)
+    y0 = tiles_y
+    y1 = int(-1)
+    if ax0 <= ax1 and ay0 <= ay1:
+        x0 = ax0
+        x1 = ax1
+        y0 = ay0
+        y1 = ay1
+    if bx0 <= bx1 and by0 <= by1:
+        x0 = wp.min(x0, bx0)
+        x1 = wp.max(x1, bx1)
+        y0 = wp.min(y0, by0)
+        y1 = wp.max(y1, by1)
+    if x0 > x1 or y0 > y1:
+        return
+    rect[i] = wp.vec4i(x0, y0, x1 + 1, y1 + 1)
+    counts[i] = (x1 + 1 - x0) * (y1 + 1 - y0)
+    radii[i] = int(wp.ceil(wp.min(radius, wp.float64(RADIUS_CAP))))
+
+
+@wp.kernel
+def emit_intersections_kernel(
+    offset: int,
+    rect: wp.array[wp.vec4i],
+    offsets: wp.array[wp.int32],
+    rank: wp.array[wp.int64],
+    tiles_x: int,
+    keys: wp.array[wp.int64],
+    values: wp.array[wp.int32],
+):
+    """Write one (tile * 2^32 + depth rank, surfel) pair per tile a surfel's rectangle covers."""
+    i = wp.tid() + offset
+    r = rect[i]
+    k = offsets[i]
+    for ty in range(r[1], r[3]):
+        for tx in range(r[0], r[2]):
+            keys[k] = wp.int64(ty * tiles_x + tx) * wp.int64(KEY_TILE_SHIFT) + rank[i]
+            values[k] = i
+            k += 1
+
+
+@wp.kernel
+def tile_ranges_kernel(
+    offset: int,
+    keys: wp.array[wp.int64],
+    count: int,
+    tile_start: wp.array[wp.int32],
+    tile_end: wp.array[wp.int32],
+):
+    """Start and end of each tile's run in the sorted intersection list (empty tiles stay 0, 0)."""
+    k = wp.tid() + offset
+    tile = int(keys[k] // wp.int64(KEY_TILE_SHIFT))
+    if k == 0:
+        tile_start[tile] = k
+    elif int(keys[k - 1] // wp.int64(KEY_TILE_SHIFT)) != tile:
+        tile_start[tile] = k
+    if k == count - 1:
+        tile_end[tile] = k + 1
+    elif int(keys[k + 1] // wp.int64(KEY_TILE_SHIFT)) != tile:
+        tile_end[tile] = k + 1
+
+
+@wp.kernel
+def sum_visibility_kernel(offset: int, per_worker: wp.array2d[wp.int32], visibility: wp.array[wp.int32]):
+    """Sum the per-worker pixel counts of one surfel."""
+    i = wp.tid() + offset
+    total = int(0)
+    for w in range(per_worker.shape[0]):
+        total += per_worker[w, i]
+    visibility[i] = total

@@ -1,0 +1,468 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Differentiable Gaussian-surfel rasterizer (2D Gaussian splatting) on CPU and CUDA through Warp.
+
+Pipeline of :func:`rasterize_surfels` (kernels in ``kernels/rasterize.py`` and
+``kernels/rasterize_binning.py``):
+
+1. validation (before any launch);
+2. binning (discrete, outside the tape): per-surfel tile rectangle from the footprint bound,
+   one ``(tile << 32 | depth rank, surfel)`` pair per covered tile, Warp's stable radix sort,
+   per-tile ranges;
+3. the differentiable op through :func:`wtopo._bridge.apply`: per-surfel preparation (frame,
+   projected centre, SH colour; Warp autodiff), per-pixel front-to-back compositing, and the
+   explicit reverse-traversal adjoint registered with :meth:`warp.Tape.record_func`.
+
+On CPU the pixel kernels run as tile chunks pulled by one Python thread per core (Warp releases
+the GIL); each worker accumulates per-surfel gradients and visibility counts into its own buffer
+(Warp's CPU ``atomic_add`` is not atomic across threads) and the buffers are summed afterwards.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import warp as wp
+
+from . import _bridge
+from ._validate import require_finite, require_same_device, require_tensor
+from .camera import Camera
+from .kernels import rasterize as _k
+from .kernels import rasterize_binning as _kb
+
+__all__ = ["RasterConfig", "RenderOutput", "rasterize_surfels"]
+
+
+@dataclass(kw_only=True)
+class RasterConfig:
+    """Options of :func:`rasterize_surfels`.
+
+    References:
+        Huang et al., "2D Gaussian Splatting for Geometrically Accurate Radiance Fields", SIGGRAPH
+        2024 (ray-splat intersection, low-pass fallback, depth distortion, median depth).
+    """
+
+    tile_size: int = 16
+    """Tile edge in pixels (8, 16 or 32); each tile composites its own depth-sorted list."""
+    max_intersections: int = 1 << 26
+    """Budget of (tile, surfel) pairs; more raises ``ValueError`` before the sort (memory: 24 bytes each)."""
+    near_fraction: float = 0.05
+    """Default ``near`` = this times the median z-depth of the surfel centres in front of the camera
+    (2DGS uses a fixed 0.2 with cameras about 4 units away: the same ratio)."""
+    far_multiple: float = 100.0
+    """Default ``far`` = this times the same median depth."""
+    tiles_per_chunk: int = 0
+    """CPU work unit in tiles (0: about 16 chunks per worker thread)."""
+
+
+@dataclass
+class RenderOutput:
+    """Images and per-surfel statistics of one rendered view (``H, W`` = camera height, width).
+
+    Attributes:
+        rgb: colour ``[H, W, 3]`` (background composited behind).
+        alpha: accumulated opacity ``1 - T`` ``[H, W]``.
+        depth: expected z-depth normalised by alpha ``[H, W]`` (0 where alpha = 0).
+        median_depth: z-depth of the contribution where transmittance crosses 0.5 (the last one
+            if it never does; 0 where nothing contributes) ``[H, W]``.
+        normal: alpha-weighted sum of the world-frame unit normals, each flipped to face the camera,
+            ``[H, W, 3]`` (divide by ``alpha`` for a unit-ish normal).
+        distortion: 2DGS depth distortion ``sum_{i>j} w_i w_j (m_i - m_j)^2`` with
+            ``m = far / (far - near) * (1 - near / z)`` ``[H, W]``.
+        visibility: int32 ``[N]``, number of pixels each surfel contributed to (discrete).
+        radii: int32 ``[N]``, screen radius bound in pixels (0: culled or off-screen; discrete).
+        means2d: projected centres in pixels ``[N, 2]``, a leaf with ``requires_grad``; after
+            backward its ``.grad`` is ``dL/d(shift)`` for a screen-space translation of each
+            surfel's footprint (the densification statistic).
+        near: near plane used (world units).
+        far: far value of the distortion mapping (world units).
+    """
+
+    rgb: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor
+    median_depth: torch.Tensor
+    normal: torch.Tensor
+    distortion: torch.Tensor
+    visibility: torch.Tensor
+    radii: torch.Tensor
+    means2d: torch.Tensor
+    near: float
+    far: float
+
+
+# -- validation ------------------------------------------------------------------------------
+
+
+def _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, background, near, far, config):
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera must be a wtopo.Camera, got {type(camera).__name__}")
+    if config is None:
+        config = RasterConfig()
+    elif not isinstance(config, RasterConfig):
+        raise TypeError(f"config must be a RasterConfig or None, got {type(config).__name__}")
+    if config.tile_size not in (8, 16, 32):
+        raise ValueError(f"config.tile_size must be 8, 16 or 32, got {config.tile_size!r}")
+    if not (isinstance(config.max_intersections, int) and 0 < config.max_intersections < 2**31):
+        raise ValueError(f"config.max_intersections must be an int in [1, 2^31 - 1], got {config.max_intersections!r}")
+    for nm in ("near_fraction", "far_multiple"):
+        v = getattr(config, nm)
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise ValueError(f"config.{nm} must be a finite number > 0, got {v!r}")
+    if config.near_fraction >= config.far_multiple:
+        raise ValueError(f"config.near_fraction ({config.near_fraction}) must be < config.far_multiple "
+                         f"({config.far_multiple})")
+    if not (isinstance(config.tiles_per_chunk, int) and config.tiles_per_chunk >= 0):
+        raise ValueError(f"config.tiles_per_chunk must be an int >= 0, got {config.tiles_per_chunk!r}")
+    require_tensor("means", means, shape=(None, 3))
+    n = means.shape[0]
+    require_tensor("quats", quats, shape=(n, 4))
+    require_tensor("scales", scales, shape=(n, 2))
+    require_tensor("opacities", opacities, shape=(n,))
+    if not isinstance(colors_or_sh, torch.Tensor):
+        raise TypeError(f"colors_or_sh must be a torch.Tensor, got {type(colors_or_sh).__name__}")
+    if colors_or_sh.ndim == 2:
+        require_tensor("colors_or_sh", colors_or_sh, shape=(n, 3))
+        if sh_degree is not None:
+            raise ValueError(f"sh_degree must be None for [N, 3] colours, got {sh_degree!r}")
+    else:
+        require_tensor("colors_or_sh", colors_or_sh, shape=(n, None, 3))
+        k = colors_or_sh.shape[1]
+        if sh_degree is None:
+            deg = int(round(math.sqrt(k))) - 1
+            if (deg + 1) ** 2 != k or not 0 <= deg <= 3:
+                raise ValueError(f"colors_or_sh with K = {k} coefficients is not a full SH band set (1, 4, 9, 16); "
+                                 f"pass sh_degree")
+            sh_degree = deg
+        elif isinstance(sh_degree, bool) or not isinstance(sh_degree, int) or not 0 <= sh_degree <= 3:
+            raise ValueError(f"sh_degree must be an int in [0, 3], got {sh_degree!r}")
+        elif (sh_degree + 1) ** 2 > k:
+            raise ValueError(f"sh_degree {sh_degree} needs {(sh_degree + 1) ** 2} coefficients, colors_or_sh has {k}")
+    dtype = means.dtype
+    for nm, t in (("quats", quats), ("scales", scales), ("opacities", opacities), ("colors_or_sh", colors_or_sh)):
+        if t.dtype != dtype:
+            raise TypeError(f"{nm} must have the dtype of means ({dtype}), got {t.dtype}")
+    device = require_same_device(means=means, quats=quats, scales=scales, opacities=opacities,
+                                 colors_or_sh=colors_or_sh)
+    for nm, t in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
+                  ("colors_or_sh", colors_or_sh)):
+        require_finite(nm, t.detach())
+    if n:
+        bad = scales.detach() < 0
+        if bool(bad.any()):  # host sync: validation only
+            idx = [int(v) for v in torch.nonzero(bad)[0].tolist()]
+            raise ValueError(f"scales must be >= 0, got {scales[tuple(idx)].item()} at index {idx}")
+        bad = (opacities.detach() < 0) | (opacities.detach() > 1)
+        if bool(bad.any()):  # host sync: validation only
+            idx = int(torch.nonzero(bad)[0])
+            raise ValueError(f"opacities must lie in [0, 1], got {opacities[idx].item()} at index [{idx}]")
+    if background is None:
+        bg = torch.zeros(3, dtype=dtype, device=device)
+    else:
+        bg = torch.as_tensor(background, dtype=dtype, device=device).detach()
+        if bg.shape != (3,):
+            raise ValueError(f"background must have shape [3], got {list(bg.shape)}")
+        require_finite("background", bg)
+    for nm, v in (("near", near), ("far", far)):
+        if v is not None and not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0):
+            raise ValueError(f"{nm} must be a finite number > 0 or None, got {v!r}")
+    if near is not None and far is not None and not near < far:
+        raise ValueError(f"near must be < far, got near={near}, far={far}")
+    return config, sh_degree, bg, device
+
+
+# -- camera tables ---------------------------------------------------------------------------
+
+
+def _camera_tables(camera: Camera, device, dtype, tile_size: int):
+    """Rays [H, W, 3] and per-tile-column / per-tile-row normalised-coordinate ranges (cached on the camera)."""
+    key = ("wtopo.rasterize.tables", str(device), dtype, tile_size)
+    cache = camera._rays_cache  # noqa: SLF001 - the camera's per-device cache, shared with pixel_rays
+    if key not in cache:
+        _, dirs = camera.pixel_rays(device, dtype)
+        d_cam = dirs.detach().cpu().double().numpy() @ camera.R.T
+        h, w = camera.height, camera.width
+        tx, ty = -(-w // tile_size), -(-h // tile_size)
+        x = d_cam[..., 0]
+        y = d_cam[..., 1]
+        colx_min = np.array([x[:, j * tile_size:(j + 1) * tile_size].min() for j in range(tx)])
+        colx_max = np.array([x[:, j * tile_size:(j + 1) * tile_size].max() for j in range(tx)])
+        rowy_min = np.array([y[i * tile_size:(i + 1) * tile_size].min() for i in range(ty)])
+        rowy_max = np.array([y[i * tile_size:(i + 1) * tile_size].max() for i in range(ty)])
+        # binary searches need non-decreasing tables; a lens that folds the image gets full ranges
+        if np.any(np.diff(colx_min) < 0) or np.any(np.diff(colx_max) < 0):
+            colx_min[:], colx_max[:] = -np.inf, np.inf
+        if np.any(np.diff(rowy_min) < 0) or np.any(np.diff(rowy_max) < 0):
+            rowy_min[:], rowy_max[:] = -np.inf, np.inf
+        wdev = _bridge.warp_device(device)
+        tables = tuple(wp.array(a, dtype=wp.float64, device=wdev) for a in (colx_min, colx_max, rowy_min, rowy_max))
+        cache[key] = (dirs, tables)
+    return cache[key]
+
+
+def _camera_array(camera: Camera, near: float, far: float, dtype, device) -> torch.Tensor:
+    fx, s, cx = camera.K[0]
+    fy, cy = camera.K[1, 1], camera.K[1, 2]
+    dist = camera.distortion if camera.distortion is not None else np.zeros(5)
+    vals = np.concatenate([camera.R.reshape(-1), camera.t, [fx, fy, cx, cy, s], dist, camera.center, [near, far]])
+    return torch.as_tensor(vals, dtype=dtype, device=device)
+
+
+def _default_clip(means: torch.Tensor, camera: Camera, near, far, config: RasterConfig):
+    if near is not None and far is not None:
+        return float(near), float(far)
+    R = torch.as_tensor(camera.R[2], dtype=means.dtype, device=means.device)
+    z = means.detach() @ R + float(camera.t[2])
+    z = z[z > 0]
+    zref = float(z.median()) if z.numel() else 1.0  # host sync: scene-relative clip defaults
+    near = config.near_fraction * zref if near is None else float(near)
+    far = config.far_multiple * zref if far is None else float(far)
+    if not near < far:
+        raise ValueError(f"near must be < far, got near={near}, far={far} (one was defaulted from the scene)")
+    return near, far
+
+
+# -- CPU work distribution ------------------------------------------------------------------
+
+_compiled: set = set()
+_compile_lock = threading.Lock()
+
+
+def _launch_tiles(kernel, n_tiles: int, tile_px: int, inputs: list, outputs: list, *, device, workers: int,
+                  tiles_per_chunk: int) -> None:
+    """Launch a per-pixel kernel ``(offset, worker, ...)`` over tiles, chunks pulled by ``workers`` threads."""
+    if n_tiles <= 0:
+        return
+    key = (kernel.key, str(device), tuple(getattr(a, "dtype", type(a)) for a in (*inputs, *outputs)))
+    if workers <= 1 or key not in _compiled:
+        with _compile_lock:  # the first launch compiles: never from two threads at once
+            wp.launch(kernel, dim=n_tiles * tile_px, inputs=[0, 0, *inputs], outputs=outputs, device=device,
+                      record_tape=False)
+            _compiled.add(key)
+        return
+    chunk = tiles_per_chunk or max(1, n_tiles // (16 * workers))
+    counter = itertools.count()
+    lock = threading.Lock()
+
+    def work(w: int) -> None:
+        while True:
+            with lock:
+                c = next(counter)
+            lo = c * chunk
+            if lo >= n_tiles:
+                return
+            hi = min(n_tiles, lo + chunk)
+            wp.launch(kernel, dim=(hi - lo) * tile_px, inputs=[lo * tile_px, w, *inputs], outputs=outputs,
+                      device=device, record_tape=False)
+
+    futures = [_bridge._get_pool(workers).submit(work, w) for w in range(workers)]  # noqa: SLF001
+    for f in futures:
+        f.result()
+
+
+def _num_workers(wdev, n_tiles: int) -> int:
+    if not wdev.is_cpu:
+        return 1  # CUDA: one launch, real atomics
+    return max(1, min(_bridge.cpu_threads(), n_tiles))
+
+
+# -- binning ---------------------------------------------------------------------------------
+
+
+@dataclass
+class _Bins:
+    tile_start: wp.array
+    tile_end: wp.array
+    ids: wp.array
+    radii: torch.Tensor
+    means2d: torch.Tensor
+
+
+def _bin(means, quats, scales, opacities, cam_wp, tables, camera: Camera, config: RasterConfig, wdev) -> _Bins:
+    n = means.shape[0]
+    ts = config.tile_size
+    tiles_x, tiles_y = -(-camera.width // ts), -(-camera.height // ts)
+    n_tiles = tiles_x * tiles_y
+    dt = _bridge.float_dtype(means)
+    rect = wp.zeros(n, dtype=wp.vec4i, device=wdev)
+    counts = wp.zeros(n, dtype=wp.int32, device=wdev)
+    radii = wp.zeros(n, dtype=wp.int32, device=wdev)
+    means2d = wp.zeros(n, dtype=_bridge.vec_dtype(means, 2), device=wdev)
+    inputs = [_bridge.to_warp(means, _bridge.vec_dtype(means, 3)), _bridge.to_warp(quats, _bridge.vec_dtype(quats, 4)),
+              _bridge.to_warp(scales, _bridge.vec_dtype(scales, 2)), _bridge.to_warp(opacities, dt), cam_wp, *tables,
+              camera.width, camera.height, ts]
+    _bridge.launch_split(_kb.bin_surfels_kernel, n, inputs, [rect, counts, radii, means2d], device=wdev)
+    counts_t = wp.to_torch(counts)
+    csum = torch.cumsum(counts_t, 0, dtype=torch.int64)
+    total = int(csum[-1]) if n else 0  # host sync: the intersection count sizes the sort buffers
+    if total > config.max_intersections:
+        raise ValueError(f"rasterize_surfels: {n} surfels cover {total} (tile, surfel) pairs, above "
+                         f"config.max_intersections = {config.max_intersections}; raise the budget, use a larger "
+                         f"tile_size, or prune/shrink large surfels")
+    tile_start = wp.zeros(n_tiles, dtype=wp.int32, device=wdev)
+    tile_end = wp.zeros(n_tiles, dtype=wp.int32, device=wdev)
+    keys = wp.zeros(max(2 * total, 1), dtype=wp.int64, device=wdev)
+    values = wp.zeros(max(2 * total, 1), dtype=wp.int32, device=wdev)
+    if total:
+        offsets = (csum - counts_t).to(torch.int32)
+        zc = means.detach() @ torch.as_tensor(camera.R[2], dtype=means.dtype, device=means.device)
+        order = torch.argsort(zc, stable=True)
+        rank = torch.empty(n, dtype=torch.int64, device=means.device)
+        rank[order] = torch.arange(n, dtype=torch.int64, device=means.device)
+        _bridge.launch_split(_kb.emit_intersections_kernel, n,
+                             [rect, _bridge.to_warp(offsets), _bridge.to_warp(rank), tiles_x], [keys, values],
+                             device=wdev)
+        end_bit = 32 + max(1, int(n_tiles - 1).bit_length())
+        wp.utils.radix_sort_pairs(keys, values, total, end_bit=end_bit)
+        _bridge.launch_split(_kb.tile_ranges_kernel, total, [keys, total], [tile_start, tile_end], device=wdev)
+    return _Bins(tile_start, tile_end, values, wp.to_torch(radii), wp.to_torch(means2d))
+
+
+# -- the differentiable op -------------------------------------------------------------------
+
+
+def _make_run(bins: _Bins, rays: torch.Tensor, cam_wp, bg_wp, sh_degree: int, camera: Camera, config, wdev, dtype):
+    ts = config.tile_size
+    tiles_x, tiles_y = -(-camera.width // ts), -(-camera.height // ts)
+    n_tiles = tiles_x * tiles_y
+    h, w = camera.height, camera.width
+    workers = _num_workers(wdev, n_tiles)
+    s = wp.float64 if dtype == torch.float64 else wp.float32
+    v2, v3 = (wp.vec2d, wp.vec3d) if dtype == torch.float64 else (wp.vec2, wp.vec3)
+    rays_wp = _bridge.to_warp(rays, v3)
+
+    def run(means, quats, scales, opacities, sh, means2d):
+        n = means.shape[0]
+        prep = [wp.zeros(n, dtype=t, device=wdev, requires_grad=True) for t in (v3, v3, v3, v3, v2, s, v3)]
+        uax, vax, nrm, nrm_face, m2, zc, color = prep
+        _bridge.launch_split(_k.prepare_surfels_kernel, n, [means, quats, scales, sh, cam_wp, sh_degree], prep,
+                             device=wdev, record_tape=True)
+        outs = [wp.zeros((h, w), dtype=t, device=wdev, requires_grad=True) for t in (v3, s, s, s, v3, s)]
+        rgb, alpha, depth, median, normal, dist = outs
+        t_final = wp.zeros((h, w), dtype=s, device=wdev)
+        sums = wp.zeros((h, w), dtype=v3, device=wdev)
+        last = wp.zeros((h, w), dtype=wp.int32, device=wdev)
+        median_idx = wp.zeros((h, w), dtype=wp.int32, device=wdev)
+        vis_w = wp.zeros((workers, n), dtype=wp.int32, device=wdev)
+        surf = [means, uax, vax, nrm, nrm_face, m2, zc, color, opacities, bg_wp, ts, tiles_x]
+        _launch_tiles(_k.render_forward_kernel, n_tiles, ts * ts,
+                      [bins.tile_start, bins.tile_end, bins.ids, rays_wp, cam_wp, *surf],
+                      [*outs, t_final, sums, last, median_idx, vis_w], device=wdev, workers=workers,
+                      tiles_per_chunk=config.tiles_per_chunk)
+        visibility = wp.zeros(n, dtype=wp.int32, device=wdev)
+        _bridge.launch_split(_kb.sum_visibility_kernel, n, [vis_w], [visibility], device=wdev)
+
+        def backward():
+            bufs = [wp.zeros((workers, n), dtype=t, device=wdev) for t in (v3, v3, v3, v3, v3, v2, s, v3, s, v2)]
+            _launch_tiles(_k.render_backward_kernel, n_tiles, ts * ts,
+                          [bins.tile_start, bins.ids, rays_wp, cam_wp, *surf, t_final, sums, last, median_idx,
+                           *(o.grad for o in outs)],
+                          bufs, device=wdev, workers=workers, tiles_per_chunk=config.tiles_per_chunk)
+
+            def grad_or_empty(a, t):
+                return a.grad if a.requires_grad else wp.zeros(0, dtype=t, device=wdev)
+
+            targets = [grad_or_empty(means, v3), *(a.grad for a in prep), grad_or_empty(opacities, s),
+                       grad_or_empty(means2d, v2)]
+            # bufs order: means, uax, vax, nrm, nrm_face, m2, zc, color, opacity, shift
+            _bridge.launch_split(_k.reduce_gradients_kernel, n, bufs, targets, device=wdev)
+
+        tape = wp._src.context.runtime.tape  # the bridge's active tape (Warp has no public accessor)
+        if tape is not None and n > 0:  # N = 0: nothing to differentiate (empty arrays have no grad buffer)
+            tape.record_func(backward, [*outs, *prep, *(a for a in (means, opacities, means2d) if a.requires_grad)])
+        return (*outs, visibility)
+
+    return run
+
+
+def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                      colors_or_sh: torch.Tensor, camera: Camera, *, sh_degree: int | None = None,
+                      background=None, near: float | None = None, far: float | None = None,
+                      config: RasterConfig | None = None) -> RenderOutput:
+    """Render Gaussian surfels (2D Gaussians) seen by one camera, differentiably.
+
+    Each pixel's ray (:meth:`wtopo.Camera.pixel_rays`, so OpenCV distortion is exact) is
+    intersected with each surfel's plane; the local coordinates ``(u, v)`` in units of the scales
+    give ``rho3d = u^2 + v^2``; the screen-space low-pass ``rho2d = 2 |pixel - centre|^2`` takes
+    over for tiny or edge-on surfels: ``rho = min(rho3d, rho2d)``, ``alpha = min(0.99, opacity *
+    exp(-rho / 2))``. Contributions with ``alpha < 1/255`` or a z-depth below ``near`` (the
+    intersection depth, or the centre depth in the filter branch) are skipped; compositing runs
+    front to back in the order of the centres' z-depth, per 16x16 tile, and stops before the
+    transmittance would fall below 1e-4.
+
+    Args:
+        means: surfel centres [world units], shape [N, 3], float32 or float64.
+        quats: rotations ``(w, x, y, z)`` of any norm, shape [N, 4]; local +z is the normal,
+            local x/y the tangent axes. A quaternion with ``|q|^2 < 1e-30`` is taken as the
+            identity (its gradient is then 0).
+        scales: tangent standard deviations [world units], linear, shape [N, 2], >= 0 (clamped
+            to >= 1e-30; tiny surfels render through the screen-space filter).
+        opacities: in [0, 1], shape [N].
+        colors_or_sh: RGB colours [N, 3] (used as is), or SH coefficients [N, K, 3] (3DGS
+            convention: colour = max(SH(view dir) + 0.5, 0)).
+        camera: the view; its ``width x height`` sets the image size.
+        sh_degree: SH degree 0..3 (default: from K); must be None for [N, 3] colours.
+        background: RGB [3] composited behind (not differentiable; default black).
+        near: near plane (z-depth, world units). Default: ``config.near_fraction`` times the
+            median z-depth of the centres in front of the camera (scale-free; a host sync).
+            Surfels with centre depth <= near are culled.
+        far: far value of the distortion mapping (default ``config.far_multiple`` times that
+            median); it does not cull.
+        config: :class:`RasterConfig`.
+
+    Returns:
+        :class:`RenderOutput` of the dtype and device of ``means``. ``rgb``, ``alpha``,
+        ``depth``, ``median_depth``, ``normal`` and ``distortion`` are differentiable w.r.t.
+        ``means``, ``quats``, ``scales``, ``opacities`` and ``colors_or_sh`` (the compositing
+        order, the branch choice and the skips are discrete); ``visibility`` and ``radii`` are
+        discrete; ``means2d.grad`` receives the screen-space gradient.
+
+    Raises:
+        TypeError: wrong types or dtypes.
+        ValueError: wrong shapes, NaN/inf (naming the first index), negative scales, opacities
+            outside [0, 1], invalid near/far/sh_degree, or more tile intersections than
+            ``config.max_intersections``.
+
+    Limitations:
+        The compositing order is per tile by centre depth (as 2DGS), not per pixel. A surfel
+        whose disk reaches the camera plane is binned to every tile. Lens models whose
+        normalised coordinates are not monotone across the image bin every surfel to all
+        tiles (correct, slower). The backward pass allocates one gradient buffer per CPU worker.
+
+    References:
+        Huang et al., "2D Gaussian Splatting for Geometrically Accurate Radiance Fields", 2024.
+        Kerbl et al., "3D Gaussian Splatting for Real-Time Radiance Field Rendering", 2023.
+    """
+    config, sh_degree, bg, device = _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree,
+                                              background, near, far, config)
+    dtype = means.dtype
+    near, far = _default_clip(means, camera, near, far, config)
+    wdev = _bridge.warp_device(device)
+    rays, tables = _camera_tables(camera, device, dtype, config.tile_size)
+    cam_t = _camera_array(camera, near, far, dtype, device)
+    cam_wp = _bridge.to_warp(cam_t)
+    bins = _bin(means, quats, scales, opacities, cam_wp, tables, camera, config, wdev)
+    means2d = bins.means2d.clone().requires_grad_(True)
+    if colors_or_sh.ndim == 2:
+        sh = colors_or_sh.unsqueeze(1)
+        deg = -1
+    else:
+        sh = colors_or_sh[:, : (sh_degree + 1) ** 2]
+        deg = sh_degree
+    v3 = _bridge.vec_dtype(means, 3)
+    bg_t = bg.reshape(1, 3)
+    run = _make_run(bins, rays, cam_wp, _bridge.to_warp(bg_t, v3), deg, camera, config, wdev, dtype)
+    op = _bridge.WarpOp(
+        "rasterize_surfels", run,
+        in_dtypes=(v3, _bridge.vec_dtype(means, 4), _bridge.vec_dtype(means, 2), _bridge.float_dtype(means), v3,
+                   _bridge.vec_dtype(means, 2)),
+        differentiable_inputs=(True,) * 6,
+        differentiable_outputs=(True,) * 6 + (False,),
+    )
+    rgb, alpha, depth, median, normal, dist, vis = _bridge.apply(op, means, quats, scales, opacities, sh, means2d)
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist,
+                        visibility=vis, radii=bins.radii, means2d=means2d, near=near, far=far)
