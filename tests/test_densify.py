@@ -1,0 +1,153 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Surfel container and density control: optimiser state stays aligned, caps hold, mesh guidance."""
+
+import math
+
+import torch
+
+from wtopo.fit import densify as D
+from wtopo.fit.config import DensifyConfig, NormalFlip
+from wtopo.fit.surfels import Surfels, normals_to_quats, quat_to_matrix
+
+ROT_TOL = 1e-5  # float32 rotation round trip
+
+
+def _surfels(n=40, seed=0, opacity=0.5):
+    g = torch.Generator().manual_seed(seed)
+    s = Surfels.from_points(torch.rand(n, 3, generator=g), torch.rand(n, 3, generator=g),
+                            scales=torch.full((n,), 0.01), opacity=opacity, sh_degree=1, generator=g)
+    opt = s.optimizer({k: 1e-3 for k in s.params})
+    return s, opt
+
+
+def _tag_moments(s, opt):
+    """Write each surfel's index into its Adam moments so slicing can be checked."""
+    for p in s.params.values():
+        p.grad = torch.zeros_like(p)
+    opt.step()
+    for p in s.params.values():
+        idx = torch.arange(p.shape[0], dtype=torch.float32).view(-1, *([1] * (p.ndim - 1)))
+        opt.state[p]["exp_avg"].copy_(idx.expand_as(p))
+    s.buffers["grad_accum"].copy_(torch.arange(len(s), dtype=torch.float32))
+
+
+def test_prune_slices_adam_state_and_buffers_consistently():
+    """After a prune, moments and buffers of survivor i are those of the surfel it was."""
+    s, opt = _surfels()
+    _tag_moments(s, opt)
+    keep = torch.arange(len(s)) % 3 != 0
+    s.prune(keep)
+    want = torch.nonzero(keep).flatten().float()
+    for p in s.params.values():
+        m = opt.state[p]["exp_avg"].reshape(p.shape[0], -1)[:, 0]
+        torch.testing.assert_close(m, want)
+        assert any(q is p for g in opt.param_groups for q in g["params"])
+    torch.testing.assert_close(s.buffers["grad_accum"], want)
+    loss = sum((p ** 2).sum() for p in s.params.values())
+    loss.backward()
+    opt.step()  # shapes of moments and parameters agree
+
+
+def test_clone_and_split_follow_gradients_and_shrink_split_surfels():
+    """Clone small and split large surfels above the gradient threshold; split children shrink."""
+    s, opt = _surfels(n=10)
+    _tag_moments(s, opt)
+    with torch.no_grad():
+        s.params["log_scales"][5:] = math.log(0.2)
+    s.buffers["grad_accum"][:] = 0.0
+    s.buffers["grad_accum"][[0, 5]] = 1.0
+    s.buffers["grad_count"][:] = 1.0
+    cfg = DensifyConfig(grad_threshold=0.5, percent_dense=0.05)
+    c, sp = D.clone_and_split(s, cfg, extent=1.0, max_surfels=100, generator=torch.Generator().manual_seed(0))
+    assert (c, sp) == (1, 1) and len(s) == 12
+    torch.testing.assert_close(s.scales[-2:], torch.full((2, 2), 0.2 / 1.6))
+    assert s.buffers["grad_accum"].abs().sum() == 0
+    for p in s.params.values():
+        assert opt.state[p]["exp_avg"].shape == p.shape
+
+
+def test_densification_respects_the_cap():
+    """Never exceed max_surfels, whatever the gradients."""
+    s, _ = _surfels(n=30)
+    s.buffers["grad_accum"][:] = 1.0
+    s.buffers["grad_count"][:] = 1.0
+    for _ in range(3):
+        D.clone_and_split(s, DensifyConfig(grad_threshold=0.0), extent=1.0, max_surfels=45)
+        assert len(s) <= 45
+    assert len(s) == 45
+
+
+def test_pruning_everything_keeps_a_minimum():
+    """A prune that would remove every surfel keeps MIN_SURFELS (the most opaque)."""
+    s, _ = _surfels(n=40, opacity=0.01)
+    removed = D.prune_by_opacity(s, 0.5)
+    assert len(s) == D.MIN_SURFELS and removed == 40 - D.MIN_SURFELS
+
+
+def test_opacity_reset_clamps_and_zeroes_moments():
+    """Clamp opacities to the reset value and zero their Adam moments."""
+    s, opt = _surfels(opacity=0.9)
+    _tag_moments(s, opt)
+    D.reset_opacity(s, 0.1)
+    assert float(s.opacities.detach().max()) <= 0.1 + 1e-6
+    assert opt.state[s.params["opacity_logits"]]["exp_avg"].abs().sum() == 0
+
+
+def _square():
+    v = torch.tensor([[0.0, 0, 0.5], [1, 0, 0.5], [1, 1, 0.5], [0, 1, 0.5]])
+    f = torch.tensor([[0, 1, 2], [0, 2, 3]], dtype=torch.int32)
+    return v, f
+
+
+def test_geometry_prune_needs_far_and_transparent():
+    """Remove surfels only when far from the mesh AND of low opacity."""
+    s, _ = _surfels(n=40, opacity=0.1)
+    with torch.no_grad():
+        s.params["opacity_logits"][:10] = 5.0  # opaque
+    dist = torch.zeros(40)
+    dist[5:15] = 1.0  # far: 5..9 opaque (kept), 10..14 transparent (pruned)
+    removed = D.geometry_prune(s, dist, max_distance=0.5, max_opacity=0.3)
+    assert removed == 5 and len(s) == 35
+
+
+def test_geometry_densify_spawns_on_uncovered_faces():
+    """Faces that are no surfel's nearest get a surfel at the centroid with the face normal."""
+    s, _ = _surfels(n=20)
+    v, f = _square()
+    n0 = len(s)
+    added = D.geometry_densify(s, v, f, torch.zeros(n0, dtype=torch.int32), max_new=10, max_surfels=100)
+    assert added == 1 and len(s) == n0 + 1
+    torch.testing.assert_close(s.means[-1].detach(), v[f[1].long()].mean(0))
+    torch.testing.assert_close(s.normals()[-1].abs(), torch.tensor([0.0, 0.0, 1.0]), atol=ROT_TOL, rtol=0)
+    assert D.geometry_densify(s, v, f, torch.tensor([0, 1] * 11, dtype=torch.int32)[: len(s)],
+                              max_new=10, max_surfels=100) == 0
+
+
+def test_normal_sign_alignment_modes():
+    """Mesh mode follows close agreeing faces, view mode the camera side, random gives +-1."""
+    s, _ = _surfels(n=4)
+    with torch.no_grad():
+        s.params["quats"][:] = normals_to_quats(torch.tensor([[0.0, 0, 1]]).expand(4, 3))
+    s.buffers["view_dirs"][:] = torch.tensor([0.0, 0.0, -1.0])  # cameras below: view says flip
+    mesh_n = torch.tensor([[0.0, 0, 1]]).expand(4, 3)
+    dist = torch.tensor([0.0, 0.0, 1.0, 1.0])  # first two close to the mesh
+    counts = D.align_normal_signs(s, NormalFlip.MESH, mesh_normal=mesh_n, distance=dist, max_distance=0.1)
+    assert s.buffers["normal_sign"].tolist() == [1.0, 1.0, -1.0, -1.0] and counts == {"view": 2, "mesh": 2}
+    D.align_normal_signs(s, NormalFlip.VIEW)
+    assert s.buffers["normal_sign"].tolist() == [-1.0] * 4
+    D.align_normal_signs(s, NormalFlip.RANDOM, generator=torch.Generator().manual_seed(0))
+    assert set(s.buffers["normal_sign"].tolist()) <= {-1.0, 1.0}
+
+
+def test_normals_to_quats_roundtrip():
+    """The +z axis of normals_to_quats(n) is n (including axis-aligned and opposite normals)."""
+    n = torch.randn(200, 3)
+    n = torch.cat([n, torch.eye(3), -torch.eye(3)])
+    n = n / n.norm(dim=-1, keepdim=True)
+    t = torch.randn(n.shape[0], 3)
+    R = quat_to_matrix(normals_to_quats(n, t))
+    torch.testing.assert_close(R[:, :, 2], n, atol=ROT_TOL, rtol=0)
+    # the first tangent lies along the projected tangent
+    tp = t - (t * n).sum(-1, keepdim=True) * n
+    cos = (R[:, :, 0] * tp).sum(-1) / tp.norm(dim=-1)
+    assert bool((cos > 1 - 1e-4).all())

@@ -1,0 +1,146 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Loss terms of the fit: values on analytic cases and the STABILITY.md section 7 cases."""
+
+import math
+
+import pytest
+import torch
+
+from wtopo.fit import losses as L
+
+TOL = 1e-6  # float32 sums of a few hundred O(1) terms
+GRADCHECK_EPS = 1e-6  # float64 finite-difference step (losses are smooth away from the masks)
+
+
+def _rays(h, w, f=50.0, dtype=torch.float32):
+    """Pinhole rays at the origin looking down +z, camera-z component 1."""
+    j, i = torch.meshgrid(torch.arange(w, dtype=dtype) + 0.5, torch.arange(h, dtype=dtype) + 0.5, indexing="xy")
+    d = torch.stack([(j - w / 2) / f, (i - h / 2) / f, torch.ones_like(j)], -1)
+    return torch.zeros_like(d), d
+
+
+def test_masked_mean_of_empty_mask_is_zero_with_finite_grad():
+    """Return 0 (not NaN) for an empty mask and a zero gradient."""
+    v = torch.randn(4, 5, requires_grad=True)
+    out = L.masked_mean(v, torch.zeros(4, 5, dtype=torch.bool))
+    out.backward()
+    assert out.item() == 0.0
+    assert torch.equal(v.grad, torch.zeros_like(v))
+
+
+@pytest.mark.parametrize("form", ["log_ratio", "log1p_abs"])
+def test_mesh_depth_loss_invalid_pixels_have_exactly_zero_grad(form):
+    """Mask before the log: zero, negative and tiny depths outside the mask get gradient exactly 0."""
+    ds = torch.tensor([[0.0, -1.0, 1e-12, 2.0]], requires_grad=True)
+    dm = torch.tensor([[0.0, 3.0, -2.0, 2.5]], requires_grad=True)
+    mask = torch.tensor([[False, False, False, True]])
+    loss = L.mesh_depth_loss(ds, dm, mask, eps=1e-4, form=form, extent=1.0)
+    loss.backward()
+    assert torch.isfinite(loss)
+    assert torch.equal(ds.grad[0, :3], torch.zeros(3)) and torch.equal(dm.grad[0, :3], torch.zeros(3))
+    assert ds.grad[0, 3] != 0  # the valid pixel was exercised
+    want = abs(math.log(2.0) - math.log(2.5)) if form == "log_ratio" else math.log1p(0.5)
+    torch.testing.assert_close(loss, torch.tensor(want), atol=TOL, rtol=TOL)
+
+
+def test_mesh_depth_loss_empty_mask_is_zero():
+    """Return 0 when the surfel and mesh renders share no pixel."""
+    ds = torch.rand(3, 3, requires_grad=True)
+    loss = L.mesh_depth_loss(ds, torch.rand(3, 3), torch.zeros(3, 3, dtype=torch.bool), eps=1e-4)
+    loss.backward()
+    assert loss.item() == 0.0 and torch.isfinite(ds.grad).all()
+
+
+def test_mesh_depth_loss_rejects_unknown_form():
+    """Raise ValueError naming the form."""
+    with pytest.raises(ValueError, match="form"):
+        L.mesh_depth_loss(torch.ones(2), torch.ones(2), torch.ones(2, dtype=torch.bool), eps=1e-4, form="l2")
+
+
+def test_mesh_depth_loss_gradcheck_float64():
+    """Match finite differences in float64 on valid pixels."""
+    ds = (torch.rand(4, 4, dtype=torch.float64) + 0.5).requires_grad_()
+    dm = (torch.rand(4, 4, dtype=torch.float64) + 0.5).requires_grad_()
+    mask = torch.rand(4, 4) > 0.3
+    assert mask.any()
+    assert torch.autograd.gradcheck(lambda a, b: L.mesh_depth_loss(a, b, mask, eps=1e-4), (ds, dm), eps=GRADCHECK_EPS)
+
+
+def test_mesh_normal_loss_zero_normals_are_finite():
+    """Zero rendered normals (zero alpha) give a finite loss and finite gradients, no NaN."""
+    sn = torch.zeros(2, 2, 3, requires_grad=True)
+    mn = torch.tensor([0.0, 0.0, 1.0]).expand(2, 2, 3)
+    loss = L.mesh_normal_loss(sn, mn, torch.ones(2, 2, dtype=torch.bool))
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(sn.grad).all()
+    torch.testing.assert_close(loss, torch.tensor(1.0))
+
+
+def test_mesh_normal_loss_ignores_mesh_orientation():
+    """Agree with a face seen from either side (|cos|), and reach 1 for perpendicular normals."""
+    sn = torch.tensor([[[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [1.0, 0.0, 0.0]]])
+    mn = torch.tensor([[[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]])
+    m = torch.tensor([[True, True, False]])
+    torch.testing.assert_close(L.mesh_normal_loss(sn, mn, m), torch.tensor(0.0))
+    torch.testing.assert_close(L.mesh_normal_loss(sn, mn, torch.tensor([[False, False, True]])), torch.tensor(1.0))
+
+
+def test_depth_normals_of_a_tilted_plane():
+    """Recover the normal of a plane z = 2 + 0.3 x, facing the camera, with zero borders."""
+    o, d = _rays(16, 16)
+    # ray x = d_x t, z = t: t = 2 / (1 - 0.3 d_x)
+    depth = 2.0 / (1 - 0.3 * d[..., 0])
+    n, m = L.depth_normals(depth, o, d, torch.ones(16, 16, dtype=torch.bool))
+    want = torch.tensor([0.3, 0.0, -1.0]) / math.sqrt(1.09)
+    assert m[1:-1, 1:-1].all() and not m[0].any() and not m[:, -1].any()
+    torch.testing.assert_close(n[5, 5], want, atol=1e-4, rtol=0)
+    assert torch.equal(n[0], torch.zeros(16, 3))
+
+
+def test_depth_normals_at_discontinuities_are_finite_and_masked():
+    """Invalid (zero) depth and jumps stay finite; invalid neighbours are masked out."""
+    o, d = _rays(8, 8)
+    depth = torch.ones(8, 8)
+    depth[:, 4:] = 5.0
+    depth[2, 2] = 0.0
+    valid = depth > 0
+    depth.requires_grad_()
+    n, m = L.depth_normals(depth, o, d, valid)
+    n.sum().backward()
+    assert torch.isfinite(n).all() and torch.isfinite(depth.grad).all()
+    assert not m[2, 2] and not m[1, 2] and not m[2, 1]
+
+
+def test_normal_consistency_is_zero_for_agreeing_normals():
+    """Give 0 when the rendered normal equals the depth normal at full opacity."""
+    n = torch.tensor([0.0, 0.6, -0.8]).expand(4, 4, 3)
+    alpha = torch.ones(4, 4)
+    out = L.normal_consistency(n, n, alpha, torch.ones(4, 4, dtype=torch.bool))
+    torch.testing.assert_close(out, torch.tensor(0.0), atol=TOL, rtol=0)
+
+
+def test_photometric_and_mask_loss_values():
+    """Photometric loss is 0 for identical images; BCE is finite at alpha exactly 0 and 1."""
+    img = torch.rand(16, 16, 3)
+    torch.testing.assert_close(L.photometric(img, img, 0.2), torch.tensor(0.0), atol=1e-5, rtol=0)
+    a = torch.tensor([[0.0, 1.0]], requires_grad=True)
+    loss = L.mask_loss(a, torch.tensor([[True, False]]))
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(a.grad).all() and loss > 1.0
+
+
+def test_scale_regularizer_two_and_three_axes():
+    """Penalise anisotropy beyond the bound for 2 scales, the shortest axis for 3, 0 for none."""
+    s2 = torch.tensor([[1.0, 1.0], [20.0, 1.0]])
+    torch.testing.assert_close(L.scale_regularizer(s2, 10.0), torch.tensor(5.0))
+    s3 = torch.tensor([[1.0, 2.0, 0.1], [0.3, 2.0, 3.0]])
+    torch.testing.assert_close(L.scale_regularizer(s3, 10.0), torch.tensor(0.2))
+    assert L.scale_regularizer(torch.zeros(0, 2), 10.0).item() == 0.0
+
+
+def test_safe_normalize_keeps_zero_vectors_zero():
+    """Normalise without NaN for zero vectors."""
+    v = torch.zeros(3, 3, requires_grad=True)
+    out = L.safe_normalize(v)
+    out.sum().backward()
+    assert torch.equal(out, torch.zeros(3, 3)) and torch.isfinite(v.grad).all()
