@@ -70,7 +70,7 @@ def write_timeline(path, *, n_surfels=(40, 40, 55, 60, 60, 70), max_surfels=100_
     rng = np.random.default_rng(0)
     meshes = _meshes()
     w = TimelineWriter(path, up_axis="Z", meters_per_unit=0.001, time_codes_per_second=50.0,
-                       max_surfels=max_surfels, splats=splats)
+                       max_surfels=max_surfels, splats=splats, splat_sh_degree=None)
     w.add_cameras(_cameras())
     gt = trimesh.creation.icosphere(subdivisions=3)
     w.add_mesh("ground_truth", gt.vertices, gt.faces)
@@ -273,6 +273,22 @@ def test_timeline_gaussian_splats(timeline):
         np.testing.assert_allclose(sh, s["colors_or_sh"], rtol=F32_RTOL, atol=1e-7)
     r = read_surfels(path, 35)  # latest sample at or before 35 is 30
     np.testing.assert_allclose(r.sh, surfels[30]["colors_or_sh"], rtol=F32_RTOL, atol=1e-7)
+
+
+@pytest.mark.skipif(not HAS_SPLAT_SCHEMA, reason="usd-core without UsdVol.ParticleField3DGaussianSplat")
+def test_timeline_splats_keep_dc_by_default(tmp_path):
+    """Keep only the SH DC term in the splats unless asked for more."""
+    from pxr import UsdVol
+
+    s = _surfels(np.random.default_rng(7), 6, 16)
+    w = TimelineWriter(tmp_path / "t.usdc")
+    w.add_sample(0, **s)
+    w.close()
+    stage = Usd.Stage.Open(str(tmp_path / "t.usdc"))
+    sp = UsdVol.ParticleField3DGaussianSplat(stage.GetPrimAtPath("/World/Splats"))
+    assert sp.GetRadianceSphericalHarmonicsDegreeAttr().Get() == 0
+    np.testing.assert_allclose(np.asarray(sp.GetRadianceSphericalHarmonicsCoefficientsAttr().Get(0)),
+                               s["colors_or_sh"][:, 0], rtol=F32_RTOL, atol=1e-7)
 
 
 def test_timeline_cameras_round_trip(timeline):

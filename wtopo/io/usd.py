@@ -37,10 +37,12 @@ Conventions:
       skipped.  When a float array changes after skipped samples and keeps its length, the held
       value is written once more at the last skipped time so linear interpolation does not blend
       across the skipped interval.
-    * Size: surfels cost about ``64 + 44 + 12 K`` bytes per surfel per sample (instancer + splats,
-      ``K`` SH coefficients); the mesh ``~40`` bytes per vertex plus 12 per face, only when it
-      changes.  Above ``max_surfels`` surfels a sample keeps an evenly strided subset of
-      ``max_surfels`` (``np.linspace`` indices, so the subset is deterministic).
+    * Size (measured in ``benchmarks/io.md``): the instancer costs about 48 bytes per surfel per
+      sample, the splats about ``28 + 12 K`` more (``K`` SH coefficients kept, 1 by default:
+      ``splat_sh_degree=0``); the mesh about 26 bytes per vertex (usdc compresses the face
+      indices), only when it changes.  Above ``max_surfels`` surfels (50 000 by default, so at most
+      ~4.5 MB of surfels per sample, ~450 MB per 100 samples) a sample keeps an evenly strided
+      subset of ``max_surfels`` (``np.linspace`` indices, so the subset is deterministic).
 
 Limitations:
     The stage lives in memory until :meth:`TimelineWriter.flush` / :meth:`TimelineWriter.close`
@@ -284,6 +286,10 @@ class TimelineWriter:
         time_codes_per_second: playback rate, in iterations per second (time code = iteration).
         max_surfels: surfels per sample above which an evenly strided subset is written.
         splats: also write ``UsdVol.ParticleField3DGaussianSplat`` (ignored when usd-core lacks it).
+        splat_sh_degree: SH degree kept in the splats (higher coefficients are dropped; ``None``
+            keeps all).  The default 0 keeps the timeline small (full degree-3 SH is 192 bytes
+            per surfel per sample); write the final full-SH surfels with
+            :func:`wtopo.io.write_surfels_ply`.
 
     Example::
 
@@ -300,7 +306,8 @@ class TimelineWriter:
     """
 
     def __init__(self, path: str | os.PathLike, *, up_axis: str = "Y", meters_per_unit: float = 1.0,
-                 time_codes_per_second: float = 100.0, max_surfels: int = 100_000, splats: bool = True):
+                 time_codes_per_second: float = 100.0, max_surfels: int = 50_000, splats: bool = True,
+                 splat_sh_degree: int | None = 0):
         Gf, Sdf, Usd, UsdGeom, Vt = _pxr()
         self.path = os.fspath(path)
         if os.path.splitext(self.path)[1] not in (".usdc", ".usda", ".usd"):
@@ -314,6 +321,10 @@ class TimelineWriter:
         if isinstance(max_surfels, bool) or int(max_surfels) != max_surfels or max_surfels < 1:
             raise ValueError(f"max_surfels must be a positive integer, got {max_surfels!r}")
         self.max_surfels = int(max_surfels)
+        d = splat_sh_degree
+        if d is not None and (isinstance(d, bool) or int(d) != d or d < 0):
+            raise ValueError(f"splat_sh_degree must be a non-negative integer or None, got {splat_sh_degree!r}")
+        self._splat_k_max = None if splat_sh_degree is None else (int(splat_sh_degree) + 1) ** 2
         self.stage = Usd.Stage.CreateInMemory()
         st = self.stage
         UsdGeom.SetStageUpAxis(st, UsdGeom.Tokens.y if up_axis == "Y" else UsdGeom.Tokens.z)
@@ -553,7 +564,7 @@ class TimelineWriter:
         if s is not None:
             self._ensure_instancer()
             if self._splats:
-                self._ensure_splat(s.sh.shape[1])
+                self._ensure_splat(self._splat_k_of(s.sh.shape[1]))
         with Sdf.ChangeBlock():
             self._write_mesh(mesh, t)
             self._write_surfels(s, extras, t)
@@ -605,8 +616,11 @@ class TimelineWriter:
             tr["splat.orientations"].set(xyzw, t)
             tr["splat.scales"].set(scale3, t)
             tr["splat.opacities"].set(s.opacities, t)
-            tr["splat.sh"].set(s.sh, t)
+            tr["splat.sh"].set(np.ascontiguousarray(s.sh[:, :self._splat_k_of(s.sh.shape[1])]), t)
             tr["splat.extent"].set(_extent(s.means, 3 * radius), t)
+
+    def _splat_k_of(self, k: int) -> int:
+        return k if self._splat_k_max is None else min(k, self._splat_k_max)
 
     # -- output --------------------------------------------------------------------------------
     def _check_open(self) -> None:
