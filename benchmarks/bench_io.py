@@ -56,7 +56,8 @@ def main():
     print(f"{a.samples} samples, {a.surfels} surfels (+10 per sample), icosphere proxy mesh (subdivisions 4/5)")
     size, raw, _, _ = run(a.samples, 0, 1, 1, False, 4)
     print(f"mesh only, changing every sample: {size / 1e6:.2f} MB/100 samples (raw {raw / 1e6:.2f})")
-    print(f"{'case':44s} {'MB/100 samples':>15s} {'raw MB/100':>11s} {'ratio':>6s} {'add_sample ms':>14s} {'close s':>8s}")
+    print(f"{'case':44s} {'MB/100 samples':>15s} {'raw MB/100':>11s} {'ratio':>6s} {'add_sample ms':>14s} "
+          f"{'close s':>8s}")
     for sh_k, mesh_every, splats in [(1, 1, False), (1, 5, False), (1, 1, True), (16, 1, True)]:
         size, raw, t_add, t_close = run(a.samples, a.surfels, sh_k, mesh_every, splats, 4)
         name = f"SH K={sh_k:2d}, mesh every {mesh_every} sample(s), splats={'on' if splats else 'off'}"

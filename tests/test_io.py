@@ -243,7 +243,8 @@ def test_timeline_surfels_per_sample(timeline):
         np.testing.assert_allclose(xyzw[:, [3, 0, 1, 2]], q, atol=F16_ATOL)
         np.testing.assert_allclose(np.asarray(inst.GetScalesAttr().Get(it))[:, :2], s["scales"], rtol=F32_RTOL)
         assert len(inst.GetProtoIndicesAttr().Get(it)) == n
-        for name, key in [("opacity", "opacities"), ("weight", "point_weight"), ("distance_to_mesh", "distance_to_mesh")]:
+        for name, key in [("opacity", "opacities"), ("weight", "point_weight"),
+                          ("distance_to_mesh", "distance_to_mesh")]:
             primvar = pv.GetPrimvar(name)
             assert primvar.GetInterpolation() == UsdGeom.Tokens.vertex
             np.testing.assert_allclose(np.asarray(primvar.Get(it)), s[key], rtol=F32_RTOL, atol=1e-7)
@@ -320,6 +321,24 @@ def test_timeline_cameras_round_trip(timeline):
         np.testing.assert_allclose(uv_usd, c.project(pts)[0], atol=PIXEL_ATOL)
 
 
+def test_timeline_camera_images(tmp_path):
+    """Save the camera images as PNG beside the timeline and reference them from the cameras."""
+    from PIL import Image
+
+    cams = _cameras()[:2]
+    images = [np.random.default_rng(8).uniform(0, 1, (c.height, c.width, 3)) for c in cams]
+    w = TimelineWriter(tmp_path / "t.usdc")
+    paths = w.add_cameras(cams, images)
+    w.close()
+    stage = Usd.Stage.Open(str(tmp_path / "t.usdc"))
+    for p, img in zip(paths, images):
+        asset = stage.GetPrimAtPath(p).GetAttribute("wtopo:image").Get()
+        png = np.asarray(Image.open(tmp_path / asset.path))
+        np.testing.assert_allclose(png / 255.0, img, atol=0.5 / 255 + 1e-9)  # 8-bit rounding
+    with pytest.raises(ValueError, match="one image per camera"):
+        TimelineWriter(tmp_path / "u.usdc").add_cameras(cams, images[:1])
+
+
 def test_timeline_verification_failure_leaves_nothing(tmp_path, monkeypatch):
     """Raise when the saved file is empty of prims, leaving neither the target nor a temp file."""
     target = tmp_path / "timeline.usdc"
@@ -370,6 +389,18 @@ def test_timeline_unchanged_samples_cost_little(tmp_path):
             w.add_sample(it, mesh_verts=m.vertices, mesh_faces=m.faces)
         sizes.append(w.close().bytes)
     assert sizes[1] < sizes[0] * 1.1
+
+
+def test_timeline_empty_mesh_and_no_surfels(tmp_path):
+    """Write and verify samples with an empty mesh and zero surfels (marching cubes found nothing)."""
+    w = TimelineWriter(tmp_path / "t.usdc")
+    w.add_sample(0, mesh_verts=np.zeros((0, 3)), mesh_faces=np.zeros((0, 3), np.int32),
+                 **_surfels(np.random.default_rng(9), 0, 1))
+    m = trimesh.creation.icosphere(subdivisions=0)
+    w.add_sample(1, mesh_verts=m.vertices, mesh_faces=m.faces, **_surfels(np.random.default_rng(9), 3, 1))
+    w.close()
+    tl = read_timeline(tmp_path / "t.usdc")
+    assert [(len(s.faces), s.num_surfels) for s in tl.samples] == [(0, 0), (20, 3)]
 
 
 def test_timeline_rejects_bad_samples(tmp_path):

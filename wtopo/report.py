@@ -169,10 +169,11 @@ def load_history(history) -> list[dict]:
                         continue
                     if k.startswith(("loss_", "losses.")):
                         losses[k.split("_", 1)[1] if k.startswith("loss_") else k.split(".", 1)[1]] = float(v)
-                    elif k == "stage":
-                        rec[k] = v
                     else:
-                        rec[k] = float(v)
+                        try:
+                            rec[k] = float(v)
+                        except ValueError:  # stage names and other text columns
+                            rec[k] = v
                 rec["losses"] = losses
                 records.append(rec)
         return records

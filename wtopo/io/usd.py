@@ -220,9 +220,10 @@ def _vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     v = verts.astype(np.float64)
     n = np.zeros_like(v)
     if faces.size:
-        fn = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
+        fn = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])  # length = 2 * area
         for k in range(3):
-            np.add.at(n, faces[:, k], fn)
+            for c in range(3):
+                n[:, c] += np.bincount(faces[:, k], weights=fn[:, c], minlength=len(v))
     ln = np.linalg.norm(n, axis=1, keepdims=True)
     n = np.where(ln > 0, n / np.where(ln > 0, ln, 1), np.array([0.0, 0.0, 1.0]))
     return n.astype(np.float32)
