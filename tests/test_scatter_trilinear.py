@@ -112,6 +112,15 @@ def test_points_outside_domain_raise(device, value):
         sample_trilinear(torch.zeros(8, 8, 8, 1, device=device), p)
 
 
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")])
+def test_non_finite_values_raise(device, value):
+    """Raise ValueError naming the index of a NaN/inf value."""
+    v = torch.ones(5, 2, device=device)
+    v[4, 1] = value
+    with pytest.raises(ValueError, match=r"values.*\[4, 1\]"):
+        scatter_trilinear(torch.full((5, 3), 0.5, device=device), v, 8)
+
+
 @pytest.mark.parametrize("bad", ["resolution", "values_shape", "values_dtype", "grid_shape"])
 def test_invalid_arguments_raise(device, bad):
     """Raise ValueError/TypeError naming the argument."""

@@ -17,8 +17,8 @@ from typing import NamedTuple
 
 import torch
 
-from ._validate import require_finite, require_int_range, require_positive, require_same_device, require_tensor
-from .scatter import check_unit_points, sample_unchecked, scatter_unchecked
+from ._validate import require_int_range, require_positive, require_same_device, require_tensor
+from .scatter import check_finite, check_unit_points, sample_unchecked, scatter_unchecked
 
 __all__ = ["PoissonField", "PoissonContext", "poisson_indicator"]
 
@@ -158,8 +158,8 @@ def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torc
     sigma = require_positive("sigma", sigma, allow_zero=True)
     padding = require_positive("padding", padding, allow_zero=True)
     check_unit_points("points", points, -padding, 1.0 + padding, closed=True)
-    require_finite("normals", normals.detach())
-    require_finite("weights", weights.detach())
+    check_finite("normals", normals)
+    check_finite("weights", weights)
     neg = (weights.detach() < 0).nonzero()
     if neg.numel():  # host sync: validation only
         i = int(neg[0])

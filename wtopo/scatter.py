@@ -16,6 +16,8 @@ launch with hardware atomics is used (summation order, hence the last bits, may 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 import warp as wp
@@ -140,16 +142,33 @@ def sample_unchecked(grid: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def _extremes(t: torch.Tensor) -> tuple[float, float]:
+    """``(min, max)`` of ``t`` in one pass (NaN propagates into both).  Host sync."""
+    if t.numel() == 0:
+        return 0.0, 0.0
+    mn, mx = torch.aminmax(t.detach())
+    return float(mn), float(mx)
+
+
+def check_finite(name: str, t: torch.Tensor) -> None:
+    """Raise :class:`ValueError` naming the first NaN/inf of ``t`` (one-pass fast path).  Host sync."""
+    mn, mx = _extremes(t)
+    if not (math.isfinite(mn) and math.isfinite(mx)):
+        require_finite(name, t.detach())
+
+
 def check_unit_points(name: str, points: torch.Tensor, lo: float, hi: float, *, closed: bool) -> None:
     """Raise :class:`ValueError` naming the first coordinate of ``points`` outside ``[lo, hi)`` (or ``[lo, hi]``)."""
     p = points.detach()
+    mn, mx = _extremes(p)
+    if mn >= lo and (mx <= hi if closed else mx < hi):  # False for NaN
+        return
     require_finite(name, p)
     bad = (p < lo) | ((p > hi) if closed else (p >= hi))
-    if bool(bad.any()):  # host sync: validation only
-        i, j = (int(v) for v in torch.nonzero(bad)[0].tolist())
-        rng = f"[{lo}, {hi}]" if closed else f"[{lo}, {hi})"
-        raise ValueError(f"{name} must lie in {rng} on every axis (no periodic wrap), got {p[i, j].item()!r} "
-                         f"at index [{i}, {j}]")
+    i, j = (int(v) for v in torch.nonzero(bad)[0].tolist())
+    rng = f"[{lo}, {hi}]" if closed else f"[{lo}, {hi})"
+    raise ValueError(f"{name} must lie in {rng} on every axis (no periodic wrap), got {p[i, j].item()!r} "
+                     f"at index [{i}, {j}]")
 
 
 def scatter_trilinear(points: torch.Tensor, values: torch.Tensor, resolution: int) -> torch.Tensor:
@@ -176,7 +195,7 @@ def scatter_trilinear(points: torch.Tensor, values: torch.Tensor, resolution: in
     require_same_device(points=points, values=values)
     require_int_range("resolution", resolution, 2)
     check_unit_points("points", points, 0.0, 1.0, closed=False)
-    require_finite("values", values.detach())
+    check_finite("values", values)
     return scatter_unchecked(points, values, resolution)
 
 
