@@ -21,7 +21,7 @@ __all__ = ["Scene", "Similarity"]
 
 _IMAGE_RANGE_TOL = 1e-4  # images outside [0, 1] by less than this (float rounding of composites) are clipped
 _UNIT_NORMAL_TOL = 1e-2  # normals must be unit (or 0 = invalid) within this (float32 exports)
-_HULL_GRID = (40, 56)  # visual-hull / frustum grid resolution per axis: coarse pass, refined pass
+_HULL_GRID = (32, 48)  # visual-hull / frustum grid resolution per axis: coarse pass, refined pass
 _DEGENERATE_SPREAD = 1e-9  # camera centres closer than this (relative to the scene extent) coincide
 _COLINEAR_RATIO = 1e-6  # second / first singular value of the centred camera centres below this: colinear
 
@@ -437,11 +437,11 @@ class Scene:
         return self._norm_cache[m]
 
     def normalized(self, *, margin: float = 0.1) -> Scene:
-        """The scene in the internal frame of :meth:`normalization`; its ``info["world_from_internal"]``
-        holds the inverse :class:`Similarity` so results can be mapped back."""
+        """The scene in the internal frame of :meth:`normalization`; its ``info["normalization"]``
+        holds that :class:`Similarity`, whose :meth:`~Similarity.to_world` maps results back."""
         sim = self.normalization(margin=margin)
         out = self.transformed(sim)
-        out.info = {**self.info, "world_from_internal": sim.inverse(), "normalization": sim}
+        out.info = {**self.info, "normalization": sim}
         return out
 
     def region_of_interest(self) -> tuple[np.ndarray, np.ndarray]:
@@ -507,15 +507,24 @@ def _converge_point(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray | None:
 
 def _project_all(cameras, pts: np.ndarray):
     """Pixel (row, col) int indices and in-image flags of ``pts`` [M, 3] in every camera: ([N, M] x3)."""
-    rows, cols, ok = [], [], []
-    for cam in cameras:
-        uv, z = cam.project(pts)
-        u, v = uv[:, 0], uv[:, 1]
-        good = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        rows.append(np.clip(np.floor(v), 0, cam.height - 1).astype(np.int64))
-        cols.append(np.clip(np.floor(u), 0, cam.width - 1).astype(np.int64))
-        ok.append(good)
-    return np.stack(rows), np.stack(cols), np.stack(ok)
+    n, m = len(cameras), len(pts)
+    rows, cols = np.zeros((n, m), np.int64), np.zeros((n, m), np.int64)
+    ok = np.zeros((n, m), bool)
+    for i, cam in enumerate(cameras):
+        if cam.distortion is None:  # pinhole fast path (same maths as Camera.project)
+            pc = pts @ cam.R.T + cam.t
+            z = pc[:, 2]
+            zs = np.where(z > 0, z, 1.0)
+            y = pc[:, 1] / zs
+            u = cam.K[0, 0] * (pc[:, 0] / zs) + cam.K[0, 1] * y + cam.K[0, 2]
+            v = cam.K[1, 1] * y + cam.K[1, 2]
+        else:
+            uv, z = cam.project(pts)
+            u, v = uv[:, 0], uv[:, 1]
+        ok[i] = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        rows[i] = np.clip(np.floor(v), 0, cam.height - 1)
+        cols[i] = np.clip(np.floor(u), 0, cam.width - 1)
+    return rows, cols, ok
 
 
 def _carve(cameras, masks_np, lo, hi, res):
