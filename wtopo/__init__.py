@@ -36,6 +36,10 @@ def _mount_kernels() -> None:
 
 _mount_kernels()
 
+import warp as _wp  # noqa: E402
+
+_wp.config.quiet = True  # no module-load chatter; errors still raise
+
 from .camera import Camera  # noqa: E402
 
 _LAZY = {
