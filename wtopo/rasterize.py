@@ -446,7 +446,9 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     cam_t = _camera_array(camera, near, far, dtype, device)
     cam_wp = _bridge.to_warp(cam_t)
     bins = _bin(means, quats, scales, opacities, cam_wp, tables, camera, config, wdev)
-    means2d = bins.means2d.clone().requires_grad_(True)
+    needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (means, quats, scales, opacities,
+                                                                           colors_or_sh))
+    means2d = bins.means2d.clone().requires_grad_(needs_grad)
     if colors_or_sh.ndim == 2:
         sh = colors_or_sh.unsqueeze(1)
         deg = -1
