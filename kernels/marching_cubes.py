@@ -4,10 +4,11 @@
 The extraction is discrete (``enable_backward=False`` for the whole module); the only gradient,
 vertex position w.r.t. the field, is the explicit adjoint :func:`vertex_adjoint_kernel`.
 
-Layout of one thread's work: a *column* is the line of nodes ``(i, j, 0..Z-1)``; thread ``col``
-walks it upwards.  Node ``(i, j, k)`` owns its three "lower" edges (to ``+x``, ``+y``, ``+z``), so
-every crossed edge has exactly one owner and vertices are welded without a hash.  Column
-``(i, j)`` also owns the cells whose lowest corner is ``(i, j, k)``.
+Layout of one thread's work: a *column* is the line of nodes ``(i, j, 0..Z-1)``, cut into
+z-chunks; one thread walks one chunk of one column upwards.  Node ``(i, j, k)`` owns its three
+"lower" edges (to ``+x``, ``+y``, ``+z``), so every crossed edge has exactly one owner and
+vertices are welded without a hash.  Column ``(i, j)`` also owns the cells whose lowest corner is
+``(i, j, k)``.
 
 Corner ``c`` of a cell, bit ``c`` of its case code (set = inside, ``field < level``):
 ``0 (0,0,0), 1 (1,0,0), 2 (1,1,0), 3 (0,1,0)``, corners 4..7 the same one layer up.  Edge ``e``
@@ -186,21 +187,71 @@ def count_nondegenerate(case: int, eqbits: int, tri_range: wp.array[wp.int32], t
     return n
 
 
+@wp.func
+def chunk_bounds(c: int, chunk: int, nz: int):
+    """Cells ``[k0, k1)`` of z-chunk ``c``; its nodes are ``[k0, k1)`` plus node ``nz - 1`` in the last chunk."""
+    k0 = c * chunk
+    return k0, wp.min(k0 + chunk, nz - 1)
+
+
 @wp.kernel
-def count_columns_kernel(
+def chunk_range_kernel(
+    offset: int,
+    field: wp.array3d[Any],
+    chunk: int,
+    nchunks: int,
+    chunk_min: wp.array[Any],
+    chunk_max: wp.array[Any],
+):
+    """Pass 0, one thread per (node column, z-chunk): min and max of nodes ``[k0, k1]`` (inclusive).
+
+    Thread ``tid`` is column ``tid // nchunks``, chunk ``tid % nchunks``; a column is the line of
+    nodes ``(i, j, :)``, numbered ``i * Y + j``.  Each value is read once, sequentially.
+    """
+    tid = wp.tid() + offset
+    col = tid // nchunks
+    c = tid - col * nchunks
+    ny = field.shape[1]
+    i = col // ny
+    j = col - i * ny
+    k0, k1 = chunk_bounds(c, chunk, field.shape[2])
+    lo = field[i, j, k0]
+    hi = lo
+    for k in range(k0 + 1, k1 + 1):
+        v = field[i, j, k]
+        lo = wp.min(lo, v)
+        hi = wp.max(hi, v)
+    chunk_min[tid] = lo
+    chunk_max[tid] = hi
+
+
+@wp.kernel
+def count_chunks_kernel(
     offset: int,
     field: wp.array3d[Any],
     level: Any,
+    chunk: int,
+    nchunks: int,
+    chunk_min: wp.array[Any],
+    chunk_max: wp.array[Any],
     tri_range: wp.array[wp.int32],
     tri_edges: wp.array[wp.int32],
     edges: wp.array2d[wp.int32],
     node_mask: wp.array3d[wp.uint8],
     cell_case: wp.array3d[wp.uint8],
-    col_verts: wp.array[wp.int32],
-    col_faces: wp.array[wp.int32],
+    chunk_verts: wp.array[wp.int32],
+    chunk_faces: wp.array[wp.int32],
 ):
-    """Pass 1, one thread per node column: node masks, cell case codes and the column's counts."""
-    col = wp.tid() + offset
+    """Pass 1, one thread per (node column, z-chunk): node masks, cell case codes and counts.
+
+    ``node_mask`` and ``cell_case`` arrive zeroed.  A chunk whose 2x2 block of node columns lies
+    strictly on one side of the level (from pass 0) has no vertex, face or tie and returns at once:
+    this skips most of a grid at the cost of one sequential read.  Otherwise its nodes and cells
+    are classified walking up the chunk, reusing each layer's four values for the next cell.
+    """
+    tid = wp.tid() + offset
+    col = tid // nchunks
+    c = tid - col * nchunks
     nx = field.shape[0]
     ny = field.shape[1]
     nz = field.shape[2]
@@ -210,45 +261,58 @@ def count_columns_kernel(
     hy = wp.where(j + 1 < ny, 1, 0)
     i1 = i + hx
     j1 = j + hy
+    c1 = (i1 * ny + j) * nchunks + c
+    c2 = (i1 * ny + j1) * nchunks + c
+    c3 = (i * ny + j1) * nchunks + c
+    lo = wp.min(wp.min(chunk_min[tid], chunk_min[c1]), wp.min(chunk_min[c2], chunk_min[c3]))
+    hi = wp.max(wp.max(chunk_max[tid], chunk_max[c1]), wp.max(chunk_max[c2], chunk_max[c3]))
+    if lo > level or hi < level:
+        chunk_verts[tid] = 0
+        chunk_faces[tid] = 0
+        return
     cells = hx * hy  # this column also owns a column of cells
+    k0, k1 = chunk_bounds(c, chunk, nz)
     # Values of the four node columns (i,j), (i+1,j), (i+1,j+1), (i,j+1) in corner order, at layer k.
-    a0 = field[i, j, 0]
-    a1 = field[i1, j, 0]
-    a2 = field[i1, j1, 0]
-    a3 = field[i, j1, 0]
+    a0 = field[i, j, k0]
+    a1 = field[i1, j, k0]
+    a2 = field[i1, j1, k0]
+    a3 = field[i, j1, k0]
     lay = layer_bits(a0, a1, a2, a3, level)
     eq = layer_eq(a0, a1, a2, a3, level)
     nv = int(0)
     nf = int(0)
-    for k in range(nz - 1):
+    for k in range(k0, k1):
         b0 = field[i, j, k + 1]
         b1 = field[i1, j, k + 1]
         b2 = field[i1, j1, k + 1]
         b3 = field[i, j1, k + 1]
-        m = node_mask_of(field, level, i, j, k, a0, a1, a3, b0, hx, hy, 1)
-        node_mask[i, j, k] = wp.uint8(m)
-        nv += popcount4(m)
         lay_b = layer_bits(b0, b1, b2, b3, level)
         eq_b = layer_eq(b0, b1, b2, b3, level)
-        if cells != 0:
-            case = lay | (lay_b << 4)
-            cell_case[i, j, k] = wp.uint8(case)
-            eqbits = eq | (eq_b << 4)
-            if eqbits == 0:
-                nf += (tri_range[case + 1] - tri_range[case]) // 3
-            else:
-                nf += count_nondegenerate(case, eqbits, tri_range, tri_edges, edges)
+        case = lay | (lay_b << 4)
+        eqbits = eq | (eq_b << 4)
+        if eqbits != 0 or (case != 0 and case != 255) or cells == 0:
+            m = node_mask_of(field, level, i, j, k, a0, a1, a3, b0, hx, hy, 1)
+            if m != 0:
+                node_mask[i, j, k] = wp.uint8(m)
+                nv += popcount4(m)
+            if cells != 0:
+                cell_case[i, j, k] = wp.uint8(case)
+                if eqbits == 0:
+                    nf += (tri_range[case + 1] - tri_range[case]) // 3
+                else:
+                    nf += count_nondegenerate(case, eqbits, tri_range, tri_edges, edges)
         a0 = b0
         a1 = b1
         a2 = b2
         a3 = b3
         lay = lay_b
         eq = eq_b
-    m_top = node_mask_of(field, level, i, j, nz - 1, a0, a1, a3, a0, hx, hy, 0)
-    node_mask[i, j, nz - 1] = wp.uint8(m_top)
-    nv += popcount4(m_top)
-    col_verts[col] = nv
-    col_faces[col] = nf
+    if k1 == nz - 1:
+        m_top = node_mask_of(field, level, i, j, nz - 1, a0, a1, a3, a0, hx, hy, 0)
+        node_mask[i, j, nz - 1] = wp.uint8(m_top)
+        nv += popcount4(m_top)
+    chunk_verts[tid] = nv
+    chunk_faces[tid] = nf
 
 
 @wp.func
@@ -300,19 +364,21 @@ def write_node_vertices(field: wp.array3d[Any], level: Any, lower: Any, spacing:
 
 
 @wp.kernel
-def write_columns_kernel(
+def write_chunks_kernel(
     offset: int,
     field: wp.array3d[Any],
     level: Any,
     lower: Any,
     spacing: Any,
+    chunk: int,
+    nchunks: int,
     tri_range: wp.array[wp.int32],
     tri_edges: wp.array[wp.int32],
     edges: wp.array2d[wp.int32],
     node_mask: wp.array3d[wp.uint8],
     cell_case: wp.array3d[wp.uint8],
-    col_verts: wp.array[wp.int32],
-    col_faces: wp.array[wp.int32],
+    chunk_verts: wp.array[wp.int32],
+    chunk_faces: wp.array[wp.int32],
     vert_start: wp.array[wp.int32],
     face_start: wp.array[wp.int32],
     verts: wp.array[Any],
@@ -320,15 +386,18 @@ def write_columns_kernel(
     vert_kind: wp.array[wp.uint8],
     faces: wp.array2d[wp.int32],
 ):
-    """Pass 2, one thread per node column: write its vertices and its cells' faces.
+    """Pass 2, one thread per (node column, z-chunk): write its vertices and its cells' faces.
 
-    Vertex bases of the four node columns a cell touches are kept as running sums up the
-    columns, starting from the exclusive prefix sums ``vert_start``, so no per-node index array
-    is needed.  Columns without vertices or faces return at once.
+    ``vert_start``/``face_start`` are exclusive prefix sums of the pass-1 counts in thread order,
+    so the vertex base of any node column at the chunk's first layer is one lookup, and bases of
+    higher layers are running sums of the node masks: no per-node index array.  Chunks without
+    vertices or faces return at once.
     """
-    col = wp.tid() + offset
-    if col_verts[col] == 0 and col_faces[col] == 0:
+    tid = wp.tid() + offset
+    if chunk_verts[tid] == 0 and chunk_faces[tid] == 0:
         return
+    col = tid // nchunks
+    c = tid - col * nchunks
     nx = field.shape[0]
     ny = field.shape[1]
     nz = field.shape[2]
@@ -339,51 +408,53 @@ def write_columns_kernel(
     i1 = i + hx
     j1 = j + hy
     cells = hx * hy
-    base0 = vert_start[col]
-    base1 = vert_start[i1 * ny + j]
-    base2 = vert_start[i1 * ny + j1]
-    base3 = vert_start[i * ny + j1]
-    m0 = int(node_mask[i, j, 0])
-    m1 = int(node_mask[i1, j, 0])
-    m2 = int(node_mask[i1, j1, 0])
-    m3 = int(node_mask[i, j1, 0])
-    fo = face_start[col]
-    for k in range(nz):
+    k0, k1 = chunk_bounds(c, chunk, nz)
+    base0 = vert_start[tid]
+    base1 = vert_start[(i1 * ny + j) * nchunks + c]
+    base2 = vert_start[(i1 * ny + j1) * nchunks + c]
+    base3 = vert_start[(i * ny + j1) * nchunks + c]
+    m0 = int(node_mask[i, j, k0])
+    m1 = int(node_mask[i1, j, k0])
+    m2 = int(node_mask[i1, j1, k0])
+    m3 = int(node_mask[i, j1, k0])
+    fo = face_start[tid]
+    for k in range(k0, k1):
         if (m0 & 15) != 0:
             write_node_vertices(field, level, lower, spacing, i, j, k, m0, base0, verts, vert_node, vert_kind)
-        if k + 1 < nz:
-            n0 = int(node_mask[i, j, k + 1])
-            n1 = int(node_mask[i1, j, k + 1])
-            n2 = int(node_mask[i1, j1, k + 1])
-            n3 = int(node_mask[i, j1, k + 1])
-            up0 = base0 + popcount4(m0)
-            up1 = base1 + popcount4(m1)
-            up2 = base2 + popcount4(m2)
-            up3 = base3 + popcount4(m3)
-            if cells != 0:
-                case = int(cell_case[i, j, k])
-                r0 = tri_range[case]
-                r1 = tri_range[case + 1]
-                if r1 > r0:
-                    bases = vec8i(base0, base1, base2, base3, up0, up1, up2, up3)
-                    masks = vec8i(m0, m1, m2, m3, n0, n1, n2, n3)
-                    for r in range(r0, r1, 3):
-                        ia = vertex_id(case, tri_edges[r], bases, masks, edges)
-                        ib = vertex_id(case, tri_edges[r + 1], bases, masks, edges)
-                        ic = vertex_id(case, tri_edges[r + 2], bases, masks, edges)
-                        if ia != ib and ib != ic and ia != ic:  # drops faces collapsed by a node vertex
-                            faces[fo, 0] = ia
-                            faces[fo, 1] = ib
-                            faces[fo, 2] = ic
-                            fo += 1
-            base0 = up0
-            base1 = up1
-            base2 = up2
-            base3 = up3
-            m0 = n0
-            m1 = n1
-            m2 = n2
-            m3 = n3
+        n0 = int(node_mask[i, j, k + 1])
+        n1 = int(node_mask[i1, j, k + 1])
+        n2 = int(node_mask[i1, j1, k + 1])
+        n3 = int(node_mask[i, j1, k + 1])
+        up0 = base0 + popcount4(m0)
+        up1 = base1 + popcount4(m1)
+        up2 = base2 + popcount4(m2)
+        up3 = base3 + popcount4(m3)
+        if cells != 0:
+            case = int(cell_case[i, j, k])
+            r0 = tri_range[case]
+            r1 = tri_range[case + 1]
+            if r1 > r0:
+                bases = vec8i(base0, base1, base2, base3, up0, up1, up2, up3)
+                masks = vec8i(m0, m1, m2, m3, n0, n1, n2, n3)
+                for r in range(r0, r1, 3):
+                    ia = vertex_id(case, tri_edges[r], bases, masks, edges)
+                    ib = vertex_id(case, tri_edges[r + 1], bases, masks, edges)
+                    ic = vertex_id(case, tri_edges[r + 2], bases, masks, edges)
+                    if ia != ib and ib != ic and ia != ic:  # drops faces collapsed by a node vertex
+                        faces[fo, 0] = ia
+                        faces[fo, 1] = ib
+                        faces[fo, 2] = ic
+                        fo += 1
+        base0 = up0
+        base1 = up1
+        base2 = up2
+        base3 = up3
+        m0 = n0
+        m1 = n1
+        m2 = n2
+        m3 = n3
+    if k1 == nz - 1 and (m0 & 15) != 0:
+        write_node_vertices(field, level, lower, spacing, i, j, nz - 1, m0, base0, verts, vert_node, vert_kind)
 
 
 @wp.func

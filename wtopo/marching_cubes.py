@@ -29,8 +29,13 @@ __all__ = ["marching_cubes"]
 #: less has its ``1 / (b - a)^2`` derivative clamped so gradients stay below ``1 / GRAD_EPS``.
 GRAD_EPS = 1e-7
 
-# Columns are long (one per (i, j), Z nodes each): a few hundred are worth a thread of their own.
-_MIN_COLUMNS_PER_THREAD = 128
+#: Nodes per z-chunk, the unit of work of one kernel thread.  Chunks whose 2x2 block of node
+#: columns lies strictly on one side of the level are skipped after one min/max read; 16 keeps
+#: that test fine enough to skip most of a smooth field and threads long enough to amortise it.
+CHUNK = 16
+
+# Threads of a few chunks each are cheap: a few hundred chunks are worth a CPU thread of their own.
+_MIN_CHUNKS_PER_THREAD = 256
 
 _tables: dict[str, tuple[wp.array, wp.array, wp.array]] = {}
 
@@ -58,6 +63,16 @@ def _point(name: str, value) -> tuple[float, float, float]:
     return vals
 
 
+def _require_finite_field(field: torch.Tensor) -> None:
+    # A sum is non-finite when any term is (NaN and inf propagate; overflow of huge finite values
+    # only sends us to the exact check).  On CPU numpy's single-threaded SIMD sum avoids torch's
+    # thread pool, which stalls for tens of ms when the cores are oversubscribed.
+    t = field.detach()
+    total = t.numpy().sum() if t.device.type == "cpu" else t.sum().item()  # host sync: validation
+    if not math.isfinite(float(total)):
+        require_finite("field", t)
+
+
 def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp.array):
     device = field.device
     nx, ny, nz = field.shape
@@ -67,20 +82,29 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
     lo = vec(*lower)
     spacing = vec(*[(u - a) / (n - 1) for a, u, n in zip(lower, upper, field.shape)])
     tri_range, tri_edges, edges = _device_tables(device)
-    ncols = nx * ny
+    nchunks = -(-(nz - 1) // CHUNK)
+    nthreads = nx * ny * nchunks
 
-    node_mask = wp.empty((nx, ny, nz), dtype=wp.uint8, device=device)
-    cell_case = wp.empty((nx - 1, ny - 1, nz - 1), dtype=wp.uint8, device=device)
-    col_verts = wp.empty(ncols, dtype=wp.int32, device=device)
-    col_faces = wp.empty(ncols, dtype=wp.int32, device=device)
-    _bridge.launch_split(_k.count_columns_kernel, ncols, [field, lvl, tri_range, tri_edges, edges],
-                         [node_mask, cell_case, col_verts, col_faces], device=device,
-                         min_chunk=_MIN_COLUMNS_PER_THREAD)
+    chunk_min = wp.empty(nthreads, dtype=scalar, device=device)
+    chunk_max = wp.empty(nthreads, dtype=scalar, device=device)
+    _bridge.launch_split(_k.chunk_range_kernel, nthreads, [field, CHUNK, nchunks], [chunk_min, chunk_max],
+                         device=device, min_chunk=_MIN_CHUNKS_PER_THREAD)
+    node_mask = wp.zeros((nx, ny, nz), dtype=wp.uint8, device=device)
+    cell_case = wp.zeros((nx - 1, ny - 1, nz - 1), dtype=wp.uint8, device=device)
+    chunk_verts = wp.empty(nthreads, dtype=wp.int32, device=device)
+    chunk_faces = wp.empty(nthreads, dtype=wp.int32, device=device)
+    _bridge.launch_split(_k.count_chunks_kernel, nthreads,
+                         [field, lvl, CHUNK, nchunks, chunk_min, chunk_max, tri_range, tri_edges, edges],
+                         [node_mask, cell_case, chunk_verts, chunk_faces], device=device,
+                         min_chunk=_MIN_CHUNKS_PER_THREAD)
 
-    counts = torch.stack((wp.to_torch(col_verts), wp.to_torch(col_faces)))
-    ends = torch.cumsum(counts, dim=1, dtype=torch.int32)
-    starts = (ends - counts).contiguous()
-    n_verts, n_faces = ends[:, -1].tolist()  # host sync: output sizes for allocation
+    vert_start = wp.empty(nthreads, dtype=wp.int32, device=device)
+    face_start = wp.empty(nthreads, dtype=wp.int32, device=device)
+    wp.utils.array_scan(chunk_verts, vert_start, inclusive=False)
+    wp.utils.array_scan(chunk_faces, face_start, inclusive=False)
+    # host sync: output sizes for allocation (last exclusive start + last count)
+    tail = [int(a[-1:].numpy()[0]) for a in (vert_start, chunk_verts, face_start, chunk_faces)]
+    n_verts, n_faces = tail[0] + tail[1], tail[2] + tail[3]
 
     verts = wp.empty(n_verts, dtype=vec, device=device, requires_grad=True)
     faces = wp.empty((n_faces, 3), dtype=wp.int32, device=device)
@@ -88,12 +112,10 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
         return verts, faces
     vert_node = wp.empty(n_verts, dtype=wp.int32, device=device)
     vert_kind = wp.empty(n_verts, dtype=wp.uint8, device=device)
-    vert_start = wp.from_torch(starts[0])
-    face_start = wp.from_torch(starts[1])
-    _bridge.launch_split(_k.write_columns_kernel, ncols,
-                         [field, lvl, lo, spacing, tri_range, tri_edges, edges, node_mask, cell_case, col_verts,
-                          col_faces, vert_start, face_start],
-                         [verts, vert_node, vert_kind, faces], device=device, min_chunk=_MIN_COLUMNS_PER_THREAD)
+    _bridge.launch_split(_k.write_chunks_kernel, nthreads,
+                         [field, lvl, lo, spacing, CHUNK, nchunks, tri_range, tri_edges, edges, node_mask, cell_case,
+                          chunk_verts, chunk_faces, vert_start, face_start],
+                         [verts, vert_node, vert_kind, faces], device=device, min_chunk=_MIN_CHUNKS_PER_THREAD)
 
     if field.requires_grad:
         eps = scalar(GRAD_EPS)
@@ -169,7 +191,7 @@ def marching_cubes(field: torch.Tensor, level: float = 0.0, *, lower: Sequence[f
     hi = _point("upper", upper)
     if any(h <= a for a, h in zip(lo, hi)):
         raise ValueError(f"upper must exceed lower on every axis, got lower={lo}, upper={hi}")
-    require_finite("field", field.detach())
+    _require_finite_field(field)
     op = _bridge.WarpOp("marching_cubes", partial(_run, float(level), lo, hi), (_bridge.float_dtype(field),),
                         (True,), (True, False))
     verts, faces = _bridge.apply(op, field)

@@ -1,0 +1,131 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Benchmark: ``wtopo.ops.marching_cubes`` forward + backward against skimage's forward alone.
+
+Field: a perturbed sphere SDF on ``[-1, 1]^3`` (float32).  For each resolution the three
+extractors run interleaved in one process, so machine load hits them alike; the script prints
+the best and median wall times and their ratios against ``skimage.measure.marching_cubes``
+(forward only, the peer the issue names) and Warp's stock ``warp.geometry.IsoSurfaceMarchingCubes``
+(forward + backward on a tape).  Peak memory is measured in a fresh child process per resolution
+as the rise of the peak resident set size over a run of wtopo forward + backward.
+
+Run: ``PYTHONPATH=. /work/venv/bin/python benchmarks/bench_marching_cubes.py [--sizes 64 128 256]
+[--repeats 15] [--no-warp]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import time
+
+import numpy as np
+import torch
+
+
+def make_field(n: int) -> torch.Tensor:
+    """A sphere SDF of radius 0.6 with a smooth ripple, ``n^3`` float32 nodes on ``[-1, 1]^3``."""
+    x = torch.linspace(-1.0, 1.0, n)
+    gx, gy, gz = torch.meshgrid(x, x, x, indexing="ij")
+    f = (gx * gx + gy * gy + gz * gz).sqrt() - 0.6 + 0.05 * torch.sin(7 * gx) * torch.cos(5 * gy)
+    return f.contiguous()
+
+
+def run_wtopo(field: torch.Tensor) -> tuple[int, int]:
+    """One forward + backward of wtopo's marching cubes; returns (vertices, faces)."""
+    from wtopo.ops import marching_cubes
+
+    f = field.detach().clone().requires_grad_(True)
+    verts, faces = marching_cubes(f, lower=(-1, -1, -1), upper=(1, 1, 1))
+    verts.sum().backward()
+    return verts.shape[0], faces.shape[0]
+
+
+def run_skimage(field_np: np.ndarray) -> tuple[int, int]:
+    """skimage's Lewiner marching cubes, forward only."""
+    from skimage.measure import marching_cubes
+
+    verts, faces, _, _ = marching_cubes(field_np, 0.0)
+    return verts.shape[0], faces.shape[0]
+
+
+def run_warp(field: torch.Tensor) -> tuple[int, int]:
+    """Warp's stock marching cubes, forward + backward through a tape."""
+    import warp as wp
+    from warp.geometry import IsoSurfaceMarchingCubes
+
+    wf = wp.from_torch(field.detach().clone(), requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        verts, tris = IsoSurfaceMarchingCubes.extract(wf, 0.0, lower=(-1, -1, -1), upper=(1, 1, 1))
+    verts.grad.fill_(1.0)
+    tape.backward()
+    return verts.shape[0], tris.shape[0] // 3
+
+
+def _time(fn, *args) -> float:
+    t = time.perf_counter()
+    fn(*args)
+    return time.perf_counter() - t
+
+
+def peak_memory_child(n: int) -> None:
+    """Child process: print the peak-RSS rise (MiB) of one wtopo forward + backward at ``n^3``."""
+
+    def status(key):
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith(key):
+                    return int(line.split()[1]) / 1024.0
+        return float("nan")
+
+    field = make_field(n)
+    run_wtopo(make_field(8))  # compile / load kernels before the baseline
+    before = status("VmRSS:")
+    run_wtopo(field)
+    print(json.dumps({"peak_rise_mib": status("VmHWM:") - before, "field_mib": field.numel() * 4 / 2**20}))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256])
+    parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--no-warp", action="store_true", help="skip Warp's stock IsoSurfaceMarchingCubes")
+    parser.add_argument("--memory-child", type=int, default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.memory_child is not None:
+        peak_memory_child(args.memory_child)
+        return
+
+    print(f"torch threads {torch.get_num_threads()}, field: perturbed sphere SDF, float32")
+    print(f"{'n':>5} {'V':>8} {'F':>8} | {'wtopo f+b':>10} {'skimage f':>10} {'ratio':>6} {'med.ratio':>9} | "
+          f"{'warp f+b':>9} {'warp/wtopo':>10} | {'peak MiB':>8}")
+    for n in args.sizes:
+        field = make_field(n)
+        field_np = field.numpy()
+        nv, nf = run_wtopo(field)
+        sv, sf = run_skimage(field_np)
+        use_warp = not args.no_warp
+        if use_warp:
+            run_warp(field)
+        ours, sk, warp_t = [], [], []
+        for _ in range(args.repeats):
+            ours.append(_time(run_wtopo, field))
+            sk.append(_time(run_skimage, field_np))
+            if use_warp and len(warp_t) < max(3, args.repeats // 3):
+                warp_t.append(_time(run_warp, field))
+        pair = statistics.median(o / s for o, s in zip(ours, sk))
+        mem = subprocess.run([sys.executable, __file__, "--memory-child", str(n)], capture_output=True, text=True,
+                             check=True)
+        peak = json.loads(mem.stdout.strip().splitlines()[-1])["peak_rise_mib"]
+        warp_s = f"{min(warp_t) * 1e3:8.1f}ms {min(warp_t) / min(ours):9.1f}x" if warp_t else f"{'-':>9} {'-':>10}"
+        print(f"{n:>5} {nv:>8} {nf:>8} | {min(ours) * 1e3:8.1f}ms {min(sk) * 1e3:8.1f}ms {min(ours) / min(sk):6.2f} "
+              f"{pair:9.2f} | {warp_s} | {peak:8.1f}")
+        if (sv, sf) != (nv, nf):
+            print(f"      note: skimage gave V={sv}, F={sf} (Lewiner resolves ambiguous cells differently)")
+
+
+if __name__ == "__main__":
+    main()
