@@ -157,7 +157,8 @@ def _read_points_bin(path):
         xyz[i] = r.read("ddd")
         rgb[i] = r.read("BBB")
         r.read("d")
-        r.o += r.read("Q")[0] * struct.calcsize("<ii")
+        track_len = r.read("Q")[0]
+        r.o += track_len * struct.calcsize("<ii")
     return xyz, rgb / 255.0
 
 
