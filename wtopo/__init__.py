@@ -38,7 +38,9 @@ _mount_kernels()
 
 import warp as _wp  # noqa: E402
 
-_wp.config.quiet = True  # no module-load chatter; errors still raise
+_wp.config.quiet = True  # no greeting
+if hasattr(_wp, "LOG_WARNING") and _wp.config.log_level < _wp.LOG_WARNING:
+    _wp.config.log_level = _wp.LOG_WARNING  # no module-load timings; warnings and errors still show
 
 from .camera import Camera  # noqa: E402
 
