@@ -203,6 +203,9 @@ def test_blender_nerf_synthetic(tmp_path, background, bg_value):
         np.testing.assert_array_equal(m, mask)
         np.testing.assert_allclose(img[mask], rgb[mask], atol=1e-6)
         np.testing.assert_allclose(img[~mask], bg_value, atol=1e-6)
+    half = load_scene(tmp_path, background=background, downscale=2)
+    assert half.images.shape == (5, H // 2, W // 2, 3) and half.masks.shape == (5, H // 2, W // 2)
+    np.testing.assert_allclose(half.cameras[0].K[:2], s.cameras[0].K[:2] / 2, atol=CAM_TOL)
     # a camera at +4 z with the identity OpenGL rotation looks down -z at the origin
     cam_gl = np.eye(4)
     cam_gl[2, 3] = 4.0

@@ -152,7 +152,7 @@ def _camera_error(i: int, cam: Camera, msg: str) -> ValueError:
     return ValueError(f"cameras[{i}]{label}: {msg}")
 
 
-@dataclass
+@dataclass(eq=False)
 class Scene:
     """Posed images of one scene, validated on construction.
 
