@@ -3,7 +3,9 @@
 
 The proxy mesh is rendered by casting one ray per pixel (:meth:`wtopo.Camera.pixel_rays`, so any
 pinhole or OpenCV-distorted camera works) against a :class:`warp.Mesh` BVH. The first hit is found
-without gradients (``wp.mesh_query_ray``, Woop's watertight test in float32); depth and normal are
+without gradients (a conservative sweep of the mesh's BVH per 2x2 pixel packet and Woop's
+watertight ray-triangle test, in float32: rays through shared edges and vertices hit exactly
+once, which ``wp.mesh_query_ray`` does not guarantee, see ``kernels/raycast.py``); depth and normal are
 then recomputed from the hit triangle's three vertices in the caller's precision, so they are
 differentiable w.r.t. the vertex positions (the hit face itself is discrete: gradients do not see
 silhouettes moving).
@@ -29,6 +31,9 @@ from wtopo.kernels import raycast as _k
 __all__ = ["MeshRender", "MeshRaycaster", "raycast_mesh", "closest_faces"]
 
 _MAX_T = float(np.finfo(np.float32).max)  # "no far limit" for the float32 BVH traversal
+# Inflation of the BVH boxes in the conservative sweep, relative to the coordinate scale: float32
+# slab tests round at ~6e-8 relative, 1e-6 covers their error with margin yet adds few candidates.
+_PAD_REL = 1e-6
 _BVH_CONSTRUCTORS = ("sah", "median", "lbvh")
 
 
@@ -160,6 +165,9 @@ class MeshRaycaster:
         bvh_constructor: ``"sah"`` (CPU default), ``"median"`` or ``"lbvh"`` (CUDA default; Warp
             falls back to SAH on CPU); ``None`` takes Warp's default for the device.
         bvh_leaf_size: triangles per BVH leaf; ``None`` takes Warp's default (4).
+        conservative: find hits with the conservative packet sweep (watertight: rays through shared
+            edges and vertices hit exactly once). ``False`` uses ``wp.mesh_query_ray`` per ray,
+            whose rounding in box tests can let such rays miss or reach a farther surface.
 
     Limitations:
         The BVH and the hit search are float32 whatever the dtype of ``verts``: keep coordinates
@@ -169,7 +177,8 @@ class MeshRaycaster:
         ray starting exactly on a triangle may hit it at ``t = 0``.
     """
 
-    def __init__(self, *, bvh_constructor: str | None = None, bvh_leaf_size: int | None = None):
+    def __init__(self, *, bvh_constructor: str | None = None, bvh_leaf_size: int | None = None,
+                 conservative: bool = True):
         if bvh_constructor is not None and bvh_constructor not in _BVH_CONSTRUCTORS:
             raise ValueError(f"bvh_constructor must be one of {_BVH_CONSTRUCTORS} or None, got {bvh_constructor!r}")
         if bvh_leaf_size is not None and (isinstance(bvh_leaf_size, bool) or not isinstance(bvh_leaf_size, int)
@@ -177,6 +186,9 @@ class MeshRaycaster:
             raise ValueError(f"bvh_leaf_size must be an int >= 1 or None, got {bvh_leaf_size!r}")
         self.bvh_constructor = bvh_constructor
         self.bvh_leaf_size = bvh_leaf_size
+        self.conservative = bool(conservative)
+        self._bounds: torch.Tensor | None = None  # float32 [2, 3] lower, upper of the mesh
+        self._packets: dict = {}  # ray-shape -> int32 [P, 4] ray indices of 2x2 packets
         self._mesh: wp.Mesh | None = None
         self._points: torch.Tensor | None = None  # float32 [V, 3], aliased by the wp.Mesh
         self._faces: torch.Tensor | None = None  # int32 [F, 3], aliased by the wp.Mesh
@@ -210,6 +222,7 @@ class MeshRaycaster:
                 self._points.copy_(pts)
                 with _Launcher(verts.device):
                     self._mesh.refit()
+                self._bounds = torch.stack([self._points.min(0).values, self._points.max(0).values])
                 self.refits += 1
             return
         self._mesh = None
@@ -225,6 +238,7 @@ class MeshRaycaster:
                 kwargs["bvh_leaf_size"] = self.bvh_leaf_size
             self._mesh = wp.Mesh(points=wp.from_torch(self._points, dtype=wp.vec3),
                                  indices=wp.from_torch(self._faces.view(-1), dtype=wp.int32), **kwargs)
+        self._bounds = torch.stack([self._points.min(0).values, self._points.max(0).values])
         self.builds += 1
 
     # -- queries ---------------------------------------------------------------------------------
@@ -254,13 +268,20 @@ class MeshRaycaster:
                 face_id=face_id.reshape(shape),
                 bary=bary32.to(verts.dtype).reshape(*shape, 2),
             )
+        o_w = wp.from_torch(o32.reshape(-1, 3).contiguous(), dtype=wp.vec3)
+        d_w = wp.from_torch(d32.reshape(-1, 3).contiguous(), dtype=wp.vec3)
+        outs = [wp.from_torch(face_id, dtype=wp.int32), wp.from_torch(bary32, dtype=wp.vec2)]
         with _Launcher(device) as launcher:
-            _bridge.launch_split(
-                _k.cast_rays_kernel, n,
-                [self._mesh.id, wp.from_torch(o32.reshape(-1, 3).contiguous(), dtype=wp.vec3),
-                 wp.from_torch(d32.reshape(-1, 3).contiguous(), dtype=wp.vec3), _MAX_T],
-                [wp.from_torch(face_id, dtype=wp.int32), wp.from_torch(bary32, dtype=wp.vec2)],
-                device=launcher.wdev, min_chunk=1024)
+            if self.conservative:
+                packets = self._packet_table(shape, device)
+                _bridge.launch_split(
+                    _k.cast_packets_kernel, packets.shape[0],
+                    [self._mesh.id, wp.from_torch(packets), o_w, d_w,
+                     wp.from_torch(self._bounds, dtype=wp.vec3), _PAD_REL],
+                    outs, device=launcher.wdev, min_chunk=256)
+            else:
+                _bridge.launch_split(_k.cast_rays_kernel, n, [self._mesh.id, o_w, d_w, _MAX_T], outs,
+                                     device=launcher.wdev, min_chunk=1024)
         depth, normal = _bridge.apply(_SHADE_OPS[verts.dtype], verts, faces.reshape(-1), face_id,
                                       o.reshape(-1, 3), d.reshape(-1, 3))
         return MeshRender(
@@ -270,6 +291,26 @@ class MeshRaycaster:
             face_id=face_id.reshape(shape),
             bary=bary32.to(verts.dtype).reshape(*shape, 2),
         )
+
+    def _packet_table(self, shape: tuple, device) -> torch.Tensor:
+        """Ray indices [P, 4] (int32, -1 = unused) grouping rays in 2x2 image tiles (``shape`` =
+        [..., H, W]) or, for 1-D ray lists, in runs of 4; cached per shape."""
+        key = (shape, str(device))
+        if key not in self._packets:
+            n = int(np.prod(shape, dtype=np.int64))
+            idx = torch.arange(n, dtype=torch.int32, device=device)
+            if len(shape) >= 2:
+                h, w = shape[-2], shape[-1]
+                hp, wp_ = h + h % 2, w + w % 2
+                grid = torch.full((n // (h * w), hp, wp_), -1, dtype=torch.int32, device=device)
+                grid[:, :h, :w] = idx.reshape(-1, h, w)
+                table = grid.reshape(-1, hp // 2, 2, wp_ // 2, 2).permute(0, 1, 3, 2, 4).reshape(-1, 4)
+            else:
+                table = torch.full((n + (-n) % 4,), -1, dtype=torch.int32, device=device)
+                table[:n] = idx
+                table = table.reshape(-1, 4)
+            self._packets = {key: table.contiguous()}  # keep one: shapes rarely alternate
+        return self._packets[key]
 
     def closest_faces(self, verts: torch.Tensor, faces: torch.Tensor, points: torch.Tensor, *,
                       max_distance: float | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
