@@ -129,12 +129,12 @@ def test_mesh_stats_topology_cases():
     assert not metrics.mesh_stats(flipped)["winding_consistent"]
 
 
-def test_psnr_known_values():
+def test_psnr_known_values(device):
     """Check PSNR of a constant offset (20 dB for 0.1) and with a mask."""
-    t = torch.rand(2, 16, 20, 3) * 0.8
+    t = torch.rand(2, 16, 20, 3, device=device) * 0.8
     p = t + 0.1
     np.testing.assert_allclose(metrics.psnr(p, t).item(), 20.0, rtol=1e-5)
-    m = torch.zeros(2, 16, 20, dtype=torch.bool)
+    m = torch.zeros(2, 16, 20, dtype=torch.bool, device=device)
     m[:, :8] = True
     p2 = t.clone()
     p2[:, :8] += 0.01
@@ -144,13 +144,14 @@ def test_psnr_known_values():
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_ssim_matches_skimage(dtype):
+def test_ssim_matches_skimage(dtype, device):
     """Compare SSIM (Gaussian 11 / 1.5, K1 0.01, K2 0.03) with scikit-image and check its gradient."""
     g = torch.Generator().manual_seed(0)
     t = torch.rand(24, 30, 3, generator=g, dtype=dtype)
-    p = (t + 0.1 * torch.randn(24, 30, 3, generator=g, dtype=dtype)).clamp(0, 1).requires_grad_(True)
+    p = (t + 0.1 * torch.randn(24, 30, 3, generator=g, dtype=dtype)).clamp(0, 1)
+    t, p = t.to(device), p.to(device).requires_grad_(True)
     ours = metrics.ssim(p, t)
-    ref = structural_similarity(p.detach().numpy(), t.numpy(), gaussian_weights=True, sigma=1.5,
+    ref = structural_similarity(p.detach().cpu().numpy(), t.cpu().numpy(), gaussian_weights=True, sigma=1.5,
                                 use_sample_covariance=False, data_range=1.0, channel_axis=-1)
     np.testing.assert_allclose(ours.item(), ref, rtol=1e-5 if dtype == torch.float32 else 1e-10)
     ours.backward()
