@@ -173,18 +173,54 @@ def edge_key(case: int, eqbits: int, e: int, edges: wp.array2d[wp.int32]):
     return wp.where(((eqbits >> out) & 1) != 0, 12 + out, e)
 
 
+vec15i = wp.types.vector(length=15, dtype=wp.int32)
+
+
 @wp.func
-def count_nondegenerate(case: int, eqbits: int, tri_range: wp.array[wp.int32], tri_edges: wp.array[wp.int32],
-                        edges: wp.array2d[wp.int32]):
-    """Triangles of a cell with corners on the level whose three vertices stay distinct."""
-    n = int(0)
-    for r in range(tri_range[case], tri_range[case + 1], 3):
-        ka = edge_key(case, eqbits, tri_edges[r], edges)
-        kb = edge_key(case, eqbits, tri_edges[r + 1], edges)
-        kc = edge_key(case, eqbits, tri_edges[r + 2], edges)
+def same_triangle(keys: vec15i, t: int, u: int):
+    """Whether triangles ``t`` and ``u`` (distinct vertices each) use the same three vertices."""
+    hits = int(0)
+    for a in range(3):
+        ka = keys[3 * t + a]
+        if ka == keys[3 * u] or ka == keys[3 * u + 1] or ka == keys[3 * u + 2]:
+            hits += 1
+    return hits == 3
+
+
+@wp.func
+def kept_triangles(case: int, eqbits: int, tri_range: wp.array[wp.int32], tri_edges: wp.array[wp.int32],
+                   edges: wp.array2d[wp.int32]):
+    """Bit ``t`` set: keep triangle ``t`` of a cell with corners exactly on the level (``eqbits``).
+
+    Node vertices merge the vertices of all crossed edges ending in one corner, so a triangle can
+    collapse (two equal vertices: zero area) and two triangles of the cell can become one face
+    traversed both ways (a zero-volume fold).  Both kinds are dropped; dropping a pair of opposite
+    copies leaves every edge's use count even.  Pass 1 counts and pass 2 writes with this one rule.
+    """
+    r0 = tri_range[case]
+    n = (tri_range[case + 1] - r0) // 3
+    keys = vec15i()
+    keep = int(0)
+    for t in range(n):
+        ka = edge_key(case, eqbits, tri_edges[r0 + 3 * t], edges)
+        kb = edge_key(case, eqbits, tri_edges[r0 + 3 * t + 1], edges)
+        kc = edge_key(case, eqbits, tri_edges[r0 + 3 * t + 2], edges)
+        keys[3 * t] = ka
+        keys[3 * t + 1] = kb
+        keys[3 * t + 2] = kc
         if ka != kb and kb != kc and ka != kc:
-            n += 1
-    return n
+            keep = keep | (1 << t)
+    for t in range(n):
+        for u in range(t + 1, n):
+            if ((keep >> t) & 1) != 0 and ((keep >> u) & 1) != 0 and same_triangle(keys, t, u):
+                keep = keep & ~((1 << t) | (1 << u))
+    return keep
+
+
+@wp.func
+def popcount8(m: int):
+    """Set bits of a byte."""
+    return popcount4(m) + popcount4(m >> 4)
 
 
 @wp.func
@@ -300,7 +336,7 @@ def count_chunks_kernel(
                 if eqbits == 0:
                     nf += (tri_range[case + 1] - tri_range[case]) // 3
                 else:
-                    nf += count_nondegenerate(case, eqbits, tri_range, tri_edges, edges)
+                    nf += popcount8(kept_triangles(case, eqbits, tri_range, tri_edges, edges))
         a0 = b0
         a1 = b1
         a2 = b2
@@ -436,14 +472,18 @@ def write_chunks_kernel(
             if r1 > r0:
                 bases = vec8i(base0, base1, base2, base3, up0, up1, up2, up3)
                 masks = vec8i(m0, m1, m2, m3, n0, n1, n2, n3)
-                for r in range(r0, r1, 3):
-                    ia = vertex_id(case, tri_edges[r], bases, masks, edges)
-                    ib = vertex_id(case, tri_edges[r + 1], bases, masks, edges)
-                    ic = vertex_id(case, tri_edges[r + 2], bases, masks, edges)
-                    if ia != ib and ib != ic and ia != ic:  # drops faces collapsed by a node vertex
-                        faces[fo, 0] = ia
-                        faces[fo, 1] = ib
-                        faces[fo, 2] = ic
+                keep = int(31)
+                eqbits = int(0)
+                for q in range(8):
+                    eqbits = eqbits | wp.where((masks[q] & ON_LEVEL) != 0, 1 << q, 0)
+                if eqbits != 0:
+                    keep = kept_triangles(case, eqbits, tri_range, tri_edges, edges)
+                for t in range((r1 - r0) // 3):
+                    if ((keep >> t) & 1) != 0:
+                        r = r0 + 3 * t
+                        faces[fo, 0] = vertex_id(case, tri_edges[r], bases, masks, edges)
+                        faces[fo, 1] = vertex_id(case, tri_edges[r + 1], bases, masks, edges)
+                        faces[fo, 2] = vertex_id(case, tri_edges[r + 2], bases, masks, edges)
                         fo += 1
         base0 = up0
         base1 = up1

@@ -97,6 +97,8 @@ def to_warp(t: torch.Tensor, dtype=None, *, requires_grad: bool = False) -> wp.a
     """
     _ensure_init()
     t = t.detach().contiguous()
+    if t.numel() == 0:  # an empty tensor counts as contiguous whatever its strides; Warp checks them
+        t = torch.empty(t.shape, dtype=t.dtype, device=t.device)
     arr = wp.from_torch(t, dtype=dtype, requires_grad=False)
     if requires_grad:
         arr.requires_grad = True  # allocates a zeroed Warp-owned gradient buffer

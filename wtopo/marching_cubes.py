@@ -73,6 +73,30 @@ def _require_finite_field(field: torch.Tensor) -> None:
         require_finite("field", t)
 
 
+def _cancel_folded_faces(faces: torch.Tensor, kinds: torch.Tensor) -> wp.array:
+    """Drop faces that appear in both orientations (zero-volume folds through node vertices).
+
+    Only faces touching a node vertex (a node exactly on the level) can coincide across cells.
+    Faces with the same three vertices cancel by orientation: a group with net orientation 0 is
+    dropped, otherwise one face of the winning orientation is kept.
+    """
+    f = faces.long()
+    cand = torch.nonzero((kinds.long()[f] == int(_k.KIND_NODE)).any(dim=1)).squeeze(1)
+    sub = f[cand]
+    srt, perm = sub.sort(dim=1)
+    sign = torch.where(perm[:, 1] == (perm[:, 0] + 1) % 3, 1, -1)  # +1: an even (cyclic) permutation
+    _, inv = torch.unique(srt, dim=0, return_inverse=True)
+    net = torch.zeros(int(inv.max()) + 1 if inv.numel() else 0, dtype=torch.long, device=f.device)
+    net.index_add_(0, inv, sign)
+    ok = (net[inv] != 0) & (sign == torch.sign(net[inv]))
+    first = torch.full_like(net, cand.numel())
+    first.scatter_reduce_(0, inv[ok], torch.nonzero(ok).squeeze(1), reduce="amin")
+    keep = torch.ones(f.shape[0], dtype=torch.bool, device=f.device)
+    keep[cand] = False
+    keep[cand[first[first < cand.numel()]]] = True
+    return wp.from_torch(faces[keep].contiguous())
+
+
 def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp.array):
     device = field.device
     nx, ny, nz = field.shape
@@ -116,6 +140,11 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
                          [field, lvl, lo, spacing, CHUNK, nchunks, tri_range, tri_edges, edges, node_mask, cell_case,
                           chunk_verts, chunk_faces, vert_start, face_start],
                          [verts, vert_node, vert_kind, faces], device=device, min_chunk=_MIN_CHUNKS_PER_THREAD)
+
+    if n_faces:
+        kinds = wp.to_torch(vert_kind)
+        if bool((kinds == _k.KIND_NODE).any()):  # host sync, only to look for nodes on the level
+            faces = _cancel_folded_faces(wp.to_torch(faces), kinds)
 
     if field.requires_grad:
         eps = scalar(GRAD_EPS)

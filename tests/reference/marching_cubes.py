@@ -96,6 +96,8 @@ def edge_report(faces: np.ndarray) -> dict:
         "undirected_counts": Counter(und.values()),
         "boundary_edges": [e for e, n in und.items() if n == 1],
         "max_directed_repeat": max(dirc.values()) if dirc else 0,
+        # edges not traversed equally often in both directions: holes or inconsistent winding
+        "unbalanced_edges": [e for e in und if dirc.get(e, 0) != dirc.get(e[::-1], 0)],
     }
 
 
@@ -105,3 +107,31 @@ def match_points(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     dist, idx = cKDTree(np.asarray(b, np.float64)).query(np.asarray(a, np.float64))
     return idx, dist
+
+
+def ambiguous_cells(field: np.ndarray, level: float = 0.0) -> int:
+    """Cells with a face whose diagonal corners share a side the other diagonal does not.
+
+    On those faces (and in cells with an interior ambiguity, which need such faces) marching
+    cubes variants may legitimately differ: skimage's Lewiner tiling resolves them with the
+    asymptotic decider and may add an interior vertex, the classic table does not.
+    """
+    s = np.asarray(field) < level
+    amb = np.zeros(tuple(n - 1 for n in s.shape), dtype=bool)
+    for axis in range(3):
+        a, b = [d for d in range(3) if d != axis]
+        sl = [slice(None)] * 3
+
+        def take(da, db, sl=sl, a=a, b=b):
+            idx = list(sl)
+            idx[a] = slice(da, s.shape[a] - 1 + da)
+            idx[b] = slice(db, s.shape[b] - 1 + db)
+            return s[tuple(idx)]
+
+        face = (take(0, 0) == take(1, 1)) & (take(1, 0) == take(0, 1)) & (take(0, 0) != take(1, 0))
+        lo = [slice(None)] * 3
+        hi = [slice(None)] * 3
+        lo[axis] = slice(0, -1)
+        hi[axis] = slice(1, None)
+        amb |= face[tuple(lo)] | face[tuple(hi)]
+    return int(amb.sum())
