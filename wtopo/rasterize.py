@@ -19,9 +19,10 @@ the GIL); each worker accumulates per-surfel gradients and visibility counts int
 
 from __future__ import annotations
 
-import itertools
+import contextlib
 import math
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,6 +94,23 @@ class RenderOutput:
     means2d: torch.Tensor
     near: float
     far: float
+
+
+# Stage timer for benchmarks/bench_rasterize.py: set to a dict to accumulate wall seconds per stage
+# ("binning", "sort", "forward", "backward"); None (default) costs nothing.
+_profile: dict | None = None
+
+
+@contextlib.contextmanager
+def _timed(stage: str, wdev):
+    if _profile is None:
+        yield
+        return
+    wp.synchronize_device(wdev)  # host sync: profiling only
+    t0 = time.perf_counter()
+    yield
+    wp.synchronize_device(wdev)
+    _profile[stage] = _profile.get(stage, 0.0) + time.perf_counter() - t0
 
 
 # -- validation ------------------------------------------------------------------------------
@@ -234,7 +252,7 @@ _compile_lock = threading.Lock()
 
 def _launch_tiles(kernel, n_tiles: int, tile_px: int, inputs: list, outputs: list, *, device, workers: int,
                   tiles_per_chunk: int) -> None:
-    """Launch a per-pixel kernel ``(offset, worker, ...)`` over tiles, chunks pulled by ``workers`` threads."""
+    """Launch a per-pixel kernel ``(offset, worker, ...)`` over tiles, in chunks spread over ``workers`` threads."""
     if n_tiles <= 0:
         return
     key = (kernel.key, str(device), tuple(getattr(a, "dtype", type(a)) for a in (*inputs, *outputs)))
@@ -245,17 +263,13 @@ def _launch_tiles(kernel, n_tiles: int, tile_px: int, inputs: list, outputs: lis
             _compiled.add(key)
         return
     chunk = tiles_per_chunk or max(1, n_tiles // (16 * workers))
-    counter = itertools.count()
-    lock = threading.Lock()
+    n_chunks = -(-n_tiles // chunk)
 
     def work(w: int) -> None:
-        while True:
-            with lock:
-                c = next(counter)
-            lo = c * chunk
-            if lo >= n_tiles:
-                return
-            hi = min(n_tiles, lo + chunk)
+        # static interleaved assignment: balanced for spatially clustered cost, and each worker's
+        # buffer always sums the same chunks in the same order (bit-identical reruns)
+        for c in range(w, n_chunks, workers):
+            lo, hi = c * chunk, min(n_tiles, (c + 1) * chunk)
             wp.launch(kernel, dim=(hi - lo) * tile_px, inputs=[lo * tile_px, w, *inputs], outputs=outputs,
                       device=device, record_tape=False)
 
@@ -295,10 +309,11 @@ def _bin(means, quats, scales, opacities, cam_wp, tables, camera: Camera, config
     inputs = [_bridge.to_warp(means, _bridge.vec_dtype(means, 3)), _bridge.to_warp(quats, _bridge.vec_dtype(quats, 4)),
               _bridge.to_warp(scales, _bridge.vec_dtype(scales, 2)), _bridge.to_warp(opacities, dt), cam_wp, *tables,
               camera.width, camera.height, ts]
-    _bridge.launch_split(_kb.bin_surfels_kernel, n, inputs, [rect, counts, radii, means2d], device=wdev)
-    counts_t = wp.to_torch(counts)
-    csum = torch.cumsum(counts_t, 0, dtype=torch.int64)
-    total = int(csum[-1]) if n else 0  # host sync: the intersection count sizes the sort buffers
+    with _timed("binning", wdev):
+        _bridge.launch_split(_kb.bin_surfels_kernel, n, inputs, [rect, counts, radii, means2d], device=wdev)
+        counts_t = wp.to_torch(counts)
+        csum = torch.cumsum(counts_t, 0, dtype=torch.int64)
+        total = int(csum[-1]) if n else 0  # host sync: the intersection count sizes the sort buffers
     if total > config.max_intersections:
         raise ValueError(f"rasterize_surfels: {n} surfels cover {total} (tile, surfel) pairs, above "
                          f"config.max_intersections = {config.max_intersections}; raise the budget, use a larger "
@@ -308,17 +323,23 @@ def _bin(means, quats, scales, opacities, cam_wp, tables, camera: Camera, config
     keys = wp.zeros(max(2 * total, 1), dtype=wp.int64, device=wdev)
     values = wp.zeros(max(2 * total, 1), dtype=wp.int32, device=wdev)
     if total:
-        offsets = (csum - counts_t).to(torch.int32)
-        zc = means.detach() @ torch.as_tensor(camera.R[2], dtype=means.dtype, device=means.device)
-        order = torch.argsort(zc, stable=True)
-        rank = torch.empty(n, dtype=torch.int64, device=means.device)
-        rank[order] = torch.arange(n, dtype=torch.int64, device=means.device)
-        _bridge.launch_split(_kb.emit_intersections_kernel, n,
-                             [rect, _bridge.to_warp(offsets), _bridge.to_warp(rank), tiles_x], [keys, values],
-                             device=wdev)
-        end_bit = 32 + max(1, int(n_tiles - 1).bit_length())
-        wp.utils.radix_sort_pairs(keys, values, total, end_bit=end_bit)
-        _bridge.launch_split(_kb.tile_ranges_kernel, total, [keys, total], [tile_start, tile_end], device=wdev)
+        with _timed("sort", wdev):
+            zc = means.detach() @ torch.as_tensor(camera.R[2], dtype=means.dtype, device=means.device)
+            order = torch.argsort(zc, stable=True)
+            rank = torch.empty(n, dtype=torch.int64, device=means.device)
+            rank[order] = torch.arange(n, dtype=torch.int64, device=means.device)
+        with _timed("binning", wdev):
+            offsets = (csum - counts_t).to(torch.int32)
+            _bridge.launch_split(_kb.emit_intersections_kernel, n,
+                                 [rect, _bridge.to_warp(offsets), _bridge.to_warp(rank), tiles_x], [keys, values],
+                                 device=wdev)
+        with _timed("sort", wdev):
+            end_bit = 32 + max(1, int(n_tiles - 1).bit_length())
+            wp.utils.radix_sort_pairs(keys, values, total, end_bit=end_bit)
+        with _timed("binning", wdev):
+            _bridge.launch_split(_kb.tile_ranges_kernel, total, [keys, total], [tile_start, tile_end], device=wdev)
+        if _profile is not None:
+            _profile["intersections"] = _profile.get("intersections", 0) + total
     return _Bins(tile_start, tile_end, values, wp.to_torch(radii), wp.to_torch(means2d))
 
 
@@ -337,26 +358,31 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_wp, bg_wp, sh_degree: int, ca
 
     def run(means, quats, scales, opacities, sh, means2d):
         n = means.shape[0]
-        prep = [wp.zeros(n, dtype=t, device=wdev, requires_grad=True) for t in (v3, v3, v3, v3, v2, s, v3)]
-        uax, vax, nrm, nrm_face, m2, zc, color = prep
-        _bridge.launch_split(_k.prepare_surfels_kernel, n, [means, quats, scales, sh, cam_wp, sh_degree], prep,
-                             device=wdev, record_tape=True)
-        outs = [wp.zeros((h, w), dtype=t, device=wdev, requires_grad=True) for t in (v3, s, s, s, v3, s)]
-        rgb, alpha, depth, median, normal, dist = outs
-        t_final = wp.zeros((h, w), dtype=s, device=wdev)
-        sums = wp.zeros((h, w), dtype=v3, device=wdev)
-        last = wp.zeros((h, w), dtype=wp.int32, device=wdev)
-        median_idx = wp.zeros((h, w), dtype=wp.int32, device=wdev)
-        vis_w = wp.zeros((workers, n), dtype=wp.int32, device=wdev)
-        surf = [means, uax, vax, nrm, nrm_face, m2, zc, color, opacities, bg_wp, ts, tiles_x]
-        _launch_tiles(_k.render_forward_kernel, n_tiles, ts * ts,
-                      [bins.tile_start, bins.tile_end, bins.ids, rays_wp, cam_wp, *surf],
-                      [*outs, t_final, sums, last, median_idx, vis_w], device=wdev, workers=workers,
-                      tiles_per_chunk=config.tiles_per_chunk)
-        visibility = wp.zeros(n, dtype=wp.int32, device=wdev)
-        _bridge.launch_split(_kb.sum_visibility_kernel, n, [vis_w], [visibility], device=wdev)
+        with _timed("forward", wdev):
+            prep = [wp.zeros(n, dtype=t, device=wdev, requires_grad=True) for t in (v3, v3, v3, v3, v2, s, v3)]
+            uax, vax, nrm, nrm_face, m2, zc, color = prep
+            _bridge.launch_split(_k.prepare_surfels_kernel, n, [means, quats, scales, sh, cam_wp, sh_degree], prep,
+                                 device=wdev, record_tape=True)
+            outs = [wp.zeros((h, w), dtype=t, device=wdev, requires_grad=True) for t in (v3, s, s, s, v3, s)]
+            rgb, alpha, depth, median, normal, dist = outs
+            t_final = wp.zeros((h, w), dtype=s, device=wdev)
+            sums = wp.zeros((h, w), dtype=v3, device=wdev)
+            last = wp.zeros((h, w), dtype=wp.int32, device=wdev)
+            median_idx = wp.zeros((h, w), dtype=wp.int32, device=wdev)
+            vis_w = wp.zeros((workers, n), dtype=wp.int32, device=wdev)
+            surf = [means, uax, vax, nrm, nrm_face, m2, zc, color, opacities, bg_wp, ts, tiles_x]
+            _launch_tiles(_k.render_forward_kernel, n_tiles, ts * ts,
+                          [bins.tile_start, bins.tile_end, bins.ids, rays_wp, cam_wp, *surf],
+                          [*outs, t_final, sums, last, median_idx, vis_w], device=wdev, workers=workers,
+                          tiles_per_chunk=config.tiles_per_chunk)
+            visibility = wp.zeros(n, dtype=wp.int32, device=wdev)
+            _bridge.launch_split(_kb.sum_visibility_kernel, n, [vis_w], [visibility], device=wdev)
 
         def backward():
+            with _timed("backward", wdev):
+                _backward()
+
+        def _backward():
             bufs = [wp.zeros((workers, n), dtype=t, device=wdev) for t in (v3, v3, v3, v3, v3, v2, s, v3, s, v2)]
             _launch_tiles(_k.render_backward_kernel, n_tiles, ts * ts,
                           [bins.tile_start, bins.ids, rays_wp, cam_wp, *surf, t_final, sums, last, median_idx,
