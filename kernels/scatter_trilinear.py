@@ -33,6 +33,16 @@ def corner_slope(d: int, f: Any):
     return type(f)(1.0)
 
 
+@wp.func
+def trilinear_cell(p: Any, resolution: int):
+    """Lower node ``(i0, j0, k0)`` of the cell holding ``p`` and the fractions ``(fx, fy, fz)`` inside it."""
+    r = type(p[0])(float(resolution))
+    u = p * r
+    b = wp.vector(wp.floor(u[0]), wp.floor(u[1]), wp.floor(u[2]))
+    f = u - b
+    return int(b[0]), int(b[1]), int(b[2]), f[0], f[1], f[2]
+
+
 @wp.kernel
 def scatter_trilinear_kernel(
     points: wp.array[Any],
@@ -49,22 +59,9 @@ def scatter_trilinear_kernel(
     one launch covers all slabs and ``atomic_add`` is a hardware atomic.
     """
     n = wp.tid()
-    p = points[n]
-    r = type(p[0])(float(resolution))
-    ux = p[0] * r
-    uy = p[1] * r
-    uz = p[2] * r
-    fx0 = wp.floor(ux)
-    fy0 = wp.floor(uy)
-    fz0 = wp.floor(uz)
-    i0 = int(fx0)
-    j0 = int(fy0)
-    k0 = int(fz0)
+    i0, j0, k0, fx, fy, fz = trilinear_cell(points[n], resolution)
     if i0 + 1 < slab_lo or i0 >= slab_hi:
         return
-    fx = ux - fx0
-    fy = uy - fy0
-    fz = uz - fz0
     channels = values.shape[1]
     for di in range(2):
         i = i0 + di
@@ -93,20 +90,7 @@ def sample_trilinear_kernel(
 ):
     """Add the trilinear interpolation of ``grid`` at point ``n`` to ``out[n]`` (one thread per point)."""
     n = offset + wp.tid()
-    p = points[n]
-    r = type(p[0])(float(resolution))
-    ux = p[0] * r
-    uy = p[1] * r
-    uz = p[2] * r
-    fx0 = wp.floor(ux)
-    fy0 = wp.floor(uy)
-    fz0 = wp.floor(uz)
-    i0 = int(fx0)
-    j0 = int(fy0)
-    k0 = int(fz0)
-    fx = ux - fx0
-    fy = uy - fy0
-    fz = uz - fz0
+    i0, j0, k0, fx, fy, fz = trilinear_cell(points[n], resolution)
     channels = out.shape[1]
     for di in range(2):
         i = i0 + di
@@ -141,24 +125,11 @@ def trilinear_point_grad_kernel(
     ``per_point`` the upstream gradient of the samples.
     """
     n = offset + wp.tid()
-    p = points[n]
-    r = type(p[0])(float(resolution))
-    ux = p[0] * r
-    uy = p[1] * r
-    uz = p[2] * r
-    fx0 = wp.floor(ux)
-    fy0 = wp.floor(uy)
-    fz0 = wp.floor(uz)
-    i0 = int(fx0)
-    j0 = int(fy0)
-    k0 = int(fz0)
-    fx = ux - fx0
-    fy = uy - fy0
-    fz = uz - fz0
+    i0, j0, k0, fx, fy, fz = trilinear_cell(points[n], resolution)
     channels = per_point.shape[1]
-    gx = type(r)(0.0)
-    gy = type(r)(0.0)
-    gz = type(r)(0.0)
+    gx = type(fx)(0.0)
+    gy = type(fx)(0.0)
+    gz = type(fx)(0.0)
     for di in range(2):
         i = i0 + di
         if i < resolution:
@@ -175,11 +146,12 @@ def trilinear_point_grad_kernel(
                             wz = corner_weight(dk, fz)
                             sz = corner_slope(dk, fz)
                             node = (i * resolution + j) * resolution + k
-                            s = type(r)(0.0)
+                            s = type(fx)(0.0)
                             for c in range(channels):
                                 s += grid[node, c] * per_point[n, c]
                             gx += sx * wy * wz * s
                             gy += wx * sy * wz * s
                             gz += wx * wy * sz * s
     # d(u)/d(p) = R for every axis.
-    adj_points[n] = adj_points[n] + type(p)(gx * r, gy * r, gz * r)
+    r = type(fx)(float(resolution))
+    adj_points[n] = adj_points[n] + type(adj_points[n])(gx * r, gy * r, gz * r)

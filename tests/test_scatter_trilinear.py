@@ -17,6 +17,15 @@ def _tol(dtype):
     return ATOL_F32 if dtype == torch.float32 else ATOL_F64
 
 
+def _assert_matches(out, ref, inputs, atol):
+    """Compare values and the VJP for one random upstream gradient; the reference VJP must be non-zero."""
+    torch.testing.assert_close(out, ref, atol=atol, rtol=0)
+    up = torch.randn_like(ref)
+    for a, b in zip(torch.autograd.grad(out, inputs, up), torch.autograd.grad(ref, inputs, up)):
+        assert b.abs().sum() > 0
+        torch.testing.assert_close(a, b, atol=atol * 10, rtol=1e-5)
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("channels", [1, 3])
 # 50_000 points exceeds the 16384-point threshold, so the CPU scatter runs slab-split across threads.
@@ -26,15 +35,7 @@ def test_scatter_forward_and_vjp_match_reference(device, dtype, channels, n):
     g = torch.Generator().manual_seed(n)
     p = torch.rand(n, 3, generator=g, dtype=dtype).to(device).requires_grad_()
     v = torch.randn(n, channels, generator=g, dtype=dtype).to(device).requires_grad_()
-    out = scatter_trilinear(p, v, 16)
-    ref = scatter_trilinear_ref(p, v, 16)
-    torch.testing.assert_close(out, ref, atol=_tol(dtype), rtol=0)
-    up = torch.randn_like(ref)
-    ga = torch.autograd.grad(out, (p, v), up)
-    gb = torch.autograd.grad(ref, (p, v), up)
-    for a, b in zip(ga, gb):
-        assert b.abs().sum() > 0
-        torch.testing.assert_close(a, b, atol=_tol(dtype) * 10, rtol=1e-5)
+    _assert_matches(scatter_trilinear(p, v, 16), scatter_trilinear_ref(p, v, 16), (p, v), _tol(dtype))
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -43,15 +44,7 @@ def test_sample_forward_and_vjp_match_reference(device, dtype):
     g = torch.Generator().manual_seed(3)
     grid = torch.randn(12, 12, 12, 2, generator=g, dtype=dtype).to(device).requires_grad_()
     p = torch.rand(500, 3, generator=g, dtype=dtype).to(device).requires_grad_()
-    out = sample_trilinear(grid, p)
-    ref = sample_trilinear_ref(grid, p)
-    torch.testing.assert_close(out, ref, atol=_tol(dtype), rtol=0)
-    up = torch.randn_like(ref)
-    ga = torch.autograd.grad(out, (grid, p), up)
-    gb = torch.autograd.grad(ref, (grid, p), up)
-    for a, b in zip(ga, gb):
-        assert b.abs().sum() > 0
-        torch.testing.assert_close(a, b, atol=_tol(dtype) * 10, rtol=1e-5)
+    _assert_matches(sample_trilinear(grid, p), sample_trilinear_ref(grid, p), (grid, p), _tol(dtype))
 
 
 def test_gradcheck_float64(device):
@@ -163,13 +156,17 @@ def test_all_points_in_one_voxel_finite(device):
     assert torch.isfinite(gp).all() and gp.abs().sum() > 0 and torch.isfinite(gv).all()
 
 
-def test_cpu_scatter_is_deterministic_across_thread_counts(monkeypatch):
-    """Give bitwise-identical grids for repeated runs and for 1 vs 2 CPU threads."""
+@pytest.mark.parametrize("layout", ["uniform", "skewed"])
+def test_cpu_scatter_is_deterministic_across_thread_counts(monkeypatch, layout):
+    """Give bitwise-identical grids for repeated runs and for 1 vs 2 CPU threads, matching the reference."""
     g = torch.Generator().manual_seed(6)
-    p = torch.rand(100_000, 3, generator=g)
-    v = torch.randn(100_000, 3, generator=g)
+    p = torch.rand(100_000, 3, generator=g, dtype=torch.float64)
+    if layout == "skewed":  # 90 % of the points in the first tenth of x: slabs must rebalance
+        p[:90_000, 0] *= 0.1
+    v = torch.randn(100_000, 3, generator=g, dtype=torch.float64)
     a = scatter_trilinear(p, v, 32)
     b = scatter_trilinear(p, v, 32)
     monkeypatch.setenv("WTOPO_NUM_THREADS", "1")
     c = scatter_trilinear(p, v, 32)
     assert torch.equal(a, b) and torch.equal(a, c)
+    torch.testing.assert_close(a, scatter_trilinear_ref(p, v, 32), atol=ATOL_F64, rtol=0)

@@ -8,8 +8,9 @@ dropped (the grid is extended by zeros, never wrapped periodically), in both the
 sample, so the two stay exact adjoints. Coordinates outside ``[0, 1)`` raise :class:`ValueError`.
 
 CPU parallelism and determinism: Warp's CPU ``atomic_add`` is not atomic across concurrent
-launches, so the scatter splits the *grid* into slabs of the first index, one per CPU thread;
-every thread reads all points and writes only its slab. Each node is therefore written by one
+launches, so the scatter splits the *grid* into slabs of the first index, one per CPU thread,
+sized to hold about equally many points (a histogram of the first coordinate); every thread
+reads all points and writes only its slab. Each node is therefore written by one
 thread, in point order: CPU results are bitwise deterministic for any thread count. On CUDA one
 launch with hardware atomics is used (summation order, hence the last bits, may vary run to run).
 """
@@ -18,7 +19,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 import warp as wp
 
@@ -37,6 +37,20 @@ def _active_tape() -> wp.Tape | None:
     return wp._src.context.runtime.tape  # noqa: SLF001 - Warp exposes the active tape only here
 
 
+def _balanced_slabs(points: wp.array, resolution: int, threads: int) -> list[int]:
+    """Slab bounds over the first node index holding about equally many points each (one pass, CPU)."""
+    x = wp.to_torch(points)[:, 0]
+    cell = (x * resolution).floor().to(torch.int64).clamp_(0, resolution - 1)
+    cdf = torch.bincount(cell, minlength=resolution).cumsum(0)
+    targets = torch.arange(1, threads, dtype=cdf.dtype) * (int(cdf[-1]) // threads)
+    inner = (torch.searchsorted(cdf, targets) + 1).tolist()
+    bounds = [0]
+    for b in inner:
+        if bounds[-1] < b < resolution:
+            bounds.append(int(b))
+    return [*bounds, resolution]
+
+
 def scatter_launch(points: wp.array, values: wp.array, resolution: int, grid: wp.array) -> None:
     """Accumulate the trilinear scatter of ``values`` at ``points`` into ``grid`` (``[R^3, C]``), not taped."""
     n = points.shape[0]
@@ -45,11 +59,11 @@ def scatter_launch(points: wp.array, values: wp.array, resolution: int, grid: wp
     device = points.device
     threads = _bridge.cpu_threads() if device.is_cpu and n >= _MIN_SPLIT_POINTS else 1
     threads = min(threads, resolution)
-    bounds = np.linspace(0, resolution, threads + 1).astype(np.int64)
+    bounds = _balanced_slabs(points, resolution, threads) if threads > 1 else [0, resolution]
+    threads = len(bounds) - 1
 
     def _run(t: int) -> None:
-        wp.launch(scatter_trilinear_kernel, dim=n, inputs=[points, values, resolution, int(bounds[t]),
-                                                             int(bounds[t + 1])],
+        wp.launch(scatter_trilinear_kernel, dim=n, inputs=[points, values, resolution, bounds[t], bounds[t + 1]],
                   outputs=[grid], device=device, record_tape=False)
 
     key = (str(device), points.dtype, values.dtype)
