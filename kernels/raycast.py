@@ -250,6 +250,7 @@ def closest_faces_kernel(
 
 @wp.kernel
 def shade_hits_kernel(
+    offset: int,
     verts: wp.array[Any],
     faces: wp.array[wp.int32],
     face_id: wp.array[wp.int32],
@@ -263,7 +264,7 @@ def shade_hits_kernel(
     ``faces`` is the flattened ``[3F]`` index array.  ``depth`` is the ray parameter ``t`` of the
     plane through the triangle, ``t = <a - o, n> / <d, n>``, invariant to the length of ``n``.
     """
-    i = wp.tid()
+    i = wp.tid() + offset
     f = face_id[i]
     if f >= 0:
         a = verts[faces[3 * f + 0]]

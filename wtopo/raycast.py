@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import warp as wp
+import warp._src.context
 
 from wtopo import _bridge
 from wtopo._validate import require_finite, require_same_device, require_tensor
@@ -129,8 +130,19 @@ def _shade_run(verts, faces, face_id, origins, directions):
     n = face_id.shape[0]
     depth = wp.zeros(n, dtype=verts.dtype._wp_scalar_type_, device=verts.device, requires_grad=True)
     normal = wp.zeros(n, dtype=verts.dtype, device=verts.device, requires_grad=True)
-    wp.launch(_k.shade_hits_kernel, dim=n, inputs=[verts, faces, face_id, origins, directions],
-              outputs=[depth, normal], device=verts.device)
+    inputs = [verts, faces, face_id, origins, directions]
+    # per-ray disjoint writes: split over CPU threads; the adjoint scatters into verts.grad with
+    # atomics, so it is one launch, registered on the bridge's tape by hand
+    _bridge.launch_split(_k.shade_hits_kernel, n, inputs, [depth, normal], device=verts.device, min_chunk=16384)
+    tape = warp._src.context.runtime.tape  # the tape the bridge recorded this run on (private, no public getter)
+    if tape is not None and verts.requires_grad:
+
+        def backward():
+            wp.launch(_k.shade_hits_kernel, dim=n, inputs=[0, *inputs], outputs=[depth, normal],
+                      adj_inputs=[0, verts.grad, None, None, None, None], adj_outputs=[depth.grad, normal.grad],
+                      adjoint=True, device=verts.device)
+
+        tape.record_func(backward, [verts, depth, normal])
     return depth, normal
 
 
