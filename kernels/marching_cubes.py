@@ -230,23 +230,22 @@ def chunk_bounds(c: int, chunk: int, nz: int):
     return k0, wp.min(k0 + chunk, nz - 1)
 
 
-@wp.kernel
-def chunk_range_kernel(
-    offset: int,
+@wp.func
+def chunk_range(
+    col: int,
+    c: int,
     field: wp.array3d[Any],
     chunk: int,
     nchunks: int,
     chunk_min: wp.array[Any],
     chunk_max: wp.array[Any],
 ):
-    """Pass 0, one thread per (node column, z-chunk): min and max of nodes ``[k0, k1]`` (inclusive).
+    """Min and max of z-chunk ``c`` of node column ``col`` over its nodes ``[k0, k1]`` (inclusive).
 
-    Thread ``tid`` is column ``tid // nchunks``, chunk ``tid % nchunks``; a column is the line of
-    nodes ``(i, j, :)``, numbered ``i * Y + j``.  Each value is read once, sequentially.
+    A column is the line of nodes ``(i, j, :)``, numbered ``i * Y + j``; per-chunk results are
+    stored at ``col * nchunks + c``.
     """
-    tid = wp.tid() + offset
-    col = tid // nchunks
-    c = tid - col * nchunks
+    tid = col * nchunks + c
     ny = field.shape[1]
     i = col // ny
     j = col - i * ny
@@ -262,8 +261,28 @@ def chunk_range_kernel(
 
 
 @wp.kernel
-def count_chunks_kernel(
+def chunk_range_kernel(
     offset: int,
+    field: wp.array3d[Any],
+    chunk: int,
+    nchunks: int,
+    chunk_min: wp.array[Any],
+    chunk_max: wp.array[Any],
+):
+    """Pass 0, one thread per node column ``offset + tid``: :func:`chunk_range` of each of its z-chunks.
+
+    A thread walks a whole column (few threads, each long: per-thread launch cost on CPU is
+    comparable to the work of a skipped chunk).
+    """
+    col = wp.tid() + offset
+    for c in range(nchunks):
+        chunk_range(col, c, field, chunk, nchunks, chunk_min, chunk_max)
+
+
+@wp.func
+def count_chunk(
+    col: int,
+    c: int,
     field: wp.array3d[Any],
     level: Any,
     chunk: int,
@@ -278,16 +297,14 @@ def count_chunks_kernel(
     chunk_verts: wp.array[wp.int32],
     chunk_faces: wp.array[wp.int32],
 ):
-    """Pass 1, one thread per (node column, z-chunk): node masks, cell case codes and counts.
+    """Node masks, cell case codes and counts of z-chunk ``c`` of node column ``col`` (pass 1).
 
     ``node_mask`` and ``cell_case`` arrive zeroed.  A chunk whose 2x2 block of node columns lies
     strictly on one side of the level (from pass 0) has no vertex, face or tie and returns at once:
     this skips most of a grid at the cost of one sequential read.  Otherwise its nodes and cells
     are classified walking up the chunk, reusing each layer's four values for the next cell.
     """
-    tid = wp.tid() + offset
-    col = tid // nchunks
-    c = tid - col * nchunks
+    tid = col * nchunks + c
     nx = field.shape[0]
     ny = field.shape[1]
     nz = field.shape[2]
@@ -351,6 +368,33 @@ def count_chunks_kernel(
     chunk_faces[tid] = nf
 
 
+@wp.kernel
+def count_chunks_kernel(
+    offset: int,
+    field: wp.array3d[Any],
+    level: Any,
+    chunk: int,
+    nchunks: int,
+    chunk_min: wp.array[Any],
+    chunk_max: wp.array[Any],
+    tri_range: wp.array[wp.int32],
+    tri_edges: wp.array[wp.int32],
+    edges: wp.array2d[wp.int32],
+    node_mask: wp.array3d[wp.uint8],
+    cell_case: wp.array3d[wp.uint8],
+    chunk_verts: wp.array[wp.int32],
+    chunk_faces: wp.array[wp.int32],
+):
+    """Pass 1, one thread per node column ``offset + tid``: :func:`count_chunk` of each of its z-chunks.
+
+    A thread walks a whole column (few threads, each long: per-thread launch cost on CPU is
+    comparable to the work of a skipped chunk).
+    """
+    col = wp.tid() + offset
+    for c in range(nchunks):
+        count_chunk(col, c, field, level, chunk, nchunks, chunk_min, chunk_max, tri_range, tri_edges, edges, node_mask, cell_case, chunk_verts, chunk_faces)
+
+
 @wp.func
 def vertex_id(case: int, e: int, bases: vec8i, masks: vec8i, edges: wp.array2d[wp.int32]):
     """Global index of the vertex on crossed edge ``e`` of a cell with corner vertex bases ``bases``."""
@@ -399,9 +443,10 @@ def write_node_vertices(field: wp.array3d[Any], level: Any, lower: Any, spacing:
         vert_kind[idx] = wp.uint8(2)
 
 
-@wp.kernel
-def write_chunks_kernel(
-    offset: int,
+@wp.func
+def write_chunk(
+    col: int,
+    c: int,
     field: wp.array3d[Any],
     level: Any,
     lower: Any,
@@ -422,18 +467,16 @@ def write_chunks_kernel(
     vert_kind: wp.array[wp.uint8],
     faces: wp.array2d[wp.int32],
 ):
-    """Pass 2, one thread per (node column, z-chunk): write its vertices and its cells' faces.
+    """Write the vertices and faces of z-chunk ``c`` of node column ``col`` (pass 2).
 
     ``vert_start``/``face_start`` are exclusive prefix sums of the pass-1 counts in thread order,
     so the vertex base of any node column at the chunk's first layer is one lookup, and bases of
     higher layers are running sums of the node masks: no per-node index array.  Chunks without
     vertices or faces return at once.
     """
-    tid = wp.tid() + offset
+    tid = col * nchunks + c
     if chunk_verts[tid] == 0 and chunk_faces[tid] == 0:
         return
-    col = tid // nchunks
-    c = tid - col * nchunks
     nx = field.shape[0]
     ny = field.shape[1]
     nz = field.shape[2]
@@ -495,6 +538,39 @@ def write_chunks_kernel(
         m3 = n3
     if k1 == nz - 1 and (m0 & 15) != 0:
         write_node_vertices(field, level, lower, spacing, i, j, nz - 1, m0, base0, verts, vert_node, vert_kind)
+
+
+@wp.kernel
+def write_chunks_kernel(
+    offset: int,
+    field: wp.array3d[Any],
+    level: Any,
+    lower: Any,
+    spacing: Any,
+    chunk: int,
+    nchunks: int,
+    tri_range: wp.array[wp.int32],
+    tri_edges: wp.array[wp.int32],
+    edges: wp.array2d[wp.int32],
+    node_mask: wp.array3d[wp.uint8],
+    cell_case: wp.array3d[wp.uint8],
+    chunk_verts: wp.array[wp.int32],
+    chunk_faces: wp.array[wp.int32],
+    vert_start: wp.array[wp.int32],
+    face_start: wp.array[wp.int32],
+    verts: wp.array[Any],
+    vert_node: wp.array[wp.int32],
+    vert_kind: wp.array[wp.uint8],
+    faces: wp.array2d[wp.int32],
+):
+    """Pass 2, one thread per node column ``offset + tid``: :func:`write_chunk` of each of its z-chunks.
+
+    A thread walks a whole column (few threads, each long: per-thread launch cost on CPU is
+    comparable to the work of a skipped chunk).
+    """
+    col = wp.tid() + offset
+    for c in range(nchunks):
+        write_chunk(col, c, field, level, lower, spacing, chunk, nchunks, tri_range, tri_edges, edges, node_mask, cell_case, chunk_verts, chunk_faces, vert_start, face_start, verts, vert_node, vert_kind, faces)
 
 
 @wp.func

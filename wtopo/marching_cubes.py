@@ -34,8 +34,8 @@ GRAD_EPS = 1e-7
 #: that test fine enough to skip most of a smooth field and threads long enough to amortise it.
 CHUNK = 16
 
-# Threads of a few chunks each are cheap: a few hundred chunks are worth a CPU thread of their own.
-_MIN_CHUNKS_PER_THREAD = 256
+# A kernel thread walks a whole node column: a hundred columns are worth a CPU thread of their own.
+_MIN_COLUMNS_PER_THREAD = 128
 
 _tables: dict[str, tuple[wp.array, wp.array, wp.array]] = {}
 
@@ -107,23 +107,24 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
     spacing = vec(*[(u - a) / (n - 1) for a, u, n in zip(lower, upper, field.shape)])
     tri_range, tri_edges, edges = _device_tables(device)
     nchunks = -(-(nz - 1) // CHUNK)
-    nthreads = nx * ny * nchunks
+    ncols = nx * ny
+    nslots = nx * ny * nchunks  # per (column, chunk) results
 
-    chunk_min = wp.empty(nthreads, dtype=scalar, device=device)
-    chunk_max = wp.empty(nthreads, dtype=scalar, device=device)
-    _bridge.launch_split(_k.chunk_range_kernel, nthreads, [field, CHUNK, nchunks], [chunk_min, chunk_max],
-                         device=device, min_chunk=_MIN_CHUNKS_PER_THREAD)
+    chunk_min = wp.empty(nslots, dtype=scalar, device=device)
+    chunk_max = wp.empty(nslots, dtype=scalar, device=device)
+    _bridge.launch_split(_k.chunk_range_kernel, ncols, [field, CHUNK, nchunks], [chunk_min, chunk_max],
+                         device=device, min_chunk=_MIN_COLUMNS_PER_THREAD)
     node_mask = wp.zeros((nx, ny, nz), dtype=wp.uint8, device=device)
     cell_case = wp.zeros((nx - 1, ny - 1, nz - 1), dtype=wp.uint8, device=device)
-    chunk_verts = wp.empty(nthreads, dtype=wp.int32, device=device)
-    chunk_faces = wp.empty(nthreads, dtype=wp.int32, device=device)
-    _bridge.launch_split(_k.count_chunks_kernel, nthreads,
+    chunk_verts = wp.empty(nslots, dtype=wp.int32, device=device)
+    chunk_faces = wp.empty(nslots, dtype=wp.int32, device=device)
+    _bridge.launch_split(_k.count_chunks_kernel, ncols,
                          [field, lvl, CHUNK, nchunks, chunk_min, chunk_max, tri_range, tri_edges, edges],
                          [node_mask, cell_case, chunk_verts, chunk_faces], device=device,
-                         min_chunk=_MIN_CHUNKS_PER_THREAD)
+                         min_chunk=_MIN_COLUMNS_PER_THREAD)
 
-    vert_start = wp.empty(nthreads, dtype=wp.int32, device=device)
-    face_start = wp.empty(nthreads, dtype=wp.int32, device=device)
+    vert_start = wp.empty(nslots, dtype=wp.int32, device=device)
+    face_start = wp.empty(nslots, dtype=wp.int32, device=device)
     wp.utils.array_scan(chunk_verts, vert_start, inclusive=False)
     wp.utils.array_scan(chunk_faces, face_start, inclusive=False)
     # host sync: output sizes for allocation (last exclusive start + last count)
@@ -136,10 +137,10 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
         return verts, faces
     vert_node = wp.empty(n_verts, dtype=wp.int32, device=device)
     vert_kind = wp.empty(n_verts, dtype=wp.uint8, device=device)
-    _bridge.launch_split(_k.write_chunks_kernel, nthreads,
+    _bridge.launch_split(_k.write_chunks_kernel, ncols,
                          [field, lvl, lo, spacing, CHUNK, nchunks, tri_range, tri_edges, edges, node_mask, cell_case,
                           chunk_verts, chunk_faces, vert_start, face_start],
-                         [verts, vert_node, vert_kind, faces], device=device, min_chunk=_MIN_CHUNKS_PER_THREAD)
+                         [verts, vert_node, vert_kind, faces], device=device, min_chunk=_MIN_COLUMNS_PER_THREAD)
 
     if n_faces:
         kinds = wp.to_torch(vert_kind)
