@@ -143,6 +143,7 @@ def prepare_surfels_kernel(
     uax: wp.array[Any],
     vax: wp.array[Any],
     nrm: wp.array[Any],
+    auv: wp.array[Any],
     nrm_face: wp.array[Any],
     m2: wp.array[Any],
     zc: wp.array[Any],
@@ -156,11 +157,14 @@ def prepare_surfels_kernel(
     s = scales[i]
     su = wp.max(s[0], type(f_ref)(SCALE_MIN))
     sv = wp.max(s[1], type(f_ref)(SCALE_MIN))
-    uax[i] = tu / su
-    vax[i] = tv / sv
+    U = tu / su
+    V = tv / sv
+    uax[i] = U
+    vax[i] = V
     nrm[i] = n
     o = cam_center(cam)
     view = p - o
+    auv[i] = wp.vector(-wp.dot(view, U), -wp.dot(view, V), -wp.dot(view, n))
     # facing the camera: dot(normal, centre - camera) < 0
     if wp.dot(n, view) > type(f_ref)(0.0):
         nrm_face[i] = -n
@@ -194,37 +198,39 @@ def pixel_tile_coords(g: int, tile_size: int, tiles_x: int):
 
 
 @wp.func
-def splat_hit(o: Any, d: Any, p: Any, U: Any, V: Any, n: Any, m2: Any, zc: Any, pix: Any):
+def splat_hit(d: Any, U: Any, V: Any, n: Any, auv: Any, m2: Any, zc: Any, pix: Any):
     """Ray-splat intersection and screen-space filter at one pixel.
 
-    Returns ``(rho, z, branch3d, u, v, t)``: the Gaussian exponent ``rho = min(rho3d, rho2d)``,
-    the contribution's z-depth (intersection depth in the 3D branch, centre depth in the filter
-    branch), which branch won and the local coordinates / ray parameter of the intersection.
+    With ``a = camera - centre`` and ``auv = (a.U, a.V, a.n)`` precomputed per surfel, the ray
+    ``a + t d`` meets the plane at ``t = -a.n / d.n`` with local coordinates
+    ``u = a.U + t d.U``, ``v = a.V + t d.V``. Returns ``(rho, z, branch3d, u, v, t, dU, dV, dn)``:
+    the Gaussian exponent ``rho = min(rho3d, rho2d)``, the contribution's z-depth (intersection
+    depth in the 3D branch, centre depth in the filter branch), which branch won, and the terms
+    the adjoint reuses.
     """
-    a = o - p
+    diff = pix - m2
+    rho2d = type(zc)(FILTER_INV_SQUARE) * wp.dot(diff, diff)
     dn = wp.dot(d, n)
-    an = wp.dot(a, n)
+    du = wp.dot(d, U)
+    dv = wp.dot(d, V)
     rho3d = type(zc)(RHO_BIG)
     t = type(zc)(0.0)
     u = type(zc)(0.0)
     v = type(zc)(0.0)
     if wp.abs(dn) > type(zc)(PARALLEL_EPS):
-        t = -an / dn
-        x = a + t * d
-        u = wp.dot(x, U)
-        v = wp.dot(x, V)
+        t = -auv[2] / dn
+        u = auv[0] + t * du
+        v = auv[1] + t * dv
         r = u * u + v * v
         if wp.isfinite(r):
             rho3d = r
-    diff = pix - m2
-    rho2d = type(zc)(FILTER_INV_SQUARE) * wp.dot(diff, diff)
     branch3d = rho3d <= rho2d
     rho = rho2d
     z = zc
     if branch3d:
         rho = rho3d
         z = t
-    return rho, z, branch3d, u, v, t
+    return rho, z, branch3d, u, v, t, du, dv, dn
 
 
 @wp.func
@@ -243,10 +249,11 @@ def render_forward_kernel(
     ids: wp.array[wp.int32],
     rays: wp.array2d[Any],
     cam: wp.array[Any],
-    means: wp.array[Any],
+    cutoff: wp.array[Any],
     uax: wp.array[Any],
     vax: wp.array[Any],
     nrm: wp.array[Any],
+    auv: wp.array[Any],
     nrm_face: wp.array[Any],
     m2: wp.array[Any],
     zc: wp.array[Any],
@@ -273,7 +280,6 @@ def render_forward_kernel(
         return
     d = rays[py, px]
     f_ref = d[0]
-    o = cam_center(cam)
     near = cam[25]
     far = cam[26]
     pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
@@ -290,7 +296,9 @@ def render_forward_kernel(
     end = tile_start[tile]
     for k in range(tile_start[tile], tile_end[tile]):
         i = ids[k]
-        rho, z, b3, u, v, t = splat_hit(o, d, means[i], uax[i], vax[i], nrm[i], m2[i], zc[i], pix)
+        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, uax[i], vax[i], nrm[i], auv[i], m2[i], zc[i], pix)
+        if rho > cutoff[i]:  # alpha < 1/255 for sure: skip the exp
+            continue
         a = wp.min(type(f_ref)(ALPHA_MAX), opacity[i] * wp.exp(type(f_ref)(-0.5) * rho))
         if a < type(f_ref)(ALPHA_MIN) or z < near:
             continue
@@ -335,10 +343,11 @@ def render_backward_kernel(
     ids: wp.array[wp.int32],
     rays: wp.array2d[Any],
     cam: wp.array[Any],
-    means: wp.array[Any],
+    cutoff: wp.array[Any],
     uax: wp.array[Any],
     vax: wp.array[Any],
     nrm: wp.array[Any],
+    auv: wp.array[Any],
     nrm_face: wp.array[Any],
     m2: wp.array[Any],
     zc: wp.array[Any],
@@ -357,10 +366,10 @@ def render_backward_kernel(
     g_median: wp.array2d[Any],
     g_normal: wp.array2d[Any],
     g_dist: wp.array2d[Any],
-    d_means: wp.array2d[Any],
     d_uax: wp.array2d[Any],
     d_vax: wp.array2d[Any],
     d_nrm: wp.array2d[Any],
+    d_auv: wp.array2d[Any],
     d_nrm_face: wp.array2d[Any],
     d_m2: wp.array2d[Any],
     d_zc: wp.array2d[Any],
@@ -387,7 +396,6 @@ def render_backward_kernel(
     f_ref = d[0]
     zero = type(f_ref)(0.0)
     one = type(f_ref)(1.0)
-    o = cam_center(cam)
     near = cam[25]
     far = cam[26]
     pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
@@ -416,11 +424,14 @@ def render_backward_kernel(
     k = end - 1
     while k >= start:
         i = ids[k]
-        p = means[i]
         U = uax[i]
         V = vax[i]
         n = nrm[i]
-        rho, z, b3, u, v, t = splat_hit(o, d, p, U, V, n, m2[i], zc[i], pix)
+        a_uvn = auv[i]
+        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, U, V, n, a_uvn, m2[i], zc[i], pix)
+        if rho > cutoff[i]:
+            k = k - 1
+            continue
         op = opacity[i]
         G = wp.exp(type(f_ref)(-0.5) * rho)
         raw = op * G
@@ -447,20 +458,14 @@ def render_backward_kernel(
             if b3:
                 gu = type(f_ref)(2.0) * u * g_rho
                 gv = type(f_ref)(2.0) * v * g_rho
-                a_vec = o - p
-                dn = wp.dot(d, n)
-                an = wp.dot(a_vec, n)
-                x = a_vec + t * d
-                gx = gu * U + gv * V
-                wp.atomic_add(d_uax, worker, i, gu * x)
-                wp.atomic_add(d_vax, worker, i, gv * x)
-                gt = gz + wp.dot(gx, d)
+                gt = gz + gu * du + gv * dv
                 inv_dn = one / dn
-                ga = gx - (gt * inv_dn) * n
-                wp.atomic_sub(d_means, worker, i, ga)
-                c2 = gt * an * inv_dn * inv_dn
-                wp.atomic_add(d_nrm, worker, i, (c2 * d - (gt * inv_dn) * a_vec))
-                gd = t * gx + c2 * n
+                gdn = gt * a_uvn[2] * inv_dn * inv_dn
+                wp.atomic_add(d_auv, worker, i, wp.vector(gu, gv, -gt * inv_dn))
+                wp.atomic_add(d_uax, worker, i, (gu * t) * d)
+                wp.atomic_add(d_vax, worker, i, (gv * t) * d)
+                wp.atomic_add(d_nrm, worker, i, gdn * d)
+                gd = (gu * t) * U + (gv * t) * V + gdn * n
                 # d' = d - R^T [Kinv2 shift, 0]  =>  dL/dshift = -Kinv2^T (R gd)[:2]
                 gcx = cam[0] * gd[0] + cam[1] * gd[1] + cam[2] * gd[2]
                 gcy = cam[3] * gd[0] + cam[4] * gd[1] + cam[5] * gd[2]
@@ -477,20 +482,20 @@ def render_backward_kernel(
 @wp.kernel(enable_backward=False)
 def reduce_gradients_kernel(
     offset: int,
-    d_means: wp.array2d[Any],
     d_uax: wp.array2d[Any],
     d_vax: wp.array2d[Any],
     d_nrm: wp.array2d[Any],
+    d_auv: wp.array2d[Any],
     d_nrm_face: wp.array2d[Any],
     d_m2: wp.array2d[Any],
     d_zc: wp.array2d[Any],
     d_color: wp.array2d[Any],
     d_opacity: wp.array2d[Any],
     d_shift: wp.array2d[Any],
-    g_means: wp.array[Any],
     g_uax: wp.array[Any],
     g_vax: wp.array[Any],
     g_nrm: wp.array[Any],
+    g_auv: wp.array[Any],
     g_nrm_face: wp.array[Any],
     g_m2: wp.array[Any],
     g_zc: wp.array[Any],
@@ -504,12 +509,11 @@ def reduce_gradients_kernel(
         g_uax[i] = g_uax[i] + d_uax[w, i]
         g_vax[i] = g_vax[i] + d_vax[w, i]
         g_nrm[i] = g_nrm[i] + d_nrm[w, i]
+        g_auv[i] = g_auv[i] + d_auv[w, i]
         g_nrm_face[i] = g_nrm_face[i] + d_nrm_face[w, i]
         g_m2[i] = g_m2[i] + d_m2[w, i]
         g_zc[i] = g_zc[i] + d_zc[w, i]
         g_color[i] = g_color[i] + d_color[w, i]
-        if g_means.shape[0] > 0:
-            g_means[i] = g_means[i] + d_means[w, i]
         if g_opacity.shape[0] > 0:
             g_opacity[i] = g_opacity[i] + d_opacity[w, i]
         if g_shift.shape[0] > 0:

@@ -97,6 +97,7 @@ def bin_surfels_kernel(
     counts: wp.array[wp.int32],
     radii: wp.array[wp.int32],
     means2d: wp.array[Any],
+    cutoff: wp.array[Any],
 ):
     """Tile rectangle, tile count, pixel radius and projected centre of one surfel."""
     i = wp.tid() + offset
@@ -106,6 +107,7 @@ def bin_surfels_kernel(
     counts[i] = 0
     radii[i] = 0
     means2d[i] = wp.vector(type(x0c)(0.0), type(x0c)(0.0))
+    cutoff[i] = type(x0c)(-1.0)
     pc_op = cam_point(cam, p)
     op = wp.float64(opacities[i])
     near = wp.float64(cam[25])
@@ -118,6 +120,7 @@ def bin_surfels_kernel(
     tiles_y = (height + tile_size - 1) // tile_size
     rr = wp.float64(2.0) * wp.log(wp.float64(255.0) * op)
     rr = rr * wp.float64(1.0 + RR_REL_MARGIN) + wp.float64(1.0e-6)
+    cutoff[i] = type(x0c)(rr)  # pixel kernels skip rho > cutoff without evaluating exp
     # screen-space filter disk
     r2d = wp.sqrt(rr / wp.float64(FILTER_INV_SQUARE)) + wp.float64(PIXEL_MARGIN)
     ax0, ax1 = pixel_to_tile_range(wp.float64(m2[0]), r2d, width, tile_size)

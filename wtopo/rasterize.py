@@ -294,6 +294,7 @@ class _Bins:
     ids: wp.array
     radii: torch.Tensor
     means2d: torch.Tensor
+    cutoff: wp.array
 
 
 def _bin(means, quats, scales, opacities, cam_wp, tables, camera: Camera, config: RasterConfig, wdev) -> _Bins:
@@ -306,11 +307,12 @@ def _bin(means, quats, scales, opacities, cam_wp, tables, camera: Camera, config
     counts = wp.zeros(n, dtype=wp.int32, device=wdev)
     radii = wp.zeros(n, dtype=wp.int32, device=wdev)
     means2d = wp.zeros(n, dtype=_bridge.vec_dtype(means, 2), device=wdev)
+    cutoff = wp.zeros(n, dtype=dt, device=wdev)
     inputs = [_bridge.to_warp(means, _bridge.vec_dtype(means, 3)), _bridge.to_warp(quats, _bridge.vec_dtype(quats, 4)),
               _bridge.to_warp(scales, _bridge.vec_dtype(scales, 2)), _bridge.to_warp(opacities, dt), cam_wp, *tables,
               camera.width, camera.height, ts]
     with _timed("binning", wdev):
-        _bridge.launch_split(_kb.bin_surfels_kernel, n, inputs, [rect, counts, radii, means2d], device=wdev)
+        _bridge.launch_split(_kb.bin_surfels_kernel, n, inputs, [rect, counts, radii, means2d, cutoff], device=wdev)
         counts_t = wp.to_torch(counts)
         csum = torch.cumsum(counts_t, 0, dtype=torch.int64)
         total = int(csum[-1]) if n else 0  # host sync: the intersection count sizes the sort buffers
@@ -340,7 +342,7 @@ def _bin(means, quats, scales, opacities, cam_wp, tables, camera: Camera, config
             _bridge.launch_split(_kb.tile_ranges_kernel, total, [keys, total], [tile_start, tile_end], device=wdev)
         if _profile is not None:
             _profile["intersections"] = _profile.get("intersections", 0) + total
-    return _Bins(tile_start, tile_end, values, wp.to_torch(radii), wp.to_torch(means2d))
+    return _Bins(tile_start, tile_end, values, wp.to_torch(radii), wp.to_torch(means2d), cutoff)
 
 
 # -- the differentiable op -------------------------------------------------------------------
@@ -359,8 +361,8 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_wp, bg_wp, sh_degree: int, ca
     def run(means, quats, scales, opacities, sh, means2d):
         n = means.shape[0]
         with _timed("forward", wdev):
-            prep = [wp.zeros(n, dtype=t, device=wdev, requires_grad=True) for t in (v3, v3, v3, v3, v2, s, v3)]
-            uax, vax, nrm, nrm_face, m2, zc, color = prep
+            prep = [wp.zeros(n, dtype=t, device=wdev, requires_grad=True) for t in (v3, v3, v3, v3, v3, v2, s, v3)]
+            uax, vax, nrm, auv, nrm_face, m2, zc, color = prep
             _bridge.launch_split(_k.prepare_surfels_kernel, n, [means, quats, scales, sh, cam_wp, sh_degree], prep,
                                  device=wdev, record_tape=True)
             outs = [wp.zeros((h, w), dtype=t, device=wdev, requires_grad=True) for t in (v3, s, s, s, v3, s)]
@@ -370,7 +372,7 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_wp, bg_wp, sh_degree: int, ca
             last = wp.zeros((h, w), dtype=wp.int32, device=wdev)
             median_idx = wp.zeros((h, w), dtype=wp.int32, device=wdev)
             vis_w = wp.zeros((workers, n), dtype=wp.int32, device=wdev)
-            surf = [means, uax, vax, nrm, nrm_face, m2, zc, color, opacities, bg_wp, ts, tiles_x]
+            surf = [bins.cutoff, uax, vax, nrm, auv, nrm_face, m2, zc, color, opacities, bg_wp, ts, tiles_x]
             _launch_tiles(_k.render_forward_kernel, n_tiles, ts * ts,
                           [bins.tile_start, bins.tile_end, bins.ids, rays_wp, cam_wp, *surf],
                           [*outs, t_final, sums, last, median_idx, vis_w], device=wdev, workers=workers,
@@ -392,14 +394,13 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_wp, bg_wp, sh_degree: int, ca
             def grad_or_empty(a, t):
                 return a.grad if a.requires_grad else wp.zeros(0, dtype=t, device=wdev)
 
-            targets = [grad_or_empty(means, v3), *(a.grad for a in prep), grad_or_empty(opacities, s),
-                       grad_or_empty(means2d, v2)]
-            # bufs order: means, uax, vax, nrm, nrm_face, m2, zc, color, opacity, shift
+            targets = [*(a.grad for a in prep), grad_or_empty(opacities, s), grad_or_empty(means2d, v2)]
+            # bufs order: uax, vax, nrm, auv, nrm_face, m2, zc, color, opacity, shift
             _bridge.launch_split(_k.reduce_gradients_kernel, n, bufs, targets, device=wdev)
 
         tape = wp._src.context.runtime.tape  # the bridge's active tape (Warp has no public accessor)
         if tape is not None and n > 0:  # N = 0: nothing to differentiate (empty arrays have no grad buffer)
-            tape.record_func(backward, [*outs, *prep, *(a for a in (means, opacities, means2d) if a.requires_grad)])
+            tape.record_func(backward, [*outs, *prep, *(a for a in (opacities, means2d) if a.requires_grad)])
         return (*outs, visibility)
 
     return run
