@@ -33,13 +33,12 @@ def make_field(n: int) -> torch.Tensor:
     return f.contiguous()
 
 
-def run_wtopo(field: torch.Tensor) -> tuple[int, int]:
-    """One forward + backward of wtopo's marching cubes; returns (vertices, faces)."""
+def run_wtopo(leaf: torch.Tensor) -> tuple[int, int]:
+    """One forward + backward of wtopo's marching cubes on a leaf tensor; returns (vertices, faces)."""
     from wtopo.ops import marching_cubes
 
-    f = field.detach().clone().requires_grad_(True)
-    verts, faces = marching_cubes(f, lower=(-1, -1, -1), upper=(1, 1, 1))
-    verts.sum().backward()
+    verts, faces = marching_cubes(leaf, lower=(-1, -1, -1), upper=(1, 1, 1))
+    torch.autograd.grad(verts.sum(), leaf)
     return verts.shape[0], faces.shape[0]
 
 
@@ -81,8 +80,8 @@ def peak_memory_child(n: int) -> None:
                     return int(line.split()[1]) / 1024.0
         return float("nan")
 
-    field = make_field(n)
-    run_wtopo(make_field(8))  # compile / load kernels before the baseline
+    field = make_field(n).requires_grad_(True)
+    run_wtopo(make_field(8).requires_grad_(True))  # compile / load kernels before the baseline
     before = status("VmRSS:")
     run_wtopo(field)
     print(json.dumps({"peak_rise_mib": status("VmHWM:") - before, "field_mib": field.numel() * 4 / 2**20}))
@@ -93,26 +92,31 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256])
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--no-warp", action="store_true", help="skip Warp's stock IsoSurfaceMarchingCubes")
+    parser.add_argument("--torch-threads", type=int, default=None,
+                        help="torch.set_num_threads for the run (default: torch's own choice)")
     parser.add_argument("--memory-child", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.memory_child is not None:
         peak_memory_child(args.memory_child)
         return
 
+    if args.torch_threads:
+        torch.set_num_threads(args.torch_threads)
     print(f"torch threads {torch.get_num_threads()}, field: perturbed sphere SDF, float32")
     print(f"{'n':>5} {'V':>8} {'F':>8} | {'wtopo f+b':>10} {'skimage f':>10} {'ratio':>6} {'med.ratio':>9} | "
           f"{'warp f+b':>9} {'warp/wtopo':>10} | {'peak MiB':>8}")
     for n in args.sizes:
         field = make_field(n)
         field_np = field.numpy()
-        nv, nf = run_wtopo(field)
+        leaf = field.clone().requires_grad_(True)
+        nv, nf = run_wtopo(leaf)
         sv, sf = run_skimage(field_np)
         use_warp = not args.no_warp
         if use_warp:
             run_warp(field)
         ours, sk, warp_t = [], [], []
         for _ in range(args.repeats):
-            ours.append(_time(run_wtopo, field))
+            ours.append(_time(run_wtopo, leaf))
             sk.append(_time(run_skimage, field_np))
             if use_warp and len(warp_t) < max(3, args.repeats // 3):
                 warp_t.append(_time(run_warp, field))

@@ -1,13 +1,18 @@
 # SPDX-License-Identifier: Apache-2.0
 """Differentiable marching cubes: a scalar grid to a welded, outward-wound triangle mesh.
 
-The extraction is count -> scan -> write over node columns (see :mod:`wtopo.kernels.marching_cubes`):
-pass 1 classifies every node and cell and counts each column's vertices and faces, a prefix sum
-(torch ``cumsum``, one host sync for the totals) gives every column its output ranges, pass 2
-writes vertices and faces.  Both passes are split across CPU threads with
-:func:`wtopo._bridge.launch_split`; each thread writes only its own columns' outputs.  The
-gradient is one explicit per-vertex adjoint kernel registered with ``tape.record_func``: the
-extraction itself is never differentiated by Warp.
+count -> scan -> write over node columns cut into z-chunks (see :mod:`wtopo.kernels.marching_cubes`):
+
+* pass 0 reads every value once for each chunk's min and max, so pass 1 and 2 skip chunks whose
+  2x2 block of columns lies strictly on one side of the level (most of a grid);
+* pass 1 classifies the remaining nodes and cells and counts each chunk's vertices and faces;
+* two exclusive scans (``wp.utils.array_scan``) give every chunk its output ranges, and one host
+  sync reads the totals for allocation;
+* pass 2 writes vertices and faces.
+
+The three passes are split across CPU threads with :func:`wtopo._bridge.launch_split`; each
+thread writes only its own columns' outputs.  The gradient is one explicit per-vertex adjoint
+kernel registered with ``tape.record_func``: the extraction itself is never differentiated by Warp.
 """
 
 from __future__ import annotations
@@ -143,9 +148,10 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
                          [verts, vert_node, vert_kind, faces], device=device, min_chunk=_MIN_COLUMNS_PER_THREAD)
 
     if n_faces:
-        kinds = wp.to_torch(vert_kind)
-        if bool((kinds == _k.KIND_NODE).any()):  # host sync, only to look for nodes on the level
-            faces = _cancel_folded_faces(wp.to_torch(faces), kinds)
+        # host sync: look for node vertices (nodes exactly on the level); numpy on CPU, as above
+        kinds = vert_kind.numpy() if device.is_cpu else wp.to_torch(vert_kind)
+        if bool((kinds == int(_k.KIND_NODE)).any()):
+            faces = _cancel_folded_faces(wp.to_torch(faces), wp.to_torch(vert_kind))
 
     if field.requires_grad:
         eps = scalar(GRAD_EPS)
