@@ -42,7 +42,8 @@ class PoissonField(NamedTuple):
 
     Attributes:
         chi: indicator field, shape ``[R, R, R]``, dtype of the points; negative inside, 0 at the
-            points (weighted mean), positive outside, scaled so that its mean absolute value is 1 (0 for a degenerate input).
+            points (weighted mean), positive outside, scaled so that its mean absolute value is 1
+            (all 0 for an empty point set or all-zero weights).
         lower: position (in the points' frame) of node ``(0, 0, 0)``: ``(-padding,) * 3``.
         upper: position of node ``(R-1, R-1, R-1)``: ``(1 + padding,) * 3``.
     """
