@@ -11,6 +11,8 @@ Bounds are computed in float64 whatever the op dtype. A surfel's footprint is th
   reaching the camera plane has an unbounded image and covers every tile;
 * the screen-space filter disk ``2 |pixel - centre|^2 <= rr`` around the projected centre.
 
+Sort keys are ``tile << rank_bits | depth rank`` (int32 when they fit in 31 bits, else int64).
+
 Tile counts are therefore bounded by the number of tiles whatever the scale.
 """
 
@@ -25,7 +27,6 @@ wp.set_module_options({"enable_backward": False})
 RR_REL_MARGIN = 1.0e-4  # widen the cutoff exponent so the bound stays conservative under rounding
 PIXEL_MARGIN = 1.0e-3  # pixels added to the filter-disk radius for the same reason
 RADIUS_CAP = 1.0e9  # radii are clamped before the int conversion (no overflow for huge surfels)
-KEY_TILE_SHIFT = 4294967296  # 2^32: sort key = tile * 2^32 + depth rank
 
 
 @wp.func
@@ -190,16 +191,22 @@ def emit_intersections_kernel(
     offsets: wp.array[wp.int32],
     rank: wp.array[wp.int64],
     tiles_x: int,
-    keys: wp.array[wp.int64],
+    rank_bits: int,
+    keys: wp.array[Any],
     values: wp.array[wp.int32],
 ):
-    """Write one (tile * 2^32 + depth rank, surfel) pair per tile a surfel's rectangle covers."""
+    """Write one ``(tile << rank_bits | depth rank, surfel)`` pair per tile a surfel's rectangle covers.
+
+    ``keys`` is int32 when the key fits in 31 bits (fewer radix passes), int64 otherwise.
+    """
     i = wp.tid() + offset
     r = rect[i]
     k = offsets[i]
     for ty in range(r[1], r[3]):
         for tx in range(r[0], r[2]):
-            keys[k] = wp.int64(ty * tiles_x + tx) * wp.int64(KEY_TILE_SHIFT) + rank[i]
+            key = (wp.int64(ty * tiles_x + tx) << wp.int64(rank_bits)) | rank[i]
+            old = keys[k]
+            keys[k] = type(old)(key)
             values[k] = i
             k += 1
 
@@ -207,21 +214,23 @@ def emit_intersections_kernel(
 @wp.kernel
 def tile_ranges_kernel(
     offset: int,
-    keys: wp.array[wp.int64],
+    keys: wp.array[Any],
     count: int,
+    rank_bits: int,
     tile_start: wp.array[wp.int32],
     tile_end: wp.array[wp.int32],
 ):
     """Start and end of each tile's run in the sorted intersection list (empty tiles stay 0, 0)."""
     k = wp.tid() + offset
-    tile = int(keys[k] // wp.int64(KEY_TILE_SHIFT))
+    sh = wp.int64(rank_bits)
+    tile = int(wp.int64(keys[k]) >> sh)
     if k == 0:
         tile_start[tile] = k
-    elif int(keys[k - 1] // wp.int64(KEY_TILE_SHIFT)) != tile:
+    elif int(wp.int64(keys[k - 1]) >> sh) != tile:
         tile_start[tile] = k
     if k == count - 1:
         tile_end[tile] = k + 1
-    elif int(keys[k + 1] // wp.int64(KEY_TILE_SHIFT)) != tile:
+    elif int(wp.int64(keys[k + 1]) >> sh) != tile:
         tile_end[tile] = k + 1
 
 

@@ -180,7 +180,7 @@ def test_huge_scales_bounded_intersections(device, dtype):
     params = _surfels(5, dtype=dtype, device=device, seed=13, sh=0, scale=(1e4, 1e4))
     cam = _camera(40, 24)
     n_tiles = math.ceil(40 / 16) * math.ceil(24 / 16)
-    out = rasterize_surfels(*params, cam, config=RasterConfig(max_intersections=5 * n_tiles))
+    out = rasterize_surfels(*params, cam, config=RasterConfig(tile_size=16, max_intersections=5 * n_tiles))
     assert bool(torch.isfinite(out.rgb).all()) and int((out.alpha > 0).sum()) == 40 * 24
     assert int(out.radii.max()) <= 1e9
     sum(getattr(out, k).sum() for k in IMAGES).backward()

@@ -1,0 +1,127 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Benchmark rasterize_surfels (forward + backward) against the brute-force pure-torch reference.
+
+Both run in the same process on the same random scene, in float32 (the reference is the test
+oracle of ``tests/reference/rasterize.py``: every surfel at every pixel). The reference does not
+fit in memory for a full image (it holds [pixels, surfels] tensors), so it is timed on two pixel
+subsets and extrapolated linearly in the pixel count (``t = a + b * pixels``, which keeps its
+per-surfel set-up cost ``a`` unscaled).
+
+Run: ``PYTHONPATH=. python benchmarks/bench_rasterize.py [--sizes 10000 100000] [--res 256]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+
+import torch
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
+
+import wtopo  # noqa: E402
+from reference.rasterize import rasterize_reference  # noqa: E402
+from wtopo import rasterize as R  # noqa: E402
+
+IMAGES = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
+
+
+def scene(n: int, res: int, device: str = "cpu", seed: int = 0):
+    """``n`` surfels filling a unit box 3 units in front of a ``res`` x ``res`` camera (SH degree 3)."""
+    g = torch.Generator().manual_seed(seed)
+    cam = wtopo.Camera.look_at([0, 0, -3.0], [0, 0, 0], [0, -1, 0], fov_x=0.7, width=res, height=res)
+    means = (torch.rand(n, 3, generator=g) - 0.5) * 2.0
+    quats = torch.randn(n, 4, generator=g)
+    # surfel size ~ surface area per surfel of a few layers: radius 1.5-4 px at 10k, 0.5-1.3 px at 100k
+    s = 0.06 * (10_000 / n) ** 0.5
+    scales = torch.rand(n, 2, generator=g) * s + 0.5 * s
+    ops = torch.rand(n, generator=g) * 0.8 + 0.1
+    sh = torch.randn(n, 16, 3, generator=g) * 0.3
+    params = [t.to(device).requires_grad_(True) for t in (means, quats, scales, ops, sh)]
+    return cam, params
+
+
+def _loss(out: dict | R.RenderOutput, ups: dict):
+    get = (lambda k: out[k]) if isinstance(out, dict) else (lambda k: getattr(out, k))
+    return sum((get(k) * u).sum() for k, u in ups.items())
+
+
+def time_op(cam, params, repeats: int, config=None):
+    """Median wall seconds of forward and backward, and the summed stage split of the last run."""
+    g = torch.Generator().manual_seed(1)
+    ups = {k: torch.randn((cam.height, cam.width, 3) if k in ("rgb", "normal") else (cam.height, cam.width),
+                          generator=g) for k in IMAGES}
+    fw, bw = [], []
+    for _ in range(repeats + 1):  # the first run compiles / warms caches
+        R._profile = {}
+        t0 = time.perf_counter()
+        out = R.rasterize_surfels(*params, cam, config=config)
+        t1 = time.perf_counter()
+        _loss(out, ups).backward()
+        t2 = time.perf_counter()
+        fw.append(t1 - t0)
+        bw.append(t2 - t1)
+        for p in params:
+            p.grad = None
+    prof, R._profile = R._profile, None
+    return statistics.median(fw[1:]), statistics.median(bw[1:]), prof, out
+
+
+def time_reference(cam, params, pixels: int, repeats: int = 1) -> float:
+    """Wall seconds of the reference's forward + backward on the first ``pixels`` pixels of a tile-like patch."""
+    h, w = cam.height, cam.width
+    side = max(1, int(pixels**0.5))
+    rows = torch.arange(side) + h // 2 - side // 2
+    cols = torch.arange(pixels // side) + w // 2 - (pixels // side) // 2
+    idx = (rows[:, None] * w + cols[None, :]).reshape(-1)
+    g = torch.Generator().manual_seed(1)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        ref = rasterize_reference(*params, cam, near=0.15, far=300.0, pixels=idx)
+        ups = {k: torch.randn(ref[k].shape, generator=g) for k in IMAGES}
+        _loss(ref, ups).backward()
+        times.append(time.perf_counter() - t0)
+        for p in params:
+            p.grad = None
+    return min(times), int(idx.numel())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000])
+    ap.add_argument("--res", type=int, default=256)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--tile", type=int, default=16)
+    ap.add_argument("--no-reference", action="store_true", help="time the op only")
+    args = ap.parse_args()
+    print(f"device {args.device}, threads {wtopo._bridge.cpu_threads()}, image {args.res}x{args.res}, float32")
+    for n in args.sizes:
+        cam, params = scene(n, args.res, args.device)
+        fw, bw, prof, out = time_op(cam, params, args.repeats, R.RasterConfig(tile_size=args.tile))
+        px = args.res * args.res
+        # two subset sizes -> linear model in the pixel count (memory: [pixels, n] tensors)
+        p1, p2 = (64, 256) if n <= 20_000 else (16, 64)
+        t1, q1 = time_reference(cam, params, p1)
+        t2, q2 = time_reference(cam, params, p2)
+        b = (t2 - t1) / (q2 - q1)
+        ref_full = max(t2, t1 + b * (px - q1))
+        total = fw + bw
+        cover = float((out.alpha > 0).float().mean())
+        print(f"N={n}: intersections {prof.get('intersections', 0)}, coverage {cover:.2f}, "
+              f"visible {int((out.visibility > 0).sum())}")
+        print(f"  op   forward {fw * 1e3:8.1f} ms  backward {bw * 1e3:8.1f} ms  total {total * 1e3:8.1f} ms  "
+              f"{px / total / 1e6:6.2f} Mpixel/s")
+        split = {k: prof.get(k, 0.0) for k in ("binning", "sort", "forward", "backward")}
+        print("  split (last run) " + "  ".join(f"{k} {v * 1e3:.1f} ms" for k, v in split.items()))
+        print(f"  reference  {q1} px: {t1:.2f} s, {q2} px: {t2:.2f} s -> {px} px: {ref_full:.1f} s "
+              f"({px / ref_full:.0f} pixel/s)")
+        print(f"  speed-up vs reference: {ref_full / total:.0f}x")
+
+
+if __name__ == "__main__":
+    main()
