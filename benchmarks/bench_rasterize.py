@@ -96,13 +96,15 @@ def main() -> None:
     ap.add_argument("--res", type=int, default=256)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--tile", type=int, default=16)
-    ap.add_argument("--no-reference", action="store_true", help="time the op only")
+    ap.add_argument("--tile", type=int, default=None, help="tile size (default: RasterConfig's)")
     args = ap.parse_args()
-    print(f"device {args.device}, threads {wtopo._bridge.cpu_threads()}, image {args.res}x{args.res}, float32")
+    tile = R.RasterConfig().tile_size if args.tile is None else args.tile
+    print(f"device {args.device}, threads {wtopo._bridge.cpu_threads()}, image {args.res}x{args.res}, float32, "
+          f"tile {tile}, load average {os.getloadavg()[0]:.1f}")
     for n in args.sizes:
         cam, params = scene(n, args.res, args.device)
-        fw, bw, prof, out = time_op(cam, params, args.repeats, R.RasterConfig(tile_size=args.tile))
+        cfg = R.RasterConfig() if args.tile is None else R.RasterConfig(tile_size=args.tile)
+        fw, bw, prof, out = time_op(cam, params, args.repeats, cfg)
         px = args.res * args.res
         # two subset sizes -> linear model in the pixel count (memory: [pixels, n] tensors)
         p1, p2 = (64, 256) if n <= 20_000 else (16, 64)
