@@ -235,6 +235,7 @@ def chunk_range(
     col: int,
     c: int,
     field: wp.array3d[Any],
+    values: wp.array[Any],
     chunk: int,
     nchunks: int,
     chunk_min: wp.array[Any],
@@ -246,14 +247,12 @@ def chunk_range(
     stored at ``col * nchunks + c``.
     """
     tid = col * nchunks + c
-    ny = field.shape[1]
-    i = col // ny
-    j = col - i * ny
     k0, k1 = chunk_bounds(c, chunk, field.shape[2])
-    lo = field[i, j, k0]
+    base = col * field.shape[2]  # flat index of node (i, j, 0) in ``values``, the flat view of ``field``
+    lo = values[base + k0]
     hi = lo
     for k in range(k0 + 1, k1 + 1):
-        v = field[i, j, k]
+        v = values[base + k]
         lo = wp.min(lo, v)
         hi = wp.max(hi, v)
     chunk_min[tid] = lo
@@ -264,6 +263,7 @@ def chunk_range(
 def chunk_range_kernel(
     offset: int,
     field: wp.array3d[Any],
+    values: wp.array[Any],
     chunk: int,
     nchunks: int,
     chunk_min: wp.array[Any],
@@ -276,7 +276,7 @@ def chunk_range_kernel(
     """
     col = wp.tid() + offset
     for c in range(nchunks):
-        chunk_range(col, c, field, chunk, nchunks, chunk_min, chunk_max)
+        chunk_range(col, c, field, values, chunk, nchunks, chunk_min, chunk_max)
 
 
 @wp.func
@@ -284,6 +284,7 @@ def count_chunk(
     col: int,
     c: int,
     field: wp.array3d[Any],
+    values: wp.array[Any],
     level: Any,
     chunk: int,
     nchunks: int,
@@ -326,19 +327,24 @@ def count_chunk(
     cells = hx * hy  # this column also owns a column of cells
     k0, k1 = chunk_bounds(c, chunk, nz)
     # Values of the four node columns (i,j), (i+1,j), (i+1,j+1), (i,j+1) in corner order, at layer k.
-    a0 = field[i, j, k0]
-    a1 = field[i1, j, k0]
-    a2 = field[i1, j1, k0]
-    a3 = field[i, j1, k0]
+    # flat indices (in ``values``, the flat view of ``field``) of node (., ., 0) of the four columns
+    p0 = (i * ny + j) * nz
+    p1 = (i1 * ny + j) * nz
+    p2 = (i1 * ny + j1) * nz
+    p3 = (i * ny + j1) * nz
+    a0 = values[p0 + k0]
+    a1 = values[p1 + k0]
+    a2 = values[p2 + k0]
+    a3 = values[p3 + k0]
     lay = layer_bits(a0, a1, a2, a3, level)
     eq = layer_eq(a0, a1, a2, a3, level)
     nv = int(0)
     nf = int(0)
     for k in range(k0, k1):
-        b0 = field[i, j, k + 1]
-        b1 = field[i1, j, k + 1]
-        b2 = field[i1, j1, k + 1]
-        b3 = field[i, j1, k + 1]
+        b0 = values[p0 + k + 1]
+        b1 = values[p1 + k + 1]
+        b2 = values[p2 + k + 1]
+        b3 = values[p3 + k + 1]
         lay_b = layer_bits(b0, b1, b2, b3, level)
         eq_b = layer_eq(b0, b1, b2, b3, level)
         case = lay | (lay_b << 4)
@@ -372,6 +378,7 @@ def count_chunk(
 def count_chunks_kernel(
     offset: int,
     field: wp.array3d[Any],
+    values: wp.array[Any],
     level: Any,
     chunk: int,
     nchunks: int,
@@ -392,7 +399,7 @@ def count_chunks_kernel(
     """
     col = wp.tid() + offset
     for c in range(nchunks):
-        count_chunk(col, c, field, level, chunk, nchunks, chunk_min, chunk_max, tri_range, tri_edges, edges, node_mask, cell_case, chunk_verts, chunk_faces)
+        count_chunk(col, c, field, values, level, chunk, nchunks, chunk_min, chunk_max, tri_range, tri_edges, edges, node_mask, cell_case, chunk_verts, chunk_faces)
 
 
 @wp.func

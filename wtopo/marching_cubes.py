@@ -113,18 +113,19 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
     tri_range, tri_edges, edges = _device_tables(device)
     nchunks = -(-(nz - 1) // CHUNK)
     ncols = nx * ny
+    values = field.flatten()  # flat view: the column walks index it directly
     nslots = nx * ny * nchunks  # per (column, chunk) results
 
     chunk_min = wp.empty(nslots, dtype=scalar, device=device)
     chunk_max = wp.empty(nslots, dtype=scalar, device=device)
-    _bridge.launch_split(_k.chunk_range_kernel, ncols, [field, CHUNK, nchunks], [chunk_min, chunk_max],
+    _bridge.launch_split(_k.chunk_range_kernel, ncols, [field, values, CHUNK, nchunks], [chunk_min, chunk_max],
                          device=device, min_chunk=_MIN_COLUMNS_PER_THREAD)
     node_mask = wp.zeros((nx, ny, nz), dtype=wp.uint8, device=device)
     cell_case = wp.zeros((nx - 1, ny - 1, nz - 1), dtype=wp.uint8, device=device)
     chunk_verts = wp.empty(nslots, dtype=wp.int32, device=device)
     chunk_faces = wp.empty(nslots, dtype=wp.int32, device=device)
     _bridge.launch_split(_k.count_chunks_kernel, ncols,
-                         [field, lvl, CHUNK, nchunks, chunk_min, chunk_max, tri_range, tri_edges, edges],
+                         [field, values, lvl, CHUNK, nchunks, chunk_min, chunk_max, tri_range, tri_edges, edges],
                          [node_mask, cell_case, chunk_verts, chunk_faces], device=device,
                          min_chunk=_MIN_COLUMNS_PER_THREAD)
 
