@@ -151,19 +151,27 @@ def cast_packets_kernel(
     pad = pad_rel * (0.5 * wp.length(hi - lo) + wp.length(oc - centre) + wp.length(centre))
     half = 0.5 * wp.length(hi - lo) + pad
     # sweep length, in multiples of each ray's direction: past the far side of the mesh's sphere;
-    # the 1 % and +1 keep it strictly beyond after float32 rounding
+    # the 1 % (and 1e-6 for a degenerate zero reach) keep it strictly beyond after float32 rounding
     reach = float(0.0)
     for k in range(4):
         if rid[k] >= 0:
             dl = wp.length(directions[rid[k]])
             if dl > 0.0:
                 reach = wp.max(reach, (wp.length(origins[rid[k]] - centre) + half) / dl)
-    reach = reach * 1.01 + 1.0
-    # the point at parameter s*reach of every ray lies within radius of the axis point at s
-    radius = pad
+    reach = reach * 1.01 + 1.0e-6
+    # the point at parameter s*reach of ray k lies within spread_k(s) of the axis point at s
+    offset_max = float(0.0)
+    slope = float(0.0)
     for k in range(4):
         if rid[k] >= 0:
-            radius = wp.max(radius, pad + wp.length(origins[rid[k]] - oc) + reach * wp.length(directions[rid[k]] - dc))
+            offset_max = wp.max(offset_max, wp.length(origins[rid[k]] - oc))
+            slope = wp.max(slope, reach * wp.length(directions[rid[k]] - dc))
+    # two sweeps, up to the mesh's centre and beyond: the first, thinner capsule finds the
+    # visible surface of an object in front of the camera with fewer candidates
+    split = float(0.0)
+    dcl = wp.length(dc)
+    if dcl > 0.0:
+        split = wp.clamp(wp.dot(centre - oc, dc) / (dcl * dcl) / reach, 0.0, 1.0)
     # per-ray shear constants of the watertight test
     ax_x = wp.vec4i(0)
     ax_y = wp.vec4i(0)
@@ -188,35 +196,50 @@ def cast_packets_kernel(
     found = wp.vec4i(-1)
     bu = wp.vec4(0.0)
     bv = wp.vec4(0.0)
-    limit = float(1.0)
-    query = wp.bvh_query_capsule(wp.mesh_get_bvh(mesh), oc, dc * reach, radius)
-    f = int(0)
-    while wp.bvh_query_next(query, f, limit):
-        a = wp.mesh_get_point(mesh, 3 * f + 0)
-        b = wp.mesh_get_point(mesh, 3 * f + 1)
-        c = wp.mesh_get_point(mesh, 3 * f + 2)
-        for k in range(4):
-            if live[k] == 1:
-                hit, t, u, v = _woop_hit(origins[rid[k]], ax_x[k], ax_y[k], ax_z[k], sh_x[k], sh_y[k], sh_z[k],
-                                         a, b, c)
-                if hit:
-                    s = t / reach
-                    # ties (a ray through a shared edge or vertex) keep the first face found
-                    if s < best[k] or (found[k] < 0 and s <= best[k]):
-                        best[k] = s
-                        found[k] = f
-                        bu[k] = u
-                        bv[k] = v
-        # cut the sweep once every live ray has a hit (monotonically shrinking, as Warp requires)
+    for seg in range(2):
+        s0 = float(0.0)
+        s1 = split
+        if seg == 1:
+            s0 = split
+            s1 = 1.0
+        # skip an empty segment, and the second once every live ray hit in the first
         done = True
-        far = float(0.0)
         for k in range(4):
-            if live[k] == 1:
-                if found[k] < 0:
-                    done = False
-                far = wp.max(far, best[k])
-        if done:
-            limit = far
+            if live[k] == 1 and found[k] < 0:
+                done = False
+        if s1 <= s0 or done:
+            continue
+        radius = pad + offset_max + slope * s1
+        span = s1 - s0
+        query = wp.bvh_query_capsule(wp.mesh_get_bvh(mesh), oc + dc * (reach * s0), dc * (reach * span), radius)
+        limit = float(1.0)  # in units of this segment
+        f = int(0)
+        while wp.bvh_query_next(query, f, limit):
+            a = wp.mesh_get_point(mesh, 3 * f + 0)
+            b = wp.mesh_get_point(mesh, 3 * f + 1)
+            c = wp.mesh_get_point(mesh, 3 * f + 2)
+            for k in range(4):
+                if live[k] == 1:
+                    hit, t, u, v = _woop_hit(origins[rid[k]], ax_x[k], ax_y[k], ax_z[k], sh_x[k], sh_y[k],
+                                             sh_z[k], a, b, c)
+                    if hit:
+                        s = t / reach
+                        # ties (a ray through a shared edge or vertex) keep the first face found
+                        if s < best[k] or (found[k] < 0 and s <= best[k]):
+                            best[k] = s
+                            found[k] = f
+                            bu[k] = u
+                            bv[k] = v
+            # cut the sweep once every live ray has a hit (monotonically shrinking, as Warp requires)
+            all_hit = True
+            far = float(0.0)
+            for k in range(4):
+                if live[k] == 1:
+                    if found[k] < 0:
+                        all_hit = False
+                    far = wp.max(far, best[k])
+            if all_hit:
+                limit = wp.min(limit, (far - s0) / span)
     for k in range(4):
         if rid[k] >= 0:
             face_id[rid[k]] = found[k]
