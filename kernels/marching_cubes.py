@@ -295,15 +295,18 @@ def count_chunk(
     edges: wp.array2d[wp.int32],
     node_mask: wp.array3d[wp.uint8],
     cell_case: wp.array3d[wp.uint8],
+    chunk_active: wp.array[wp.uint8],
     chunk_verts: wp.array[wp.int32],
     chunk_faces: wp.array[wp.int32],
 ):
     """Node masks, cell case codes and counts of z-chunk ``c`` of node column ``col`` (pass 1).
 
-    ``node_mask`` and ``cell_case`` arrive zeroed.  A chunk whose 2x2 block of node columns lies
-    strictly on one side of the level (from pass 0) has no vertex, face or tie and returns at once:
-    this skips most of a grid at the cost of one sequential read.  Otherwise its nodes and cells
-    are classified walking up the chunk, reusing each layer's four values for the next cell.
+    A chunk whose 2x2 block of node columns lies strictly on one side of the level (from pass 0)
+    has no vertex, face or tie: it is flagged inactive in ``chunk_active`` and returns at once,
+    leaving its ``node_mask``/``cell_case`` entries unwritten (pass 2 reads them as 0 through the
+    flag), so most of a grid costs one sequential read and no memory traffic.  Otherwise every node
+    mask and cell case of the chunk is written, walking up the chunk and reusing each layer's four
+    values for the next cell.
     """
     tid = col * nchunks + c
     nx = field.shape[0]
@@ -321,9 +324,11 @@ def count_chunk(
     lo = wp.min(wp.min(chunk_min[tid], chunk_min[c1]), wp.min(chunk_min[c2], chunk_min[c3]))
     hi = wp.max(wp.max(chunk_max[tid], chunk_max[c1]), wp.max(chunk_max[c2], chunk_max[c3]))
     if lo > level or hi < level:
+        chunk_active[tid] = wp.uint8(0)
         chunk_verts[tid] = 0
         chunk_faces[tid] = 0
         return
+    chunk_active[tid] = wp.uint8(1)
     cells = hx * hy  # this column also owns a column of cells
     k0, k1 = chunk_bounds(c, chunk, nz)
     # Values of the four node columns (i,j), (i+1,j), (i+1,j+1), (i,j+1) in corner order, at layer k.
@@ -349,17 +354,18 @@ def count_chunk(
         eq_b = layer_eq(b0, b1, b2, b3, level)
         case = lay | (lay_b << 4)
         eqbits = eq | (eq_b << 4)
+        m = int(0)
         if eqbits != 0 or (case != 0 and case != 255) or cells == 0:
             m = node_mask_of(field, level, i, j, k, a0, a1, a3, b0, hx, hy, 1)
-            if m != 0:
-                node_mask[i, j, k] = wp.uint8(m)
-                nv += popcount4(m)
+            nv += popcount4(m)
             if cells != 0:
-                cell_case[i, j, k] = wp.uint8(case)
                 if eqbits == 0:
                     nf += (tri_range[case + 1] - tri_range[case]) // 3
                 else:
                     nf += popcount8(kept_triangles(case, eqbits, tri_range, tri_edges, edges))
+        node_mask[i, j, k] = wp.uint8(m)
+        if cells != 0:
+            cell_case[i, j, k] = wp.uint8(case)
         a0 = b0
         a1 = b1
         a2 = b2
@@ -389,6 +395,7 @@ def count_chunks_kernel(
     edges: wp.array2d[wp.int32],
     node_mask: wp.array3d[wp.uint8],
     cell_case: wp.array3d[wp.uint8],
+    chunk_active: wp.array[wp.uint8],
     chunk_verts: wp.array[wp.int32],
     chunk_faces: wp.array[wp.int32],
 ):
@@ -399,7 +406,9 @@ def count_chunks_kernel(
     """
     col = wp.tid() + offset
     for c in range(nchunks):
-        count_chunk(col, c, field, values, level, chunk, nchunks, chunk_min, chunk_max, tri_range, tri_edges, edges, node_mask, cell_case, chunk_verts, chunk_faces)
+        count_chunk(
+            col, c, field, values, level, chunk, nchunks, chunk_min, chunk_max, tri_range, tri_edges, edges,
+            node_mask, cell_case, chunk_active, chunk_verts, chunk_faces)
 
 
 @wp.func
@@ -451,6 +460,15 @@ def write_node_vertices(field: wp.array3d[Any], level: Any, lower: Any, spacing:
 
 
 @wp.func
+def read_mask(node_mask: wp.array3d[wp.uint8], active: int, i: int, j: int, k: int):
+    """Mask of node ``(i, j, k)``, or 0 when its chunk was skipped in pass 1 (entry never written)."""
+    m = int(0)
+    if active != 0:
+        m = int(node_mask[i, j, k])
+    return m
+
+
+@wp.func
 def write_chunk(
     col: int,
     c: int,
@@ -465,6 +483,7 @@ def write_chunk(
     edges: wp.array2d[wp.int32],
     node_mask: wp.array3d[wp.uint8],
     cell_case: wp.array3d[wp.uint8],
+    chunk_active: wp.array[wp.uint8],
     chunk_verts: wp.array[wp.int32],
     chunk_faces: wp.array[wp.int32],
     vert_start: wp.array[wp.int32],
@@ -479,7 +498,8 @@ def write_chunk(
     ``vert_start``/``face_start`` are exclusive prefix sums of the pass-1 counts in thread order,
     so the vertex base of any node column at the chunk's first layer is one lookup, and bases of
     higher layers are running sums of the node masks: no per-node index array.  Chunks without
-    vertices or faces return at once.
+    vertices or faces return at once.  Node masks of chunks pass 1 skipped were never written and
+    read as 0 (``chunk_active``); the chunk's top layer belongs to the next chunk up.
     """
     tid = col * nchunks + c
     if chunk_verts[tid] == 0 and chunk_faces[tid] == 0:
@@ -495,22 +515,36 @@ def write_chunk(
     j1 = j + hy
     cells = hx * hy
     k0, k1 = chunk_bounds(c, chunk, nz)
+    s1 = (i1 * ny + j) * nchunks + c
+    s2 = (i1 * ny + j1) * nchunks + c
+    s3 = (i * ny + j1) * nchunks + c
     base0 = vert_start[tid]
-    base1 = vert_start[(i1 * ny + j) * nchunks + c]
-    base2 = vert_start[(i1 * ny + j1) * nchunks + c]
-    base3 = vert_start[(i * ny + j1) * nchunks + c]
-    m0 = int(node_mask[i, j, k0])
-    m1 = int(node_mask[i1, j, k0])
-    m2 = int(node_mask[i1, j1, k0])
-    m3 = int(node_mask[i, j1, k0])
+    base1 = vert_start[s1]
+    base2 = vert_start[s2]
+    base3 = vert_start[s3]
+    # activity of the four columns' chunk c, and of the chunk above (holding layer k1) if any
+    up = wp.where(c + 1 < nchunks, 1, 0)
+    act0 = int(chunk_active[tid])
+    act1 = int(chunk_active[s1])
+    act2 = int(chunk_active[s2])
+    act3 = int(chunk_active[s3])
+    top0 = int(chunk_active[tid + up])
+    top1 = int(chunk_active[s1 + up])
+    top2 = int(chunk_active[s2 + up])
+    top3 = int(chunk_active[s3 + up])
+    m0 = read_mask(node_mask, act0, i, j, k0)
+    m1 = read_mask(node_mask, act1, i1, j, k0)
+    m2 = read_mask(node_mask, act2, i1, j1, k0)
+    m3 = read_mask(node_mask, act3, i, j1, k0)
     fo = face_start[tid]
     for k in range(k0, k1):
         if (m0 & 15) != 0:
             write_node_vertices(field, level, lower, spacing, i, j, k, m0, base0, verts, vert_node, vert_kind)
-        n0 = int(node_mask[i, j, k + 1])
-        n1 = int(node_mask[i1, j, k + 1])
-        n2 = int(node_mask[i1, j1, k + 1])
-        n3 = int(node_mask[i, j1, k + 1])
+        last = k + 1 == k1
+        n0 = read_mask(node_mask, wp.where(last, top0, act0), i, j, k + 1)
+        n1 = read_mask(node_mask, wp.where(last, top1, act1), i1, j, k + 1)
+        n2 = read_mask(node_mask, wp.where(last, top2, act2), i1, j1, k + 1)
+        n3 = read_mask(node_mask, wp.where(last, top3, act3), i, j1, k + 1)
         up0 = base0 + popcount4(m0)
         up1 = base1 + popcount4(m1)
         up2 = base2 + popcount4(m2)
@@ -561,6 +595,7 @@ def write_chunks_kernel(
     edges: wp.array2d[wp.int32],
     node_mask: wp.array3d[wp.uint8],
     cell_case: wp.array3d[wp.uint8],
+    chunk_active: wp.array[wp.uint8],
     chunk_verts: wp.array[wp.int32],
     chunk_faces: wp.array[wp.int32],
     vert_start: wp.array[wp.int32],
@@ -577,7 +612,9 @@ def write_chunks_kernel(
     """
     col = wp.tid() + offset
     for c in range(nchunks):
-        write_chunk(col, c, field, level, lower, spacing, chunk, nchunks, tri_range, tri_edges, edges, node_mask, cell_case, chunk_verts, chunk_faces, vert_start, face_start, verts, vert_node, vert_kind, faces)
+        write_chunk(
+            col, c, field, level, lower, spacing, chunk, nchunks, tri_range, tri_edges, edges, node_mask, cell_case,
+            chunk_active, chunk_verts, chunk_faces, vert_start, face_start, verts, vert_node, vert_kind, faces)
 
 
 @wp.func

@@ -120,13 +120,16 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
     chunk_max = wp.empty(nslots, dtype=scalar, device=device)
     _bridge.launch_split(_k.chunk_range_kernel, ncols, [field, values, CHUNK, nchunks], [chunk_min, chunk_max],
                          device=device, min_chunk=_MIN_COLUMNS_PER_THREAD)
-    node_mask = wp.zeros((nx, ny, nz), dtype=wp.uint8, device=device)
-    cell_case = wp.zeros((nx - 1, ny - 1, nz - 1), dtype=wp.uint8, device=device)
+    # Written only in chunks pass 1 finds active (``chunk_active``): no zero fill, and the pages of
+    # skipped chunks are never touched.
+    node_mask = wp.empty((nx, ny, nz), dtype=wp.uint8, device=device)
+    cell_case = wp.empty((nx - 1, ny - 1, nz - 1), dtype=wp.uint8, device=device)
+    chunk_active = wp.empty(nslots, dtype=wp.uint8, device=device)
     chunk_verts = wp.empty(nslots, dtype=wp.int32, device=device)
     chunk_faces = wp.empty(nslots, dtype=wp.int32, device=device)
     _bridge.launch_split(_k.count_chunks_kernel, ncols,
                          [field, values, lvl, CHUNK, nchunks, chunk_min, chunk_max, tri_range, tri_edges, edges],
-                         [node_mask, cell_case, chunk_verts, chunk_faces], device=device,
+                         [node_mask, cell_case, chunk_active, chunk_verts, chunk_faces], device=device,
                          min_chunk=_MIN_COLUMNS_PER_THREAD)
 
     vert_start = wp.empty(nslots, dtype=wp.int32, device=device)
@@ -145,7 +148,7 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
     vert_kind = wp.empty(n_verts, dtype=wp.uint8, device=device)
     _bridge.launch_split(_k.write_chunks_kernel, ncols,
                          [field, lvl, lo, spacing, CHUNK, nchunks, tri_range, tri_edges, edges, node_mask, cell_case,
-                          chunk_verts, chunk_faces, vert_start, face_start],
+                          chunk_active, chunk_verts, chunk_faces, vert_start, face_start],
                          [verts, vert_node, vert_kind, faces], device=device, min_chunk=_MIN_COLUMNS_PER_THREAD)
 
     if n_faces:
