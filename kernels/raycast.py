@@ -76,7 +76,7 @@ def cast_rays_kernel(
     face_id: wp.array[wp.int32],
     bary: wp.array[wp.vec2],
 ):
-    """First hit of ray ``offset + tid``; face -1 and bary 0 on a miss (outputs start zeroed)."""
+    """First hit of ray ``offset + tid``; face -1 and bary 0 on a miss."""
     i = wp.tid() + offset
     q = wp.mesh_query_ray(mesh, origins[i], directions[i], max_t)
     if q.result:
@@ -85,6 +85,7 @@ def cast_rays_kernel(
         bary[i] = wp.vec2(q.u, q.v)
     else:
         face_id[i] = -1
+        bary[i] = wp.vec2(0.0, 0.0)
 
 
 @wp.func
@@ -243,8 +244,7 @@ def cast_packets_kernel(
     for k in range(4):
         if rid[k] >= 0:
             face_id[rid[k]] = found[k]
-            if found[k] >= 0:
-                bary[rid[k]] = wp.vec2(bu[k], bv[k])
+            bary[rid[k]] = wp.vec2(bu[k], bv[k])  # 0 on a miss
 
 
 @wp.kernel(enable_backward=False)

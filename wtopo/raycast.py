@@ -270,9 +270,9 @@ class MeshRaycaster:
         n = int(np.prod(shape, dtype=np.int64))
         self._update(verts, faces)
         device = verts.device
-        face_id = torch.full((n,), -1, dtype=torch.int32, device=device)
-        bary32 = torch.zeros((n, 2), dtype=torch.float32, device=device)
         if self._mesh is None or n == 0:
+            face_id = torch.full((n,), -1, dtype=torch.int32, device=device)
+            bary32 = torch.zeros((n, 2), dtype=torch.float32, device=device)
             return MeshRender(
                 depth=_empty_like_graph(verts, shape),
                 normal=_empty_like_graph(verts, (*shape, 3)),
@@ -280,6 +280,8 @@ class MeshRaycaster:
                 face_id=face_id.reshape(shape),
                 bary=bary32.to(verts.dtype).reshape(*shape, 2),
             )
+        face_id = torch.empty((n,), dtype=torch.int32, device=device)  # every ray is written
+        bary32 = torch.empty((n, 2), dtype=torch.float32, device=device)
         o_w = wp.from_torch(o32.reshape(-1, 3).contiguous(), dtype=wp.vec3)
         d_w = wp.from_torch(d32.reshape(-1, 3).contiguous(), dtype=wp.vec3)
         outs = [wp.from_torch(face_id, dtype=wp.int32), wp.from_torch(bary32, dtype=wp.vec2)]
