@@ -72,7 +72,7 @@ def test_densification_respects_the_cap():
     s.buffers["grad_accum"][:] = 1.0
     s.buffers["grad_count"][:] = 1.0
     for _ in range(3):
-        D.clone_and_split(s, DensifyConfig(grad_threshold=0.0), extent=1.0, max_surfels=45)
+        D.clone_and_split(s, DensifyConfig(grad_threshold=0.0, max_growth=1.0), extent=1.0, max_surfels=45)
         assert len(s) <= 45
     assert len(s) == 45
 

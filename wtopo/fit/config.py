@@ -60,7 +60,7 @@ class InitConfig:
     source: str = "auto"
     """``"points"`` (scene points), ``"cameras"`` (random points in the cameras' common volume) or
     ``"auto"`` (points when the scene has them)."""
-    num_points: int = 4000
+    num_points: int = 5000
     """Surfels drawn in the common volume when the scene has no points."""
     opacity: float = 0.3
     """Initial opacity in (0, 1)."""
@@ -118,7 +118,7 @@ class TSDFConfig:
     hybrid_distance: float = 0.02
     """Hybrid rule: surfels farther than this (fraction of the scene extent) from the TSDF mesh keep
     their warm-up parameters."""
-    max_faces: int = 30000
+    max_faces: int = 8000
     """The re-initialisation mesh is decimated to at most this many faces (one surfel each)."""
 
 
@@ -162,8 +162,10 @@ class DensifyConfig:
     """Iterations between density-control steps."""
     stop_fraction: float = 0.8
     """Clone/split stops after this fraction of the warm-up."""
-    grad_threshold: float = 2e-4
+    grad_threshold: float = 5e-4
     """Mean screen-space gradient norm (NDC units) above which a surfel is cloned or split."""
+    max_growth: float = 0.5
+    """One clone/split step adds at most this fraction of the current count (largest gradients first)."""
     percent_dense: float = 0.01
     """Surfels larger than this fraction of the extent are split, smaller ones cloned."""
     prune_opacity: float = 0.05
@@ -263,8 +265,8 @@ class RuntimeConfig:
     """Held-out views for PSNR (taken from the scene's views, not trained on)."""
     eval_metrics: bool = True
     """Compute Chamfer / F-score / PSNR at evaluations when the scene has a ground-truth mesh."""
-    usd_every: int = 0
-    """Write a timeline frame every this many iterations (0: no ``timeline.usdc``)."""
+    usd_every: int = 100
+    """Write a timeline frame every this many iterations to ``out_dir/timeline.usdc`` (0: none)."""
     max_consecutive_failures: int = 20
     """Abort (with a checkpoint) after this many non-finite steps in a row."""
     progress: bool = True

@@ -86,12 +86,12 @@ def clone_and_split(surfels: Surfels, cfg: DensifyConfig, extent: float, max_sur
                     generator: torch.Generator | None = None) -> tuple[int, int]:
     """3DGS densification: surfels with a mean screen-space gradient above the threshold are cloned
     (small) or split (large, scale > ``percent_dense * extent``). The count never exceeds
-    ``max_surfels``: the largest gradients go first. Resets the accumulators. Returns (cloned, split)."""
+    ``max_surfels`` and grows by at most ``cfg.max_growth`` per call: the largest gradients go first. Resets the accumulators. Returns (cloned, split)."""
     b = surfels.buffers
     mean_grad = b["grad_accum"] / b["grad_count"].clamp_min(1.0)
     big = surfels.scales.detach().max(dim=-1).values > cfg.percent_dense * extent
     cand = mean_grad >= cfg.grad_threshold
-    room = max(0, max_surfels - len(surfels))
+    room = max(0, min(max_surfels - len(surfels), int(cfg.max_growth * len(surfels))))
     if int(cand.sum()) > room:
         score = torch.where(cand, mean_grad, torch.full_like(mean_grad, -1.0))
         sel = torch.zeros_like(cand)

@@ -51,6 +51,7 @@ _ALPHA_COVERED = 0.5  # a pixel is covered by the surfels when their opacity rea
 _GAP_EMA = 0.9  # smoothing of the running uncovered-pixel fraction
 _GAP_THRESHOLD = 0.002  # clone/split runs while more than this fraction of object pixels is uncovered
 _DEPTH_EPS = 1e-4  # log-depth clamp, internal units (1e-4 of the unit cube)
+_REINIT_OPACITY = 0.8  # TSDF re-initialised surfels start nearly opaque: they sit on the fused surface
 _REMESH_SAMPLES = 200_000  # surface samples for the watertight Poisson re-mesh of the final mesh
 
 
@@ -122,6 +123,7 @@ class FitRun:
         self.gap = 1.0
         self.loss_sums: dict[str, float] = defaultdict(float)
         self.loss_count = 0
+        self.loss_ema = 0.0
         self.proxy: ProxyMesh = ProxyMesh(cfg.mesh)
         self.proxy_mesh: ProxyResult | None = None
         self.tsdf_info: dict = {}
@@ -302,6 +304,8 @@ class FitRun:
         for k, v in terms.items():
             self.loss_sums[k] += v
         self.loss_sums["total"] += sum(terms.values())
+        self.loss_ema = sum(terms.values()) if self.loss_count == 0 and not self.history else (
+            0.9 * self.loss_ema + 0.1 * sum(terms.values()))
         self.loss_count += 1
         if self.it % _SNAPSHOT_EVERY == 0:
             self._snapshot()
@@ -332,22 +336,25 @@ class FitRun:
             self._snapshot()
 
     def _mesh_guidance(self) -> None:
-        """Normal signs, geometry-aware prune and densification against the current proxy mesh."""
+        """Normal signs, geometry-aware prune and densification against the current proxy mesh.
+
+        The proxy is rebuilt here from the current surfels (not reused from the last step), so a
+        resumed run makes the same decisions as an uninterrupted one.
+        """
         co, dc, mc = self.cfg.coevolution, self.cfg.densify, self.cfg.mesh
         k = self.it - self.warmup_end
         if k % max(1, co.correspondence_every) != 0:
             return
         with self.timers("guidance"):
             s = self.surfels
-            pm = self.proxy_mesh
-            if pm is None and co.enabled:
+            info = {"iteration": self.it, "event": "mesh_guidance"}
+            pm = None
+            if co.enabled:
                 with torch.no_grad():
                     pm = self.proxy.build(s)
-                self.proxy_mesh = pm
-            info = {"iteration": self.it, "event": "mesh_guidance"}
             if pm is None:
-                info["signs"] = dens.align_normal_signs(s, NormalFlip(mc.normal_flip) if mc.normal_flip != NormalFlip.MESH
-                                                        else NormalFlip.VIEW, generator=self.gen)
+                mode = NormalFlip.VIEW if NormalFlip(mc.normal_flip) == NormalFlip.MESH else NormalFlip(mc.normal_flip)
+                info["signs"] = dens.align_normal_signs(s, mode, generator=self.gen)
                 self.events.append(info)
                 self._snapshot()
                 return
@@ -380,11 +387,11 @@ class FitRun:
         bar = self._bar(stage, start, end)
         try:
             while self.it < end and not self._stop:
+                if stage != "warmup":
+                    self._mesh_guidance()  # before the step: signs are set before the first proxy build
                 self._step(stage)
                 if stage == "warmup":
                     self._warmup_density()
-                else:
-                    self._mesh_guidance()
                 self.it += 1
                 if self.timeline is not None and self.cfg.runtime.usd_every and self.it % self.cfg.runtime.usd_every == 0:
                     self._timeline_sample()
@@ -396,8 +403,7 @@ class FitRun:
                 if bar is not None:
                     bar.update(1)
                     if self.it % 10 == 0 or self.it == end:
-                        n = self.loss_count or 1
-                        bar.set_postfix(loss=f"{self.loss_sums.get('total', 0.0) / n:.4f}", surfels=len(self.surfels),
+                        bar.set_postfix(loss=f"{self.loss_ema:.4f}", surfels=len(self.surfels),
                                         faces=0 if self.proxy_mesh is None else self.proxy_mesh.num_faces,
                                         elapsed=f"{self.elapsed():.0f}s", refresh=False)
         finally:
@@ -422,7 +428,7 @@ class FitRun:
                 return
             mesh = cleanup_mesh(mesh, largest_component=not self.plan["background_rule"])
             new = mesh_to_surfels(mesh, max_faces=tc.max_faces, device=self.device, sh_degree=s.sh_degree,
-                                  opacity=0.5)
+                                  opacity=_REINIT_OPACITY)
             kept = 0
             if self.plan["background_rule"]:
                 from ..raycast import closest_faces
@@ -646,8 +652,6 @@ class FitRun:
                 self._tsdf_reinit()
                 self._evaluate("tsdf")
             if not self._stop and self.warmup_end < self.total_iterations and self.it >= self.warmup_end:
-                if self.it == self.warmup_end:
-                    self._mesh_guidance()
                 self._iterate("coevolution", self.warmup_end, self.total_iterations)
             self.status = "interrupted" if self._stop else "completed"
             if self.it > 0 and self._ckpt_dir() is not None:

@@ -23,7 +23,8 @@ _VIEW_CONSISTENCY = 0.04  # mean reprojected colour difference below which the s
 _MIN_SH_VIEWS = 20  # fewer views than this cannot constrain view-dependent colour
 _CPU_MAX_SIDE = 256  # longest image side trained on a CPU (keeps the default fit within minutes)
 _GPU_MAX_SIDE = 1024
-_MIN_EVAL_VIEWS = 12  # hold views out for PSNR only when at least this many exist
+_MIN_EVAL_VIEWS = 12
+_MASK_WEIGHT = 0.5  # alpha-vs-mask BCE weight: keeps surfels off a dark or black background  # hold views out for PSNR only when at least this many exist
 
 
 @dataclass
@@ -147,7 +148,7 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     plan.set("init_source", src, why, None if cfg.init.source == "auto" else cfg.init.source)
 
     # -- masks and background
-    plan.set("mask_loss", 0.1 if has_masks else 0.0,
+    plan.set("mask_loss", _MASK_WEIGHT if has_masks else 0.0,
              "object masks given: alpha supervised by the mask" if has_masks else "no masks",
              cfg.losses.mask)
     plan.set("background_rule", not has_masks,

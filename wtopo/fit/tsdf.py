@@ -26,7 +26,8 @@ __all__ = ["TSDFEmptyError", "FusionBounds", "auto_bounds", "fuse_depths", "mesh
 
 _BOX_PERCENTILE = 0.5  # percent of surfels ignored on each side when boxing them (floaters)
 _BOX_MARGIN = 0.05  # box grows by this fraction of its longest side on every side
-_SCENE_LIMIT = (-0.25, 1.25)  # the normalised scene fits [0, 1]^3 with margin; never fuse beyond this
+_SCENE_LIMIT = (-0.1, 1.1)  # the region of interest fills [0.1, 0.9]^3 (Scene.normalization); never fuse beyond this
+_MIN_OPACITY = 0.1  # surfels below this opacity do not shape the bounds
 
 
 class TSDFEmptyError(RuntimeError):
@@ -51,13 +52,13 @@ def auto_bounds(points: torch.Tensor | np.ndarray, weights: torch.Tensor | np.nd
                 resolution: int, truncation_voxels: float) -> FusionBounds:
     """Bounds around ``points`` [N, 3] (surfel centres, weighted by opacity when given).
 
-    Points with weight below 0.5 of the maximum are ignored; the box spans the
+    Points with weight below 0.1 are ignored (unless fewer than 8 remain); the box spans the
     ``[0.5, 99.5]`` percentiles plus a 5 % margin, clipped to the normalised scene.
     """
     p = points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else np.asarray(points)
     if weights is not None:
         w = weights.detach().cpu().numpy() if isinstance(weights, torch.Tensor) else np.asarray(weights)
-        sel = w >= 0.5 * w.max() if w.size else np.zeros(0, bool)
+        sel = w >= _MIN_OPACITY
         if sel.sum() >= 8:
             p = p[sel]
     if p.shape[0] == 0:
@@ -156,8 +157,8 @@ def mesh_to_surfels(mesh: trimesh.Trimesh, *, max_faces: int, device: torch.devi
     """One surfel per triangle of ``mesh`` (decimated to at most ``max_faces``).
 
     Centre at the centroid, normal = face normal, first tangent along the first edge, both scales
-    ``sqrt(area / pi) / 2`` of the triangle's area (a disc of one sigma covers a quarter of it),
-    colour the mean of the vertex colours.
+    ``sqrt(area / pi)`` (a disc of one sigma has the triangle's area, so neighbours overlap and the
+    surface is covered from the start), colour the mean of the vertex colours.
     """
     if len(mesh.faces) > max_faces:
         import open3d as o3d
@@ -183,7 +184,7 @@ def mesh_to_surfels(mesh: trimesh.Trimesh, *, max_faces: int, device: torch.devi
         col = vc[f].mean(dim=1)
     else:
         col = torch.full((f.shape[0], 3), 0.5)
-    scale = 0.5 * torch.sqrt(area / np.pi)
+    scale = torch.sqrt(area / np.pi)
     s = Surfels.from_points(tri.mean(dim=1), col, scales=scale, normals=cr, tangents=e1, opacity=opacity,
                             sh_degree=sh_degree)
     return _to(s, device)

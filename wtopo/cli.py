@@ -1,0 +1,150 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The ``wtopo`` command: ``fit``, ``scenes``, ``report``, ``export``.
+
+Examples::
+
+    wtopo scenes
+    wtopo fit bunny --out runs/bunny
+    wtopo fit path/to/dataset --out runs/x --iterations 2000 --device cuda
+    wtopo report runs/bunny
+    wtopo export runs/bunny runs/bunny/final.obj
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+__all__ = ["main", "build_parser"]
+
+
+def _load(scene: str, downscale: float | None):
+    from . import scenes
+
+    if os.path.exists(scene):
+        from .loaders import load_scene
+
+        kw = {} if downscale is None else {"downscale": downscale}
+        return load_scene(scene, **kw)
+    if scene in scenes.names():
+        sc = scenes.load(scene)
+        return sc if downscale is None else sc.downscaled(downscale)
+    raise SystemExit(f"wtopo fit: {scene!r} is neither an existing path nor a built-in scene "
+                     f"({', '.join(scenes.names())})")
+
+
+def _config(args):
+    from .fit import FitConfig
+
+    cfg = FitConfig.toposurfel_public() if args.preset == "toposurfel-public" else FitConfig()
+    if args.iterations is not None:
+        # split as the defaults do: half warm-up, half co-evolution
+        w = args.iterations // 2
+        cfg.warmup.iterations, cfg.coevolution.iterations = w, args.iterations - w
+    if args.warmup is not None:
+        cfg.warmup.iterations = args.warmup
+    if args.coevolution is not None:
+        cfg.coevolution.iterations = args.coevolution
+    if args.device is not None:
+        cfg.runtime.device = args.device
+    if args.seed is not None:
+        cfg.runtime.seed = args.seed
+    if args.max_surfels is not None:
+        cfg.runtime.max_surfels = args.max_surfels
+    if args.usd_every is not None:
+        cfg.runtime.usd_every = args.usd_every
+    if args.no_mesh_loop:
+        cfg.coevolution.enabled = False
+    if args.normal_flip is not None:
+        cfg.mesh.normal_flip = args.normal_flip
+    if args.samples_per_surfel is not None:
+        cfg.mesh.samples_per_surfel = args.samples_per_surfel
+    if args.poisson_resolution is not None:
+        cfg.mesh.resolution = args.poisson_resolution
+    return cfg
+
+
+def _cmd_fit(args) -> int:
+    from .fit import fit
+
+    scene = _load(args.scene, args.downscale)
+    result = fit(scene, _config(args), out_dir=args.out, progress=not args.quiet)
+    if args.quiet:
+        r = result.report
+        print(f"{r['status']}: {r['iterations']} iterations in {r['elapsed_s']:.1f} s, mesh {args.out}/mesh.ply")
+    return 130 if result.report["status"] == "interrupted" else 0
+
+
+def _cmd_scenes(args) -> int:
+    from . import scenes
+
+    for name in scenes.names():
+        print(name)
+    return 0
+
+
+def _cmd_report(args) -> int:
+    from .report import report
+
+    for kind, path in report(args.run_dir).items():
+        print(f"{kind}: {path}")
+    return 0
+
+
+def _cmd_export(args) -> int:
+    from .io.export import export
+
+    print(export(args.run_dir, args.out, args.format, iteration=args.iteration))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``wtopo`` command."""
+    p = argparse.ArgumentParser(prog="wtopo", description="Posed photographs to a watertight mesh.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    f = sub.add_parser("fit", help="fit a scene and write mesh.ply, surfels.ply, history/report/plan JSON")
+    f.add_argument("scene", help="dataset path (Blender, COLMAP, DTU, nerfstudio) or a built-in name (wtopo scenes)")
+    f.add_argument("--out", required=True, help="run directory (resumes when it holds checkpoints)")
+    f.add_argument("--iterations", type=int, help="total iterations, split evenly between warm-up and co-evolution")
+    f.add_argument("--warmup", type=int, help="warm-up iterations")
+    f.add_argument("--coevolution", type=int, help="co-evolution iterations")
+    f.add_argument("--device", help="auto, cpu or cuda:N")
+    f.add_argument("--seed", type=int)
+    f.add_argument("--max-surfels", type=int)
+    f.add_argument("--usd-every", type=int, help="timeline sample interval (0: no timeline.usdc)")
+    f.add_argument("--downscale", type=float, help="divide the image size by this factor")
+    f.add_argument("--no-mesh-loop", action="store_true", help="co-evolution without the proxy mesh (ablation)")
+    f.add_argument("--normal-flip", choices=["mesh", "view", "random"])
+    f.add_argument("--samples-per-surfel", type=int, choices=[1, 5])
+    f.add_argument("--poisson-resolution", type=int)
+    f.add_argument("--preset", choices=["default", "toposurfel-public"], default="default",
+                   help="toposurfel-public: the public TopoSurfel code's settings where supported")
+    f.add_argument("--quiet", action="store_true", help="no plan, no progress bars")
+    f.set_defaults(func=_cmd_fit)
+
+    s = sub.add_parser("scenes", help="list the built-in scenes")
+    s.set_defaults(func=_cmd_scenes)
+
+    r = sub.add_parser("report", help="contact sheet and error plot of a run directory")
+    r.add_argument("run_dir")
+    r.set_defaults(func=_cmd_report)
+
+    e = sub.add_parser("export", help="export a run's mesh, surfels or timeline")
+    e.add_argument("run_dir")
+    e.add_argument("out")
+    e.add_argument("--format", help="mesh, surfels, ... (default: from the suffix)")
+    e.add_argument("--iteration", type=int, help="latest timeline sample at or before this iteration")
+    e.set_defaults(func=_cmd_export)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``wtopo`` script."""
+    args = build_parser().parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
