@@ -27,7 +27,7 @@ def _assert_matches(out, ref, inputs, atol):
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("channels", [1, 3])
+@pytest.mark.parametrize("channels", [1, 3, 6])  # 6 > 4 exercises the channel chunking
 # 50_000 points exceeds the 16384-point threshold, so the CPU scatter runs slab-split across threads.
 @pytest.mark.parametrize("n", [1, 257, 50_000])
 def test_scatter_forward_and_vjp_match_reference(device, dtype, channels, n):
@@ -42,7 +42,7 @@ def test_scatter_forward_and_vjp_match_reference(device, dtype, channels, n):
 def test_sample_forward_and_vjp_match_reference(device, dtype):
     """Match the gather reference in value and VJP (grid and points)."""
     g = torch.Generator().manual_seed(3)
-    grid = torch.randn(12, 12, 12, 2, generator=g, dtype=dtype).to(device).requires_grad_()
+    grid = torch.randn(12, 12, 12, 5, generator=g, dtype=dtype).to(device).requires_grad_()  # 5 channels: chunked
     p = torch.rand(500, 3, generator=g, dtype=dtype).to(device).requires_grad_()
     _assert_matches(sample_trilinear(grid, p), sample_trilinear_ref(grid, p), (grid, p), _tol(dtype))
 

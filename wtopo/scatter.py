@@ -52,7 +52,7 @@ def _balanced_slabs(points: wp.array, resolution: int, threads: int) -> list[int
 
 
 def scatter_launch(points: wp.array, values: wp.array, resolution: int, grid: wp.array) -> None:
-    """Accumulate the trilinear scatter of ``values`` at ``points`` into ``grid`` (``[R^3, C]``), not taped."""
+    """Accumulate the trilinear scatter of ``values`` at ``points`` into ``grid`` (``R^3`` C-vectors), not taped."""
     n = points.shape[0]
     if n == 0:
         return
@@ -79,7 +79,7 @@ def scatter_launch(points: wp.array, values: wp.array, resolution: int, grid: wp
 
 
 def sample_launch(grid: wp.array, points: wp.array, resolution: int, out: wp.array) -> None:
-    """Accumulate trilinear samples of ``grid`` (``[R^3, C]``) at ``points`` into ``out`` (``[N, C]``), not taped."""
+    """Accumulate trilinear samples of ``grid`` (``R^3`` C-vectors) at ``points`` into ``out`` (``N``), not taped."""
     _bridge.launch_split(sample_trilinear_kernel, points.shape[0], [grid, points, resolution], [out],
                          device=points.device)
 
@@ -91,12 +91,25 @@ def point_grad_launch(grid: wp.array, per_point: wp.array, points: wp.array, res
                          [adj_points], device=points.device)
 
 
+# Channels per launch: node values are Warp vectors of length 1..4 (wider values are chunked).
+_MAX_CHANNELS = 4
+_CHANNEL_TYPES = {(dt, c): wp.types.vector(length=c, dtype=wdt)
+                  for dt, wdt in ((torch.float32, wp.float32), (torch.float64, wp.float64)) for c in range(1, 5)}
+
+
+def _types(dtype: torch.dtype, channels: int):
+    """Warp point type and node-vector type for a torch float dtype and 1..4 channels."""
+    return _bridge.vec_dtype(torch.empty(0, 3, dtype=dtype)), _CHANNEL_TYPES[(dtype, channels)]
+
+
 def _scatter_op(dtype: torch.dtype, resolution: int, channels: int) -> _bridge.WarpOp:
-    sc = _bridge.float_dtype(torch.empty(0, dtype=dtype))
-    v3 = _bridge.vec_dtype(torch.empty(0, 3, dtype=dtype))
+    v3, vc = _types(dtype, channels)
 
     def run(points, values):
-        grid = wp.zeros((resolution ** 3, channels), dtype=sc, device=points.device, requires_grad=True)
+        grid = wp.zeros(resolution ** 3, dtype=vc, device=points.device)
+        # The bridge copies the upstream gradient into grid.grad before anything reads it (one output),
+        # so it is left unzeroed: that spares touching R^3*C fresh pages in every forward.
+        grid.grad = wp.empty_like(grid)
         scatter_launch(points, values, resolution, grid)
         tape = _active_tape()
         if tape is not None:
@@ -109,15 +122,14 @@ def _scatter_op(dtype: torch.dtype, resolution: int, channels: int) -> _bridge.W
             tape.record_func(backward, [a for a in (points, values, grid) if a.requires_grad])
         return (grid,)
 
-    return _bridge.WarpOp("scatter_trilinear", run, (v3, sc), (True, True), (True,))
+    return _bridge.WarpOp("scatter_trilinear", run, (v3, vc), (True, True), (True,))
 
 
 def _sample_op(dtype: torch.dtype, resolution: int, channels: int) -> _bridge.WarpOp:
-    sc = _bridge.float_dtype(torch.empty(0, dtype=dtype))
-    v3 = _bridge.vec_dtype(torch.empty(0, 3, dtype=dtype))
+    v3, vc = _types(dtype, channels)
 
     def run(grid, points):
-        out = wp.zeros((points.shape[0], channels), dtype=sc, device=points.device, requires_grad=True)
+        out = wp.zeros(points.shape[0], dtype=vc, device=points.device, requires_grad=True)
         sample_launch(grid, points, resolution, out)
         tape = _active_tape()
         if tape is not None:
@@ -130,7 +142,7 @@ def _sample_op(dtype: torch.dtype, resolution: int, channels: int) -> _bridge.Wa
             tape.record_func(backward, [a for a in (grid, points, out) if a.requires_grad])
         return (out,)
 
-    return _bridge.WarpOp("sample_trilinear", run, (sc, v3), (True, True), (True,))
+    return _bridge.WarpOp("sample_trilinear", run, (vc, v3), (True, True), (True,))
 
 
 def scatter_unchecked(points: torch.Tensor, values: torch.Tensor, resolution: int) -> torch.Tensor:
@@ -142,6 +154,9 @@ def scatter_unchecked(points: torch.Tensor, values: torch.Tensor, resolution: in
         zero = points.sum() * 0 + values.sum() * 0
         return zero + torch.zeros(resolution, resolution, resolution, channels, dtype=values.dtype,
                                   device=values.device)
+    if channels > _MAX_CHANNELS:
+        return torch.cat([scatter_unchecked(points, values[:, c:c + _MAX_CHANNELS], resolution)
+                          for c in range(0, channels, _MAX_CHANNELS)], dim=-1)
     (grid,) = _bridge.apply(_scatter_op(values.dtype, resolution, channels), points, values)
     return grid.view(resolution, resolution, resolution, channels)
 
@@ -151,9 +166,12 @@ def sample_unchecked(grid: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     resolution, channels = grid.shape[0], grid.shape[3]
     if points.shape[0] == 0:
         return points.sum() * 0 + grid.sum() * 0 + torch.zeros(0, channels, dtype=grid.dtype, device=grid.device)
+    if channels > _MAX_CHANNELS:
+        return torch.cat([sample_unchecked(grid[..., c:c + _MAX_CHANNELS], points)
+                          for c in range(0, channels, _MAX_CHANNELS)], dim=-1)
     (out,) = _bridge.apply(_sample_op(grid.dtype, resolution, channels),
                            grid.reshape(resolution ** 3, channels), points)
-    return out
+    return out.view(-1, channels)
 
 
 def _extremes(t: torch.Tensor) -> tuple[float, float]:
