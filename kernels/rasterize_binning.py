@@ -20,7 +20,15 @@ from typing import Any
 
 import warp as wp
 
-from .rasterize import ALPHA_MIN, FILTER_INV_SQUARE, SCALE_MIN, cam_point, project_pixel, quat_axes
+from .rasterize import (
+    ALPHA_MIN,
+    FILTER_INV_SQUARE,
+    SCALE_MIN,
+    cam_point,
+    declare_float_overloads,
+    project_pixel,
+    quat_axes,
+)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -242,3 +250,10 @@ def sum_visibility_kernel(offset: int, per_worker: wp.array2d[wp.int32], visibil
     for w in range(per_worker.shape[0]):
         total += per_worker[w, i]
     visibility[i] = total
+
+
+# one compile of this module with every overload (see kernels/rasterize.py)
+declare_float_overloads(bin_surfels_kernel)
+for _key_type in (wp.int32, wp.int64):
+    wp.overload(emit_intersections_kernel, {"keys": wp.array(dtype=_key_type)})
+    wp.overload(tile_ranges_kernel, {"keys": wp.array(dtype=_key_type)})

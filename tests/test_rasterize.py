@@ -209,7 +209,8 @@ def test_quaternion_norm_is_irrelevant(device, norm):
         _assert_close(getattr(b, k), getattr(a, k), name=k)
     (b.rgb.sum() + b.depth.sum()).backward()
     assert float(q.grad.abs().max()) > 0
-    np.testing.assert_allclose((q.grad * q.detach()).sum(1).cpu().numpy(), 0.0, atol=1e-9 * float(q.grad.abs().max()) * norm)
+    radial = (q.grad * q.detach()).sum(1).cpu().numpy()
+    np.testing.assert_allclose(radial, 0.0, atol=1e-9 * float(q.grad.abs().max()) * norm)
 
 
 def test_zero_quaternion_is_identity(device):
@@ -290,7 +291,8 @@ def _edge_on(angle, device, offset=0.0):
     half = 0.5 * (math.pi / 2 - angle)  # rotate the normal (+z, along the ray) by 90 deg - angle about y
     dt = torch.float64
     p = [torch.tensor([[offset, 0.0, 0.0]], dtype=dt), torch.tensor([[math.cos(half), 0, math.sin(half), 0]], dtype=dt),
-         torch.tensor([[0.4, 0.25]], dtype=dt), torch.tensor([0.7], dtype=dt), torch.tensor([[0.9, 0.4, 0.1]], dtype=dt)]
+         torch.tensor([[0.4, 0.25]], dtype=dt), torch.tensor([0.7], dtype=dt),
+         torch.tensor([[0.9, 0.4, 0.1]], dtype=dt)]
     return cam, [t.to(device).requires_grad_(True) for t in p]
 
 

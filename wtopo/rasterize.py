@@ -188,7 +188,8 @@ def _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, 
             raise ValueError(f"background must have shape [3], got {list(bg.shape)}")
         require_finite("background", bg)
     for nm, v in (("near", near), ("far", far)):
-        if v is not None and not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0):
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+        if v is not None and not ok:
             raise ValueError(f"{nm} must be a finite number > 0 or None, got {v!r}")
     if near is not None and far is not None and not near < far:
         raise ValueError(f"near must be < far, got near={near}, far={far}")
@@ -341,12 +342,14 @@ def _bin(means, quats, scales, opacities, cam_wp, tables, camera: Camera, config
         with _timed("binning", wdev):
             offsets = (csum - counts_t).to(torch.int32)
             _bridge.launch_split(_kb.emit_intersections_kernel, n,
-                                 [rect, _bridge.to_warp(offsets), _bridge.to_warp(rank), tiles_x, rank_bits], [keys, values],
+                                 [rect, _bridge.to_warp(offsets), _bridge.to_warp(rank), tiles_x, rank_bits],
+                                 [keys, values],
                                  device=wdev)
         with _timed("sort", wdev):
             wp.utils.radix_sort_pairs(keys, values, total, end_bit=key_bits)
         with _timed("binning", wdev):
-            _bridge.launch_split(_kb.tile_ranges_kernel, total, [keys, total, rank_bits], [tile_start, tile_end], device=wdev)
+            _bridge.launch_split(_kb.tile_ranges_kernel, total, [keys, total, rank_bits], [tile_start, tile_end],
+                                 device=wdev)
         if _profile is not None:
             _profile["intersections"] = _profile.get("intersections", 0) + total
     return _Bins(tile_start, tile_end, values, wp.to_torch(radii), wp.to_torch(means2d), cutoff)
