@@ -2,10 +2,10 @@
 """Warp kernels of marching cubes: lookup tables, column count/write passes and the vertex adjoint.
 
 The extraction is discrete (``enable_backward=False`` for the whole module); the only gradient,
-vertex position w.r.t. the field, is the explicit adjoint :func:`vertex_adjoint_kernel`.
+vertex position w.r.t. the field, is the explicit adjoint :func:`scatter_vertex_adjoint_kernel`.
 
-Layout of one thread's work: a *column* is the line of nodes ``(i, j, 0..Z-1)``, cut into
-z-chunks; one thread walks one chunk of one column upwards.  Node ``(i, j, k)`` owns its three
+Layout of the work: a *column* is the line of nodes ``(i, j, 0..Z-1)``, cut into z-chunks of
+``chunk`` nodes; one kernel thread walks one column upwards, chunk by chunk.  Node ``(i, j, k)`` owns its three
 "lower" edges (to ``+x``, ``+y``, ``+z``), so every crossed edge has exactly one owner and
 vertices are welded without a hash.  Column ``(i, j)`` also owns the cells whose lowest corner is
 ``(i, j, k)``.
@@ -231,7 +231,7 @@ def chunk_bounds(c: int, chunk: int, nz: int):
 
 
 @wp.func
-def chunk_range(
+def measure_chunk(
     col: int,
     c: int,
     field: wp.array3d[Any],
@@ -260,7 +260,7 @@ def chunk_range(
 
 
 @wp.kernel
-def chunk_range_kernel(
+def measure_chunks_kernel(
     offset: int,
     field: wp.array3d[Any],
     values: wp.array[Any],
@@ -269,14 +269,14 @@ def chunk_range_kernel(
     chunk_min: wp.array[Any],
     chunk_max: wp.array[Any],
 ):
-    """Pass 0, one thread per node column ``offset + tid``: :func:`chunk_range` of each of its z-chunks.
+    """Pass 0, one thread per node column ``offset + tid``: :func:`measure_chunk` of each of its z-chunks.
 
     A thread walks a whole column (few threads, each long: per-thread launch cost on CPU is
     comparable to the work of a skipped chunk).
     """
     col = wp.tid() + offset
     for c in range(nchunks):
-        chunk_range(col, c, field, values, chunk, nchunks, chunk_min, chunk_max)
+        measure_chunk(col, c, field, values, chunk, nchunks, chunk_min, chunk_max)
 
 
 @wp.func
@@ -624,7 +624,7 @@ def guard(d: Any, eps: Any):
 
 
 @wp.kernel
-def vertex_adjoint_kernel(
+def scatter_vertex_adjoint_kernel(
     field: wp.array3d[Any],
     level: Any,
     spacing: Any,

@@ -118,7 +118,7 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
 
     chunk_min = wp.empty(nslots, dtype=scalar, device=device)
     chunk_max = wp.empty(nslots, dtype=scalar, device=device)
-    _bridge.launch_split(_k.chunk_range_kernel, ncols, [field, values, CHUNK, nchunks], [chunk_min, chunk_max],
+    _bridge.launch_split(_k.measure_chunks_kernel, ncols, [field, values, CHUNK, nchunks], [chunk_min, chunk_max],
                          device=device, min_chunk=_MIN_COLUMNS_PER_THREAD)
     # Written only in chunks pass 1 finds active (``chunk_active``): no zero fill, and the pages of
     # skipped chunks are never touched.
@@ -163,7 +163,7 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
         def backward():
             # One launch: several vertices scatter into the same node, and Warp's CPU atomics are
             # only atomic within a launch.
-            wp.launch(_k.vertex_adjoint_kernel, dim=n_verts,
+            wp.launch(_k.scatter_vertex_adjoint_kernel, dim=n_verts,
                       inputs=[field, lvl, spacing, eps, vert_node, vert_kind, verts.grad], outputs=[field.grad],
                       device=device, record_tape=False)
 
