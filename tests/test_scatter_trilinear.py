@@ -114,7 +114,7 @@ def test_non_finite_values_raise(device, value):
         scatter_trilinear(torch.full((5, 3), 0.5, device=device), v, 8)
 
 
-@pytest.mark.parametrize("bad", ["resolution", "values_shape", "values_dtype", "grid_shape"])
+@pytest.mark.parametrize("bad", ["resolution", "values_shape", "values_dtype", "grid_shape", "no_channels"])
 def test_invalid_arguments_raise(device, bad):
     """Raise ValueError/TypeError naming the argument."""
     p = torch.rand(4, 3, device=device)
@@ -124,6 +124,11 @@ def test_invalid_arguments_raise(device, bad):
     elif bad == "values_shape":
         with pytest.raises(ValueError, match="values"):
             scatter_trilinear(p, torch.ones(3, 1, device=device), 8)
+    elif bad == "no_channels":
+        with pytest.raises(ValueError, match="values"):
+            scatter_trilinear(p, torch.ones(4, 0, device=device), 8)
+        with pytest.raises(ValueError, match="grid"):
+            sample_trilinear(torch.zeros(8, 8, 8, 0, device=device), p)
     elif bad == "values_dtype":
         with pytest.raises(TypeError, match="values"):
             scatter_trilinear(p, torch.ones(4, 1, device=device, dtype=torch.float64), 8)

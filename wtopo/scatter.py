@@ -213,7 +213,8 @@ def scatter_trilinear(points: torch.Tensor, values: torch.Tensor, resolution: in
     Args:
         points: positions in the unit cube, shape ``[N, 3]``, float32 or float64, every coordinate
             in ``[0, 1)``; anything else (including NaN) raises :class:`ValueError`.
-        values: per-point values, shape ``[N, C]``, dtype of ``points``.
+        values: per-point values, shape ``[N, C]`` with any ``C >= 1`` (launched 4 channels at a
+            time), dtype of ``points``.
         resolution: ``R >= 2``, nodes per axis.
 
     Returns:
@@ -224,6 +225,8 @@ def scatter_trilinear(points: torch.Tensor, values: torch.Tensor, resolution: in
     require_tensor("points", points, shape=(None, 3))
     n = points.shape[0]
     require_tensor("values", values, shape=(n, None), dtypes=(points.dtype,))
+    if values.shape[1] < 1:
+        raise ValueError(f"values must have at least one channel, got shape {list(values.shape)}")
     require_same_device(points=points, values=values)
     require_int_range("resolution", resolution, 2)
     check_unit_points("points", points, 0.0, 1.0, closed=False)
@@ -244,8 +247,8 @@ def sample_trilinear(grid: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """
     require_tensor("grid", grid, ndim=4)
     r = grid.shape[0]
-    if tuple(grid.shape[:3]) != (r, r, r) or r < 2:
-        raise ValueError(f"grid must have shape [R, R, R, C] with R >= 2, got {list(grid.shape)}")
+    if tuple(grid.shape[:3]) != (r, r, r) or r < 2 or grid.shape[3] < 1:
+        raise ValueError(f"grid must have shape [R, R, R, C] with R >= 2 and C >= 1, got {list(grid.shape)}")
     require_tensor("points", points, shape=(None, 3), dtypes=(grid.dtype,))
     require_same_device(grid=grid, points=points)
     check_unit_points("points", points, 0.0, 1.0, closed=False)
