@@ -217,7 +217,9 @@ def test_context_caches_operators(device):
     op = ctx.operator(16, 1.0, torch.device(device), torch.float32)
     b = poisson_indicator(p, n, w, 16, sigma=1.0, padding=0.1, context=ctx).chi
     assert ctx.operator(16, 1.0, torch.device(device), torch.float32) is op
-    torch.testing.assert_close(a, b, atol=0, rtol=0)
+    # CPU scatter is bitwise deterministic; CUDA atomics may reorder float sums (last bits only)
+    tol = 0 if str(device) == "cpu" else 1e-5
+    torch.testing.assert_close(a, b, atol=tol, rtol=tol)
 
 
 def test_sphere_at_256_recovered(device):

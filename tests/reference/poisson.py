@@ -14,7 +14,7 @@ def poisson_indicator_ref(points, normals, weights, resolution, *, sigma, paddin
     h = (1 + 2 * padding) / (r - 1)
     q = ((points + padding) / (r * h)).clamp(0.0, (r - 1) / r)
     v = scatter_trilinear_ref(q, weights[:, None] * normals, r)
-    f = torch.fft.fftfreq(r, dtype=torch.float64)
+    f = torch.fft.fftfreq(r, dtype=torch.float64, device=points.device)
     kx, ky, kz = torch.meshgrid(f, f, f, indexing="ij")
     k2 = (2 * math.pi) ** 2 * (kx ** 2 + ky ** 2 + kz ** 2)
     g = torch.exp(-0.5 * sigma ** 2 * k2)
