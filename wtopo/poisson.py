@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import torch
 
+from ._profile import section
 from ._validate import require_int_range, require_positive, require_same_device, require_tensor
 from .scatter import check_finite, check_unit_points, sample_unchecked, scatter_unchecked
 
@@ -170,7 +171,8 @@ def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torc
     period = (1.0 + 2.0 * padding) * r / (r - 1)
     # Grid coordinates in [0, (R-1)/R]: never in the wrap cell, so the scatter drops nothing.
     q = ((points + padding) / period).clamp(0.0, (r - 1) / r)
-    v = scatter_unchecked(q, weights[:, None] * normals, r)
+    with section("scatter"):
+        v = scatter_unchecked(q, weights[:, None] * normals, r)
     vh = torch.fft.rfftn(v.permute(3, 0, 1, 2), dim=(1, 2, 3))
     wx, wy, wz, s = (context or _DEFAULT_CONTEXT).operator(r, sigma, device, dtype)
     # laplacian(chi) = div(V)  <=>  -|w|^2 chi^ = i w . V^  <=>  chi^ = -i (w . V^) / |w|^2

@@ -25,6 +25,7 @@ import warp as wp
 import warp._src.context
 
 from wtopo import _bridge
+from wtopo._profile import section
 from wtopo._validate import require_finite, require_same_device, require_tensor
 from wtopo.camera import Camera
 from wtopo.kernels import raycast as _k
@@ -225,6 +226,10 @@ class MeshRaycaster:
         return self
 
     def _update(self, verts: torch.Tensor, faces: torch.Tensor) -> None:
+        with section("bvh_build"):
+            self._update_bvh(verts, faces)
+
+    def _update_bvh(self, verts: torch.Tensor, faces: torch.Tensor) -> None:
         pts = verts.detach().to(torch.float32)
         same = (self._faces is not None and self._points is not None and self._faces.device == faces.device
                 and self._points.shape == pts.shape and self._faces.shape == faces.shape

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 import trimesh
 
+from .._profile import section
 from . import densify as dens
 from .checkpoint import CheckpointError, list_checkpoints, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from .config import FitConfig, NormalFlip, config_hash
@@ -60,16 +61,17 @@ class FitAborted(RuntimeError):
 
 
 class _Timers:
+    """Self time per named section (``wtopo._profile``): sections nested in a timed block, such as
+    ``"scatter"`` inside ``"poisson"`` or ``"bvh_build"`` inside ``"raycast"``, are subtracted from it."""
+
     def __init__(self):
         self.total: dict[str, float] = defaultdict(float)
 
-    @contextlib.contextmanager
+    def _add(self, name: str, seconds: float) -> None:
+        self.total[name] += seconds
+
     def __call__(self, name: str):
-        t = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.total[name] += time.perf_counter() - t
+        return section(name, add=self._add)
 
 
 def _resolve_device(name: str) -> torch.device:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .._profile import section
 from ..raycast import MeshRaycaster, MeshRender
 from .config import MeshConfig
 from .surfels import Surfels
@@ -32,8 +33,10 @@ def poisson_mesh(points: torch.Tensor, normals: torch.Tensor, weights: torch.Ten
     from ..marching_cubes import marching_cubes
     from ..poisson import poisson_indicator
 
-    field = poisson_indicator(points, normals, weights, int(resolution), sigma=sigma, padding=padding)
-    return marching_cubes(field.chi, 0.0, lower=field.lower, upper=field.upper)
+    with section("poisson"):
+        field = poisson_indicator(points, normals, weights, int(resolution), sigma=sigma, padding=padding)
+    with section("marching_cubes"):
+        return marching_cubes(field.chi, 0.0, lower=field.lower, upper=field.upper)
 
 
 @dataclass
@@ -90,10 +93,11 @@ class ProxyMesh:
         from ..oriented_points import oriented_points
 
         c = self.cfg
-        op = oriented_points(surfels.means, surfels.quats, surfels.scales, surfels.opacities,
-                             samples=int(c.samples_per_surfel), offset=c.offset, opacity_threshold=c.opacity_threshold,
-                             center_weight=1.0, offset_weight=c.offset_weight,
-                             normal_sign=surfels.buffers["normal_sign"])
+        with section("oriented_points"):
+            op = oriented_points(surfels.means, surfels.quats, surfels.scales, surfels.opacities,
+                                 samples=int(c.samples_per_surfel), offset=c.offset,
+                                 opacity_threshold=c.opacity_threshold, center_weight=1.0,
+                                 offset_weight=c.offset_weight, normal_sign=surfels.buffers["normal_sign"])
         pts, nrm, w = self._to_box(op.points), op.normals, op.weights
         if self.prior is not None and c.surface_prior > 0:
             pp, pn = self.prior
