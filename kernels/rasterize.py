@@ -32,6 +32,9 @@ PARALLEL_EPS = 1.0e-12  # |dot(ray, normal)| below this: the ray is parallel to 
 RHO_BIG = 1.0e30  # rho3d of a parallel ray or an overflowing intersection: the filter branch wins
 QUAT_MIN_SQ = 1.0e-30  # |q|^2 below this: identity rotation (documented fallback, zero gradient)
 
+vec16f = wp.types.vector(length=16, dtype=wp.float32)  # packed per-surfel record (pack_surfels_kernel)
+vec16d = wp.types.vector(length=16, dtype=wp.float64)
+
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 
@@ -200,9 +203,10 @@ def pixel_tile_coords(g: int, tile_size: int, tiles_x: int):
 
 
 @wp.func
-def splat_hit(d: Any, U: Any, V: Any, n: Any, auv: Any, m2: Any, zc: Any, pix: Any):
-    """Ray-splat intersection and screen-space filter at one pixel.
+def splat_hit(d: Any, g: Any, pix: Any):
+    """Ray-splat intersection and screen-space filter at one pixel for a packed surfel record ``g``.
 
+    ``g`` (see :func:`pack_surfels_kernel`) holds ``U, V, n, (a.U, a.V, a.n), m2, zc, cutoff``.
     With ``a = camera - centre`` and ``auv = (a.U, a.V, a.n)`` precomputed per surfel, the ray
     ``a + t d`` meets the plane at ``t = -a.n / d.n`` with local coordinates
     ``u = a.U + t d.U``, ``v = a.V + t d.V``. Returns ``(rho, z, branch3d, u, v, t, dU, dV, dn)``:
@@ -210,19 +214,21 @@ def splat_hit(d: Any, U: Any, V: Any, n: Any, auv: Any, m2: Any, zc: Any, pix: A
     depth in the 3D branch, centre depth in the filter branch), which branch won, and the terms
     the adjoint reuses.
     """
-    diff = pix - m2
-    rho2d = type(zc)(FILTER_INV_SQUARE) * wp.dot(diff, diff)
-    dn = wp.dot(d, n)
-    du = wp.dot(d, U)
-    dv = wp.dot(d, V)
+    zc = g[14]
+    dx = pix[0] - g[12]
+    dy = pix[1] - g[13]
+    rho2d = type(zc)(FILTER_INV_SQUARE) * (dx * dx + dy * dy)
+    du = d[0] * g[0] + d[1] * g[1] + d[2] * g[2]
+    dv = d[0] * g[3] + d[1] * g[4] + d[2] * g[5]
+    dn = d[0] * g[6] + d[1] * g[7] + d[2] * g[8]
     rho3d = type(zc)(RHO_BIG)
     t = type(zc)(0.0)
     u = type(zc)(0.0)
     v = type(zc)(0.0)
     if wp.abs(dn) > type(zc)(PARALLEL_EPS):
-        t = -auv[2] / dn
-        u = auv[0] + t * du
-        v = auv[1] + t * dv
+        t = -g[11] / dn
+        u = g[9] + t * du
+        v = g[10] + t * dv
         r = u * u + v * v
         if wp.isfinite(r):
             rho3d = r
@@ -233,6 +239,53 @@ def splat_hit(d: Any, U: Any, V: Any, n: Any, auv: Any, m2: Any, zc: Any, pix: A
         rho = rho3d
         z = t
     return rho, z, branch3d, u, v, t, du, dv, dn
+
+
+@wp.func
+def surely_outside(d: Any, g: Any, pix: Any):
+    """Division-free reject: ``rho2d > cutoff`` and ``rho3d > cutoff`` (as ``|(u, v)|^2 dn^2 > cutoff dn^2``).
+
+    Only pairs whose alpha is below 1/255 by the cut-off's margin are rejected, and forward and
+    backward take the same decision, so skipping them changes nothing but time.
+    """
+    c = g[15]
+    dx = pix[0] - g[12]
+    dy = pix[1] - g[13]
+    if type(c)(FILTER_INV_SQUARE) * (dx * dx + dy * dy) <= c:
+        return False
+    du = d[0] * g[0] + d[1] * g[1] + d[2] * g[2]
+    dv = d[0] * g[3] + d[1] * g[4] + d[2] * g[5]
+    dn = d[0] * g[6] + d[1] * g[7] + d[2] * g[8]
+    pu = g[9] * dn - g[11] * du
+    pv = g[10] * dn - g[11] * dv
+    return pu * pu + pv * pv > c * dn * dn
+
+
+@wp.kernel(enable_backward=False)
+def pack_surfels_kernel(
+    offset: int,
+    uax: wp.array[Any],
+    vax: wp.array[Any],
+    nrm: wp.array[Any],
+    auv: wp.array[Any],
+    m2: wp.array[Any],
+    zc: wp.array[Any],
+    cutoff: wp.array[Any],
+    geo: wp.array[Any],
+):
+    """Pack what the pixel kernels test for every (pixel, surfel) pair into one 16-vector per surfel.
+
+    One record (a 64-byte cache line in float32) instead of seven arrays: the pair loop is bound
+    by these loads, most pairs being rejected.
+    """
+    i = wp.tid() + offset
+    U = uax[i]
+    V = vax[i]
+    n = nrm[i]
+    a = auv[i]
+    m = m2[i]
+    geo[i] = wp.vector(U[0], U[1], U[2], V[0], V[1], V[2], n[0], n[1], n[2], a[0], a[1], a[2], m[0], m[1], zc[i],
+                       cutoff[i])
 
 
 @wp.func
@@ -251,14 +304,8 @@ def render_forward_kernel(
     ids: wp.array[wp.int32],
     rays: wp.array2d[Any],
     cam: wp.array[Any],
-    cutoff: wp.array[Any],
-    uax: wp.array[Any],
-    vax: wp.array[Any],
-    nrm: wp.array[Any],
-    auv: wp.array[Any],
+    geo: wp.array[Any],
     nrm_face: wp.array[Any],
-    m2: wp.array[Any],
-    zc: wp.array[Any],
     color: wp.array[Any],
     opacity: wp.array[Any],
     background: wp.array[Any],
@@ -298,8 +345,11 @@ def render_forward_kernel(
     end = tile_start[tile]
     for k in range(tile_start[tile], tile_end[tile]):
         i = ids[k]
-        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, uax[i], vax[i], nrm[i], auv[i], m2[i], zc[i], pix)
-        if rho > cutoff[i]:  # alpha < 1/255 for sure: skip the exp
+        g = geo[i]
+        if surely_outside(d, g, pix):
+            continue
+        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix)
+        if rho > g[15]:  # alpha < 1/255 for sure: skip the exp
             continue
         a = wp.min(type(f_ref)(ALPHA_MAX), opacity[i] * wp.exp(type(f_ref)(-0.5) * rho))
         if a < type(f_ref)(ALPHA_MIN) or z < near:
@@ -345,14 +395,8 @@ def render_backward_kernel(
     ids: wp.array[wp.int32],
     rays: wp.array2d[Any],
     cam: wp.array[Any],
-    cutoff: wp.array[Any],
-    uax: wp.array[Any],
-    vax: wp.array[Any],
-    nrm: wp.array[Any],
-    auv: wp.array[Any],
+    geo: wp.array[Any],
     nrm_face: wp.array[Any],
-    m2: wp.array[Any],
-    zc: wp.array[Any],
     color: wp.array[Any],
     opacity: wp.array[Any],
     background: wp.array[Any],
@@ -426,12 +470,12 @@ def render_backward_kernel(
     k = end - 1
     while k >= start:
         i = ids[k]
-        U = uax[i]
-        V = vax[i]
-        n = nrm[i]
-        a_uvn = auv[i]
-        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, U, V, n, a_uvn, m2[i], zc[i], pix)
-        if rho > cutoff[i]:
+        g = geo[i]
+        if surely_outside(d, g, pix):
+            k = k - 1
+            continue
+        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix)
+        if rho > g[15]:
             k = k - 1
             continue
         op = opacity[i]
@@ -462,18 +506,21 @@ def render_backward_kernel(
                 gv = type(f_ref)(2.0) * v * g_rho
                 gt = gz + gu * du + gv * dv
                 inv_dn = one / dn
-                gdn = gt * a_uvn[2] * inv_dn * inv_dn
+                gdn = gt * g[11] * inv_dn * inv_dn
                 wp.atomic_add(d_auv, worker, i, wp.vector(gu, gv, -gt * inv_dn))
                 wp.atomic_add(d_uax, worker, i, (gu * t) * d)
                 wp.atomic_add(d_vax, worker, i, (gv * t) * d)
                 wp.atomic_add(d_nrm, worker, i, gdn * d)
+                U = wp.vector(g[0], g[1], g[2])
+                V = wp.vector(g[3], g[4], g[5])
+                n = wp.vector(g[6], g[7], g[8])
                 gd = (gu * t) * U + (gv * t) * V + gdn * n
                 # d' = d - R^T [Kinv2 shift, 0]  =>  dL/dshift = -Kinv2^T (R gd)[:2]
                 gcx = cam[0] * gd[0] + cam[1] * gd[1] + cam[2] * gd[2]
                 gcy = cam[3] * gd[0] + cam[4] * gd[1] + cam[5] * gd[2]
                 wp.atomic_add(d_shift, worker, i, wp.vector(-gcx / fx, gcx * sk / (fx * fy) - gcy / fy))
             else:
-                diff = pix - m2[i]
+                diff = pix - wp.vector(g[12], g[13])
                 gm = (type(f_ref)(-2.0) * type(f_ref)(FILTER_INV_SQUARE) * g_rho) * diff
                 wp.atomic_add(d_m2, worker, i, gm)
                 wp.atomic_add(d_shift, worker, i, gm)
@@ -534,11 +581,12 @@ _VEC_LEN = {
            "sums", "g_rgb", "g_normal", "d_uax", "d_vax", "d_nrm", "d_auv", "d_nrm_face", "d_color", "g_uax", "g_vax",
            "g_nrm", "g_auv", "g_nrm_face", "g_color"],
     "v4": ["quats"],
+    "v16": ["geo"],
 }
 _ROLE = {name: kind for kind, names in _VEC_LEN.items() for name in names}
 _TYPES = {
-    wp.float32: {"s": wp.float32, "v2": wp.vec2, "v3": wp.vec3, "v4": wp.vec4},
-    wp.float64: {"s": wp.float64, "v2": wp.vec2d, "v3": wp.vec3d, "v4": wp.vec4d},
+    wp.float32: {"s": wp.float32, "v2": wp.vec2, "v3": wp.vec3, "v4": wp.vec4, "v16": vec16f},
+    wp.float64: {"s": wp.float64, "v2": wp.vec2d, "v3": wp.vec3d, "v4": wp.vec4d, "v16": vec16d},
 }
 
 
@@ -552,5 +600,6 @@ def declare_float_overloads(kernel) -> None:
         wp.overload(kernel, types)
 
 
-for _kernel in (prepare_surfels_kernel, render_forward_kernel, render_backward_kernel, reduce_gradients_kernel):
+for _kernel in (prepare_surfels_kernel, pack_surfels_kernel, render_forward_kernel, render_backward_kernel,
+                reduce_gradients_kernel):
     declare_float_overloads(_kernel)

@@ -382,7 +382,10 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_wp, bg_wp, sh_degree: int, ca
             last = wp.empty((h, w), dtype=wp.int32, device=wdev)
             median_idx = wp.empty((h, w), dtype=wp.int32, device=wdev)
             vis_w = wp.zeros((workers, n), dtype=wp.int32, device=wdev)
-            surf = [bins.cutoff, uax, vax, nrm, auv, nrm_face, m2, zc, color, opacities, bg_wp, ts, tiles_x]
+            geo = wp.empty(n, dtype=_k.vec16d if dtype == torch.float64 else _k.vec16f, device=wdev)
+            _bridge.launch_split(_k.pack_surfels_kernel, n, [uax, vax, nrm, auv, m2, zc, bins.cutoff], [geo],
+                                 device=wdev)
+            surf = [geo, nrm_face, color, opacities, bg_wp, ts, tiles_x]
             _launch_tiles(_k.render_forward_kernel, n_tiles, ts * ts,
                           [bins.tile_start, bins.tile_end, bins.ids, rays_wp, cam_wp, *surf],
                           [*outs, t_final, sums, last, median_idx, vis_w], device=wdev, workers=workers,
