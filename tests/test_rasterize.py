@@ -10,7 +10,7 @@ import torch
 from reference.rasterize import rasterize_reference
 
 import wtopo
-from wtopo.rasterize import RasterConfig, rasterize_surfels
+from wtopo.ops import RasterConfig, rasterize_surfels
 
 IMAGES = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
 # float64 kernel vs float64 reference: same maths, different summation order; observed <= 1e-11

@@ -17,6 +17,7 @@ _OPS = {
     "marching_cubes": "wtopo.marching_cubes",
     "rasterize_surfels": "wtopo.rasterize",
     "RenderOutput": "wtopo.rasterize",
+    "RasterConfig": "wtopo.rasterize",
     "raycast_mesh": "wtopo.raycast",
     "MeshRender": "wtopo.raycast",
     "closest_faces": "wtopo.raycast",
