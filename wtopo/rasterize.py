@@ -6,15 +6,17 @@ Pipeline of :func:`rasterize_surfels` (kernels in ``kernels/rasterize.py`` and
 
 1. validation (before any launch);
 2. binning (discrete, outside the tape): per-surfel tile rectangle from the footprint bound,
-   one ``(tile << 32 | depth rank, surfel)`` pair per covered tile, Warp's stable radix sort,
-   per-tile ranges;
+   one ``(tile << rank_bits | depth rank, surfel)`` pair per covered tile (int32 keys when they
+   fit), Warp's stable radix sort, per-tile ranges;
 3. the differentiable op through :func:`wtopo._bridge.apply`: per-surfel preparation (frame,
    projected centre, SH colour; Warp autodiff), per-pixel front-to-back compositing, and the
    explicit reverse-traversal adjoint registered with :meth:`warp.Tape.record_func`.
 
-On CPU the pixel kernels run as tile chunks pulled by one Python thread per core (Warp releases
-the GIL); each worker accumulates per-surfel gradients and visibility counts into its own buffer
-(Warp's CPU ``atomic_add`` is not atomic across threads) and the buffers are summed afterwards.
+On CPU the pixel kernels run as interleaved tile chunks on one Python thread per core (Warp
+releases the GIL); each worker accumulates per-surfel gradients and visibility counts into its
+own buffer (Warp's CPU ``atomic_add`` is not atomic across threads) and the buffers are summed
+afterwards in a fixed order, so reruns are bit-identical. On CUDA each pixel kernel is one launch
+with real atomics.
 """
 
 from __future__ import annotations
@@ -67,7 +69,8 @@ class RenderOutput:
 
     Attributes:
         rgb: colour ``[H, W, 3]`` (background composited behind).
-        alpha: accumulated opacity ``1 - T`` ``[H, W]``.
+        alpha: accumulated opacity ``1 - T`` ``[H, W]``; ``alpha == 0`` marks pixels nothing
+            covers (depth, median depth, normal and distortion are 0 there, with 0 gradients).
         depth: expected z-depth normalised by alpha ``[H, W]`` (0 where alpha = 0).
         median_depth: z-depth of the contribution where transmittance crosses 0.5 (the last one
             if it never does; 0 where nothing contributes) ``[H, W]``.
@@ -77,9 +80,12 @@ class RenderOutput:
             ``m = far / (far - near) * (1 - near / z)`` ``[H, W]``.
         visibility: int32 ``[N]``, number of pixels each surfel contributed to (discrete).
         radii: int32 ``[N]``, screen radius bound in pixels (0: culled or off-screen; discrete).
-        means2d: projected centres in pixels ``[N, 2]``, a leaf with ``requires_grad``; after
-            backward its ``.grad`` is ``dL/d(shift)`` for a screen-space translation of each
-            surfel's footprint (the densification statistic).
+        means2d: projected centres in pixels ``[N, 2]`` (lens distortion applied), a leaf that
+            requires grad whenever an input does; after backward its ``.grad`` is ``dL/d(shift)``
+            for a screen-space translation ``shift`` of each surfel's whole footprint, taken at 0
+            (the densification statistic): the filter branch sees ``pixel - (centre + shift)``,
+            the object-space branch the ray through ``pixel - shift`` (pinhole intrinsics; exact
+            without lens distortion). The value of this tensor is never read by the op.
         near: near plane used (world units).
         far: far value of the distortion mapping (world units).
     """
@@ -431,8 +437,8 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     over for tiny or edge-on surfels: ``rho = min(rho3d, rho2d)``, ``alpha = min(0.99, opacity *
     exp(-rho / 2))``. Contributions with ``alpha < 1/255`` or a z-depth below ``near`` (the
     intersection depth, or the centre depth in the filter branch) are skipped; compositing runs
-    front to back in the order of the centres' z-depth, per tile (8x8 pixels by default), and stops before the
-    transmittance would fall below 1e-4.
+    front to back in the order of the centres' z-depth, per tile (8x8 pixels by default), and
+    stops before the transmittance would fall below 1e-4.
 
     Args:
         means: surfel centres [world units], shape [N, 3], float32 or float64.
