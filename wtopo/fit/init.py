@@ -16,7 +16,7 @@ from ..scene import _carve
 from .config import InitConfig
 from .surfels import Surfels
 
-__all__ = ["initial_surfels", "common_volume_points"]
+__all__ = ["initial_surfels", "common_volume_points", "projected_colors"]
 
 _MAX_INIT_SCALE = 0.05  # no initial surfel wider than 5 % of the unit cube (isolated points)
 
@@ -60,12 +60,33 @@ def common_volume_points(scene, n: int, generator: torch.Generator) -> np.ndarra
     return kept[idx] + jitter
 
 
+def projected_colors(scene, points: np.ndarray) -> np.ndarray:
+    """Mean image colour [P, 3] of each point over the views it projects into (inside the mask
+    when masks exist); mid grey where no view sees it. Occlusion is ignored: a start, not a fit."""
+    acc = np.zeros_like(points)
+    cnt = np.zeros(len(points))
+    images = scene.images.detach().cpu().numpy()
+    masks = None if scene.masks is None else scene.masks.detach().cpu().numpy()
+    for i, cam in enumerate(scene.cameras):
+        uv, z = cam.project(points)
+        u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        ok = (z > 0) & (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height)
+        if masks is not None:
+            ok[ok] &= masks[i][v[ok], u[ok]]
+        acc[ok] += images[i][v[ok], u[ok]]
+        cnt[ok] += 1
+    out = np.full_like(points, 0.5)
+    seen = cnt > 0
+    out[seen] = acc[seen] / cnt[seen, None]
+    return out
+
+
 def initial_surfels(scene, cfg: InitConfig, source: str, *, sh_degree: int, device: torch.device,
                     generator: torch.Generator) -> Surfels:
     """Surfels for stage 1 in the internal frame of the normalised ``scene``.
 
     Scales are the mean distance to ``cfg.scale_neighbours`` nearest neighbours; rotations random;
-    colours the scene's point colours or mid grey.
+    colours the scene's point colours or the mean colour the points project to.
     """
     if source == "points":
         if scene.points is None or len(scene.points) == 0:
@@ -75,7 +96,7 @@ def initial_surfels(scene, cfg: InitConfig, source: str, *, sh_degree: int, devi
                 else np.full_like(pts, 0.5))
     elif source == "cameras":
         pts = common_volume_points(scene, int(cfg.num_points), generator)
-        cols = np.full_like(pts, 0.5)
+        cols = projected_colors(scene, pts)
     else:
         raise ValueError(f"init source must be 'points' or 'cameras', got {source!r}")
     k = min(cfg.scale_neighbours + 1, len(pts))

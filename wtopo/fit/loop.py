@@ -11,6 +11,7 @@ finishes the current step, checkpoints and returns the results so far.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import signal
 import threading
@@ -472,8 +473,14 @@ class FitRun:
             elif fc.method != "proxy":
                 raise ValueError(f"final.method must be 'tsdf' or 'proxy', got {fc.method!r}")
             if mesh is None:
+                if NormalFlip(self.cfg.mesh.normal_flip) != NormalFlip.RANDOM and not (
+                        self.cfg.coevolution.enabled and self.it > self.warmup_end):
+                    # no mesh guidance ran: orient the normals by the cameras that saw each surfel
+                    dens.align_normal_signs(self.surfels, NormalFlip.VIEW)
+                final = ProxyMesh(dataclasses.replace(self.cfg.mesh, resolution=fc.poisson_resolution),
+                                  box=self.proxy.box, prior=self.proxy.prior)
                 with torch.no_grad():
-                    pm = self.proxy.build(self.surfels)
+                    pm = final.build(self.surfels)
                 if pm is None:
                     raise TSDFEmptyError("no final mesh: the TSDF fusion and the proxy mesh are both empty")
                 mesh = trimesh.Trimesh(pm.verts.detach().cpu().numpy(), pm.faces.cpu().numpy(), process=True)
@@ -542,8 +549,8 @@ class FitRun:
             "elapsed": self.elapsed(), "timers": dict(self.timers.total), "rng": rng_state(),
             "generator": self.gen.get_state(), "config_hash": self.hash, "config": self.cfg.to_dict(),
             "normalization": {"scale": self.sim.scale, "translation": list(self.sim.translation)},
-            "proxy": {"box": None if self.proxy.size == 1.0 and not self.proxy.lower.any() else
-                      (self.proxy.lower.tolist(), self.proxy.size), "prior": self.proxy.prior},
+            "proxy": {"box": None if self.proxy.box is None else [np.asarray(b).tolist() for b in self.proxy.box],
+                      "prior": self.proxy.prior},
             "tsdf_info": self.tsdf_info, "total_failures": self.total_failures,
         }
 
@@ -589,9 +596,8 @@ class FitRun:
         set_rng_state(st["rng"])
         self.gen.set_state(st["generator"])
         px = st["proxy"]
-        self.proxy = ProxyMesh(self.cfg.mesh, prior=px["prior"])
-        if px["box"] is not None:
-            self.proxy.lower, self.proxy.size = np.asarray(px["box"][0]), float(px["box"][1])
+        self.proxy = ProxyMesh(self.cfg.mesh, box=None if px["box"] is None else tuple(np.asarray(b) for b in px["box"]),
+                               prior=px["prior"])
         return True
 
     # -- timeline --------------------------------------------------------------------------------------------------

@@ -71,6 +71,7 @@ class ProxyMesh:
                  prior: tuple[torch.Tensor, torch.Tensor] | None = None):
         self.cfg = cfg
         self.raycaster = MeshRaycaster()
+        self.box = box
         if box is None:
             self.lower, self.size = np.zeros(3), 1.0
         else:

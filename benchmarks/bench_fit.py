@@ -1,0 +1,155 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Benchmark of ``wtopo.fit`` on the default bunny scene, with the ablation table of issue 6.
+
+Measures, per variant and seed: wall time of the whole fit (kernel compilation included when the
+Warp cache is cold), Chamfer distance and F-score at 0.5 % of the ground truth's bounding-box
+diagonal (uniform surface samples), PSNR on the held-out views, watertightness and component
+count. The peer measured in the same process is the TSDF fusion of the *ground-truth* depth maps
+of the training views at the same resolution (the upper bound of image-based fitting at that
+resolution, DESIGN.md); each variant's Chamfer is printed as a ratio to it.
+
+Variants: ``full`` (defaults); ``no_mesh_loop`` (co-evolution iterations without the proxy
+mesh); ``view_flips`` (normal signs from view directions only); ``random_flips``; ``no_geo_density``
+(no geometry-aware prune / densification); ``one_point`` (1 oriented point per surfel instead of 5).
+
+Command (writes benchmarks/fit.md)::
+
+    PYTHONPATH=. python benchmarks/bench_fit.py --out benchmarks/fit.md
+    PYTHONPATH=. python benchmarks/bench_fit.py --variants full --seeds 0 1   # subset
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+import torch
+
+from wtopo import scenes
+from wtopo.fit import FitConfig, fit
+from wtopo.fit.evaluate import F_SCORE_TAU, geometry_metrics
+from wtopo.fit.tsdf import auto_bounds, cleanup_mesh, fuse_depths
+
+
+def _full(cfg):
+    return cfg
+
+
+def _no_mesh_loop(cfg):
+    cfg.coevolution.enabled = False
+    return cfg
+
+
+def _view_flips(cfg):
+    cfg.mesh.normal_flip = "view"
+    return cfg
+
+
+def _random_flips(cfg):
+    cfg.mesh.normal_flip = "random"
+    return cfg
+
+
+def _no_geo_density(cfg):
+    cfg.densify.geometry_prune = False
+    cfg.densify.geometry_densify = False
+    return cfg
+
+
+def _one_point(cfg):
+    cfg.mesh.samples_per_surfel = 1
+    return cfg
+
+
+VARIANTS = {"full": _full, "no_mesh_loop": _no_mesh_loop, "view_flips": _view_flips,
+            "random_flips": _random_flips, "no_geo_density": _no_geo_density, "one_point": _one_point}
+
+
+def gt_depth_peer(scene) -> dict:
+    """TSDF fusion of the ground-truth depth maps of the training views (the upper bound)."""
+    internal = scene.normalized()
+    train = internal.split("train")
+    t = time.perf_counter()
+    b = auto_bounds(torch.as_tensor(np.asarray(internal.gt_mesh.vertices)), None,
+                    resolution=FitConfig().final.resolution, truncation_voxels=FitConfig().tsdf.truncation_voxels)
+    mesh = fuse_depths(train.cameras, [d.cpu().numpy() for d in train.depths], [i.cpu().numpy() for i in train.images], b)
+    mesh = internal.info["world_from_internal"].to_internal(cleanup_mesh(mesh))
+    g = geometry_metrics(mesh, scene.gt_mesh)
+    return {"time": time.perf_counter() - t, **g}
+
+
+def run_variant(scene, name: str, seed: int, iterations: int | None) -> dict:
+    cfg = VARIANTS[name](FitConfig())
+    cfg.runtime.seed = seed
+    cfg.runtime.usd_every = 0
+    if iterations is not None:
+        w = iterations * cfg.warmup.iterations // (cfg.warmup.iterations + cfg.coevolution.iterations)
+        cfg.warmup.iterations, cfg.coevolution.iterations = w, iterations - w
+    t = time.perf_counter()
+    res = fit(scene, cfg, progress=False)
+    elapsed = time.perf_counter() - t
+    g = geometry_metrics(res.mesh, scene.gt_mesh, seed=seed)
+    comps = len(res.mesh.split(only_watertight=False)) if len(res.mesh.faces) else 0
+    return {"variant": name, "seed": seed, "time": elapsed, "chamfer_rel": g["chamfer_rel"], "f_score": g["f_score"],
+            "psnr": res.report.get("psnr", float("nan")), "watertight": bool(res.mesh.is_watertight),
+            "components": comps, "surfels": len(res.surfels), "stage_times": res.report["stage_times_s"]}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="bunny")
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0])
+    ap.add_argument("--iterations", type=int, help="total iterations (default: the FitConfig defaults)")
+    ap.add_argument("--out", help="markdown file to write the table to")
+    args = ap.parse_args(argv)
+
+    load0 = os.getloadavg()[0]
+    scene = scenes.load(args.scene)
+    peer = gt_depth_peer(scene)
+    print(f"peer (TSDF of ground-truth depth): Chamfer {100 * peer['chamfer_rel']:.3f} % of diagonal, "
+          f"F-score {peer['f_score']:.3f}", flush=True)
+    rows = []
+    for name in args.variants:
+        for seed in args.seeds:
+            r = run_variant(scene, name, seed, args.iterations)
+            rows.append(r)
+            print(f"{name:15s} seed {seed}: {r['time']:6.1f} s  Chamfer {100 * r['chamfer_rel']:.3f} % "
+                  f"({r['chamfer_rel'] / peer['chamfer_rel']:.1f}x peer)  F {r['f_score']:.3f}  PSNR {r['psnr']:.2f}  "
+                  f"watertight {r['watertight']}  components {r['components']}", flush=True)
+    load1 = os.getloadavg()[0]
+    if args.out:
+        lines = [
+            "# wtopo.fit on the default bunny scene",
+            "",
+            f"Command: `PYTHONPATH=. python benchmarks/bench_fit.py {' '.join(argv if argv is not None else sys.argv[1:])}`",
+            "",
+            f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load average "
+            f"{load0:.1f} at start and {load1:.1f} at end (the cores are shared: times are noisy); "
+            f"torch {torch.__version__}.",
+            "",
+            f"Peer in the same process: TSDF fusion of the ground-truth depth maps: Chamfer "
+            f"{100 * peer['chamfer_rel']:.3f} % of the bbox diagonal, F-score {peer['f_score']:.3f}.",
+            f"F-score at {100 * F_SCORE_TAU:.1f} % of the diagonal. Targets (issue 6): time <= 300 s, "
+            "Chamfer <= 0.35 %, F-score >= 0.85, watertight, one component.",
+            "",
+            "| variant | seed | time [s] | Chamfer [% diag] | x peer | F-score | PSNR [dB] | watertight | components | surfels |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for r in rows:
+            lines.append(f"| {r['variant']} | {r['seed']} | {r['time']:.1f} | {100 * r['chamfer_rel']:.3f} | "
+                         f"{r['chamfer_rel'] / peer['chamfer_rel']:.1f} | {r['f_score']:.3f} | {r['psnr']:.2f} | "
+                         f"{r['watertight']} | {r['components']} | {r['surfels']} |")
+        lines += ["", "Stage times of the first row [s]: " +
+                  ", ".join(f"{k} {v:.1f}" for k, v in rows[0]["stage_times"].items()), ""]
+        with open(args.out, "w") as f:
+            f.write("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
