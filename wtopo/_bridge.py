@@ -25,6 +25,7 @@ Python threads: Warp's CPU backend runs each launch on one thread but releases t
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 from collections.abc import Callable, Sequence
@@ -127,27 +128,35 @@ class WarpOp:
     extra: dict = field(default_factory=dict)
 
 
+@contextlib.contextmanager
+def _on_torch_stream(wdev, device):
+    """Scope Warp to ``wdev`` and, on CUDA, to torch's current stream on ``device``."""
+    with wp.ScopedDevice(wdev):
+        if wdev.is_cuda:
+            with wp.ScopedStream(wp.stream_from_torch(device)):
+                yield
+        else:
+            yield
+
+
 class _WarpFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, op: WarpOp, *tensors):
         device = next(t.device for t in tensors if isinstance(t, torch.Tensor))
         wdev = warp_device(device)
-        wp_inputs = []
-        for t, dt, diff in zip(tensors, op.in_dtypes, op.differentiable_inputs):
-            if not isinstance(t, torch.Tensor):
-                wp_inputs.append(t)
-                continue
-            req = bool(diff and t.requires_grad)
-            wp_inputs.append(to_warp(t, dt, requires_grad=req))
         tape = wp.Tape()
-        stream = wp.stream_from_torch(device) if wdev.is_cuda else None
-        with wp.ScopedDevice(wdev):
-            if stream is not None:
-                with wp.ScopedStream(stream), tape:
-                    outs = op.run(*wp_inputs)
-            else:
-                with tape:
-                    outs = op.run(*wp_inputs)
+        # All Warp work (gradient-buffer zeroing included) on torch's current stream, so it is
+        # ordered with the torch ops around it.
+        with _on_torch_stream(wdev, device):
+            wp_inputs = []
+            for t, dt, diff in zip(tensors, op.in_dtypes, op.differentiable_inputs):
+                if not isinstance(t, torch.Tensor):
+                    wp_inputs.append(t)
+                    continue
+                req = bool(diff and t.requires_grad)
+                wp_inputs.append(to_warp(t, dt, requires_grad=req))
+            with tape:
+                outs = op.run(*wp_inputs)
         if len(outs) != len(op.differentiable_outputs):
             raise RuntimeError(f"{op.name}: run returned {len(outs)} outputs, expected {len(op.differentiable_outputs)}")
         torch_outs = []
@@ -160,6 +169,7 @@ class _WarpFunction(torch.autograd.Function):
         ctx.wp_inputs = wp_inputs
         ctx.wp_outputs = outs
         ctx.wdev = wdev
+        ctx.torch_device = device
         ctx.save_for_backward(*[t for t in tensors if isinstance(t, torch.Tensor)])
         nondiff = [t for t, d in zip(torch_outs, op.differentiable_outputs) if not d]
         if nondiff:
@@ -176,23 +186,22 @@ class _WarpFunction(torch.autograd.Function):
             if not diff or g is None:
                 continue
             seeds[o] = to_warp(g, o.dtype)
-        result: list = [None]
-        if seeds:
-            stream = wp.stream_from_torch(grads[0].device) if ctx.wdev.is_cuda else None
-            with wp.ScopedDevice(ctx.wdev):
-                if stream is not None:
-                    with wp.ScopedStream(stream):
-                        ctx.tape.backward(grads=seeds)
+        # Everything below runs on torch's current stream: Warp's own CUDA streams do not order
+        # against it, so a clone or zero issued outside this scope could read or clear the input
+        # gradients while the backward kernels are still running (seen on an H200 as partially
+        # accumulated gradients).
+        with _on_torch_stream(ctx.wdev, ctx.torch_device):
+            if seeds:
+                ctx.tape.backward(grads=seeds)
+            result: list = [None]
+            for a, diff in zip(ctx.wp_inputs, op.differentiable_inputs):
+                if isinstance(a, wp.array) and diff and a.requires_grad and seeds:
+                    # Warp's copy (one memcpy) rather than torch's clone: torch's 2-thread copy waits for
+                    # a time slice of its second thread and stalls ~20 ms on an oversubscribed CPU.
+                    result.append(wp.to_torch(wp.clone(a.grad)))
                 else:
-                    ctx.tape.backward(grads=seeds)
-        for a, diff in zip(ctx.wp_inputs, op.differentiable_inputs):
-            if isinstance(a, wp.array) and diff and a.requires_grad and seeds:
-                # Warp's copy (one memcpy) rather than torch's clone: torch's 2-thread copy waits for
-                # a time slice of its second thread and stalls ~20 ms on an oversubscribed CPU.
-                result.append(wp.to_torch(wp.clone(a.grad)))
-            else:
-                result.append(None)
-        ctx.tape.zero()
+                    result.append(None)
+            ctx.tape.zero()
         return tuple(result)
 
 
