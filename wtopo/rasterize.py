@@ -265,11 +265,9 @@ def _launch_tiles(kernel, n_tiles: int, tile_px: int, inputs: list, outputs: lis
     if n_tiles <= 0:
         return
     key = (kernel.key, str(device), tuple(getattr(a, "dtype", type(a)) for a in (*inputs, *outputs)))
-    if workers <= 1 or key not in _compiled:
-        with _compile_lock:  # the first launch compiles: never from two threads at once
-            wp.launch(kernel, dim=n_tiles * tile_px, inputs=[0, 0, *inputs], outputs=outputs, device=device,
-                      record_tape=False)
-            _compiled.add(key)
+    if workers <= 1:
+        wp.launch(kernel, dim=n_tiles * tile_px, inputs=[0, 0, *inputs], outputs=outputs, device=device,
+                  record_tape=False)
         return
     chunk = tiles_per_chunk or max(1, n_tiles // (16 * workers))
     n_chunks = -(-n_tiles // chunk)
@@ -282,6 +280,12 @@ def _launch_tiles(kernel, n_tiles: int, tile_px: int, inputs: list, outputs: lis
             wp.launch(kernel, dim=(hi - lo) * tile_px, inputs=[lo * tile_px, w, *inputs], outputs=outputs,
                       device=device, record_tape=False)
 
+    if key not in _compiled:
+        with _compile_lock:  # the first launch compiles: never from two threads at once
+            for w in range(workers):  # same chunk-to-worker assignment as the threaded path: same sums
+                work(w)
+            _compiled.add(key)
+        return
     futures = [_bridge._get_pool(workers).submit(work, w) for w in range(workers)]  # noqa: SLF001
     for f in futures:
         f.result()
