@@ -479,7 +479,7 @@ def _check_camera_spread(centers: np.ndarray, ref_len: float) -> None:
         raise ValueError(f"all {n} camera centres coincide (cameras[0] at {centers[0].tolist()}); "
                          "the region of interest cannot be estimated, give Scene(bounds=...)")
     if sv[1] <= _COLINEAR_RATIO * sv[0]:
-        far = int(np.argmax(np.linalg.norm(c, axis=1)))
+        far = int(np.argmax(np.linalg.norm(centers - centers[0], axis=1)))  # never cameras[0] itself
         raise ValueError(f"all {n} camera centres lie on one line (e.g. cameras[0] at {centers[0].tolist()}, "
                          f"cameras[{far}] at {centers[far].tolist()}); the region of interest cannot be "
                          "estimated, give Scene(bounds=...)")
