@@ -31,6 +31,12 @@ SCALE_MIN = 1.0e-30  # scales are clamped here so 1 / s stays finite in float32
 PARALLEL_EPS = 1.0e-12  # |dot(ray, normal)| below this: the ray is parallel to the surfel plane
 RHO_BIG = 1.0e30  # rho3d of a parallel ray or an overflowing intersection: the filter branch wins
 QUAT_MIN_SQ = 1.0e-30  # |q|^2 below this: identity rotation (documented fallback, zero gradient)
+# rho3d <= rho2d + RHO_TIE picks the object-space branch. At the ray through the centre both exponents
+# are 0 in exact arithmetic and only rounding (which differs between CPU and CUDA: nvcc fuses
+# a + t * b into an FMA) decided the branch, hence the gradient (the branches' derivatives differ at
+# the tie). Rounding leaves rho3d ~ (|a.U| eps)^2 there: ~1e-13 in float32 for |a.U| ~ 10; the
+# slack changes alpha by at most a relative 5e-10.
+RHO_TIE = 1.0e-9
 
 vec16f = wp.types.vector(length=16, dtype=wp.float32)  # packed per-surfel record (pack_surfels_kernel)
 vec16d = wp.types.vector(length=16, dtype=wp.float64)
@@ -232,7 +238,7 @@ def splat_hit(d: Any, g: Any, pix: Any):
         r = u * u + v * v
         if wp.isfinite(r):
             rho3d = r
-    branch3d = rho3d <= rho2d
+    branch3d = rho3d <= rho2d + type(zc)(RHO_TIE)
     rho = rho2d
     z = zc
     if branch3d:

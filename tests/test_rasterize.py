@@ -22,6 +22,13 @@ F32_GRAD_REL = 2e-4
 # ill-conditioned geometry (ray ~parallel to the plane, camera on the plane): t = -dot(a, n) / dot(d, n)
 # amplifies rounding by ~1/angle; observed differences <= 1e-7 relative, so gradients get this slack
 GRAZING_RTOL, GRAZING_ATOL = 1e-6, 1e-7
+# camera on or inside a surfel plane: gradients reach ~1e8 through 1 / dot(a, n) with a.n ~ rounding, so
+# their small entries carry the rounding of the large ones; CUDA (nvcc fuses multiply-adds into FMAs)
+# differs from the reference by <= 2e-9 of the gradient's largest entry (H200), CPU by <= 3e-16
+INSIDE_SCALE_REL = 1e-8
+# repeated backward on CUDA: float atomics sum per-pixel contributions in a varying order (last bits);
+# observed <= 3e-15 relative in float64 (H200). CPU sums per-worker buffers in a fixed order: exact.
+CUDA_RERUN_RTOL, CUDA_RERUN_ATOL = 1e-12, 1e-12
 FD_EPS = 1e-6  # gradcheck step: small enough not to cross the alpha cut-off or the branch switch
 
 
@@ -355,7 +362,7 @@ def test_camera_inside_surfel(device, where):
     go, gr = _vjp(out, ref, params, shift)
     for a, b in zip(go, gr):
         assert bool(torch.isfinite(a).all())
-        _assert_close(a, b, GRAZING_RTOL, GRAZING_ATOL)
+        _assert_close(a, b, GRAZING_RTOL, GRAZING_ATOL + INSIDE_SCALE_REL * float(b.abs().max()))
 
 
 def test_straddling_near_plane_skips_pixels(device):
@@ -422,15 +429,19 @@ def test_cpu_worker_count_does_not_change_results(monkeypatch):
 
 
 def test_repeated_backward_is_stable(device):
-    """Return identical gradients when the same graph is differentiated twice."""
+    """Return identical gradients (CUDA: to atomics' reordering) when the same graph is differentiated twice."""
     params = _surfels(12, device=device, seed=53)
     out = rasterize_surfels(*params, _camera())
     loss = out.rgb.sum() + out.distortion.sum() + out.median_depth.sum()
     g1 = torch.autograd.grad(loss, params, retain_graph=True)
     g2 = torch.autograd.grad(loss, params)
+    cuda = torch.device(device).type == "cuda"
     for a, b in zip(g1, g2):
         assert float(a.abs().max()) > 0
-        torch.testing.assert_close(a, b, rtol=0, atol=0)
+        if cuda:
+            torch.testing.assert_close(a, b, rtol=CUDA_RERUN_RTOL, atol=CUDA_RERUN_ATOL)
+        else:
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
 
 
 # -- validation ----------------------------------------------------------------------------------

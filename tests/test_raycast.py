@@ -153,7 +153,7 @@ def test_gradients_match_reference(device):
 
 
 def test_repeated_backward_gives_same_gradient(device):
-    """Return identical vertex gradients when one render is differentiated twice (tape reset between)."""
+    """Return identical vertex gradients (CUDA: to atomics' reordering) when one render is differentiated twice."""
     verts, faces = _sphere(2, device=device)
     v = verts.clone().requires_grad_()
     out = ops.raycast_mesh(v, faces, _front_camera())
@@ -162,7 +162,12 @@ def test_repeated_backward_gives_same_gradient(device):
     g1 = torch.autograd.grad(loss, v, retain_graph=True)[0]
     g2 = torch.autograd.grad(loss, v)[0]
     assert g1.abs().sum() > 0
-    torch.testing.assert_close(g1, g2, rtol=0, atol=0)
+    if torch.device(device).type == "cuda":
+        # CUDA atomics add the per-pixel contributions of a vertex in a varying order: last-bit
+        # differences (observed <= 3e-14 relative in float64 on an H200); CPU reruns are exact
+        torch.testing.assert_close(g1, g2, rtol=1e-12, atol=1e-12)
+    else:
+        torch.testing.assert_close(g1, g2, rtol=0, atol=0)
 
 
 def test_mesh_query_ray_path_matches_default(device):

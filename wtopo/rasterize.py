@@ -438,7 +438,8 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     Each pixel's ray (:meth:`wtopo.Camera.pixel_rays`, so OpenCV distortion is exact) is
     intersected with each surfel's plane; the local coordinates ``(u, v)`` in units of the scales
     give ``rho3d = u^2 + v^2``; the screen-space low-pass ``rho2d = 2 |pixel - centre|^2`` takes
-    over for tiny or edge-on surfels: ``rho = min(rho3d, rho2d)``, ``alpha = min(0.99, opacity *
+    over for tiny or edge-on surfels: ``rho = min(rho3d, rho2d)`` (the object-space value while
+    ``rho3d <= rho2d + 1e-9``, so rounding cannot pick the branch at the centre ray), ``alpha = min(0.99, opacity *
     exp(-rho / 2))``. Contributions with ``alpha < 1/255`` or a z-depth below ``near`` (the
     intersection depth, or the centre depth in the filter branch) are skipped; compositing runs
     front to back in the order of the centres' z-depth, per tile (8x8 pixels by default), and

@@ -123,7 +123,7 @@ def rasterize_reference(means, quats, scales, opacities, colors_or_sh, camera, *
     rho3d = torch.where(parallel | ~torch.isfinite(rho3d), torch.full_like(rho3d, 1e30), rho3d)
     diff = pix[:, None, :] - (m2 + shift)[None]
     rho2d = 2.0 * (diff * diff).sum(-1)
-    b3 = rho3d <= rho2d
+    b3 = rho3d <= rho2d + 1e-9  # the kernel's RHO_TIE: ties at the centre ray go to the object-space branch
     rho = torch.where(b3, rho3d, rho2d)
     z = torch.where(b3, tt, zc[None].expand_as(tt))
     alpha = torch.clamp(opacities[None] * torch.exp(-0.5 * rho), max=0.99)
