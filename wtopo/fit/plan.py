@@ -191,10 +191,14 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
              None if cfg.runtime.image_scale == 1.0 else cfg.runtime.image_scale)
 
     # -- held-out views
-    n_eval = cfg.runtime.eval_views if n_views >= _MIN_EVAL_VIEWS else 0
-    plan.set("eval_views", n_eval,
-             f"{n_views} views: {n_eval} held out for PSNR" if n_eval else
-             f"only {n_views} views: all used for training, PSNR on training views")
+    test = getattr(scene, "test_indices", None)
+    if test is not None and len(test):
+        plan.set("eval_views", len(test), f"the scene's {len(test)} held-out views")
+    else:
+        n_eval = cfg.runtime.eval_views if n_views >= _MIN_EVAL_VIEWS else 0
+        plan.set("eval_views", n_eval,
+                 f"{n_views} views: {n_eval} held out for PSNR" if n_eval else
+                 f"only {n_views} views: all used for training, PSNR on training views")
 
     # -- stages
     plan.set("tsdf_reinit", cfg.tsdf.enabled, "configuration" if not cfg.tsdf.enabled else
