@@ -9,7 +9,7 @@ the best and median wall times and their ratios against ``skimage.measure.marchi
 as the rise of the peak resident set size over a run of wtopo forward + backward.
 
 Run: ``PYTHONPATH=. /work/venv/bin/python benchmarks/bench_marching_cubes.py [--sizes 64 128 256]
-[--repeats 15] [--no-warp]``.
+[--repeats 15] [--no-warp] [--device cuda:0]``.
 """
 
 from __future__ import annotations
@@ -64,10 +64,50 @@ def run_warp(field: torch.Tensor) -> tuple[int, int]:
     return verts.shape[0], tris.shape[0] // 3
 
 
+_SYNC = None  # set to a callable that waits for the device (CUDA runs)
+
+
 def _time(fn, *args) -> float:
+    if _SYNC:
+        _SYNC()
     t = time.perf_counter()
     fn(*args)
+    if _SYNC:
+        _SYNC()
     return time.perf_counter() - t
+
+
+def run_wtopo_forward(field: torch.Tensor) -> tuple[int, int]:
+    """wtopo's marching cubes forward only (no autograd graph)."""
+    from wtopo.ops import marching_cubes
+
+    verts, faces = marching_cubes(field, lower=(-1, -1, -1), upper=(1, 1, 1))
+    return verts.shape[0], faces.shape[0]
+
+
+def main_device(args) -> None:
+    """CUDA timing: wtopo forward and forward + backward on the device, skimage (CPU) as the peer."""
+    global _SYNC
+    dev = args.device
+    _SYNC = lambda: torch.cuda.synchronize(dev)  # noqa: E731
+    print(f"device {torch.cuda.get_device_name(dev)}, field: perturbed sphere SDF, float32; times: min / median")
+    print(f"{'n':>5} {'V':>8} {'F':>8} | {'wtopo fwd':>18} {'wtopo f+b':>18} | {'skimage f (CPU)':>15} | {'peak MiB':>8}")
+    for n in args.sizes:
+        field = make_field(n)
+        sk = [_time(run_skimage, field.numpy()) for _ in range(3)]
+        field = field.to(dev)
+        leaf = field.clone().requires_grad_(True)
+        nv, nf = run_wtopo_forward(field)
+        run_wtopo(leaf)
+        torch.cuda.reset_peak_memory_stats(dev)
+        fwd = [_time(run_wtopo_forward, field) for _ in range(args.repeats)]
+        fb = [_time(run_wtopo, leaf) for _ in range(args.repeats)]
+        import warp as wp
+
+        peak = torch.cuda.max_memory_allocated(dev) / 2**20 + wp.get_mempool_used_mem_high(dev) / 2**20
+        print(f"{n:>5} {nv:>8} {nf:>8} | {min(fwd) * 1e3:7.3f} / {statistics.median(fwd) * 1e3:6.3f} ms "
+              f"{min(fb) * 1e3:7.3f} / {statistics.median(fb) * 1e3:6.3f} ms | {min(sk) * 1e3:12.1f} ms | "
+              f"{peak:8.1f}")
 
 
 def peak_memory_child(n: int) -> None:
@@ -100,7 +140,12 @@ def main() -> None:
     parser.add_argument("--torch-threads", type=int, default=None,
                         help="torch.set_num_threads for the run (default: torch's own choice)")
     parser.add_argument("--memory-child", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--device", default="cpu", help="cpu (default) or cuda:N: time wtopo on that device "
+                        "(peak = torch's peak + Warp's pool high-water mark instead of RSS)")
     args = parser.parse_args()
+    if args.device != "cpu":
+        main_device(args)
+        return
     if args.memory_child is not None:
         peak_memory_child(args.memory_child)
         return

@@ -137,7 +137,11 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
     wp.utils.array_scan(chunk_verts, vert_start, inclusive=False)
     wp.utils.array_scan(chunk_faces, face_start, inclusive=False)
     # host sync: output sizes for allocation (last exclusive start + last count)
-    tail = [int(a[-1:].numpy()[0]) for a in (vert_start, chunk_verts, face_start, chunk_faces)]
+    tails = (vert_start, chunk_verts, face_start, chunk_faces)
+    if device.is_cpu:
+        tail = [int(a[-1:].numpy()[0]) for a in tails]
+    else:  # one device-to-host copy (one sync) instead of four
+        tail = torch.stack([wp.to_torch(a)[-1] for a in tails]).tolist()
     n_verts, n_faces = tail[0] + tail[1], tail[2] + tail[3]
 
     verts = wp.empty(n_verts, dtype=vec, device=device, requires_grad=True)
