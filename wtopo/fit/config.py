@@ -96,7 +96,7 @@ class OptimConfig:
 class WarmupConfig:
     """Stage 2: photometric warm-up without mesh losses."""
 
-    iterations: int = 600
+    iterations: int = 400
     """Iterations (one view each)."""
 
 
@@ -130,7 +130,7 @@ class TSDFConfig:
 class CoevolutionConfig:
     """Stage 4: surfels and proxy mesh co-evolve; mesh losses every ``mesh_every`` iterations."""
 
-    iterations: int = 600
+    iterations: int = 200
     """Iterations."""
     mesh_every: int = 1
     """Rebuild the proxy mesh and apply the mesh losses every this many iterations (1 = always)."""
