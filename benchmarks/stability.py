@@ -196,7 +196,7 @@ def _transformed_case(scale: float, offset: float):
             dm = float((res.surfels.means - base["res"].surfels.means).detach().abs().max())
         if not d <= SCALE_TOL:
             raise CaseFailed(f"internal-frame distance to the unscaled fit {d:.2e} > {SCALE_TOL:.0e} ({detail})")
-        return f"internal-frame distance to the unscaled fit {d:.1e} (tol {SCALE_TOL:.0e}), max |d means| {dm:.1e}; {detail}"
+        return f"internal-frame distance to the unscaled fit {d:.1e} (tol {SCALE_TOL:.0e}), max abs difference of the surfel means {dm:.1e}; {detail}"
 
     return case
 
