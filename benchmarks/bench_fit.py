@@ -72,13 +72,14 @@ VARIANTS = {"full": _full, "no_mesh_loop": _no_mesh_loop, "view_flips": _view_fl
 
 def gt_depth_peer(scene) -> dict:
     """TSDF fusion of the ground-truth depth maps of the training views (the upper bound)."""
+    sim = scene.normalization()
     internal = scene.normalized()
     train = internal.split("train")
     t = time.perf_counter()
     b = auto_bounds(torch.as_tensor(np.asarray(internal.gt_mesh.vertices)), None,
                     resolution=FitConfig().final.resolution, truncation_voxels=FitConfig().tsdf.truncation_voxels)
     mesh = fuse_depths(train.cameras, [d.cpu().numpy() for d in train.depths], [i.cpu().numpy() for i in train.images], b)
-    mesh = internal.info["world_from_internal"].to_internal(cleanup_mesh(mesh))
+    mesh = sim.to_world(cleanup_mesh(mesh))
     g = geometry_metrics(mesh, scene.gt_mesh)
     return {"time": time.perf_counter() - t, **g}
 
