@@ -25,6 +25,9 @@ FFT_REL = 1e-10
 # the ray cast's BVH and hit search are float32 on both devices: depth/normal of the same face agree
 # to float32 rounding of the hit point (~1e-7 relative)
 RAY_F32_REL = 1e-5
+# float32 rasterizer: the same float32 arithmetic up to FMA contraction and the atomics' order
+F32_REL = 1e-4
+F32_DISTORTION_ABS = 2e-6
 
 
 def _close(a, b, rel, name=""):
@@ -129,10 +132,21 @@ def test_rasterize_surfels_equal_on_cuda(dtype):
     (ic, gc, vc, rc), (ig, gg, vg, rg) = res["cpu"], res[CUDA]
     assert int((ic[1] > 0).sum()) > 1000
     assert torch.equal(vg.cpu(), vc) and torch.equal(rg.cpu(), rc)
-    # float32: the same float32 arithmetic up to FMA contraction and atomics' order; observed ~1e-6
-    rel = F64_REL if dtype == torch.float64 else 1e-4
-    for i, (a, b) in enumerate(zip(ig + list(gg), ic + list(gc))):
-        _close(a, b, rel, f"output/gradient {i}")
+    rel = F64_REL if dtype == torch.float64 else F32_REL
+    failures = []
+    names = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion", "means", "quats", "scales",
+             "opacities", "colors", "means2d")
+    for name, a, b in zip(names, ig + list(gg), ic + list(gc)):
+        try:
+            if dtype == torch.float32 and name == "distortion":
+                # distortion sums O(1) terms m^2 (1 - T) + M2 - 2 m M1 that cancel to ~1e-5: absolute
+                # float32 rounding of the terms (observed 2.3e-7 on an H200)
+                torch.testing.assert_close(a.detach().cpu(), b.detach(), rtol=0, atol=F32_DISTORTION_ABS)
+            else:
+                _close(a, b, rel, name)
+        except AssertionError as e:
+            failures.append(str(e).splitlines()[0] + " " + " ".join(str(e).splitlines()[2:4]))
+    assert not failures, "\n".join(failures)
 
 
 def _mesh(device, dtype=torch.float64):
@@ -165,6 +179,8 @@ def test_raycast_and_closest_faces_equal_on_cuda():
     _close(og.normal.cpu()[same], oc.normal[same], RAY_F32_REL, "normal")
     if bool(same.all()):
         _close(gg, gc, RAY_F32_REL, "vertex grad")
+    # the closest point is unique, its face is not when it lies on a shared edge or vertex (ties break
+    # differently: 25 % of these points differ in face id on an H200), so points and distances are compared
     _close(cg[1], cc[1], RAY_F32_REL, "closest distance")
-    assert float((cg[0].cpu() == cc[0]).float().mean()) > 0.99
+    _close(cg[2], cc[2], RAY_F32_REL, "closest point")
     assert math.isfinite(float(gg.abs().sum()))
