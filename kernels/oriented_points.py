@@ -8,32 +8,7 @@ from typing import Any
 
 import warp as wp
 
-
-@wp.func
-def quat_axes_wxyz(q: Any, eps: Any):
-    """Local x, y, z axes (columns of the rotation) of a (w, x, y, z) quaternion of any norm.
-
-    A quaternion whose norm is below ``eps`` falls back to the identity rotation (documented in
-    :func:`wtopo.ops.oriented_points`); its gradient is then exactly zero.
-    """
-    one = type(eps)(1.0)
-    zero = type(eps)(0.0)
-    two = type(eps)(2.0)
-    n2 = wp.dot(q, q)
-    w = one
-    x = zero
-    y = zero
-    z = zero
-    if n2 > eps * eps:
-        inv = one / wp.sqrt(n2)
-        w = q[0] * inv
-        x = q[1] * inv
-        y = q[2] * inv
-        z = q[3] * inv
-    ax = wp.vector(one - two * (y * y + z * z), two * (x * y + w * z), two * (x * z - w * y))
-    ay = wp.vector(two * (x * y - w * z), one - two * (x * x + z * z), two * (y * z + w * x))
-    az = wp.vector(two * (x * z + w * y), two * (y * z - w * x), one - two * (x * x + y * y))
-    return ax, ay, az
+from .rotation import quat_axes
 
 
 @wp.kernel
@@ -55,7 +30,7 @@ def oriented_points_kernel(
 ):
     """One thread per surfel; writes rows ``i*samples .. i*samples + samples - 1``."""
     i = wp.tid()
-    ax, ay, az = quat_axes_wxyz(quats[i], eps)
+    ax, ay, az = quat_axes(quats[i], float(eps * eps))  # |q| <= eps: identity
     mu = means[i]
     s = scales[i]
     o = opacities[i]

@@ -22,6 +22,8 @@ from typing import Any
 
 import warp as wp
 
+from .rotation import quat_axes
+
 CAM_SIZE = 27
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped (3DGS/2DGS convention)
 ALPHA_MAX = 0.99  # alpha clamp: keeps 1 / (1 - alpha) <= 100 in the reverse traversal (2DGS)
@@ -43,33 +45,6 @@ vec16d = wp.types.vector(length=16, dtype=wp.float64)
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
-
-
-@wp.func
-def quat_axes(q: Any):
-    """Tangent axes and normal (columns of the rotation) of a (w, x, y, z) quaternion of any norm."""
-    w = q[0]
-    x = q[1]
-    y = q[2]
-    z = q[3]
-    one = type(w)(1.0)
-    two = type(w)(2.0)
-    n2 = w * w + x * x + y * y + z * z
-    if n2 < type(w)(QUAT_MIN_SQ):
-        w = one
-        x = type(w)(0.0)
-        y = type(w)(0.0)
-        z = type(w)(0.0)
-    else:
-        inv = one / wp.sqrt(n2)
-        w = w * inv
-        x = x * inv
-        y = y * inv
-        z = z * inv
-    tu = wp.vector(one - two * (y * y + z * z), two * (x * y + w * z), two * (x * z - w * y))
-    tv = wp.vector(two * (x * y - w * z), one - two * (x * x + z * z), two * (y * z + w * x))
-    n = wp.vector(two * (x * z + w * y), two * (y * z - w * x), one - two * (x * x + y * y))
-    return tu, tv, n
 
 
 @wp.func
@@ -164,7 +139,7 @@ def prepare_surfels_kernel(
     i = wp.tid() + offset
     p = means[i]
     f_ref = p[0]
-    tu, tv, n = quat_axes(quats[i])
+    tu, tv, n = quat_axes(quats[i], QUAT_MIN_SQ)
     s = scales[i]
     su = wp.max(s[0], type(f_ref)(SCALE_MIN))
     sv = wp.max(s[1], type(f_ref)(SCALE_MIN))

@@ -22,13 +22,14 @@ import warp as wp
 
 from .rasterize import (
     ALPHA_MIN,
+    QUAT_MIN_SQ,
     FILTER_INV_SQUARE,
     SCALE_MIN,
     cam_point,
     declare_float_overloads,
     project_pixel,
-    quat_axes,
 )
+from .rotation import quat_axes
 
 wp.set_module_options({"enable_backward": False})
 
@@ -137,7 +138,8 @@ def bin_surfels_kernel(
     radius = r2d
     # 3D disk: dual conic C* = h0 h0^T + h1 h1^T - h2 h2^T of the disk's image
     q = quats[i]
-    tu, tv, n = quat_axes(wp.vec4d(wp.float64(q[0]), wp.float64(q[1]), wp.float64(q[2]), wp.float64(q[3])))
+    q64 = wp.vec4d(wp.float64(q[0]), wp.float64(q[1]), wp.float64(q[2]), wp.float64(q[3]))
+    tu, tv, n = quat_axes(q64, QUAT_MIN_SQ)
     sc = scales[i]
     r = wp.sqrt(rr)
     su = wp.max(wp.float64(sc[0]), wp.float64(SCALE_MIN))
