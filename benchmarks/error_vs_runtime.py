@@ -6,13 +6,15 @@ resolution (the scene rendered at that size) and the oriented points per surfel 
 default scenes. Each run is a fresh subprocess (so its peak memory is its own) and records:
 
 - ``wall_s``: wall time of ``wtopo.fit`` (scene loading and imports excluded; Warp kernels come
-  from the kernel cache, which the first run fills);
+  from the kernel cache, which the first run fills) and ``cpu_s``, its CPU time (all threads;
+  far less sensitive than wall time to other processes on a shared machine, so the plot uses it);
 - per-stage self times from ``FitResult.report["stage_times_s"]`` (nested sections subtracted,
   so the stages add up to the timed part of the fit): ``rasterize``, ``oriented_points``,
   ``scatter``, ``poisson`` (FFT solve and normalisation, scatter excluded), ``marching_cubes``,
   ``bvh_build`` (build or refit), ``raycast``, ``backward``, ``densify_prune`` (screen-space
-  clone/split/prune plus the mesh-guided sign/prune/spawn step), ``tsdf`` (re-initialisation
-  plus the final mesh), ``other`` (losses, optimiser, evaluation, remainder);
+  clone/split/prune plus the mesh-guided sign/prune/spawn step), ``tsdf`` (TSDF
+  re-initialisation plus the final mesh's extraction and clean-up), ``other`` (losses, optimiser,
+  evaluation, remainder);
 - ``peak_rss_mb``: the subprocess's maximum resident set size (``resource.getrusage``), and
   ``cuda_peak_mb`` (``torch.cuda.max_memory_allocated``) on CUDA;
 - ``chamfer`` (% of the ground truth's bounding-box diagonal), ``f_score`` (threshold 0.5 % of
@@ -49,7 +51,7 @@ __all__ = ["AXES", "BASE", "STAGES", "default_sweep", "full_sweep", "make_config
 
 HERE = Path(__file__).resolve().parent
 SCENES = ("bunny", "bunny_room")
-BASE = {"scene": "bunny", "mesh_resolution": 64, "iterations": 80, "image_resolution": 64, "samples_per_surfel": 5}
+BASE = {"scene": "bunny", "mesh_resolution": 64, "iterations": 160, "image_resolution": 64, "samples_per_surfel": 5}
 """Centre of the one-factor-at-a-time sweep (iterations: warm-up half, co-evolution half)."""
 AXES = {
     "mesh_resolution": (32, 64, 128, 256),
@@ -60,7 +62,7 @@ AXES = {
 """Values of each swept factor (``--full``: every combination)."""
 DEFAULT_AXES = {
     "mesh_resolution": (32, 64, 128, 256),
-    "iterations": (40, 80, 160),
+    "iterations": (80, 160, 320),
     "image_resolution": (64, 128),
     "samples_per_surfel": (1, 5),
 }
@@ -80,7 +82,8 @@ STAGES = {
 """Reported stage -> the fit's timer names summed into it; every other timer goes to ``other``."""
 METRICS = ("chamfer", "f_score", "psnr")
 SPEC_KEYS = tuple(BASE)
-COLUMNS = (*SPEC_KEYS, "wall_s", *(f"t_{s}" for s in STAGES), "t_other", "peak_rss_mb", "cuda_peak_mb", *METRICS,
+COLUMNS = (*SPEC_KEYS, "wall_s", "cpu_s", *(f"t_{s}" for s in STAGES), "t_other", "peak_rss_mb", "cuda_peak_mb",
+           *METRICS,
            "surfels", "faces", "watertight", "status", "device", "error")
 DEFAULT_CSV = HERE / "error_vs_runtime.csv"
 DEFAULT_PNG = HERE / "error_vs_runtime.png"
@@ -166,11 +169,11 @@ def run_spec(spec: dict, *, device: str = "auto") -> dict:
     cuda = torch.cuda.is_available() and device != "cpu"
     if cuda:
         torch.cuda.reset_peak_memory_stats()
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     res = fit(scene, cfg, progress=False)
-    wall = time.perf_counter() - t
+    wall, cpu = time.perf_counter() - t, time.process_time() - c
     rep = res.report
-    row = {**spec, "wall_s": round(wall, 3), **stage_columns(rep["stage_times_s"]),
+    row = {**spec, "wall_s": round(wall, 3), "cpu_s": round(cpu, 3), **stage_columns(rep["stage_times_s"]),
            "peak_rss_mb": round(_peak_rss_mb(), 1),
            "cuda_peak_mb": round(torch.cuda.max_memory_allocated() / 2**20, 1) if cuda else "",
            "chamfer": 100.0 * rep["chamfer"] if "chamfer" in rep else "", "f_score": rep.get("f_score", ""),
@@ -222,13 +225,13 @@ def read_csv(path: str | os.PathLike) -> list[dict]:
     return rows
 
 
-def _ok(r: dict, y: str) -> bool:
-    return isinstance(r.get("wall_s"), float) and isinstance(r.get(y), float) and math.isfinite(r[y])
+def _ok(r: dict, y: str, x: str = "wall_s") -> bool:
+    return isinstance(r.get(x), float) and isinstance(r.get(y), float) and math.isfinite(r[y])
 
 
 def pareto_front(rows: list[dict], *, x: str = "wall_s", y: str = "chamfer") -> list[dict]:
     """Rows not dominated in (smaller ``x``, smaller ``y``), sorted by ``x``."""
-    pts = sorted((r for r in rows if _ok(r, y) and isinstance(r.get(x), float)), key=lambda r: (r[x], r[y]))
+    pts = sorted((r for r in rows if _ok(r, y, x)), key=lambda r: (r[x], r[y]))
     front, best = [], math.inf
     for r in pts:
         if r[y] < best:
@@ -242,12 +245,14 @@ def _label(r: dict) -> str:
     return ",".join(diff) or "base"
 
 
-def pareto_plot(rows_or_csv, out_png: str | os.PathLike) -> str:
-    """PNG of Chamfer and 1 - F-score against wall time, one colour per scene, Pareto fronts drawn.
+def pareto_plot(rows_or_csv, out_png: str | os.PathLike, *, x: str = "cpu_s") -> str:
+    """PNG of Chamfer and 1 - F-score against run time, one colour per scene, Pareto fronts drawn.
 
     Args:
         rows_or_csv: a results CSV path or a list of rows (as :func:`read_csv` returns).
         out_png: output path.
+        x: ``"cpu_s"`` (CPU time of the fit: robust to other processes sharing the machine) or
+            ``"wall_s"``; rows without ``cpu_s`` fall back to ``wall_s``.
 
     Returns:
         ``out_png`` as a string.
@@ -260,27 +265,30 @@ def pareto_plot(rows_or_csv, out_png: str | os.PathLike) -> str:
 
     rows = read_csv(rows_or_csv) if isinstance(rows_or_csv, (str, os.PathLike)) else list(rows_or_csv)
     rows = [dict(r, one_minus_f=1.0 - r["f_score"]) if isinstance(r.get("f_score"), float) else r for r in rows]
-    if not any(_ok(r, "chamfer") for r in rows):
-        raise ValueError("no run with a wall time and a Chamfer distance to plot")
+    if x == "cpu_s" and not any(isinstance(r.get("cpu_s"), float) for r in rows):
+        x = "wall_s"
+    if not any(_ok(r, "chamfer", x) for r in rows):
+        raise ValueError(f"no run with a {x} time and a Chamfer distance to plot")
     fig = Figure(figsize=(11.0, 4.2), dpi=110, layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, 2)
     scenes = sorted({str(r.get("scene")) for r in rows})
-    for ax, (y, title) in zip(axes, (("chamfer", "Chamfer [% of bbox diagonal]"), ("one_minus_f", "1 - F-score (0.5 %)"))):
+    panels = (("chamfer", "Chamfer [% of bbox diagonal]"), ("one_minus_f", "1 - F-score (0.5 %)"))
+    for ax, (y, title) in zip(axes, panels):
         for k, sc in enumerate(scenes):
-            pts = [r for r in rows if str(r.get("scene")) == sc and _ok(r, y)]
+            pts = [r for r in rows if str(r.get("scene")) == sc and _ok(r, y, x)]
             if not pts:
                 continue
             color = f"C{k}"
-            ax.scatter([r["wall_s"] for r in pts], [r[y] for r in pts], color=color, s=22, label=sc, zorder=3)
+            ax.scatter([r[x] for r in pts], [r[y] for r in pts], color=color, s=22, label=sc, zorder=3)
             for r in pts:
-                ax.annotate(_label(r), (r["wall_s"], r[y]), fontsize=6, xytext=(3, 3), textcoords="offset points",
+                ax.annotate(_label(r), (r[x], r[y]), fontsize=6, xytext=(3, 3), textcoords="offset points",
                             color="0.25")
-            front = pareto_front(pts, y=y)
-            ax.step([r["wall_s"] for r in front], [r[y] for r in front], where="post", color=color, linewidth=1.0,
+            front = pareto_front(pts, x=x, y=y)
+            ax.step([r[x] for r in front], [r[y] for r in front], where="post", color=color, linewidth=1.0,
                     alpha=0.7)
         ax.set_xscale("log")
-        ax.set_xlabel("wall time of wtopo.fit [s]")
+        ax.set_xlabel("CPU time of wtopo.fit [s]" if x == "cpu_s" else "wall time of wtopo.fit [s]")
         ax.set_title(title)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
@@ -297,15 +305,25 @@ def _fmt(v, digits=2) -> str:
     return "" if v is None else str(v)
 
 
+def _untimed(r: dict, stage_cols: list[str]) -> float | None:
+    """Wall time outside every fit timer (plan, initialisation, per-iteration bookkeeping)."""
+    if not isinstance(r.get("wall_s"), float):
+        return None
+    return r["wall_s"] - sum(float(r.get(c, 0.0)) for c in stage_cols)
+
+
 def markdown_table(rows: list[dict]) -> str:
     """Markdown table: settings, wall time, stage times, memory, metrics."""
     stage_cols = [f"t_{s}" for s in STAGES] + ["t_other"]
-    head = ["scene", "grid", "iters", "image", "pts/surfel", "wall s", *[c[2:] for c in stage_cols], "RSS MB",
+    head = ["scene", "grid", "iters", "image", "pts/surfel", "wall s", "CPU s", *[c[2:] for c in stage_cols], "untimed",
+            "RSS MB",
             "Chamfer %", "F", "PSNR", "status"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         cells = [str(r.get("scene", "")), *(_fmt(r.get(k), 0) for k in SPEC_KEYS[1:]), _fmt(r.get("wall_s"), 1),
-                 *(_fmt(r.get(c), 1) for c in stage_cols), _fmt(r.get("peak_rss_mb"), 0), _fmt(r.get("chamfer"), 3),
+                 _fmt(r.get("cpu_s"), 1), *(_fmt(r.get(c), 1) for c in stage_cols), _fmt(_untimed(r, stage_cols), 1),
+                 _fmt(r.get("peak_rss_mb"), 0),
+                 _fmt(r.get("chamfer"), 3),
                  _fmt(r.get("f_score"), 3), _fmt(r.get("psnr"), 2),
                  str(r.get("status", "")) + (f": {r['error']}" if r.get("error") else "")]
         lines.append("| " + " | ".join(cells) + " |")
@@ -313,20 +331,30 @@ def markdown_table(rows: list[dict]) -> str:
 
 
 def write_markdown(rows: list[dict], md: str | os.PathLike, png: str | os.PathLike, command: str) -> None:
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=HERE, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        commit = ""
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     text = [
         "# Error against run time of `wtopo.fit`",
         "",
-        f"Command: `{command}`",
+        f"Command: `{command}` (code at `{commit or 'unknown'}`).",
         "",
         f"Machine: {platform.machine()}, {os.cpu_count()} CPU cores shared with other busy processes "
-        "(timings are noisy; compare rows of one sweep). Plot: "
-        f"[`{Path(png).name}`]({Path(png).name}).",
+        f"(1-minute load average {load:.1f} when the table was written: timings are noisy, compare rows "
+        f"of one sweep). Plot: [`{Path(png).name}`]({Path(png).name}).",
         "",
         f"Base run: {BASE}. Iterations are split half warm-up, half co-evolution, with the "
         "density-control and loss milestones scaled accordingly (`make_config`). Stage columns are "
-        "self times in seconds (nested sections subtracted): `tsdf` is the re-initialisation plus the "
-        "final mesh, `densify_prune` the screen-space and mesh-guided density control, `other` losses, "
-        "optimiser, final evaluation and the remainder.",
+        "self times in seconds (nested sections subtracted): `tsdf` is the TSDF re-initialisation plus "
+        "the final mesh's extraction and clean-up (its Poisson, marching cubes and oriented points are in "
+        "their own columns), `densify_prune` the screen-space and mesh-guided density control, `other` losses, "
+        "optimiser and final evaluation, `untimed` the wall time outside every fit timer (stage plan, "
+        "initialisation, per-iteration bookkeeping). Backward passes of all ops are in `backward`. "
+        "Chamfer and F-score compare the final mesh with the ground truth in the internal frame (F-score "
+        "threshold 0.5 % of the ground truth's bounding-box diagonal); PSNR is on the held-out views.",
         "",
         markdown_table(rows),
         "",
@@ -364,7 +392,8 @@ def main(argv=None) -> int:
             t = time.perf_counter()
             row = run_subprocess(spec, device=args.device, timeout=args.timeout)
             append_csv(args.csv, row)
-            print(f"[{i + 1}/{len(specs)}] {spec} -> wall {row.get('wall_s', '-')} s, chamfer {row.get('chamfer', '-')}, "
+            print(f"[{i + 1}/{len(specs)}] {spec} -> wall {row.get('wall_s', '-')} s, "
+                  f"chamfer {row.get('chamfer', '-')}, "
                   f"{row.get('status')} {row.get('error', '')} ({time.perf_counter() - t:.0f} s)", flush=True)
     rows = read_csv(args.csv)
     pareto_plot(rows, args.png)
