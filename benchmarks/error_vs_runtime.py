@@ -288,6 +288,8 @@ def pareto_plot(rows_or_csv, out_png: str | os.PathLike, *, x: str = "cpu_s") ->
             ax.step([r[x] for r in front], [r[y] for r in front], where="post", color=color, linewidth=1.0,
                     alpha=0.7)
         ax.set_xscale("log")
+        if y == "chamfer":
+            ax.set_yscale("log")  # scenes differ by an order of magnitude
         ax.set_xlabel("CPU time of wtopo.fit [s]" if x == "cpu_s" else "wall time of wtopo.fit [s]")
         ax.set_title(title)
         ax.grid(True, which="both", alpha=0.3)
