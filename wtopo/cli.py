@@ -34,34 +34,33 @@ def _load(scene: str, downscale: float | None):
                      f"({', '.join(scenes.names())})")
 
 
+# command-line flag -> (FitConfig section, field)
+_OVERRIDES = (
+    ("warmup", "warmup", "iterations"),
+    ("coevolution", "coevolution", "iterations"),
+    ("device", "runtime", "device"),
+    ("seed", "runtime", "seed"),
+    ("max_surfels", "runtime", "max_surfels"),
+    ("usd_every", "runtime", "usd_every"),
+    ("normal_flip", "mesh", "normal_flip"),
+    ("samples_per_surfel", "mesh", "samples_per_surfel"),
+    ("poisson_resolution", "mesh", "resolution"),
+)
+
+
 def _config(args):
     from .fit import FitConfig
 
     cfg = FitConfig.toposurfel_public() if args.preset == "toposurfel-public" else FitConfig()
-    if args.iterations is not None:
-        # split as the defaults do: half warm-up, half co-evolution
+    if args.iterations is not None:  # split evenly between warm-up and co-evolution
         w = args.iterations // 2
         cfg.warmup.iterations, cfg.coevolution.iterations = w, args.iterations - w
-    if args.warmup is not None:
-        cfg.warmup.iterations = args.warmup
-    if args.coevolution is not None:
-        cfg.coevolution.iterations = args.coevolution
-    if args.device is not None:
-        cfg.runtime.device = args.device
-    if args.seed is not None:
-        cfg.runtime.seed = args.seed
-    if args.max_surfels is not None:
-        cfg.runtime.max_surfels = args.max_surfels
-    if args.usd_every is not None:
-        cfg.runtime.usd_every = args.usd_every
+    for arg, section, name in _OVERRIDES:
+        value = getattr(args, arg)
+        if value is not None:
+            setattr(getattr(cfg, section), name, value)
     if args.no_mesh_loop:
         cfg.coevolution.enabled = False
-    if args.normal_flip is not None:
-        cfg.mesh.normal_flip = args.normal_flip
-    if args.samples_per_surfel is not None:
-        cfg.mesh.samples_per_surfel = args.samples_per_surfel
-    if args.poisson_resolution is not None:
-        cfg.mesh.resolution = args.poisson_resolution
     return cfg
 
 
