@@ -7,6 +7,9 @@ parameter container), ``losses``, ``densify`` (density control and mesh guidance
 (atomic, resumable), ``loop`` (the stages) and ``api`` (:func:`fit`).
 """
 
+import sys
+import types
+
 from .api import FitResult, fit
 from .config import (
     CoevolutionConfig,
@@ -32,3 +35,14 @@ __all__ = [
     "TSDFConfig", "CoevolutionConfig", "FinalConfig", "DensifyConfig", "LossConfig", "MeshConfig",
     "RuntimeConfig", "NormalFlip", "DepthLoss",
 ]
+
+
+class _CallableModule(types.ModuleType):
+    """``wtopo.fit`` is both this package and the function: importing the package binds the
+    attribute ``wtopo.fit`` to the module, so the module forwards calls to :func:`fit`."""
+
+    def __call__(self, *args, **kwargs):
+        return fit(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule
