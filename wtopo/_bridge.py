@@ -39,6 +39,7 @@ import warp as wp
 __all__ = [
     "WarpOp",
     "apply",
+    "active_tape",
     "warp_device",
     "to_warp",
     "launch_split",
@@ -225,6 +226,15 @@ class _WarpFunction(torch.autograd.Function):
                     result.append(None)
             ctx.tape.zero()
         return tuple(result)
+
+
+def active_tape() -> wp.Tape | None:
+    """The tape the bridge is recording on (``None`` outside :func:`apply`).
+
+    Ops with explicit adjoint kernels register them on it with :meth:`warp.Tape.record_func`.
+    Warp keeps the active tape only in a private attribute; this is the one place that reads it.
+    """
+    return wp._src.context.runtime.tape  # noqa: SLF001
 
 
 def apply(op: WarpOp, *tensors) -> tuple[torch.Tensor, ...]:

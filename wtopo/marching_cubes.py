@@ -171,7 +171,7 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
                       inputs=[field, lvl, spacing, eps, vert_node, vert_kind, verts.grad], outputs=[field.grad],
                       device=device, record_tape=False)
 
-        tape = wp._src.context.runtime.tape  # noqa: SLF001 - Warp exposes the active tape only here
+        tape = _bridge.active_tape()
         tape.record_func(backward, [verts, field])
     return verts, faces
 

@@ -421,7 +421,7 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_wp, bg_wp, sh_degree: int, ca
             # bufs order: uax, vax, nrm, auv, nrm_face, m2, zc, color, opacity, shift
             _bridge.launch_split(_k.reduce_gradients_kernel, n, bufs, targets, device=wdev)
 
-        tape = wp._src.context.runtime.tape  # the bridge's active tape (Warp has no public accessor)
+        tape = _bridge.active_tape()
         if tape is not None and n > 0:  # N = 0: nothing to differentiate (empty arrays have no grad buffer)
             tape.record_func(backward, [*outs, *prep, *(a for a in (opacities, means2d) if a.requires_grad)])
         return (*outs, visibility)

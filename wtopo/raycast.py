@@ -22,7 +22,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import warp as wp
-import warp._src.context
 
 from wtopo import _bridge
 from wtopo._profile import section
@@ -135,7 +134,7 @@ def _shade_run(verts, faces, face_id, origins, directions):
     # per-ray disjoint writes: split over CPU threads; the adjoint scatters into verts.grad with
     # atomics, so it is one launch, registered on the bridge's tape by hand
     _bridge.launch_split(_k.shade_hits_kernel, n, inputs, [depth, normal], device=verts.device, min_chunk=16384)
-    tape = warp._src.context.runtime.tape  # the tape the bridge recorded this run on (private, no public getter)
+    tape = _bridge.active_tape()
     if tape is not None and verts.requires_grad:
 
         def backward():

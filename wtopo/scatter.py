@@ -33,10 +33,6 @@ _MIN_SPLIT_POINTS = 16384
 _compiled: set = set()
 
 
-def _active_tape() -> wp.Tape | None:
-    return wp._src.context.runtime.tape  # noqa: SLF001 - Warp exposes the active tape only here
-
-
 def _balanced_slabs(points: wp.array, resolution: int, threads: int) -> list[int]:
     """Slab bounds over the first node index holding about equally many points each (one pass, CPU)."""
     x = wp.to_torch(points)[:, 0]
@@ -111,7 +107,7 @@ def _scatter_op(dtype: torch.dtype, resolution: int, channels: int) -> _bridge.W
         # so it is left unzeroed: that spares touching R^3*C fresh pages in every forward.
         grid.grad = wp.empty_like(grid)
         scatter_launch(points, values, resolution, grid)
-        tape = _active_tape()
+        tape = _bridge.active_tape()
         if tape is not None:
             def backward():
                 if values.requires_grad:
@@ -131,7 +127,7 @@ def _sample_op(dtype: torch.dtype, resolution: int, channels: int) -> _bridge.Wa
     def run(grid, points):
         out = wp.zeros(points.shape[0], dtype=vc, device=points.device, requires_grad=True)
         sample_launch(grid, points, resolution, out)
-        tape = _active_tape()
+        tape = _bridge.active_tape()
         if tape is not None:
             def backward():
                 if grid.requires_grad:
