@@ -28,7 +28,8 @@ CAM_SIZE = 27
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped (3DGS/2DGS convention)
 ALPHA_MAX = 0.99  # alpha clamp: keeps 1 / (1 - alpha) <= 100 in the reverse traversal (2DGS)
 T_MIN = 1.0e-4  # early stop once the transmittance would fall below this (2DGS)
-FILTER_INV_SQUARE = 2.0  # screen-space low-pass: rho2d = 2 |pixel - centre|^2, sigma = 1/sqrt(2) px (2DGS)
+FILTER_INV_SQUARE = 2.0  # default screen-space low-pass: rho2d = 2 |pixel - centre|^2, sigma = 1/sqrt(2) px (2DGS)
+CAM_FILTER = 27  # camera-array slot of the low-pass inverse square 1 / sigma^2 [1/px^2] (a runtime value)
 SCALE_MIN = 1.0e-30  # scales are clamped here so 1 / s stays finite in float32
 PARALLEL_EPS = 1.0e-12  # |dot(ray, normal)| below this: the ray is parallel to the surfel plane
 RHO_BIG = 1.0e30  # rho3d of a parallel ray or an overflowing intersection: the filter branch wins
@@ -184,7 +185,7 @@ def pixel_tile_coords(g: int, tile_size: int, tiles_x: int):
 
 
 @wp.func
-def splat_hit(d: Any, g: Any, pix: Any):
+def splat_hit(d: Any, g: Any, pix: Any, fis: Any):
     """Ray-splat intersection and screen-space filter at one pixel for a packed surfel record ``g``.
 
     ``g`` (see :func:`pack_surfels_kernel`) holds ``U, V, n, (a.U, a.V, a.n), m2, zc, cutoff``.
@@ -198,7 +199,7 @@ def splat_hit(d: Any, g: Any, pix: Any):
     zc = g[14]
     dx = pix[0] - g[12]
     dy = pix[1] - g[13]
-    rho2d = type(zc)(FILTER_INV_SQUARE) * (dx * dx + dy * dy)
+    rho2d = fis * (dx * dx + dy * dy)
     du = d[0] * g[0] + d[1] * g[1] + d[2] * g[2]
     dv = d[0] * g[3] + d[1] * g[4] + d[2] * g[5]
     dn = d[0] * g[6] + d[1] * g[7] + d[2] * g[8]
@@ -223,7 +224,7 @@ def splat_hit(d: Any, g: Any, pix: Any):
 
 
 @wp.func
-def surely_outside(d: Any, g: Any, pix: Any):
+def surely_outside(d: Any, g: Any, pix: Any, fis: Any):
     """Division-free reject: ``rho2d > cutoff`` and ``rho3d > cutoff`` (as ``|(u, v)|^2 dn^2 > cutoff dn^2``).
 
     Only pairs whose alpha is below 1/255 by the cut-off's margin are rejected, and forward and
@@ -232,7 +233,7 @@ def surely_outside(d: Any, g: Any, pix: Any):
     c = g[15]
     dx = pix[0] - g[12]
     dy = pix[1] - g[13]
-    if type(c)(FILTER_INV_SQUARE) * (dx * dx + dy * dy) <= c:
+    if fis * (dx * dx + dy * dy) <= c:
         return False
     du = d[0] * g[0] + d[1] * g[1] + d[2] * g[2]
     dv = d[0] * g[3] + d[1] * g[4] + d[2] * g[5]
@@ -327,9 +328,9 @@ def render_forward_kernel(
     for k in range(tile_start[tile], tile_end[tile]):
         i = ids[k]
         g = geo[i]
-        if surely_outside(d, g, pix):
+        if surely_outside(d, g, pix, cam[CAM_FILTER]):
             continue
-        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix)
+        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam[CAM_FILTER])
         if rho > g[15]:  # alpha < 1/255 for sure: skip the exp
             continue
         a = wp.min(type(f_ref)(ALPHA_MAX), opacity[i] * wp.exp(type(f_ref)(-0.5) * rho))
@@ -452,10 +453,10 @@ def render_backward_kernel(
     while k >= start:
         i = ids[k]
         g = geo[i]
-        if surely_outside(d, g, pix):
+        if surely_outside(d, g, pix, cam[CAM_FILTER]):
             k = k - 1
             continue
-        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix)
+        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam[CAM_FILTER])
         if rho > g[15]:
             k = k - 1
             continue
@@ -502,7 +503,7 @@ def render_backward_kernel(
                 wp.atomic_add(d_shift, worker, i, wp.vector(-gcx / fx, gcx * sk / (fx * fy) - gcy / fy))
             else:
                 diff = pix - wp.vector(g[12], g[13])
-                gm = (type(f_ref)(-2.0) * type(f_ref)(FILTER_INV_SQUARE) * g_rho) * diff
+                gm = (type(f_ref)(-2.0) * cam[CAM_FILTER] * g_rho) * diff
                 wp.atomic_add(d_m2, worker, i, gm)
                 wp.atomic_add(d_shift, worker, i, gm)
                 wp.atomic_add(d_zc, worker, i, gz)

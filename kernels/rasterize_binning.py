@@ -9,7 +9,8 @@ Bounds are computed in float64 whatever the op dtype. A surfel's footprint is th
   mapped to tiles through per-tile-column / per-tile-row tables of the pixel rays' normalised
   coordinates (so any lens model that :meth:`wtopo.Camera.pixel_rays` encodes is handled); a disk
   reaching the camera plane has an unbounded image and covers every tile;
-* the screen-space filter disk ``2 |pixel - centre|^2 <= rr`` around the projected centre.
+* the screen-space filter disk ``|pixel - centre|^2 / sigma^2 <= rr`` around the projected centre
+  (``1 / sigma^2`` read from the camera array, slot ``CAM_FILTER``).
 
 Sort keys are ``tile << rank_bits | depth rank`` (int32 when they fit in 31 bits, else int64).
 
@@ -22,8 +23,8 @@ import warp as wp
 
 from .rasterize import (
     ALPHA_MIN,
+    CAM_FILTER,
     QUAT_MIN_SQ,
-    FILTER_INV_SQUARE,
     SCALE_MIN,
     cam_point,
     declare_float_overloads,
@@ -132,7 +133,7 @@ def bin_surfels_kernel(
     rr = rr * wp.float64(1.0 + RR_REL_MARGIN) + wp.float64(1.0e-6)
     cutoff[i] = type(x0c)(rr)  # pixel kernels skip rho > cutoff without evaluating exp
     # screen-space filter disk
-    r2d = wp.sqrt(rr / wp.float64(FILTER_INV_SQUARE)) + wp.float64(PIXEL_MARGIN)
+    r2d = wp.sqrt(rr / wp.float64(cam[CAM_FILTER])) + wp.float64(PIXEL_MARGIN)
     ax0, ax1 = pixel_to_tile_range(wp.float64(m2[0]), r2d, width, tile_size)
     ay0, ay1 = pixel_to_tile_range(wp.float64(m2[1]), r2d, height, tile_size)
     radius = r2d

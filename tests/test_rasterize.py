@@ -55,8 +55,9 @@ def _surfels(n, dtype=torch.float64, device="cpu", seed=0, sh=9, scale=(0.03, 0.
 def _render_both(params, cam, background=(0.1, 0.2, 0.3), **kw):
     out = rasterize_surfels(*params, cam, background=background, **kw)
     shift = torch.zeros(params[0].shape[0], 2, dtype=params[0].dtype, device=params[0].device, requires_grad=True)
+    fs = kw["config"].filter_sigma if kw.get("config") is not None else RasterConfig().filter_sigma
     ref = rasterize_reference(*params, cam, near=out.near, far=out.far, background=background, shift=shift,
-                              sh_degree=kw.get("sh_degree"))
+                              sh_degree=kw.get("sh_degree"), filter_sigma=fs)
     return out, ref, shift
 
 
@@ -92,6 +93,42 @@ def test_forward_and_vjp_match_reference(device, sh):
     for name, a, b in zip(("means", "quats", "scales", "opacities", "colors", "means2d"), go, gr):
         assert float(b.abs().max()) > 0, name  # the gradient is exercised
         _assert_close(a, b, name=name)
+
+
+@pytest.mark.parametrize("sigma", [0.2, 0.35, 1.5])
+def test_filter_sigma_matches_reference(device, sigma):
+    """A non-default low-pass width renders and differentiates like the reference, small surfels included."""
+    # small surfels so that both branches occur at every width (all-filter would leave scales untested)
+    params = _surfels(24, device=device, seed=5, scale=(0.005, 0.06) if sigma < 1 else (0.03, 0.3))
+    out, ref, shift = _render_both(params, _camera(), config=RasterConfig(filter_sigma=sigma))
+    assert int((out.alpha > 0).sum()) > 30  # coverage (small surfels, narrow filter)
+    _assert_forward(out, ref)
+    go, gr = _vjp(out, ref, params, shift)
+    for name, a, b in zip(("means", "quats", "scales", "opacities", "colors", "means2d"), go, gr):
+        assert float(b.abs().max()) > 0, name  # the gradient is exercised
+        _assert_close(a, b, name=name)
+
+
+@pytest.mark.parametrize("sigma", [0.35, 0.7071067811865476, 2.0])
+def test_filter_sigma_footprint_is_analytic(device, sigma):
+    """A tiny surfel at a pixel centre renders opacity * exp(-d^2 / (2 sigma^2)) at pixel distance d."""
+    cam = _camera(width=33, height=33)
+    target = np.array([16.5, 16.5])  # the centre of pixel (16, 16)
+    o, d = cam.pixel_rays("cpu", torch.float64)
+    p = (o[16, 16] + 3.0 * d[16, 16]).reshape(1, 3)
+    args = [p.to(device), torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64, device=device),
+            torch.full((1, 2), 1e-7, dtype=torch.float64, device=device),
+            torch.tensor([0.8], dtype=torch.float64, device=device), torch.ones(1, 3, dtype=torch.float64, device=device)]
+    out = rasterize_surfels(*args, cam, config=RasterConfig(filter_sigma=sigma))
+    np.testing.assert_allclose(cam.project(p.numpy())[0][0], target, atol=1e-9)
+    a = out.alpha.detach().cpu().numpy()
+    for di, dj in ((0, 0), (0, 1), (1, 1), (0, 2)):
+        want = 0.8 * math.exp(-(di * di + dj * dj) / (2 * sigma**2))
+        got = a[16 + di, 16 + dj]
+        if want >= 1 / 255:
+            assert abs(got - want) < 1e-9, (di, dj, got, want)
+        else:
+            assert got == 0.0, (di, dj, got)
 
 
 def test_distorted_camera_matches_reference(device):
@@ -471,6 +508,9 @@ def test_validation_errors(device):
         rasterize_surfels(*params, "cam")
     with pytest.raises(ValueError, match="tile_size"):
         rasterize_surfels(*params, cam, config=RasterConfig(tile_size=12))
+    for bad_sigma in (0.0, -1.0, float("nan"), 1e9):
+        with pytest.raises(ValueError, match="filter_sigma"):
+            rasterize_surfels(*params, cam, config=RasterConfig(filter_sigma=bad_sigma))
 
 
 def test_edge_on_sweep_is_continuous(device):

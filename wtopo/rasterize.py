@@ -61,6 +61,12 @@ class RasterConfig:
     """Default ``far`` = this times the same median depth."""
     tiles_per_chunk: int = 0
     """CPU work unit in tiles (0: about 16 chunks per worker thread)."""
+    filter_sigma: float = 1.0 / math.sqrt(2.0)
+    """Standard deviation of the screen-space low-pass filter [pixels]: ``rho2d = |pixel - centre|^2
+    / filter_sigma^2``. The default is 2DGS's (``rho2d = 2 |pixel - centre|^2``). A narrower filter
+    makes sub-pixel and edge-on surfels smaller dots: less silhouette halo and less pull of the
+    front-most surfel on depth (``wtopo.fit`` uses 0.35; ``benchmarks/fit.md``), at the price of
+    aliasing where surfels are sparser than pixels."""
 
 
 @dataclass
@@ -141,6 +147,9 @@ def _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, 
     if config.near_fraction >= config.far_multiple:
         raise ValueError(f"config.near_fraction ({config.near_fraction}) must be < config.far_multiple "
                          f"({config.far_multiple})")
+    fs = config.filter_sigma
+    if not (isinstance(fs, (int, float)) and not isinstance(fs, bool) and math.isfinite(fs) and 0.05 <= fs <= 100):
+        raise ValueError(f"config.filter_sigma must be a number of pixels in [0.05, 100], got {fs!r}")
     if not (isinstance(config.tiles_per_chunk, int) and config.tiles_per_chunk >= 0):
         raise ValueError(f"config.tiles_per_chunk must be an int >= 0, got {config.tiles_per_chunk!r}")
     require_tensor("means", means, shape=(None, 3))
@@ -231,11 +240,14 @@ def _camera_tables(camera: Camera, device, dtype, tile_size: int):
     return cache[key]
 
 
-def _camera_array(camera: Camera, near: float, far: float, dtype, device) -> torch.Tensor:
+def _camera_array(camera: Camera, near: float, far: float, dtype, device, filter_sigma: float) -> torch.Tensor:
+    """Everything the kernels read per view, packed: ``R (9), t (3), fx, fy, cx, cy, skew, distortion (5),
+    centre (3), near, far, 1 / filter_sigma^2`` (slot ``CAM_FILTER`` = 27)."""
     fx, s, cx = camera.K[0]
     fy, cy = camera.K[1, 1], camera.K[1, 2]
     dist = camera.distortion if camera.distortion is not None else np.zeros(5)
-    vals = np.concatenate([camera.R.reshape(-1), camera.t, [fx, fy, cx, cy, s], dist, camera.center, [near, far]])
+    vals = np.concatenate([camera.R.reshape(-1), camera.t, [fx, fy, cx, cy, s], dist, camera.center, [near, far],
+                           [1.0 / float(filter_sigma) ** 2]])
     return torch.as_tensor(vals, dtype=dtype, device=device)
 
 
@@ -437,7 +449,7 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
 
     Each pixel's ray (:meth:`wtopo.Camera.pixel_rays`, so OpenCV distortion is exact) is
     intersected with each surfel's plane; the local coordinates ``(u, v)`` in units of the scales
-    give ``rho3d = u^2 + v^2``; the screen-space low-pass ``rho2d = 2 |pixel - centre|^2`` takes
+    give ``rho3d = u^2 + v^2``; the screen-space low-pass ``rho2d = |pixel - centre|^2 / config.filter_sigma^2`` (2DGS: ``2 |pixel - centre|^2``) takes
     over for tiny or edge-on surfels: ``rho = min(rho3d, rho2d)`` (the object-space value while
     ``rho3d <= rho2d + 1e-9``, so rounding cannot pick the branch at the centre ray), ``alpha = min(0.99, opacity *
     exp(-rho / 2))``. Contributions with ``alpha < 1/255`` or a z-depth below ``near`` (the
@@ -494,7 +506,7 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     near, far = _default_clip(means, camera, near, far, config)
     wdev = _bridge.warp_device(device)
     rays, tables = _camera_tables(camera, device, dtype, config.tile_size)
-    cam_t = _camera_array(camera, near, far, dtype, device)
+    cam_t = _camera_array(camera, near, far, dtype, device, config.filter_sigma)
     cam_wp = _bridge.to_warp(cam_t)
     bins = _bin(means, quats, scales, opacities, cam_wp, tables, camera, config, wdev)
     needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (means, quats, scales, opacities,

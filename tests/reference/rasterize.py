@@ -63,7 +63,7 @@ def project_ref(camera, pc, K, dist):
 
 
 def rasterize_reference(means, quats, scales, opacities, colors_or_sh, camera, *, near, far, sh_degree=None,
-                        background=None, shift=None, pixels=None):
+                        background=None, shift=None, pixels=None, filter_sigma=2.0 ** -0.5):
     """Brute-force render; returns a dict of rgb, alpha, depth, median_depth, normal, distortion, visibility.
 
     ``shift`` [N, 2] translates each footprint on screen (pixels; its gradient at 0 is the
@@ -122,7 +122,7 @@ def rasterize_reference(means, quats, scales, opacities, colors_or_sh, camera, *
     rho3d = u * u + v * v
     rho3d = torch.where(parallel | ~torch.isfinite(rho3d), torch.full_like(rho3d, 1e30), rho3d)
     diff = pix[:, None, :] - (m2 + shift)[None]
-    rho2d = 2.0 * (diff * diff).sum(-1)
+    rho2d = (diff * diff).sum(-1) / filter_sigma**2
     b3 = rho3d <= rho2d + 1e-9  # the kernel's RHO_TIE: ties at the centre ray go to the object-space branch
     rho = torch.where(b3, rho3d, rho2d)
     z = torch.where(b3, tt, zc[None].expand_as(tt))
