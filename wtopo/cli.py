@@ -66,9 +66,16 @@ def _config(args):
 
 def _cmd_fit(args) -> int:
     from .fit import fit
+    from .fit.validate_config import validate_config
 
+    cfg = _config(args)
+    try:  # before the scene is loaded: a bad flag is reported at once, as a message, not a traceback
+        validate_config(cfg)
+    except (TypeError, ValueError) as e:
+        print(f"wtopo fit: error: {e}", file=sys.stderr)
+        return 2
     scene = _load(args.scene, args.downscale)
-    result = fit(scene, _config(args), out_dir=args.out, progress=not args.quiet)
+    result = fit(scene, cfg, out_dir=args.out, progress=not args.quiet)
     if args.quiet:
         r = result.report
         print(f"{r['status']}: {r['iterations']} iterations in {r['elapsed_s']:.1f} s, mesh {args.out}/mesh.ply")

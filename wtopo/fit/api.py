@@ -16,6 +16,7 @@ from .config import FitConfig
 from .evaluate import geometry_metrics
 from .loop import FitRun
 from .surfels import Surfels
+from .validate_config import validate_config
 
 __all__ = ["fit", "FitResult"]
 
@@ -148,6 +149,7 @@ def fit(scene, config: FitConfig | None = None, *, out_dir: str | os.PathLike | 
     cfg = FitConfig() if config is None else config
     if not isinstance(cfg, FitConfig):
         raise TypeError(f"config must be a wtopo.FitConfig or None, got {type(cfg).__name__}")
+    validate_config(cfg)
     run = FitRun(scene, cfg, out_dir, progress)
     mesh_int = run.run()
     mesh = run.sim.to_world(mesh_int)
