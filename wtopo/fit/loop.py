@@ -31,6 +31,7 @@ from .config import FitConfig, NormalFlip, config_hash
 from .evaluate import geometry_metrics
 from .init import initial_surfels
 from .losses import (
+    boundary_band,
     depth_normals,
     distortion,
     mask_loss,
@@ -197,11 +198,11 @@ class FitRun:
 
     # -- rendering -------------------------------------------------------------------------------------
     def _render(self, camera):
-        from ..rasterize import rasterize_surfels
+        from ..rasterize import RasterConfig, rasterize_surfels
 
         s = self.surfels
         return rasterize_surfels(s.means, s.quats, s.scales, s.opacities, s.sh, camera, sh_degree=s.sh_degree,
-                                 background=self.bg)
+                                 background=self.bg, config=RasterConfig(filter_sigma=self.cfg.filter_sigma))
 
     def _render_depths(self, cameras, which: str):
         depths, colors = [], []
@@ -223,13 +224,19 @@ class FitRun:
             out = self._render(cam)
         L: dict[str, torch.Tensor] = {}
         with T("losses"):
-            L["photo"] = photometric(out.rgb, img, lc.dssim)
+            band = None
+            if self.train.masks is not None and lc.silhouette_band > 0:
+                band = boundary_band(self.train.masks[vi], lc.silhouette_band)
+            # the band is left out by rendering the target there: zero loss, zero gradient
+            rgb = out.rgb if band is None else torch.where(band[..., None], img, out.rgb)
+            L["photo"] = photometric(rgb, img, lc.dssim)
             alpha_d = out.alpha.detach()
             covered = alpha_d >= _ALPHA_COVERED
             if self.train.masks is not None:
                 m = self.train.masks[vi]
                 if float(self.plan["mask_loss"]) > 0:
-                    L["mask"] = float(self.plan["mask_loss"]) * mask_loss(out.alpha, m)
+                    a = out.alpha if band is None else torch.where(band, m.to(out.alpha.dtype), out.alpha)
+                    L["mask"] = float(self.plan["mask_loss"]) * mask_loss(a, m)
                 gap = float((m & ~covered).sum()) / max(1.0, float(m.sum()))
             else:
                 gap = float((~covered).float().mean())

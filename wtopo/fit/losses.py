@@ -18,6 +18,7 @@ __all__ = [
     "l1",
     "photometric",
     "mask_loss",
+    "boundary_band",
     "depth_to_points",
     "depth_normals",
     "normal_consistency",
@@ -63,6 +64,18 @@ def mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Binary cross-entropy between rendered opacity [H, W] and an object mask [H, W] bool."""
     a = alpha.clamp(1e-6, 1 - 1e-6)  # BCE is infinite at exactly 0 / 1
     return F.binary_cross_entropy(a, mask.to(alpha.dtype))
+
+
+def boundary_band(mask: torch.Tensor, width: int) -> torch.Tensor:
+    """Pixels [H, W] bool within ``width`` pixels (Chebyshev distance) of the boundary of ``mask`` [H, W]
+    bool: the dilation minus the erosion by a ``(2 width + 1)^2`` square. Empty for ``width == 0``."""
+    if width <= 0:
+        return torch.zeros_like(mask, dtype=torch.bool)
+    m = mask.to(torch.float32)[None, None]
+    k = 2 * int(width) + 1
+    dilated = F.max_pool2d(m, k, 1, int(width))[0, 0] > 0
+    eroded = -F.max_pool2d(-m, k, 1, int(width))[0, 0] > 0
+    return dilated & ~eroded
 
 
 def depth_to_points(depth: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
