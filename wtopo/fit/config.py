@@ -203,7 +203,7 @@ class LossConfig:
     dssim: float = 0.2
     """Weight of D-SSIM in the photometric term ``(1 - w) L1 + w (1 - SSIM)``."""
     mask: float | None = None
-    """Alpha-vs-mask binary cross-entropy weight; ``None``: plan (on when the scene has masks)."""
+    """Alpha-vs-mask binary cross-entropy weight; ``None``: plan (0.2 when the scene has masks)."""
     normal: float = 0.05
     """Rendered normal vs depth-derived normal."""
     normal_start: int = 200
@@ -222,7 +222,7 @@ class LossConfig:
     """Mesh-normal agreement (co-evolution)."""
     depth_form: DepthLoss = DepthLoss.LOG_RATIO
     """Form of the mesh-depth term."""
-    silhouette_band: int = 1
+    silhouette_band: int = 2
     """With masks: pixels within this many pixels of the mask boundary are left out of the
     photometric and mask terms (0 keeps them). A mask and an image rendered one ray per pixel (or
     any real photograph's edge pixel) say nothing sub-pixel about where the boundary lies, while
