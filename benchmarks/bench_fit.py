@@ -11,12 +11,16 @@ resolution, DESIGN.md); each variant's Chamfer is printed as a ratio to it.
 
 Variants: ``full`` (defaults); ``no_mesh_loop`` (co-evolution iterations without the proxy
 mesh); ``view_flips`` (normal signs from view directions only); ``random_flips``; ``no_geo_density``
-(no geometry-aware prune / densification); ``one_point`` (1 oriented point per surfel instead of 5).
+(no geometry-aware prune / densification); ``one_point`` (1 oriented point per surfel instead of 5);
+``expected_depth`` (mesh-depth term on the expected instead of the median surfel depth);
+``proxy_final`` (the returned mesh is the Poisson proxy instead of the TSDF of rendered depth).
 
 Command (writes benchmarks/fit.md)::
 
     PYTHONPATH=. python benchmarks/bench_fit.py --out benchmarks/fit.md
     PYTHONPATH=. python benchmarks/bench_fit.py --variants full --seeds 0 1   # subset
+    python benchmarks/bench_fit.py --variants full no_mesh_loop --views 64 --image-size 512 \
+        --mesh-resolution 256 --device cuda:0 --out gpu_fit.md              # GPU settings
 """
 
 from __future__ import annotations
@@ -66,8 +70,19 @@ def _one_point(cfg):
     return cfg
 
 
+def _expected_depth(cfg):
+    cfg.losses.mesh_depth_source = "expected"
+    return cfg
+
+
+def _proxy_final(cfg):
+    cfg.final.method = "proxy"
+    return cfg
+
+
 VARIANTS = {"full": _full, "no_mesh_loop": _no_mesh_loop, "view_flips": _view_flips,
-            "random_flips": _random_flips, "no_geo_density": _no_geo_density, "one_point": _one_point}
+            "random_flips": _random_flips, "no_geo_density": _no_geo_density, "one_point": _one_point,
+            "expected_depth": _expected_depth, "proxy_final": _proxy_final}
 
 
 def gt_depth_peer(scene) -> dict:
@@ -84,10 +99,14 @@ def gt_depth_peer(scene) -> dict:
     return {"time": time.perf_counter() - t, **g}
 
 
-def run_variant(scene, name: str, seed: int, iterations: int | None) -> dict:
+def run_variant(scene, name: str, seed: int, iterations: int | None, device: str = "auto",
+                mesh_resolution: int | None = None) -> dict:
     cfg = VARIANTS[name](FitConfig())
     cfg.runtime.seed = seed
     cfg.runtime.usd_every = 0
+    cfg.runtime.device = device
+    if mesh_resolution is not None:
+        cfg.mesh.resolution = mesh_resolution
     if iterations is not None:
         w = iterations * cfg.warmup.iterations // (cfg.warmup.iterations + cfg.coevolution.iterations)
         cfg.warmup.iterations, cfg.coevolution.iterations = w, iterations - w
@@ -108,17 +127,26 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", nargs="+", type=int, default=[0])
     ap.add_argument("--iterations", type=int, help="total iterations (default: the FitConfig defaults)")
     ap.add_argument("--out", help="markdown file to write the table to")
+    ap.add_argument("--views", type=int, help="training views of the scene (default: the scene's)")
+    ap.add_argument("--image-size", type=int, help="image side in pixels (default: the scene's)")
+    ap.add_argument("--mesh-resolution", type=int, help="co-evolution Poisson grid (default: FitConfig's)")
+    ap.add_argument("--device", default="auto", help="FitConfig.runtime.device (auto, cpu, cuda:0)")
     args = ap.parse_args(argv)
 
     load0 = os.getloadavg()[0]
-    scene = scenes.load(args.scene)
+    kw = {}
+    if args.views is not None:
+        kw["n_views"] = args.views
+    if args.image_size is not None:
+        kw["resolution"] = args.image_size
+    scene = scenes.load(args.scene, **kw)
     peer = gt_depth_peer(scene)
     print(f"peer (TSDF of ground-truth depth): Chamfer {100 * peer['chamfer_rel']:.3f} % of diagonal, "
           f"F-score {peer['f_score']:.3f}", flush=True)
     rows = []
     for name in args.variants:
         for seed in args.seeds:
-            r = run_variant(scene, name, seed, args.iterations)
+            r = run_variant(scene, name, seed, args.iterations, args.device, args.mesh_resolution)
             rows.append(r)
             print(f"{name:15s} seed {seed}: {r['time']:6.1f} s (cpu {r['cpu']:.1f} s)  Chamfer {100 * r['chamfer_rel']:.3f} % "
                   f"({r['chamfer_rel'] / peer['chamfer_rel']:.1f}x peer)  F {r['f_score']:.3f}  PSNR {r['psnr']:.2f}  "

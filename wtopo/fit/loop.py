@@ -262,8 +262,9 @@ class FitRun:
                 with T("losses"):
                     both = mr.mask & covered
                     if lc.mesh_depth > 0:
+                        sd = out.median_depth if lc.mesh_depth_source == "median" else out.depth
                         L["mesh_depth"] = lc.mesh_depth * mesh_depth_loss(
-                            out.depth, mr.depth, both, eps=_DEPTH_EPS, form=str(getattr(lc.depth_form, "value", lc.depth_form)),
+                            sd, mr.depth, both, eps=_DEPTH_EPS, form=str(getattr(lc.depth_form, "value", lc.depth_form)),
                             extent=self.extent)
                     if lc.mesh_normal > 0:
                         L["mesh_normal"] = lc.mesh_normal * mesh_normal_loss(out.normal, mr.normal, both)

@@ -246,6 +246,7 @@ FIELD_CHECKS = MappingProxyType({
     "losses.mesh_depth": _RATE,
     "losses.mesh_normal": _RATE,
     "losses.depth_form": _enum(DepthLoss),
+    "losses.mesh_depth_source": _Choice(("expected", "median")),
     "losses.silhouette_band": _COUNT,
     # -- mesh
     "mesh.resolution": _int(_GRID_MIN, _POISSON_MAX),
