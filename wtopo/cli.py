@@ -6,6 +6,7 @@ Examples::
     wtopo scenes
     wtopo fit bunny --out runs/bunny
     wtopo fit path/to/dataset --out runs/x --iterations 2000 --device cuda
+    wtopo fit bunny --out runs/b --set losses.mask=0.5 --set final.method=proxy
     wtopo report runs/bunny
     wtopo export runs/bunny runs/bunny/final.obj
 """
@@ -48,10 +49,61 @@ _OVERRIDES = (
 )
 
 
+def _parse_value(text: str):
+    """``--set`` value: JSON when it parses (numbers, true/false/null, lists), else the raw string."""
+    import json
+
+    try:
+        return json.loads(text)
+    except ValueError:
+        return text
+
+
+def _apply_set(cfg, item: str) -> None:
+    """Apply one ``--set PATH=VALUE`` (dotted FitConfig path, e.g. ``losses.mask=0.5``)."""
+    import dataclasses
+    import enum
+
+    path, sep, text = item.partition("=")
+    if not sep or not path:
+        raise ValueError(f"--set takes PATH=VALUE (e.g. losses.mask=0.5), got {item!r}")
+    parts = path.strip().split(".")
+    obj = cfg
+    for i, name in enumerate(parts):
+        if not dataclasses.is_dataclass(obj) or name not in {f.name for f in dataclasses.fields(obj)}:
+            raise ValueError(f"--set: FitConfig has no field {'.'.join(parts[:i + 1])!r}")
+        if i < len(parts) - 1:
+            obj = getattr(obj, name)
+    name = parts[-1]
+    old = getattr(obj, name)
+    if dataclasses.is_dataclass(old):
+        raise ValueError(f"--set: {path!r} is a group, set one of its fields")
+    value = _parse_value(text)
+    if isinstance(old, enum.Enum):
+        try:
+            value = type(old)(value)
+        except ValueError:
+            raise ValueError(f"--set: {path} must be one of {[m.value for m in type(old)]}, got {text!r}") from None
+    elif isinstance(value, list):  # the only sequences in FitConfig are tuples (background)
+        value = tuple(value)
+    setattr(obj, name, value)
+
+
 def _config(args):
+    import json
+
     from .fit import FitConfig
 
     cfg = FitConfig.toposurfel_public() if args.preset == "toposurfel-public" else FitConfig()
+    if args.config is not None:
+        try:
+            with open(args.config) as fh:
+                data = json.load(fh)
+        except (OSError, ValueError) as e:
+            raise ValueError(f"--config {args.config!r}: {e}") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"--config {args.config!r} must hold a JSON object, got {type(data).__name__}")
+        cfg = FitConfig.from_dict(data)
     if args.iterations is not None:  # split evenly between warm-up and co-evolution
         w = args.iterations // 2
         cfg.warmup.iterations, cfg.coevolution.iterations = w, args.iterations - w
@@ -61,6 +113,8 @@ def _config(args):
             setattr(getattr(cfg, section), name, value)
     if args.no_mesh_loop:
         cfg.coevolution.enabled = False
+    for item in args.set or ():
+        _apply_set(cfg, item)
     return cfg
 
 
@@ -68,8 +122,8 @@ def _cmd_fit(args) -> int:
     from .fit import fit
     from .fit.validate_config import validate_config
 
-    cfg = _config(args)
     try:  # before the scene is loaded: a bad flag is reported at once, as a message, not a traceback
+        cfg = _config(args)
         validate_config(cfg)
     except (TypeError, ValueError) as e:
         print(f"wtopo fit: error: {e}", file=sys.stderr)
@@ -127,6 +181,11 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--poisson-resolution", type=int)
     f.add_argument("--preset", choices=["default", "toposurfel-public"], default="default",
                    help="toposurfel-public: the public TopoSurfel code's settings where supported")
+    f.add_argument("--config", metavar="FILE.json",
+                   help="start from a FitConfig saved as JSON (a run's config.json or FitConfig.to_dict())")
+    f.add_argument("--set", action="append", metavar="PATH=VALUE",
+                   help="set any FitConfig field by its dotted path, after the other flags (repeatable), "
+                        "e.g. --set losses.mask=0.5 --set final.method=proxy")
     f.add_argument("--quiet", action="store_true", help="no plan, no progress bars")
     f.set_defaults(func=_cmd_fit)
 
