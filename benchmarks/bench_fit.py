@@ -118,8 +118,13 @@ def gt_depth_peer(scene) -> dict:
 
 
 def run_variant(scene, name: str, seed: int, iterations: int | None, device: str = "auto",
-                mesh_resolution: int | None = None) -> dict:
-    cfg = VARIANTS[name](FitConfig())
+                mesh_resolution: int | None = None, sets=()) -> dict:
+    from wtopo.cli import _apply_set
+
+    cfg = FitConfig()
+    for item in sets:  # --set overrides first: a variant's own change wins
+        _apply_set(cfg, item)
+    cfg = VARIANTS[name](cfg)
     cfg.runtime.seed = seed
     cfg.runtime.usd_every = 0
     cfg.runtime.device = device
@@ -149,6 +154,8 @@ def main(argv=None) -> int:
     ap.add_argument("--image-size", type=int, help="image side in pixels (default: the scene's)")
     ap.add_argument("--mesh-resolution", type=int, help="co-evolution Poisson grid (default: FitConfig's)")
     ap.add_argument("--device", default="auto", help="FitConfig.runtime.device (auto, cpu, cuda:0)")
+    ap.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
+                    help="FitConfig override applied to every variant (as `wtopo fit --set`)")
     args = ap.parse_args(argv)
 
     load0 = os.getloadavg()[0]
@@ -164,7 +171,7 @@ def main(argv=None) -> int:
     rows = []
     for name in args.variants:
         for seed in args.seeds:
-            r = run_variant(scene, name, seed, args.iterations, args.device, args.mesh_resolution)
+            r = run_variant(scene, name, seed, args.iterations, args.device, args.mesh_resolution, args.set)
             rows.append(r)
             print(f"{name:15s} seed {seed}: {r['time']:6.1f} s (cpu {r['cpu']:.1f} s)  Chamfer {100 * r['chamfer_rel']:.3f} % "
                   f"({r['chamfer_rel'] / peer['chamfer_rel']:.1f}x peer)  F {r['f_score']:.3f}  PSNR {r['psnr']:.2f}  "
