@@ -14,8 +14,9 @@ mesh); ``view_flips`` (normal signs from view directions only); ``random_flips``
 (no geometry-aware prune / densification); ``one_point`` (1 oriented point per surfel instead of 5);
 ``expected_depth`` (mesh-depth term on the expected instead of the median surfel depth);
 ``proxy_final`` (the returned mesh is the Poisson proxy instead of the TSDF of rendered depth);
-``filter_2dgs`` (the renderer's low-pass at 2DGS's 0.71 px instead of 0.35 px); ``no_band`` (the
-silhouette band kept in the photometric and mask terms); ``mask_05`` (mask weight 0.5 instead of 0.2).
+``filter_2dgs`` (the renderer's low-pass at 2DGS's 0.71 px instead of 0.35 px); ``band_2`` (a
+2-pixel band around the mask boundary left out of the photometric and mask terms); ``mask_05``
+(mask weight 0.5 instead of 0.2).
 
 Command (writes benchmarks/fit.md)::
 
@@ -87,8 +88,8 @@ def _filter_2dgs(cfg):
     return cfg
 
 
-def _no_band(cfg):
-    cfg.losses.silhouette_band = 0
+def _band_2(cfg):
+    cfg.losses.silhouette_band = 2
     return cfg
 
 
@@ -100,7 +101,7 @@ def _mask_05(cfg):
 VARIANTS = {"full": _full, "no_mesh_loop": _no_mesh_loop, "view_flips": _view_flips,
             "random_flips": _random_flips, "no_geo_density": _no_geo_density, "one_point": _one_point,
             "expected_depth": _expected_depth, "proxy_final": _proxy_final, "filter_2dgs": _filter_2dgs,
-            "no_band": _no_band, "mask_05": _mask_05}
+            "band_2": _band_2, "mask_05": _mask_05}
 
 
 def gt_depth_peer(scene) -> dict:

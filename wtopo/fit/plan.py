@@ -24,8 +24,8 @@ _MIN_SH_VIEWS = 20  # fewer views than this cannot constrain view-dependent colo
 _CPU_MAX_SIDE = 256  # longest image side trained on a CPU (keeps the default fit within minutes)
 _GPU_MAX_SIDE = 1024
 _MIN_EVAL_VIEWS = 12
-_MASK_WEIGHT = 0.2  # alpha-vs-mask BCE weight (silhouette band left out); 0.5 pulls the surface in, 0 leaves
-# short fits semi-transparent (benchmarks/fit.md)
+_MASK_WEIGHT = 0.2  # alpha-vs-mask BCE weight: 0.5 pulls the surface in, 0 leaves short fits semi-transparent
+# (benchmarks/fit.md)
 
 
 @dataclass
@@ -150,7 +150,7 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
 
     # -- masks and background
     plan.set("mask_loss", _MASK_WEIGHT if has_masks else 0.0,
-             "object masks given: alpha supervised by the mask away from the silhouette band" if has_masks
+             "object masks given: alpha supervised by the mask" if has_masks
              else "no masks",
              cfg.losses.mask)
     plan.set("background_rule", not has_masks,
