@@ -339,8 +339,9 @@ class FitConfig:
     filter_sigma: float = 0.35
     """Screen-space low-pass of the surfel renderer [pixels] (:class:`wtopo.RasterConfig`; 2DGS uses
     0.71). Half the 2DGS width: a sub-pixel surfel seen edge-on at the silhouette then haloes half
-    as far, and the fit shrinks the surface less to cancel the halo (bunny: Chamfer 0.74 % -> 0.44 %,
-    ``benchmarks/fit.md``)."""
+    as far, the fit shrinks the surface less to cancel the halo, and rendered depth stops leaning
+    towards the nearest centre (bunny, other settings as before: Chamfer 0.74 % -> 0.44 %; with
+    today's defaults see ``benchmarks/fit.md``)."""
 
     @staticmethod
     def toposurfel_public() -> FitConfig:
