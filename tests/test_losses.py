@@ -144,3 +144,18 @@ def test_safe_normalize_keeps_zero_vectors_zero():
     out = L.safe_normalize(v)
     out.sum().backward()
     assert torch.equal(out, torch.zeros(3, 3)) and torch.isfinite(v.grad).all()
+
+
+def test_boundary_band_is_the_ring_around_the_mask_edge():
+    """A 6x6 square in a 12x12 image: width 1 gives the 8x8 ring minus the 4x4 core; 0 gives nothing."""
+    m = torch.zeros(12, 12, dtype=torch.bool)
+    m[3:9, 3:9] = True
+    band = L.boundary_band(m, 1)
+    want = torch.zeros(12, 12, dtype=torch.bool)
+    want[2:10, 2:10] = True
+    want[4:8, 4:8] = False
+    assert torch.equal(band, want) and int(band.sum()) == 64 - 16
+    assert int(L.boundary_band(m, 2).sum()) == 100 - 4
+    assert not L.boundary_band(m, 0).any()
+    assert not L.boundary_band(torch.zeros(5, 5, dtype=torch.bool), 2).any()  # no edge, no band
+    assert not L.boundary_band(torch.ones(5, 5, dtype=torch.bool), 2).any()
