@@ -181,7 +181,9 @@ class DensifyConfig:
     prune_opacity: float = 0.05
     """Surfels with opacity below this are pruned."""
     opacity_reset_interval: int = 300
-    """Warm-up iterations between opacity resets (0 disables)."""
+    """Warm-up iterations between opacity resets (0 disables). A reset with fewer than 100 warm-up
+    iterations left after it is skipped (the surfels would reach the TSDF re-initialisation still
+    transparent)."""
     opacity_reset_value: float = 0.1
     """Opacities are clamped to at most this at a reset."""
     geometry_prune: bool = True

@@ -56,6 +56,9 @@ _GAP_THRESHOLD = 0.002  # clone/split runs while more than this fraction of obje
 _DEPTH_EPS = 1e-4  # log-depth clamp, internal units (1e-4 of the unit cube)
 _REINIT_OPACITY = 0.8  # TSDF re-initialised surfels start nearly opaque: they sit on the fused surface
 _REMESH_SAMPLES = 200_000  # surface samples for the watertight Poisson re-mesh of the final mesh
+# warm-up iterations an opacity reset needs after it; later resets are skipped (a reset 20 iterations
+# before the TSDF re-initialisation left an 80-iteration fit at 15 % Chamfer, 0.78 % without it)
+_RESET_RECOVERY = 100
 
 
 class FitAborted(RuntimeError):
@@ -341,8 +344,12 @@ class FitRun:
             removed = dens.prune_by_opacity(self.surfels, dc.prune_opacity)
             changed |= removed > 0
             if dc.opacity_reset_interval and it % dc.opacity_reset_interval == 0 and it < dc.stop_fraction * W:
-                dens.reset_opacity(self.surfels, dc.opacity_reset_value)
-                changed = True
+                if W - it >= _RESET_RECOVERY:
+                    dens.reset_opacity(self.surfels, dc.opacity_reset_value)
+                    changed = True
+                else:  # too late: the surfels would reach the TSDF re-initialisation still transparent
+                    self.events.append({"iteration": it, "event": "opacity_reset_skipped",
+                                        "remaining_warmup": W - it})
         if changed:
             self._snapshot()
 
