@@ -117,3 +117,14 @@ def test_injected_nan_is_survived_and_persistent_nan_aborts(tiny, tmp_path, monk
     with pytest.raises(FitAborted, match="3 consecutive"):
         fit(tiny, cfg, out_dir=tmp_path, progress=False)
     assert list_checkpoints(tmp_path / "checkpoints")
+
+
+def test_late_opacity_reset_is_skipped(tiny):
+    """A reset with fewer than 100 warm-up iterations left is skipped and recorded; an early one runs."""
+    cfg = _config(130, 0)
+    cfg.tsdf.enabled = False
+    cfg.densify.opacity_reset_interval = 20
+    res = fit(tiny, cfg, progress=False)
+    skipped = [e["iteration"] for e in res.report["events"] if e["event"] == "opacity_reset_skipped"]
+    assert skipped == [40, 60, 80, 100], skipped  # 20 runs (110 left); stop_fraction 0.8 ends resets at 104
+    assert all(e["remaining_warmup"] < 100 for e in res.report["events"] if e["event"] == "opacity_reset_skipped")
