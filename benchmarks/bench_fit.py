@@ -43,65 +43,20 @@ from wtopo.fit.evaluate import F_SCORE_TAU, geometry_metrics
 from wtopo.fit.tsdf import auto_bounds, cleanup_mesh, fuse_depths
 
 
-def _full(cfg):
-    return cfg
-
-
-def _no_mesh_loop(cfg):
-    cfg.coevolution.enabled = False
-    return cfg
-
-
-def _view_flips(cfg):
-    cfg.mesh.normal_flip = "view"
-    return cfg
-
-
-def _random_flips(cfg):
-    cfg.mesh.normal_flip = "random"
-    return cfg
-
-
-def _no_geo_density(cfg):
-    cfg.densify.geometry_prune = False
-    cfg.densify.geometry_densify = False
-    return cfg
-
-
-def _one_point(cfg):
-    cfg.mesh.samples_per_surfel = 1
-    return cfg
-
-
-def _expected_depth(cfg):
-    cfg.losses.mesh_depth_source = "expected"
-    return cfg
-
-
-def _proxy_final(cfg):
-    cfg.final.method = "proxy"
-    return cfg
-
-
-def _filter_2dgs(cfg):
-    cfg.filter_sigma = 2.0 ** -0.5
-    return cfg
-
-
-def _band_2(cfg):
-    cfg.losses.silhouette_band = 2
-    return cfg
-
-
-def _mask_05(cfg):
-    cfg.losses.mask = 0.5
-    return cfg
-
-
-VARIANTS = {"full": _full, "no_mesh_loop": _no_mesh_loop, "view_flips": _view_flips,
-            "random_flips": _random_flips, "no_geo_density": _no_geo_density, "one_point": _one_point,
-            "expected_depth": _expected_depth, "proxy_final": _proxy_final, "filter_2dgs": _filter_2dgs,
-            "band_2": _band_2, "mask_05": _mask_05}
+# variant -> FitConfig overrides (``wtopo fit --set`` syntax)
+VARIANTS = {
+    "full": (),
+    "no_mesh_loop": ("coevolution.enabled=false",),
+    "view_flips": ("mesh.normal_flip=view",),
+    "random_flips": ("mesh.normal_flip=random",),
+    "no_geo_density": ("densify.geometry_prune=false", "densify.geometry_densify=false"),
+    "one_point": ("mesh.samples_per_surfel=1",),
+    "expected_depth": ("losses.mesh_depth_source=expected",),
+    "proxy_final": ("final.method=proxy",),
+    "filter_2dgs": (f"filter_sigma={2.0 ** -0.5}",),
+    "band_2": ("losses.silhouette_band=2",),
+    "mask_05": ("losses.mask=0.5",),
+}
 
 
 def gt_depth_peer(scene) -> dict:
@@ -123,9 +78,8 @@ def run_variant(scene, name: str, seed: int, iterations: int | None, device: str
     from wtopo.cli import _apply_set
 
     cfg = FitConfig()
-    for item in sets:  # --set overrides first: a variant's own change wins
+    for item in (*sets, *VARIANTS[name]):  # --set overrides first: a variant's own change wins
         _apply_set(cfg, item)
-    cfg = VARIANTS[name](cfg)
     cfg.runtime.seed = seed
     cfg.runtime.usd_every = 0
     cfg.runtime.device = device

@@ -75,6 +75,14 @@ def _assert_close(a, b, rtol=F64_RTOL, atol=F64_ATOL, name=""):
     torch.testing.assert_close(a.detach(), b.detach().to(a.dtype), rtol=rtol, atol=atol, msg=lambda m: f"{name}: {m}")
 
 
+def _assert_vjp(out, ref, params, shift):
+    """Every input gradient and means2d.grad match the reference in float64, each one exercised."""
+    go, gr = _vjp(out, ref, params, shift)
+    for name, a, b in zip(("means", "quats", "scales", "opacities", "colors", "means2d"), go, gr):
+        assert float(b.abs().max()) > 0, name  # the gradient is exercised
+        _assert_close(a, b, name=name)
+
+
 def _assert_forward(out, ref, rtol=F64_RTOL, atol=F64_ATOL):
     for k in IMAGES:
         _assert_close(getattr(out, k), ref[k], rtol, atol, k)
@@ -89,10 +97,7 @@ def test_forward_and_vjp_match_reference(device, sh):
     assert int((out.alpha > 0).sum()) > 300  # coverage
     _assert_forward(out, ref)
     _assert_close(out.means2d, ref["means2d"], name="means2d")
-    go, gr = _vjp(out, ref, params, shift)
-    for name, a, b in zip(("means", "quats", "scales", "opacities", "colors", "means2d"), go, gr):
-        assert float(b.abs().max()) > 0, name  # the gradient is exercised
-        _assert_close(a, b, name=name)
+    _assert_vjp(out, ref, params, shift)
 
 
 @pytest.mark.parametrize("sigma", [0.2, 0.35, 1.5])
@@ -103,10 +108,7 @@ def test_filter_sigma_matches_reference(device, sigma):
     out, ref, shift = _render_both(params, _camera(), config=RasterConfig(filter_sigma=sigma))
     assert int((out.alpha > 0).sum()) > 30  # coverage (small surfels, narrow filter)
     _assert_forward(out, ref)
-    go, gr = _vjp(out, ref, params, shift)
-    for name, a, b in zip(("means", "quats", "scales", "opacities", "colors", "means2d"), go, gr):
-        assert float(b.abs().max()) > 0, name  # the gradient is exercised
-        _assert_close(a, b, name=name)
+    _assert_vjp(out, ref, params, shift)
 
 
 @pytest.mark.parametrize("sigma", [0.35, 0.7071067811865476, 2.0])

@@ -37,7 +37,9 @@ from .camera import Camera
 from .kernels import rasterize as _k
 from .kernels import rasterize_binning as _kb
 
-__all__ = ["RasterConfig", "RenderOutput", "rasterize_surfels"]
+__all__ = ["RasterConfig", "RenderOutput", "rasterize_surfels", "FILTER_SIGMA_RANGE"]
+
+FILTER_SIGMA_RANGE = (0.05, 100.0)  # accepted RasterConfig.filter_sigma [pixels]
 
 
 @dataclass(kw_only=True)
@@ -148,8 +150,9 @@ def _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, 
         raise ValueError(f"config.near_fraction ({config.near_fraction}) must be < config.far_multiple "
                          f"({config.far_multiple})")
     fs = config.filter_sigma
-    if not (isinstance(fs, (int, float)) and not isinstance(fs, bool) and math.isfinite(fs) and 0.05 <= fs <= 100):
-        raise ValueError(f"config.filter_sigma must be a number of pixels in [0.05, 100], got {fs!r}")
+    lo, hi = FILTER_SIGMA_RANGE
+    if not (isinstance(fs, (int, float)) and not isinstance(fs, bool) and math.isfinite(fs) and lo <= fs <= hi):
+        raise ValueError(f"config.filter_sigma must be a number of pixels in [{lo}, {hi}], got {fs!r}")
     if not (isinstance(config.tiles_per_chunk, int) and config.tiles_per_chunk >= 0):
         raise ValueError(f"config.tiles_per_chunk must be an int >= 0, got {config.tiles_per_chunk!r}")
     require_tensor("means", means, shape=(None, 3))

@@ -121,6 +121,10 @@ class FitRun:
         self.hash = config_hash(cfg)
         self.gen = torch.Generator().manual_seed(cfg.runtime.seed)
         self.bg = torch.tensor(self.plan["background"], dtype=torch.float32, device=self.device)
+        from ..rasterize import RasterConfig
+
+        self.raster = RasterConfig(filter_sigma=cfg.filter_sigma)
+        self._bands: dict[int, torch.Tensor] = {}  # training view -> silhouette band (masks are fixed)
         self.it = 0
         self.tsdf_done = False
         self.history: list[dict] = []
@@ -201,11 +205,11 @@ class FitRun:
 
     # -- rendering -------------------------------------------------------------------------------------
     def _render(self, camera):
-        from ..rasterize import RasterConfig, rasterize_surfels
+        from ..rasterize import rasterize_surfels
 
         s = self.surfels
         return rasterize_surfels(s.means, s.quats, s.scales, s.opacities, s.sh, camera, sh_degree=s.sh_degree,
-                                 background=self.bg, config=RasterConfig(filter_sigma=self.cfg.filter_sigma))
+                                 background=self.bg, config=self.raster)
 
     def _render_depths(self, cameras, which: str):
         depths, colors = [], []
@@ -229,7 +233,9 @@ class FitRun:
         with T("losses"):
             band = None
             if self.train.masks is not None and lc.silhouette_band > 0:
-                band = boundary_band(self.train.masks[vi], lc.silhouette_band)
+                band = self._bands.get(vi)
+                if band is None:
+                    band = self._bands[vi] = boundary_band(self.train.masks[vi], lc.silhouette_band)
             # the band is left out by rendering the target there: zero loss, zero gradient
             rgb = out.rgb if band is None else torch.where(band[..., None], img, out.rgb)
             L["photo"] = photometric(rgb, img, lc.dssim)

@@ -20,6 +20,7 @@ import re
 from dataclasses import dataclass
 from types import MappingProxyType
 
+from ..rasterize import FILTER_SIGMA_RANGE
 from .config import DepthLoss, FitConfig, NormalFlip
 
 __all__ = ["FIELD_CHECKS", "validate_config"]
@@ -30,7 +31,6 @@ _POISSON_MAX = 1024  # the Poisson grid is dense (FFT): 1024^3 complex nodes alr
 _GRID_MIN = 8  # coarser Poisson / TSDF grids cannot resolve any shape
 _SEED_MAX = 2**32 - 1  # NumPy's default_rng and torch.manual_seed (times 1_000_003) both accept this range
 _SH_MAX = 3
-_FILTER_SIGMA = (0.05, 100.0)  # the range wtopo.RasterConfig.filter_sigma accepts [pixels]
 _DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")
 
 
@@ -278,7 +278,7 @@ FIELD_CHECKS = MappingProxyType({
     # -- top level
     "sh_degree": _int(0, _SH_MAX, optional=True),
     "background": _Colour(),
-    "filter_sigma": _float(*_FILTER_SIGMA),
+    "filter_sigma": _float(*FILTER_SIGMA_RANGE),
 })
 
 # the nested stage configs: FitConfig field name -> its dataclass
