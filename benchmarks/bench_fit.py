@@ -38,9 +38,9 @@ import numpy as np
 import torch
 
 from wtopo import scenes
-from wtopo.fit import FitConfig, fit
-from wtopo.fit.evaluate import F_SCORE_TAU, geometry_metrics
-from wtopo.fit.tsdf import auto_bounds, cleanup_mesh, fuse_depths
+from wtopo.fitting import FitConfig, fit
+from wtopo.fitting.evaluate import F_SCORE_TAU, geometry_metrics
+from wtopo.fitting.tsdf import auto_bounds, cleanup_mesh, fuse_depths
 
 
 # variant -> FitConfig overrides (``wtopo fit --set`` syntax)

@@ -116,7 +116,7 @@ def spec_key(spec: dict) -> tuple:
 
 def make_config(spec: dict, *, device: str = "auto"):
     """The :class:`wtopo.FitConfig` of one run: defaults, with the schedule scaled to the iterations."""
-    from wtopo.fit import FitConfig
+    from wtopo.fitting import FitConfig
 
     cfg = FitConfig()
     it = int(spec["iterations"])
@@ -162,7 +162,7 @@ def run_spec(spec: dict, *, device: str = "auto") -> dict:
     import torch
 
     from wtopo import scenes
-    from wtopo.fit import fit
+    from wtopo.fitting import fit
 
     scene = scenes.load(spec["scene"], resolution=int(spec["image_resolution"]))
     cfg = make_config(spec, device=device)

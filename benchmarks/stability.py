@@ -77,8 +77,8 @@ class CaseFailed(Exception):
 
 
 def _clear_errors() -> tuple[type, ...]:
-    from wtopo.fit import FitAborted
-    from wtopo.fit.tsdf import TSDFEmptyError
+    from wtopo.fitting import FitAborted
+    from wtopo.fitting.tsdf import TSDFEmptyError
 
     return (ValueError, TypeError, FitAborted, TSDFEmptyError)
 
@@ -99,7 +99,7 @@ def sphere_scene():
 def tiny_config(warmup: int = 12, coevolution: int = 6):
     """A fit of a few seconds on the sphere scene: every stage runs (warm-up with density control,
     TSDF re-initialisation, co-evolution with the proxy mesh and mesh guidance, final TSDF)."""
-    from wtopo.fit import FitConfig
+    from wtopo.fitting import FitConfig
 
     cfg = FitConfig()
     cfg.warmup.iterations, cfg.coevolution.iterations = warmup, coevolution
@@ -150,7 +150,7 @@ def _check_fit(res) -> str:
 
 
 def _fit(scene, cfg):
-    from wtopo.fit import fit
+    from wtopo.fitting import fit
 
     return fit(scene, cfg, progress=False)
 
@@ -217,7 +217,7 @@ def case_grazing_rig() -> str:
 
 def case_tiny_scales() -> str:
     """Every initial surfel with both scales at 1e-8 (internal units)."""
-    from wtopo.fit import loop
+    from wtopo.fitting import loop
 
     orig = loop.initial_surfels
 
@@ -329,7 +329,7 @@ def _colinear(cams):
 # -- the differentiable chain (STABILITY 9) ----------------------------------------------------------------
 def _chain_inputs(dtype=torch.float64, n: int = 24, seed: int = 0):
     """Surfels tangent to a sphere of radius 0.25 in the unit cube, normals outward."""
-    from wtopo.fit.surfels import normals_to_quats
+    from wtopo.fitting.surfels import normals_to_quats
 
     g = torch.Generator().manual_seed(seed)
     d = torch.randn(n, 3, generator=g, dtype=torch.float64)

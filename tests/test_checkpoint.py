@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from wtopo.fit.checkpoint import (
+from wtopo.fitting.checkpoint import (
     CheckpointError,
     list_checkpoints,
     load_checkpoint,
@@ -15,7 +15,7 @@ from wtopo.fit.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
-from wtopo.fit.surfels import Surfels
+from wtopo.fitting.surfels import Surfels
 
 
 def _surfels(n=10, seed=0):

@@ -30,8 +30,8 @@ def test_set_reaches_any_field_and_config_file_round_trips(tmp_path):
     """--set PATH=VALUE sets nested fields with JSON values and enums; --config starts from a saved config."""
     import json
 
-    from wtopo.fit import FitConfig
-    from wtopo.fit.config import NormalFlip
+    from wtopo.fitting import FitConfig
+    from wtopo.fitting.config import NormalFlip
 
     args = cli.build_parser().parse_args([
         "fit", "bunny", "--out", "x", "--set", "losses.mask=0.5", "--set", "final.method=proxy",

@@ -5,9 +5,9 @@ import math
 
 import torch
 
-from wtopo.fit import densify as D
-from wtopo.fit.config import DensifyConfig, NormalFlip
-from wtopo.fit.surfels import Surfels, normals_to_quats, quat_to_matrix
+from wtopo.fitting import densify as D
+from wtopo.fitting.config import DensifyConfig, NormalFlip
+from wtopo.fitting.surfels import Surfels, normals_to_quats, quat_to_matrix
 
 ROT_TOL = 1e-5  # float32 rotation round trip
 

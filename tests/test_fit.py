@@ -9,11 +9,11 @@ import torch
 import trimesh
 
 from wtopo import Scene, scenes
-from wtopo.fit import FitAborted, FitConfig, fit
-from wtopo.fit import loop as fit_loop
-from wtopo.fit.checkpoint import list_checkpoints
-from wtopo.fit.evaluate import geometry_metrics
-from wtopo.fit.plan import make_plan
+from wtopo.fitting import FitAborted, FitConfig, fit
+from wtopo.fitting import loop as fit_loop
+from wtopo.fitting.checkpoint import list_checkpoints
+from wtopo.fitting.evaluate import geometry_metrics
+from wtopo.fitting.plan import make_plan
 
 RESUME_TOL = 1e-5  # resumed vs uninterrupted parameters: same float32 operations in the same order
 

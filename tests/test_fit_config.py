@@ -9,9 +9,9 @@ import pytest
 
 import wtopo
 from wtopo import Camera, cli
-from wtopo.fit import DepthLoss, FitConfig, NormalFlip
-from wtopo.fit.loop import FitRun
-from wtopo.fit.validate_config import FIELD_CHECKS, validate_config
+from wtopo.fitting import DepthLoss, FitConfig, NormalFlip
+from wtopo.fitting.loop import FitRun
+from wtopo.fitting.validate_config import FIELD_CHECKS, validate_config
 from wtopo.scene import Scene
 
 
@@ -216,7 +216,7 @@ def _tiny_scene() -> Scene:
 
 
 def test_fit_rejects_a_bad_config_before_any_work(monkeypatch):
-    """Raise from wtopo.fit before the scene is normalised or the fit engine is built."""
+    """Raise from wtopo.fitting before the scene is normalised or the fit engine is built."""
     def unreachable(*args, **kwargs):
         raise AssertionError("fit started work with an invalid config")
 

@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from wtopo.fit import losses as L
+from wtopo.fitting import losses as L
 
 TOL = 1e-6  # float32 sums of a few hundred O(1) terms
 GRADCHECK_EPS = 1e-6  # float64 finite-difference step (losses are smooth away from the masks)

@@ -13,28 +13,9 @@ Public entry points: :class:`Camera`, :class:`Scene`, :func:`load_scene`, :func:
 from __future__ import annotations
 
 import importlib
-import importlib.util
-import os
-import sys
 
 __version__ = "0.1.0"
 
-
-def _mount_kernels() -> None:
-    # Installed, ``kernels/`` is the package ``wtopo.kernels`` (pyproject package-dir).  Run from a
-    # source tree (``PYTHONPATH=.``) it is not, so mount the folder under that name.
-    if "wtopo.kernels" in sys.modules or importlib.util.find_spec("wtopo.kernels") is not None:
-        return
-    src = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "kernels", "__init__.py")
-    if os.path.exists(src):
-        spec = importlib.util.spec_from_file_location("wtopo.kernels", src,
-                                                      submodule_search_locations=[os.path.dirname(src)])
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules["wtopo.kernels"] = mod
-        spec.loader.exec_module(mod)
-
-
-_mount_kernels()
 
 import warp as _wp  # noqa: E402
 
@@ -47,9 +28,9 @@ from .camera import Camera  # noqa: E402
 _LAZY = {
     "Scene": ("wtopo.scene", "Scene"),
     "load_scene": ("wtopo.loaders", "load_scene"),
-    "fit": ("wtopo.fit", "fit"),
-    "FitConfig": ("wtopo.fit", "FitConfig"),
-    "FitResult": ("wtopo.fit", "FitResult"),
+    "fit": ("wtopo.fitting", "fit"),
+    "FitConfig": ("wtopo.fitting", "FitConfig"),
+    "FitResult": ("wtopo.fitting", "FitResult"),
     "ops": ("wtopo.ops", None),
     "scenes": ("wtopo.scenes", None),
     "metrics": ("wtopo.metrics", None),

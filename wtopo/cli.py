@@ -92,7 +92,7 @@ def _apply_set(cfg, item: str) -> None:
 def _config(args):
     import json
 
-    from .fit import FitConfig
+    from .fitting import FitConfig
 
     cfg = FitConfig.toposurfel_public() if args.preset == "toposurfel-public" else FitConfig()
     if args.config is not None:
@@ -119,8 +119,8 @@ def _config(args):
 
 
 def _cmd_fit(args) -> int:
-    from .fit import fit
-    from .fit.validate_config import validate_config
+    from .fitting import fit
+    from .fitting.validate_config import validate_config
 
     try:  # before the scene is loaded: a bad flag is reported at once, as a message, not a traceback
         cfg = _config(args)

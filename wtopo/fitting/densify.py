@@ -8,7 +8,7 @@ The mesh-guided steps use nearest-face queries on the proxy mesh's BVH
 * geometry-aware densification: faces that are no surfel's nearest face spawn a surfel;
 * normal sign alignment: the sign of each surfel's normal fed to the Poisson solve.
 
-Every step keeps the optimiser state aligned (:class:`wtopo.fit.surfels.Surfels`), never removes
+Every step keeps the optimiser state aligned (:class:`wtopo.fitting.surfels.Surfels`), never removes
 all surfels and respects a hard cap on the count.
 """
 

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Validation of a :class:`~wtopo.fit.config.FitConfig` before :func:`wtopo.fit` does any work.
+"""Validation of a :class:`~wtopo.fitting.config.FitConfig` before :func:`wtopo.fit` does any work.
 
 One table, :data:`FIELD_CHECKS`, maps the dotted path of every leaf field (``"warmup.iterations"``)
 to its check; :func:`validate_config` runs the table, then the cross-field checks. A wrong type

@@ -4,7 +4,7 @@
 Every length is in the internal frame (the scene normalised into the unit cube, see
 :meth:`wtopo.Scene.normalization`) or relative to the scene extent, so one configuration works
 for a scene in millimetres and one in kilometres. Fields set to ``None`` are decided by the stage
-plan (:mod:`wtopo.fit.plan`) from the scene; setting them overrides the plan.
+plan (:mod:`wtopo.fitting.plan`) from the scene; setting them overrides the plan.
 """
 
 from __future__ import annotations

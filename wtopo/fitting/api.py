@@ -132,7 +132,7 @@ def fit(scene, config: FitConfig | None = None, *, out_dir: str | os.PathLike | 
     Raises:
         TypeError: ``scene`` is not a Scene or ``config`` not a FitConfig.
         ValueError: ``out_dir`` holds checkpoints of another configuration.
-        wtopo.fit.loop.FitAborted: too many consecutive non-finite steps (checkpoint written).
+        wtopo.fitting.loop.FitAborted: too many consecutive non-finite steps (checkpoint written).
 
     References:
         Fan et al., "TopoSurfel" (2026); Huang et al., "2D Gaussian Splatting" (SIGGRAPH 2024);
