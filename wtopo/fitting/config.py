@@ -62,6 +62,10 @@ class InitConfig:
     ``"auto"`` (points when the scene has them)."""
     num_points: int = 5000
     """Surfels drawn in the common volume when the scene has no points."""
+    background_points: int | None = None
+    """Background surfels on shells beyond the cameras (scenes without masks,
+    :mod:`wtopo.fitting.background`); ``None``: the plan's (as many as ``num_points`` for a scene,
+    0 for a masked object)."""
     opacity: float = 0.3
     """Initial opacity in (0, 1)."""
     scale_neighbours: int = 3
@@ -96,8 +100,8 @@ class OptimConfig:
 class WarmupConfig:
     """Stage 2: photometric warm-up without mesh losses."""
 
-    iterations: int = 400
-    """Iterations (one view each)."""
+    iterations: int | None = None
+    """Iterations (one view each); ``None``: the plan's budget for the device (CPU 400, CUDA 3000)."""
 
 
 @dataclass(kw_only=True)
@@ -130,8 +134,8 @@ class TSDFConfig:
 class CoevolutionConfig:
     """Stage 4: surfels and proxy mesh co-evolve; mesh losses every ``mesh_every`` iterations."""
 
-    iterations: int = 200
-    """Iterations."""
+    iterations: int | None = None
+    """Iterations; ``None``: the plan's budget for the device (CPU 200, CUDA 1000)."""
     mesh_every: int = 1
     """Rebuild the proxy mesh and apply the mesh losses every this many iterations (1 = always)."""
     correspondence_every: int = 100
@@ -150,14 +154,18 @@ class FinalConfig:
     surfels rebuilt at ``poisson_resolution`` (closed by construction). The fused depth is what the
     views see, the proxy is built from every surfel centre, hidden ones included: on the bunny
     the TSDF mesh is the more accurate (0.30 % against 0.42 % of the diagonal, ``benchmarks/fit.md``)."""
-    resolution: int = 192
-    """TSDF voxels along the longest side of the automatic bounds."""
+    resolution: int | None = None
+    """TSDF voxels along the longest side of the fusion bounds; ``None``: the plan's, from the pixel
+    footprint at the region of interest (one voxel per pixel footprint, capped per device)."""
     poisson_resolution: int = 128
     """Poisson grid nodes per side for ``method="proxy"``."""
-    largest_component: bool = True
-    """Keep only the largest connected component."""
+    largest_component: bool = False
+    """Keep only the largest connected component. Off by default: components are kept or dropped by
+    how well the views support them (size and the number of views that see them,
+    :mod:`wtopo.fitting.mesh_policy`), never by rank, so a second object survives."""
     watertight: bool = True
-    """If the TSDF mesh is not closed, re-mesh it by Poisson (closed by construction)."""
+    """Objects: if the TSDF mesh is not closed, re-mesh it by Poisson (closed by construction).
+    Scenes (no masks) are never closed: the mesh stays open where nothing was observed."""
 
 
 @dataclass(kw_only=True)
@@ -242,8 +250,9 @@ class LossConfig:
 class MeshConfig:
     """The differentiable proxy mesh (oriented points -> Poisson -> marching cubes)."""
 
-    resolution: int = 64
-    """Poisson grid resolution (nodes per side)."""
+    resolution: int | None = None
+    """Poisson grid resolution (nodes per side); ``None``: the plan's (CPU 64; CUDA from the pixel
+    footprint, 128-256)."""
     sigma: float = 1.0
     """Spectral smoothing of the Poisson solve, in grid cells (0 = none)."""
     padding: float = 0.1
@@ -275,8 +284,8 @@ class RuntimeConfig:
     """``"auto"`` (CUDA when available), ``"cpu"`` or ``"cuda:N"``."""
     seed: int = 0
     """Seed of torch, NumPy and every random choice of the fit."""
-    max_surfels: int = 40000
-    """Hard cap on the surfel count."""
+    max_surfels: int | None = None
+    """Hard cap on the surfel count; ``None``: the plan's (CPU 40,000, CUDA 400,000)."""
     checkpoint_every: int = 200
     """Iterations between checkpoints (0: none except at stage ends and on interruption)."""
     checkpoint_seconds: float = 120.0
@@ -295,8 +304,9 @@ class RuntimeConfig:
     """Abort (with a checkpoint) after this many non-finite steps in a row."""
     progress: bool = True
     """tqdm progress bars (also ``fit(progress=...)``)."""
-    image_scale: float = 1.0
-    """Train on images resized by this factor (1.0: the plan decides from the image size)."""
+    image_scale: float | None = None
+    """Train on images resized by this factor (1.0: full resolution); ``None``: the plan decides
+    from the image size and the device."""
     stop_at: int | None = None
     """Stop as if interrupted once this global iteration is reached (time-boxed runs, tests); the
     run resumes from its checkpoint with ``stop_at`` cleared."""
@@ -334,6 +344,10 @@ class FitConfig:
     """Proxy mesh."""
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     """Runtime."""
+    kind: str | None = None
+    """``"object"`` (closed mesh, nothing behind it kept) or ``"scene"`` (background kept at
+    distance, open mesh of the region of interest); ``None``: the plan's (object when the scene has
+    masks). See :mod:`wtopo.fitting.scene_kind`."""
     sh_degree: int | None = None
     """SH degree of the colours (0..3); ``None``: plan (0 for an untextured scene)."""
     background: tuple[float, float, float] | None = None

@@ -15,8 +15,9 @@ import numpy as np
 import torch
 
 from .config import FitConfig
+from .scene_kind import SceneKind, analyse_layout
 
-__all__ = ["Decision", "Plan", "make_plan"]
+__all__ = ["Decision", "Plan", "make_plan", "resolve_config"]
 
 _TEXTURE_STD = 0.02  # colour std (in [0,1] units) below which the foreground counts as untextured
 _VIEW_CONSISTENCY = 0.04  # mean reprojected colour difference below which the scene counts as diffuse
@@ -24,6 +25,16 @@ _MIN_SH_VIEWS = 20  # fewer views than this cannot constrain view-dependent colo
 _CPU_MAX_SIDE = 256  # longest image side trained on a CPU (keeps the default fit within minutes)
 _GPU_MAX_SIDE = 1024
 _MIN_EVAL_VIEWS = 12
+# Budgets per device. CPU: the default fit finishes in minutes on 2 cores (benchmarks/fit.md).
+# CUDA: the method's schedule shortened to minutes on one GPU (3,000 + 1,000 iterations at ~30 ms).
+_ITERATIONS = {"cpu": (400, 200), "cuda": (3000, 1000)}
+_MAX_SURFELS = {"cpu": 40_000, "cuda": 400_000}
+_PROXY_GRID = {"cpu": (64, 64), "cuda": (128, 256)}  # (min, max) Poisson nodes per side
+_FINAL_GRID = {"cpu": (96, 192), "cuda": (192, 768)}  # (min, max) TSDF voxels along the fusion box
+_PROXY_FOOTPRINTS = 2.0  # proxy grid cell ~ 2 pixel footprints (a finer Poisson grid only adds noise)
+# final TSDF voxel in pixel footprints: fused depth resolves below a pixel; 0.4 is the CPU default's
+# 192 voxels on the 128-px bunny (0.277 % Chamfer, benchmarks/fit.md), kept for every image size
+_FINAL_FOOTPRINTS = 0.4
 _MASK_WEIGHT = 0.2  # alpha-vs-mask BCE weight: 0.5 pulls the surface in, 0 leaves short fits semi-transparent
 # (benchmarks/fit.md)
 
@@ -48,6 +59,8 @@ class Plan:
     """Ordered decisions (name -> :class:`Decision`)."""
 
     decisions: dict[str, Decision] = field(default_factory=dict)
+    layout: object = None
+    """The :class:`~wtopo.fitting.scene_kind.SceneLayout` behind the scene-kind decisions."""
 
     def __getitem__(self, name: str):
         return self.decisions[name].value
@@ -141,6 +154,18 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     plan.set("device", str(device), "CUDA available" if device.type == "cuda" else
              ("CPU requested" if cfg.runtime.device == "cpu" else "no CUDA device"))
 
+    # -- what the capture is: object or scene, region of interest
+    layout = analyse_layout(scene, cfg.kind)
+    plan.layout = layout
+    plan.set("scene_kind", layout.kind.value, layout.reason)
+    plan.set("region_of_interest", [np.round(layout.roi_lower, 4).tolist(), np.round(layout.roi_upper, 4).tolist()],
+             f"from {layout.roi_source} (internal frame)")
+    is_scene = layout.kind is SceneKind.SCENE
+    plan.set("mesh_policy", "open_roi" if is_scene else "watertight",
+             f"scene: the region of interest's surface, open where unobserved, no face within "
+             f"{layout.near:.3g} of a camera; components kept by view support" if is_scene else
+             "object: closed surface; every component the views support is kept (never by rank)")
+
     # -- initialisation
     n_pts = 0 if points is None else len(points)
     src = "points" if n_pts >= 100 else "cameras"
@@ -153,9 +178,13 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
              "object masks given: alpha supervised by the mask" if has_masks
              else "no masks",
              cfg.losses.mask)
-    plan.set("background_rule", not has_masks,
-             "masked object: nothing behind it to keep" if has_masks
-             else "no masks: background surfels far from the TSDF mesh keep their warm-up parameters")
+    plan.set("background_rule", is_scene,
+             "object: nothing behind it to keep" if not is_scene
+             else "scene: background surfels far from the TSDF mesh keep their warm-up parameters")
+    n_bg = int(cfg.init.num_points) if is_scene else 0
+    plan.set("background_points", n_bg,
+             "scene: surfels on shells beyond the cameras hold the background at distance" if is_scene
+             else "object: no background", cfg.init.background_points)
     if bg is not None:
         bg_val, why = tuple(float(c) for c in bg), "the scene's background colour"
     else:
@@ -190,7 +219,8 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     cap = _GPU_MAX_SIDE if device.type == "cuda" else _CPU_MAX_SIDE
     scale = min(1.0, cap / max(h, w))
     plan.set("image_scale", scale, f"{w}x{h} images; longest side capped at {cap} px on {device.type}",
-             None if cfg.runtime.image_scale == 1.0 else cfg.runtime.image_scale)
+             cfg.runtime.image_scale)
+    _budget(plan, scene, cfg, device, layout, float(plan["image_scale"]))
 
     # -- held-out views
     test = getattr(scene, "test_indices", None)
@@ -205,10 +235,55 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     # -- stages
     plan.set("tsdf_reinit", cfg.tsdf.enabled, "configuration" if not cfg.tsdf.enabled else
              "re-initialise from fused surfel depth between warm-up and co-evolution")
-    plan.set("mesh_loop", cfg.coevolution.enabled and cfg.coevolution.iterations > 0,
+    plan.set("mesh_loop", cfg.coevolution.enabled and int(plan["coevolution_iterations"]) > 0,
              "proxy mesh rebuilt and supervising the surfels" if cfg.coevolution.enabled
              else "disabled in the configuration")
     plan.set("gt_metrics", getattr(scene, "gt_mesh", None) is not None and cfg.runtime.eval_metrics,
              "ground-truth mesh given: Chamfer / F-score at evaluations" if getattr(scene, "gt_mesh", None)
              is not None else "no ground-truth mesh")
     return plan
+
+
+def _footprint(scene, layout, image_scale: float) -> float:
+    """Median pixel footprint at the region of interest's centre [internal units]: the distance of
+    each camera to it over the focal length of the images actually trained on."""
+    fp = [float(np.linalg.norm(c.center - layout.roi_center)) / (float(c.K[0, 0]) * image_scale)
+          for c in scene.cameras]
+    return float(np.median(fp))
+
+
+def _budget(plan: Plan, scene, cfg: FitConfig, device: torch.device, layout, image_scale: float) -> None:
+    """Iterations, surfel cap and grids from the device, the region's size and the pixel footprint."""
+    dev = "cuda" if device.type == "cuda" else "cpu"
+    warm, coevo = _ITERATIONS[dev]
+    plan.set("warmup_iterations", warm, f"{dev} budget", cfg.warmup.iterations)
+    plan.set("coevolution_iterations", coevo, f"{dev} budget", cfg.coevolution.iterations)
+    plan.set("max_surfels", _MAX_SURFELS[dev], f"{dev} budget", cfg.runtime.max_surfels)
+    fp = _footprint(scene, layout, image_scale)
+    side = float(np.max(layout.roi_upper - layout.roi_lower))
+    lo, hi = _PROXY_GRID[dev]
+    proxy = int(np.clip(16 * round(1.0 / (_PROXY_FOOTPRINTS * fp) / 16), lo, hi))  # Poisson spans the unit cube
+    plan.set("proxy_resolution", proxy,
+             f"pixel footprint {fp:.2e} at the region of interest; a cell of ~{_PROXY_FOOTPRINTS:g} footprints, "
+             f"{lo}-{hi} on {dev}", cfg.mesh.resolution)
+    lo, hi = _FINAL_GRID[dev]
+    final = int(np.clip(round(side / (_FINAL_FOOTPRINTS * fp)), lo, hi))
+    plan.set("final_resolution", final,
+             f"a voxel of {_FINAL_FOOTPRINTS:g} pixel footprints over the region of interest ({side:.3g} wide), {lo}-{hi} on {dev}",
+             cfg.final.resolution)
+
+
+def resolve_config(cfg: FitConfig, plan: Plan) -> FitConfig:
+    """A copy of ``cfg`` with every field left to the plan (``None``) filled in from ``plan``."""
+    import copy
+
+    out = copy.deepcopy(cfg)
+    out.kind = plan["scene_kind"]
+    out.init.background_points = int(plan["background_points"])
+    out.warmup.iterations = int(plan["warmup_iterations"])
+    out.coevolution.iterations = int(plan["coevolution_iterations"])
+    out.runtime.max_surfels = int(plan["max_surfels"])
+    out.runtime.image_scale = float(plan["image_scale"])
+    out.mesh.resolution = int(plan["proxy_resolution"])
+    out.final.resolution = int(plan["final_resolution"])
+    return out

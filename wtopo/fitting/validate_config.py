@@ -22,6 +22,7 @@ from types import MappingProxyType
 
 from ..rasterize import FILTER_SIGMA_RANGE
 from .config import DepthLoss, FitConfig, NormalFlip
+from .scene_kind import SceneKind
 
 __all__ = ["FIELD_CHECKS", "validate_config"]
 
@@ -114,13 +115,17 @@ class _Choice:
 
     values: tuple[str, ...]
     enum_type: type[enum.Enum] | None = None
+    optional: bool = False
 
     @property
     def expect(self) -> str:
         names = ", ".join(repr(v) for v in self.values)
-        return f"one of {names}" + (f" (or a {self.enum_type.__name__})" if self.enum_type else "")
+        return (f"one of {names}" + (f" (or a {self.enum_type.__name__})" if self.enum_type else "")
+                + (" or None" if self.optional else ""))
 
     def __call__(self, path: str, v) -> None:
+        if v is None and self.optional:
+            return
         if self.enum_type is not None and isinstance(v, self.enum_type):
             return
         if not isinstance(v, str):
@@ -129,8 +134,8 @@ class _Choice:
             _fail(path, self.expect, v)
 
 
-def _enum(cls: type[enum.Enum]) -> _Choice:
-    return _Choice(tuple(m.value for m in cls), cls)
+def _enum(cls: type[enum.Enum], *, optional: bool = False) -> _Choice:
+    return _Choice(tuple(m.value for m in cls), cls, optional)
 
 
 @dataclass(frozen=True)
@@ -186,6 +191,7 @@ FIELD_CHECKS = MappingProxyType({
     "init.num_points": _POSITIVE,
     "init.opacity": _OPEN_UNIT,
     "init.scale_neighbours": _POSITIVE,
+    "init.background_points": _int(0, optional=True),
     # -- optim (Adam learning rates; cross check: means_final <= means)
     "optim.means": _RATE,
     "optim.means_final": _RATE,
@@ -195,7 +201,7 @@ FIELD_CHECKS = MappingProxyType({
     "optim.sh_dc": _RATE,
     "optim.sh_rest": _RATE,
     # -- warmup
-    "warmup.iterations": _COUNT,
+    "warmup.iterations": _int(0, optional=True),
     # -- tsdf
     "tsdf.enabled": _Bool(),
     "tsdf.resolution": _int(_GRID_MIN, _TSDF_MAX),
@@ -208,13 +214,13 @@ FIELD_CHECKS = MappingProxyType({
     "tsdf.hybrid_distance": _RATE,
     "tsdf.max_faces": _POSITIVE,
     # -- coevolution
-    "coevolution.iterations": _COUNT,
+    "coevolution.iterations": _int(0, optional=True),
     "coevolution.mesh_every": _POSITIVE,
     "coevolution.correspondence_every": _POSITIVE,
     "coevolution.enabled": _Bool(),
     # -- final
     "final.method": _Choice(("tsdf", "proxy")),
-    "final.resolution": _int(_GRID_MIN, _TSDF_MAX),  # also the grid of the watertight Poisson re-mesh
+    "final.resolution": _int(_GRID_MIN, _TSDF_MAX, optional=True),  # also the grid of the watertight Poisson re-mesh
     "final.poisson_resolution": _int(_GRID_MIN, _POISSON_MAX),
     "final.largest_component": _Bool(),
     "final.watertight": _Bool(),
@@ -249,7 +255,7 @@ FIELD_CHECKS = MappingProxyType({
     "losses.mesh_depth_source": _Choice(("expected", "median")),
     "losses.silhouette_band": _COUNT,
     # -- mesh
-    "mesh.resolution": _int(_GRID_MIN, _POISSON_MAX),
+    "mesh.resolution": _int(_GRID_MIN, _POISSON_MAX, optional=True),
     "mesh.sigma": _RATE,
     "mesh.padding": _FRACTION,
     "mesh.samples_per_surfel": _IntChoice((1, 5)),  # centre only, or centre + 4 tangent offsets
@@ -263,7 +269,7 @@ FIELD_CHECKS = MappingProxyType({
     # -- runtime
     "runtime.device": _Device(),
     "runtime.seed": _int(0, _SEED_MAX),
-    "runtime.max_surfels": _POSITIVE,
+    "runtime.max_surfels": _int(1, optional=True),
     "runtime.checkpoint_every": _COUNT,
     "runtime.checkpoint_seconds": _RATE,
     "runtime.keep_checkpoints": _POSITIVE,  # the loop keeps max(2, keep_checkpoints)
@@ -273,9 +279,10 @@ FIELD_CHECKS = MappingProxyType({
     "runtime.usd_every": _COUNT,
     "runtime.max_consecutive_failures": _POSITIVE,
     "runtime.progress": _Bool(),
-    "runtime.image_scale": _float(0.0, 1.0, lo_open=True),  # the loop only ever downscales
+    "runtime.image_scale": _float(0.0, 1.0, lo_open=True, optional=True),  # the loop only ever downscales
     "runtime.stop_at": _int(0, optional=True),
     # -- top level
+    "kind": _enum(SceneKind, optional=True),
     "sh_degree": _int(0, _SH_MAX, optional=True),
     "background": _Colour(),
     "filter_sigma": _float(*FILTER_SIGMA_RANGE),

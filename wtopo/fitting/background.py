@@ -1,0 +1,158 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Background of unmasked captures: surfels outside the region of interest, kept at distance.
+
+Without masks every pixel is explained by some surfel. If the only surfels are those in the
+region of interest, the photometric loss pulls them towards the cameras to paint the background
+(a wall in front of the lens, a closed blob around the cameras). Here the background gets its own
+surfels from the start, at the distances it plausibly has, and keeps them there:
+
+* **Initialisation on shells.** Surfels are placed along random pixel rays of random training
+  views where the ray crosses spheres around the region of interest whose radii grow
+  geometrically from just beyond the farthest camera to ``_FAR_MULTIPLE`` times that (the last
+  shell stands in for the sky). A surfel takes the colour of the pixel it came from and a size of
+  ``_FOOTPRINT_PIXELS`` pixel footprints at its depth, facing the camera that placed it.
+* **Contracted steps.** Adam moves every mean by about the learning rate per step whatever the
+  gradient's size; a background surfel at distance ``r`` from the region's centre gets its step
+  scaled by ``r / R`` (``R``: the region's radius), the Jacobian of the inverse of the
+  Mip-NeRF 360 contraction ``x / |x| (2 - 1 / |x|)`` up to a constant: a step in contracted space is
+  a step proportional to distance in world space. Surfels in the region of interest move as before.
+* **Camera clearance.** Surfels whose centre comes within the layout's ``near`` distance of a
+  camera centre are pruned at every density-control step: nothing may sit on the lens.
+
+References:
+    Barron et al., Mip-NeRF 360 (CVPR 2022), scene contraction; Huang et al., 2DGS (SIGGRAPH 2024)
+    and Yu et al., Gaussian Opacity Fields (2024), unbounded-scene meshing in a region of interest.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .scene_kind import SceneLayout
+from .surfels import Surfels
+
+__all__ = ["shell_radii", "background_surfels", "contract_steps", "prune_near_cameras", "BackgroundState"]
+
+_SHELLS = 4  # shells between the first radius and the sky
+_FIRST_SHELL = 1.2  # first shell radius, times the farthest camera's distance from the region's centre
+_FAR_MULTIPLE = 30.0  # the last shell (the sky) at this multiple of the first radius
+_FOOTPRINT_PIXELS = 2.0  # initial surfel radius in pixel footprints at its depth (neighbours overlap)
+_MAX_STEP_SCALE = 100.0  # step scaling cap: beyond it a surfel is effectively at infinity
+
+
+def shell_radii(layout: SceneLayout) -> np.ndarray:
+    """Radii [K] of the background shells around the region of interest's centre, internal units."""
+    d = np.linalg.norm(layout.camera_centers - layout.roi_center, axis=1)
+    first = _FIRST_SHELL * max(float(d.max()), 2.0 * layout.roi_radius)
+    return first * _FAR_MULTIPLE ** (np.arange(_SHELLS) / (_SHELLS - 1))
+
+
+def background_surfels(scene, layout: SceneLayout, n: int, *, sh_degree: int, opacity: float,
+                       device: torch.device, generator: torch.Generator) -> Surfels | None:
+    """``n`` background surfels on the shells of :func:`shell_radii`, seen from ``scene``'s views.
+
+    Args:
+        scene: the training views, internal frame.
+        layout: region of interest and camera layout.
+        n: surfels to create (split evenly over the shells); ``0`` gives ``None``.
+        sh_degree: SH degree of the new surfels.
+        opacity: initial opacity in (0, 1).
+        device: torch device of the result.
+        generator: seeds the views, pixels and shells (CPU generator).
+
+    Returns:
+        :class:`Surfels` (internal frame) or ``None``.
+    """
+    if n <= 0:
+        return None
+    radii = shell_radii(layout)
+    c = layout.roi_center
+    cams = scene.cameras
+    images = scene.images.detach().cpu().numpy()
+    view = torch.randint(0, len(cams), (n,), generator=generator).numpy()
+    shell = np.arange(n) % len(radii)
+    uv = torch.rand(n, 2, generator=generator, dtype=torch.float64).numpy()
+    pts = np.zeros((n, 3))
+    cols = np.zeros((n, 3))
+    nrm = np.zeros((n, 3))
+    scale = np.zeros(n)
+    for i in np.unique(view):
+        sel = np.nonzero(view == i)[0]
+        cam = cams[i]
+        col_f = uv[sel, 0] * cam.width
+        row_f = uv[sel, 1] * cam.height
+        dirs = cam.pixel_directions_camera()
+        r_i, c_i = np.minimum(row_f.astype(int), cam.height - 1), np.minimum(col_f.astype(int), cam.width - 1)
+        d = dirs[r_i, c_i] @ cam.R  # world direction, camera z = 1
+        d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        o = cam.center
+        # far root of |o + t d - c| = r: every shell lies beyond every camera, so it exists and t > 0
+        oc = o - c
+        b = d @ oc
+        r = radii[shell[sel]]
+        t = -b + np.sqrt(np.maximum(b * b - (oc @ oc - r * r), 0.0))
+        pts[sel] = o + t[:, None] * d
+        cols[sel] = images[i][r_i, c_i]
+        nrm[sel] = -d
+        # pixel footprint at distance t along the ray: t / f
+        scale[sel] = _FOOTPRINT_PIXELS * t / float(cam.K[0, 0])
+    tt = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
+    return Surfels.from_points(tt(pts), tt(cols), scales=tt(scale), normals=tt(nrm), opacity=opacity,
+                               sh_degree=sh_degree, generator=generator)
+
+
+class BackgroundState:
+    """What the fit needs of the layout at every step, on the fit's device.
+
+    Args:
+        layout: region of interest and cameras (internal frame).
+        device: torch device.
+    """
+
+    def __init__(self, layout: SceneLayout, device: torch.device):
+        self.layout = layout
+        self.center = torch.as_tensor(layout.roi_center, dtype=torch.float32, device=device)
+        self.radius = float(layout.roi_radius)
+        self.cameras = torch.as_tensor(layout.camera_centers, dtype=torch.float32, device=device)
+        self.near = float(layout.near)
+
+    def step_scale(self, means: torch.Tensor) -> torch.Tensor:
+        """Per-surfel step multiplier [N]: 1 inside the region's sphere, ``r / R`` outside."""
+        r = torch.linalg.norm(means.detach() - self.center, dim=-1) / self.radius
+        return r.clamp(1.0, _MAX_STEP_SCALE)
+
+    def near_cameras(self, means: torch.Tensor) -> torch.Tensor:
+        """Boolean [N]: the surfel centre lies within ``near`` of some camera centre."""
+        d = torch.cdist(means.detach(), self.cameras)
+        return (d < self.near).any(dim=1)
+
+
+def contract_steps(means: torch.Tensor, before: torch.Tensor, scale: torch.Tensor) -> None:
+    """Rescale the optimiser's last step of ``means`` (in place): ``before + scale * (means - before)``.
+
+    Args:
+        means: the mean parameter after ``optimizer.step()`` [N, 3].
+        before: the means before the step [N, 3] (same N: call before any density change).
+        scale: per-surfel multiplier [N] (:meth:`BackgroundState.step_scale` of ``before``).
+    """
+    with torch.no_grad():
+        means.copy_(before + scale[:, None] * (means - before))
+
+
+def prune_near_cameras(surfels: Surfels, state: BackgroundState) -> int:
+    """Remove surfels within ``near`` of a camera centre; returns how many (never all)."""
+    near = state.near_cameras(surfels.means)
+    k = int(near.sum())
+    if k == 0 or k == len(surfels):
+        return 0
+    surfels.prune(~near)
+    return k
+
+
+def background_count(num_points: int) -> int:
+    """Background surfels for ``num_points`` foreground ones: as many again (the background fills
+    most of an unmasked image)."""
+    return int(math.ceil(num_points))
