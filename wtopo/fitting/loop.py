@@ -41,7 +41,7 @@ from .losses import (
     photometric,
     scale_regularizer,
 )
-from .plan import Plan, make_plan
+from .plan import Plan, make_plan, resolve_config
 from .proxy import ProxyMesh, ProxyResult, poisson_mesh
 from .surfels import Surfels
 from .tsdf import TSDFEmptyError, auto_bounds, cleanup_mesh, fuse_depths, hybrid_keep, mesh_to_surfels
@@ -112,13 +112,15 @@ class FitRun:
         self.sim = scene.normalization()
         internal = scene.normalized().to(self.device)
         self.plan: Plan = make_plan(internal, cfg, self.device)
+        user_cfg, cfg = cfg, resolve_config(cfg, self.plan)  # fields left to the plan (None) filled in
+        self.cfg = cfg
         scale = float(self.plan["image_scale"])
         if scale < 1.0:
             internal = internal.downscaled(1.0 / scale)
         self.extent = float(1.0 - 2 * 0.1)  # the region of interest spans [0.1, 0.9]^3 (normalization margin)
         self._split(internal)
         self.gt = internal.gt_mesh
-        self.hash = config_hash(cfg)
+        self.hash = config_hash(user_cfg)
         self.gen = torch.Generator().manual_seed(cfg.runtime.seed)
         self.bg = torch.tensor(self.plan["background"], dtype=torch.float32, device=self.device)
         from ..rasterize import RasterConfig
