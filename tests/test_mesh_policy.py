@@ -1,0 +1,80 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The meshing policy: components kept by view support (never by rank), no face near a camera."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from wtopo import Camera
+from wtopo.fitting.mesh_policy import camera_clearance, crop_near_cameras, crop_to_box, supported_components
+
+
+def _ring_cameras(n=8, radius=4.0, size=64):
+    cams = []
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        eye = np.array([radius * np.cos(a), radius * np.sin(a), 1.0])
+        cams.append(Camera.look_at(eye, np.zeros(3), np.array([0, 0, 1.0]), fov_x=0.9, width=size, height=size))
+    return cams
+
+
+def _depths(mesh, cams):
+    import torch
+
+    from wtopo.ops import raycast_mesh
+
+    v = torch.as_tensor(mesh.vertices, dtype=torch.float32)
+    f = torch.as_tensor(mesh.faces, dtype=torch.int32)
+    out = []
+    for c in cams:
+        r = raycast_mesh(v, f, c)
+        out.append(torch.where(r.mask, r.depth, torch.zeros_like(r.depth)).numpy())
+    return out
+
+
+def test_two_objects_are_both_kept_and_an_unseen_floater_goes():
+    """Keep a torus and a capsule the views see; drop a speck that no rendered depth supports."""
+    torus = trimesh.creation.torus(0.6, 0.2)
+    torus.apply_translation([-0.7, 0, 0])
+    capsule = trimesh.creation.capsule(height=0.6, radius=0.2)
+    capsule.apply_translation([0.8, 0, 0])
+    seen = trimesh.util.concatenate([torus, capsule])
+    cams = _ring_cameras()
+    depths = _depths(seen, cams)  # the speck is not in the rendered depth: no view supports it
+    speck = trimesh.creation.icosphere(subdivisions=1, radius=0.05)
+    speck.apply_translation([0, 0, 1.2])
+    mesh, info = supported_components(trimesh.util.concatenate([seen, speck]), cams, depths)
+    assert info["components"] == 3 and info["kept"] == 2
+    assert len(info["dropped"]) == 1 and info["dropped"][0]["views"] < 3
+    assert len(mesh.split(only_watertight=False)) == 2
+    np.testing.assert_allclose(mesh.area, seen.area, rtol=1e-9)
+
+
+def test_camera_clearance_is_the_exact_point_to_triangle_distance():
+    """Match a brute-force closest-point query, including a camera facing a large triangle's interior."""
+    tri = trimesh.Trimesh([[-10, -10, 0], [10, -10, 0], [0, 10, 0]], [[0, 1, 2]])
+    centers = np.array([[0.0, 0.0, 0.3], [0.0, 0.0, -2.0], [30.0, 0.0, 0.0]])
+    got = camera_clearance(tri, centers)
+    tris = np.asarray(tri.triangles)
+    ref = np.array([np.linalg.norm(trimesh.triangles.closest_point(tris, c[None])[0] - c) for c in centers])
+    np.testing.assert_allclose(got, ref, rtol=1e-9)
+    assert got[0] == pytest.approx(0.3)  # far from every vertex (> 10), close to the face
+
+
+def test_faces_near_a_camera_are_removed_and_only_those():
+    """Remove the faces within ``near`` of a camera centre, keep the rest."""
+    plane = trimesh.creation.box([4.0, 4.0, 0.01])
+    plane = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(plane.vertices, plane.faces, 0.2))
+    centers = np.array([[0.0, 0.0, 0.1], [5.0, 5.0, 5.0]])
+    out, removed = crop_near_cameras(plane, centers, 0.5)
+    assert removed > 0 and len(out.faces) == len(plane.faces) - removed
+    assert camera_clearance(out, centers)[0] >= 0.5
+    assert camera_clearance(plane, centers)[0] < 0.5
+
+
+def test_crop_to_box_keeps_faces_inside():
+    """Keep exactly the faces whose vertices lie in the box."""
+    s = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    out = crop_to_box(s, [-2, -2, 0.0], [2, 2, 2])
+    assert 0 < len(out.faces) < len(s.faces)
+    assert out.vertices[:, 2].min() >= 0.0
