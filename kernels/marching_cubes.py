@@ -93,6 +93,42 @@ KIND_NODE = wp.constant(3)  # vert_kind of a node vertex; 0, 1, 2 = edge vertex 
 vec8i = wp.types.vector(length=8, dtype=wp.int32)
 
 
+@wp.struct
+class GridSpec:
+    """Constant arguments of every pass of one extraction (built by ``wtopo.marching_cubes._grid_spec``).
+
+    Lengths and values are held in float64 and rounded to the field's dtype where a kernel reads
+    them (:func:`level_of`; the same single rounding as passing them in that dtype).
+
+    Attributes:
+        level: iso value [field units].
+        lower: position of node ``(0, 0, 0)`` [length units].
+        spacing: distance between neighbouring nodes along each axis [length units].
+        grad_eps: smallest ``|b - a|`` the adjoint divides by [field units].
+        chunk: nodes per z-chunk (the unit of work of a kernel thread).
+        nchunks: z-chunks per node column.
+        tri_range: ``TRI_RANGE``, int32 ``[257]``.
+        tri_edges: ``TRI_EDGES``, int32.
+        edges: ``EDGE_TABLE``, int32 ``[12, 3]``: lower corner, upper corner, axis of each cell edge.
+    """
+
+    level: wp.float64
+    lower: wp.vec3d
+    spacing: wp.vec3d
+    grad_eps: wp.float64
+    chunk: int
+    nchunks: int
+    tri_range: wp.array[wp.int32]
+    tri_edges: wp.array[wp.int32]
+    edges: wp.array2d[wp.int32]
+
+
+@wp.func
+def level_of(grid: GridSpec, v: Any):
+    """The iso value in the dtype of the field value ``v``."""
+    return type(v)(grid.level)
+
+
 @wp.func
 def popcount4(m: int):
     """Number of vertices a node owns: set bits among its four low mask bits."""
@@ -188,8 +224,7 @@ def same_triangle(keys: vec15i, t: int, u: int):
 
 
 @wp.func
-def kept_triangles(case: int, eqbits: int, tri_range: wp.array[wp.int32], tri_edges: wp.array[wp.int32],
-                   edges: wp.array2d[wp.int32]):
+def kept_triangles(case: int, eqbits: int, grid: GridSpec):
     """Bit ``t`` set: keep triangle ``t`` of a cell with corners exactly on the level (``eqbits``).
 
     Node vertices merge the vertices of all crossed edges ending in one corner, so a triangle can
@@ -197,14 +232,14 @@ def kept_triangles(case: int, eqbits: int, tri_range: wp.array[wp.int32], tri_ed
     traversed both ways (a zero-volume fold).  Both kinds are dropped; dropping a pair of opposite
     copies leaves every edge's use count even.  Pass 1 counts and pass 2 writes with this one rule.
     """
-    r0 = tri_range[case]
-    n = (tri_range[case + 1] - r0) // 3
+    r0 = grid.tri_range[case]
+    n = (grid.tri_range[case + 1] - r0) // 3
     keys = vec15i()
     keep = int(0)
     for t in range(n):
-        ka = edge_key(case, eqbits, tri_edges[r0 + 3 * t], edges)
-        kb = edge_key(case, eqbits, tri_edges[r0 + 3 * t + 1], edges)
-        kc = edge_key(case, eqbits, tri_edges[r0 + 3 * t + 2], edges)
+        ka = edge_key(case, eqbits, grid.tri_edges[r0 + 3 * t], grid.edges)
+        kb = edge_key(case, eqbits, grid.tri_edges[r0 + 3 * t + 1], grid.edges)
+        kc = edge_key(case, eqbits, grid.tri_edges[r0 + 3 * t + 2], grid.edges)
         keys[3 * t] = ka
         keys[3 * t + 1] = kb
         keys[3 * t + 2] = kc
@@ -234,10 +269,9 @@ def chunk_bounds(c: int, chunk: int, nz: int):
 def measure_chunk(
     col: int,
     c: int,
+    grid: GridSpec,
     field: wp.array3d[Any],
     values: wp.array[Any],
-    chunk: int,
-    nchunks: int,
     chunk_min: wp.array[Any],
     chunk_max: wp.array[Any],
 ):
@@ -246,8 +280,8 @@ def measure_chunk(
     A column is the line of nodes ``(i, j, :)``, numbered ``i * Y + j``; per-chunk results are
     stored at ``col * nchunks + c``.
     """
-    tid = col * nchunks + c
-    k0, k1 = chunk_bounds(c, chunk, field.shape[2])
+    tid = col * grid.nchunks + c
+    k0, k1 = chunk_bounds(c, grid.chunk, field.shape[2])
     base = col * field.shape[2]  # flat index of node (i, j, 0) in ``values``, the flat view of ``field``
     lo = values[base + k0]
     hi = lo
@@ -262,10 +296,9 @@ def measure_chunk(
 @wp.kernel
 def measure_chunks_kernel(
     offset: int,
+    grid: GridSpec,
     field: wp.array3d[Any],
     values: wp.array[Any],
-    chunk: int,
-    nchunks: int,
     chunk_min: wp.array[Any],
     chunk_max: wp.array[Any],
 ):
@@ -275,24 +308,19 @@ def measure_chunks_kernel(
     comparable to the work of a skipped chunk).
     """
     col = wp.tid() + offset
-    for c in range(nchunks):
-        measure_chunk(col, c, field, values, chunk, nchunks, chunk_min, chunk_max)
+    for c in range(grid.nchunks):
+        measure_chunk(col, c, grid, field, values, chunk_min, chunk_max)
 
 
 @wp.func
 def count_chunk(
     col: int,
     c: int,
+    grid: GridSpec,
     field: wp.array3d[Any],
     values: wp.array[Any],
-    level: Any,
-    chunk: int,
-    nchunks: int,
     chunk_min: wp.array[Any],
     chunk_max: wp.array[Any],
-    tri_range: wp.array[wp.int32],
-    tri_edges: wp.array[wp.int32],
-    edges: wp.array2d[wp.int32],
     node_mask: wp.array3d[wp.uint8],
     cell_case: wp.array3d[wp.uint8],
     chunk_active: wp.array[wp.uint8],
@@ -308,7 +336,9 @@ def count_chunk(
     mask and cell case of the chunk is written, walking up the chunk and reusing each layer's four
     values for the next cell.
     """
+    nchunks = grid.nchunks
     tid = col * nchunks + c
+    level = level_of(grid, chunk_min[tid])
     nx = field.shape[0]
     ny = field.shape[1]
     nz = field.shape[2]
@@ -330,7 +360,7 @@ def count_chunk(
         return
     chunk_active[tid] = wp.uint8(1)
     cells = hx * hy  # this column also owns a column of cells
-    k0, k1 = chunk_bounds(c, chunk, nz)
+    k0, k1 = chunk_bounds(c, grid.chunk, nz)
     # Values of the four node columns (i,j), (i+1,j), (i+1,j+1), (i,j+1) in corner order, at layer k.
     # flat indices (in ``values``, the flat view of ``field``) of node (., ., 0) of the four columns
     p0 = (i * ny + j) * nz
@@ -360,9 +390,9 @@ def count_chunk(
             nv += popcount4(m)
             if cells != 0:
                 if eqbits == 0:
-                    nf += (tri_range[case + 1] - tri_range[case]) // 3
+                    nf += (grid.tri_range[case + 1] - grid.tri_range[case]) // 3
                 else:
-                    nf += popcount8(kept_triangles(case, eqbits, tri_range, tri_edges, edges))
+                    nf += popcount8(kept_triangles(case, eqbits, grid))
         node_mask[i, j, k] = wp.uint8(m)
         if cells != 0:
             cell_case[i, j, k] = wp.uint8(case)
@@ -383,16 +413,11 @@ def count_chunk(
 @wp.kernel
 def count_chunks_kernel(
     offset: int,
+    grid: GridSpec,
     field: wp.array3d[Any],
     values: wp.array[Any],
-    level: Any,
-    chunk: int,
-    nchunks: int,
     chunk_min: wp.array[Any],
     chunk_max: wp.array[Any],
-    tri_range: wp.array[wp.int32],
-    tri_edges: wp.array[wp.int32],
-    edges: wp.array2d[wp.int32],
     node_mask: wp.array3d[wp.uint8],
     cell_case: wp.array3d[wp.uint8],
     chunk_active: wp.array[wp.uint8],
@@ -405,10 +430,9 @@ def count_chunks_kernel(
     comparable to the work of a skipped chunk).
     """
     col = wp.tid() + offset
-    for c in range(nchunks):
-        count_chunk(
-            col, c, field, values, level, chunk, nchunks, chunk_min, chunk_max, tri_range, tri_edges, edges,
-            node_mask, cell_case, chunk_active, chunk_verts, chunk_faces)
+    for c in range(grid.nchunks):
+        count_chunk(col, c, grid, field, values, chunk_min, chunk_max, node_mask, cell_case, chunk_active, chunk_verts,
+                    chunk_faces)
 
 
 @wp.func
@@ -421,20 +445,23 @@ def vertex_id(case: int, e: int, bases: vec8i, masks: vec8i, edges: wp.array2d[w
 
 
 @wp.func
-def write_node_vertices(field: wp.array3d[Any], level: Any, lower: Any, spacing: Any, i: int, j: int, k: int,
-                        m: int, base: int, verts: wp.array[Any], vert_node: wp.array[wp.int32],
-                        vert_kind: wp.array[wp.uint8]):
+def write_node_vertices(field: wp.array3d[Any], grid: GridSpec, i: int, j: int, k: int, m: int, base: int,
+                        verts: wp.array[Any], vert_node: wp.array[wp.int32], vert_kind: wp.array[wp.uint8]):
     """Write the vertices node ``(i, j, k)`` owns (mask ``m``) from index ``base`` on."""
     v = field[i, j, k]
+    level = level_of(grid, v)
+    sx = type(v)(grid.spacing[0])
+    sy = type(v)(grid.spacing[1])
+    sz = type(v)(grid.spacing[2])
     lin = (i * field.shape[1] + j) * field.shape[2] + k
-    x = lower[0] + spacing[0] * type(v)(i)
-    y = lower[1] + spacing[1] * type(v)(j)
-    z = lower[2] + spacing[2] * type(v)(k)
+    x = type(v)(grid.lower[0]) + sx * type(v)(i)
+    y = type(v)(grid.lower[1]) + sy * type(v)(j)
+    z = type(v)(grid.lower[2]) + sz * type(v)(k)
     one = type(v)(1.0)
     zero = type(v)(0.0)
     idx = base
     if (m & NODE_VERTEX) != 0:
-        verts[idx] = type(lower)(x, y, z)
+        verts[idx] = wp.vector(x, y, z)
         vert_node[idx] = lin
         vert_kind[idx] = wp.uint8(KIND_NODE)
         idx += 1
@@ -442,19 +469,19 @@ def write_node_vertices(field: wp.array3d[Any], level: Any, lower: Any, spacing:
         # t = (level - a) / (b - a) lies in (0, 1]: the ends are strictly on both sides (rounding is
         # monotone); the clamp only guards the degenerate 0/0 a NaN-free field cannot produce.
         t = wp.clamp((level - v) / (field[i + 1, j, k] - v), zero, one)
-        verts[idx] = type(lower)(x + spacing[0] * t, y, z)
+        verts[idx] = wp.vector(x + sx * t, y, z)
         vert_node[idx] = lin
         vert_kind[idx] = wp.uint8(0)
         idx += 1
     if (m & EDGE_Y) != 0:
         t = wp.clamp((level - v) / (field[i, j + 1, k] - v), zero, one)
-        verts[idx] = type(lower)(x, y + spacing[1] * t, z)
+        verts[idx] = wp.vector(x, y + sy * t, z)
         vert_node[idx] = lin
         vert_kind[idx] = wp.uint8(1)
         idx += 1
     if (m & EDGE_Z) != 0:
         t = wp.clamp((level - v) / (field[i, j, k + 1] - v), zero, one)
-        verts[idx] = type(lower)(x, y, z + spacing[2] * t)
+        verts[idx] = wp.vector(x, y, z + sz * t)
         vert_node[idx] = lin
         vert_kind[idx] = wp.uint8(2)
 
@@ -472,15 +499,8 @@ def read_mask(node_mask: wp.array3d[wp.uint8], active: int, i: int, j: int, k: i
 def write_chunk(
     col: int,
     c: int,
+    grid: GridSpec,
     field: wp.array3d[Any],
-    level: Any,
-    lower: Any,
-    spacing: Any,
-    chunk: int,
-    nchunks: int,
-    tri_range: wp.array[wp.int32],
-    tri_edges: wp.array[wp.int32],
-    edges: wp.array2d[wp.int32],
     node_mask: wp.array3d[wp.uint8],
     cell_case: wp.array3d[wp.uint8],
     chunk_active: wp.array[wp.uint8],
@@ -501,6 +521,7 @@ def write_chunk(
     vertices or faces return at once.  Node masks of chunks pass 1 skipped were never written and
     read as 0 (``chunk_active``); the chunk's top layer belongs to the next chunk up.
     """
+    nchunks = grid.nchunks
     tid = col * nchunks + c
     if chunk_verts[tid] == 0 and chunk_faces[tid] == 0:
         return
@@ -514,7 +535,7 @@ def write_chunk(
     i1 = i + hx
     j1 = j + hy
     cells = hx * hy
-    k0, k1 = chunk_bounds(c, chunk, nz)
+    k0, k1 = chunk_bounds(c, grid.chunk, nz)
     s1 = (i1 * ny + j) * nchunks + c
     s2 = (i1 * ny + j1) * nchunks + c
     s3 = (i * ny + j1) * nchunks + c
@@ -539,7 +560,7 @@ def write_chunk(
     fo = face_start[tid]
     for k in range(k0, k1):
         if (m0 & 15) != 0:
-            write_node_vertices(field, level, lower, spacing, i, j, k, m0, base0, verts, vert_node, vert_kind)
+            write_node_vertices(field, grid, i, j, k, m0, base0, verts, vert_node, vert_kind)
         last = k + 1 == k1
         n0 = read_mask(node_mask, wp.where(last, top0, act0), i, j, k + 1)
         n1 = read_mask(node_mask, wp.where(last, top1, act1), i1, j, k + 1)
@@ -551,8 +572,8 @@ def write_chunk(
         up3 = base3 + popcount4(m3)
         if cells != 0:
             case = int(cell_case[i, j, k])
-            r0 = tri_range[case]
-            r1 = tri_range[case + 1]
+            r0 = grid.tri_range[case]
+            r1 = grid.tri_range[case + 1]
             if r1 > r0:
                 bases = vec8i(base0, base1, base2, base3, up0, up1, up2, up3)
                 masks = vec8i(m0, m1, m2, m3, n0, n1, n2, n3)
@@ -561,13 +582,13 @@ def write_chunk(
                 for q in range(8):
                     eqbits = eqbits | wp.where((masks[q] & ON_LEVEL) != 0, 1 << q, 0)
                 if eqbits != 0:
-                    keep = kept_triangles(case, eqbits, tri_range, tri_edges, edges)
+                    keep = kept_triangles(case, eqbits, grid)
                 for t in range((r1 - r0) // 3):
                     if ((keep >> t) & 1) != 0:
                         r = r0 + 3 * t
-                        faces[fo, 0] = vertex_id(case, tri_edges[r], bases, masks, edges)
-                        faces[fo, 1] = vertex_id(case, tri_edges[r + 1], bases, masks, edges)
-                        faces[fo, 2] = vertex_id(case, tri_edges[r + 2], bases, masks, edges)
+                        faces[fo, 0] = vertex_id(case, grid.tri_edges[r], bases, masks, grid.edges)
+                        faces[fo, 1] = vertex_id(case, grid.tri_edges[r + 1], bases, masks, grid.edges)
+                        faces[fo, 2] = vertex_id(case, grid.tri_edges[r + 2], bases, masks, grid.edges)
                         fo += 1
         base0 = up0
         base1 = up1
@@ -578,21 +599,14 @@ def write_chunk(
         m2 = n2
         m3 = n3
     if k1 == nz - 1 and (m0 & 15) != 0:
-        write_node_vertices(field, level, lower, spacing, i, j, nz - 1, m0, base0, verts, vert_node, vert_kind)
+        write_node_vertices(field, grid, i, j, nz - 1, m0, base0, verts, vert_node, vert_kind)
 
 
 @wp.kernel
 def write_chunks_kernel(
     offset: int,
+    grid: GridSpec,
     field: wp.array3d[Any],
-    level: Any,
-    lower: Any,
-    spacing: Any,
-    chunk: int,
-    nchunks: int,
-    tri_range: wp.array[wp.int32],
-    tri_edges: wp.array[wp.int32],
-    edges: wp.array2d[wp.int32],
     node_mask: wp.array3d[wp.uint8],
     cell_case: wp.array3d[wp.uint8],
     chunk_active: wp.array[wp.uint8],
@@ -611,10 +625,9 @@ def write_chunks_kernel(
     comparable to the work of a skipped chunk).
     """
     col = wp.tid() + offset
-    for c in range(nchunks):
-        write_chunk(
-            col, c, field, level, lower, spacing, chunk, nchunks, tri_range, tri_edges, edges, node_mask, cell_case,
-            chunk_active, chunk_verts, chunk_faces, vert_start, face_start, verts, vert_node, vert_kind, faces)
+    for c in range(grid.nchunks):
+        write_chunk(col, c, grid, field, node_mask, cell_case, chunk_active, chunk_verts, chunk_faces, vert_start,
+                    face_start, verts, vert_node, vert_kind, faces)
 
 
 @wp.func
@@ -626,9 +639,7 @@ def guard(d: Any, eps: Any):
 @wp.kernel
 def scatter_vertex_adjoint_kernel(
     field: wp.array3d[Any],
-    level: Any,
-    spacing: Any,
-    eps: Any,
+    grid: GridSpec,
     vert_node: wp.array[wp.int32],
     vert_kind: wp.array[wp.uint8],
     adj_verts: wp.array[Any],
@@ -639,7 +650,7 @@ def scatter_vertex_adjoint_kernel(
     Edge vertex between node values ``a`` (owner) and ``b`` along axis ``d``:
     ``p_d = x_a + spacing_d * t`` with ``t = (level - a) / (b - a)``, so
     ``dt/da = (level - b) / (b - a)^2`` and ``dt/db = (a - level) / (b - a)^2``; ``|b - a|`` is
-    clamped to ``eps`` so both stay bounded by ``1 / eps``.  A node vertex (value == level) takes
+    clamped to ``eps = grid.grad_eps`` so both stay bounded by ``1 / eps``.  A node vertex (value == level) takes
     the mean of the one-sided derivatives of the crossed edges meeting in it (each moves the
     vertex towards its inside neighbour by ``spacing / (level - f_neighbour)`` per unit of field).
     """
@@ -654,6 +665,9 @@ def scatter_vertex_adjoint_kernel(
     k = rem - j * nz
     g = adj_verts[v]
     a = field[i, j, k]
+    level = level_of(grid, a)
+    eps = type(a)(grid.grad_eps)
+    spacing = wp.vector(type(a)(grid.spacing[0]), type(a)(grid.spacing[1]), type(a)(grid.spacing[2]))
     if kind != KIND_NODE:
         di = wp.where(kind == 0, 1, 0)
         dj = wp.where(kind == 1, 1, 0)

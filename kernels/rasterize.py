@@ -1,15 +1,15 @@
 # SPDX-License-Identifier: Apache-2.0
 """Warp kernels of the Gaussian-surfel rasterizer (2D Gaussian splatting, ray-splat intersection).
 
-Kernels are generic over float32/float64 (``typing.Any`` arrays). The per-surfel
+Kernels are generic over float32/float64 (``typing.Any`` arguments). The per-surfel
 :func:`prepare_surfels_kernel` is differentiated by Warp's autodiff (straight-line code); the
 per-pixel compositing kernels have explicit adjoints (:func:`render_backward_kernel`, reverse
 traversal with the saved final transmittance) and compile with ``enable_backward=False``.
 
-Camera parameter array ``cam`` (op dtype, length :data:`CAM_SIZE`):
-``[0:9]`` world-to-camera rotation (row-major), ``[9:12]`` translation, ``12 fx, 13 fy, 14 cx,
-15 cy, 16 skew``, ``[17:22]`` OpenCV ``k1 k2 p1 p2 k3``, ``[22:25]`` camera centre (world),
-``25 near, 26 far``.
+Kernel arguments are records (``@wp.struct``, one type per float dtype, see :func:`float_structs`):
+``cam`` a :class:`CameraRecord` (everything the kernels read per view) and ``geo`` an array of
+:class:`SurfelRecord` (what the pixel kernels test per surfel, written by
+:func:`pack_surfels_kernel`). Both are inputs only: nothing is differentiated w.r.t. the camera.
 
 Per-surfel quantities the pixel kernels read (written by :func:`prepare_surfels_kernel`):
 ``uax = t_u / s_u`` and ``vax = t_v / s_v`` (tangent axes divided by the scales, so the local
@@ -24,12 +24,9 @@ import warp as wp
 
 from .rotation import quat_axes
 
-CAM_SIZE = 27
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped (3DGS/2DGS convention)
 ALPHA_MAX = 0.99  # alpha clamp: keeps 1 / (1 - alpha) <= 100 in the reverse traversal (2DGS)
 T_MIN = 1.0e-4  # early stop once the transmittance would fall below this (2DGS)
-FILTER_INV_SQUARE = 2.0  # default screen-space low-pass: rho2d = 2 |pixel - centre|^2, sigma = 1/sqrt(2) px (2DGS)
-CAM_FILTER = 27  # camera-array slot of the low-pass inverse square 1 / sigma^2 [1/px^2] (a runtime value)
 SCALE_MIN = 1.0e-30  # scales are clamped here so 1 / s stays finite in float32
 PARALLEL_EPS = 1.0e-12  # |dot(ray, normal)| below this: the ray is parallel to the surfel plane
 RHO_BIG = 1.0e30  # rho3d of a parallel ray or an overflowing intersection: the filter branch wins
@@ -41,48 +38,128 @@ QUAT_MIN_SQ = 1.0e-30  # |q|^2 below this: identity rotation (documented fallbac
 # slack changes alpha by at most a relative 5e-10.
 RHO_TIE = 1.0e-9
 
-vec16f = wp.types.vector(length=16, dtype=wp.float32)  # packed per-surfel record (pack_surfels_kernel)
-vec16d = wp.types.vector(length=16, dtype=wp.float64)
+# Warp types of each argument role, per float dtype: kernels are generic (``typing.Any``) and
+# instantiated for both dtypes by :func:`declare_float_overloads`; records by :func:`float_structs`.
+_TYPES = {
+    wp.float32: {"s": wp.float32, "v2": wp.vec2, "v3": wp.vec3, "v4": wp.vec4, "m33": wp.mat33, "int": int},
+    wp.float64: {"s": wp.float64, "v2": wp.vec2d, "v3": wp.vec3d, "v4": wp.vec4d, "m33": wp.mat33d, "int": int},
+}
+
+
+def float_structs(template: type) -> dict:
+    """One ``@wp.struct`` per float dtype from a template class annotated with roles of ``_TYPES``.
+
+    Warp structs cannot be generic, so the float32 and float64 records are two types built from
+    one field list; generic kernels take them as ``typing.Any`` arguments.
+
+    Returns:
+        ``{wp.float32: struct, wp.float64: struct}``, named ``<template>_float32`` and ``_float64``.
+    """
+    out = {}
+    for scalar, table in _TYPES.items():
+        name = f"{template.__name__}_{scalar.__name__}"
+        fields = {k: table[role] for k, role in template.__annotations__.items()}
+        ns = {"__annotations__": fields, "__module__": __name__, "__qualname__": name, "__doc__": template.__doc__}
+        out[scalar] = wp.struct(type(name, (), ns))
+    return out
+
+
+class CameraRecord:
+    """Per-view constants of the rasterizer kernels (op dtype; ``wtopo.rasterize._camera_record``).
+
+    Attributes:
+        R: world-to-camera rotation, camera = ``R world + t``.
+        t: world-to-camera translation [world units].
+        center: camera centre in world coordinates [world units].
+        fx, fy, cx, cy, skew: pinhole intrinsics [pixels] (``K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]]``).
+        k1, k2, p1, p2, k3: OpenCV distortion coefficients (0 without distortion).
+        near: near plane (z-depth, world units): contributions in front of it are skipped.
+        far: far value of the distortion depth mapping (world units).
+        filter_inv_sq: ``1 / filter_sigma^2`` of the screen-space low-pass [1/px^2].
+        width, height: image size [pixels].
+    """
+
+    R: "m33"
+    t: "v3"
+    center: "v3"
+    fx: "s"
+    fy: "s"
+    cx: "s"
+    cy: "s"
+    skew: "s"
+    k1: "s"
+    k2: "s"
+    p1: "s"
+    p2: "s"
+    k3: "s"
+    near: "s"
+    far: "s"
+    filter_inv_sq: "s"
+    width: "int"
+    height: "int"
+
+
+class SurfelRecord:
+    """What the pixel kernels test for every (pixel, surfel) pair, packed per surfel (:func:`pack_surfels_kernel`).
+
+    One record (16 scalars: a 64-byte cache line in float32) instead of seven arrays: the pair
+    loop is bound by these loads, most pairs being rejected.
+
+    Attributes:
+        U, V: tangent axes divided by the scales (``uax``, ``vax``).
+        n: plane normal.
+        auv: ``(a.U, a.V, a.n)`` with ``a = camera centre - surfel centre``.
+        m2: projected centre [pixels].
+        zc: centre z-depth [world units].
+        cutoff: exponent above which alpha < 1/255 for sure (negative: culled).
+    """
+
+    U: "v3"
+    V: "v3"
+    n: "v3"
+    auv: "v3"
+    m2: "v2"
+    zc: "s"
+    cutoff: "s"
+
+
+CAMERA = float_structs(CameraRecord)
+SURFEL = float_structs(SurfelRecord)
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 
 
 @wp.func
-def cam_rotate(cam: wp.array[Any], v: Any):
+def cam_rotate(cam: Any, v: Any):
     """World-to-camera rotation applied to ``v``."""
+    R = cam.R
     return wp.vector(
-        cam[0] * v[0] + cam[1] * v[1] + cam[2] * v[2],
-        cam[3] * v[0] + cam[4] * v[1] + cam[5] * v[2],
-        cam[6] * v[0] + cam[7] * v[1] + cam[8] * v[2],
+        R[0, 0] * v[0] + R[0, 1] * v[1] + R[0, 2] * v[2],
+        R[1, 0] * v[0] + R[1, 1] * v[1] + R[1, 2] * v[2],
+        R[2, 0] * v[0] + R[2, 1] * v[1] + R[2, 2] * v[2],
     )
 
 
 @wp.func
-def cam_point(cam: wp.array[Any], p: Any):
+def cam_point(cam: Any, p: Any):
     """World point ``p`` in camera coordinates."""
     r = cam_rotate(cam, p)
-    return wp.vector(r[0] + cam[9], r[1] + cam[10], r[2] + cam[11])
+    return wp.vector(r[0] + cam.t[0], r[1] + cam.t[1], r[2] + cam.t[2])
 
 
 @wp.func
-def cam_center(cam: wp.array[Any]):
-    """Camera centre in world coordinates."""
-    return wp.vector(cam[22], cam[23], cam[24])
-
-
-@wp.func
-def project_pixel(cam: wp.array[Any], pc: Any):
+def project_pixel(cam: Any, pc: Any):
     """Pixel coordinates of a camera-frame point with ``pc.z > 0`` (OpenCV distortion applied)."""
     one = type(pc[0])(1.0)
     two = type(pc[0])(2.0)
     x = pc[0] / pc[2]
     y = pc[1] / pc[2]
     r2 = x * x + y * y
-    radial = one + r2 * (cam[17] + r2 * (cam[18] + r2 * cam[21]))
-    xd = x * radial + two * cam[19] * x * y + cam[20] * (r2 + two * x * x)
-    yd = y * radial + cam[19] * (r2 + two * y * y) + two * cam[20] * x * y
-    return wp.vector(cam[12] * xd + cam[16] * yd + cam[14], cam[13] * yd + cam[15])
+    radial = one + r2 * (cam.k1 + r2 * (cam.k2 + r2 * cam.k3))
+    xd = x * radial + two * cam.p1 * x * y + cam.p2 * (r2 + two * x * x)
+    yd = y * radial + cam.p1 * (r2 + two * y * y) + two * cam.p2 * x * y
+    return wp.vector(cam.fx * xd + cam.skew * yd + cam.cx, cam.fy * yd + cam.cy)
 
 
 @wp.func
@@ -125,7 +202,7 @@ def prepare_surfels_kernel(
     quats: wp.array[Any],
     scales: wp.array[Any],
     sh: wp.array2d[Any],
-    cam: wp.array[Any],
+    cam: Any,
     sh_degree: int,
     uax: wp.array[Any],
     vax: wp.array[Any],
@@ -149,8 +226,7 @@ def prepare_surfels_kernel(
     uax[i] = U
     vax[i] = V
     nrm[i] = n
-    o = cam_center(cam)
-    view = p - o
+    view = p - cam.center
     auv[i] = wp.vector(-wp.dot(view, U), -wp.dot(view, V), -wp.dot(view, n))
     # facing the camera: dot(normal, centre - camera) < 0
     if wp.dot(n, view) > type(f_ref)(0.0):
@@ -159,7 +235,7 @@ def prepare_surfels_kernel(
         nrm_face[i] = n
     pc = cam_point(cam, p)
     zc[i] = pc[2]
-    if pc[2] > cam[25]:
+    if pc[2] > cam.near:
         m2[i] = project_pixel(cam, pc)
     else:
         m2[i] = wp.vector(type(f_ref)(0.0), type(f_ref)(0.0))  # culled by the near plane; never read
@@ -186,31 +262,30 @@ def pixel_tile_coords(g: int, tile_size: int, tiles_x: int):
 
 @wp.func
 def splat_hit(d: Any, g: Any, pix: Any, fis: Any):
-    """Ray-splat intersection and screen-space filter at one pixel for a packed surfel record ``g``.
+    """Ray-splat intersection and screen-space filter at one pixel for a :class:`SurfelRecord` ``g``.
 
-    ``g`` (see :func:`pack_surfels_kernel`) holds ``U, V, n, (a.U, a.V, a.n), m2, zc, cutoff``.
-    With ``a = camera - centre`` and ``auv = (a.U, a.V, a.n)`` precomputed per surfel, the ray
+    With ``a = camera - centre`` and ``g.auv = (a.U, a.V, a.n)`` precomputed per surfel, the ray
     ``a + t d`` meets the plane at ``t = -a.n / d.n`` with local coordinates
     ``u = a.U + t d.U``, ``v = a.V + t d.V``. Returns ``(rho, z, branch3d, u, v, t, dU, dV, dn)``:
     the Gaussian exponent ``rho = min(rho3d, rho2d)``, the contribution's z-depth (intersection
     depth in the 3D branch, centre depth in the filter branch), which branch won, and the terms
     the adjoint reuses.
     """
-    zc = g[14]
-    dx = pix[0] - g[12]
-    dy = pix[1] - g[13]
+    zc = g.zc
+    dx = pix[0] - g.m2[0]
+    dy = pix[1] - g.m2[1]
     rho2d = fis * (dx * dx + dy * dy)
-    du = d[0] * g[0] + d[1] * g[1] + d[2] * g[2]
-    dv = d[0] * g[3] + d[1] * g[4] + d[2] * g[5]
-    dn = d[0] * g[6] + d[1] * g[7] + d[2] * g[8]
+    du = d[0] * g.U[0] + d[1] * g.U[1] + d[2] * g.U[2]
+    dv = d[0] * g.V[0] + d[1] * g.V[1] + d[2] * g.V[2]
+    dn = d[0] * g.n[0] + d[1] * g.n[1] + d[2] * g.n[2]
     rho3d = type(zc)(RHO_BIG)
     t = type(zc)(0.0)
     u = type(zc)(0.0)
     v = type(zc)(0.0)
     if wp.abs(dn) > type(zc)(PARALLEL_EPS):
-        t = -g[11] / dn
-        u = g[9] + t * du
-        v = g[10] + t * dv
+        t = -g.auv[2] / dn
+        u = g.auv[0] + t * du
+        v = g.auv[1] + t * dv
         r = u * u + v * v
         if wp.isfinite(r):
             rho3d = r
@@ -230,16 +305,16 @@ def surely_outside(d: Any, g: Any, pix: Any, fis: Any):
     Only pairs whose alpha is below 1/255 by the cut-off's margin are rejected, and forward and
     backward take the same decision, so skipping them changes nothing but time.
     """
-    c = g[15]
-    dx = pix[0] - g[12]
-    dy = pix[1] - g[13]
+    c = g.cutoff
+    dx = pix[0] - g.m2[0]
+    dy = pix[1] - g.m2[1]
     if fis * (dx * dx + dy * dy) <= c:
         return False
-    du = d[0] * g[0] + d[1] * g[1] + d[2] * g[2]
-    dv = d[0] * g[3] + d[1] * g[4] + d[2] * g[5]
-    dn = d[0] * g[6] + d[1] * g[7] + d[2] * g[8]
-    pu = g[9] * dn - g[11] * du
-    pv = g[10] * dn - g[11] * dv
+    du = d[0] * g.U[0] + d[1] * g.U[1] + d[2] * g.U[2]
+    dv = d[0] * g.V[0] + d[1] * g.V[1] + d[2] * g.V[2]
+    dn = d[0] * g.n[0] + d[1] * g.n[1] + d[2] * g.n[2]
+    pu = g.auv[0] * dn - g.auv[2] * du
+    pv = g.auv[1] * dn - g.auv[2] * dv
     return pu * pu + pv * pv > c * dn * dn
 
 
@@ -255,19 +330,17 @@ def pack_surfels_kernel(
     cutoff: wp.array[Any],
     geo: wp.array[Any],
 ):
-    """Pack what the pixel kernels test for every (pixel, surfel) pair into one 16-vector per surfel.
-
-    One record (a 64-byte cache line in float32) instead of seven arrays: the pair loop is bound
-    by these loads, most pairs being rejected.
-    """
+    """Pack what the pixel kernels test for every (pixel, surfel) pair into one :class:`SurfelRecord` per surfel."""
     i = wp.tid() + offset
-    U = uax[i]
-    V = vax[i]
-    n = nrm[i]
-    a = auv[i]
-    m = m2[i]
-    geo[i] = wp.vector(U[0], U[1], U[2], V[0], V[1], V[2], n[0], n[1], n[2], a[0], a[1], a[2], m[0], m[1], zc[i],
-                       cutoff[i])
+    rec = geo[i]  # a local of the record type (generic kernel); every field is overwritten
+    rec.U = uax[i]
+    rec.V = vax[i]
+    rec.n = nrm[i]
+    rec.auv = auv[i]
+    rec.m2 = m2[i]
+    rec.zc = zc[i]
+    rec.cutoff = cutoff[i]
+    geo[i] = rec
 
 
 @wp.func
@@ -285,7 +358,7 @@ def render_forward_kernel(
     tile_end: wp.array[wp.int32],
     ids: wp.array[wp.int32],
     rays: wp.array2d[Any],
-    cam: wp.array[Any],
+    cam: Any,
     geo: wp.array[Any],
     nrm_face: wp.array[Any],
     color: wp.array[Any],
@@ -311,8 +384,8 @@ def render_forward_kernel(
         return
     d = rays[py, px]
     f_ref = d[0]
-    near = cam[25]
-    far = cam[26]
+    near = cam.near
+    far = cam.far
     pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
     zero = type(f_ref)(0.0)
     T = type(f_ref)(1.0)
@@ -328,10 +401,10 @@ def render_forward_kernel(
     for k in range(tile_start[tile], tile_end[tile]):
         i = ids[k]
         g = geo[i]
-        if surely_outside(d, g, pix, cam[CAM_FILTER]):
+        if surely_outside(d, g, pix, cam.filter_inv_sq):
             continue
-        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam[CAM_FILTER])
-        if rho > g[15]:  # alpha < 1/255 for sure: skip the exp
+        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam.filter_inv_sq)
+        if rho > g.cutoff:  # alpha < 1/255 for sure: skip the exp
             continue
         a = wp.min(type(f_ref)(ALPHA_MAX), opacity[i] * wp.exp(type(f_ref)(-0.5) * rho))
         if a < type(f_ref)(ALPHA_MIN) or z < near:
@@ -376,7 +449,7 @@ def render_backward_kernel(
     tile_start: wp.array[wp.int32],
     ids: wp.array[wp.int32],
     rays: wp.array2d[Any],
-    cam: wp.array[Any],
+    cam: Any,
     geo: wp.array[Any],
     nrm_face: wp.array[Any],
     color: wp.array[Any],
@@ -424,8 +497,8 @@ def render_backward_kernel(
     f_ref = d[0]
     zero = type(f_ref)(0.0)
     one = type(f_ref)(1.0)
-    near = cam[25]
-    far = cam[26]
+    near = cam.near
+    far = cam.far
     pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
     T = t_final[py, px]
     acc = one - T
@@ -446,18 +519,19 @@ def render_backward_kernel(
     g_m2 = gdist * acc
     rg = T * wp.dot(gc, background[0])
     # camera rotation rows and inverse intrinsics for the screen-shift gradient
-    fx = cam[12]
-    fy = cam[13]
-    sk = cam[16]
+    fx = cam.fx
+    fy = cam.fy
+    sk = cam.skew
+    R = cam.R
     k = end - 1
     while k >= start:
         i = ids[k]
         g = geo[i]
-        if surely_outside(d, g, pix, cam[CAM_FILTER]):
+        if surely_outside(d, g, pix, cam.filter_inv_sq):
             k = k - 1
             continue
-        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam[CAM_FILTER])
-        if rho > g[15]:
+        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam.filter_inv_sq)
+        if rho > g.cutoff:
             k = k - 1
             continue
         op = opacity[i]
@@ -488,22 +562,19 @@ def render_backward_kernel(
                 gv = type(f_ref)(2.0) * v * g_rho
                 gt = gz + gu * du + gv * dv
                 inv_dn = one / dn
-                gdn = gt * g[11] * inv_dn * inv_dn
+                gdn = gt * g.auv[2] * inv_dn * inv_dn
                 wp.atomic_add(d_auv, worker, i, wp.vector(gu, gv, -gt * inv_dn))
                 wp.atomic_add(d_uax, worker, i, (gu * t) * d)
                 wp.atomic_add(d_vax, worker, i, (gv * t) * d)
                 wp.atomic_add(d_nrm, worker, i, gdn * d)
-                U = wp.vector(g[0], g[1], g[2])
-                V = wp.vector(g[3], g[4], g[5])
-                n = wp.vector(g[6], g[7], g[8])
-                gd = (gu * t) * U + (gv * t) * V + gdn * n
+                gd = (gu * t) * g.U + (gv * t) * g.V + gdn * g.n
                 # d' = d - R^T [Kinv2 shift, 0]  =>  dL/dshift = -Kinv2^T (R gd)[:2]
-                gcx = cam[0] * gd[0] + cam[1] * gd[1] + cam[2] * gd[2]
-                gcy = cam[3] * gd[0] + cam[4] * gd[1] + cam[5] * gd[2]
+                gcx = R[0, 0] * gd[0] + R[0, 1] * gd[1] + R[0, 2] * gd[2]
+                gcy = R[1, 0] * gd[0] + R[1, 1] * gd[1] + R[1, 2] * gd[2]
                 wp.atomic_add(d_shift, worker, i, wp.vector(-gcx / fx, gcx * sk / (fx * fy) - gcy / fy))
             else:
-                diff = pix - wp.vector(g[12], g[13])
-                gm = (type(f_ref)(-2.0) * cam[CAM_FILTER] * g_rho) * diff
+                diff = pix - g.m2
+                gm = (type(f_ref)(-2.0) * cam.filter_inv_sq * g_rho) * diff
                 wp.atomic_add(d_m2, worker, i, gm)
                 wp.atomic_add(d_shift, worker, i, gm)
                 wp.atomic_add(d_zc, worker, i, gz)
@@ -556,28 +627,35 @@ def reduce_gradients_kernel(
 # each time a new (kernel, dtype) pair is first launched (measured: 4+ rebuilds per dtype).
 
 _VEC_LEN = {
-    "s": ["cam", "zc", "cutoff", "opacity", "opacities", "alpha", "depth", "median", "distortion", "t_final",
+    "s": ["zc", "cutoff", "opacity", "opacities", "alpha", "depth", "median", "distortion", "t_final",
           "g_alpha", "g_depth", "g_median", "g_dist", "d_zc", "d_opacity", "g_zc", "g_opacity"],
     "v2": ["scales", "m2", "means2d", "d_m2", "d_shift", "g_m2", "g_shift"],
     "v3": ["means", "uax", "vax", "nrm", "auv", "nrm_face", "color", "background", "sh", "rays", "rgb", "normal",
            "sums", "g_rgb", "g_normal", "d_uax", "d_vax", "d_nrm", "d_auv", "d_nrm_face", "d_color", "g_uax", "g_vax",
            "g_nrm", "g_auv", "g_nrm_face", "g_color"],
     "v4": ["quats"],
-    "v16": ["geo"],
+    "cam": ["cam"],
+    "rec": ["geo"],
 }
 _ROLE = {name: kind for kind, names in _VEC_LEN.items() for name in names}
-_TYPES = {
-    wp.float32: {"s": wp.float32, "v2": wp.vec2, "v3": wp.vec3, "v4": wp.vec4, "v16": vec16f},
-    wp.float64: {"s": wp.float64, "v2": wp.vec2d, "v3": wp.vec3d, "v4": wp.vec4d, "v16": vec16d},
-}
+for _scalar, _table in _TYPES.items():
+    _table["cam"] = CAMERA[_scalar]
+    _table["rec"] = SURFEL[_scalar]
 
 
 def declare_float_overloads(kernel) -> None:
-    """Instantiate a generic kernel for float32 and float64 (argument roles looked up by name)."""
+    """Instantiate a generic kernel for float32 and float64 (argument roles looked up by name).
+
+    ``Any`` arguments (the records) take the role's type, ``wp.array[Any]`` arguments arrays of it.
+    """
     for table in _TYPES.values():
         types = {}
         for arg in kernel.adj.args:
-            if arg.label in _ROLE and getattr(arg.type, "dtype", None) is Any:
+            if arg.label not in _ROLE:
+                continue
+            if arg.type is Any:
+                types[arg.label] = table[_ROLE[arg.label]]
+            elif getattr(arg.type, "dtype", None) is Any:
                 types[arg.label] = wp.array(dtype=table[_ROLE[arg.label]], ndim=arg.type.ndim)
         wp.overload(kernel, types)
 

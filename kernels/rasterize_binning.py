@@ -10,7 +10,7 @@ Bounds are computed in float64 whatever the op dtype. A surfel's footprint is th
   coordinates (so any lens model that :meth:`wtopo.Camera.pixel_rays` encodes is handled); a disk
   reaching the camera plane has an unbounded image and covers every tile;
 * the screen-space filter disk ``|pixel - centre|^2 / sigma^2 <= rr`` around the projected centre
-  (``1 / sigma^2`` read from the camera array, slot ``CAM_FILTER``).
+  (``1 / sigma^2`` is the camera record's ``filter_inv_sq``).
 
 Sort keys are ``tile << rank_bits | depth rank`` (int32 when they fit in 31 bits, else int64).
 
@@ -23,7 +23,6 @@ import warp as wp
 
 from .rasterize import (
     ALPHA_MIN,
-    CAM_FILTER,
     QUAT_MIN_SQ,
     SCALE_MIN,
     cam_point,
@@ -68,12 +67,13 @@ def last_at_most(table: wp.array[wp.float64], value: wp.float64):
 
 
 @wp.func
-def cam_rotate64(cam: wp.array[Any], v: wp.vec3d):
-    """World-to-camera rotation applied to a float64 vector."""
+def cam_rotate64(cam: Any, v: wp.vec3d):
+    """World-to-camera rotation of a :class:`~wtopo.kernels.rasterize.CameraRecord` applied to a float64 vector."""
+    R = cam.R
     return wp.vec3d(
-        wp.float64(cam[0]) * v[0] + wp.float64(cam[1]) * v[1] + wp.float64(cam[2]) * v[2],
-        wp.float64(cam[3]) * v[0] + wp.float64(cam[4]) * v[1] + wp.float64(cam[5]) * v[2],
-        wp.float64(cam[6]) * v[0] + wp.float64(cam[7]) * v[1] + wp.float64(cam[8]) * v[2],
+        wp.float64(R[0, 0]) * v[0] + wp.float64(R[0, 1]) * v[1] + wp.float64(R[0, 2]) * v[2],
+        wp.float64(R[1, 0]) * v[0] + wp.float64(R[1, 1]) * v[1] + wp.float64(R[1, 2]) * v[2],
+        wp.float64(R[2, 0]) * v[0] + wp.float64(R[2, 1]) * v[1] + wp.float64(R[2, 2]) * v[2],
     )
 
 
@@ -96,13 +96,11 @@ def bin_surfels_kernel(
     quats: wp.array[Any],
     scales: wp.array[Any],
     opacities: wp.array[Any],
-    cam: wp.array[Any],
+    cam: Any,
     colx_min: wp.array[wp.float64],
     colx_max: wp.array[wp.float64],
     rowy_min: wp.array[wp.float64],
     rowy_max: wp.array[wp.float64],
-    width: int,
-    height: int,
     tile_size: int,
     rect: wp.array[wp.vec4i],
     counts: wp.array[wp.int32],
@@ -112,6 +110,8 @@ def bin_surfels_kernel(
 ):
     """Tile rectangle, tile count, pixel radius and projected centre of one surfel."""
     i = wp.tid() + offset
+    width = cam.width
+    height = cam.height
     p = means[i]
     x0c = p[0]
     rect[i] = wp.vec4i(0, 0, 0, 0)
@@ -121,7 +121,7 @@ def bin_surfels_kernel(
     cutoff[i] = type(x0c)(-1.0)
     pc_op = cam_point(cam, p)
     op = wp.float64(opacities[i])
-    near = wp.float64(cam[25])
+    near = wp.float64(cam.near)
     pcz = wp.float64(pc_op[2])
     if op < wp.float64(ALPHA_MIN) or not (pcz > near):
         return
@@ -133,7 +133,7 @@ def bin_surfels_kernel(
     rr = rr * wp.float64(1.0 + RR_REL_MARGIN) + wp.float64(1.0e-6)
     cutoff[i] = type(x0c)(rr)  # pixel kernels skip rho > cutoff without evaluating exp
     # screen-space filter disk
-    r2d = wp.sqrt(rr / wp.float64(cam[CAM_FILTER])) + wp.float64(PIXEL_MARGIN)
+    r2d = wp.sqrt(rr / wp.float64(cam.filter_inv_sq)) + wp.float64(PIXEL_MARGIN)
     ax0, ax1 = pixel_to_tile_range(wp.float64(m2[0]), r2d, width, tile_size)
     ay0, ay1 = pixel_to_tile_range(wp.float64(m2[1]), r2d, height, tile_size)
     radius = r2d
@@ -170,7 +170,7 @@ def bin_surfels_kernel(
             bx1 = last_at_most(colx_min, xc + hx)
             by0 = first_at_least(rowy_max, yc - hy)
             by1 = last_at_most(rowy_min, yc + hy)
-            radius = wp.max(radius, wp.max(hx * wp.float64(cam[12]), hy * wp.float64(cam[13])))
+            radius = wp.max(radius, wp.max(hx * wp.float64(cam.fx), hy * wp.float64(cam.fy)))
     if full:
         radius = wp.float64(wp.max(width, height))
     # union of the two rectangles (either may be empty)

@@ -45,7 +45,9 @@ _MIN_COLUMNS_PER_THREAD = 128
 _tables: dict[str, tuple[wp.array, wp.array, wp.array]] = {}
 
 
-def _device_tables(device) -> tuple[wp.array, wp.array, wp.array]:
+def _grid_spec(level: float, lower: Sequence[float], upper: Sequence[float], shape: Sequence[int],
+               device) -> _k.GridSpec:
+    """The constant kernel arguments of one extraction; the case tables are uploaded once per device."""
     key = str(device)
     if key not in _tables:
         _tables[key] = (
@@ -53,7 +55,15 @@ def _device_tables(device) -> tuple[wp.array, wp.array, wp.array]:
             wp.array(_k.TRI_EDGES, dtype=wp.int32, device=device),
             wp.array(_k.EDGE_TABLE, dtype=wp.int32, device=device),
         )
-    return _tables[key]
+    grid = _k.GridSpec()
+    grid.level = level
+    grid.lower = wp.vec3d(*lower)
+    grid.spacing = wp.vec3d(*[(u - a) / (n - 1) for a, u, n in zip(lower, upper, shape)])
+    grid.grad_eps = GRAD_EPS
+    grid.chunk = CHUNK
+    grid.nchunks = -(-(shape[2] - 1) // CHUNK)
+    grid.tri_range, grid.tri_edges, grid.edges = _tables[key]
+    return grid
 
 
 def _point(name: str, value) -> tuple[float, float, float]:
@@ -66,16 +76,6 @@ def _point(name: str, value) -> tuple[float, float, float]:
     if not all(math.isfinite(v) for v in vals):
         raise ValueError(f"{name} must be finite, got {value!r}")
     return vals
-
-
-def _require_finite_field(field: torch.Tensor) -> None:
-    # A sum is non-finite when any term is (NaN and inf propagate; overflow of huge finite values
-    # only sends us to the exact check).  On CPU numpy's single-threaded SIMD sum avoids torch's
-    # thread pool, which stalls for tens of ms when the cores are oversubscribed.
-    t = field.detach()
-    total = t.numpy().sum() if t.device.type == "cpu" else t.sum().item()  # host sync: validation
-    if not math.isfinite(float(total)):
-        require_finite("field", t)
 
 
 def _cancel_folded_faces(faces: torch.Tensor, kinds: torch.Tensor) -> wp.array:
@@ -107,18 +107,15 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
     nx, ny, nz = field.shape
     scalar = field.dtype
     vec = wp.vec3d if scalar == wp.float64 else wp.vec3
-    lvl = scalar(level)
-    lo = vec(*lower)
-    spacing = vec(*[(u - a) / (n - 1) for a, u, n in zip(lower, upper, field.shape)])
-    tri_range, tri_edges, edges = _device_tables(device)
-    nchunks = -(-(nz - 1) // CHUNK)
+    grid = _grid_spec(level, lower, upper, field.shape, device)
+    nchunks = grid.nchunks
     ncols = nx * ny
     values = field.flatten()  # flat view: the column walks index it directly
     nslots = nx * ny * nchunks  # per (column, chunk) results
 
     chunk_min = wp.empty(nslots, dtype=scalar, device=device)
     chunk_max = wp.empty(nslots, dtype=scalar, device=device)
-    _bridge.launch_split(_k.measure_chunks_kernel, ncols, [field, values, CHUNK, nchunks], [chunk_min, chunk_max],
+    _bridge.launch_split(_k.measure_chunks_kernel, ncols, [grid, field, values], [chunk_min, chunk_max],
                          device=device, min_chunk=_MIN_COLUMNS_PER_THREAD)
     # Written only in chunks pass 1 finds active (``chunk_active``): no zero fill, and the pages of
     # skipped chunks are never touched.
@@ -128,7 +125,7 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
     chunk_verts = wp.empty(nslots, dtype=wp.int32, device=device)
     chunk_faces = wp.empty(nslots, dtype=wp.int32, device=device)
     _bridge.launch_split(_k.count_chunks_kernel, ncols,
-                         [field, values, lvl, CHUNK, nchunks, chunk_min, chunk_max, tri_range, tri_edges, edges],
+                         [grid, field, values, chunk_min, chunk_max],
                          [node_mask, cell_case, chunk_active, chunk_verts, chunk_faces], device=device,
                          min_chunk=_MIN_COLUMNS_PER_THREAD)
 
@@ -151,8 +148,8 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
     vert_node = wp.empty(n_verts, dtype=wp.int32, device=device)
     vert_kind = wp.empty(n_verts, dtype=wp.uint8, device=device)
     _bridge.launch_split(_k.write_chunks_kernel, ncols,
-                         [field, lvl, lo, spacing, CHUNK, nchunks, tri_range, tri_edges, edges, node_mask, cell_case,
-                          chunk_active, chunk_verts, chunk_faces, vert_start, face_start],
+                         [grid, field, node_mask, cell_case, chunk_active, chunk_verts, chunk_faces, vert_start,
+                          face_start],
                          [verts, vert_node, vert_kind, faces], device=device, min_chunk=_MIN_COLUMNS_PER_THREAD)
 
     if n_faces:
@@ -162,13 +159,12 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
             faces = _cancel_folded_faces(wp.to_torch(faces), wp.to_torch(vert_kind))
 
     if field.requires_grad:
-        eps = scalar(GRAD_EPS)
 
         def backward():
             # One launch: several vertices scatter into the same node, and Warp's CPU atomics are
             # only atomic within a launch.
             wp.launch(_k.scatter_vertex_adjoint_kernel, dim=n_verts,
-                      inputs=[field, lvl, spacing, eps, vert_node, vert_kind, verts.grad], outputs=[field.grad],
+                      inputs=[field, grid, vert_node, vert_kind, verts.grad], outputs=[field.grad],
                       device=device, record_tape=False)
 
         tape = _bridge.active_tape()
@@ -235,7 +231,7 @@ def marching_cubes(field: torch.Tensor, level: float = 0.0, *, lower: Sequence[f
     hi = _point("upper", upper)
     if any(h <= a for a, h in zip(lo, hi)):
         raise ValueError(f"upper must exceed lower on every axis, got lower={lo}, upper={hi}")
-    _require_finite_field(field)
+    require_finite("field", field.detach())
     op = _bridge.WarpOp("marching_cubes", partial(_run, float(level), lo, hi), (_bridge.float_dtype(field),),
                         (True,), (True, False))
     verts, faces = _bridge.apply(op, field)

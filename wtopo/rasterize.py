@@ -21,10 +21,8 @@ with real atomics.
 
 from __future__ import annotations
 
-import contextlib
 import math
 import threading
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +30,7 @@ import torch
 import warp as wp
 
 from . import _bridge
+from ._profile import section
 from ._validate import require_finite, require_same_device, require_tensor
 from .camera import Camera
 from .kernels import rasterize as _k
@@ -111,23 +110,6 @@ class RenderOutput:
     far: float
 
 
-# Stage timer for benchmarks/bench_rasterize.py: set to a dict to accumulate wall seconds per stage
-# ("binning", "sort", "forward", "backward"); None (default) costs nothing.
-_profile: dict | None = None
-
-
-@contextlib.contextmanager
-def _timed(stage: str, wdev):
-    if _profile is None:
-        yield
-        return
-    wp.synchronize_device(wdev)  # host sync: profiling only
-    t0 = time.perf_counter()
-    yield
-    wp.synchronize_device(wdev)
-    _profile[stage] = _profile.get(stage, 0.0) + time.perf_counter() - t0
-
-
 # -- validation ------------------------------------------------------------------------------
 
 
@@ -187,9 +169,7 @@ def _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, 
                                  colors_or_sh=colors_or_sh)
     for nm, t in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
                   ("colors_or_sh", colors_or_sh)):
-        # one reduction first (a NaN/inf makes the sum non-finite); the indexed search only when it is
-        if t.numel() and not bool(torch.isfinite(t.detach().sum())):  # host sync: validation only
-            require_finite(nm, t.detach())
+        require_finite(nm, t.detach())
     if n:
         if float(scales.detach().min()) < 0:  # host sync: validation only
             idx = [int(v) for v in torch.nonzero(scales.detach() < 0)[0].tolist()]
@@ -243,15 +223,23 @@ def _camera_tables(camera: Camera, device, dtype, tile_size: int):
     return cache[key]
 
 
-def _camera_array(camera: Camera, near: float, far: float, dtype, device, filter_sigma: float) -> torch.Tensor:
-    """Everything the kernels read per view, packed: ``R (9), t (3), fx, fy, cx, cy, skew, distortion (5),
-    centre (3), near, far, 1 / filter_sigma^2`` (slot ``CAM_FILTER`` = 27)."""
-    fx, s, cx = camera.K[0]
-    fy, cy = camera.K[1, 1], camera.K[1, 2]
+def _camera_record(camera: Camera, near: float, far: float, dtype, filter_sigma: float):
+    """Everything the kernels read per view, as a :class:`wtopo.kernels.rasterize.CameraRecord` of the op dtype.
+
+    Values are computed in float64 on the host and rounded once to the op dtype when assigned.
+    """
+    rec = _k.CAMERA[wp.float64 if dtype == torch.float64 else wp.float32]()
+    fx, skew, cx = (float(v) for v in camera.K[0])
     dist = camera.distortion if camera.distortion is not None else np.zeros(5)
-    vals = np.concatenate([camera.R.reshape(-1), camera.t, [fx, fy, cx, cy, s], dist, camera.center, [near, far],
-                           [1.0 / float(filter_sigma) ** 2]])
-    return torch.as_tensor(vals, dtype=dtype, device=device)
+    rec.R = type(rec.R)(*(float(v) for v in camera.R.reshape(-1)))
+    rec.t = type(rec.t)(*(float(v) for v in camera.t))
+    rec.center = type(rec.center)(*(float(v) for v in camera.center))
+    rec.fx, rec.fy, rec.cx, rec.cy, rec.skew = fx, float(camera.K[1, 1]), cx, float(camera.K[1, 2]), skew
+    rec.k1, rec.k2, rec.p1, rec.p2, rec.k3 = (float(v) for v in dist)
+    rec.near, rec.far = float(near), float(far)
+    rec.filter_inv_sq = 1.0 / float(filter_sigma) ** 2
+    rec.width, rec.height = int(camera.width), int(camera.height)
+    return rec
 
 
 def _default_clip(means: torch.Tensor, camera: Camera, near, far, config: RasterConfig):
@@ -325,7 +313,7 @@ class _Bins:
     cutoff: wp.array
 
 
-def _bin(means, quats, scales, opacities, cam_wp, tables, camera: Camera, config: RasterConfig, wdev) -> _Bins:
+def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, config: RasterConfig, wdev) -> _Bins:
     n = means.shape[0]
     ts = config.tile_size
     tiles_x, tiles_y = -(-camera.width // ts), -(-camera.height // ts)
@@ -337,9 +325,9 @@ def _bin(means, quats, scales, opacities, cam_wp, tables, camera: Camera, config
     means2d = wp.empty(n, dtype=_bridge.vec_dtype(means, 2), device=wdev)
     cutoff = wp.empty(n, dtype=dt, device=wdev)
     inputs = [_bridge.to_warp(means, _bridge.vec_dtype(means, 3)), _bridge.to_warp(quats, _bridge.vec_dtype(quats, 4)),
-              _bridge.to_warp(scales, _bridge.vec_dtype(scales, 2)), _bridge.to_warp(opacities, dt), cam_wp, *tables,
-              camera.width, camera.height, ts]
-    with _timed("binning", wdev):
+              _bridge.to_warp(scales, _bridge.vec_dtype(scales, 2)), _bridge.to_warp(opacities, dt), cam_rec, *tables,
+              ts]
+    with section("rasterize_binning"):
         _bridge.launch_split(_kb.bin_surfels_kernel, n, inputs, [rect, counts, radii, means2d, cutoff], device=wdev)
         counts_t = wp.to_torch(counts)
         csum = torch.cumsum(counts_t, 0, dtype=torch.int64)
@@ -355,7 +343,7 @@ def _bin(means, quats, scales, opacities, cam_wp, tables, camera: Camera, config
     keys = wp.empty(max(2 * total, 1), dtype=wp.int32 if key_bits <= 31 else wp.int64, device=wdev)
     values = wp.empty(max(2 * total, 1), dtype=wp.int32, device=wdev)
     if total:
-        with _timed("sort", wdev):
+        with section("rasterize_sort"):
             # depth rank of every surfel (Warp's stable radix sort on the centre z-depths)
             zc = torch.empty(2 * n, dtype=means.dtype, device=means.device)
             zc[:n] = means.detach() @ torch.as_tensor(camera.R[2], dtype=means.dtype, device=means.device)
@@ -364,26 +352,24 @@ def _bin(means, quats, scales, opacities, cam_wp, tables, camera: Camera, config
             wp.utils.radix_sort_pairs(_bridge.to_warp(zc), _bridge.to_warp(order), n)
             rank = torch.empty(n, dtype=torch.int64, device=means.device)
             rank[order[:n].long()] = torch.arange(n, dtype=torch.int64, device=means.device)
-        with _timed("binning", wdev):
+        with section("rasterize_binning"):
             offsets = (csum - counts_t).to(torch.int32)
             _bridge.launch_split(_kb.emit_intersections_kernel, n,
                                  [rect, _bridge.to_warp(offsets), _bridge.to_warp(rank), tiles_x, rank_bits],
                                  [keys, values],
                                  device=wdev)
-        with _timed("sort", wdev):
+        with section("rasterize_sort"):
             wp.utils.radix_sort_pairs(keys, values, total, end_bit=key_bits)
-        with _timed("binning", wdev):
+        with section("rasterize_binning"):
             _bridge.launch_split(_kb.tile_ranges_kernel, total, [keys, total, rank_bits], [tile_start, tile_end],
                                  device=wdev)
-        if _profile is not None:
-            _profile["intersections"] = _profile.get("intersections", 0) + total
     return _Bins(tile_start, tile_end, values, wp.to_torch(radii), wp.to_torch(means2d), cutoff)
 
 
 # -- the differentiable op -------------------------------------------------------------------
 
 
-def _make_run(bins: _Bins, rays: torch.Tensor, cam_wp, bg_wp, sh_degree: int, camera: Camera, config, wdev, dtype):
+def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, camera: Camera, config, wdev, dtype):
     ts = config.tile_size
     tiles_x, tiles_y = -(-camera.width // ts), -(-camera.height // ts)
     n_tiles = tiles_x * tiles_y
@@ -395,10 +381,10 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_wp, bg_wp, sh_degree: int, ca
 
     def run(means, quats, scales, opacities, sh, means2d):
         n = means.shape[0]
-        with _timed("forward", wdev):
+        with section("rasterize_forward"):
             prep = [wp.empty(n, dtype=t, device=wdev, requires_grad=True) for t in (v3, v3, v3, v3, v3, v2, s, v3)]
             uax, vax, nrm, auv, nrm_face, m2, zc, color = prep
-            _bridge.launch_split(_k.prepare_surfels_kernel, n, [means, quats, scales, sh, cam_wp, sh_degree], prep,
+            _bridge.launch_split(_k.prepare_surfels_kernel, n, [means, quats, scales, sh, cam_rec, sh_degree], prep,
                                  device=wdev, record_tape=True)
             outs = [wp.empty((h, w), dtype=t, device=wdev, requires_grad=True) for t in (v3, s, s, s, v3, s)]
             rgb, alpha, depth, median, normal, dist = outs
@@ -407,34 +393,31 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_wp, bg_wp, sh_degree: int, ca
             last = wp.empty((h, w), dtype=wp.int32, device=wdev)
             median_idx = wp.empty((h, w), dtype=wp.int32, device=wdev)
             vis_w = wp.zeros((workers, n), dtype=wp.int32, device=wdev)
-            geo = wp.empty(n, dtype=_k.vec16d if dtype == torch.float64 else _k.vec16f, device=wdev)
+            geo = wp.empty(n, dtype=_k.SURFEL[s], device=wdev)
             _bridge.launch_split(_k.pack_surfels_kernel, n, [uax, vax, nrm, auv, m2, zc, bins.cutoff], [geo],
                                  device=wdev)
             surf = [geo, nrm_face, color, opacities, bg_wp, ts, tiles_x]
             _launch_tiles(_k.render_forward_kernel, n_tiles, ts * ts,
-                          [bins.tile_start, bins.tile_end, bins.ids, rays_wp, cam_wp, *surf],
+                          [bins.tile_start, bins.tile_end, bins.ids, rays_wp, cam_rec, *surf],
                           [*outs, t_final, sums, last, median_idx, vis_w], device=wdev, workers=workers,
                           tiles_per_chunk=config.tiles_per_chunk)
             visibility = wp.empty(n, dtype=wp.int32, device=wdev)
             _bridge.launch_split(_kb.sum_visibility_kernel, n, [vis_w], [visibility], device=wdev)
 
         def backward():
-            with _timed("backward", wdev):
-                _backward()
+            with section("rasterize_backward"):
+                bufs = [wp.zeros((workers, n), dtype=t, device=wdev) for t in (v3, v3, v3, v3, v3, v2, s, v3, s, v2)]
+                _launch_tiles(_k.render_backward_kernel, n_tiles, ts * ts,
+                              [bins.tile_start, bins.ids, rays_wp, cam_rec, *surf, t_final, sums, last, median_idx,
+                               *(o.grad for o in outs)],
+                              bufs, device=wdev, workers=workers, tiles_per_chunk=config.tiles_per_chunk)
 
-        def _backward():
-            bufs = [wp.zeros((workers, n), dtype=t, device=wdev) for t in (v3, v3, v3, v3, v3, v2, s, v3, s, v2)]
-            _launch_tiles(_k.render_backward_kernel, n_tiles, ts * ts,
-                          [bins.tile_start, bins.ids, rays_wp, cam_wp, *surf, t_final, sums, last, median_idx,
-                           *(o.grad for o in outs)],
-                          bufs, device=wdev, workers=workers, tiles_per_chunk=config.tiles_per_chunk)
+                def grad_or_empty(a, t):
+                    return a.grad if a.requires_grad else wp.zeros(0, dtype=t, device=wdev)
 
-            def grad_or_empty(a, t):
-                return a.grad if a.requires_grad else wp.zeros(0, dtype=t, device=wdev)
-
-            targets = [*(a.grad for a in prep), grad_or_empty(opacities, s), grad_or_empty(means2d, v2)]
-            # bufs order: uax, vax, nrm, auv, nrm_face, m2, zc, color, opacity, shift
-            _bridge.launch_split(_k.reduce_gradients_kernel, n, bufs, targets, device=wdev)
+                targets = [*(a.grad for a in prep), grad_or_empty(opacities, s), grad_or_empty(means2d, v2)]
+                # bufs order: uax, vax, nrm, auv, nrm_face, m2, zc, color, opacity, shift
+                _bridge.launch_split(_k.reduce_gradients_kernel, n, bufs, targets, device=wdev)
 
         tape = _bridge.active_tape()
         if tape is not None and n > 0:  # N = 0: nothing to differentiate (empty arrays have no grad buffer)
@@ -452,9 +435,10 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
 
     Each pixel's ray (:meth:`wtopo.Camera.pixel_rays`, so OpenCV distortion is exact) is
     intersected with each surfel's plane; the local coordinates ``(u, v)`` in units of the scales
-    give ``rho3d = u^2 + v^2``; the screen-space low-pass ``rho2d = |pixel - centre|^2 / config.filter_sigma^2`` (2DGS: ``2 |pixel - centre|^2``) takes
-    over for tiny or edge-on surfels: ``rho = min(rho3d, rho2d)`` (the object-space value while
-    ``rho3d <= rho2d + 1e-9``, so rounding cannot pick the branch at the centre ray), ``alpha = min(0.99, opacity *
+    give ``rho3d = u^2 + v^2``; the screen-space low-pass ``rho2d = |pixel - centre|^2 /
+    config.filter_sigma^2`` (2DGS: ``2 |pixel - centre|^2``) takes over for tiny or edge-on
+    surfels: ``rho = min(rho3d, rho2d)`` (the object-space value while ``rho3d <= rho2d + 1e-9``,
+    so rounding cannot pick the branch at the centre ray), ``alpha = min(0.99, opacity *
     exp(-rho / 2))``. Contributions with ``alpha < 1/255`` or a z-depth below ``near`` (the
     intersection depth, or the centre depth in the filter branch) are skipped; compositing runs
     front to back in the order of the centres' z-depth, per tile (8x8 pixels by default), and
@@ -509,9 +493,8 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     near, far = _default_clip(means, camera, near, far, config)
     wdev = _bridge.warp_device(device)
     rays, tables = _camera_tables(camera, device, dtype, config.tile_size)
-    cam_t = _camera_array(camera, near, far, dtype, device, config.filter_sigma)
-    cam_wp = _bridge.to_warp(cam_t)
-    bins = _bin(means, quats, scales, opacities, cam_wp, tables, camera, config, wdev)
+    cam_rec = _camera_record(camera, near, far, dtype, config.filter_sigma)
+    bins = _bin(means, quats, scales, opacities, cam_rec, tables, camera, config, wdev)
     needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (means, quats, scales, opacities,
                                                                            colors_or_sh))
     means2d = bins.means2d.clone().requires_grad_(needs_grad)
@@ -523,7 +506,7 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
         deg = sh_degree
     v3 = _bridge.vec_dtype(means, 3)
     bg_t = bg.reshape(1, 3)
-    run = _make_run(bins, rays, cam_wp, _bridge.to_warp(bg_t, v3), deg, camera, config, wdev, dtype)
+    run = _make_run(bins, rays, cam_rec, _bridge.to_warp(bg_t, v3), deg, camera, config, wdev, dtype)
     op = _bridge.WarpOp(
         "rasterize_surfels", run,
         in_dtypes=(v3, _bridge.vec_dtype(means, 4), _bridge.vec_dtype(means, 2), _bridge.float_dtype(means), v3,
