@@ -169,7 +169,9 @@ def _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, 
                                  colors_or_sh=colors_or_sh)
     for nm, t in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
                   ("colors_or_sh", colors_or_sh)):
-        require_finite(nm, t.detach())
+        # one reduction first (a NaN/inf makes the sum non-finite); the indexed search only when it is
+        if t.numel() and not bool(torch.isfinite(t.detach().sum())):  # host sync: validation only
+            require_finite(nm, t.detach())
     if n:
         if float(scales.detach().min()) < 0:  # host sync: validation only
             idx = [int(v) for v in torch.nonzero(scales.detach() < 0)[0].tolist()]
