@@ -10,7 +10,7 @@ import trimesh
 
 from wtopo import Scene, scenes
 from wtopo.fitting import FitAborted, FitConfig, fit
-from wtopo.fitting import loop as fit_loop
+from wtopo.fitting import objective as fit_objective
 from wtopo.fitting.checkpoint import list_checkpoints
 from wtopo.fitting.evaluate import geometry_metrics
 from wtopo.fitting.plan import make_plan
@@ -97,7 +97,7 @@ def test_resume_after_interruption_matches_uninterrupted(tiny, tmp_path):
 
 def test_injected_nan_is_survived_and_persistent_nan_aborts(tiny, tmp_path, monkeypatch):
     """Skip two NaN steps and finish; abort with a checkpoint when every step is NaN."""
-    real = fit_loop.photometric
+    real = fit_objective.photometric
     calls = {"n": 0}
 
     def flaky(pred, target, dssim):
@@ -105,13 +105,13 @@ def test_injected_nan_is_survived_and_persistent_nan_aborts(tiny, tmp_path, monk
         out = real(pred, target, dssim)
         return out * float("nan") if calls["n"] in (5, 6) else out
 
-    monkeypatch.setattr(fit_loop, "photometric", flaky)
+    monkeypatch.setattr(fit_objective, "photometric", flaky)
     res = fit(tiny, _config(20, 0), progress=False)
     assert res.report["non_finite_steps"] == 2 and res.report["status"] == "completed"
     assert all(torch.isfinite(p).all() for p in res.surfels.params.values())
     assert math.isfinite(float(np.asarray(res.mesh.vertices).sum()))
 
-    monkeypatch.setattr(fit_loop, "photometric", lambda p, t, d: real(p, t, d) * float("nan"))
+    monkeypatch.setattr(fit_objective, "photometric", lambda p, t, d: real(p, t, d) * float("nan"))
     cfg = _config(20, 0)
     cfg.runtime.max_consecutive_failures = 3
     with pytest.raises(FitAborted, match="3 consecutive"):

@@ -9,7 +9,7 @@ import trimesh
 
 from .. import metrics
 
-__all__ = ["geometry_metrics", "F_SCORE_TAU", "EVAL_SAMPLES"]
+__all__ = ["geometry_metrics", "Evaluator", "F_SCORE_TAU", "EVAL_SAMPLES"]
 
 F_SCORE_TAU = 0.005
 """F-score threshold as a fraction of the ground truth's bounding-box diagonal."""
@@ -32,3 +32,46 @@ def geometry_metrics(mesh: trimesh.Trimesh | tuple, gt: trimesh.Trimesh, *, n_sa
     return {"chamfer": ch.chamfer, "chamfer_rel": ch.chamfer_rel, "accuracy_rel": ch.accuracy_rel,
             "completeness_rel": ch.completeness_rel, "f_score": fs.f_score, "precision": fs.precision,
             "recall": fs.recall}
+
+
+class Evaluator:
+    """Held-out PSNR and, against the ground-truth mesh, Chamfer / F-score of a running fit.
+
+    Args:
+        test: the held-out scene (internal frame): cameras and images.
+        gt: the ground-truth mesh (internal frame), or ``None``.
+        render: the fit's renderer, ``render(surfels, camera)``.
+        enabled: the plan's ``gt_metrics`` decision (nothing is measured otherwise).
+        seed: surface-sampling seed of the geometry metrics.
+    """
+
+    def __init__(self, test, gt: trimesh.Trimesh | None, *, render, enabled: bool, seed: int):
+        self.test = test
+        self.gt = gt
+        self.render = render
+        self.enabled = bool(enabled)
+        self.seed = seed
+
+    def psnr(self, surfels) -> float:
+        """Mean PSNR [dB] of ``surfels`` rendered in the held-out views."""
+        vals = []
+        with torch.no_grad():
+            for cam, img in zip(self.test.cameras, self.test.images):
+                vals.append(float(metrics.psnr(self.render(surfels, cam).rgb.clamp(0, 1), img)))
+        return float(np.mean(vals))
+
+    def __call__(self, surfels, *, mesh: trimesh.Trimesh | None = None, proxy=None) -> dict[str, float]:
+        """``psnr`` and, of ``mesh`` or else of the proxy mesh (:class:`~wtopo.fitting.proxy.ProxyResult`),
+        both internal frame, ``chamfer``, ``f_score``, ``accuracy``, ``completeness`` (relative to the
+        gt diagonal); empty when disabled."""
+        if not self.enabled:
+            return {}
+        rec = {"psnr": self.psnr(surfels)}
+        if mesh is None and proxy is not None:
+            mesh = (proxy.verts.detach().cpu(), proxy.faces.cpu())
+        if mesh is not None:
+            g = geometry_metrics(mesh, self.gt, seed=self.seed)
+            if g:
+                rec.update({"chamfer": g["chamfer_rel"], "f_score": g["f_score"], "accuracy": g["accuracy_rel"],
+                            "completeness": g["completeness_rel"]})
+        return rec

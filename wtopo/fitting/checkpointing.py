@@ -1,0 +1,114 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Checkpoints of a running fit: what the loop state is, when it is written, and resuming from it.
+
+The files themselves (atomic writes, validation, fallback to the previous checkpoint) are
+:mod:`wtopo.fitting.checkpoint`; :class:`Checkpointer` decides the cadence and maps a
+:class:`~wtopo.fitting.loop.FitRun` to and from the stored dictionary, whose keys stay stable so
+checkpoints of earlier runs resume.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .checkpoint import CheckpointError, list_checkpoints, load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from .proxy import ProxyMesh
+from .surfels import Surfels
+
+if TYPE_CHECKING:
+    from .loop import FitRun
+
+__all__ = ["Checkpointer"]
+
+
+class Checkpointer:
+    """Writes checkpoints of ``run`` on an iteration and a wall-clock cadence and resumes from them.
+
+    Args:
+        run: the fit it belongs to.
+        out_dir: run directory (checkpoints go to ``out_dir/checkpoints``), or ``None`` for none.
+    """
+
+    def __init__(self, run: FitRun, out_dir: Path | None):
+        self.run = run
+        self.out_dir = out_dir
+        self.directory = None if out_dir is None else out_dir / "checkpoints"
+        self._last_time = time.perf_counter()
+
+    def state(self) -> dict:
+        """The stored dictionary: the last good surfels and optimiser, loop state, RNGs, config."""
+        r = self.run
+        good = r.last_good
+        return {
+            "surfels": good[0] if good is not None else r.surfels.state_dict(),
+            "optimizer": good[1] if good is not None else r.opt.state_dict(),
+            "iteration": r.it, "tsdf_done": r.tsdf_done, "history": r.history, "events": r.events,
+            "gap": r.strategy.gap, "loss_sums": dict(r.loss_log.sums), "loss_count": r.loss_log.count,
+            "elapsed": r.elapsed(), "timers": dict(r.timers.total), "rng": rng_state(),
+            "generator": r.gen.get_state(), "config_hash": r.hash, "config": r.cfg.to_dict(),
+            "normalization": {"scale": r.sim.scale, "translation": list(r.sim.translation)},
+            "proxy": {"box": None if r.proxy.box is None else [np.asarray(b).tolist() for b in r.proxy.box],
+                      "prior": r.proxy.prior},
+            "tsdf_info": r.tsdf_info, "total_failures": r.total_failures,
+        }
+
+    def save(self, *, force: bool = False) -> Path | None:
+        """Write a checkpoint now; ``force``: of the last good state as it is (a scheduled one first
+        snapshots the current, finite state). ``None`` without a run directory."""
+        if self.directory is None:
+            return None
+        r = self.run
+        if not force:
+            r.snapshot()
+        with r.timers("checkpoint"):
+            path = save_checkpoint(self.directory, r.it, self.state(), keep=max(2, r.cfg.runtime.keep_checkpoints))
+        self._last_time = time.perf_counter()
+        return path
+
+    def maybe_save(self) -> None:
+        """Checkpoint when ``runtime.checkpoint_every`` iterations or ``checkpoint_seconds`` have passed."""
+        rt, it = self.run.cfg.runtime, self.run.it
+        due = (rt.checkpoint_every and it % rt.checkpoint_every == 0) or (
+            rt.checkpoint_seconds and time.perf_counter() - self._last_time > rt.checkpoint_seconds)
+        if due:
+            self.save()
+
+    def resume(self) -> bool:
+        """Load the newest valid checkpoint of this configuration into the run; ``False`` when there is none.
+
+        Raises:
+            ValueError: the run directory holds checkpoints this configuration cannot resume.
+        """
+        d = self.directory
+        if d is None or not list_checkpoints(d):
+            return False
+        r = self.run
+        try:
+            st = load_checkpoint(d, config_hash=r.hash)
+        except CheckpointError as e:
+            raise ValueError(f"{self.out_dir} holds checkpoints this configuration cannot resume ({e}); "
+                             "use another out_dir or the configuration of that run") from None
+        r.set_surfels(Surfels.from_state_dict(st["surfels"], r.device), st["optimizer"])
+        r.it = int(st["iteration"])
+        r.tsdf_done = bool(st["tsdf_done"])
+        r.history = list(st["history"])
+        r.events = list(st["events"])
+        r.record("resumed", **{"from": st["path"]})
+        r.strategy.gap = float(st["gap"])
+        r.loss_log.sums = defaultdict(float, st["loss_sums"])
+        r.loss_log.count = int(st["loss_count"])
+        r.elapsed_before = float(st["elapsed"])
+        r.timers.total = defaultdict(float, st["timers"])
+        r.total_failures = int(st["total_failures"])
+        r.tsdf_info = dict(st["tsdf_info"])
+        set_rng_state(st["rng"])
+        r.gen.set_state(st["generator"])
+        px = st["proxy"]
+        r.proxy = ProxyMesh(r.cfg.mesh, box=None if px["box"] is None else tuple(np.asarray(b) for b in px["box"]),
+                            prior=px["prior"])
+        return True

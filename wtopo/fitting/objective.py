@@ -1,0 +1,165 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The objective of one iteration: which loss terms of :mod:`wtopo.fitting.losses` apply, with which
+weight, on which pixels. A new term is one more entry in :meth:`Objective.__call__`'s dictionary.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import defaultdict
+
+import torch
+
+from .config import FitConfig
+from .losses import (
+    boundary_band,
+    depth_normals,
+    distortion,
+    mask_loss,
+    mesh_depth_loss,
+    mesh_normal_loss,
+    normal_consistency,
+    photometric,
+    scale_regularizer,
+)
+from .proxy import ProxyMesh, ProxyResult
+from .stages import ROI_EXTENT, Renderer, Stage
+from .surfels import Surfels
+
+__all__ = ["Objective", "Terms", "LossLog"]
+
+ALPHA_COVERED = 0.5
+"""A pixel is covered by the surfels when their rendered opacity reaches this."""
+_DEPTH_EPS = 1e-4  # log-depth clamp, internal units (1e-4 of the unit cube)
+_LOSS_EMA = 0.9  # smoothing of the loss shown on the progress bar
+
+
+@dataclasses.dataclass
+class Terms:
+    """The loss terms of one iteration and what they were computed from.
+
+    Attributes:
+        losses: weighted terms by name, scalar tensors in the graph.
+        render: the rasterizer output of the view.
+        covered: pixels [H, W] bool whose opacity reaches :data:`ALPHA_COVERED`.
+        proxy_built: the proxy mesh was built for the mesh terms this iteration.
+        proxy: that proxy mesh (``None`` when it came out empty or was not built).
+    """
+
+    losses: dict[str, torch.Tensor]
+    render: object
+    covered: torch.Tensor
+    proxy_built: bool = False
+    proxy: ProxyResult | None = None
+
+
+class Objective:
+    """Computes the weighted loss terms of one training view.
+
+    Args:
+        cfg: configuration (``losses``, ``coevolution``).
+        train: the training scene (internal frame): cameras, images, optional masks.
+        render: the fit's renderer.
+        mask_weight: the plan's mask-loss weight.
+        warmup_end: first co-evolution iteration.
+        timers: the fit's section timers (``"render"``, ``"losses"``, ``"proxy"``, ``"raycast"``).
+    """
+
+    def __init__(self, cfg: FitConfig, train, *, render: Renderer, mask_weight: float, warmup_end: int, timers):
+        self.cfg = cfg
+        self.train = train
+        self.render = render
+        self.mask_weight = float(mask_weight)
+        self.warmup_end = warmup_end
+        self.timers = timers
+        self._bands: dict[int, torch.Tensor] = {}  # training view -> silhouette band (masks are fixed)
+
+    def _band(self, vi: int) -> torch.Tensor | None:
+        lc = self.cfg.losses
+        if self.train.masks is None or lc.silhouette_band <= 0:
+            return None
+        band = self._bands.get(vi)
+        if band is None:
+            band = self._bands[vi] = boundary_band(self.train.masks[vi], lc.silhouette_band)
+        return band
+
+    def __call__(self, stage: Stage, it: int, vi: int, surfels: Surfels, proxy: ProxyMesh) -> Terms:
+        """Render training view ``vi`` and compute its terms; in co-evolution every ``mesh_every``
+        iterations, build ``proxy`` from ``surfels`` (differentiably) for the mesh terms."""
+        lc, s, T = self.cfg.losses, surfels, self.timers
+        cam = self.train.cameras[vi]
+        img = self.train.images[vi]
+        with T("render"):
+            out = self.render(s, cam)
+        L: dict[str, torch.Tensor] = {}
+        with T("losses"):
+            band = self._band(vi)
+            # the band is left out by rendering the target there: zero loss, zero gradient
+            rgb = out.rgb if band is None else torch.where(band[..., None], img, out.rgb)
+            L["photo"] = photometric(rgb, img, lc.dssim)
+            covered = out.alpha.detach() >= ALPHA_COVERED
+            if self.train.masks is not None and self.mask_weight > 0:
+                m = self.train.masks[vi]
+                a = out.alpha if band is None else torch.where(band, m.to(out.alpha.dtype), out.alpha)
+                L["mask"] = self.mask_weight * mask_loss(a, m)
+            late = stage != Stage.WARMUP
+            if lc.normal > 0 and (late or it >= lc.normal_start):
+                o, d = cam.pixel_rays(out.alpha.device)
+                dn, dmask = depth_normals(out.median_depth, o, d, covered)
+                L["normal"] = lc.normal * normal_consistency(out.normal, dn, out.alpha, dmask)
+            if lc.distortion > 0 and (late or it >= lc.distortion_start):
+                L["distortion"] = lc.distortion * distortion(out.distortion)
+            if lc.scale > 0:
+                L["scale"] = lc.scale * scale_regularizer(s.scales, lc.max_anisotropy)
+        terms = Terms(L, out, covered)
+        co = self.cfg.coevolution
+        if (stage == Stage.COEVOLUTION and co.enabled and (lc.mesh_depth > 0 or lc.mesh_normal > 0)
+                and (it - self.warmup_end) % max(1, co.mesh_every) == 0):
+            with T("proxy"):
+                pm = proxy.build(s)
+            terms.proxy_built, terms.proxy = True, pm
+            if pm is not None:
+                with T("raycast"):
+                    mr = proxy.render(pm, cam)
+                with T("losses"):
+                    both = mr.mask & covered
+                    if lc.mesh_depth > 0:
+                        sd = out.median_depth if lc.mesh_depth_source == "median" else out.depth
+                        form = str(getattr(lc.depth_form, "value", lc.depth_form))
+                        L["mesh_depth"] = lc.mesh_depth * mesh_depth_loss(sd, mr.depth, both, eps=_DEPTH_EPS, form=form,
+                                                                          extent=ROI_EXTENT)
+                    if lc.mesh_normal > 0:
+                        L["mesh_normal"] = lc.mesh_normal * mesh_normal_loss(out.normal, mr.normal, both)
+        return terms
+
+
+class LossLog:
+    """Sums of the loss terms since the last evaluation and a running average for the progress bar.
+
+    Attributes:
+        sums: per-term sums (and ``"total"``) since the last :meth:`take`.
+        count: steps summed.
+        ema: running average of the total loss.
+    """
+
+    def __init__(self):
+        self.sums: dict[str, float] = defaultdict(float)
+        self.count = 0
+        self.ema = 0.0
+
+    def add(self, terms: dict[str, float], *, first: bool) -> None:
+        """Add one finite step's terms; ``first``: the first step of the fit (starts the average)."""
+        total = sum(terms.values())
+        for k, v in terms.items():
+            self.sums[k] += v
+        self.sums["total"] += total
+        self.ema = total if first else _LOSS_EMA * self.ema + (1 - _LOSS_EMA) * total
+        self.count += 1
+
+    def take(self) -> dict[str, float]:
+        """Mean of each term since the last call; clears the sums."""
+        n = max(1, self.count)
+        means = {k: v / n for k, v in self.sums.items()}
+        self.sums.clear()
+        self.count = 0
+        return means

@@ -1,0 +1,217 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The discrete stages around the loop: TSDF re-initialisation and the final mesh.
+
+:class:`Stage` names the stages (its values are stored in history records and checkpoints).
+:func:`tsdf_reinit` replaces the warm-up surfels by one surfel per face of a TSDF fusion of their
+rendered depth; :func:`final_mesh` fuses rendered depth (or builds the Poisson proxy) into the mesh
+the fit returns, re-meshed by :func:`poisson_remesh` when it is not closed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+import warnings
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import torch
+import trimesh
+
+from . import densify as dens
+from .config import FitConfig, NormalFlip
+from .proxy import ProxyMesh, poisson_mesh
+from .surfels import Surfels
+from .tsdf import TSDFEmptyError, auto_bounds, cleanup_mesh, fuse_depths, hybrid_keep, mesh_to_surfels
+
+__all__ = ["Stage", "ROI_EXTENT", "Renderer", "render_depths", "tsdf_reinit", "final_mesh", "poisson_remesh"]
+
+ROI_EXTENT = 1.0 - 2 * 0.1
+"""Side of the region of interest in the internal frame: :meth:`wtopo.Scene.normalization` maps it
+into ``[0.1, 0.9]^3`` (its default margin of 0.1 on every side of the unit cube). Distances given
+relative to the scene extent are multiplied by this."""
+_REINIT_OPACITY = 0.8  # TSDF re-initialised surfels start nearly opaque: they sit on the fused surface
+_PRIOR_SAMPLES = 20000  # surface samples of the re-initialisation mesh kept as the proxy's surface prior
+_REMESH_SAMPLES = 200_000  # surface samples for the watertight Poisson re-mesh of the final mesh
+_REMESH_BOX = 1.1  # the re-mesh grid spans the mesh's longest side plus 10 %: the closed surface stays inside
+
+Record = Callable[..., None]
+"""``record(event, **fields)`` appends an event tagged with the current iteration."""
+
+
+class Stage(str, enum.Enum):
+    """A stage of the fit; the value is what history records and checkpoints store."""
+
+    WARMUP = "warmup"
+    """Photometric fit with density control, no mesh loss."""
+    TSDF = "tsdf"
+    """Re-initialisation of the surfels from a TSDF fusion of their rendered depth."""
+    COEVOLUTION = "coevolution"
+    """Fit with the differentiable proxy mesh and mesh guidance."""
+    FINAL = "final"
+    """The returned mesh."""
+
+
+class Renderer:
+    """Renders surfels with the fit's background and rasterizer settings.
+
+    Args:
+        background: background colour, shape [3], float32, on the fit's device.
+        config: :class:`wtopo.rasterize.RasterConfig` of the fit.
+    """
+
+    def __init__(self, background: torch.Tensor, config):
+        self.background = background
+        self.config = config
+
+    def __call__(self, surfels: Surfels, camera):
+        """:func:`wtopo.rasterize.rasterize_surfels` of ``surfels`` seen by ``camera`` (differentiable)."""
+        from ..rasterize import rasterize_surfels
+
+        s = surfels
+        return rasterize_surfels(s.means, s.quats, s.scales, s.opacities, s.sh, camera, sh_degree=s.sh_degree,
+                                 background=self.background, config=self.config)
+
+
+def render_depths(render: Renderer, surfels: Surfels, cameras: Sequence, which: str,
+                  alpha_threshold: float) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Depth maps [H, W] (``which``: ``"median"`` or expected) and colours [H, W, 3] per camera, as NumPy;
+    depth is zero where the rendered opacity is below ``alpha_threshold``."""
+    depths, colors = [], []
+    with torch.no_grad():
+        for cam in cameras:
+            out = render(surfels, cam)
+            d = out.median_depth if which == "median" else out.depth
+            d = torch.where(out.alpha >= alpha_threshold, d, torch.zeros_like(d))
+            depths.append(d.detach().cpu().numpy())
+            colors.append(out.rgb.detach().clamp(0, 1).cpu().numpy())
+    return depths, colors
+
+
+@dataclasses.dataclass
+class Reinit:
+    """What :func:`tsdf_reinit` produced.
+
+    Attributes:
+        surfels: the re-initialised surfels, or ``None`` when the fusion was empty (keep the old ones).
+        info: bounds and counts, stored in the report's ``"tsdf"``.
+        proxy: the proxy mesh bounded by or with the prior of the fused mesh, or ``None`` to keep the current one.
+    """
+
+    surfels: Surfels | None
+    info: dict
+    proxy: ProxyMesh | None = None
+
+
+def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: Renderer,
+                background_rule: bool, record: Record) -> Reinit:
+    """Fuse the rendered depth of ``surfels`` and put one surfel on each face of the fused mesh.
+
+    With ``background_rule``, the old surfels farther than ``tsdf.hybrid_distance`` from that mesh
+    are kept (background the object's TSDF does not cover) and the mesh is not cut to its largest
+    component. An empty fusion keeps the warm-up surfels (event ``"tsdf_empty"``).
+    """
+    tc, device = cfg.tsdf, surfels.means.device
+    cams = cameras[:: max(1, math.ceil(len(cameras) / tc.max_views))]
+    depths, colors = render_depths(render, surfels, cams, tc.depth, tc.alpha_threshold)
+    s = surfels
+    bounds = auto_bounds(s.means, s.opacities, resolution=tc.resolution, truncation_voxels=tc.truncation_voxels)
+    info = {"reinit_bounds": bounds.to_dict()}
+    try:
+        mesh = fuse_depths(cams, depths, colors, bounds)
+    except TSDFEmptyError as e:
+        warnings.warn(f"TSDF re-initialisation skipped, keeping the warm-up surfels: {e}", RuntimeWarning,
+                      stacklevel=3)
+        record("tsdf_empty", why=str(e))
+        return Reinit(None, info)
+    mesh = cleanup_mesh(mesh, largest_component=not background_rule)
+    new = mesh_to_surfels(mesh, max_faces=tc.max_faces, device=device, sh_degree=s.sh_degree, opacity=_REINIT_OPACITY)
+    kept = 0
+    if background_rule:
+        from ..raycast import closest_faces
+
+        v = torch.as_tensor(mesh.vertices, dtype=torch.float32, device=device)
+        f = torch.as_tensor(mesh.faces, dtype=torch.int32, device=device)
+        _, dist, _ = closest_faces(v, f, s.means.detach())
+        p, b = hybrid_keep(s, dist, tc.hybrid_distance * ROI_EXTENT)
+        kept = int(p["means"].shape[0])
+        new.append(p, b)
+    proxy = None
+    if cfg.mesh.poisson_box == "initial_mesh" or cfg.mesh.surface_prior > 0:
+        pts, fi = trimesh.sample.sample_surface(mesh, _PRIOR_SAMPLES, seed=cfg.runtime.seed)
+        prior = (torch.as_tensor(pts, dtype=torch.float32, device=device),
+                 torch.as_tensor(mesh.face_normals[fi], dtype=torch.float32, device=device))
+        box = mesh.bounds if cfg.mesh.poisson_box == "initial_mesh" else None
+        proxy = ProxyMesh(cfg.mesh, box=box, prior=prior)
+        info["poisson_box"] = None if box is None else np.asarray(box).tolist()
+    info.update({"reinit_faces": int(len(mesh.faces)), "reinit_surfels": len(new) - kept, "hybrid_kept": kept})
+    record("tsdf_reinit", **info)
+    return Reinit(new, info, proxy)
+
+
+def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: Renderer, proxy: ProxyMesh,
+               guided: bool, tsdf_info: dict, record: Record) -> trimesh.Trimesh:
+    """The returned mesh in the internal frame: TSDF of rendered depth, or the Poisson proxy.
+
+    Args:
+        surfels: the fitted surfels.
+        cameras: training cameras (internal frame).
+        cfg: configuration (``final``, ``tsdf``, ``mesh``).
+        render: the fit's renderer.
+        proxy: the co-evolution proxy (its box and prior bound the final Poisson mesh).
+        guided: mesh guidance ran (the normal signs are aligned already).
+        tsdf_info: updated in place with the final fusion bounds.
+        record: event sink (``"final_tsdf_empty"``, ``"poisson_remesh"``).
+
+    Raises:
+        TSDFEmptyError: the TSDF fusion and the proxy mesh are both empty.
+    """
+    fc = cfg.final
+    mesh = None
+    if fc.method == "tsdf":
+        depths, colors = render_depths(render, surfels, cameras, cfg.tsdf.depth, cfg.tsdf.alpha_threshold)
+        bounds = auto_bounds(surfels.means, surfels.opacities, resolution=fc.resolution,
+                             truncation_voxels=cfg.tsdf.truncation_voxels)
+        tsdf_info["final_bounds"] = bounds.to_dict()
+        try:
+            mesh = fuse_depths(cameras, depths, colors, bounds)
+        except TSDFEmptyError as e:
+            warnings.warn(f"final TSDF empty, returning the proxy mesh: {e}", RuntimeWarning, stacklevel=3)
+            record("final_tsdf_empty", why=str(e))
+    elif fc.method != "proxy":
+        raise ValueError(f"final.method must be 'tsdf' or 'proxy', got {fc.method!r}")
+    if mesh is None:
+        if NormalFlip(cfg.mesh.normal_flip) != NormalFlip.RANDOM and not guided:
+            # no mesh guidance ran: orient the normals by the cameras that saw each surfel
+            dens.align_normal_signs(surfels, NormalFlip.VIEW)
+        final = ProxyMesh(dataclasses.replace(cfg.mesh, resolution=fc.poisson_resolution), box=proxy.box,
+                          prior=proxy.prior)
+        with torch.no_grad():
+            pm = final.build(surfels)
+        if pm is None:
+            raise TSDFEmptyError("no final mesh: the TSDF fusion and the proxy mesh are both empty")
+        mesh = trimesh.Trimesh(pm.verts.detach().cpu().numpy(), pm.faces.cpu().numpy(), process=True)
+    mesh = cleanup_mesh(mesh, largest_component=fc.largest_component)
+    if fc.watertight and not mesh.is_watertight:
+        mesh = poisson_remesh(mesh, cfg, record=record)
+    return mesh
+
+
+def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record) -> trimesh.Trimesh:
+    """A closed mesh through ``mesh``: Poisson of its area samples (the zero level set is closed).
+
+    Returns ``mesh`` itself when the re-mesh comes out empty; records ``"poisson_remesh"``.
+    """
+    pts, fi = trimesh.sample.sample_surface(mesh, _REMESH_SAMPLES, seed=cfg.runtime.seed)
+    lo, hi = mesh.bounds
+    side = float(np.max(hi - lo)) * _REMESH_BOX
+    lower = 0.5 * (lo + hi) - 0.5 * side
+    p = torch.as_tensor((pts - lower) / side, dtype=torch.float32)
+    n = torch.as_tensor(mesh.face_normals[fi], dtype=torch.float32)
+    w = torch.ones(p.shape[0])
+    verts, faces = poisson_mesh(p, n, w, int(cfg.final.resolution), sigma=1.0, padding=cfg.mesh.padding)
+    out = trimesh.Trimesh(verts.detach().cpu().numpy() * side + lower, faces.cpu().numpy(), process=True)
+    out = cleanup_mesh(out, largest_component=cfg.final.largest_component)
+    record("poisson_remesh", watertight=bool(out.is_watertight))
+    return out if len(out.faces) else mesh
