@@ -10,6 +10,7 @@ import torch
 from reference.rasterize import rasterize_reference
 
 import wtopo
+from wtopo._profile import section
 from wtopo.ops import RasterConfig, rasterize_surfels
 
 IMAGES = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
@@ -316,6 +317,19 @@ def test_zero_surfels(device):
     out = rasterize_surfels(*params, _camera(), background=[0.3, 0.2, 0.1])
     assert out.visibility.shape == (0,) and out.radii.shape == (0,) and out.means2d.shape == (0, 2)
     _assert_background(out, params, [0.3, 0.2, 0.1], 29, 37)
+
+
+def test_stages_are_profiler_sections(device):
+    """Report binning, sort, forward and backward as ``wtopo._profile`` sections (benchmarks/bench_rasterize.py)."""
+    params = _surfels(20, device=device, seed=5)
+    times = {}
+    with section("outside", add=lambda name, sec: times.__setitem__(name, times.get(name, 0.0) + sec)):
+        rasterize_surfels(*params, _camera()).rgb.sum().backward()
+    expected = {"outside", "rasterize_binning", "rasterize_sort", "rasterize_forward"}
+    if torch.device(device).type == "cpu":  # CUDA: autograd runs the backward on its device thread, not collected
+        expected.add("rasterize_backward")
+    assert expected <= set(times), sorted(times)
+    assert sum(times.values()) > 0
 
 
 def test_all_culled(device):

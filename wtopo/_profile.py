@@ -1,12 +1,16 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Named wall-clock sections with self time, for the per-stage times of :func:`wtopo.fit`.
+"""Named wall-clock sections with self time: the project's one profiler.
+
+Collected by the per-stage times of :func:`wtopo.fit` and by the benchmarks
+(``benchmarks/bench_rasterize.py`` reads the rasterizer's ``rasterize_binning``, ``rasterize_sort``,
+``rasterize_forward`` and ``rasterize_backward`` sections).
 
 ``section(name)`` costs one context-variable lookup when nothing collects. Inside a collecting
 section (one opened with ``add=``, as the fit's timers do), every nested section reports its
 *self* time (its wall time minus that of the sections nested in it) to the collector, so the
 times of all sections add up to the wall time of the outermost one and nothing is counted twice:
 the fit's ``"raycast"`` excludes the ``"bvh_build"`` inside it, ``"poisson"`` excludes the
-``"scatter"`` inside it.
+``"scatter"`` inside it, ``"render"`` the rasterizer's sections inside it.
 
 Limitations:
     Wall-clock host time: on CUDA, kernels still running when a section ends are charged to the
