@@ -4,7 +4,7 @@ error-against-time plot.
 
 A run directory holds ``timeline.usdc`` (written by :class:`wtopo.io.TimelineWriter`) and
 ``history.json``: a list of records ``{"iteration": int, "stage": str, "elapsed": seconds,
-"losses": {name: float}, "chamfer"?: float, "f_score"?: float, "psnr"?: float}``.
+"losses": {name: float}, "chamfer"?: float, "f_score"?: float, "psnr"?: float, "ssim"?: float}``.
 ``wtopo report RUN_DIR`` calls :func:`report`; ``wtopo export`` calls :func:`wtopo.io.export`.
 """
 
@@ -28,7 +28,7 @@ TIMELINE_NAME = "timeline.usdc"
 HISTORY_NAME = "history.json"
 """File name of the per-iteration history inside a run directory."""
 
-METRICS = ("chamfer", "f_score", "psnr")
+METRICS = ("chamfer", "f_score", "psnr", "ssim")
 """Optional evaluation entries of a history record, each plotted in its own panel."""
 
 _LABEL_HEIGHT = 16  # pixels of the caption strip under each tile (the default PIL font is 11 px high)

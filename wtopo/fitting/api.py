@@ -31,7 +31,7 @@ class FitResult:
             ``surfels.ply`` in ``out_dir`` holds them in the caller's frame).
         plan: the stage plan, ``{name: {"value", "reason", "overridden"}}``.
         history: one record per evaluation (iteration, stage, elapsed, stage_times, losses,
-            surfels, proxy_faces and, with a ground-truth mesh, chamfer / f_score / psnr).
+            surfels, proxy_faces, held-out psnr / ssim and, with a ground-truth mesh, chamfer / f_score).
         report: summary (status, times, counts, final metrics, mesh statistics, versions).
     """
 
@@ -79,13 +79,25 @@ def _report(run: FitRun, mesh_world: trimesh.Trimesh, scene) -> dict:
         "versions": versions(),
         "events": run.events[-50:],
     }
-    for k in ("psnr", "chamfer", "f_score", "accuracy", "completeness"):
+    rep["scene_kind"] = run.plan["scene_kind"]
+    for k in ("psnr", "ssim", "image_metrics_on", "chamfer", "f_score", "accuracy", "completeness"):
         if k in final:
             rep[k] = final[k]
     if getattr(scene, "gt_mesh", None) is not None and len(mesh_world.faces):
         g = geometry_metrics(mesh_world, scene.gt_mesh, seed=run.cfg.runtime.seed)
         rep["chamfer_world"] = g["chamfer"]
     return rep
+
+
+def summary_metrics(report: dict) -> str:
+    """The quality figures of a run's ``report`` as a sentence tail for the one-line summary."""
+    out = ""
+    if "psnr" in report:
+        on = "held-out" if report.get("image_metrics_on", "held_out") == "held_out" else "training-view"
+        out += f", {on} PSNR {report['psnr']:.2f} dB, SSIM {report.get('ssim', float('nan')):.3f}"
+    if "chamfer" in report:
+        out += f", Chamfer {100 * report['chamfer']:.3f} % of diagonal, F-score {report['f_score']:.3f}"
+    return out
 
 
 def _write_outputs(out: Path, result: FitResult, run: FitRun) -> None:
@@ -160,7 +172,5 @@ def fit(scene, config: FitConfig | None = None, *, out_dir: str | os.PathLike | 
     if progress and cfg.runtime.progress:
         r = result.report
         line = f"wtopo fit {r['status']}: {r['iterations']} iterations, {r['elapsed_s']:.1f} s, {r['mesh']['faces']} faces"
-        if "chamfer" in r:
-            line += f", Chamfer {100 * r['chamfer']:.3f} % of diagonal, F-score {r['f_score']:.3f}"
-        print(line)
+        print(line + summary_metrics(r))
     return result

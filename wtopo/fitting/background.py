@@ -41,6 +41,7 @@ _FIRST_SHELL = 1.2  # first shell radius, times the farthest camera's distance f
 _FAR_MULTIPLE = 30.0  # the last shell (the sky) at this multiple of the first radius
 _FOOTPRINT_PIXELS = 2.0  # initial surfel radius in pixel footprints at its depth (neighbours overlap)
 _MAX_STEP_SCALE = 100.0  # step scaling cap: beyond it a surfel is effectively at infinity
+_ROI_GROWTH = 0.1  # "inside the region of interest" allows this fraction of its side around it
 
 
 def shell_radii(layout: SceneLayout) -> np.ndarray:
@@ -123,6 +124,14 @@ class BackgroundState:
         """Per-surfel step multiplier [N]: 1 inside the region's sphere, ``r / R`` outside."""
         r = torch.linalg.norm(means.detach() - self.center, dim=-1) / self.radius
         return r.clamp(1.0, _MAX_STEP_SCALE)
+
+    def outside_roi(self, means: torch.Tensor) -> torch.Tensor:
+        """Boolean [N]: the surfel centre lies outside the region of interest (grown by ``_ROI_GROWTH``)."""
+        side = float(np.max(self.layout.roi_upper - self.layout.roi_lower))
+        lo = torch.as_tensor(self.layout.roi_lower - _ROI_GROWTH * side, dtype=means.dtype, device=means.device)
+        hi = torch.as_tensor(self.layout.roi_upper + _ROI_GROWTH * side, dtype=means.dtype, device=means.device)
+        m = means.detach()
+        return ~((m >= lo) & (m <= hi)).all(dim=-1)
 
     def near_cameras(self, means: torch.Tensor) -> torch.Tensor:
         """Boolean [N]: the surfel centre lies within ``near`` of some camera centre."""

@@ -34,39 +34,58 @@ def geometry_metrics(mesh: trimesh.Trimesh | tuple, gt: trimesh.Trimesh, *, n_sa
             "recall": fs.recall}
 
 
+_SSIM_WINDOW = 11  # the standard Gaussian SSIM window (Wang et al. 2004); smaller images get no SSIM
+
+
 class Evaluator:
-    """Held-out PSNR and, against the ground-truth mesh, Chamfer / F-score of a running fit.
+    """Held-out PSNR / SSIM (every scene) and, against a ground-truth mesh, Chamfer / F-score of a running fit.
 
     Args:
         test: the held-out scene (internal frame): cameras and images.
         gt: the ground-truth mesh (internal frame), or ``None``.
         render: the fit's renderer, ``render(surfels, camera)``.
-        enabled: the plan's ``gt_metrics`` decision (nothing is measured otherwise).
+        enabled: the plan's ``gt_metrics`` decision (geometry is measured only then).
+        images: measure PSNR / SSIM of the held-out views (``runtime.eval_metrics``).
+        held_out: whether ``test`` is really held out (else it is a subset of the training views,
+            reported as ``image_metrics_on = "training"``).
         seed: surface-sampling seed of the geometry metrics.
     """
 
-    def __init__(self, test, gt: trimesh.Trimesh | None, *, render, enabled: bool, seed: int):
+    def __init__(self, test, gt: trimesh.Trimesh | None, *, render, enabled: bool, seed: int, images: bool = True,
+                 held_out: bool = True):
         self.test = test
+        self.images = bool(images)
+        self.held_out = bool(held_out)
         self.gt = gt
         self.render = render
         self.enabled = bool(enabled)
         self.seed = seed
 
-    def psnr(self, surfels) -> float:
-        """Mean PSNR [dB] of ``surfels`` rendered in the held-out views."""
-        vals = []
+    def image_metrics(self, surfels) -> dict[str, float]:
+        """Mean PSNR [dB] and SSIM of ``surfels`` rendered in the held-out views."""
+        p, s = [], []
         with torch.no_grad():
             for cam, img in zip(self.test.cameras, self.test.images):
-                vals.append(float(metrics.psnr(self.render(surfels, cam).rgb.clamp(0, 1), img)))
-        return float(np.mean(vals))
+                rgb = self.render(surfels, cam).rgb.clamp(0, 1)
+                p.append(float(metrics.psnr(rgb, img)))
+                if min(rgb.shape[0], rgb.shape[1]) >= _SSIM_WINDOW:
+                    s.append(float(metrics.ssim(rgb, img, window=_SSIM_WINDOW)))
+        if not s:  # images smaller than the SSIM window
+            s = [float("nan")]
+        return {"psnr": float(np.mean(p)), "ssim": float(np.mean(s)),
+                "image_metrics_on": "held_out" if self.held_out else "training"}
+
+    def psnr(self, surfels) -> float:
+        """Mean PSNR [dB] of ``surfels`` rendered in the held-out views."""
+        return self.image_metrics(surfels)["psnr"]
 
     def __call__(self, surfels, *, mesh: trimesh.Trimesh | None = None, proxy=None) -> dict[str, float]:
         """``psnr`` and, of ``mesh`` or else of the proxy mesh (:class:`~wtopo.fitting.proxy.ProxyResult`),
         both internal frame, ``chamfer``, ``f_score``, ``accuracy``, ``completeness`` (relative to the
         gt diagonal); empty when disabled."""
+        rec = self.image_metrics(surfels) if self.images and len(self.test.cameras) else {}
         if not self.enabled:
-            return {}
-        rec = {"psnr": self.psnr(surfels)}
+            return rec
         if mesh is None and proxy is not None:
             mesh = (proxy.verts.detach().cpu(), proxy.faces.cpu())
         if mesh is not None:

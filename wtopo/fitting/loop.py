@@ -23,6 +23,7 @@ import torch
 import trimesh
 
 from .._profile import section
+from .background import BackgroundState, background_surfels, contract_steps, prune_near_cameras
 from .checkpointing import Checkpointer
 from .config import FitConfig, config_hash
 from .evaluate import Evaluator
@@ -72,8 +73,9 @@ def _lrs(cfg: FitConfig) -> dict[str, float]:
 
 
 def _split_views(sc, eval_views: int):
-    """Training and held-out subsets of ``sc``: the scene's own split, else ``eval_views`` evenly spaced
-    views held out, else every fourth training view for evaluation (nothing held out)."""
+    """Training and held-out subsets of ``sc`` and whether the latter is really held out: the scene's own
+    split, else ``eval_views`` evenly spaced views held out, else every fourth training view for
+    evaluation (nothing held out)."""
     n = len(sc.cameras)
     if sc.test_indices is not None and len(sc.test_indices):
         test = [int(i) for i in sc.test_indices]
@@ -84,7 +86,8 @@ def _split_views(sc, eval_views: int):
         train = [i for i in range(n) if i not in test]
     else:
         test, train = [], list(range(n))
-    return sc.subset(train), (sc.subset(test) if test else sc.subset(train[:: max(1, len(train) // 4)]))
+    held_out = bool(test)
+    return sc.subset(train), (sc.subset(test) if test else sc.subset(train[:: max(1, len(train) // 4)])), held_out
 
 
 class FitRun:
@@ -122,7 +125,7 @@ class FitRun:
         scale = float(self.plan["image_scale"])
         if scale < 1.0:
             internal = internal.downscaled(1.0 / scale)
-        self.train, self.test = _split_views(internal, self.plan["eval_views"])
+        self.train, self.test, held_out = _split_views(internal, self.plan["eval_views"])
         self.hash = config_hash(user_cfg)
         self.gen = torch.Generator().manual_seed(cfg.runtime.seed)
         from ..rasterize import RasterConfig
@@ -148,7 +151,12 @@ class FitRun:
         self.strategy = DensityStrategy(cfg, densify=bool(self.plan["densify"]), warmup_end=self.warmup_end,
                                         generator=self.gen, record=self.record, timers=self.timers)
         self.evaluator = Evaluator(self.test, internal.gt_mesh, render=self.render, enabled=self.plan["gt_metrics"],
-                                   seed=cfg.runtime.seed)
+                                   seed=cfg.runtime.seed, images=cfg.runtime.eval_metrics, held_out=held_out)
+        layout = self.plan.layout
+        # scenes keep a background: contracted steps outside the region, nothing on the lenses
+        self.background = BackgroundState(layout, self.device) if self.plan["background_rule"] else None
+        if self.background is not None:
+            self.strategy.outside_roi = self.background.outside_roi
         self.checkpoints = Checkpointer(self, self.out_dir)
         self.stop = StopRequest(lambda signum: self.record("signal", signal=signum))
         self.timeline: FitTimeline | None = None
@@ -236,7 +244,12 @@ class FitRun:
             return
         with self.timers("optimizer"):
             self._update_lr()
-            self.opt.step()
+            if self.background is not None:
+                before = self.surfels.means.detach().clone()
+                self.opt.step()
+                contract_steps(self.surfels.means, before, self.background.step_scale(before))
+            else:
+                self.opt.step()
         if not self.surfels.is_finite():
             self._failure("parameters", {})
             return
@@ -256,7 +269,13 @@ class FitRun:
                 if self.strategy.step_pre_forward(stage, self.it, self.surfels, self.proxy):
                     self.snapshot()
                 self._step(stage)
-                if self.strategy.step_end(stage, self.it, self.surfels):
+                changed = self.strategy.step_end(stage, self.it, self.surfels)
+                if self.background is not None and self.strategy.is_density_step(stage, self.it):
+                    removed = prune_near_cameras(self.surfels, self.background)
+                    if removed:
+                        self.record("near_camera_prune", removed=removed)
+                    changed |= removed > 0
+                if changed:
                     self.snapshot()
                 self.it += 1
                 if self.timeline is not None:
@@ -279,9 +298,16 @@ class FitRun:
         """Resume from the run directory's checkpoints, or draw the initial surfels; open the timeline."""
         resumed = self.checkpoints.resume()
         if not resumed:
-            self.set_surfels(initial_surfels(self.train, self.cfg.init, self.plan["init_source"],
-                                             sh_degree=int(self.plan["sh_degree"]), device=self.device,
-                                             generator=self.gen))
+            s = initial_surfels(self.train, self.cfg.init, self.plan["init_source"],
+                                sh_degree=int(self.plan["sh_degree"]), device=self.device, generator=self.gen)
+            n_bg = int(self.plan["background_points"])
+            if n_bg > 0:
+                bg = background_surfels(self.train, self.plan.layout, n_bg, sh_degree=s.sh_degree,
+                                        opacity=self.cfg.init.opacity, device=self.device, generator=self.gen)
+                s.append(*bg.take(torch.arange(len(bg), device=self.device)))
+                if self.background is not None:  # nothing starts on a lens
+                    prune_near_cameras(s, self.background)
+            self.set_surfels(s)
         if self.progress:
             print(self.plan)
             if resumed:
@@ -292,7 +318,8 @@ class FitRun:
     def _tsdf_reinit(self) -> None:
         with self.timers("tsdf"):
             r = tsdf_reinit(self.surfels, self.train.cameras, self.cfg, render=self.render,
-                            background_rule=bool(self.plan["background_rule"]), record=self.record)
+                            background_rule=bool(self.plan["background_rule"]), record=self.record,
+                            layout=self.plan.layout)
             self.tsdf_info = r.info
             if r.proxy is not None:
                 self.proxy = r.proxy
@@ -304,7 +331,7 @@ class FitRun:
         with self.timers("final"):
             guided = self.cfg.coevolution.enabled and self.it > self.warmup_end
             return final_mesh(self.surfels, self.train.cameras, self.cfg, render=self.render, proxy=self.proxy,
-                              guided=guided, tsdf_info=self.tsdf_info, record=self.record)
+                              guided=guided, tsdf_info=self.tsdf_info, record=self.record, layout=self.plan.layout)
 
     def _evaluate(self, stage: Stage, mesh: trimesh.Trimesh | None = None) -> dict:
         with self.timers("evaluate"):

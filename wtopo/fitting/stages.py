@@ -23,7 +23,17 @@ from . import densify as dens
 from .config import FitConfig, NormalFlip
 from .proxy import ProxyMesh, poisson_mesh
 from .surfels import Surfels
-from .tsdf import TSDFEmptyError, auto_bounds, cleanup_mesh, fuse_depths, hybrid_keep, mesh_to_surfels
+from .mesh_policy import crop_near_cameras, crop_to_box, supported_components
+from .scene_kind import SceneKind, SceneLayout
+from .tsdf import (
+    FusionBounds,
+    TSDFEmptyError,
+    auto_bounds,
+    cleanup_mesh,
+    fuse_depths,
+    hybrid_keep,
+    mesh_to_surfels,
+)
 
 __all__ = ["Stage", "ROI_EXTENT", "Renderer", "render_depths", "tsdf_reinit", "final_mesh", "poisson_remesh"]
 
@@ -35,6 +45,9 @@ _REINIT_OPACITY = 0.8  # TSDF re-initialised surfels start nearly opaque: they s
 _PRIOR_SAMPLES = 20000  # surface samples of the re-initialisation mesh kept as the proxy's surface prior
 _REMESH_SAMPLES = 200_000  # surface samples for the watertight Poisson re-mesh of the final mesh
 _REMESH_BOX = 1.1  # the re-mesh grid spans the mesh's longest side plus 10 %: the closed surface stays inside
+
+_ROI_FUSION_MARGIN = 0.05  # scenes fuse the region of interest grown by this fraction of its side (the
+# surface at its border is not cut by the fusion's own boundary; the crop to the region comes after)
 
 Record = Callable[..., None]
 """``record(event, **fields)`` appends an event tagged with the current iteration."""
@@ -89,6 +102,29 @@ def render_depths(render: Renderer, surfels: Surfels, cameras: Sequence, which: 
     return depths, colors
 
 
+def _is_scene(layout: SceneLayout | None) -> bool:
+    return layout is not None and layout.kind is SceneKind.SCENE
+
+
+def roi_bounds(layout: SceneLayout, resolution: int, truncation_voxels: float) -> FusionBounds:
+    """Fusion bounds of a scene: the region of interest grown by ``_ROI_FUSION_MARGIN``, ``resolution``
+    voxels along its longest side."""
+    side = float(np.max(layout.roi_upper - layout.roi_lower))
+    lo = layout.roi_lower - _ROI_FUSION_MARGIN * side
+    hi = layout.roi_upper + _ROI_FUSION_MARGIN * side
+    voxel = float(np.max(hi - lo)) / int(resolution)
+    return FusionBounds(lo, hi, voxel, truncation_voxels * voxel)
+
+
+def _light_cleanup(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """Merge vertices and drop degenerate faces, nothing else (no hole filling: scenes stay open)."""
+    mesh = mesh.copy()
+    mesh.merge_vertices()
+    mesh.update_faces(mesh.nondegenerate_faces())
+    mesh.remove_unreferenced_vertices()
+    return mesh
+
+
 @dataclasses.dataclass
 class Reinit:
     """What :func:`tsdf_reinit` produced.
@@ -105,18 +141,22 @@ class Reinit:
 
 
 def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: Renderer,
-                background_rule: bool, record: Record) -> Reinit:
+                background_rule: bool, record: Record, layout: SceneLayout | None = None) -> Reinit:
     """Fuse the rendered depth of ``surfels`` and put one surfel on each face of the fused mesh.
 
     With ``background_rule``, the old surfels farther than ``tsdf.hybrid_distance`` from that mesh
     are kept (background the object's TSDF does not cover) and the mesh is not cut to its largest
-    component. An empty fusion keeps the warm-up surfels (event ``"tsdf_empty"``).
+    component. A scene (``layout.kind``) fuses only its region of interest. An empty fusion keeps
+    the warm-up surfels (event ``"tsdf_empty"``).
     """
     tc, device = cfg.tsdf, surfels.means.device
     cams = cameras[:: max(1, math.ceil(len(cameras) / tc.max_views))]
     depths, colors = render_depths(render, surfels, cams, tc.depth, tc.alpha_threshold)
     s = surfels
-    bounds = auto_bounds(s.means, s.opacities, resolution=tc.resolution, truncation_voxels=tc.truncation_voxels)
+    if _is_scene(layout):
+        bounds = roi_bounds(layout, tc.resolution, tc.truncation_voxels)
+    else:
+        bounds = auto_bounds(s.means, s.opacities, resolution=tc.resolution, truncation_voxels=tc.truncation_voxels)
     info = {"reinit_bounds": bounds.to_dict()}
     try:
         mesh = fuse_depths(cams, depths, colors, bounds)
@@ -151,7 +191,7 @@ def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: 
 
 
 def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: Renderer, proxy: ProxyMesh,
-               guided: bool, tsdf_info: dict, record: Record) -> trimesh.Trimesh:
+               guided: bool, tsdf_info: dict, record: Record, layout: SceneLayout | None = None) -> trimesh.Trimesh:
     """The returned mesh in the internal frame: TSDF of rendered depth, or the Poisson proxy.
 
     Args:
@@ -162,17 +202,24 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
         proxy: the co-evolution proxy (its box and prior bound the final Poisson mesh).
         guided: mesh guidance ran (the normal signs are aligned already).
         tsdf_info: updated in place with the final fusion bounds.
-        record: event sink (``"final_tsdf_empty"``, ``"poisson_remesh"``).
+        record: event sink (``"final_tsdf_empty"``, ``"poisson_remesh"``, ``"mesh_policy"``).
+        layout: scene kind and region of interest; a scene's mesh is its region of interest's
+            surface, open, with no face within ``layout.near`` of a camera centre
+            (:mod:`.mesh_policy`). Objects are closed. Both keep the components the views support.
 
     Raises:
         TSDFEmptyError: the TSDF fusion and the proxy mesh are both empty.
     """
     fc = cfg.final
     mesh = None
+    scene = _is_scene(layout)
+    depths, colors = render_depths(render, surfels, cameras, cfg.tsdf.depth, cfg.tsdf.alpha_threshold)
     if fc.method == "tsdf":
-        depths, colors = render_depths(render, surfels, cameras, cfg.tsdf.depth, cfg.tsdf.alpha_threshold)
-        bounds = auto_bounds(surfels.means, surfels.opacities, resolution=fc.resolution,
-                             truncation_voxels=cfg.tsdf.truncation_voxels)
+        if scene:
+            bounds = roi_bounds(layout, fc.resolution, cfg.tsdf.truncation_voxels)
+        else:
+            bounds = auto_bounds(surfels.means, surfels.opacities, resolution=fc.resolution,
+                                 truncation_voxels=cfg.tsdf.truncation_voxels)
         tsdf_info["final_bounds"] = bounds.to_dict()
         try:
             mesh = fuse_depths(cameras, depths, colors, bounds)
@@ -192,9 +239,22 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
         if pm is None:
             raise TSDFEmptyError("no final mesh: the TSDF fusion and the proxy mesh are both empty")
         mesh = trimesh.Trimesh(pm.verts.detach().cpu().numpy(), pm.faces.cpu().numpy(), process=True)
-    mesh = cleanup_mesh(mesh, largest_component=fc.largest_component)
-    if fc.watertight and not mesh.is_watertight:
-        mesh = poisson_remesh(mesh, cfg, record=record)
+    info: dict = {}
+    if scene:
+        mesh = _light_cleanup(crop_to_box(mesh, layout.roi_lower, layout.roi_upper))
+        mesh, info["near_camera_faces_removed"] = crop_near_cameras(mesh, layout.camera_centers, layout.near)
+        if fc.largest_component and len(mesh.faces):
+            mesh = max(mesh.split(only_watertight=False), key=lambda m: len(m.faces))
+        mesh, info["components"] = supported_components(mesh, cameras, depths)
+    else:
+        mesh = cleanup_mesh(mesh, largest_component=fc.largest_component)
+        mesh, info["components"] = supported_components(mesh, cameras, depths)
+        if fc.watertight and not mesh.is_watertight:
+            mesh = poisson_remesh(mesh, cfg, record=record)
+    record("mesh_policy", policy="open_roi" if scene else "watertight", **info)
+    if len(mesh.faces) == 0:
+        raise TSDFEmptyError("the final mesh is empty after the meshing policy (nothing in the region of interest "
+                             "that the views support)")
     return mesh
 
 

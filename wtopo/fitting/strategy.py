@@ -84,6 +84,8 @@ class DensityStrategy:
         self.record = record
         self.timers = timers
         self.gap = 1.0
+        self.outside_roi: Callable | None = None
+        """Scenes: ``outside_roi(means) -> bool [N]``, the background surfels the geometry-aware prune spares."""
 
     # -- hooks ----------------------------------------------------------------------------------------
     def step_pre_forward(self, stage: Stage, it: int, surfels: Surfels, proxy: ProxyMesh) -> bool:
@@ -115,11 +117,16 @@ class DensityStrategy:
             center = torch.as_tensor(cam.center, dtype=torch.float32, device=surfels.means.device)
             dens.accumulate_view_directions(surfels, center, visible)
 
+    def is_density_step(self, stage: Stage, it: int) -> bool:
+        """Whether :meth:`step_end` runs density control at iteration ``it``."""
+        dc = self.cfg.densify
+        return stage == Stage.WARMUP and it >= dc.start and it % max(1, dc.interval) == 0
+
     def step_end(self, stage: Stage, it: int, surfels: Surfels) -> bool:
         """Warm-up clone / split, prune and opacity reset on the ``densify`` schedule; returns whether
         the surfels changed."""
         dc, W = self.cfg.densify, self.warmup_end
-        if stage != Stage.WARMUP or it < dc.start or it % max(1, dc.interval) != 0:
+        if not self.is_density_step(stage, it):
             return False
         changed = False
         with self.timers("densify"):
@@ -167,6 +174,8 @@ class DensityStrategy:
                                                     max_surfels=self.cfg.runtime.max_surfels, generator=self.gen)
             dist = torch.cat([dist, torch.zeros(len(s) - dist.shape[0], dtype=dist.dtype, device=dist.device)])
         if dc.geometry_prune:
+            if self.outside_roi is not None:  # background surfels are far from the proxy by design
+                dist = torch.where(self.outside_roi(s.means), torch.zeros_like(dist), dist)
             info["pruned"] = dens.geometry_prune(s, dist, max_distance=dc.geometry_prune_distance * ROI_EXTENT,
                                                  max_opacity=dc.geometry_prune_opacity)
         self.record("mesh_guidance", **info)
