@@ -1,37 +1,70 @@
 # SPDX-License-Identifier: Apache-2.0
 """Helpers shared by the dataset readers: image decoding, alpha compositing, camera construction
-with the camera index in error messages, OpenGL -> OpenCV axes, and on-the-fly downscaling."""
+with the camera index in error messages (and the principal-point sanity check every format gets),
+OpenGL -> OpenCV axes, frames skipped for missing images, and on-the-fly downscaling."""
 
 from __future__ import annotations
 
+import json
 import math
 import os
+import struct
+import warnings
 
 import numpy as np
 import torch
 
 from ..camera import Camera
 
-__all__ = ["read_image", "parse_background", "make_camera", "opengl_c2w_to_w2c", "opencv_c2w_from_w2c_gl",
-           "ImageStack", "find_file"]
+__all__ = ["read_image", "read_json", "require_key", "parse_background", "make_camera", "opengl_c2w_to_w2c",
+           "opencv_c2w_from_w2c_gl", "ImageStack", "find_file", "MIN_IMAGES_AFTER_SKIPPING",
+           "PRINCIPAL_POINT_MARGIN"]
 
 _BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
+MIN_IMAGES_AFTER_SKIPPING = 2
+"""Frames whose image file is missing are skipped; if fewer than this many images remain the load
+fails instead: one view constrains no depth, so a fit on it is never what the user meant."""
+
+PRINCIPAL_POINT_MARGIN = 0.5
+"""How far outside its image a camera's principal point may lie, as a fraction of the image width
+(for ``cx``) and height (for ``cy``): ``cx`` must lie in ``[-0.5 W, 1.5 W]``. Calibrated lenses put
+it within a few percent of the centre and off-centre crops move it towards or just past an edge;
+intrinsics stored for ``s`` times the image resolution put it at ``s / 2`` of the size, so this
+catches ``s > 3`` (e.g. DTU's 1600 px intrinsics with 400 px images). Intrinsics for twice the
+resolution put it at the image corner and pass; the formats that store the calibrated size
+(COLMAP, nerfstudio ``w``/``h``) catch those by the size check."""
+
+_MAX_NAMED_SKIPPED = 20  # a warning names at most this many skipped files (then "and N more"): one readable line
+
+# what PIL raises for a corrupt, truncated or unsupported file (SyntaxError: "broken PNG file",
+# struct.error: short header fields, EOFError: truncated frame data)
+_DECODE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error)
+
 
 def read_image(path: str) -> np.ndarray:
-    """Decode an image file into float32 [H, W, C] in [0, 1] (C = 3, or 4 with alpha; grey -> RGB)."""
+    """Decode an image file into float32 [H, W, C] in [0, 1] (C = 3, or 4 with alpha; grey -> RGB).
+
+    Raises:
+        FileNotFoundError: ``path`` is not a file.
+        ValueError: the file cannot be decoded (not an image, corrupt, truncated), naming ``path``.
+    """
     from PIL import Image
 
     if not os.path.isfile(path):
         raise FileNotFoundError(f"image file not found: {path}")
-    with Image.open(path) as im:
-        mode = im.mode
-        if mode in ("I;16", "I;16B", "I;16L", "I"):
-            a = np.asarray(im, dtype=np.float32) / 65535.0
-        else:
-            if mode not in ("RGB", "RGBA"):
-                im = im.convert("RGBA" if ("A" in mode or "transparency" in im.info) else "RGB")
-            a = np.asarray(im, dtype=np.float32) / 255.0
+    try:
+        with Image.open(path) as im:
+            im.load()  # decode the pixels here: PIL reports a truncated file only when they are read
+            mode = im.mode
+            if mode in ("I;16", "I;16B", "I;16L", "I"):
+                a = np.asarray(im, dtype=np.float32) / 65535.0
+            else:
+                if mode not in ("RGB", "RGBA"):
+                    im = im.convert("RGBA" if ("A" in mode or "transparency" in im.info) else "RGB")
+                a = np.asarray(im, dtype=np.float32) / 255.0
+    except (*_DECODE_ERRORS, Image.DecompressionBombError) as e:
+        raise ValueError(f"cannot read image {path}: {e}") from e
     if a.ndim == 2:
         a = np.repeat(a[..., None], 3, axis=2)
     return a
@@ -57,12 +90,53 @@ def parse_background(background, default=None):
     return tuple(float(v) for v in b)
 
 
-def make_camera(index: int, name: str, K, w2c, width: int, height: int, distortion=None) -> Camera:
-    """Build a :class:`Camera`, re-raising validation errors with the camera index and name."""
+def read_json(path: str):
+    """Parse a JSON file; a syntax error becomes a ValueError naming ``path``."""
+    with open(path) as fh:
+        try:
+            return json.load(fh)
+        except ValueError as e:
+            raise ValueError(f"{path} is not valid JSON: {e}") from None
+
+
+def require_key(record: dict, key: str, index: int, source: str):
+    """``record[key]`` of frame ``index`` of ``source``; a missing key is a ValueError naming both."""
+    if not isinstance(record, dict):
+        raise ValueError(f"{source}: frame {index} must be a JSON object, got {type(record).__name__}")
+    if key not in record:
+        raise ValueError(f"{source}: frame {index} has no {key!r}")
+    return record[key]
+
+
+def make_camera(index: int, name: str, K, w2c, width: int, height: int, distortion=None, *,
+                source: str) -> Camera:
+    """Build a :class:`Camera`, re-raising validation errors with the camera index, name and file.
+
+    Args:
+        index: the camera's index in the scene, for messages.
+        name: its image name, for messages and ``Camera.name``.
+        K, w2c, width, height, distortion: as :class:`Camera` takes them (pixels, float64).
+        source: the file the intrinsics were read from, for messages.
+
+    Raises:
+        ValueError: the camera is invalid, or its principal point lies more than
+            :data:`PRINCIPAL_POINT_MARGIN` of the image size outside the image (intrinsics stored for
+            another resolution).
+    """
     try:
-        return Camera(K, w2c, width, height, distortion, name)
+        cam = Camera(K, w2c, width, height, distortion, name)
     except (ValueError, TypeError) as e:
-        raise ValueError(f"camera {index} ({name!r}): {e}") from None
+        raise ValueError(f"camera {index} ({name!r}) in {source}: {e}") from None
+    cx, cy = float(cam.K[0, 2]), float(cam.K[1, 2])
+    m = PRINCIPAL_POINT_MARGIN
+    lo_x, hi_x, lo_y, hi_y = -m * width, (1 + m) * width, -m * height, (1 + m) * height
+    if not (lo_x <= cx <= hi_x and lo_y <= cy <= hi_y):
+        raise ValueError(
+            f"camera {index} ({name!r}) in {source}: principal point (cx, cy) = ({cx:g}, {cy:g}) lies far outside "
+            f"its {width}x{height} (WxH) image (cx must be in [{lo_x:g}, {hi_x:g}], cy in [{lo_y:g}, {hi_y:g}]); "
+            "the intrinsics may be for another image resolution: scale fx, fy, cx, cy by the image size over the "
+            "size they were calibrated at")
+    return cam
 
 
 def opengl_c2w_to_w2c(c2w) -> np.ndarray:
@@ -99,16 +173,27 @@ def find_file(root: str, names) -> str | None:
 
 class ImageStack:
     """Accumulates images / masks of one size, downscaling each as it arrives (keeps memory at the
-    output resolution)."""
+    output resolution), and the frames skipped because their image file is missing.
 
-    def __init__(self, downscale: float, background):
+    Args:
+        downscale: image size divisor (>= 1).
+        background: colour RGBA images are composited onto (3 floats in [0, 1]) or ``None`` (black).
+        source: the file that lists the frames (``transforms.json``, ``images.txt``, ...), for messages.
+    """
+
+    def __init__(self, downscale: float, background, *, source: str):
         f = float(downscale)
         if not math.isfinite(f) or f < 1:
             raise ValueError(f"downscale must be a finite number >= 1, got {downscale!r}")
         self.factor = f
         self.background = background
+        self.source = source
         self.images, self.masks, self.cameras = [], [], []
-        self.alpha_seen = False
+        self.skipped: list[str] = []
+
+    def skip(self, name: str) -> None:
+        """Record a frame whose image file ``name`` is missing; :meth:`arrays` warns once for all of them."""
+        self.skipped.append(name)
 
     def _resize(self, a: np.ndarray, h: int, w: int, mode: str) -> np.ndarray:
         t = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
@@ -144,9 +229,24 @@ class ImageStack:
         self.masks.append(mask)
 
     def arrays(self):
-        """(cameras, images [N, H, W, 3], masks [N, H, W] or None); masks only when every image has one."""
+        """(cameras, images [N, H, W, 3], masks [N, H, W] or None); masks only when every image has one.
+
+        Warns once (``UserWarning``, count first, the files named) when frames were skipped.
+
+        Raises:
+            ValueError: no images, or fewer than :data:`MIN_IMAGES_AFTER_SKIPPING` left after skipping.
+        """
+        n_skip, n_left = len(self.skipped), len(self.images)
+        if n_skip:
+            named = ", ".join(self.skipped[:_MAX_NAMED_SKIPPED])
+            if n_skip > _MAX_NAMED_SKIPPED:
+                named += f" and {n_skip - _MAX_NAMED_SKIPPED} more"
+            what = f"{n_skip} of {n_skip + n_left} images listed in {self.source} are missing"
+            if n_left < MIN_IMAGES_AFTER_SKIPPING:
+                raise ValueError(f"{what} ({named}); {n_left} left, at least {MIN_IMAGES_AFTER_SKIPPING} are needed")
+            warnings.warn(f"{what} and were skipped: {named}", UserWarning, stacklevel=3)
         if not self.images:
-            raise ValueError("the dataset lists no images")
+            raise ValueError(f"{self.source} lists no images")
         sizes = {im.shape[:2] for im in self.images}
         if len(sizes) > 1:
             raise ValueError(f"all images must share one size, got sizes (HxW) {sorted(sizes)}; resize them first")

@@ -16,7 +16,8 @@ import os
 
 import numpy as np
 
-from ._common import ImageStack, make_camera, opencv_c2w_from_w2c_gl, opengl_c2w_to_w2c, parse_background, read_image
+from ._common import (ImageStack, make_camera, opencv_c2w_from_w2c_gl, opengl_c2w_to_w2c, parse_background, read_image,
+                      read_json, require_key)
 
 __all__ = ["load_blender", "write_blender"]
 
@@ -44,14 +45,15 @@ def _intrinsics(meta: dict, frame: dict, w: int, h: int):
     return K, (d if any(d) else None)
 
 
-def _image_path(root: str, file_path: str) -> str:
+def _image_path(root: str, file_path: str) -> str | None:
+    """The image file of ``file_path`` (written without extension by NeRF-synthetic), or ``None``."""
     p = os.path.normpath(os.path.join(root, file_path))
     if os.path.splitext(p)[1].lower() in (".png", ".jpg", ".jpeg") and os.path.isfile(p):
         return p
     for ext in (".png", ".jpg", ".jpeg", ".PNG", ".JPG"):
         if os.path.isfile(p + ext):
             return p + ext
-    raise FileNotFoundError(f"image for file_path {file_path!r} not found under {root} (tried .png/.jpg)")
+    return None
 
 
 def load_blender(path: str, *, splits=("train", "test"), background=None, downscale: float = 1):
@@ -65,8 +67,16 @@ def load_blender(path: str, *, splits=("train", "test"), background=None, downsc
             when written by :func:`write_blender`, else white as in NeRF).
         downscale: image size divisor (>= 1).
 
+    Frames whose image file is missing (tried as written, then with ``.png`` / ``.jpg``) are
+    skipped with one warning naming them.
+
     Returns:
         :class:`wtopo.Scene` in the dataset's world frame.
+
+    Raises:
+        ValueError: bad intrinsics or pose (naming the camera and file), a principal point far
+            outside the image, an unreadable image, fewer than
+            :data:`~wtopo.loaders._common.MIN_IMAGES_AFTER_SKIPPING` images left after skipping.
     """
     from ..scene import Scene
 
@@ -77,28 +87,40 @@ def load_blender(path: str, *, splits=("train", "test"), background=None, downsc
     for s in splits:
         p = os.path.join(path, f"transforms_{s}.json")
         if os.path.isfile(p):
-            with open(p) as fh:
-                metas[s] = json.load(fh)
+            metas[s] = read_json(p)
+            if not isinstance(metas[s], dict):
+                raise ValueError(f"{p} must hold a JSON object, got {type(metas[s]).__name__}")
     if not metas:
         raise FileNotFoundError(f"no transforms_{{{','.join(splits)}}}.json in {path}")
     first = next(iter(metas.values()))
     bg = parse_background(background, None)
     if bg is None:
         bg = parse_background(first.get("background", "white")) if "background" in first else (1.0, 1.0, 1.0)
-    stack = ImageStack(downscale, bg)
+    files = [f"transforms_{s}.json" for s in metas]
+    stack = ImageStack(downscale, bg, source=os.path.join(path, files[0] if len(files) == 1 else
+                                                          f"transforms_{{{','.join(metas)}}}.json"))
     index = {}
     any_alpha = False
     for s, meta in metas.items():
         index[s] = []
-        for frame in meta.get("frames", []):
-            ip = _image_path(path, frame["file_path"])
+        source = os.path.join(path, f"transforms_{s}.json")
+        for k, frame in enumerate(meta.get("frames", [])):
+            file_path = require_key(frame, "file_path", k, source)
+            ip = _image_path(path, file_path)
+            if ip is None:
+                stack.skip(file_path)
+                continue
             img = read_image(ip)
             any_alpha |= img.shape[-1] == 4
             h, w = img.shape[:2]
-            K, dist = _intrinsics(meta, frame, w, h)
             i = len(stack.cameras)
             name = os.path.relpath(ip, path)
-            cam = make_camera(i, name, K, opengl_c2w_to_w2c(frame["transform_matrix"]), w, h, dist)
+            try:
+                K, dist = _intrinsics(meta, frame, w, h)
+            except (TypeError, ValueError) as e:
+                raise ValueError(f"camera {i} ({name!r}) in {source}: {e}") from None
+            w2c = opengl_c2w_to_w2c(require_key(frame, "transform_matrix", k, source))
+            cam = make_camera(i, name, K, w2c, w, h, dist, source=source)
             index[s].append(i)
             stack.add(cam, img)
     cams, images, masks = stack.arrays()

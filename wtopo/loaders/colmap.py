@@ -182,24 +182,26 @@ def find_colmap_model(path: str) -> str | None:
     return None
 
 
+def _model_file(model_dir: str, stem: str) -> tuple[str | None, str | None]:
+    """``(path, "bin" | "txt")`` of ``stem`` in a sparse model (binary first, as COLMAP reads), or ``(None, None)``."""
+    for ext in ("bin", "txt"):
+        p = os.path.join(model_dir, f"{stem}.{ext}")
+        if os.path.isfile(p):
+            return p, ext
+    return None, None
+
+
 def read_model(model_dir: str):
     """Read ``(cameras, images, points)`` of a sparse model: cameras ``{id: (model, w, h, params)}``,
     images ``{id: (qvec, tvec, camera_id, name)}``, points ``(xyz [P, 3], rgb [P, 3] in [0, 1])``
     or ``None`` when ``points3D`` is absent. Binary files first, text as fallback."""
-    def pick(stem):
-        for ext in ("bin", "txt"):
-            p = os.path.join(model_dir, f"{stem}.{ext}")
-            if os.path.isfile(p):
-                return p, ext
-        return None, None
-
-    cp, ce = pick("cameras")
-    ip, ie = pick("images")
+    cp, ce = _model_file(model_dir, "cameras")
+    ip, ie = _model_file(model_dir, "images")
     if cp is None or ip is None:
         raise FileNotFoundError(f"{model_dir} must hold cameras.bin/.txt and images.bin/.txt")
     cams = _read_cameras_bin(cp) if ce == "bin" else _read_cameras_txt(cp)
     imgs = _read_images_bin(ip) if ie == "bin" else _read_images_txt(ip)
-    pp, pe = pick("points3D")
+    pp, pe = _model_file(model_dir, "points3D")
     pts = None if pp is None else (_read_points_bin(pp) if pe == "bin" else _read_points_txt(pp))
     return cams, imgs, pts
 
@@ -224,9 +226,13 @@ def load_colmap(path: str, *, background=None, downscale: float = 1, images_dir:
         downscale: image size divisor (>= 1).
         images_dir: image folder, default ``<path>/images``.
 
+    Images the model lists whose file is missing are skipped with one warning naming them.
+
     Raises:
         ValueError: a camera model other than SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL or
-            OPENCV (the message says how to undistort), a bad pose (names the image).
+            OPENCV (the message says how to undistort), a bad pose (names the image), a principal
+            point far outside the image, an unreadable image, fewer than
+            :data:`~wtopo.loaders._common.MIN_IMAGES_AFTER_SKIPPING` images left after skipping.
     """
     from ..scene import Scene
     from ._common import parse_background
@@ -237,24 +243,32 @@ def load_colmap(path: str, *, background=None, downscale: float = 1, images_dir:
     cams, imgs, pts = read_model(model_dir)
     root = images_dir or _image_root(path, model_dir)
     mask_root = os.path.join(os.path.dirname(root), "masks")
-    stack = ImageStack(downscale, parse_background(background))
-    for i, (iid, (q, t, cid, name)) in enumerate(sorted(imgs.items(), key=lambda kv: kv[1][3])):
+    listing, cameras_file = _model_file(model_dir, "images")[0], _model_file(model_dir, "cameras")[0]
+    stack = ImageStack(downscale, parse_background(background), source=listing)
+    for iid, (q, t, cid, name) in sorted(imgs.items(), key=lambda kv: kv[1][3]):
+        image_file = os.path.join(root, name)
+        if not os.path.isfile(image_file):
+            stack.skip(name)
+            continue
+        i = len(stack.cameras)  # the camera's index in the scene
         if cid not in cams:
-            raise ValueError(f"COLMAP image {iid} ({name!r}) refers to camera {cid}, which cameras file lacks")
+            raise ValueError(f"COLMAP image {iid} ({name!r}) in {listing} refers to camera {cid}, which "
+                             f"{cameras_file} lacks")
         model, w, h, params = cams[cid]
         K, d = _intrinsics(cid, model, params)
         w2c = np.eye(4)
         if not np.all(np.isfinite(q)) or np.linalg.norm(q) == 0:
-            raise ValueError(f"camera {i} ({name!r}): COLMAP quaternion must be finite and non-zero, got {list(q)}")
+            raise ValueError(f"camera {i} ({name!r}) in {listing}: COLMAP quaternion must be finite and non-zero, "
+                             f"got {list(q)}")
         w2c[:3, :3] = qvec_to_rotmat(q)
         w2c[:3, 3] = t
-        cam = make_camera(i, name, K, w2c, w, h, d)
+        cam = make_camera(i, name, K, w2c, w, h, d, source=cameras_file)
         mask = None
         for mp in (os.path.join(mask_root, name), os.path.join(mask_root, name + ".png")):
             if os.path.isfile(mp):
                 mask = read_mask(mp)
                 break
-        stack.add(cam, read_image(os.path.join(root, name))[..., :3], mask)
+        stack.add(cam, read_image(image_file)[..., :3], mask)
     cameras, images, masks = stack.arrays()
     points, colors = (None, None) if pts is None or len(pts[0]) == 0 else pts
     return Scene(cameras, images, masks=masks, points=points, point_colors=colors,

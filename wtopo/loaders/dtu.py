@@ -59,8 +59,23 @@ def _listing(path: str, names) -> list[str]:
     return []
 
 
+def _frame_numbers(files: list[str]) -> list[int] | None:
+    """The frame number of each file (``000012.png`` -> 12) when every stem is a distinct integer, else ``None``."""
+    stems = [os.path.splitext(os.path.basename(f))[0] for f in files]
+    if not all(st.isdigit() for st in stems):
+        return None
+    nums = [int(st) for st in stems]
+    return nums if len(set(nums)) == len(nums) else None
+
+
 def load_dtu(path: str, *, background=None, downscale: float = 1, cameras_file: str | None = None):
     """Read one DTU scan folder (IDR / NeuS layout).
+
+    Image ``i`` takes ``world_mat_i``, where ``i`` is the number its file is named by (``000012.png``)
+    when every image is named by the number of a camera in the file, else its position in name
+    order (IDR). Masks pair with images by the same number (NeuS names images ``000012.png`` and
+    masks ``012.png``). With numbered files, cameras whose image is missing are skipped with one
+    warning naming them.
 
     Args:
         path: scan folder with ``image/`` or ``images/``, optional ``mask/``, and the cameras file.
@@ -70,6 +85,12 @@ def load_dtu(path: str, *, background=None, downscale: float = 1, cameras_file: 
 
     Returns:
         :class:`wtopo.Scene` in DTU world millimetres, ``bounds`` = box of the ``scale_mat`` unit sphere.
+
+    Raises:
+        ValueError: an image without its ``world_mat`` or mask, a non-finite projection, a
+            principal point far outside the image (e.g. 1600x1200 intrinsics with downscaled
+            images), an unreadable image, fewer than
+            :data:`~wtopo.loaders._common.MIN_IMAGES_AFTER_SKIPPING` images left after skipping.
     """
     from ..scene import Scene
     from ._common import parse_background
@@ -78,29 +99,50 @@ def load_dtu(path: str, *, background=None, downscale: float = 1, cameras_file: 
                                if os.path.isfile(os.path.join(path, f))), None)
     if cf is None:
         raise FileNotFoundError(f"no cameras_sphere.npz or cameras.npz in {path}")
-    data = np.load(os.path.join(path, cf))
+    source = os.path.join(path, cf)
+    try:
+        data = np.load(source)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"cannot read {source}: {e}") from e
     images = _listing(path, ("image", "images"))
     if not images:
         raise FileNotFoundError(f"no images in {path}/image or {path}/images")
     masks = _listing(path, ("mask", "masks"))
-    if masks and len(masks) != len(images):
-        raise ValueError(f"{path} has {len(images)} images but {len(masks)} masks")
-    stack = ImageStack(downscale, parse_background(background))
+    prefix = "world_mat_"
+    listed = {int(k[len(prefix):]) for k in data.files if k.startswith(prefix) and k[len(prefix):].isdigit()}
+    numbers = _frame_numbers(images)
+    mask_numbers = _frame_numbers(masks) if masks else None
+    if numbers is not None and set(numbers) <= listed and (not masks or mask_numbers is not None):
+        mask_of = dict(zip(mask_numbers, masks)) if masks else {}
+        missing = sorted(listed - set(numbers))
+    else:  # pair by position, as IDR does; which camera lacks its image cannot be told
+        if masks and len(masks) != len(images):
+            raise ValueError(f"{path} has {len(images)} images but {len(masks)} masks")
+        numbers = list(range(len(images)))
+        mask_of = dict(zip(numbers, masks))
+        missing = []
+    stack = ImageStack(downscale, parse_background(background), source=source)
+    for n in missing:
+        stack.skip(f"world_mat_{n}")
     scale0 = None
-    for i, ip in enumerate(images):
-        key = f"world_mat_{i}"
+    for n, ip in zip(numbers, images):
+        key = f"world_mat_{n}"
+        i = len(stack.cameras)  # the camera's index in the scene
+        name = os.path.basename(ip)
         if key not in data:
-            raise ValueError(f"{cf} lacks {key} for image {i} ({os.path.basename(ip)})")
+            raise ValueError(f"{source} lacks {key} for image {name}")
         P = data[key]
         if not np.all(np.isfinite(P)):
-            raise ValueError(f"camera {i} ({os.path.basename(ip)}): {key} must be finite, got {P.tolist()}")
+            raise ValueError(f"camera {i} ({name}) in {source}: {key} must be finite, got {P.tolist()}")
+        if masks and n not in mask_of:
+            raise ValueError(f"image {name} has no mask in {os.path.dirname(masks[0])}")
         K, w2c = decompose_projection(P)
         img = read_image(ip)
         h, w = img.shape[:2]
-        cam = make_camera(i, os.path.basename(ip), K, w2c, w, h)
+        cam = make_camera(i, name, K, w2c, w, h, source=source)
         if scale0 is None:
-            scale0 = np.asarray(data.get(f"scale_mat_{i}", np.eye(4)), dtype=np.float64)
-        stack.add(cam, img[..., :3], read_mask(masks[i]) if masks else None)
+            scale0 = np.asarray(data.get(f"scale_mat_{n}", np.eye(4)), dtype=np.float64)
+        stack.add(cam, img[..., :3], read_mask(mask_of[n]) if masks else None)
     cameras, imgs, msk = stack.arrays()
     c, r = scale0[:3, 3], scale0[0, 0]
     return Scene(cameras, imgs, masks=msk, bounds=(c - r, c + r), background=stack.background,

@@ -7,12 +7,12 @@ file's frame (nerfstudio's own auto-orientation and scaling are not applied)."""
 
 from __future__ import annotations
 
-import json
 import os
 
 import numpy as np
 
-from ._common import ImageStack, make_camera, opengl_c2w_to_w2c, parse_background, read_image, read_mask
+from ._common import (ImageStack, make_camera, opengl_c2w_to_w2c, parse_background, read_image, read_json,
+                      read_mask, require_key)
 
 __all__ = ["load_nerfstudio"]
 
@@ -27,49 +27,62 @@ def load_nerfstudio(path: str, *, background=None, downscale: float = 1):
         background: colour RGBA images are composited onto (default white when they have alpha).
         downscale: image size divisor (>= 1).
 
+    Frames whose image file is missing are skipped with one warning naming them.
+
     Raises:
         ValueError: a camera model other than SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL or
-            OPENCV (e.g. OPENCV_FISHEYE, EQUIRECTANGULAR); missing intrinsics; a bad pose.
+            OPENCV (e.g. OPENCV_FISHEYE, EQUIRECTANGULAR); missing intrinsics; a bad pose; a
+            principal point far outside the image; an unreadable image; fewer than
+            :data:`~wtopo.loaders._common.MIN_IMAGES_AFTER_SKIPPING` images left after skipping.
     """
     from ..scene import Scene
 
     fp = path if os.path.isfile(path) else os.path.join(path, "transforms.json")
     root = os.path.dirname(fp)
-    with open(fp) as fh:
-        meta = json.load(fh)
+    meta = read_json(fp)
+    if not isinstance(meta, dict):
+        raise ValueError(f"{fp} must hold a JSON object, got {type(meta).__name__}")
     bg = parse_background(background)
-    stack = ImageStack(downscale, bg if bg is not None else (1.0, 1.0, 1.0))
+    stack = ImageStack(downscale, bg if bg is not None else (1.0, 1.0, 1.0), source=fp)
     any_alpha = False
     names = []
-    for i, fr in enumerate(meta.get("frames", [])):
-        def get(k, default=None):
-            return fr.get(k, meta.get(k, default))
+    for k, fr in enumerate(meta.get("frames", [])):
+        file_path = require_key(fr, "file_path", k, fp)
+        ip = os.path.normpath(os.path.join(root, file_path))
+        if not os.path.isfile(ip):
+            stack.skip(file_path)
+            continue
+        i = len(stack.cameras)  # the camera's index in the scene
+
+        def get(key, default=None):
+            return fr.get(key, meta.get(key, default))
 
         model = get("camera_model", "OPENCV")
         if model not in _SUPPORTED:
-            raise ValueError(f"camera {i} ({fr.get('file_path')!r}): camera_model {model} is not supported; wtopo "
+            raise ValueError(f"camera {i} ({file_path!r}) in {fp}: camera_model {model} is not supported; wtopo "
                              f"reads {', '.join(_SUPPORTED)}. Undistort the images first (e.g. `colmap "
                              "image_undistorter` or `ns-process-data` with a pinhole model)")
         if get("k4", 0.0):
-            raise ValueError(f"camera {i} ({fr.get('file_path')!r}): k4 = {get('k4')} is a fisheye coefficient; "
+            raise ValueError(f"camera {i} ({file_path!r}) in {fp}: k4 = {get('k4')} is a fisheye coefficient; "
                              "wtopo reads OpenCV k1 k2 p1 p2 k3 only")
-        ip = os.path.normpath(os.path.join(root, fr["file_path"]))
         img = read_image(ip)
         any_alpha |= img.shape[-1] == 4
         h, w = img.shape[:2]
         fx, fy = get("fl_x"), get("fl_y")
         if fx is None:
-            raise ValueError(f"camera {i} ({fr['file_path']!r}): no fl_x in the frame or at the top level")
+            raise ValueError(f"camera {i} ({file_path!r}) in {fp}: no fl_x in the frame or at the top level")
         fy = fx if fy is None else fy
         W, H = int(get("w", w)), int(get("h", h))
         if (W, H) != (w, h):
-            raise ValueError(f"camera {i} ({fr['file_path']!r}): size {W}x{H} (WxH) does not match its image's {w}x{h}")
+            raise ValueError(f"camera {i} ({file_path!r}) in {fp}: size {W}x{H} (WxH) does not match its image's "
+                             f"{w}x{h}; the intrinsics may be for another image resolution")
         K = np.array([[float(fx), 0, float(get("cx", 0.5 * w))], [0, float(fy), float(get("cy", 0.5 * h))], [0, 0, 1.0]])
-        d = [float(get(k, 0.0)) for k in ("k1", "k2", "p1", "p2", "k3")]
-        cam = make_camera(i, fr["file_path"], K, opengl_c2w_to_w2c(fr["transform_matrix"]), w, h, d)
+        d = [float(get(key, 0.0)) for key in ("k1", "k2", "p1", "p2", "k3")]
+        w2c = opengl_c2w_to_w2c(require_key(fr, "transform_matrix", k, fp))
+        cam = make_camera(i, file_path, K, w2c, w, h, d, source=fp)
         mask = read_mask(os.path.join(root, fr["mask_path"])) if "mask_path" in fr else None
         stack.add(cam, img, mask)
-        names.append(fr["file_path"])
+        names.append(file_path)
     cameras, images, masks = stack.arrays()
 
     def indices(key):
