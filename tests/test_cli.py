@@ -9,14 +9,48 @@ def test_fit_flags_override_the_config():
     args = cli.build_parser().parse_args([
         "fit", "bunny", "--out", "x", "--iterations", "31", "--device", "cpu", "--seed", "7",
         "--max-surfels", "123", "--usd-every", "0", "--normal-flip", "view", "--samples-per-surfel", "1",
-        "--poisson-resolution", "48", "--no-mesh-loop"])
+        "--proxy-resolution", "48", "--poisson-resolution", "96", "--downscale", "4", "--no-mesh-loop"])
     cfg = cli._config(args)
     assert (cfg.warmup.iterations, cfg.coevolution.iterations) == (15, 16)
     assert (cfg.runtime.device, cfg.runtime.seed, cfg.runtime.max_surfels, cfg.runtime.usd_every) == ("cpu", 7, 123, 0)
     assert (cfg.mesh.normal_flip, cfg.mesh.samples_per_surfel, cfg.mesh.resolution) == ("view", 1, 48)
+    assert cfg.final.poisson_resolution == 96 and cfg.runtime.image_scale == 0.25
     assert cfg.coevolution.enabled is False
     later = cli._config(cli.build_parser().parse_args(["fit", "bunny", "--out", "x", "--warmup", "5"]))
     assert later.warmup.iterations == 5 and later.coevolution.enabled is True
+    assert later.runtime.image_scale is None  # without --downscale the plan decides
+
+
+def test_each_flag_in_the_table_sets_only_its_field():
+    """Change exactly the FitConfig field a table flag names, nothing else (the flag says what it sets)."""
+    import dataclasses
+
+    from wtopo.fitting import FitConfig
+
+    def leaves(cfg, prefix=""):
+        out = {}
+        for f in dataclasses.fields(cfg):
+            v = getattr(cfg, f.name)
+            out.update(leaves(v, prefix + f.name + ".") if dataclasses.is_dataclass(v) else {prefix + f.name: v})
+        return out
+
+    base = leaves(FitConfig())
+    assert len(cli._OVERRIDES) >= 10
+    for arg, section, name in cli._OVERRIDES:
+        value = {"device": "cpu", "normal_flip": "random"}.get(arg, 5 if arg != "samples_per_surfel" else 1)
+        flag = "--" + arg.replace("_", "-")
+        cfg = cli._config(cli.build_parser().parse_args(["fit", "bunny", "--out", "x", flag, str(value)]))
+        changed = {k for k, v in leaves(cfg).items() if v != base[k]}
+        assert changed == {f"{section}.{name}"} and getattr(getattr(cfg, section), name) == value, (flag, changed)
+
+
+def test_headless_flag_is_gone():
+    """Reject the removed no-op --headless flag as an unknown argument."""
+    import pytest
+
+    with pytest.raises(SystemExit) as e:
+        cli.build_parser().parse_args(["fit", "bunny", "--out", "x", "--headless"])
+    assert e.value.code == 2
 
 
 def test_scenes_lists_the_built_ins(capsys):
@@ -71,3 +105,87 @@ def test_bad_set_and_config_are_reported(tmp_path, capsys, monkeypatch):
     assert "iterationz" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         cli.build_parser().parse_args(["fit", "bunny", "--out", out, "--set"])
+
+
+def _one_error_line(err: str, command: str = "fit") -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"wtopo {command}: error: "), err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+def test_user_errors_are_one_line_with_exit_2(tmp_path, capsys):
+    """Report a missing path, a truncated image and a bad --set value as one stderr line, exit 2."""
+    import numpy as np
+    from test_loader_robustness import _nerfstudio, _truncated_jpeg
+
+    out = str(tmp_path / "run")
+    missing = str(tmp_path / "no_such_dataset")
+    assert cli.main(["fit", missing, "--out", out]) == 2
+    assert missing in _one_error_line(capsys.readouterr().err)
+
+    data = tmp_path / "capture"
+    data.mkdir()
+    _nerfstudio(str(data), 3, jpeg=True)
+    bad = str(data / "images" / "frame_001.jpg")
+    _truncated_jpeg(bad, np.random.default_rng(0))
+    assert cli.main(["fit", str(data), "--out", out, "--iterations", "2"]) == 2
+    assert f"cannot read image {bad}" in _one_error_line(capsys.readouterr().err)
+
+    assert cli.main(["fit", "bunny", "--out", out, "--set", "losses.mask=-1"]) == 2
+    assert "losses.mask" in _one_error_line(capsys.readouterr().err)
+    assert cli.main(["fit", "bunny", "--out", out, "--downscale", "0.5"]) == 2
+    assert "--downscale must be a finite number >= 1, got 0.5" in _one_error_line(capsys.readouterr().err)
+    assert cli.main(["export", str(tmp_path / "no_run"), str(tmp_path / "m.obj")]) == 2
+    _one_error_line(capsys.readouterr().err, "export")
+    assert not (tmp_path / "run").exists()  # nothing ran
+
+
+def test_usage_errors_are_one_line(capsys):
+    """Report a flag argparse rejects as one line naming the subcommand, exit 2."""
+    import pytest
+
+    with pytest.raises(SystemExit) as e:
+        cli.main(["fit", "bunny", "--out", "x", "--iterations", "many"])
+    assert e.value.code == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "--iterations" in line and "wtopo fit --help" in line
+
+
+def test_programming_errors_keep_their_traceback(tmp_path, monkeypatch, capsys):
+    """Let errors that are not user errors propagate; --traceback re-raises user errors too."""
+    import pytest
+
+    def broken(scene):
+        raise KeyError("a bug")
+
+    monkeypatch.setattr(cli, "_load", broken)
+    with pytest.raises(KeyError, match="a bug"):
+        cli.main(["fit", "bunny", "--out", str(tmp_path / "run")])
+    monkeypatch.undo()
+    with pytest.raises(FileNotFoundError, match="no_such_dataset"):
+        cli.main(["fit", str(tmp_path / "no_such_dataset"), "--out", str(tmp_path / "run"), "--traceback"])
+    assert capsys.readouterr().err == ""
+
+
+def test_loader_warnings_are_one_line(tmp_path, monkeypatch, capsys):
+    """Print the loader's skipped-frames warning as one 'wtopo fit: warning:' line before the fit starts."""
+    import types
+
+    from test_loader_robustness import _nerfstudio
+
+    import wtopo.fitting
+
+    seen = {}
+
+    def fake_fit(scene, cfg, **kw):
+        seen["n"] = len(scene)
+        return types.SimpleNamespace(report={"status": "completed"})
+
+    monkeypatch.setattr(wtopo.fitting, "fit", fake_fit)
+    _nerfstudio(str(tmp_path), 4, missing=(2,))
+    assert cli.main(["fit", str(tmp_path), "--out", str(tmp_path / "run")]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert seen["n"] == 3
+    assert err == [f"wtopo fit: warning: 1 of 4 images listed in {tmp_path / 'transforms.json'} are missing and were "
+                   "skipped: images/frame_002.png"], err

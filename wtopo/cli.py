@@ -14,25 +14,39 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
+import warnings
 
 __all__ = ["main", "build_parser"]
 
+# Errors a user causes and can fix (a bad path, flag, config value or dataset): reported as one line
+# ``wtopo <command>: error: ...`` with exit code 2, as argparse reports a bad flag. OSError covers
+# unreadable files, permissions and a full disk. Anything else is a bug and keeps its traceback;
+# ``--traceback`` shows it for these too.
+_USER_ERRORS = (ValueError, TypeError, OSError)
+_USAGE_ERROR = 2  # argparse's exit status for a usage error
 
-def _load(scene: str, downscale: float | None):
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line, as every other user error of the command."""
+
+    def error(self, message: str):
+        self.exit(_USAGE_ERROR, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _load(scene: str):
     from . import scenes
 
     if os.path.exists(scene):
         from .loaders import load_scene
 
-        kw = {} if downscale is None else {"downscale": downscale}
-        return load_scene(scene, **kw)
+        return load_scene(scene)
     if scene in scenes.names():
-        sc = scenes.load(scene)
-        return sc if downscale is None else sc.downscaled(downscale)
-    raise SystemExit(f"wtopo fit: {scene!r} is neither an existing path nor a built-in scene "
-                     f"({', '.join(scenes.names())})")
+        return scenes.load(scene)
+    raise FileNotFoundError(f"{scene!r} is neither an existing path nor a built-in scene "
+                            f"({', '.join(scenes.names())})")
 
 
 # command-line flag -> (FitConfig section, field)
@@ -45,7 +59,8 @@ _OVERRIDES = (
     ("usd_every", "runtime", "usd_every"),
     ("normal_flip", "mesh", "normal_flip"),
     ("samples_per_surfel", "mesh", "samples_per_surfel"),
-    ("poisson_resolution", "mesh", "resolution"),
+    ("proxy_resolution", "mesh", "resolution"),
+    ("poisson_resolution", "final", "poisson_resolution"),
 )
 
 
@@ -111,6 +126,10 @@ def _config(args):
         value = getattr(args, arg)
         if value is not None:
             setattr(getattr(cfg, section), name, value)
+    if args.downscale is not None:  # one knob: the fit resizes its training images by runtime.image_scale
+        if not math.isfinite(args.downscale) or args.downscale < 1:
+            raise ValueError(f"--downscale must be a finite number >= 1, got {args.downscale!r}")
+        cfg.runtime.image_scale = 1.0 / args.downscale
     if args.no_mesh_loop:
         cfg.coevolution.enabled = False
     for item in args.set or ():
@@ -122,13 +141,9 @@ def _cmd_fit(args) -> int:
     from .fitting import fit
     from .fitting.validate_config import validate_config
 
-    try:  # before the scene is loaded: a bad flag is reported at once, as a message, not a traceback
-        cfg = _config(args)
-        validate_config(cfg)
-    except (TypeError, ValueError) as e:
-        print(f"wtopo fit: error: {e}", file=sys.stderr)
-        return 2
-    scene = _load(args.scene, args.downscale)
+    cfg = _config(args)  # before the scene is loaded: a bad flag is reported at once
+    validate_config(cfg)
+    scene = _load(args.scene)
     result = fit(scene, cfg, out_dir=args.out, progress=not args.quiet)
     if args.quiet:
         r = result.report
@@ -161,10 +176,14 @@ def _cmd_export(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``wtopo`` command."""
-    p = argparse.ArgumentParser(prog="wtopo", description="Posed photographs to a watertight mesh.")
+    p = _Parser(prog="wtopo", description="Posed photographs to a watertight mesh.")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--traceback", action="store_true",
+                        help="show the traceback of an error instead of the one-line message")
     sub = p.add_subparsers(dest="command", required=True)
 
-    f = sub.add_parser("fit", help="fit a scene and write mesh.ply, surfels.ply, history/report/plan JSON")
+    f = sub.add_parser("fit", parents=[common],
+                       help="fit a scene and write mesh.ply, surfels.ply, history/report/plan JSON")
     f.add_argument("scene", help="dataset path (Blender, COLMAP, DTU, nerfstudio) or a built-in name (wtopo scenes)")
     f.add_argument("--out", required=True, help="run directory (resumes when it holds checkpoints)")
     f.add_argument("--iterations", type=int, help="total iterations, split evenly between warm-up and co-evolution")
@@ -174,11 +193,16 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--seed", type=int)
     f.add_argument("--max-surfels", type=int)
     f.add_argument("--usd-every", type=int, help="timeline sample interval (0: no timeline.usdc)")
-    f.add_argument("--downscale", type=float, help="divide the image size by this factor")
+    f.add_argument("--downscale", type=float,
+                   help="train on images this many times smaller (>= 1; sets runtime.image_scale = 1 / F)")
     f.add_argument("--no-mesh-loop", action="store_true", help="co-evolution without the proxy mesh (ablation)")
     f.add_argument("--normal-flip", choices=["mesh", "view", "random"])
     f.add_argument("--samples-per-surfel", type=int, choices=[1, 5])
-    f.add_argument("--poisson-resolution", type=int)
+    f.add_argument("--proxy-resolution", type=int,
+                   help="grid nodes per side of the co-evolving proxy mesh's Poisson solve (mesh.resolution)")
+    f.add_argument("--poisson-resolution", type=int,
+                   help="grid nodes per side of the final Poisson mesh, used with --set final.method=proxy "
+                        "(final.poisson_resolution)")
     f.add_argument("--preset", choices=["default", "toposurfel-public"], default="default",
                    help="toposurfel-public: the public TopoSurfel code's settings where supported")
     f.add_argument("--config", metavar="FILE.json",
@@ -189,14 +213,14 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--quiet", action="store_true", help="no plan, no progress bars")
     f.set_defaults(func=_cmd_fit)
 
-    s = sub.add_parser("scenes", help="list the built-in scenes")
+    s = sub.add_parser("scenes", parents=[common], help="list the built-in scenes")
     s.set_defaults(func=_cmd_scenes)
 
-    r = sub.add_parser("report", help="contact sheet and error plot of a run directory")
+    r = sub.add_parser("report", parents=[common], help="contact sheet and error plot of a run directory")
     r.add_argument("run_dir")
     r.set_defaults(func=_cmd_report)
 
-    e = sub.add_parser("export", help="export a run's mesh, surfels or timeline")
+    e = sub.add_parser("export", parents=[common], help="export a run's mesh, surfels or timeline")
     e.add_argument("run_dir")
     e.add_argument("out")
     e.add_argument("--format", help="mesh, surfels, ... (default: from the suffix)")
@@ -206,9 +230,28 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``wtopo`` script."""
+    """Entry point of the ``wtopo`` script.
+
+    Returns:
+        The exit status: 0, 2 for a user error (printed as one line ``wtopo <command>: error: ...``
+        on stderr), 130 for an interrupted fit. Other exceptions propagate with their traceback.
+    """
     args = build_parser().parse_args(argv)
-    return int(args.func(args) or 0)
+
+    def show_warning(message, category, filename, lineno, file=None, line=None):
+        kind = "" if category is UserWarning else f"{category.__name__}: "
+        print(f"wtopo {args.command}: warning: {kind}{message}", file=file or sys.stderr)
+
+    try:
+        with warnings.catch_warnings():
+            warnings.showwarning = show_warning  # one line per warning, as the errors are
+            return int(args.func(args) or 0)
+    except _USER_ERRORS as e:
+        if args.traceback:
+            raise
+        message = " ".join(str(e).split()) or type(e).__name__  # one line, even for multi-line messages
+        print(f"wtopo {args.command}: error: {message}", file=sys.stderr)
+        return _USAGE_ERROR
 
 
 if __name__ == "__main__":
