@@ -1,5 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Helpers shared by the PLY and USD writers: array coercion, quaternion maths, atomic files."""
+"""Helpers written once for the whole package: array coercion, quaternion maths, the degree-0
+SH colour convention and atomic files (used by the PLY / USD writers, the fit's checkpoints and
+its JSON outputs)."""
 
 from __future__ import annotations
 
@@ -57,13 +59,27 @@ def quat_normal(quats: np.ndarray) -> np.ndarray:
     return np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], axis=1)
 
 
-def sh_dc_to_rgb(dc: np.ndarray) -> np.ndarray:
-    """Base colour in [0, 1] from degree-0 SH coefficients (3DGS convention, clipped)."""
-    return np.clip(0.5 + SH_C0 * dc, 0.0, 1.0)
+def sh_dc_to_rgb(dc):
+    """Base colour in [0, 1] of degree-0 SH coefficients (3DGS convention, clipped).
+
+    Args:
+        dc: degree-0 coefficients [..., 3], a NumPy array or a torch tensor (any device).
+
+    Returns:
+        The colours, same shape and type as ``dc``.
+    """
+    return (0.5 + SH_C0 * dc).clip(0.0, 1.0)
 
 
-def rgb_to_sh_dc(rgb: np.ndarray) -> np.ndarray:
-    """Degree-0 SH coefficients whose base colour is ``rgb`` (inverse of :func:`sh_dc_to_rgb` on [0, 1])."""
+def rgb_to_sh_dc(rgb):
+    """Degree-0 SH coefficients whose base colour is ``rgb`` (inverse of :func:`sh_dc_to_rgb` on [0, 1]).
+
+    Args:
+        rgb: colours [..., 3] in [0, 1], a NumPy array or a torch tensor (any device).
+
+    Returns:
+        The coefficients, same shape and type as ``rgb``.
+    """
     return (rgb - 0.5) / SH_C0
 
 
@@ -72,8 +88,16 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None], *,
     """Write a file through a temporary sibling, verify it, then rename it over ``path``.
 
     ``write(tmp_path)`` produces the file; ``verify(tmp_path)`` raises if it is wrong.  The
-    temporary file is fsynced before the rename and the directory after it (STABILITY.md, "Not
-    losing work"); on any exception the temporary file is removed and ``path`` is left untouched.
+    temporary file is fsynced before the rename and the directory after it (design/stability.md,
+    "Not losing work"); on any exception the temporary file is removed and ``path`` is left
+    untouched.  The one atomic write of the package: PLY, USD, exports, reports, the fit's JSON
+    files and its checkpoints all go through it.
+
+    Args:
+        path: the final file.
+        write: writes the whole file at the temporary path it is given.
+        verify: optional check of the temporary file; raises when it is wrong.
+        suffix: suffix of the temporary file (writers that pick the format from it need it).
 
     Returns:
         ``path`` as a string.
