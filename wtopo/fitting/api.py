@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from ..io._common import atomic_write
 from .checkpoint import versions
 from .config import FitConfig
 from .evaluate import geometry_metrics
@@ -43,12 +44,8 @@ class FitResult:
 
 
 def _atomic_json(path: Path, data) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w") as f:
-        json.dump(data, f, indent=1, default=_json_default)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    text = json.dumps(data, indent=1, default=_json_default)
+    atomic_write(path, lambda tmp: Path(tmp).write_text(text))
 
 
 def _json_default(o):

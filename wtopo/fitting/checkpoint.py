@@ -1,11 +1,11 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Atomic, validated, resumable checkpoints (STABILITY.md, "Not losing work").
+"""Atomic, validated, resumable checkpoints (design/stability.md, "Not losing work").
 
 A checkpoint holds the surfel parameters and buffers, the optimiser state, the loop state (stage,
 iteration, accumulators, history), RNG states (torch, NumPy, Python), the scene normalisation, a
-config hash and the package versions. It is written to a temporary file in the same directory,
-fsynced, renamed over the final name with :func:`os.replace` and the directory is fsynced; the
-last ``keep`` checkpoints stay on disk. Loading validates shapes, finiteness and the config hash
+config hash and the package versions. It is written with :func:`wtopo.io._common.atomic_write`
+(temporary file in the same directory, fsync, :func:`os.replace`, directory fsync); the last
+``keep`` checkpoints stay on disk. Loading validates shapes, finiteness and the config hash
 and falls back to the previous checkpoint when the newest is unusable.
 """
 
@@ -14,12 +14,13 @@ from __future__ import annotations
 import os
 import random
 import re
-import tempfile
 import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from ..io._common import atomic_write
 
 __all__ = ["save_checkpoint", "load_checkpoint", "list_checkpoints", "rng_state", "set_rng_state", "versions",
            "CheckpointError"]
@@ -64,17 +65,6 @@ def list_checkpoints(directory: str | os.PathLike) -> list[Path]:
     return sorted((p for p in d.iterdir() if _NAME.match(p.name)), key=lambda p: int(_NAME.match(p.name).group(1)))
 
 
-def _fsync_dir(d: Path) -> None:
-    try:
-        fd = os.open(d, os.O_RDONLY)
-    except OSError:  # directories cannot be opened on some platforms (Windows): rename is still atomic
-        return
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _finite(obj) -> bool:
     if isinstance(obj, torch.Tensor):
         return not obj.is_floating_point() or bool(torch.isfinite(obj).all())
@@ -96,21 +86,9 @@ def save_checkpoint(directory: str | os.PathLike, step: int, state: dict, *, kee
     if not _finite(state.get("surfels")):
         raise ValueError("refusing to checkpoint non-finite surfel parameters")
     d = Path(directory)
-    d.mkdir(parents=True, exist_ok=True)
     final = d / f"ckpt_{step:08d}.pt"
     payload = dict(state, step=int(step), versions=versions())
-    fd, tmp = tempfile.mkstemp(prefix=".ckpt_", suffix=".tmp", dir=d)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, final)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    _fsync_dir(d)
+    atomic_write(final, lambda tmp: torch.save(payload, tmp))
     for old in list_checkpoints(d)[:-keep]:
         old.unlink(missing_ok=True)
     return final

@@ -14,10 +14,9 @@ import math
 
 import torch
 
-__all__ = ["Surfels", "quat_to_matrix", "normals_to_quats", "SH_C0", "rgb_to_sh", "sh_to_rgb"]
+from ..io._common import rgb_to_sh_dc, sh_dc_to_rgb
 
-SH_C0 = 0.28209479177387814
-"""Degree-0 SH basis constant: colour = 0.5 + SH_C0 * dc (3DGS convention)."""
+__all__ = ["Surfels", "quat_to_matrix", "normals_to_quats"]
 
 _PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 _BUFFERS = {  # name -> (trailing shape, fill value)
@@ -27,16 +26,6 @@ _BUFFERS = {  # name -> (trailing shape, fill value)
     "normal_sign": ((), 1.0),
 }
 _EPS_SCALE = 1e-7  # log-scale floor: 1e-7 of the unit cube is far below any pixel footprint
-
-
-def rgb_to_sh(rgb: torch.Tensor) -> torch.Tensor:
-    """Degree-0 SH coefficients of colours ``rgb`` in [0, 1], same shape."""
-    return (rgb - 0.5) / SH_C0
-
-
-def sh_to_rgb(dc: torch.Tensor) -> torch.Tensor:
-    """Colours of degree-0 SH coefficients (inverse of :func:`rgb_to_sh`)."""
-    return dc * SH_C0 + 0.5
 
 
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
@@ -153,7 +142,7 @@ class Surfels:
         logit = math.log(opacity / (1 - opacity))
         return Surfels(means=points.float(), quats=q, log_scales=torch.log(s.clamp_min(_EPS_SCALE)),
                        opacity_logits=torch.full((n,), logit, device=dev),
-                       sh_dc=rgb_to_sh(colors.float().clamp(0, 1))[:, None, :],
+                       sh_dc=rgb_to_sh_dc(colors.float().clamp(0, 1))[:, None, :],
                        sh_rest=torch.zeros(n, k, 3, device=dev))
 
     # -- views ----------------------------------------------------------------------------
@@ -201,7 +190,7 @@ class Surfels:
 
     def colors(self) -> torch.Tensor:
         """View-independent colours [N, 3] in [0, 1] (degree-0 SH), detached."""
-        return sh_to_rgb(self.params["sh_dc"].detach()[:, 0]).clamp(0, 1)
+        return sh_dc_to_rgb(self.params["sh_dc"].detach()[:, 0])
 
     # -- optimiser ------------------------------------------------------------------------
     def optimizer(self, lrs: dict[str, float]) -> torch.optim.Adam:
