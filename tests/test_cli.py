@@ -189,3 +189,67 @@ def test_loader_warnings_are_one_line(tmp_path, monkeypatch, capsys):
     assert seen["n"] == 3
     assert err == [f"wtopo fit: warning: 1 of 4 images listed in {tmp_path / 'transforms.json'} are missing and were "
                    "skipped: images/frame_002.png"], err
+
+
+_WARP_CPU_SCRIPT = """
+import wtopo
+import wtopo.ops
+import warp as wp
+
+
+@wp.kernel
+def fill(a: wp.array(dtype=float)):
+    a[wp.tid()] = 2.0
+
+
+a = wp.zeros(8, dtype=float, device="cpu")
+wp.launch(fill, dim=8, inputs=[a], device="cpu")
+print(float(a.numpy().sum()))
+"""
+
+
+def test_no_cuda_probe_warning_on_import_and_cpu_launch(tmp_path):
+    """Import wtopo and launch a CPU kernel in a fresh process without a 'Warp CUDA warning' line."""
+    import subprocess
+    import sys
+
+    import warp as wp
+
+    script = tmp_path / "cpu_launch.py"
+    script.write_text(_WARP_CPU_SCRIPT)
+    run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "16.0"
+    assert "CUDA warning" not in run.stderr, run.stderr
+    if wp.get_cuda_device_count() == 0:  # the same process with plain Warp does print it: the filter is what removed it
+        plain = subprocess.run([sys.executable, "-c", "import warp; warp.init()"], capture_output=True, text=True,
+                               timeout=300)
+        assert "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver" in plain.stderr, plain.stderr
+
+
+def test_warp_init_filter_keeps_other_lines(capfd):
+    """Drop only the no-driver probe line from what Warp's init writes to fd 2; other lines and errors pass."""
+    import os
+
+    import pytest
+
+    import wtopo
+
+    other = "Warp CUDA warning: Unable to determine CUDA driver version"
+
+    def noisy_init():
+        os.write(2, f"{wtopo._CUDA_PROBE_LINE}\n{other}\n".encode())
+
+    wtopo._init_warp(noisy_init)
+    err = capfd.readouterr().err
+    assert other in err and "Could not find or load" not in err, err
+
+    def failing_init():
+        os.write(2, f"{wtopo._CUDA_PROBE_LINE}\nnative error detail\n".encode())
+        raise RuntimeError("init failed")
+
+    with pytest.raises(RuntimeError, match="init failed"):
+        wtopo._init_warp(failing_init)
+    os.write(2, b"after\n")  # fd 2 is restored
+    err = capfd.readouterr().err
+    assert err == "native error detail\nafter\n", err
