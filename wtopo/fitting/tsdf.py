@@ -19,6 +19,7 @@ import torch
 import trimesh
 
 from ..camera import Camera
+from .depth_warp import pinhole_warp
 from .surfels import Surfels
 
 __all__ = ["TSDFEmptyError", "FusionBounds", "auto_bounds", "fuse_depths", "mesh_to_surfels", "cleanup_mesh",
@@ -85,9 +86,14 @@ def fuse_depths(cameras: Sequence[Camera], depths: Sequence[np.ndarray], colors:
                 bounds: FusionBounds) -> trimesh.Trimesh:
     """Fuse z-depth maps into a TSDF and extract its mesh, cropped to ``bounds``.
 
+    Each view is integrated along its camera's own per-pixel rays (principal point, skew and
+    OpenCV distortion): a distorted or skewed view's depth and colour are resampled (nearest) onto
+    an ideal pinhole camera of the same pose covering its whole field
+    (:func:`wtopo.fitting.depth_warp.pinhole_warp`); a pinhole view without skew goes straight in.
+
     Args:
         cameras: one camera per depth map (internal frame).
-        depths: z-depth [H, W] float (0 = no measurement), internal units.
+        depths: z-depth [H, W] float (0 = no measurement), internal units, in the camera's pixel grid.
         colors: RGB [H, W, 3] float in [0, 1].
         bounds: from :func:`auto_bounds`.
 
@@ -95,6 +101,7 @@ def fuse_depths(cameras: Sequence[Camera], depths: Sequence[np.ndarray], colors:
         A vertex-coloured mesh in the internal frame.
 
     Raises:
+        ValueError: a depth or colour map whose size is not its camera's image size.
         TSDFEmptyError: no surface (every depth empty, or depths in other units than the cameras).
     """
     import open3d as o3d
@@ -105,13 +112,20 @@ def fuse_depths(cameras: Sequence[Camera], depths: Sequence[np.ndarray], colors:
     n_valid = 0
     for cam, dep, col in zip(cameras, depths, colors):
         dep = np.ascontiguousarray(np.nan_to_num(np.asarray(dep, np.float32), nan=0.0, posinf=0.0, neginf=0.0))
+        if dep.shape != (cam.height, cam.width) or np.shape(col)[:2] != (cam.height, cam.width):
+            raise ValueError(f"depth and colour of camera {cam.name!r} must be [{cam.height}, {cam.width}] "
+                             f"(its image size), got {list(dep.shape)} and {list(np.shape(col))}")
         if not (dep > 0).any():
             continue
         n_valid += 1
+        # Open3D takes only a pinhole intrinsic: a distorted or skewed view is first resampled onto
+        # the ideal pinhole camera of the same pose that covers its field (depth_warp).
+        warp = pinhole_warp(cam)
+        dep = np.ascontiguousarray(warp.resample_depth(dep))
         # Open3D puts pixel centres at integer coordinates; wtopo at +0.5 (camera.py).
-        intr = o3d.camera.PinholeCameraIntrinsic(cam.width, cam.height, cam.K[0, 0], cam.K[1, 1],
-                                                 cam.K[0, 2] - 0.5, cam.K[1, 2] - 0.5)
-        rgb = np.ascontiguousarray((np.clip(np.asarray(col), 0, 1) * 255).astype(np.uint8))
+        intr = o3d.camera.PinholeCameraIntrinsic(warp.width, warp.height, warp.K[0, 0], warp.K[1, 1],
+                                                 warp.K[0, 2] - 0.5, warp.K[1, 2] - 0.5)
+        rgb = np.ascontiguousarray(warp.resample((np.clip(np.asarray(col), 0, 1) * 255).astype(np.uint8)))
         rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
             o3d.geometry.Image(rgb), o3d.geometry.Image(dep), depth_scale=1.0,
             depth_trunc=_far_depth(cam, bounds), convert_rgb_to_intensity=False)
