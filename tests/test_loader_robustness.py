@@ -119,7 +119,7 @@ def test_colmap_skips_missing_images(tmp_path, binary):
     _write_colmap(os.path.join(tmp_path, "sparse", "0"), cams, imgs, (np.zeros((0, 3)), np.zeros((0, 3), int)), binary)
     s, msgs = _load_warning(tmp_path)
     listing = "images.bin" if binary else "images.txt"
-    assert len(msgs) == 1 and msgs[0].startswith(f"1 of 4 images listed in ") and listing in msgs[0]
+    assert len(msgs) == 1 and msgs[0].startswith("1 of 4 images listed in ") and listing in msgs[0]
     assert msgs[0].endswith("img_2.png")
     assert [c.name for c in s.cameras] == ["img_0.png", "img_1.png", "img_3.png"]
     for cam in s.cameras:
@@ -165,7 +165,8 @@ def _set_principal_point(fmt, root, cx):
     rng = np.random.default_rng(4)
     if fmt == "nerfstudio":
         _nerfstudio(root, 2, rng=rng)
-        meta = json.load(open(os.path.join(root, "transforms.json")))
+        with open(os.path.join(root, "transforms.json")) as fh:
+            meta = json.load(fh)
         meta["frames"][1]["cx"] = cx
         with open(os.path.join(root, "transforms.json"), "w") as fh:
             json.dump(meta, fh)
@@ -235,7 +236,8 @@ def test_dtu_intrinsics_for_the_full_resolution_are_named(tmp_path):
 
 def _truncated_jpeg(path, rng):
     Image.fromarray((rng.random((64, 80, 3)) * 255).astype(np.uint8)).save(path, quality=95)
-    data = open(path, "rb").read()
+    with open(path, "rb") as fh:
+        data = fh.read()
     with open(path, "wb") as fh:
         fh.write(data[: len(data) // 2])
 

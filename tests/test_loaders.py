@@ -64,7 +64,8 @@ def _write_colmap(model_dir, cams, imgs, pts, binary):
         with open(os.path.join(model_dir, "cameras.bin"), "wb") as fh:
             fh.write(struct.pack("<Q", len(cams)))
             for cid, (model, w, h, params) in cams.items():
-                fh.write(struct.pack("<iiQQ", cid, _MODEL_IDS.get(model, model if isinstance(model, int) else -1), w, h))
+                model_id = _MODEL_IDS.get(model, model if isinstance(model, int) else -1)
+                fh.write(struct.pack("<iiQQ", cid, model_id, w, h))
                 fh.write(struct.pack("<" + "d" * len(params), *params))
         with open(os.path.join(model_dir, "images.bin"), "wb") as fh:
             fh.write(struct.pack("<Q", len(imgs)))
@@ -92,7 +93,8 @@ def _write_colmap(model_dir, cams, imgs, pts, binary):
         with open(os.path.join(model_dir, "points3D.txt"), "w") as fh:
             xyz, rgb = pts
             for k, (p, c) in enumerate(zip(xyz, rgb)):
-                fh.write(f"{100 + 3 * k} {float(p[0])!r} {float(p[1])!r} {float(p[2])!r} {c[0]} {c[1]} {c[2]} 0.5 1 0\n")
+                xyz_text = " ".join(repr(float(v)) for v in p)
+                fh.write(f"{100 + 3 * k} {xyz_text} {c[0]} {c[1]} {c[2]} 0.5 1 0\n")
 
 
 _COLMAP_CASES = [  # model, params, expected K entries (fx, fy, cx, cy), expected distortion
@@ -129,7 +131,7 @@ def test_colmap_cameras_equal_written(tmp_path, binary):
     assert detect_format(str(tmp_path)) == "colmap"
     s = load_scene(tmp_path)
     assert [c.name for c in s.cameras] == sorted(want)  # sorted by name
-    for cam, (model, params, (fx, fy, cx, cy), dist) in zip(s.cameras, _COLMAP_CASES):
+    for cam, (_, _, (fx, fy, cx, cy), dist) in zip(s.cameras, _COLMAP_CASES):
         np.testing.assert_allclose(cam.K, [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], atol=CAM_TOL)
         np.testing.assert_allclose(cam.world_to_camera, want[cam.name], atol=CAM_TOL)
         assert (cam.width, cam.height) == (W, H)
@@ -210,7 +212,8 @@ def test_blender_nerf_synthetic(tmp_path, background, bg_value):
     cam_gl = np.eye(4)
     cam_gl[2, 3] = 4.0
     with open(os.path.join(tmp_path, "transforms_train.json"), "w") as fh:
-        json.dump({"camera_angle_x": angle, "frames": [{"file_path": "./train/r_0", "transform_matrix": cam_gl.tolist()}]}, fh)
+        frame = {"file_path": "./train/r_0", "transform_matrix": cam_gl.tolist()}
+        json.dump({"camera_angle_x": angle, "frames": [frame]}, fh)
     c = load_scene(tmp_path, splits=("train",)).cameras[0]
     np.testing.assert_allclose(c.center, [0, 0, 4], atol=CAM_TOL)
     np.testing.assert_allclose(c.forward, [0, 0, -1], atol=CAM_TOL)

@@ -26,7 +26,8 @@ if _wp.config.log_level < _wp.LOG_WARNING:
 
 # The line Warp's native library prints (fprintf to stderr, no config option silences it) when it
 # finds no CUDA driver: on a CPU-only machine that is the expected state, not a warning.
-_CUDA_PROBE_LINE = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver. GPU execution will not be available."
+_CUDA_PROBE_LINE = ("Warp CUDA warning: Could not find or load the NVIDIA CUDA driver. "
+                    "GPU execution will not be available.")
 
 
 def _init_warp(init=_wp.init) -> None:

@@ -115,7 +115,11 @@ def make_camera(index: int, name: str, K, w2c, width: int, height: int, distorti
     Args:
         index: the camera's index in the scene, for messages.
         name: its image name, for messages and ``Camera.name``.
-        K, w2c, width, height, distortion: as :class:`Camera` takes them (pixels, float64).
+        K: intrinsics [3, 3] in pixels, float64.
+        w2c: world-to-camera [4, 4] (OpenCV axes), float64.
+        width: image width in pixels.
+        height: image height in pixels.
+        distortion: OpenCV ``k1 k2 p1 p2 (k3)`` or ``None``.
         source: the file the intrinsics were read from, for messages.
 
     Raises:

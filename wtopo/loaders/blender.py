@@ -16,8 +16,16 @@ import os
 
 import numpy as np
 
-from ._common import (ImageStack, make_camera, opencv_c2w_from_w2c_gl, opengl_c2w_to_w2c, parse_background, read_image,
-                      read_json, require_key)
+from ._common import (
+    ImageStack,
+    make_camera,
+    opencv_c2w_from_w2c_gl,
+    opengl_c2w_to_w2c,
+    parse_background,
+    read_image,
+    read_json,
+    require_key,
+)
 
 __all__ = ["load_blender", "write_blender"]
 

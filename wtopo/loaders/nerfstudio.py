@@ -11,8 +11,16 @@ import os
 
 import numpy as np
 
-from ._common import (ImageStack, make_camera, opengl_c2w_to_w2c, parse_background, read_image, read_json,
-                      read_mask, require_key)
+from ._common import (
+    ImageStack,
+    make_camera,
+    opengl_c2w_to_w2c,
+    parse_background,
+    read_image,
+    read_json,
+    read_mask,
+    require_key,
+)
 
 __all__ = ["load_nerfstudio"]
 
@@ -54,7 +62,7 @@ def load_nerfstudio(path: str, *, background=None, downscale: float = 1):
             continue
         i = len(stack.cameras)  # the camera's index in the scene
 
-        def get(key, default=None):
+        def get(key, default=None, fr=fr):  # a frame's own value overrides the top level's
             return fr.get(key, meta.get(key, default))
 
         model = get("camera_model", "OPENCV")
@@ -72,11 +80,12 @@ def load_nerfstudio(path: str, *, background=None, downscale: float = 1):
         if fx is None:
             raise ValueError(f"camera {i} ({file_path!r}) in {fp}: no fl_x in the frame or at the top level")
         fy = fx if fy is None else fy
-        W, H = int(get("w", w)), int(get("h", h))
-        if (W, H) != (w, h):
-            raise ValueError(f"camera {i} ({file_path!r}) in {fp}: size {W}x{H} (WxH) does not match its image's "
-                             f"{w}x{h}; the intrinsics may be for another image resolution")
-        K = np.array([[float(fx), 0, float(get("cx", 0.5 * w))], [0, float(fy), float(get("cy", 0.5 * h))], [0, 0, 1.0]])
+        size = int(get("w", w)), int(get("h", h))
+        if size != (w, h):
+            raise ValueError(f"camera {i} ({file_path!r}) in {fp}: size {size[0]}x{size[1]} (WxH) does not match its "
+                             f"image's {w}x{h}; the intrinsics may be for another image resolution")
+        cx, cy = float(get("cx", 0.5 * w)), float(get("cy", 0.5 * h))
+        K = np.array([[float(fx), 0, cx], [0, float(fy), cy], [0, 0, 1.0]])
         d = [float(get(key, 0.0)) for key in ("k1", "k2", "p1", "p2", "k3")]
         w2c = opengl_c2w_to_w2c(require_key(fr, "transform_matrix", k, fp))
         cam = make_camera(i, file_path, K, w2c, w, h, d, source=fp)
