@@ -193,16 +193,16 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--seed", type=int)
     f.add_argument("--max-surfels", type=int)
     f.add_argument("--usd-every", type=int, help="timeline sample interval (0: no timeline.usdc)")
-    f.add_argument("--downscale", type=float,
-                   help="train on images this many times smaller (>= 1; sets runtime.image_scale = 1 / F)")
+    f.add_argument("--downscale", type=float, metavar="F",
+                   help="train on images F times smaller (F >= 1; sets runtime.image_scale = 1 / F)")
     f.add_argument("--no-mesh-loop", action="store_true", help="co-evolution without the proxy mesh (ablation)")
     f.add_argument("--normal-flip", choices=["mesh", "view", "random"])
     f.add_argument("--samples-per-surfel", type=int, choices=[1, 5])
-    f.add_argument("--proxy-resolution", type=int,
+    f.add_argument("--proxy-resolution", type=int, metavar="N",
                    help="grid nodes per side of the co-evolving proxy mesh's Poisson solve (mesh.resolution)")
-    f.add_argument("--poisson-resolution", type=int,
-                   help="grid nodes per side of the final Poisson mesh, used with --set final.method=proxy "
-                        "(final.poisson_resolution)")
+    f.add_argument("--poisson-resolution", type=int, metavar="N",
+                   help="grid nodes per side of the final Poisson mesh, built with --set final.method=proxy or "
+                        "when the TSDF fusion is empty (final.poisson_resolution)")
     f.add_argument("--preset", choices=["default", "toposurfel-public"], default="default",
                    help="toposurfel-public: the public TopoSurfel code's settings where supported")
     f.add_argument("--config", metavar="FILE.json",
