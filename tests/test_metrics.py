@@ -174,3 +174,93 @@ def test_metric_argument_errors():
         metrics.psnr(torch.rand(4, 4, 3), torch.rand(5, 4, 3))
     with pytest.raises(ValueError, match="at least 11x11"):
         metrics.ssim(torch.rand(8, 8, 3), torch.rand(8, 8, 3))
+
+
+# -- region of interest and camera clearance ------------------------------------------------------
+def _plane(half, z=0.0, cells=4):
+    """Square plane [-half, half]^2 at height z, split into cells x cells quads."""
+    g = np.linspace(-half, half, cells + 1)
+    x, y = np.meshgrid(g, g, indexing="ij")
+    v = np.stack([x.ravel(), y.ravel(), np.full(x.size, z)], 1)
+    i, j = np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij")
+    a = (i * (cells + 1) + j).ravel()
+    f = np.concatenate([np.stack([a, a + cells + 1, a + cells + 2], 1), np.stack([a, a + cells + 2, a + 1], 1)])
+    return trimesh.Trimesh(v, f, process=False)
+
+
+ROI_SAMPLES = 20_000
+# Fractions over 20k samples: binomial std <= 3.6e-3; 4 sigma.
+ROI_FRACTION_TOL = 1.5e-2
+ROI_BOX = ([-0.5, -0.5, -0.1], [0.5, 0.5, 0.1])
+
+
+def test_roi_f_score_shifted_plane():
+    """Score a plane shifted by delta against a larger plane: distances are delta, F flips at tau = delta."""
+    gt, delta = _plane(2.0), 0.01
+    pred = _plane(1.0, z=delta)
+    hit = metrics.roi_f_score(pred, gt, *ROI_BOX, 1.5 * delta, n_samples=ROI_SAMPLES)
+    np.testing.assert_allclose([hit.accuracy, hit.completeness], delta, atol=EXACT_TOL)
+    assert (hit.precision, hit.recall, hit.f_score) == (1.0, 1.0, 1.0)
+    assert hit.n_pred == hit.n_gt == ROI_SAMPLES  # in-box sampling reaches the count through rejection
+    miss = metrics.roi_f_score(pred, gt, *ROI_BOX, 0.5 * delta, n_samples=ROI_SAMPLES)
+    assert (miss.precision, miss.recall, miss.f_score) == (0.0, 0.0, 0.0)
+
+
+def test_roi_f_score_half_covered_box():
+    """Recall is the covered share of the in-box ground truth: a prediction over x < 0 gives 0.5 + tau."""
+    gt, tau = _plane(2.0), 0.02
+    v = np.array([[-1.0, -1, 0], [0, -1, 0], [0, 1, 0], [-1, 1, 0]])
+    pred = trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3]], process=False)
+    r = metrics.roi_f_score(pred, gt, *ROI_BOX, tau, n_samples=ROI_SAMPLES)
+    assert r.precision == 1.0
+    np.testing.assert_allclose(r.recall, 0.5 + tau, atol=ROI_FRACTION_TOL)
+    np.testing.assert_allclose(r.f_score, 2 * r.recall / (1 + r.recall), rtol=1e-12)
+
+
+def test_roi_f_score_measures_against_the_whole_ground_truth():
+    """Score an inset cube inside a box that crops the gt cube's x faces away: precision stays 1."""
+    gt, pred = _box(1.0), _box(0.96)  # faces at +-0.5 and +-0.48
+    lo, hi = [-0.49, -1, -1], [0.49, 1, 1]  # pred's x faces inside, gt's outside the box
+    r = metrics.roi_f_score(pred, gt, lo, hi, 0.025, n_samples=ROI_SAMPLES)
+    assert r.precision == 1.0  # pred's x faces are 0.02 from gt faces that lie outside the box
+    # gt strips within 0.005 of a cube edge (|other coordinate| > 0.495: 1 %) are farther than tau
+    np.testing.assert_allclose(r.recall, 0.99, atol=ROI_FRACTION_TOL)
+    np.testing.assert_allclose(r.accuracy, 0.02, atol=EXACT_TOL)
+    assert r.completeness >= 0.02 - EXACT_TOL
+    # the gt in the box is only the four strips of the y and z faces
+    assert r.n_gt == ROI_SAMPLES
+
+
+def test_roi_f_score_empty_prediction():
+    """Score an empty prediction, and one outside the box, as precision 0 and recall 0."""
+    gt = _plane(2.0)
+    empty = (np.zeros((0, 3)), np.zeros((0, 3), np.int64))
+    for pred in (empty, _plane(0.3, z=5.0)):
+        r = metrics.roi_f_score(pred, gt, *ROI_BOX, 0.01, n_samples=1000)
+        assert (r.precision, r.recall, r.f_score, r.n_pred) == (0.0, 0.0, 0.0, 0)
+        assert r.accuracy == math.inf and r.n_gt == 1000
+
+
+def test_roi_f_score_argument_errors():
+    """Reject a box without ground truth, an inverted box and a bad tau."""
+    gt = _plane(1.0)
+    with pytest.raises(ValueError, match="no surface inside"):
+        metrics.roi_f_score(gt, gt, [5, 5, 5], [6, 6, 6], 0.1, n_samples=100)
+    with pytest.raises(ValueError, match="upper must exceed lower"):
+        metrics.roi_f_score(gt, gt, [1, 0, 0], [0, 1, 1], 0.1, n_samples=100)
+    with pytest.raises(ValueError, match="tau"):
+        metrics.roi_f_score(gt, gt, *ROI_BOX, 0.0, n_samples=100)
+
+
+def test_camera_clearance_point_to_triangle():
+    """Measure exact distances to faces (interior, edge, far from every vertex) and inf for no mesh."""
+    plane = _plane(1.0, cells=1)
+    centers = np.array([[0.0, 0, 2], [3, 0, 1], [0.5, 0.5, -0.3]])
+    np.testing.assert_allclose(metrics.camera_clearance(plane, centers), [2.0, math.sqrt(5.0), 0.3], atol=1e-6)
+    big = trimesh.Trimesh([[-100.0, -100, 0], [100, -100, 0], [0, 100, 0]], [[0, 1, 2]], process=False)
+    # vertices are ~100 away, the face 0.01
+    np.testing.assert_allclose(metrics.camera_clearance(big, [[0.0, 0, 0.01]]), [0.01], rtol=1e-4)
+    empty = (np.zeros((0, 3)), np.zeros((0, 3), np.int64))
+    assert np.all(metrics.camera_clearance(empty, centers) == math.inf)
+    with pytest.raises(ValueError, match="camera_centers"):
+        metrics.camera_clearance(plane, np.zeros((2, 2)))
