@@ -162,25 +162,28 @@ def test_raycast_and_closest_faces_equal_on_cuda():
     for dev in ("cpu", CUDA):
         v, f = _mesh(dev)
         v.requires_grad_(True)
-        out = ops.raycast_mesh(v, f, cam)
-        g = torch.Generator().manual_seed(5)
-        loss = (out.depth * torch.randn(out.depth.shape, generator=g, dtype=v.dtype).to(dev)).sum() + \
-            (out.normal * torch.randn(out.normal.shape, generator=g, dtype=v.dtype).to(dev)).sum()
-        grad = torch.autograd.grad(loss, v)[0]
         pts = torch.tensor(np.random.default_rng(6).normal(size=(500, 3)), dtype=v.dtype, device=dev)
-        cf = ops.closest_faces(v.detach(), f, pts)
-        res[dev] = (out, grad, cf)
-    (oc, gc, cc), (og, gg, cg) = res["cpu"], res[CUDA]
+        res[dev] = (v, ops.raycast_mesh(v, f, cam), ops.closest_faces(v.detach(), f, pts))
+    (vc, oc, cc), (vg, og, cg) = res["cpu"], res[CUDA]
     assert int(oc.mask.sum()) > 500
     same = (og.face_id.cpu() == oc.face_id)
     # rays through a shared edge may pick either neighbour depending on float32 rounding
     assert float(same.float().mean()) > 0.995
     _close(og.depth.cpu()[same], oc.depth[same], RAY_F32_REL, "depth")
     _close(og.normal.cpu()[same], oc.normal[same], RAY_F32_REL, "normal")
-    if bool(same.all()):
-        _close(gg, gc, RAY_F32_REL, "vertex grad")
+    # vertex gradient of a loss seeded only on the pixels whose face agrees: it depends on those faces alone,
+    # so both devices must agree on it even when a few edge rays picked different neighbours
+    g = torch.Generator().manual_seed(5)
+    up_depth = torch.randn(oc.depth.shape, generator=g, dtype=torch.float64) * same
+    up_normal = torch.randn(oc.normal.shape, generator=g, dtype=torch.float64) * same[..., None]
+    grads = []
+    for v, out in ((vc, oc), (vg, og)):
+        loss = (out.depth * up_depth.to(out.depth)).sum() + (out.normal * up_normal.to(out.normal)).sum()
+        grads.append(torch.autograd.grad(loss, v)[0])
+    assert int((grads[0].abs().sum(dim=1) > 0).sum()) > 100, "the gradient reached too few vertices"
+    _close(grads[1], grads[0], RAY_F32_REL, "vertex grad")
     # the closest point is unique, its face is not when it lies on a shared edge or vertex (ties break
     # differently: 25 % of these points differ in face id on an H200), so points and distances are compared
     _close(cg[1], cc[1], RAY_F32_REL, "closest distance")
     _close(cg[2], cc[2], RAY_F32_REL, "closest point")
-    assert math.isfinite(float(gg.abs().sum()))
+    assert math.isfinite(float(grads[1].abs().sum()))
