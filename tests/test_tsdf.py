@@ -127,6 +127,27 @@ def test_resample_keeps_empty_pixels_empty_and_never_blends():
     np.testing.assert_array_equal(w.resample(rgb).reshape(-1, 3)[w.source < depth.size], rgb.reshape(-1, 3)[src])
 
 
+def test_resample_depth_interpolates_one_surface_and_keeps_edges():
+    """Interpolate a smooth depth exactly at each ray; across a step or a hole, take a source value."""
+    base = rig_cameras("sphere", 1, np.zeros(3), 1.0, resolution=(48, 40), fov=1.0)[0]
+    cam = _lens_camera(base, skew=_SKEW, distortion=np.array(_BARREL))
+    w = pinhole_warp(cam)
+    u, v = np.meshgrid(np.arange(48, dtype=np.float64), np.arange(40, dtype=np.float64))  # centres - 0.5
+    ramp = 2.0 + 0.002 * u + 0.001 * v  # 0.15 % per pixel: one surface, bilinear is exact on it
+    out = w.resample_depth(ramp.astype(np.float64)).ravel()
+    pos = w.position.astype(np.float64)
+    inner = (pos[:, 0] >= 0) & (pos[:, 0] <= 47) & (pos[:, 1] >= 0) & (pos[:, 1] <= 39)
+    assert inner.mean() > 0.5
+    np.testing.assert_allclose(out[inner], 2.0 + 0.002 * pos[inner, 0] + 0.001 * pos[inner, 1], rtol=1e-6)
+    # a 50 % depth step between the halves, and a hole: only the two source depths and 0 come out
+    step = np.where(u < 24, 1.0, 1.5).astype(np.float32)
+    step[10:20, 5:15] = 0.0
+    out = w.resample_depth(step)
+    assert set(np.unique(out).tolist()) == {0.0, 1.0, 1.5}
+    near = w.resample(step)
+    np.testing.assert_array_equal(out == 0, near == 0)  # no hole filled, none made
+
+
 def test_fuse_distorted_sphere_matches_its_undistorted_twin(sphere):
     """Fuse a distorted, skewed rig as accurately as its pinhole twin; the old pinhole path fails."""
     b, gt = sphere["bounds"], sphere["mesh"]
