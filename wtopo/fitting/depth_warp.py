@@ -74,10 +74,11 @@ class PinholeWarp:
 
     Limitations:
         Where depths are sampled nearest (edges, the image border) a depth moves by up to half a
-        source pixel sideways (the order of the rasteriser's own pixel quantisation). When the undistorted field would need
-        more than ``_MAX_AREA_RATIO`` times the source's pixels, ``m`` is reduced and some
-        peripheral source pixels are skipped. Border samples where the lens model does not invert
-        (Newton residual above ``_UNDISTORT_RESIDUAL``) do not widen the field.
+        source pixel sideways (the order of the rasteriser's own pixel quantisation). When the
+        undistorted field would need more than ``_MAX_AREA_RATIO`` times the source's pixels,
+        ``m`` is reduced and some peripheral source pixels are skipped. Border samples where the
+        lens model does not invert (Newton residual above ``_UNDISTORT_RESIDUAL``) do not widen
+        the field.
     """
 
     K: np.ndarray
