@@ -148,8 +148,7 @@ def fit(scene, config: FitConfig | None = None, *, out_dir: str | os.PathLike | 
         Peng et al., "Shape As Points" (NeurIPS 2021).
 
     Limitations:
-        Surfels are 2D Gaussians and the proxy uses plain marching cubes (no dual MC); the TSDF
-        fusion ignores lens distortion.
+        Surfels are 2D Gaussians and the proxy uses plain marching cubes (no dual MC).
     """
     from ..scene import Scene
 
