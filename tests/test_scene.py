@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from wtopo import Camera, load_scene, scenes
-from wtopo.scene import Scene, Similarity
+from wtopo.scene import NORMALIZATION_MARGIN, Scene, Similarity
 
 # float64 host maths of a similarity then its inverse: a few ulps of the largest coordinate (1e4)
 ROUNDTRIP_TOL = 1e-9
@@ -143,8 +143,9 @@ def test_region_of_interest_contains_the_object(sphere_scene, source):
     v = np.asarray(sphere_scene.gt_mesh.vertices)
     assert np.all(v >= lo - 1e-9) and np.all(v <= hi + 1e-9)
     assert np.max(hi - lo) < 4.0  # the object has extent 2; the estimate must be informative
-    nv = s.normalization(margin=0.1).to_internal(v)
-    assert nv.min() >= 0.1 - 1e-9 and nv.max() <= 0.9 + 1e-9
+    m = NORMALIZATION_MARGIN  # the default margin
+    nv = s.normalization().to_internal(v)
+    assert nv.min() >= m - 1e-9 and nv.max() <= 1 - m + 1e-9
 
 
 def test_subset_and_downscale(sphere_scene):

@@ -181,7 +181,8 @@ class _WarpFunction(torch.autograd.Function):
             with tape:
                 outs = op.run(*wp_inputs)
         if len(outs) != len(op.differentiable_outputs):
-            raise RuntimeError(f"{op.name}: run returned {len(outs)} outputs, expected {len(op.differentiable_outputs)}")
+            want = len(op.differentiable_outputs)
+            raise RuntimeError(f"{op.name}: run returned {len(outs)} outputs, expected {want}")
         torch_outs = []
         for o, diff in zip(outs, op.differentiable_outputs):
             if diff and o.grad is None:

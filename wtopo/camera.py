@@ -75,7 +75,8 @@ class Camera:
             setattr(self, nm, int(v))
         if self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
             raise ValueError(f"K focal lengths must be > 0, got fx={self.K[0, 0]}, fy={self.K[1, 1]}")
-        if abs(self.K[2, 2] - 1.0) > 1e-9 or abs(self.K[2, 0]) > 1e-12 or abs(self.K[2, 1]) > 1e-12 or abs(self.K[1, 0]) > 1e-12:
+        K = self.K
+        if abs(K[2, 2] - 1.0) > 1e-9 or abs(K[2, 0]) > 1e-12 or abs(K[2, 1]) > 1e-12 or abs(K[1, 0]) > 1e-12:
             raise ValueError(f"K must have last row [0, 0, 1] and K[1,0] = 0, got {self.K.tolist()}")
         R = self.world_to_camera[:3, :3]
         err = np.abs(R @ R.T - np.eye(3)).max()

@@ -15,9 +15,15 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
+from ._validate import all_finite
 from .camera import Camera
 
-__all__ = ["Scene", "Similarity"]
+__all__ = ["Scene", "Similarity", "NORMALIZATION_MARGIN"]
+
+NORMALIZATION_MARGIN = 0.1
+"""Empty border, on every side of the unit cube, that :meth:`Scene.normalization` leaves around the
+region of interest (which then fills ``[0.1, 0.9]^3``): room for surfels at the region's boundary and
+for the Poisson padding, so the indicator field does not wrap onto the opposite face."""
 
 _IMAGE_RANGE_TOL = 1e-4  # images outside [0, 1] by less than this (float rounding of composites) are clipped
 _UNIT_NORMAL_TOL = 1e-2  # normals must be unit (or 0 = invalid) within this (float32 exports)
@@ -114,10 +120,6 @@ class Similarity:
         """Inverse of :meth:`to_internal` (same accepted types)."""
         return self._map(x, False)
 
-    def length_to_internal(self, d):
-        """Scale a length (depth, distance, threshold) from world to internal units."""
-        return d * self.scale
-
     def length_to_world(self, d):
         """Scale a length from internal to world units."""
         return d / self.scale
@@ -137,7 +139,8 @@ def _as_float_tensor(name: str, x, shape_tail: tuple, n: int | None) -> torch.Te
     want = len(shape_tail) + 1
     if t.ndim != want or (n is not None and t.shape[0] != n) or any(
             s is not None and s != a for s, a in zip(shape_tail, t.shape[1:])):
-        desc = "[" + ", ".join(["N" if n is None else str(n)] + ["*" if s is None else str(s) for s in shape_tail]) + "]"
+        dims = ["N" if n is None else str(n)] + ["*" if s is None else str(s) for s in shape_tail]
+        desc = "[" + ", ".join(dims) + "]"
         raise ValueError(f"{name} must have shape {desc}, got {list(t.shape)}")
     return t
 
@@ -220,9 +223,8 @@ class Scene:
         for i, cam in enumerate(checked):
             if cam.width != W or cam.height != H:
                 raise _camera_error(i, cam, f"size {cam.width}x{cam.height} (WxH) does not match the images' {W}x{H}")
-        bad = ~torch.isfinite(img)
-        if bool(bad.any()):
-            _first_bad("images", img, bad, "finite")
+        if not all_finite(img):  # one reduction; the indexed search only on failure
+            _first_bad("images", img, ~torch.isfinite(img), "finite")
         bad = (img < -_IMAGE_RANGE_TOL) | (img > 1 + _IMAGE_RANGE_TOL)
         if bool(bad.any()):
             _first_bad("images", img, bad, "in [0, 1]")
@@ -234,7 +236,8 @@ class Scene:
             m = m.detach() if isinstance(m, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(np.asarray(m)))
             if m.dtype != torch.bool:
                 if bool(((m != 0) & (m != 1)).any()):
-                    raise ValueError(f"masks must be bool or 0/1, got values such as {m[(m != 0) & (m != 1)][0].item()}")
+                    other = m[(m != 0) & (m != 1)][0].item()
+                    raise ValueError(f"masks must be bool or 0/1, got values such as {other}")
                 m = m != 0
             if tuple(m.shape) != (n, H, W):
                 raise ValueError(f"masks must have shape [{n}, {H}, {W}], got {list(m.shape)}")
@@ -258,7 +261,8 @@ class Scene:
             if lo.shape != (3,) or hi.shape != (3,) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
                 raise ValueError(f"bounds must be two finite 3-vectors (lower, upper), got {self.bounds!r}")
             if np.any(hi <= lo):
-                raise ValueError(f"bounds upper must exceed lower on every axis, got lower={lo.tolist()}, upper={hi.tolist()}")
+                raise ValueError(f"bounds upper must exceed lower on every axis, got lower={lo.tolist()}, "
+                                 f"upper={hi.tolist()}")
             self.bounds = (lo, hi)
         if self.points is not None:
             p = _to_numpy64(self.points)
@@ -314,11 +318,6 @@ class Scene:
         """Device of the image tensors."""
         return self.images.device
 
-    @property
-    def camera_centers(self) -> np.ndarray:
-        """Camera centres in world units, shape [N, 3], float64."""
-        return np.stack([c.center for c in self.cameras])
-
     def require_views(self, n: int, purpose: str = "fitting") -> None:
         """Raise ``ValueError`` unless the scene has at least ``n`` cameras."""
         if len(self.cameras) < n:
@@ -338,8 +337,9 @@ class Scene:
         """The scene restricted to the images ``indices`` (in that order); the train/test split is
         re-indexed to the kept images."""
         idx = np.asarray(indices).reshape(-1)
-        if idx.size == 0 or not np.issubdtype(idx.dtype, np.integer) or idx.min() < -len(self) or idx.max() >= len(self):
-            raise ValueError(f"indices must be a non-empty list of integers in [0, {len(self) - 1}], got {idx.tolist()}")
+        n = len(self)
+        if idx.size == 0 or not np.issubdtype(idx.dtype, np.integer) or idx.min() < -n or idx.max() >= n:
+            raise ValueError(f"indices must be a non-empty list of integers in [0, {n - 1}], got {idx.tolist()}")
         idx = idx % len(self)
         ti = torch.as_tensor(idx, device=self.device)
         pos = {int(j): k for k, j in enumerate(idx)}
@@ -408,7 +408,7 @@ class Scene:
             gt_mesh=None if self.gt_mesh is None else sim.to_internal(self.gt_mesh),
         )
 
-    def normalization(self, *, margin: float = 0.1) -> Similarity:
+    def normalization(self, *, margin: float = NORMALIZATION_MARGIN) -> Similarity:
         """The similarity mapping the region of interest into ``[margin, 1 - margin]^3`` (centred,
         longest side fills it).
 
@@ -419,7 +419,7 @@ class Scene:
         scene scaled by 1e-3 or moved by 1e4 normalises to the same internal scene.
 
         Args:
-            margin: empty border on every side of the unit cube, in (0, 0.5).
+            margin: empty border on every side of the unit cube, in [0, 0.5).
 
         Raises:
             ValueError: the region must come from the cameras but they are fewer than two,
@@ -436,7 +436,7 @@ class Scene:
             self._norm_cache[m] = Similarity(scale, tuple(0.5 / scale - center))
         return self._norm_cache[m]
 
-    def normalized(self, *, margin: float = 0.1) -> Scene:
+    def normalized(self, *, margin: float = NORMALIZATION_MARGIN) -> Scene:
         """The scene in the internal frame of :meth:`normalization`; its ``info["normalization"]``
         holds that :class:`Similarity`, whose :meth:`~Similarity.to_world` maps results back."""
         sim = self.normalization(margin=margin)

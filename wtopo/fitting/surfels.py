@@ -151,10 +151,12 @@ class Surfels:
 
     @property
     def means(self) -> torch.Tensor:
+        """Centres [N, 3], internal units (the parameter itself, differentiable)."""
         return self.params["means"]
 
     @property
     def quats(self) -> torch.Tensor:
+        """Rotations [N, 4] (w, x, y, z; any norm; the parameter itself, differentiable)."""
         return self.params["quats"]
 
     @property
@@ -174,10 +176,12 @@ class Surfels:
 
     @property
     def sh_degree(self) -> int:
+        """SH degree ``d`` of the colours."""
         return int(round(math.sqrt(self.params["sh_rest"].shape[1] + 1))) - 1
 
     @property
     def device(self) -> torch.device:
+        """Device of the parameters."""
         return self.params["means"].device
 
     def normals(self) -> torch.Tensor:
