@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -359,12 +360,12 @@ def test_timeline_verification_failure_keeps_previous_file(tmp_path, monkeypatch
     m = trimesh.creation.icosphere(subdivisions=1)
     w.add_sample(0, mesh_verts=m.vertices, mesh_faces=m.faces)
     w.flush()
-    before = open(target, "rb").read()
+    before = Path(target).read_bytes()
     w.add_sample(5, mesh_verts=m.vertices * 2, mesh_faces=m.faces)
-    monkeypatch.setattr(usd_module, "_export_layer", lambda layer, path: open(path, "wb").close())
+    monkeypatch.setattr(usd_module, "_export_layer", lambda layer, path: Path(path).write_bytes(b""))
     with pytest.raises(TimelineVerificationError, match="empty"):
         w.flush()
-    assert open(target, "rb").read() == before and sorted(os.listdir(tmp_path)) == ["timeline.usdc"]
+    assert Path(target).read_bytes() == before and sorted(os.listdir(tmp_path)) == ["timeline.usdc"]
 
 
 def test_timeline_decimates_above_cap(tmp_path):
