@@ -315,6 +315,19 @@ def test_nerfstudio_shared_and_per_frame_intrinsics(tmp_path):
     assert s.train_indices.tolist() == [0, 1, 2] and s.test_indices.tolist() == [3]
     np.testing.assert_allclose(s.points, pts, atol=1e-6)  # PLY stores float32
     np.testing.assert_allclose(s.point_colors, 200 / 255, atol=1e-9)
+    assert s.bounds is None
+    meta.update({"aabb": [[-1.0, -2.0, -0.5], [1.0, 2.0, 1.5]], "aabb_scale": 4})
+    with open(os.path.join(tmp_path, "transforms.json"), "w") as fh:
+        json.dump(meta, fh)
+    s = load_scene(tmp_path)  # the dataset's box is the region of interest
+    np.testing.assert_array_equal(np.stack(s.bounds), [[-1.0, -2.0, -0.5], [1.0, 2.0, 1.5]])
+    assert s.info["aabb_scale"] == 4.0
+    meta["aabb"] = [[1.0, 0, 0], [0, 1, 1]]
+    with open(os.path.join(tmp_path, "transforms.json"), "w") as fh:
+        json.dump(meta, fh)
+    with pytest.raises(ValueError, match="aabb"):
+        load_scene(tmp_path)
+    del meta["aabb"]
     meta["camera_model"] = "OPENCV_FISHEYE"
     with open(os.path.join(tmp_path, "transforms.json"), "w") as fh:
         json.dump(meta, fh)

@@ -35,7 +35,8 @@ def load_nerfstudio(path: str, *, background=None, downscale: float = 1):
         background: colour RGBA images are composited onto (default white when they have alpha).
         downscale: image size divisor (>= 1).
 
-    Frames whose image file is missing are skipped with one warning naming them.
+    A top-level ``aabb`` (``[[min], [max]]``, world frame) becomes ``Scene.bounds``, the fit's region
+    of interest; ``aabb_scale`` is kept in ``Scene.info``. Frames whose image file is missing are skipped with one warning naming them.
 
     Raises:
         ValueError: a camera model other than SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL or
@@ -109,7 +110,15 @@ def load_nerfstudio(path: str, *, background=None, downscale: float = 1):
         cols = getattr(getattr(pc, "visual", None), "vertex_colors", None)
         if cols is not None and len(cols) == len(points):
             colors = np.asarray(cols, dtype=np.float64)[:, :3] / 255.0
+    bounds = None
+    if "aabb" in meta:  # instant-ngp / nerfstudio region of interest, world frame (the fit's ROI)
+        box = np.asarray(meta["aabb"], dtype=np.float64)
+        if box.shape != (2, 3) or not np.all(np.isfinite(box)) or not np.all(box[1] > box[0]):
+            raise ValueError(f"aabb in {fp} must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with max > min, "
+                             f"got {meta['aabb']!r}")
+        bounds = (box[0], box[1])
+    info = {"aabb_scale": float(meta["aabb_scale"])} if "aabb_scale" in meta else {}
     return Scene(cameras, images, masks=masks, points=points, point_colors=colors,
-                 background=stack.background if any_alpha else bg,
+                 background=stack.background if any_alpha else bg, bounds=bounds, info=info,
                  name=os.path.basename(os.path.normpath(root)),
                  train_indices=indices("train_filenames"), test_indices=indices("test_filenames"))
