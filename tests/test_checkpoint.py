@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Atomic, validated, resumable checkpoints (STABILITY.md, "Not losing work")."""
+"""Atomic, validated, resumable checkpoints (design/stability.md, "Not losing work")."""
 
 import random
 

@@ -20,7 +20,7 @@ Outputs flagged non-differentiable (indices, masks, counts) are marked so with
 
 :func:`launch_split` runs a kernel whose threads write disjoint outputs in several chunks from
 Python threads: Warp's CPU backend runs each launch on one thread but releases the GIL, so on a
-2-core CPU this gives about 2x (measured, ``DESIGN.md``). On CUDA it is a single launch.
+2-core CPU this gives about 2x (measured, ``design/overview.md``). On CUDA it is a single launch.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """Surfels as 3DGS-compatible binary PLY, and meshes as PLY / OBJ.
 
-Surfel PLY layout (graphdeco-inria/gaussian-splatting ``save_ply``; FORMATS.md 2.1): one binary
+Surfel PLY layout (graphdeco-inria/gaussian-splatting ``save_ply``): one binary
 little-endian ``vertex`` element, all ``float32``, properties in this order::
 
     x y z nx ny nz f_dc_0 f_dc_1 f_dc_2 f_rest_0 ... f_rest_{3(K-1)-1}

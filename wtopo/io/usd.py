@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""USD timeline of the surfel / proxy-mesh co-evolution (FORMATS.md 2.2).
+"""USD timeline of the surfel / proxy-mesh co-evolution.
 
 Stage layout (default prim ``/World``; time code = iteration)::
 
