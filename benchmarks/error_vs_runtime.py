@@ -115,19 +115,18 @@ def spec_key(spec: dict) -> tuple:
 
 
 def make_config(spec: dict, *, device: str = "auto"):
-    """The :class:`wtopo.FitConfig` of one run: defaults, with the schedule scaled to the iterations."""
+    """The :class:`wtopo.FitConfig` of one run: defaults, the iterations split evenly between the stages.
+
+    Milestones are fractions of their stage and follow the iteration counts; only the density-control
+    cadence, a count, is set so that short runs still get about six density steps.
+    """
     from wtopo.fitting import FitConfig
 
     cfg = FitConfig()
     it = int(spec["iterations"])
     warm = it // 2
     cfg.warmup.iterations, cfg.coevolution.iterations = warm, it - warm
-    # the default schedule is written for 600 + 600 iterations: scale its milestones with it
-    step = max(10, warm // 6)
-    cfg.densify.start = cfg.densify.interval = step
-    cfg.densify.opacity_reset_interval = max(step, warm // 2)
-    cfg.losses.normal_start = cfg.losses.distortion_start = warm // 3
-    cfg.coevolution.correspondence_every = max(10, (it - warm) // 3)
+    cfg.densify.interval = max(10, warm // 6)
     cfg.mesh.resolution = int(spec["mesh_resolution"])
     cfg.mesh.samples_per_surfel = int(spec["samples_per_surfel"])
     cfg.runtime.device = device

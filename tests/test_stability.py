@@ -53,12 +53,10 @@ def tiny_config(warmup: int = 12, coevolution: int = 6):
     from wtopo.fitting import FitConfig
 
     cfg = FitConfig()
-    cfg.warmup.iterations, cfg.coevolution.iterations = warmup, coevolution
-    cfg.coevolution.correspondence_every = max(1, coevolution // 2)
+    cfg.warmup.iterations, cfg.coevolution.iterations = warmup, coevolution  # milestones are stage fractions
     cfg.init.num_points = 300
-    cfg.densify.start = cfg.densify.interval = max(1, warmup // 3)
-    cfg.densify.opacity_reset_interval = 0
-    cfg.losses.normal_start = cfg.losses.distortion_start = warmup // 3
+    cfg.densify.interval = max(1, warmup // 3)  # a cadence in iterations: 3 density steps in the warm-up
+    cfg.densify.opacity_reset_fraction = 0.0
     cfg.tsdf.resolution, cfg.final.resolution, cfg.mesh.resolution = 40, 40, 24
     cfg.tsdf.max_faces = 800
     cfg.runtime.device = "cpu"
