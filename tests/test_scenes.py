@@ -133,3 +133,76 @@ def test_bunny_defaults():
     assert cover.min() > 0.05  # the bunny is visible in every view
     lo, hi = s.region_of_interest()
     assert np.all(mesh.vertices >= lo) and np.all(mesh.vertices <= hi)
+
+
+# -- unbounded environment -------------------------------------------------------------------------
+TINY_ENV = dict(n_views=6, resolution=(48, 36), n_test=2)  # a tiny unbounded scene: seconds to render
+
+
+@pytest.fixture(scope="module")
+def env_scene():
+    return scenes.load("bunny_env", **TINY_ENV)
+
+
+def test_environment_scene(env_scene):
+    """Render the environment: no masks, sky with depth 0, ground and hills in gt_mesh, roi recorded."""
+    s = env_scene
+    assert s.masks is None and s.background is None and s.bounds is None
+    assert s.images.shape == (8, 36, 48, 3) and list(s.test_indices) == [6, 7]
+    bunny, up = scenes.bunny_mesh()
+    assert len(s.gt_mesh.faces) > len(bunny.faces)  # ground and hills are ground truth too
+    sky = s.depths == 0
+    assert 0.02 < sky.float().mean() < 0.6  # sky visible above the horizon, scenery below
+    assert torch.all(s.normals[sky] == 0)
+    assert s.images[sky].std(0).min() > 0.01  # gradient and clouds, not a constant
+    assert s.images[sky][:, 2].mean() > s.images[sky][:, 0].mean()  # bluish
+    lo, hi = (np.asarray(b) for b in s.info["roi"])
+    assert np.all(bunny.vertices >= lo) and np.all(bunny.vertices <= hi)
+    floor = bunny.vertices[:, 1].min()
+    assert lo[1] < floor < hi[1]  # the ground belongs to the region of interest
+    ext = np.asarray(s.gt_mesh.bounds)
+    assert np.all(ext[1] - ext[0] > 10 * (hi - lo)[[0, 2]].max() * np.array([1, 0, 1]))  # far beyond the roi
+    centers = np.stack([c.center for c in s.cameras])
+    assert np.all(centers[:, 1] > floor)  # cameras above the ground
+    span = np.concatenate([centers, [lo, hi]])
+    extent = np.linalg.norm(span.max(0) - span.min(0))
+    # the ground truth itself keeps the issue's criterion: no surface within 5 % of the extent of a camera
+    assert metrics.camera_clearance(s.gt_mesh, centers).min() > 0.05 * extent
+    b = scenes.load("bunny_env", bounds_from_roi=True, **TINY_ENV)
+    np.testing.assert_array_equal(b.bounds[0], lo)
+    np.testing.assert_array_equal(b.bounds[1], hi)
+
+
+def test_environment_forward_rig():
+    """Place the forward-facing rig above the ground with parallel axes and sky behind the object."""
+    s = scenes.load("bunny_env_forward", **TINY_ENV)
+    floor = scenes.bunny_mesh()[0].vertices[:, 1].min()
+    assert all(c.center[1] > floor for c in s.cameras)
+    fwd = np.stack([c.forward for c in s.cameras])
+    np.testing.assert_allclose(fwd, np.broadcast_to(fwd[0], fwd.shape), atol=1e-12)
+    assert (s.depths == 0).float().mean() > 0.02
+
+
+def test_environment_photometric_and_seed(env_scene):
+    """Apply per-image gains to training views only, deterministically per seed."""
+    clean = scenes.load("bunny_env", photometric=None, **TINY_ENV)
+    gains = np.asarray(env_scene.info["gains"])
+    assert gains.shape == (6, 3) and np.ptp(gains[:, 0]) > 0.02  # exposure varies between images
+    assert np.all(np.abs(gains - 1) <= 0.1 * 1.03 + 0.03 + 1e-9)
+    torch.testing.assert_close(env_scene.images[6:], clean.images[6:], rtol=0, atol=0)  # held-out views clean
+    # the noisy image is gain * clean + noise: its residual after the gain is the 1 % noise
+    for i in range(6):
+        a, c = env_scene.images[i].numpy(), clean.images[i].numpy()
+        ok = (a > 0.05) & (a < 0.95) & (c * gains[i] < 0.95)  # away from clipping
+        r = a[ok] - (c * gains[i])[ok]
+        assert abs(r.mean()) < 3e-3 and 0.007 < r.std() < 0.013
+    again = scenes.load("bunny_env", **TINY_ENV)
+    torch.testing.assert_close(again.images, env_scene.images, rtol=0, atol=0)
+    other = scenes.load("bunny_env", seed=1, **TINY_ENV)
+    assert not torch.equal(other.images, env_scene.images)
+    with pytest.raises(ValueError, match="Photometric.noise"):
+        scenes.Photometric(noise=-0.1)
+    with pytest.raises(TypeError, match="photometric"):
+        scenes.load("bunny_env", photometric=0.01, **TINY_ENV)
+    with pytest.raises(ValueError, match="bounds_from_roi"):
+        scenes.from_mesh(trimesh.creation.icosphere(1), n_views=2, resolution=8, bounds_from_roi=True)
