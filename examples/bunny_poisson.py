@@ -122,7 +122,6 @@ def main(argv=None):
     parser.add_argument("--num-points", type=int, default=100_000, help="oriented points sampled on the bunny")
     parser.add_argument("--sigma", type=float, default=1.0, help="Poisson smoothing in voxels")
     parser.add_argument("--device", default="cuda:0" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--headless", action="store_true", help="accepted for the example template; nothing is shown")
     parser.add_argument("--skip-gradient-check", action="store_true")
     args = parser.parse_args(argv)
     ex = Example(resolution=args.resolution, num_points=args.num_points, sigma=args.sigma, device=args.device)

@@ -57,8 +57,7 @@ def _ensure_init() -> None:
     if not _initialized:
         with _init_lock:
             if not _initialized:
-                wp.config.quiet = True
-                wp.init()
+                wp.init()  # a no-op after wtopo's import-time initialisation (wtopo/__init__.py configures Warp)
                 _initialized = True
 
 

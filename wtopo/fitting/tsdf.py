@@ -19,6 +19,7 @@ import torch
 import trimesh
 
 from ..camera import Camera
+from ..scene import NORMALIZATION_MARGIN
 from .depth_warp import pinhole_warp
 from .surfels import Surfels
 
@@ -27,7 +28,9 @@ __all__ = ["TSDFEmptyError", "FusionBounds", "auto_bounds", "fuse_depths", "mesh
 
 _BOX_PERCENTILE = 0.5  # percent of surfels ignored on each side when boxing them (floaters)
 _BOX_MARGIN = 0.05  # box grows by this fraction of its longest side on every side
-_SCENE_LIMIT = (-0.1, 1.1)  # the region of interest fills [0.1, 0.9]^3 (Scene.normalization); never fuse beyond this
+# the region of interest fills [m, 1 - m]^3 (Scene.normalization, m = NORMALIZATION_MARGIN); never fuse
+# farther than one more margin outside the unit cube
+_SCENE_LIMIT = (-NORMALIZATION_MARGIN, 1.0 + NORMALIZATION_MARGIN)
 _MIN_OPACITY = 0.1  # surfels below this opacity do not shape the bounds
 
 
