@@ -39,6 +39,7 @@ Commands (the results go into a ``## <label>`` section of ``--out``, other secti
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import platform
@@ -114,7 +115,7 @@ def run_synthetic(key: str, cfg: FitConfig, run_dir: str, scene_kw: dict) -> dic
     ext_pts = np.concatenate([centers, [lo, hi]])
     extent = float(np.linalg.norm(ext_pts.max(0) - ext_pts.min(0)))
     clear = metrics.camera_clearance(res.mesh, centers) / extent
-    row = {"scene": key, "roi": _roi_text(roi), "roi_estimated": est, "tau": tau, **f.as_dict(),
+    row = {"scene": key, "roi": _roi_text(roi), "roi_estimated": est, "tau": tau, **dataclasses.asdict(f),
            "clearance_min": float(clear.min()), "near_cameras": int((clear < NEAR_FRACTION).sum()),
            "cameras": len(centers), **_common(res, elapsed)}
     print(f"[{key}] {elapsed:.0f} s  ROI P {f.precision:.3f} R {f.recall:.3f} F1 {f.f_score:.3f}  "

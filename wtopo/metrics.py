@@ -354,10 +354,6 @@ class ROIFScore:
     n_pred: int
     n_gt: int
 
-    def as_dict(self) -> dict:
-        """The fields as a plain dict."""
-        return dict(self.__dict__)
-
 
 def _n_faces(name: str, mesh) -> int:
     return len(_mesh_arrays(name, mesh)[1])
