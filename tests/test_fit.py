@@ -29,11 +29,9 @@ def _config(warmup=30, coevolution=12):
     cfg = FitConfig()
     cfg.warmup.iterations = warmup
     cfg.coevolution.iterations = coevolution
-    cfg.coevolution.correspondence_every = 6
     cfg.init.num_points = 400
-    cfg.densify.start, cfg.densify.interval = 10, 10
-    cfg.densify.opacity_reset_interval = 0
-    cfg.losses.normal_start = cfg.losses.distortion_start = 10
+    cfg.densify.interval = 10  # a cadence (3DGS's 100), not a fraction: scaled to the short warm-up by hand
+    cfg.densify.opacity_reset_fraction = 0
     cfg.tsdf.resolution, cfg.final.resolution, cfg.mesh.resolution = 48, 48, 32
     cfg.final.poisson_resolution = 48
     cfg.tsdf.max_faces = 1500
@@ -123,7 +121,7 @@ def test_late_opacity_reset_is_skipped(tiny):
     """A reset with fewer than 100 warm-up iterations left is skipped and recorded; an early one runs."""
     cfg = _config(130, 0)
     cfg.tsdf.enabled = False
-    cfg.densify.opacity_reset_interval = 20
+    cfg.densify.opacity_reset_fraction = 20 / 130  # every 20 iterations
     res = fit(tiny, cfg, progress=False)
     skipped = [e["iteration"] for e in res.report["events"] if e["event"] == "opacity_reset_skipped"]
     assert skipped == [40, 60, 80, 100], skipped  # 20 runs (110 left); stop_fraction 0.8 ends resets at 104

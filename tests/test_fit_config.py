@@ -10,19 +10,11 @@ import pytest
 import wtopo
 from wtopo import Camera, cli
 from wtopo.fitting import DepthLoss, FitConfig, NormalFlip
+from wtopo.fitting.config import FinalMethod, InitSource, Range, RenderedDepth, leaves
 from wtopo.fitting.loop import FitRun
-from wtopo.fitting.validate_config import FIELD_CHECKS, validate_config
+from wtopo.fitting.scene_kind import SceneKind
+from wtopo.fitting.validate_config import check_leaf, validate_config
 from wtopo.scene import Scene
-
-
-def _leaf_paths(obj, prefix=""):
-    """Dotted paths of every non-dataclass field below ``obj``."""
-    for f in dataclasses.fields(obj):
-        value = getattr(obj, f.name)
-        if dataclasses.is_dataclass(value):
-            yield from _leaf_paths(value, f"{prefix}{f.name}.")
-        else:
-            yield f"{prefix}{f.name}"
 
 
 def _with(path: str, value) -> FitConfig:
@@ -52,12 +44,31 @@ def test_dict_round_trip_validates():
     validate_config(FitConfig.from_dict(cfg.to_dict()))
 
 
-def test_every_leaf_field_has_exactly_one_check():
-    """Cover every leaf field of FitConfig by the check table, and check no field that does not exist."""
-    paths = set(_leaf_paths(FitConfig()))
-    assert len(paths) > 60  # the walk found the nested stage configs
-    assert paths - set(FIELD_CHECKS) == set(), "fields without a check in FIELD_CHECKS"
-    assert set(FIELD_CHECKS) - paths == set(), "checks for fields FitConfig does not have"
+def test_every_leaf_field_has_a_check():
+    """Give every numeric leaf field a range or choice in its metadata, and every leaf a check."""
+    found = list(leaves(FitConfig()))
+    assert len(found) > 40 and len({leaf.path for leaf in found}) == len(found)
+    for leaf in found:
+        if leaf.base in (int, float):
+            assert isinstance(leaf.field.metadata.get("check"), (Range, tuple)), leaf.path
+        check_leaf(leaf)  # raises TypeError for a type no check knows
+
+
+def test_from_dict_names_unknown_paths_and_converts_enums():
+    """Raise ValueError naming the dotted path of an unknown key; turn enum strings into members."""
+    with pytest.raises(ValueError, match=re.escape("FitConfig has no field 'losses.nope'")):
+        FitConfig.from_dict({"losses": {"nope": 1}})
+    with pytest.raises(ValueError, match=re.escape("FitConfig has no field 'nope'")):
+        FitConfig.from_dict({"nope": 1})
+    with pytest.raises(ValueError, match="is a group"):
+        FitConfig.from_dict({"losses": 1})
+    with pytest.raises(ValueError, match=re.escape("final.method must be one of ['tsdf', 'proxy'], got 'mc'")):
+        FitConfig.from_dict({"final": {"method": "mc"}})
+    cfg = FitConfig.from_dict({"kind": "scene", "final": {"method": "proxy"}, "tsdf": {"depth": "expected"},
+                               "init": {"source": "points"}, "background": [0, 0, 1]})
+    assert cfg.kind is SceneKind.SCENE and cfg.final.method is FinalMethod.PROXY
+    assert cfg.tsdf.depth is RenderedDepth.EXPECTED and cfg.init.source is InitSource.POINTS
+    assert cfg.background == (0, 0, 1)
 
 
 BAD = [
@@ -86,7 +97,8 @@ BAD = [
     ("tsdf.max_faces", None, TypeError),
     ("coevolution.iterations", -1, ValueError),
     ("coevolution.mesh_every", 0, ValueError),
-    ("coevolution.correspondence_every", False, TypeError),
+    ("coevolution.correspondence_fraction", False, TypeError),
+    ("coevolution.correspondence_fraction", 1.5, ValueError),
     ("coevolution.enabled", "yes", TypeError),
     ("final.method", "marching_cubes", ValueError),
     ("final.method", None, TypeError),
@@ -100,7 +112,10 @@ BAD = [
     ("densify.max_growth", -0.5, ValueError),
     ("densify.prune_opacity", 1.1, ValueError),
     ("densify.opacity_reset_value", 1.0, ValueError),
-    ("densify.opacity_reset_interval", -300, ValueError),
+    ("densify.opacity_reset_fraction", -0.75, ValueError),
+    ("densify.start_fraction", 2.0, ValueError),
+    ("losses.normal_start_fraction", -0.5, ValueError),
+    ("losses.distortion_start_fraction", float("inf"), ValueError),
     ("densify.geometry_densify_max", 2000.5, TypeError),
     ("losses.dssim", 1.2, ValueError),
     ("losses.mask", float("nan"), ValueError),
@@ -227,7 +242,7 @@ def test_fit_rejects_a_bad_config_before_any_work(monkeypatch):
     monkeypatch.setattr(Scene, "normalization", unreachable)
     monkeypatch.setattr(Scene, "normalized", unreachable)
     scene = _tiny_scene()
-    with pytest.raises(ValueError, match=re.escape("FitConfig.warmup.iterations must be an int >= 0, got -3")):
+    with pytest.raises(ValueError, match=re.escape("FitConfig.warmup.iterations must be an int >= 0 or None, got -3")):
         wtopo.fit(scene, _with("warmup.iterations", -3), progress=False)
     with pytest.raises(TypeError, match=re.escape("FitConfig.tsdf.resolution must be an int in [8, 2048], got True")):
         wtopo.fit(scene, _with("tsdf.resolution", True), progress=False)
@@ -245,4 +260,17 @@ def test_cli_reports_a_bad_config_without_a_traceback(monkeypatch, capsys, tmp_p
     err = capsys.readouterr().err
     assert err.startswith("wtopo fit: error: FitConfig.runtime.device must be ") and "'gpu'" in err
     assert cli.main(["fit", "bunny", "--out", str(tmp_path / "run"), "--iterations", "-4"]) == 2
-    assert "FitConfig.warmup.iterations must be an int >= 0, got -2" in capsys.readouterr().err
+    assert "FitConfig.warmup.iterations must be an int >= 0 or None, got -2" in capsys.readouterr().err
+
+
+def test_default_schedule_fractions_give_the_cpu_iterations():
+    """Place the default schedule's events at the CPU budget's iterations (warm-up 400, co-evolution 200)."""
+    from wtopo.fitting.config import stage_iteration
+
+    cfg = FitConfig()
+    assert stage_iteration(cfg.densify.start_fraction, 400) == 100
+    assert stage_iteration(cfg.densify.opacity_reset_fraction, 400) == 300
+    assert stage_iteration(cfg.losses.normal_start_fraction, 400) == 200
+    assert stage_iteration(cfg.losses.distortion_start_fraction, 400) == 200
+    assert stage_iteration(cfg.coevolution.correspondence_fraction, 200) == 100
+    assert stage_iteration(0.25, 30) == 8  # halves round up: 7.5 -> 8

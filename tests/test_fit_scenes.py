@@ -17,11 +17,9 @@ from wtopo.fitting.scene_kind import NEAR_FRACTION
 def _small(warmup=40, coevolution=12):
     cfg = FitConfig()
     cfg.warmup.iterations, cfg.coevolution.iterations = warmup, coevolution
-    cfg.coevolution.correspondence_every = 6
     cfg.init.num_points = 600
-    cfg.densify.start, cfg.densify.interval = 10, 10
-    cfg.densify.opacity_reset_interval = 0
-    cfg.losses.normal_start = cfg.losses.distortion_start = 10
+    cfg.densify.interval = 10  # a cadence (3DGS's 100), not a fraction: scaled to the short warm-up by hand
+    cfg.densify.opacity_reset_fraction = 0
     cfg.tsdf.resolution, cfg.final.resolution, cfg.mesh.resolution = 48, 64, 32
     cfg.tsdf.max_faces = 1500
     cfg.runtime.eval_every = 20

@@ -76,32 +76,15 @@ def _parse_value(text: str):
 
 def _apply_set(cfg, item: str) -> None:
     """Apply one ``--set PATH=VALUE`` (dotted FitConfig path, e.g. ``losses.mask=0.5``)."""
-    import dataclasses
-    import enum
+    from .fitting.config import set_field
 
     path, sep, text = item.partition("=")
     if not sep or not path:
         raise ValueError(f"--set takes PATH=VALUE (e.g. losses.mask=0.5), got {item!r}")
-    parts = path.strip().split(".")
-    obj = cfg
-    for i, name in enumerate(parts):
-        if not dataclasses.is_dataclass(obj) or name not in {f.name for f in dataclasses.fields(obj)}:
-            raise ValueError(f"--set: FitConfig has no field {'.'.join(parts[:i + 1])!r}")
-        if i < len(parts) - 1:
-            obj = getattr(obj, name)
-    name = parts[-1]
-    old = getattr(obj, name)
-    if dataclasses.is_dataclass(old):
-        raise ValueError(f"--set: {path!r} is a group, set one of its fields")
-    value = _parse_value(text)
-    if isinstance(old, enum.Enum):
-        try:
-            value = type(old)(value)
-        except ValueError:
-            raise ValueError(f"--set: {path} must be one of {[m.value for m in type(old)]}, got {text!r}") from None
-    elif isinstance(value, list):  # the only sequences in FitConfig are tuples (background)
-        value = tuple(value)
-    setattr(obj, name, value)
+    try:
+        set_field(cfg, path.strip(), _parse_value(text))
+    except ValueError as e:
+        raise ValueError(f"--set: {e}") from None
 
 
 def _config(args):

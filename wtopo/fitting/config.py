@@ -11,9 +11,17 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import hashlib
 import json
+import math
+import types
+import typing
+from collections.abc import Iterator
 from dataclasses import dataclass, field
+
+from ..rasterize import FILTER_SIGMA_RANGE
+from .scene_kind import SceneKind
 
 __all__ = [
     "FitConfig",
@@ -28,9 +36,60 @@ __all__ = [
     "MeshConfig",
     "RuntimeConfig",
     "NormalFlip",
+    "InitSource",
+    "RenderedDepth",
+    "FinalMethod",
+    "PoissonBox",
     "DepthLoss",
     "config_hash",
+    "stage_iteration",
+    "Range",
+    "Leaf",
+    "leaves",
+    "set_field",
 ]
+
+_GRID_MIN = 8  # coarser Poisson / TSDF grids cannot resolve any shape
+_TSDF_MAX = 2048  # Open3D's TSDF volume is sparse (voxel blocks): 2048 voxels per side is still sane
+_POISSON_MAX = 1024  # the Poisson grid is dense (FFT): 1024^3 complex nodes already take 8 GiB per buffer
+_SEED_MAX = 2**32 - 1  # NumPy's default_rng and torch.manual_seed (times 1_000_003) both accept this range
+_SH_MAX = 3  # the renderer evaluates SH bands 0..3
+
+
+@dataclass(frozen=True)
+class Range:
+    """The accepted interval of a numeric field, kept in its ``dataclasses.field`` metadata (``"check"``).
+
+    Whether the field takes an int or a float, and ``None``, comes from its type annotation.
+    """
+
+    lo: float
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def __str__(self) -> str:
+        lo, hi = (f"{x:g}" if isinstance(x, float) else x for x in (self.lo, self.hi))
+        if hi is None:
+            return f"{'>' if self.lo_open else '>='} {lo}"
+        return f"in {'(' if self.lo_open else '['}{lo}, {hi}{')' if self.hi_open else ']'}"
+
+    def __contains__(self, v) -> bool:
+        below = v <= self.lo if self.lo_open else v < self.lo
+        above = self.hi is not None and (v >= self.hi if self.hi_open else v > self.hi)
+        return not (below or above)
+
+
+RATE = Range(0.0)  # a learning rate or loss weight: finite and >= 0
+FRACTION = Range(0.0, 1.0)  # a fraction, opacity threshold or weight in [0, 1]
+OPEN_UNIT = Range(0.0, 1.0, lo_open=True, hi_open=True)  # an opacity that goes through a logit
+COUNT = Range(0)  # iterations, intervals where 0 disables, counts
+POSITIVE = Range(1)  # intervals and counts that must be at least 1
+
+
+def _f(default, check):
+    """A field with ``default`` and its check: a :class:`Range`, or a tuple of the accepted ints."""
+    return field(default=default, metadata={"check": check})
 
 
 class NormalFlip(str, enum.Enum):
@@ -53,22 +112,59 @@ class DepthLoss(str, enum.Enum):
     """``log1p(|D_mesh - D_surfel| / extent)`` (the public TopoSurfel code)."""
 
 
+class InitSource(str, enum.Enum):
+    """Where the initial surfels come from."""
+
+    AUTO = "auto"
+    """The scene's points when it has them (at least 100), else ``CAMERAS``."""
+    POINTS = "points"
+    """The scene's points (an error without them)."""
+    CAMERAS = "cameras"
+    """Random points in the cameras' common volume."""
+
+
+class RenderedDepth(str, enum.Enum):
+    """Which rendered surfel depth a stage uses."""
+
+    MEDIAN = "median"
+    """Where the transmittance crosses 0.5: the visible surface."""
+    EXPECTED = "expected"
+    """Alpha-weighted mean over the ray (averages in semi-transparent layers behind the surface)."""
+
+
+class FinalMethod(str, enum.Enum):
+    """How the returned mesh is built (:class:`FinalConfig`)."""
+
+    TSDF = "tsdf"
+    """TSDF fusion of the rendered surfel depth of every training view."""
+    PROXY = "proxy"
+    """The Poisson proxy mesh of the final surfels (closed by construction)."""
+
+
+class PoissonBox(str, enum.Enum):
+    """The domain of the proxy's Poisson solve."""
+
+    UNIT = "unit"
+    """The normalised unit cube."""
+    INITIAL_MESH = "initial_mesh"
+    """The TSDF mesh's box + 10 % (public TopoSurfel code)."""
+
+
 @dataclass(kw_only=True)
 class InitConfig:
     """Stage 1: initial surfels."""
 
-    source: str = "auto"
-    """``"points"`` (scene points), ``"cameras"`` (random points in the cameras' common volume) or
-    ``"auto"`` (points when the scene has them)."""
-    num_points: int = 5000
+    source: InitSource = InitSource.AUTO
+    """Where the initial surfels come from."""
+    num_points: int = _f(5000, POSITIVE)
     """Surfels drawn in the common volume when the scene has no points."""
-    background_points: int | None = None
+    background_points: int | None = _f(None, COUNT)
     """Background surfels on shells beyond the cameras (scenes without masks,
     :mod:`wtopo.fitting.background`); ``None``: the plan's (as many as ``num_points`` for a scene,
     0 for a masked object)."""
-    opacity: float = 0.3
+    opacity: float = _f(0.3, OPEN_UNIT)
     """Initial opacity in (0, 1)."""
-    scale_neighbours: int = 3
+    scale_neighbours: int = _f(3, POSITIVE)
     """Initial scale = mean distance to this many nearest neighbours."""
 
 
@@ -80,19 +176,19 @@ class OptimConfig:
     iterations on a CPU, not 30k.
     """
 
-    means: float = 1.6e-3
+    means: float = _f(1.6e-3, RATE)
     """Means, in unit-cube lengths per step; decays to ``means_final``."""
-    means_final: float = 1.6e-5
+    means_final: float = _f(1.6e-5, RATE)
     """Means learning rate at the last iteration (exponential decay)."""
-    quats: float = 3e-3
+    quats: float = _f(3e-3, RATE)
     """Rotations (unnormalised quaternions)."""
-    scales: float = 1e-2
+    scales: float = _f(1e-2, RATE)
     """Log-scales."""
-    opacities: float = 5e-2
+    opacities: float = _f(5e-2, RATE)
     """Opacity logits."""
-    sh_dc: float = 1e-2
+    sh_dc: float = _f(1e-2, RATE)
     """SH degree-0 colour (4x the 3DGS rate: the fit runs hundreds, not 30k, iterations)."""
-    sh_rest: float = 5e-4
+    sh_rest: float = _f(5e-4, RATE)
     """Higher SH bands (1/20 of the DC rate, as 3DGS)."""
 
 
@@ -100,7 +196,7 @@ class OptimConfig:
 class WarmupConfig:
     """Stage 2: photometric warm-up without mesh losses."""
 
-    iterations: int | None = None
+    iterations: int | None = _f(None, COUNT)
     """Iterations (one view each); ``None``: the plan's budget for the device (CPU 400, CUDA 3000)."""
 
 
@@ -113,20 +209,20 @@ class TSDFConfig:
 
     enabled: bool = True
     """Re-initialise the surfels from the fused mesh between warm-up and co-evolution."""
-    resolution: int = 128
+    resolution: int = _f(128, Range(_GRID_MIN, _TSDF_MAX))
     """Voxels along the longest side of the automatic bounds."""
-    truncation_voxels: float = 4.0
+    truncation_voxels: float = _f(4.0, Range(0.0, lo_open=True))
     """Truncation distance in voxels."""
-    depth: str = "median"
-    """Which rendered depth to fuse: ``"median"`` or ``"expected"``."""
-    alpha_threshold: float = 0.5
+    depth: RenderedDepth = RenderedDepth.MEDIAN
+    """Which rendered depth to fuse."""
+    alpha_threshold: float = _f(0.5, RATE)
     """Pixels whose rendered opacity is below this are not fused."""
-    max_views: int = 64
+    max_views: int = _f(64, POSITIVE)
     """At most this many views are fused (evenly spaced)."""
-    hybrid_distance: float = 0.02
+    hybrid_distance: float = _f(0.02, RATE)
     """Hybrid rule: surfels farther than this (fraction of the scene extent) from the TSDF mesh keep
     their warm-up parameters."""
-    max_faces: int = 8000
+    max_faces: int = _f(8000, POSITIVE)
     """The re-initialisation mesh is decimated to at most this many faces (one surfel each)."""
 
 
@@ -134,12 +230,13 @@ class TSDFConfig:
 class CoevolutionConfig:
     """Stage 4: surfels and proxy mesh co-evolve; mesh losses every ``mesh_every`` iterations."""
 
-    iterations: int | None = None
+    iterations: int | None = _f(None, COUNT)
     """Iterations; ``None``: the plan's budget for the device (CPU 200, CUDA 1000)."""
-    mesh_every: int = 1
+    mesh_every: int = _f(1, POSITIVE)
     """Rebuild the proxy mesh and apply the mesh losses every this many iterations (1 = always)."""
-    correspondence_every: int = 100
-    """Refresh nearest-face correspondences (normal signs, geometry-aware density) this often."""
+    correspondence_fraction: float = _f(0.5, FRACTION)
+    """Refresh nearest-face correspondences (normal signs, geometry-aware density) every this fraction
+    of the co-evolution (:func:`stage_iteration`; at least every iteration), from its first iteration."""
     enabled: bool = True
     """``False`` drops the mesh loop (ablation): the iterations run photometric losses only."""
 
@@ -148,17 +245,17 @@ class CoevolutionConfig:
 class FinalConfig:
     """Stage 5: the returned mesh."""
 
-    method: str = "tsdf"
-    """``"tsdf"``: TSDF fusion of the rendered surfel depth of every training view (automatic
-    bounds), re-meshed by Poisson if not closed; ``"proxy"``: the Poisson proxy mesh of the final
+    method: FinalMethod = FinalMethod.TSDF
+    """``TSDF``: TSDF fusion of the rendered surfel depth of every training view (automatic
+    bounds), re-meshed by Poisson if not closed; ``PROXY``: the Poisson proxy mesh of the final
     surfels rebuilt at ``poisson_resolution`` (closed by construction). The fused depth is what the
     views see, the proxy is built from every surfel centre, hidden ones included: on the bunny
     the TSDF mesh is the more accurate (0.30 % against 0.42 % of the diagonal, ``benchmarks/fit.md``)."""
-    resolution: int | None = None
+    resolution: int | None = _f(None, Range(_GRID_MIN, _TSDF_MAX))
     """TSDF voxels along the longest side of the fusion bounds; ``None``: the plan's, from the pixel
     footprint at the region of interest (one voxel per pixel footprint, capped per device)."""
-    poisson_resolution: int = 128
-    """Poisson grid nodes per side for ``method="proxy"``."""
+    poisson_resolution: int = _f(128, Range(_GRID_MIN, _POISSON_MAX))
+    """Poisson grid nodes per side for ``method=PROXY``."""
     largest_component: bool = False
     """Keep only the largest connected component. Off by default: components are kept or dropped by
     how well the views support them (size and the number of views that see them,
@@ -174,35 +271,36 @@ class DensifyConfig:
 
     enabled: bool | None = None
     """Screen-space clone/split; ``None`` lets the plan decide."""
-    start: int = 100
-    """First iteration of the warm-up with density control."""
-    interval: int = 100
-    """Iterations between density-control steps."""
-    stop_fraction: float = 0.8
+    start_fraction: float = _f(0.25, FRACTION)
+    """Density control starts this fraction of the way through the warm-up (:func:`stage_iteration`)."""
+    interval: int = _f(100, POSITIVE)
+    """Iterations between density-control steps (3DGS's 100). A count, not a fraction: it is the cadence
+    at which screen-space gradients are accumulated and acted on, which does not scale with the stage."""
+    stop_fraction: float = _f(0.8, Range(0.0, 1.0, lo_open=True))
     """Clone/split stops after this fraction of the warm-up."""
-    grad_threshold: float = 5e-4
+    grad_threshold: float = _f(5e-4, RATE)
     """Mean screen-space gradient norm (NDC units) above which a surfel is cloned or split."""
-    max_growth: float = 0.5
+    max_growth: float = _f(0.5, FRACTION)
     """One clone/split step adds at most this fraction of the current count (largest gradients first)."""
-    percent_dense: float = 0.01
+    percent_dense: float = _f(0.01, FRACTION)
     """Surfels larger than this fraction of the extent are split, smaller ones cloned."""
-    prune_opacity: float = 0.05
+    prune_opacity: float = _f(0.05, FRACTION)
     """Surfels with opacity below this are pruned."""
-    opacity_reset_interval: int = 300
-    """Warm-up iterations between opacity resets (0 disables). A reset with fewer than 100 warm-up
-    iterations left after it is skipped (the surfels would reach the TSDF re-initialisation still
-    transparent)."""
-    opacity_reset_value: float = 0.1
+    opacity_reset_fraction: float = _f(0.75, FRACTION)
+    """Opacity resets every this fraction of the warm-up (:func:`stage_iteration`; 0 disables). A reset
+    with fewer than 100 warm-up iterations left after it is skipped (the surfels would reach the TSDF
+    re-initialisation still transparent)."""
+    opacity_reset_value: float = _f(0.1, OPEN_UNIT)
     """Opacities are clamped to at most this at a reset."""
     geometry_prune: bool = True
     """Prune surfels far from the proxy mesh AND of low opacity (co-evolution)."""
-    geometry_prune_distance: float = 0.02
+    geometry_prune_distance: float = _f(0.02, RATE)
     """"Far" for the geometry-aware prune, fraction of the scene extent."""
-    geometry_prune_opacity: float = 0.3
+    geometry_prune_opacity: float = _f(0.3, FRACTION)
     """"Low opacity" for the geometry-aware prune."""
     geometry_densify: bool = True
     """Proxy faces that are no surfel's nearest spawn a surfel (co-evolution)."""
-    geometry_densify_max: int = 2000
+    geometry_densify_max: int = _f(2000, COUNT)
     """At most this many surfels spawned per geometry-aware step."""
 
 
@@ -210,34 +308,34 @@ class DensifyConfig:
 class LossConfig:
     """Loss weights."""
 
-    dssim: float = 0.2
+    dssim: float = _f(0.2, FRACTION)
     """Weight of D-SSIM in the photometric term ``(1 - w) L1 + w (1 - SSIM)``."""
-    mask: float | None = None
+    mask: float | None = _f(None, RATE)
     """Alpha-vs-mask binary cross-entropy weight; ``None``: plan (0.2 when the scene has masks)."""
-    normal: float = 0.05
+    normal: float = _f(0.05, RATE)
     """Rendered normal vs depth-derived normal."""
-    normal_start: int = 200
-    """Warm-up iteration from which the normal term is on (2DGS starts it late)."""
-    distortion: float = 100.0
+    normal_start_fraction: float = _f(0.5, FRACTION)
+    """The normal term is on from this fraction of the warm-up (:func:`stage_iteration`; 2DGS starts it
+    late)."""
+    distortion: float = _f(100.0, RATE)
     """Depth distortion."""
-    distortion_start: int = 200
-    """Warm-up iteration from which the distortion term is on."""
-    scale: float = 0.01
+    distortion_start_fraction: float = _f(0.5, FRACTION)
+    """The distortion term is on from this fraction of the warm-up (:func:`stage_iteration`)."""
+    scale: float = _f(0.01, RATE)
     """Scale regulariser (anisotropy penalty for 2-scale surfels, shortest-axis for 3)."""
-    max_anisotropy: float = 10.0
+    max_anisotropy: float = _f(10.0, Range(1.0))
     """Ratio of the two surfel scales above which the scale regulariser acts."""
-    mesh_depth: float = 0.5
+    mesh_depth: float = _f(0.5, RATE)
     """Mesh-depth agreement (co-evolution)."""
-    mesh_normal: float = 0.05
+    mesh_normal: float = _f(0.05, RATE)
     """Mesh-normal agreement (co-evolution)."""
     depth_form: DepthLoss = DepthLoss.LOG_RATIO
     """Form of the mesh-depth term."""
-    mesh_depth_source: str = "median"
-    """Surfel depth compared with the mesh depth: ``"median"`` (where the transmittance crosses 0.5:
-    the visible surface) or ``"expected"`` (alpha-weighted mean over the ray, which averages in
-    semi-transparent layers behind the surface and drags the proxy inwards: bunny Chamfer 0.281 %
+    mesh_depth_source: RenderedDepth = RenderedDepth.MEDIAN
+    """Surfel depth compared with the mesh depth (``EXPECTED`` averages in semi-transparent layers
+    behind the surface and drags the proxy inwards: bunny Chamfer 0.281 %
     against 0.262 % with the median, ``benchmarks/fit.md``)."""
-    silhouette_band: int = 0
+    silhouette_band: int = _f(0, COUNT)
     """With masks: pixels within this many pixels of the mask boundary are left out of the
     photometric and mask terms (0 keeps them). A mask and an image rendered one ray per pixel say
     nothing sub-pixel about where the boundary lies, while splats pay for every fraction of a pixel
@@ -250,29 +348,28 @@ class LossConfig:
 class MeshConfig:
     """The differentiable proxy mesh (oriented points -> Poisson -> marching cubes)."""
 
-    resolution: int | None = None
+    resolution: int | None = _f(None, Range(_GRID_MIN, _POISSON_MAX))
     """Poisson grid resolution (nodes per side); ``None``: the plan's (CPU 64; CUDA from the pixel
     footprint, 128-256)."""
-    sigma: float = 1.0
+    sigma: float = _f(1.0, RATE)
     """Spectral smoothing of the Poisson solve, in grid cells (0 = none)."""
-    padding: float = 0.1
+    padding: float = _f(0.1, FRACTION)
     """Poisson domain padding, fraction of the unit cube."""
-    samples_per_surfel: int = 5
+    samples_per_surfel: int = _f(5, (1, 5))
     """Oriented points per surfel: 1 (centre) or 5 (centre + 4 tangent offsets)."""
-    offset: float = 0.5
+    offset: float = _f(0.5, RATE)
     """Tangent offset of the extra samples, in surfel sigmas."""
-    offset_weight: float = 0.5
+    offset_weight: float = _f(0.5, RATE)
     """Weight of the extra samples relative to the centre."""
     normal_flip: NormalFlip = NormalFlip.MESH
     """Normal sign rule (mesh | view | random)."""
-    flip_distance: float = 0.02
+    flip_distance: float = _f(0.02, RATE)
     """A surfel takes the mesh normal's sign when the nearest face is closer than this (extent fraction)."""
-    opacity_threshold: float = 0.0
+    opacity_threshold: float = _f(0.0, FRACTION)
     """Surfels below this opacity do not contribute oriented points."""
-    poisson_box: str = "unit"
-    """``"unit"``: Poisson on the normalised unit cube; ``"initial_mesh"``: on the TSDF mesh's box + 10 %
-    (public TopoSurfel code)."""
-    surface_prior: float = 0.0
+    poisson_box: PoissonBox = PoissonBox.UNIT
+    """Domain of the Poisson solve."""
+    surface_prior: float = _f(0.0, RATE)
     """Weight of a surface prior splatted from the TSDF mesh into the Poisson input (public code: on)."""
 
 
@@ -280,34 +377,37 @@ class MeshConfig:
 class RuntimeConfig:
     """Device, reproducibility, checkpoints, progress."""
 
-    device: str = "auto"
+    device: str = field(default="auto", metadata={"pattern": r"auto|cpu|cuda(:\d+)?"})
     """``"auto"`` (CUDA when available), ``"cpu"`` or ``"cuda:N"``."""
-    seed: int = 0
+    seed: int = _f(0, Range(0, _SEED_MAX))
     """Seed of torch, NumPy and every random choice of the fit."""
-    max_surfels: int | None = None
+    max_surfels: int | None = _f(None, POSITIVE)
     """Hard cap on the surfel count; ``None``: the plan's (CPU 40,000, CUDA 400,000)."""
-    checkpoint_every: int = 200
-    """Iterations between checkpoints (0: none except at stage ends and on interruption)."""
-    checkpoint_seconds: float = 120.0
+    checkpoint_every: int = _f(200, COUNT)
+    """Iterations between checkpoints (0: none except at stage ends and on interruption). A count, not a
+    fraction: it bounds the work lost to an interruption, whatever the stage length."""
+    checkpoint_seconds: float = _f(120.0, RATE)
     """Also checkpoint when this much wall-clock time passed since the last one."""
-    keep_checkpoints: int = 2
+    keep_checkpoints: int = _f(2, POSITIVE)
     """Checkpoints kept on disk (>= 2)."""
-    eval_every: int = 200
-    """Iterations between history records (losses, and metrics when ground truth exists)."""
-    eval_views: int = 4
+    eval_every: int = _f(200, COUNT)
+    """Iterations between history records (losses, and metrics when ground truth exists). A count: it
+    sets the cost of evaluation per iteration, which does not depend on the stage length."""
+    eval_views: int = _f(4, COUNT)
     """Held-out views for PSNR (taken from the scene's views, not trained on)."""
     eval_metrics: bool = True
     """Compute Chamfer / F-score / PSNR at evaluations when the scene has a ground-truth mesh."""
-    usd_every: int = 100
-    """Write a timeline frame every this many iterations to ``out_dir/timeline.usdc`` (0: none)."""
-    max_consecutive_failures: int = 20
+    usd_every: int = _f(100, COUNT)
+    """Write a timeline frame every this many iterations to ``out_dir/timeline.usdc`` (0: none). A
+    count, so that frames of runs of different lengths are comparable iteration for iteration."""
+    max_consecutive_failures: int = _f(20, POSITIVE)
     """Abort (with a checkpoint) after this many non-finite steps in a row."""
     progress: bool = True
     """tqdm progress bars (also ``fit(progress=...)``)."""
-    image_scale: float | None = None
+    image_scale: float | None = _f(None, Range(0.0, 1.0, lo_open=True))
     """Train on images resized by this factor (1.0: full resolution); ``None``: the plan decides
     from the image size and the device."""
-    stop_at: int | None = None
+    stop_at: int | None = _f(None, COUNT)
     """Stop as if interrupted once this global iteration is reached (time-boxed runs, tests); the
     run resumes from its checkpoint with ``stop_at`` cleared."""
 
@@ -344,15 +444,15 @@ class FitConfig:
     """Proxy mesh."""
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     """Runtime."""
-    kind: str | None = None
-    """``"object"`` (closed mesh, nothing behind it kept) or ``"scene"`` (background kept at
-    distance, open mesh of the region of interest); ``None``: the plan's (object when the scene has
-    masks). See :mod:`wtopo.fitting.scene_kind`."""
-    sh_degree: int | None = None
+    kind: SceneKind | None = None
+    """``OBJECT`` (closed mesh, nothing behind it kept) or ``SCENE`` (background kept at distance, open
+    mesh of the region of interest); ``None``: the plan's (object when the scene has masks). See
+    :mod:`wtopo.fitting.scene_kind`."""
+    sh_degree: int | None = _f(None, Range(0, _SH_MAX))
     """SH degree of the colours (0..3); ``None``: plan (0 for an untextured scene)."""
-    background: tuple[float, float, float] | None = None
+    background: tuple[float, float, float] | None = _f(None, FRACTION)
     """Background colour behind the surfels; ``None``: the scene's, else plan."""
-    filter_sigma: float = 0.35
+    filter_sigma: float = _f(0.35, Range(*FILTER_SIGMA_RANGE))
     """Screen-space low-pass of the surfel renderer [pixels] (:class:`wtopo.RasterConfig`; 2DGS uses
     0.71). Half the 2DGS width: a sub-pixel surfel seen edge-on at the silhouette then haloes half
     as far, the fit shrinks the surface less to cancel the halo, and rendered depth stops leaning
@@ -370,7 +470,7 @@ class FitConfig:
         cfg.mesh.samples_per_surfel = 1
         cfg.mesh.sigma = 0.0
         cfg.mesh.resolution = 360
-        cfg.mesh.poisson_box = "initial_mesh"
+        cfg.mesh.poisson_box = PoissonBox.INITIAL_MESH
         cfg.mesh.surface_prior = 1.0
         cfg.losses.depth_form = DepthLoss.LOG1P_ABS
         cfg.losses.mesh_depth = 0.05
@@ -384,21 +484,111 @@ class FitConfig:
 
     @staticmethod
     def from_dict(d: dict) -> FitConfig:
-        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``."""
+        """Inverse of :meth:`to_dict` (a partial dict leaves the other fields at their defaults); an
+        unknown key raises ``ValueError`` naming its dotted path, an unknown enum string too."""
         cfg = FitConfig()
-        for key, value in d.items():
-            if not hasattr(cfg, key):
-                raise ValueError(f"FitConfig has no field {key!r}")
-            cur = getattr(cfg, key)
-            if dataclasses.is_dataclass(cur):
-                for k, v in value.items():
-                    if not hasattr(cur, k):
-                        raise ValueError(f"FitConfig.{key} has no field {k!r}")
-                    old = getattr(cur, k)
-                    setattr(cur, k, type(old)(v) if isinstance(old, enum.Enum) else v)
-            else:
-                setattr(cfg, key, tuple(value) if isinstance(value, list) else value)
+
+        def flat(node: dict, prefix: str):
+            for key, value in node.items():
+                if isinstance(value, dict):
+                    yield from flat(value, f"{prefix}{key}.")
+                else:
+                    yield f"{prefix}{key}", value
+
+        for path, value in flat(d, ""):
+            set_field(cfg, path, value)
         return cfg
+
+
+@dataclass(frozen=True)
+class Leaf:
+    """One leaf field of a :class:`FitConfig`, as :func:`leaves` finds it."""
+
+    path: str
+    """Dotted path below ``FitConfig`` (``"warmup.iterations"``)."""
+    owner: object
+    """The (stage) config holding the field."""
+    field: dataclasses.Field
+    """The field; ``field.metadata`` holds its ``"check"`` (or ``"pattern"`` for a string)."""
+    type: object
+    """The resolved type annotation (``int | None``, an enum class, ...)."""
+
+    @property
+    def value(self):
+        """The field's current value."""
+        return getattr(self.owner, self.field.name)
+
+    @property
+    def base(self):
+        """The annotation without ``None`` (``int`` for ``int | None``)."""
+        return _base_type(self.type)
+
+    def set(self, value) -> None:
+        """Set the field from a Python or JSON value: an enum's string becomes its member (unknown strings
+        raise ``ValueError`` naming the path and the members), a list becomes a tuple; nothing else is
+        converted (:func:`~wtopo.fitting.validate_config.validate_config` checks the rest)."""
+        base = self.base
+        if isinstance(base, type) and issubclass(base, enum.Enum) and isinstance(value, str):
+            try:
+                value = base(value)
+            except ValueError:
+                raise ValueError(f"{self.path} must be one of {[m.value for m in base]}, got {value!r}") from None
+        elif isinstance(value, list):  # the only sequences in FitConfig are tuples (background)
+            value = tuple(value)
+        setattr(self.owner, self.field.name, value)
+
+
+@functools.cache
+def _hints(cls) -> dict:
+    return typing.get_type_hints(cls)
+
+
+def _base_type(hint):
+    """``X`` for ``X | None``, else ``hint`` itself."""
+    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        return args[0] if len(args) == 1 else hint
+    return hint
+
+
+def leaves(cfg, prefix: str = "") -> Iterator[Leaf]:
+    """Every leaf field below ``cfg`` (a :class:`FitConfig` or a stage config), in declaration order.
+
+    The one walk over the configuration: :meth:`FitConfig.from_dict`, :func:`set_field` (the CLI's
+    ``--set``) and :func:`~wtopo.fitting.validate_config.validate_config` all use it.
+
+    Raises:
+        TypeError: a stage group is not its config class.
+    """
+    hints = _hints(type(cfg))
+    for f in dataclasses.fields(cfg):
+        hint, value, path = hints[f.name], getattr(cfg, f.name), prefix + f.name
+        if dataclasses.is_dataclass(hint):
+            if not isinstance(value, hint):
+                raise TypeError(f"FitConfig.{path} must be a {hint.__name__}, got {value!r} ({type(value).__name__})")
+            yield from leaves(value, path + ".")
+        else:
+            yield Leaf(path, cfg, f, hint)
+
+
+def set_field(cfg: FitConfig, path: str, value) -> None:
+    """Set the leaf at dotted ``path`` (:meth:`Leaf.set`); an unknown path or a group raises ``ValueError``."""
+    for leaf in leaves(cfg):
+        if leaf.path == path:
+            leaf.set(value)
+            return
+    if any(leaf.path.startswith(path + ".") for leaf in leaves(cfg)):
+        raise ValueError(f"{path!r} is a group of FitConfig, set one of its fields")
+    raise ValueError(f"FitConfig has no field {path!r}")
+
+
+def stage_iteration(fraction: float, iterations: int) -> int:
+    """The iteration ``fraction`` of the way through a stage of ``iterations`` (nearest; halves round up).
+
+    Schedules are fractions of their stage so that one configuration keeps its shape at any budget:
+    with the CPU warm-up of 400 iterations, ``densify.start_fraction = 0.25`` is iteration 100.
+    """
+    return math.floor(fraction * iterations + 0.5)
 
 
 def _json_default(o):

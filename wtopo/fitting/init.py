@@ -13,7 +13,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from ..scene import _carve
-from .config import InitConfig
+from .config import InitConfig, InitSource
 from .surfels import Surfels
 
 __all__ = ["initial_surfels", "common_volume_points", "projected_colors"]
@@ -81,20 +81,20 @@ def projected_colors(scene, points: np.ndarray) -> np.ndarray:
     return out
 
 
-def initial_surfels(scene, cfg: InitConfig, source: str, *, sh_degree: int, device: torch.device,
+def initial_surfels(scene, cfg: InitConfig, source: InitSource | str, *, sh_degree: int, device: torch.device,
                     generator: torch.Generator) -> Surfels:
     """Surfels for stage 1 in the internal frame of the normalised ``scene``.
 
     Scales are the mean distance to ``cfg.scale_neighbours`` nearest neighbours; rotations random;
     colours the scene's point colours or the mean colour the points project to.
     """
-    if source == "points":
+    if source == InitSource.POINTS:
         if scene.points is None or len(scene.points) == 0:
             raise ValueError("init.source is 'points' but the scene has no points")
         pts = np.asarray(scene.points, np.float64)
         cols = (np.asarray(scene.point_colors, np.float64) if scene.point_colors is not None
                 else np.full_like(pts, 0.5))
-    elif source == "cameras":
+    elif source == InitSource.CAMERAS:
         pts = common_volume_points(scene, int(cfg.num_points), generator)
         cols = projected_colors(scene, pts)
     else:

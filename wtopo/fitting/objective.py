@@ -10,7 +10,7 @@ from collections import defaultdict
 
 import torch
 
-from .config import FitConfig
+from .config import FitConfig, RenderedDepth, stage_iteration
 from .losses import (
     boundary_band,
     depth_normals,
@@ -103,11 +103,11 @@ class Objective:
                 a = out.alpha if band is None else torch.where(band, m.to(out.alpha.dtype), out.alpha)
                 L["mask"] = self.mask_weight * mask_loss(a, m)
             late = stage != Stage.WARMUP
-            if lc.normal > 0 and (late or it >= lc.normal_start):
+            if lc.normal > 0 and (late or it >= stage_iteration(lc.normal_start_fraction, self.warmup_end)):
                 o, d = cam.pixel_rays(out.alpha.device)
                 dn, dmask = depth_normals(out.median_depth, o, d, covered)
                 L["normal"] = lc.normal * normal_consistency(out.normal, dn, out.alpha, dmask)
-            if lc.distortion > 0 and (late or it >= lc.distortion_start):
+            if lc.distortion > 0 and (late or it >= stage_iteration(lc.distortion_start_fraction, self.warmup_end)):
                 L["distortion"] = lc.distortion * distortion(out.distortion)
             if lc.scale > 0:
                 L["scale"] = lc.scale * scale_regularizer(s.scales, lc.max_anisotropy)
@@ -124,7 +124,7 @@ class Objective:
                 with T("losses"):
                     both = mr.mask & covered
                     if lc.mesh_depth > 0:
-                        sd = out.median_depth if lc.mesh_depth_source == "median" else out.depth
+                        sd = out.median_depth if lc.mesh_depth_source == RenderedDepth.MEDIAN else out.depth
                         form = str(getattr(lc.depth_form, "value", lc.depth_form))
                         L["mesh_depth"] = lc.mesh_depth * mesh_depth_loss(sd, mr.depth, both, eps=_DEPTH_EPS, form=form,
                                                                           extent=ROI_EXTENT)

@@ -20,11 +20,11 @@ import torch
 import trimesh
 
 from . import densify as dens
-from .config import FitConfig, NormalFlip
-from .proxy import ProxyMesh, poisson_mesh
-from .surfels import Surfels
+from .config import FinalMethod, FitConfig, NormalFlip, PoissonBox, RenderedDepth
 from .mesh_policy import crop_near_cameras, crop_to_box, supported_components
+from .proxy import ProxyMesh, poisson_mesh
 from .scene_kind import SceneKind, SceneLayout
+from .surfels import Surfels
 from .tsdf import (
     FusionBounds,
     TSDFEmptyError,
@@ -87,15 +87,15 @@ class Renderer:
                                  background=self.background, config=self.config)
 
 
-def render_depths(render: Renderer, surfels: Surfels, cameras: Sequence, which: str,
+def render_depths(render: Renderer, surfels: Surfels, cameras: Sequence, which: RenderedDepth,
                   alpha_threshold: float) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Depth maps [H, W] (``which``: ``"median"`` or expected) and colours [H, W, 3] per camera, as NumPy;
+    """Depth maps [H, W] (``which`` rendered depth) and colours [H, W, 3] per camera, as NumPy;
     depth is zero where the rendered opacity is below ``alpha_threshold``."""
     depths, colors = [], []
     with torch.no_grad():
         for cam in cameras:
             out = render(surfels, cam)
-            d = out.median_depth if which == "median" else out.depth
+            d = out.median_depth if which == RenderedDepth.MEDIAN else out.depth
             d = torch.where(out.alpha >= alpha_threshold, d, torch.zeros_like(d))
             depths.append(d.detach().cpu().numpy())
             colors.append(out.rgb.detach().clamp(0, 1).cpu().numpy())
@@ -178,11 +178,11 @@ def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: 
         kept = int(p["means"].shape[0])
         new.append(p, b)
     proxy = None
-    if cfg.mesh.poisson_box == "initial_mesh" or cfg.mesh.surface_prior > 0:
+    if cfg.mesh.poisson_box == PoissonBox.INITIAL_MESH or cfg.mesh.surface_prior > 0:
         pts, fi = trimesh.sample.sample_surface(mesh, _PRIOR_SAMPLES, seed=cfg.runtime.seed)
         prior = (torch.as_tensor(pts, dtype=torch.float32, device=device),
                  torch.as_tensor(mesh.face_normals[fi], dtype=torch.float32, device=device))
-        box = mesh.bounds if cfg.mesh.poisson_box == "initial_mesh" else None
+        box = mesh.bounds if cfg.mesh.poisson_box == PoissonBox.INITIAL_MESH else None
         proxy = ProxyMesh(cfg.mesh, box=box, prior=prior)
         info["poisson_box"] = None if box is None else np.asarray(box).tolist()
     info.update({"reinit_faces": int(len(mesh.faces)), "reinit_surfels": len(new) - kept, "hybrid_kept": kept})
@@ -214,7 +214,7 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
     mesh = None
     scene = _is_scene(layout)
     depths, colors = render_depths(render, surfels, cameras, cfg.tsdf.depth, cfg.tsdf.alpha_threshold)
-    if fc.method == "tsdf":
+    if fc.method == FinalMethod.TSDF:
         if scene:
             bounds = roi_bounds(layout, fc.resolution, cfg.tsdf.truncation_voxels)
         else:
@@ -226,8 +226,6 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
         except TSDFEmptyError as e:
             warnings.warn(f"final TSDF empty, returning the proxy mesh: {e}", RuntimeWarning, stacklevel=3)
             record("final_tsdf_empty", why=str(e))
-    elif fc.method != "proxy":
-        raise ValueError(f"final.method must be 'tsdf' or 'proxy', got {fc.method!r}")
     if mesh is None:
         if NormalFlip(cfg.mesh.normal_flip) != NormalFlip.RANDOM and not guided:
             # no mesh guidance ran: orient the normals by the cameras that saw each surfel

@@ -22,7 +22,7 @@ from collections.abc import Callable
 import torch
 
 from . import densify as dens
-from .config import FitConfig, NormalFlip
+from .config import FitConfig, NormalFlip, stage_iteration
 from .proxy import ProxyMesh
 from .stages import ROI_EXTENT, Record, Stage
 from .surfels import Surfels
@@ -89,9 +89,11 @@ class DensityStrategy:
 
     # -- hooks ----------------------------------------------------------------------------------------
     def step_pre_forward(self, stage: Stage, it: int, surfels: Surfels, proxy: ProxyMesh) -> bool:
-        """Mesh guidance every ``coevolution.correspondence_every`` co-evolution iterations, before
+        """Mesh guidance every ``coevolution.correspondence_fraction`` of the co-evolution, before
         the step (the signs are set before the first proxy build). Returns whether it ran."""
-        if stage == Stage.WARMUP or (it - self.warmup_end) % max(1, self.cfg.coevolution.correspondence_every) != 0:
+        co = self.cfg.coevolution
+        every = max(1, stage_iteration(co.correspondence_fraction, co.iterations))
+        if stage == Stage.WARMUP or (it - self.warmup_end) % every != 0:
             return False
         with self.timers("guidance"):
             self._mesh_guidance(surfels, proxy)
@@ -120,7 +122,8 @@ class DensityStrategy:
     def is_density_step(self, stage: Stage, it: int) -> bool:
         """Whether :meth:`step_end` runs density control at iteration ``it``."""
         dc = self.cfg.densify
-        return stage == Stage.WARMUP and it >= dc.start and it % max(1, dc.interval) == 0
+        start = stage_iteration(dc.start_fraction, self.warmup_end)
+        return stage == Stage.WARMUP and it >= start and it % max(1, dc.interval) == 0
 
     def step_end(self, stage: Stage, it: int, surfels: Surfels) -> bool:
         """Warm-up clone / split, prune and opacity reset on the ``densify`` schedule; returns whether
@@ -141,7 +144,8 @@ class DensityStrategy:
                     surfels.buffers["grad_count"].zero_()
             removed = dens.prune_by_opacity(surfels, dc.prune_opacity)
             changed |= removed > 0
-            if dc.opacity_reset_interval and it % dc.opacity_reset_interval == 0 and it < dc.stop_fraction * W:
+            reset_every = max(1, stage_iteration(dc.opacity_reset_fraction, W)) if dc.opacity_reset_fraction else 0
+            if reset_every and it % reset_every == 0 and it < dc.stop_fraction * W:
                 if W - it >= _RESET_RECOVERY:
                     dens.reset_opacity(surfels, dc.opacity_reset_value)
                     changed = True
