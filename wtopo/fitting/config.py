@@ -164,8 +164,6 @@ class InitConfig:
     0 for a masked object)."""
     opacity: float = _f(0.3, OPEN_UNIT)
     """Initial opacity in (0, 1)."""
-    scale_neighbours: int = _f(3, POSITIVE)
-    """Initial scale = mean distance to this many nearest neighbours."""
 
 
 @dataclass(kw_only=True)
@@ -217,23 +215,16 @@ class TSDFConfig:
     """Which rendered depth to fuse."""
     alpha_threshold: float = _f(0.5, RATE)
     """Pixels whose rendered opacity is below this are not fused."""
-    max_views: int = _f(64, POSITIVE)
-    """At most this many views are fused (evenly spaced)."""
-    hybrid_distance: float = _f(0.02, RATE)
-    """Hybrid rule: surfels farther than this (fraction of the scene extent) from the TSDF mesh keep
-    their warm-up parameters."""
     max_faces: int = _f(8000, POSITIVE)
     """The re-initialisation mesh is decimated to at most this many faces (one surfel each)."""
 
 
 @dataclass(kw_only=True)
 class CoevolutionConfig:
-    """Stage 4: surfels and proxy mesh co-evolve; mesh losses every ``mesh_every`` iterations."""
+    """Stage 4: surfels and proxy mesh co-evolve; the proxy is rebuilt and the mesh losses applied every iteration."""
 
     iterations: int | None = _f(None, COUNT)
     """Iterations; ``None``: the plan's budget for the device (CPU 200, CUDA 1000)."""
-    mesh_every: int = _f(1, POSITIVE)
-    """Rebuild the proxy mesh and apply the mesh losses every this many iterations (1 = always)."""
     correspondence_fraction: float = _f(0.5, FRACTION)
     """Refresh nearest-face correspondences (normal signs, geometry-aware density) every this fraction
     of the co-evolution (:func:`stage_iteration`; at least every iteration), from its first iteration."""
@@ -290,8 +281,6 @@ class DensifyConfig:
     """Opacity resets every this fraction of the warm-up (:func:`stage_iteration`; 0 disables). A reset
     with fewer than 100 warm-up iterations left after it is skipped (the surfels would reach the TSDF
     re-initialisation still transparent)."""
-    opacity_reset_value: float = _f(0.1, OPEN_UNIT)
-    """Opacities are clamped to at most this at a reset."""
     geometry_prune: bool = True
     """Prune surfels far from the proxy mesh AND of low opacity (co-evolution)."""
     geometry_prune_distance: float = _f(0.02, RATE)
@@ -300,16 +289,12 @@ class DensifyConfig:
     """"Low opacity" for the geometry-aware prune."""
     geometry_densify: bool = True
     """Proxy faces that are no surfel's nearest spawn a surfel (co-evolution)."""
-    geometry_densify_max: int = _f(2000, COUNT)
-    """At most this many surfels spawned per geometry-aware step."""
 
 
 @dataclass(kw_only=True)
 class LossConfig:
     """Loss weights."""
 
-    dssim: float = _f(0.2, FRACTION)
-    """Weight of D-SSIM in the photometric term ``(1 - w) L1 + w (1 - SSIM)``."""
     mask: float | None = _f(None, RATE)
     """Alpha-vs-mask binary cross-entropy weight; ``None``: plan (0.2 when the scene has masks)."""
     normal: float = _f(0.05, RATE)
@@ -323,8 +308,6 @@ class LossConfig:
     """The distortion term is on from this fraction of the warm-up (:func:`stage_iteration`)."""
     scale: float = _f(0.01, RATE)
     """Scale regulariser (anisotropy penalty for 2-scale surfels, shortest-axis for 3)."""
-    max_anisotropy: float = _f(10.0, Range(1.0))
-    """Ratio of the two surfel scales above which the scale regulariser acts."""
     mesh_depth: float = _f(0.5, RATE)
     """Mesh-depth agreement (co-evolution)."""
     mesh_normal: float = _f(0.05, RATE)
@@ -363,8 +346,6 @@ class MeshConfig:
     """Weight of the extra samples relative to the centre."""
     normal_flip: NormalFlip = NormalFlip.MESH
     """Normal sign rule (mesh | view | random)."""
-    flip_distance: float = _f(0.02, RATE)
-    """A surfel takes the mesh normal's sign when the nearest face is closer than this (extent fraction)."""
     opacity_threshold: float = _f(0.0, FRACTION)
     """Surfels below this opacity do not contribute oriented points."""
     poisson_box: PoissonBox = PoissonBox.UNIT

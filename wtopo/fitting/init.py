@@ -18,6 +18,7 @@ from .surfels import Surfels
 
 __all__ = ["initial_surfels", "common_volume_points", "projected_colors"]
 
+_SCALE_NEIGHBOURS = 3  # initial scale = mean distance to this many nearest neighbours (3DGS)
 _MAX_INIT_SCALE = 0.05  # no initial surfel wider than 5 % of the unit cube (isolated points)
 
 
@@ -85,7 +86,7 @@ def initial_surfels(scene, cfg: InitConfig, source: InitSource | str, *, sh_degr
                     generator: torch.Generator) -> Surfels:
     """Surfels for stage 1 in the internal frame of the normalised ``scene``.
 
-    Scales are the mean distance to ``cfg.scale_neighbours`` nearest neighbours; rotations random;
+    Scales are the mean distance to ``_SCALE_NEIGHBOURS`` nearest neighbours; rotations random;
     colours the scene's point colours or the mean colour the points project to.
     """
     if source == InitSource.POINTS:
@@ -99,7 +100,7 @@ def initial_surfels(scene, cfg: InitConfig, source: InitSource | str, *, sh_degr
         cols = projected_colors(scene, pts)
     else:
         raise ValueError(f"init source must be 'points' or 'cameras', got {source!r}")
-    k = min(cfg.scale_neighbours + 1, len(pts))
+    k = min(_SCALE_NEIGHBOURS + 1, len(pts))
     if k > 1:
         d, _ = cKDTree(pts).query(pts, k=k)
         scale = np.clip(d[:, 1:].mean(axis=1), 1e-6, _MAX_INIT_SCALE)

@@ -32,6 +32,8 @@ ALPHA_COVERED = 0.5
 """A pixel is covered by the surfels when their rendered opacity reaches this."""
 _DEPTH_EPS = 1e-4  # log-depth clamp, internal units (1e-4 of the unit cube)
 _LOSS_EMA = 0.9  # smoothing of the loss shown on the progress bar
+_DSSIM = 0.2  # weight of D-SSIM in the photometric term (1 - w) L1 + w (1 - SSIM): 3DGS's and 2DGS's value
+_MAX_ANISOTROPY = 10.0  # ratio of the two surfel scales above which the scale regulariser acts (stops needles)
 
 
 @dataclasses.dataclass
@@ -84,8 +86,8 @@ class Objective:
         return band
 
     def __call__(self, stage: Stage, it: int, vi: int, surfels: Surfels, proxy: ProxyMesh) -> Terms:
-        """Render training view ``vi`` and compute its terms; in co-evolution every ``mesh_every``
-        iterations, build ``proxy`` from ``surfels`` (differentiably) for the mesh terms."""
+        """Render training view ``vi`` and compute its terms; in co-evolution build ``proxy`` from
+        ``surfels`` (differentiably) for the mesh terms."""
         lc, s, T = self.cfg.losses, surfels, self.timers
         cam = self.train.cameras[vi]
         img = self.train.images[vi]
@@ -96,7 +98,7 @@ class Objective:
             band = self._band(vi)
             # the band is left out by rendering the target there: zero loss, zero gradient
             rgb = out.rgb if band is None else torch.where(band[..., None], img, out.rgb)
-            L["photo"] = photometric(rgb, img, lc.dssim)
+            L["photo"] = photometric(rgb, img, _DSSIM)
             covered = out.alpha.detach() >= ALPHA_COVERED
             if self.train.masks is not None and self.mask_weight > 0:
                 m = self.train.masks[vi]
@@ -110,11 +112,10 @@ class Objective:
             if lc.distortion > 0 and (late or it >= stage_iteration(lc.distortion_start_fraction, self.warmup_end)):
                 L["distortion"] = lc.distortion * distortion(out.distortion)
             if lc.scale > 0:
-                L["scale"] = lc.scale * scale_regularizer(s.scales, lc.max_anisotropy)
+                L["scale"] = lc.scale * scale_regularizer(s.scales, _MAX_ANISOTROPY)
         terms = Terms(L, out, covered)
         co = self.cfg.coevolution
-        if (stage == Stage.COEVOLUTION and co.enabled and (lc.mesh_depth > 0 or lc.mesh_normal > 0)
-                and (it - self.warmup_end) % max(1, co.mesh_every) == 0):
+        if stage == Stage.COEVOLUTION and co.enabled and (lc.mesh_depth > 0 or lc.mesh_normal > 0):
             with T("proxy"):
                 pm = proxy.build(s)
             terms.proxy_built, terms.proxy = True, pm

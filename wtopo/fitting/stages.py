@@ -41,6 +41,9 @@ ROI_EXTENT = 1.0 - 2 * 0.1
 """Side of the region of interest in the internal frame: :meth:`wtopo.Scene.normalization` maps it
 into ``[0.1, 0.9]^3`` (its default margin of 0.1 on every side of the unit cube). Distances given
 relative to the scene extent are multiplied by this."""
+_REINIT_MAX_VIEWS = 64  # the re-initialisation fuses at most this many (evenly spaced) views: enough coverage
+_HYBRID_DISTANCE = 0.02  # hybrid rule: surfels farther than this (extent fraction) from the TSDF mesh keep their
+# warm-up parameters
 _REINIT_OPACITY = 0.8  # TSDF re-initialised surfels start nearly opaque: they sit on the fused surface
 _PRIOR_SAMPLES = 20000  # surface samples of the re-initialisation mesh kept as the proxy's surface prior
 _REMESH_SAMPLES = 200_000  # surface samples for the watertight Poisson re-mesh of the final mesh
@@ -144,13 +147,13 @@ def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: 
                 background_rule: bool, record: Record, layout: SceneLayout | None = None) -> Reinit:
     """Fuse the rendered depth of ``surfels`` and put one surfel on each face of the fused mesh.
 
-    With ``background_rule``, the old surfels farther than ``tsdf.hybrid_distance`` from that mesh
+    With ``background_rule``, the old surfels farther than ``_HYBRID_DISTANCE`` from that mesh
     are kept (background the object's TSDF does not cover) and the mesh is not cut to its largest
     component. A scene (``layout.kind``) fuses only its region of interest. An empty fusion keeps
     the warm-up surfels (event ``"tsdf_empty"``).
     """
     tc, device = cfg.tsdf, surfels.means.device
-    cams = cameras[:: max(1, math.ceil(len(cameras) / tc.max_views))]
+    cams = cameras[:: max(1, math.ceil(len(cameras) / _REINIT_MAX_VIEWS))]
     depths, colors = render_depths(render, surfels, cams, tc.depth, tc.alpha_threshold)
     s = surfels
     if _is_scene(layout):
@@ -174,7 +177,7 @@ def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: 
         v = torch.as_tensor(mesh.vertices, dtype=torch.float32, device=device)
         f = torch.as_tensor(mesh.faces, dtype=torch.int32, device=device)
         _, dist, _ = closest_faces(v, f, s.means.detach())
-        p, b = hybrid_keep(s, dist, tc.hybrid_distance * ROI_EXTENT)
+        p, b = hybrid_keep(s, dist, _HYBRID_DISTANCE * ROI_EXTENT)
         kept = int(p["means"].shape[0])
         new.append(p, b)
     proxy = None

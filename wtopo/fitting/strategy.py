@@ -31,6 +31,9 @@ __all__ = ["DensityStrategy", "StepInfo"]
 
 _GAP_EMA = 0.9  # smoothing of the running uncovered-pixel fraction
 _GAP_THRESHOLD = 0.002  # clone/split runs while more than this fraction of object pixels is uncovered
+_OPACITY_RESET_VALUE = 0.1  # a reset clamps opacities to at most this (low, yet above the 0.05 prune threshold)
+_GEOMETRY_DENSIFY_MAX = 2000  # surfels spawned per geometry-aware step at most: bounds the growth of one step
+_FLIP_DISTANCE = 0.02  # a surfel takes the mesh normal's sign when the nearest face is closer (extent fraction)
 # warm-up iterations an opacity reset needs after it; later resets are skipped (a reset 20 iterations
 # before the TSDF re-initialisation left an 80-iteration fit at 15 % Chamfer, 0.78 % without it)
 _RESET_RECOVERY = 100
@@ -147,7 +150,7 @@ class DensityStrategy:
             reset_every = max(1, stage_iteration(dc.opacity_reset_fraction, W)) if dc.opacity_reset_fraction else 0
             if reset_every and it % reset_every == 0 and it < dc.stop_fraction * W:
                 if W - it >= _RESET_RECOVERY:
-                    dens.reset_opacity(surfels, dc.opacity_reset_value)
+                    dens.reset_opacity(surfels, _OPACITY_RESET_VALUE)
                     changed = True
                 else:  # too late: the surfels would reach the TSDF re-initialisation still transparent
                     self.record("opacity_reset_skipped", remaining_warmup=W - it)
@@ -172,9 +175,9 @@ class DensityStrategy:
         fn, _ = dens.face_normals(verts, faces)
         mn = torch.where((fid >= 0)[:, None], fn[fid.clamp_min(0).long()], torch.zeros_like(s.means.detach()))
         info["signs"] = dens.align_normal_signs(s, NormalFlip(mc.normal_flip), mesh_normal=mn, distance=dist,
-                                                max_distance=mc.flip_distance * ROI_EXTENT, generator=self.gen)
+                                                max_distance=_FLIP_DISTANCE * ROI_EXTENT, generator=self.gen)
         if dc.geometry_densify:
-            info["spawned"] = dens.geometry_densify(s, verts, faces, fid, max_new=dc.geometry_densify_max,
+            info["spawned"] = dens.geometry_densify(s, verts, faces, fid, max_new=_GEOMETRY_DENSIFY_MAX,
                                                     max_surfels=self.cfg.runtime.max_surfels, generator=self.gen)
             dist = torch.cat([dist, torch.zeros(len(s) - dist.shape[0], dtype=dist.dtype, device=dist.device)])
         if dc.geometry_prune:
