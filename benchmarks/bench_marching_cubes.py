@@ -43,7 +43,7 @@ def run_wtopo(leaf: torch.Tensor) -> tuple[int, int]:
 
 
 def run_skimage(field_np: np.ndarray) -> tuple[int, int]:
-    """skimage's Lewiner marching cubes, forward only."""
+    """Run skimage's Lewiner marching cubes, forward only."""
     from skimage.measure import marching_cubes
 
     verts, faces, _, _ = marching_cubes(field_np, 0.0)
@@ -78,7 +78,7 @@ def _time(fn, *args) -> float:
 
 
 def run_wtopo_forward(field: torch.Tensor) -> tuple[int, int]:
-    """wtopo's marching cubes forward only (no autograd graph)."""
+    """Run wtopo's marching cubes, forward only (no autograd graph)."""
     from wtopo.ops import marching_cubes
 
     verts, faces = marching_cubes(field, lower=(-1, -1, -1), upper=(1, 1, 1))
@@ -91,7 +91,8 @@ def main_device(args) -> None:
     dev = args.device
     _SYNC = lambda: torch.cuda.synchronize(dev)  # noqa: E731
     print(f"device {torch.cuda.get_device_name(dev)}, field: perturbed sphere SDF, float32; times: min / median")
-    print(f"{'n':>5} {'V':>8} {'F':>8} | {'wtopo fwd':>18} {'wtopo f+b':>18} | {'skimage f (CPU)':>15} | {'peak MiB':>8}")
+    print(f"{'n':>5} {'V':>8} {'F':>8} | {'wtopo fwd':>18} {'wtopo f+b':>18} | "
+          f"{'skimage f (CPU)':>15} | {'peak MiB':>8}")
     for n in args.sizes:
         field = make_field(n)
         sk = [_time(run_skimage, field.numpy()) for _ in range(3)]

@@ -136,7 +136,7 @@ def main(argv=None):
     for n in args.surfels:
         means, quats, scales, opac, colors = bunny_surfels(n, dev, seed=1)
 
-        def once():
+        def once(means=means, quats=quats, scales=scales, opac=opac, colors=colors):
             out = ops.rasterize_surfels(means, quats, scales, opac, colors, camera)
             loss = out.rgb.mean() + out.depth.mean() + out.normal.mean()
             loss.backward()

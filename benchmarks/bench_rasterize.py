@@ -30,8 +30,9 @@ import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 
-import wtopo  # noqa: E402
 from reference.rasterize import rasterize_reference  # noqa: E402
+
+import wtopo  # noqa: E402
 from wtopo import rasterize as R  # noqa: E402
 from wtopo._profile import section  # noqa: E402
 
@@ -68,7 +69,7 @@ def time_op(cam, params, repeats: int, config=None):
     fw, bw = [], []
     for _ in range(repeats + 1):  # the first run compiles / warms caches
         prof = defaultdict(float)
-        with section("outside_rasterizer", add=lambda name, sec: prof.__setitem__(name, prof[name] + sec)):
+        with section("outside_rasterizer", add=lambda name, sec, prof=prof: prof.__setitem__(name, prof[name] + sec)):
             t0 = time.perf_counter()
             out = R.rasterize_surfels(*params, cam, config=config)
             t1 = time.perf_counter()

@@ -114,7 +114,7 @@ def main():
 
             t_build = best_of(build, max(3, args.repeats // 3))
             moved = verts * 1.001
-            t_refit = interleaved({"a": lambda rc=rc: rc.update(moved, faces),
+            t_refit = interleaved({"a": lambda rc=rc, moved=moved: rc.update(moved, faces),
                                    "b": lambda rc=rc: rc.update(verts, faces)}, args.repeats)["a"]
             rc_fast.update(verts, faces)
             t = interleaved({

@@ -109,12 +109,12 @@ def bench_scatter(device: str, repeats: int, n: int = 1_000_000, resolution: int
         flat_idx = idx[keep]
         contrib = (w.unsqueeze(-1) * vals.unsqueeze(1))[keep]
 
-        def index_add_only():
+        def index_add_only(channels=channels, flat_idx=flat_idx, contrib=contrib):
             torch.zeros(resolution ** 3, channels, device=device).index_add_(0, flat_idx, contrib)
 
-        t = _interleaved({"op": lambda: scatter_trilinear(pts, vals, resolution),
-                          "raw": lambda: scatter_unchecked(pts, vals, resolution),
-                          "ref": lambda: scatter_trilinear_ref(pts, vals, resolution),
+        t = _interleaved({"op": lambda vals=vals: scatter_trilinear(pts, vals, resolution),
+                          "raw": lambda vals=vals: scatter_unchecked(pts, vals, resolution),
+                          "ref": lambda vals=vals: scatter_trilinear_ref(pts, vals, resolution),
                           "index_add": index_add_only}, device, repeats)
         print(f"  C={channels}: wtopo {t['op'] * 1e3:7.1f} ms (validation included; {t['raw'] * 1e3:.1f} ms "
               f"without) | torch full reference {t['ref'] * 1e3:7.1f} ms -> ratio {t['ref'] / t['op']:.2f}x | "

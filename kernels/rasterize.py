@@ -420,7 +420,7 @@ def render_forward_kernel(
         dist = dist + w * (m * m * (type(f_ref)(1.0) - T) + m2s - type(f_ref)(2.0) * m * m1)
         m1 = m1 + w * m
         m2s = m2s + w * m * m
-        if T > type(f_ref)(0.5):
+        if T > type(f_ref)(0.5):  # noqa: SIM300  T is the running transmittance, not a constant
             med = z
             med_k = k
         T = test_t

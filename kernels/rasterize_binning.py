@@ -235,11 +235,11 @@ def tile_ranges_kernel(
     k = wp.tid() + offset
     sh = wp.int64(rank_bits)
     tile = int(wp.int64(keys[k]) >> sh)
-    if k == 0:
+    if k == 0:  # noqa: SIM114  Warp's `or` does not short-circuit: it would read keys[-1]
         tile_start[tile] = k
     elif int(wp.int64(keys[k - 1]) >> sh) != tile:
         tile_start[tile] = k
-    if k == count - 1:
+    if k == count - 1:  # noqa: SIM114  Warp's `or` does not short-circuit: it would read keys[count]
         tile_end[tile] = k + 1
     elif int(wp.int64(keys[k + 1]) >> sh) != tile:
         tile_end[tile] = k + 1

@@ -4,8 +4,6 @@
 import importlib.util
 import os
 
-import pytest
-
 _ROOT = os.path.join(os.path.dirname(__file__), "..", "examples")
 
 

@@ -121,7 +121,8 @@ def test_filter_sigma_footprint_is_analytic(device, sigma):
     p = (o[16, 16] + 3.0 * d[16, 16]).reshape(1, 3)
     args = [p.to(device), torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64, device=device),
             torch.full((1, 2), 1e-7, dtype=torch.float64, device=device),
-            torch.tensor([0.8], dtype=torch.float64, device=device), torch.ones(1, 3, dtype=torch.float64, device=device)]
+            torch.tensor([0.8], dtype=torch.float64, device=device),
+            torch.ones(1, 3, dtype=torch.float64, device=device)]
     out = rasterize_surfels(*args, cam, config=RasterConfig(filter_sigma=sigma))
     np.testing.assert_allclose(cam.project(p.numpy())[0][0], target, atol=1e-9)
     a = out.alpha.detach().cpu().numpy()

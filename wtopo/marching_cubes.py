@@ -233,7 +233,7 @@ def marching_cubes(field: torch.Tensor, level: float = 0.0, *, lower: Sequence[f
         raise ValueError(f"field must have every size >= 2 (2^3 is the smallest grid), got shape {list(field.shape)}")
     if field.numel() >= 2**31:
         raise ValueError(f"field must have fewer than 2^31 nodes (int32 indices), got {field.numel()}")
-    if isinstance(level, torch.Tensor) or isinstance(level, bool) or not isinstance(level, (int, float)):
+    if isinstance(level, (torch.Tensor, bool)) or not isinstance(level, (int, float)):
         raise TypeError(f"level must be a Python number, got {type(level).__name__}")
     if not math.isfinite(level):
         raise ValueError(f"level must be finite, got {level!r}")

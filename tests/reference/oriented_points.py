@@ -8,7 +8,8 @@ def quat_to_rotation(q: torch.Tensor, eps: float = 1e-7) -> torch.Tensor:
     """Rotation matrices [N, 3, 3] (columns = local axes) of (w, x, y, z) quaternions; |q| < eps -> identity."""
     norm = q.norm(dim=1, keepdim=True)
     small = norm < eps
-    qn = torch.where(small, torch.tensor([1.0, 0, 0, 0], dtype=q.dtype, device=q.device), q / torch.where(small, 1.0, norm))
+    identity = torch.tensor([1.0, 0, 0, 0], dtype=q.dtype, device=q.device)
+    qn = torch.where(small, identity, q / torch.where(small, 1.0, norm))
     w, x, y, z = qn.unbind(1)
     rows = [
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],

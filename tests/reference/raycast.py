@@ -16,7 +16,11 @@ def raycast_reference(verts: torch.Tensor, faces: torch.Tensor, origins: torch.T
     """First hit of every ray against every triangle.
 
     Args:
-        verts: [V, 3] float; faces: [F, 3] int; origins, directions: [..., 3], same dtype as verts.
+        verts: [V, 3] float vertex positions.
+        faces: [F, 3] int vertex indices of each triangle.
+        origins: [..., 3] ray origins, same dtype as verts.
+        directions: [..., 3] ray directions (not necessarily unit: ``depth`` is in their units),
+            same dtype as verts.
         det_eps: rays with ``|det| <= det_eps`` (parallel to the triangle) miss it.
 
     Returns:
@@ -68,7 +72,9 @@ def closest_point_reference(verts, faces, points):
     """Brute-force closest point on a triangle mesh (Ericson, Real-Time Collision Detection 5.1.5).
 
     Args:
-        verts: [V, 3] float64 array; faces: [F, 3] int array; points: [P, 3] float64 array.
+        verts: [V, 3] float64 array of vertex positions.
+        faces: [F, 3] int array of vertex indices of each triangle.
+        points: [P, 3] float64 array of query points.
 
     Returns:
         ``(face_id [P], distance [P], closest [P, 3])`` NumPy arrays (memory is P x F).

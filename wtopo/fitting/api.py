@@ -174,6 +174,7 @@ def fit(scene, config: FitConfig | None = None, *, out_dir: str | os.PathLike | 
         _write_outputs(Path(out_dir), result, run)
     if progress and cfg.runtime.progress:
         r = result.report
-        line = f"wtopo fit {r['status']}: {r['iterations']} iterations, {r['elapsed_s']:.1f} s, {r['mesh']['faces']} faces"
+        line = (f"wtopo fit {r['status']}: {r['iterations']} iterations, {r['elapsed_s']:.1f} s, "
+                f"{r['mesh']['faces']} faces")
         print(line + summary_metrics(r))
     return result

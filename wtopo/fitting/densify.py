@@ -43,8 +43,11 @@ def accumulate_gradients(surfels: Surfels, means2d_grad: torch.Tensor, visible: 
     """Add the screen-space gradient norm (NDC units, as 3DGS) of visible surfels to the accumulators.
 
     Args:
+        surfels: the surfels whose ``grad_accum`` and ``grad_count`` buffers are updated in place.
         means2d_grad: gradient of the loss w.r.t. the projected centres [N, 2] in pixels.
         visible: [N] bool, surfels that touched at least one pixel.
+        width: image width in pixels, to convert the gradient to NDC units.
+        height: image height in pixels, to convert the gradient to NDC units.
     """
     g = means2d_grad.detach() * torch.tensor([0.5 * width, 0.5 * height], device=means2d_grad.device,
                                              dtype=means2d_grad.dtype)
@@ -86,7 +89,8 @@ def clone_and_split(surfels: Surfels, cfg: DensifyConfig, extent: float, max_sur
                     generator: torch.Generator | None = None) -> tuple[int, int]:
     """3DGS densification: surfels with a mean screen-space gradient above the threshold are cloned
     (small) or split (large, scale > ``percent_dense * extent``). The count never exceeds
-    ``max_surfels`` and grows by at most ``cfg.max_growth`` per call: the largest gradients go first. Resets the accumulators. Returns (cloned, split)."""
+    ``max_surfels`` and grows by at most ``cfg.max_growth`` per call: the largest gradients go first.
+    Resets the accumulators. Returns (cloned, split)."""
     b = surfels.buffers
     mean_grad = b["grad_accum"] / b["grad_count"].clamp_min(1.0)
     big = surfels.scales.detach().max(dim=-1).values > cfg.percent_dense * extent

@@ -163,13 +163,16 @@ class FitRun:
 
     @property
     def warmup_end(self) -> int:
+        """Iteration at which the warm-up stage ends (``cfg.warmup.iterations``)."""
         return int(self.cfg.warmup.iterations)
 
     @property
     def total_iterations(self) -> int:
+        """Iterations of warm-up plus co-evolution."""
         return self.warmup_end + int(self.cfg.coevolution.iterations)
 
     def elapsed(self) -> float:
+        """Wall seconds of this fit, including those before the checkpoint it resumed from."""
         return self.elapsed_before + time.perf_counter() - self.t_start
 
     def record(self, event: str, **fields) -> None:

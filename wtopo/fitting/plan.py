@@ -48,6 +48,7 @@ class Decision:
     overridden: bool = False
 
     def to_dict(self) -> dict:
+        """JSON-ready ``{"value", "reason", "overridden"}`` (tuples become lists)."""
         v = self.value
         if isinstance(v, tuple):
             v = list(v)
@@ -73,6 +74,7 @@ class Plan:
             self.decisions[name] = Decision(value, reason)
 
     def to_dict(self) -> dict:
+        """JSON-ready decisions, name -> :meth:`Decision.to_dict`, in decision order."""
         return {k: d.to_dict() for k, d in self.decisions.items()}
 
     def __str__(self) -> str:
@@ -269,7 +271,8 @@ def _budget(plan: Plan, scene, cfg: FitConfig, device: torch.device, layout, ima
     lo, hi = _FINAL_GRID[dev]
     final = int(np.clip(round(side / (_FINAL_FOOTPRINTS * fp)), lo, hi))
     plan.set("final_resolution", final,
-             f"a voxel of {_FINAL_FOOTPRINTS:g} pixel footprints over the region of interest ({side:.3g} wide), {lo}-{hi} on {dev}",
+             f"a voxel of {_FINAL_FOOTPRINTS:g} pixel footprints over the region of interest ({side:.3g} wide), "
+             f"{lo}-{hi} on {dev}",
              cfg.final.resolution)
 
 

@@ -53,6 +53,7 @@ class ProxyResult:
 
     @property
     def num_faces(self) -> int:
+        """Number of faces F."""
         return int(self.faces.shape[0])
 
 

@@ -106,6 +106,7 @@ class SceneLayout:
         return np.all((p >= self.roi_lower - pad) & (p <= self.roi_upper + pad), axis=1)
 
     def to_dict(self) -> dict:
+        """JSON-ready kind, capture, region of interest, extent and near distance (no camera centres)."""
         return {"kind": self.kind.value, "capture": self.capture.value, "roi_lower": self.roi_lower.tolist(),
                 "roi_upper": self.roi_upper.tolist(), "roi_source": self.roi_source,
                 "scene_extent": self.scene_extent, "near": self.near}

@@ -48,6 +48,7 @@ class FusionBounds:
     truncation: float
 
     def to_dict(self) -> dict:
+        """JSON-ready bounds, voxel size and truncation."""
         return {"lower": self.lower.tolist(), "upper": self.upper.tolist(), "voxel": self.voxel,
                 "truncation": self.truncation}
 

@@ -36,7 +36,8 @@ def load_nerfstudio(path: str, *, background=None, downscale: float = 1):
         downscale: image size divisor (>= 1).
 
     A top-level ``aabb`` (``[[min], [max]]``, world frame) becomes ``Scene.bounds``, the fit's region
-    of interest; ``aabb_scale`` is kept in ``Scene.info``. Frames whose image file is missing are skipped with one warning naming them.
+    of interest; ``aabb_scale`` is kept in ``Scene.info``. Frames whose image file is missing are
+    skipped with one warning naming them.
 
     Raises:
         ValueError: a camera model other than SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL or
