@@ -221,13 +221,15 @@ def main(argv=None) -> int:
         kw["resolution"] = tuple(args.image_size)
     load0 = os.getloadavg()[0]
     run_dir = os.path.join(args.run_dir, args.label)
-    rows = [run_synthetic(k, cfg, run_dir, kw) for k in args.scenes]
+    cmd = "PYTHONPATH=. .venv/bin/python benchmarks/real.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    jobs = [lambda k=k: run_synthetic(k, cfg, run_dir, kw) for k in args.scenes]
     if args.dtu:
-        rows.append(run_dtu(args.dtu, cfg, run_dir))
-    if args.out:
-        cmd = "PYTHONPATH=. .venv/bin/python benchmarks/real.py " + " ".join(
-            argv if argv is not None else sys.argv[1:])
-        write_section(args.out, markdown(args.label, cmd, rows, (load0, os.getloadavg()[0])), args.label)
+        jobs.append(lambda: run_dtu(args.dtu, cfg, run_dir))
+    rows = []
+    for job in jobs:  # the section is rewritten after every scene: a long run keeps what it measured
+        rows.append(job())
+        if args.out:
+            write_section(args.out, markdown(args.label, cmd, rows, (load0, os.getloadavg()[0])), args.label)
     return 0
 
 
