@@ -37,23 +37,29 @@ from .config import (
     DensifyConfig,
     DepthLoss,
     FinalConfig,
+    FinalMethod,
     FitConfig,
     InitConfig,
+    InitSource,
     LossConfig,
     MeshConfig,
     NormalFlip,
     OptimConfig,
+    PoissonBox,
+    RenderedDepth,
     RuntimeConfig,
     TSDFConfig,
     WarmupConfig,
 )
 from .loop import FitAborted
 from .plan import Plan
+from .scene_kind import SceneKind
 from .surfels import Surfels
 
 __all__ = [
     "fit", "FitResult", "FitConfig", "FitAborted", "Plan", "Surfels", "InitConfig", "OptimConfig", "WarmupConfig",
     "TSDFConfig", "CoevolutionConfig", "FinalConfig", "DensifyConfig", "LossConfig", "MeshConfig",
-    "RuntimeConfig", "NormalFlip", "DepthLoss",
+    "RuntimeConfig", "NormalFlip", "DepthLoss", "InitSource", "RenderedDepth", "FinalMethod", "PoissonBox",
+    "SceneKind",
 ]
 

@@ -281,7 +281,7 @@ def resolve_config(cfg: FitConfig, plan: Plan) -> FitConfig:
     import copy
 
     out = copy.deepcopy(cfg)
-    out.kind = plan["scene_kind"]
+    out.kind = SceneKind(plan["scene_kind"])
     out.init.background_points = int(plan["background_points"])
     out.warmup.iterations = int(plan["warmup_iterations"])
     out.coevolution.iterations = int(plan["coevolution_iterations"])
