@@ -2,12 +2,13 @@
 """Benchmark of ``wtopo.fit`` on the default bunny scene, with the ablation table of issue 6.
 
 Measures, per variant and seed: wall time and process CPU time (less sensitive to other jobs on
-shared cores; the fit uses up to 2 threads, so CPU time can exceed wall time) of the whole fit (kernel compilation included when the
-Warp cache is cold), Chamfer distance and F-score at 0.5 % of the ground truth's bounding-box
-diagonal (uniform surface samples), PSNR on the held-out views, watertightness and component
-count. The peer measured in the same process is the TSDF fusion of the *ground-truth* depth maps
-of the training views at the same resolution (the upper bound of image-based fitting at that
-resolution, DESIGN.md); each variant's Chamfer is printed as a ratio to it.
+shared cores; the fit uses up to 2 threads, so CPU time can exceed wall time) of the whole fit
+(kernel compilation included when the Warp cache is cold), Chamfer distance and F-score at 0.5 %
+of the ground truth's bounding-box diagonal (uniform surface samples), PSNR on the held-out views,
+watertightness and component count. The peer measured in the same process is the TSDF fusion of
+the *ground-truth* depth maps of the training views at the same resolution (the upper bound of
+image-based fitting at that resolution, design/overview.md); each variant's Chamfer is printed as
+a ratio to it.
 
 Variants: ``full`` (defaults); ``no_mesh_loop`` (co-evolution iterations without the proxy
 mesh); ``view_flips`` (normal signs from view directions only); ``random_flips``; ``no_geo_density``
@@ -42,7 +43,6 @@ from wtopo.fitting import FitConfig, fit
 from wtopo.fitting.evaluate import F_SCORE_TAU, geometry_metrics
 from wtopo.fitting.tsdf import auto_bounds, cleanup_mesh, fuse_depths
 
-
 # variant -> FitConfig overrides (``wtopo fit --set`` syntax)
 VARIANTS = {
     "full": (),
@@ -67,7 +67,8 @@ def gt_depth_peer(scene) -> dict:
     t = time.perf_counter()
     b = auto_bounds(torch.as_tensor(np.asarray(internal.gt_mesh.vertices)), None,
                     resolution=FitConfig().final.resolution, truncation_voxels=FitConfig().tsdf.truncation_voxels)
-    mesh = fuse_depths(train.cameras, [d.cpu().numpy() for d in train.depths], [i.cpu().numpy() for i in train.images], b)
+    mesh = fuse_depths(train.cameras, [d.cpu().numpy() for d in train.depths],
+                       [i.cpu().numpy() for i in train.images], b)
     mesh = sim.to_world(cleanup_mesh(mesh))
     g = geometry_metrics(mesh, scene.gt_mesh)
     return {"time": time.perf_counter() - t, **g}
@@ -93,7 +94,8 @@ def run_variant(scene, name: str, seed: int, iterations: int | None, device: str
     elapsed, cpu = time.perf_counter() - t, time.process_time() - c
     g = geometry_metrics(res.mesh, scene.gt_mesh, seed=seed)
     comps = len(res.mesh.split(only_watertight=False)) if len(res.mesh.faces) else 0
-    return {"variant": name, "seed": seed, "time": elapsed, "cpu": cpu, "chamfer_rel": g["chamfer_rel"], "f_score": g["f_score"],
+    return {"variant": name, "seed": seed, "time": elapsed, "cpu": cpu, "chamfer_rel": g["chamfer_rel"],
+            "f_score": g["f_score"],
             "psnr": res.report.get("psnr", float("nan")), "watertight": bool(res.mesh.is_watertight),
             "components": comps, "surfels": len(res.surfels), "stage_times": res.report["stage_times_s"]}
 
@@ -128,7 +130,8 @@ def main(argv=None) -> int:
         for seed in args.seeds:
             r = run_variant(scene, name, seed, args.iterations, args.device, args.mesh_resolution, args.set)
             rows.append(r)
-            print(f"{name:15s} seed {seed}: {r['time']:6.1f} s (cpu {r['cpu']:.1f} s)  Chamfer {100 * r['chamfer_rel']:.3f} % "
+            print(f"{name:15s} seed {seed}: {r['time']:6.1f} s (cpu {r['cpu']:.1f} s)  "
+                  f"Chamfer {100 * r['chamfer_rel']:.3f} % "
                   f"({r['chamfer_rel'] / peer['chamfer_rel']:.1f}x peer)  F {r['f_score']:.3f}  PSNR {r['psnr']:.2f}  "
                   f"watertight {r['watertight']}  components {r['components']}", flush=True)
     load1 = os.getloadavg()[0]
@@ -136,7 +139,8 @@ def main(argv=None) -> int:
         lines = [
             "# wtopo.fit on the default bunny scene",
             "",
-            f"Command: `PYTHONPATH=. python benchmarks/bench_fit.py {' '.join(argv if argv is not None else sys.argv[1:])}`",
+            "Command: `python benchmarks/bench_fit.py "
+            f"{' '.join(argv if argv is not None else sys.argv[1:])}`",
             "",
             f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load average "
             f"{load0:.1f} at start and {load1:.1f} at end (the cores are shared: times are noisy); "
@@ -147,11 +151,13 @@ def main(argv=None) -> int:
             f"F-score at {100 * F_SCORE_TAU:.1f} % of the diagonal. Targets (issue 6): time <= 300 s, "
             "Chamfer <= 0.35 %, F-score >= 0.85, watertight, one component.",
             "",
-            "| variant | seed | wall [s] | process CPU [s] | Chamfer [% diag] | x peer | F-score | PSNR [dB] | watertight | components | surfels |",
+            "| variant | seed | wall [s] | process CPU [s] | Chamfer [% diag] | x peer | F-score | PSNR [dB] "
+            "| watertight | components | surfels |",
             "|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in rows:
-            lines.append(f"| {r['variant']} | {r['seed']} | {r['time']:.1f} | {r['cpu']:.1f} | {100 * r['chamfer_rel']:.3f} | "
+            lines.append(f"| {r['variant']} | {r['seed']} | {r['time']:.1f} | {r['cpu']:.1f} | "
+                         f"{100 * r['chamfer_rel']:.3f} | "
                          f"{r['chamfer_rel'] / peer['chamfer_rel']:.1f} | {r['f_score']:.3f} | {r['psnr']:.2f} | "
                          f"{r['watertight']} | {r['components']} | {r['surfels']} |")
         lines += ["", "Stage times of the first row [s]: " +
