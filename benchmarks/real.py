@@ -108,9 +108,22 @@ def run_synthetic(key: str, cfg: FitConfig, run_dir: str, scene_kw: dict) -> dic
     lo, hi = (np.asarray(b, dtype=np.float64) for b in roi)
     est = estimated_roi(scene)
     print(f"[{key}] intended ROI {_roi_text(roi)}; estimated from the cameras {est}", flush=True)
-    res, elapsed = _fit(scene, cfg, os.path.join(run_dir, key))
+    t = time.perf_counter()
+    try:
+        res, elapsed = _fit(scene, cfg, os.path.join(run_dir, key))
+    except ValueError as e:  # a fit that refuses the scene is a result: recorded, the next scene runs
+        print(f"[{key}] fit failed: {e}", flush=True)
+        return {"scene": key, "roi": _roi_text(roi), "roi_estimated": est, "error": str(e),
+                "time": time.perf_counter() - t}
+    return measure_synthetic(key, scene, res, elapsed, est, cfg.runtime.seed)
+
+
+def measure_synthetic(key: str, scene, res, elapsed: float, est: str, seed: int) -> dict:
+    """ROI F-score, camera clearance and the common figures of a fit ``res`` of a synthetic scene."""
+    roi = scene.info["roi"]
+    lo, hi = (np.asarray(b, dtype=np.float64) for b in roi)
     tau = TAU_FRACTION * float(np.linalg.norm(hi - lo))
-    f = metrics.roi_f_score(res.mesh, scene.gt_mesh, lo, hi, tau, n_samples=EVAL_SAMPLES, seed=cfg.runtime.seed)
+    f = metrics.roi_f_score(res.mesh, scene.gt_mesh, lo, hi, tau, n_samples=EVAL_SAMPLES, seed=seed)
     centers = np.stack([c.center for c in scene.cameras])
     ext_pts = np.concatenate([centers, [lo, hi]])
     extent = float(np.linalg.norm(ext_pts.max(0) - ext_pts.min(0)))
@@ -167,6 +180,9 @@ def markdown(label: str, command: str, rows: list[dict], loads: tuple[float, flo
                   "cameras < 5 % | held-out PSNR [dB] | SSIM | time [s] | faces | components |",
                   "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in syn:
+            if "error" in r:
+                lines.append(f"| {r['scene']} | fit failed after {r['time']:.0f} s: {r['error']} |")
+                continue
             lines.append(f"| {r['scene']} | {r['kind']} | {r['precision']:.3f} | {r['recall']:.3f} | "
                          f"{r['f_score']:.3f} | {_fmt(r['accuracy'] / r['tau'], '.1f')} / "
                          f"{_fmt(r['completeness'] / r['tau'], '.1f')} | {_fmt(100 * r['clearance_min'], '.2f')} | "
