@@ -105,7 +105,6 @@ def run_synthetic(key: str, cfg: FitConfig, run_dir: str, scene_kw: dict) -> dic
     """Fit one synthetic unbounded scene and measure it against its ground truth."""
     scene = scenes.load(SCENES[key], **scene_kw)
     roi = scene.info["roi"]
-    lo, hi = (np.asarray(b, dtype=np.float64) for b in roi)
     est = estimated_roi(scene)
     print(f"[{key}] intended ROI {_roi_text(roi)}; estimated from the cameras {est}", flush=True)
     t = time.perf_counter()
@@ -205,7 +204,10 @@ def markdown(label: str, command: str, rows: list[dict], loads: tuple[float, flo
 def write_section(path: str, section: str, label: str) -> None:
     """Replace (or append) the ``## label`` section of ``path``, keeping the others."""
     head = "# Real-capture benchmark (issue 13)\n\nSee `benchmarks/real.py` for the scenes and the measures.\n"
-    text = open(path).read() if os.path.exists(path) else head
+    text = head
+    if os.path.exists(path):
+        with open(path) as f:
+            text = f.read()
     parts = text.split("\n## ")
     kept = [parts[0].rstrip() + "\n"] + ["## " + p.rstrip() + "\n" for p in parts[1:]
                                          if p.split("\n", 1)[0].strip() != label]
@@ -224,7 +226,8 @@ def main(argv=None) -> int:
                     help="FitConfig override (as `wtopo fit --set`)")
     ap.add_argument("--views", type=int, help="training views of the synthetic scenes (default 48)")
     ap.add_argument("--image-size", type=int, nargs=2, metavar=("W", "H"), help="image size (default 160 120)")
-    ap.add_argument("--run-dir", default=os.path.join("/tmp", "wtopo_real"), help="fit output folders (<run-dir>/<label>/<scene>, replaced)")
+    ap.add_argument("--run-dir", default=os.path.join("/tmp", "wtopo_real"),
+                    help="fit output folders (<run-dir>/<label>/<scene>, replaced)")
     ap.add_argument("--label", default="run", help="section title in --out")
     ap.add_argument("--out", help="markdown file to write the section to (e.g. benchmarks/real.md)")
     args = ap.parse_args(argv)

@@ -4,10 +4,11 @@
 :func:`from_mesh` casts one ray per pixel against the mesh (:func:`wtopo.ops.raycast_mesh`) from a
 camera rig around it, and shades the hits: albedo from a scikit-image picture mapped by a
 triplanar or spherical projection, Lambertian shading under fixed world-frame lights (so colours
-do not depend on the viewpoint), optional textured floor and walls, or an unbounded environment (a large ground, a ring of hills
-and a sky at infinity), with optional photometric noise and per-image exposure changes
-(:class:`Photometric`). It returns a :class:`wtopo.Scene` with colour, z-depth, camera-facing
-normals, object masks and the mesh as ``gt_mesh``, all in the mesh's own frame.
+do not depend on the viewpoint), optional textured floor and walls, or an unbounded environment
+(a large ground, a ring of hills and a sky at infinity), with optional photometric noise and
+per-image exposure changes (:class:`Photometric`). It returns a :class:`wtopo.Scene` with colour,
+z-depth, camera-facing normals, object masks and the mesh as ``gt_mesh``, all in the mesh's own
+frame.
 
 :func:`load` gives the named defaults: ``"bunny"`` (the Stanford bunny shipped in Warp's example
 assets, sized for a 2-core CPU fit), ``"bunny_room"`` (the same bunny in a textured room, no masks),
@@ -73,7 +74,7 @@ _ROI_BELOW = 0.05
 _ROI_ABOVE = 0.10
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _texture(name: str) -> np.ndarray:
     import skimage.data
 
@@ -128,7 +129,7 @@ def _frame_from_up(up) -> np.ndarray:
 
 
 def _fibonacci(n: int, z_lo: float, z_hi: float, phase: float) -> np.ndarray:
-    """n directions (right, up, front coords) evenly spread over the band up-component in [z_lo, z_hi]."""
+    """N directions (right, up, front coords) evenly spread over the band up-component in [z_lo, z_hi]."""
     k = np.arange(n) + 0.5
     z = z_hi - (z_hi - z_lo) * k / n
     r = np.sqrt(np.clip(1 - z * z, 0, None))
@@ -559,8 +560,8 @@ def replace_name(camera: Camera, name: str) -> Camera:
 
 @functools.lru_cache(maxsize=1)
 def _bunny_arrays():
-    from pxr import Usd, UsdGeom
     import warp.examples
+    from pxr import Usd, UsdGeom
 
     path = os.path.join(warp.examples.get_asset_directory(), "bunny.usd")
     stage = Usd.Stage.Open(path)
