@@ -9,9 +9,9 @@ import trimesh
 import wtopo
 from wtopo import scenes
 from wtopo.fitting import FitConfig
-from wtopo.fitting.mesh_policy import camera_clearance
 from wtopo.fitting.plan import make_plan
 from wtopo.fitting.scene_kind import NEAR_FRACTION
+from wtopo.metrics import camera_clearance
 
 
 def _small(warmup=40, coevolution=12):

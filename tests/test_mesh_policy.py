@@ -6,7 +6,8 @@ import pytest
 import trimesh
 
 from wtopo import Camera
-from wtopo.fitting.mesh_policy import camera_clearance, crop_near_cameras, crop_to_box, supported_components
+from wtopo.fitting.mesh_policy import crop_near_cameras, crop_to_box, supported_components
+from wtopo.metrics import camera_clearance
 
 
 def _ring_cameras(n=8, radius=4.0, size=64):

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 import trimesh
 
-__all__ = ["crop_to_box", "crop_near_cameras", "camera_clearance", "supported_components"]
+__all__ = ["crop_to_box", "crop_near_cameras", "supported_components"]
 
 _MIN_SUPPORT_VIEWS = 3  # two views triangulate a point; a third guards against chance agreement
 _MIN_AREA_FRACTION = 1e-3  # components below this share of the mesh's area are slivers no view resolves
@@ -42,27 +42,6 @@ def _face_distance(tri: np.ndarray, p: np.ndarray) -> np.ndarray:
     """Exact distance [F] from the point ``p`` [3] to each triangle ``tri`` [F, 3, 3]."""
     closest = trimesh.triangles.closest_point(tri, np.broadcast_to(p, (len(tri), 3)))
     return np.linalg.norm(closest - p, axis=1)
-
-
-def camera_clearance(mesh: trimesh.Trimesh, centers: np.ndarray) -> np.ndarray:
-    """Distance [N] from each camera centre [N, 3] to the nearest point of ``mesh`` (inf when empty)."""
-    out = np.full(len(centers), np.inf)
-    if len(mesh.faces) == 0:
-        return out
-    tri = np.asarray(mesh.triangles)
-    cen = tri.mean(axis=1)
-    rad = np.linalg.norm(tri - cen[:, None], axis=2).max(axis=1)
-    for i, c in enumerate(np.asarray(centers, np.float64)):
-        lower = np.linalg.norm(cen - c, axis=1) - rad  # a lower bound of each face's distance
-        order = np.argsort(lower)
-        best = np.inf
-        for start in range(0, len(order), 4096):  # exact distances in blocks, nearest bounds first
-            blk = order[start:start + 4096]
-            if lower[blk[0]] >= best:
-                break
-            best = min(best, float(_face_distance(tri[blk], c).min()))
-        out[i] = best
-    return out
 
 
 def crop_near_cameras(mesh: trimesh.Trimesh, centers: np.ndarray, near: float) -> tuple[trimesh.Trimesh, int]:
