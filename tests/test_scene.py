@@ -192,3 +192,25 @@ def test_save_load_round_trip_without_masks(tmp_path):
     t = load_scene(tmp_path / "room")
     assert t.masks is None and t.background is None
     torch.testing.assert_close(t.images, s.images, rtol=0, atol=PNG_TOL)
+
+
+def test_forward_facing_rig_gets_a_region_in_front_of_it():
+    """Estimate a region in front of a grid of cameras with parallel axes (LLFF), not an error."""
+    from wtopo import Camera, Scene
+
+    cams = []
+    for x in (-0.5, 0.0, 0.5):
+        for y in (-0.5, 0.0, 0.5):
+            w2c = np.eye(4)
+            w2c[:3, 3] = [-x, -y, 0.0]  # camera at (x, y, 0) looking along +z (OpenCV axes)
+            cams.append(Camera(np.array([[32.0, 0, 32], [0, 32.0, 32], [0, 0, 1]]), w2c, 64, 64))
+    sc = Scene(cams, np.zeros((9, 64, 64, 3), np.float32))
+    lo, hi = sc.region_of_interest()
+    # spread = twice the farthest lateral offset (the corner, sqrt(2) / 2) = sqrt(2), tan(half fov) 1:
+    # the focus lies (1 + 2) * sqrt(2) / 2 in front, radius half that; the two carving passes may
+    # grow the box by 1.5 cells each (cells of 2 radius / 32 and / 48)
+    depth = 1.5 * np.sqrt(2.0)
+    radius, growth = 0.5 * depth, 1.5 * depth * (1 / 32 + 1 / 48)
+    assert lo[2] > 0.0, "the region must lie in front of the cameras"
+    assert np.all(lo <= [0.0, 0.0, depth]) and np.all(hi >= [0.0, 0.0, depth])
+    assert depth - radius - growth <= lo[2] and hi[2] <= depth + radius + growth

@@ -29,6 +29,7 @@ _IMAGE_RANGE_TOL = 1e-4  # images outside [0, 1] by less than this (float roundi
 _UNIT_NORMAL_TOL = 1e-2  # normals must be unit (or 0 = invalid) within this (float32 exports)
 _HULL_GRID = (32, 48)  # visual-hull / frustum grid resolution per axis: coarse pass, refined pass
 _DEGENERATE_SPREAD = 1e-9  # camera centres closer than this (relative to the scene extent) coincide
+_FORWARD_OVERLAP = 2.0  # forward-facing rigs: the frusta's common width at the focus, in rig spreads
 _COLINEAR_RATIO = 1e-6  # second / first singular value of the centred camera centres below this: colinear
 
 
@@ -543,6 +544,26 @@ def _carve(cameras, masks_np, lo, hi, res):
     return g[keep]
 
 
+def _forward_focus(cameras, centers: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """Focus and radius for parallel optical axes (a forward-facing rig, as LLFF): along the mean
+    viewing direction, at the depth where the frusta overlap over ``_FORWARD_OVERLAP`` times the
+    rig's spread (a narrower overlap leaves nothing that 90 % of the cameras see); the radius is half
+    that depth. A guess from the cameras alone: give ``bounds`` or points to do better."""
+    fwd = np.stack([c.forward for c in cameras]).mean(axis=0)
+    norm = float(np.linalg.norm(fwd))
+    if norm < 1e-6:
+        return None, 0.0
+    fwd = fwd / norm
+    lateral = (centers - centers.mean(axis=0)) - np.outer((centers - centers.mean(axis=0)) @ fwd, fwd)
+    spread = 2.0 * float(np.max(np.linalg.norm(lateral, axis=1)))
+    # the narrower half field of view of the rig (pixel extent over focal length)
+    tan_half = min(min(0.5 * c.width / c.K[0, 0], 0.5 * c.height / c.K[1, 1]) for c in cameras)
+    if spread <= 0 or tan_half <= 0:
+        return None, 0.0
+    depth = (1.0 + _FORWARD_OVERLAP) * spread / (2.0 * tan_half)
+    return centers.mean(axis=0) + depth * fwd, 0.5 * depth
+
+
 def _visual_hull_box(cameras, masks) -> tuple[np.ndarray, np.ndarray]:
     centers = np.stack([c.center for c in cameras])
     _check_camera_spread(centers, float(np.max(np.abs(centers))))
@@ -560,10 +581,14 @@ def _visual_hull_box(cameras, masks) -> tuple[np.ndarray, np.ndarray]:
         focus = _converge_point(centers, np.stack(dirs))
     else:
         focus = _converge_point(centers, np.stack([c.forward for c in cameras]))
+    radius = None
+    if focus is None and masks_np is None:
+        focus, radius = _forward_focus(cameras, centers)
     if focus is None:
         raise ValueError("the cameras' viewing rays are parallel, so the region of interest cannot be "
                          "estimated from them; give Scene(bounds=...) or init points")
-    radius = float(np.median(np.linalg.norm(centers - focus, axis=1)))
+    if radius is None:
+        radius = float(np.median(np.linalg.norm(centers - focus, axis=1)))
     lo, hi = focus - radius, focus + radius
     for res in _HULL_GRID:
         kept = _carve(cameras, masks_np, lo, hi, res)
