@@ -482,6 +482,11 @@ def ssim(pred: torch.Tensor, target: torch.Tensor, *, window: int = 11, sigma: f
     Args:
         pred: [H, W, 3] or [N, H, W, 3], float, differentiable; H and W >= ``window``.
         target: same shape.
+        window: side of the Gaussian window [pixels], odd.
+        sigma: standard deviation of the window [pixels].
+        k1: luminance stabiliser, times ``data_range``.
+        k2: contrast stabiliser, times ``data_range``.
+        data_range: value range of the images (1 for [0, 1]).
 
     References:
         Wang, Bovik, Sheikh, Simoncelli, "Image quality assessment: from error visibility to
