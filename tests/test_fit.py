@@ -125,4 +125,6 @@ def test_late_opacity_reset_is_skipped(tiny):
     res = fit(tiny, cfg, progress=False)
     skipped = [e["iteration"] for e in res.report["events"] if e["event"] == "opacity_reset_skipped"]
     assert skipped == [40, 60, 80, 100], skipped  # 20 runs (110 left); stop_fraction 0.8 ends resets at 104
+    ran = [e["iteration"] for e in res.report["events"] if e["event"] == "opacity_reset"]
+    assert ran == [20], ran
     assert all(e["remaining_warmup"] < 100 for e in res.report["events"] if e["event"] == "opacity_reset_skipped")

@@ -188,7 +188,7 @@ def test_background_component_is_named_by_index():
     ("sh_degree", 0),
     ("background", [1.0, 1.0, 1.0]),
     ("runtime.keep_checkpoints", 1),  # the loop raises it to 2
-    ("tsdf.alpha_threshold", 1.5),  # above every alpha: the STABILITY.md empty-TSDF case
+    ("tsdf.alpha_threshold", 1.5),  # above every alpha: the design/stability.md empty-TSDF case
     ("runtime.stop_at", 20),
 ])
 def test_good_values_are_accepted(path, value):

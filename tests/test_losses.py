@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Loss terms of the fit: values on analytic cases and the STABILITY.md section 7 cases."""
+"""Loss terms of the fit: values on analytic cases and the design/stability.md section 7 cases."""
 
 import math
 

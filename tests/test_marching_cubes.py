@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
 """wtopo.ops.marching_cubes: skimage and torch references, per-configuration closedness, sphere
-area and dA/dr, float64 gradchecks and the STABILITY.md section 5 cases."""
+area and dA/dr, float64 gradchecks and the design/stability.md section 5 cases."""
 
 import itertools
 import math

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""poisson_indicator: reference, gradcheck, sphere recovery, padding, and the STABILITY.md section 3/4 cases."""
+"""poisson_indicator: reference, gradcheck, sphere recovery, padding, and the design/stability.md section 3/4 cases."""
 
 import numpy as np
 import pytest

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The documented entry points resolve to what DESIGN.md promises."""
+"""The documented entry points resolve to what design/overview.md promises."""
 
 import types
 

@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
 """rasterize_surfels: forward and VJP against the brute-force torch reference, finite differences,
-an analytic single surfel, distorted cameras, and the STABILITY.md sections 1 and 2 cases."""
+an analytic single surfel, distorted cameras, and the design/stability.md sections 1 and 2 cases."""
 
 import math
 
@@ -211,7 +211,7 @@ def test_single_surfel_facing_camera_is_analytic(device):
     assert out.radii[0] >= 3.4 * s * f / z0  # the alpha cut-off radius, sqrt(2 ln(255 op)) sigma, in pixels
 
 
-# -- STABILITY.md section 1: surfel parameters ---------------------------------------------------
+# -- design/stability.md section 1: surfel parameters ---------------------------------------------------
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -353,7 +353,7 @@ def test_zero_opacity(device):
     _assert_background(out, params, [0.5, 0.5, 0.5], 29, 37)
 
 
-# -- STABILITY.md section 2: ray-surfel geometry --------------------------------------------------
+# -- design/stability.md section 2: ray-surfel geometry --------------------------------------------------
 
 
 def _edge_on(angle, device, offset=0.0):

@@ -180,9 +180,6 @@ class ChamferResult:
     completeness_rel: float
     diagonal: float
 
-    def as_dict(self) -> dict:
-        """The fields as a plain dict."""
-        return dict(self.__dict__)
 
 
 def _chamfer_result(acc: float, comp: float, diag: float) -> ChamferResult:

@@ -398,7 +398,7 @@ class FitConfig:
     """Everything :func:`wtopo.fit` takes, grouped by stage.
 
     ``FitConfig.toposurfel_public()`` returns the settings of the public TopoSurfel code where wtopo
-    can reproduce them (see ``ANCHORS.md``).
+    can reproduce them (see ``design/toposurfel.md``).
 
     Limitations:
         Two differences of the public code are not reproducible here: flattened 3D Gaussians
@@ -442,7 +442,7 @@ class FitConfig:
 
     @staticmethod
     def toposurfel_public() -> FitConfig:
-        """Settings matching the public TopoSurfel code (ANCHORS.md) as far as wtopo supports them:
+        """Settings matching the public TopoSurfel code (design/toposurfel.md) as far as wtopo supports them:
         a long separate initialisation, 1 point per surfel, Poisson without spectral smoothing on the
         initial mesh's box + 10 % at a fine grid with a surface prior, log1p depth loss weight 0.05,
         mesh-normal weight 0, far-from-mesh prune disabled."""

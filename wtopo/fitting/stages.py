@@ -19,6 +19,7 @@ import numpy as np
 import torch
 import trimesh
 
+from ..scene import NORMALIZATION_MARGIN
 from . import densify as dens
 from .config import FinalMethod, FitConfig, NormalFlip, PoissonBox, RenderedDepth
 from .mesh_policy import crop_near_cameras, crop_to_box, supported_components
@@ -37,9 +38,9 @@ from .tsdf import (
 
 __all__ = ["Stage", "ROI_EXTENT", "Renderer", "render_depths", "tsdf_reinit", "final_mesh", "poisson_remesh"]
 
-ROI_EXTENT = 1.0 - 2 * 0.1
+ROI_EXTENT = 1.0 - 2 * NORMALIZATION_MARGIN
 """Side of the region of interest in the internal frame: :meth:`wtopo.Scene.normalization` maps it
-into ``[0.1, 0.9]^3`` (its default margin of 0.1 on every side of the unit cube). Distances given
+into ``[m, 1 - m]^3`` (``m = wtopo.scene.NORMALIZATION_MARGIN`` on every side of the unit cube). Distances given
 relative to the scene extent are multiplied by this."""
 _REINIT_MAX_VIEWS = 64  # the re-initialisation fuses at most this many (evenly spaced) views: enough coverage
 _HYBRID_DISTANCE = 0.02  # hybrid rule: surfels farther than this (extent fraction) from the TSDF mesh keep their

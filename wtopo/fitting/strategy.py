@@ -151,6 +151,7 @@ class DensityStrategy:
             if reset_every and it % reset_every == 0 and it < dc.stop_fraction * W:
                 if W - it >= _RESET_RECOVERY:
                     dens.reset_opacity(surfels, _OPACITY_RESET_VALUE)
+                    self.record("opacity_reset", value=_OPACITY_RESET_VALUE)
                     changed = True
                 else:  # too late: the surfels would reach the TSDF re-initialisation still transparent
                     self.record("opacity_reset_skipped", remaining_warmup=W - it)

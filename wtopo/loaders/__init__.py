@@ -2,7 +2,7 @@
 """Dataset readers: :func:`load_scene` detects the format of a folder and returns a
 :class:`wtopo.Scene` in the dataset's own world frame and units.
 
-Formats (field names and axis conventions in ``FORMATS.md`` section 1): Blender / NeRF-synthetic
+Formats (field names and axis conventions in each loader's module docstring): Blender / NeRF-synthetic
 ``transforms_{train,val,test}.json``; COLMAP ``sparse/0`` (text or binary); DTU
 ``cameras_sphere.npz`` / ``cameras.npz`` (IDR / NeuS layout); nerfstudio ``transforms.json``.
 """
