@@ -122,6 +122,7 @@ def test_late_opacity_reset_is_skipped(tiny):
     cfg = _config(130, 0)
     cfg.tsdf.enabled = False
     cfg.densify.opacity_reset_fraction = 20 / 130  # every 20 iterations
+    cfg.densify.start_fraction = 10 / 130  # density steps (and resets) from iteration 10
     res = fit(tiny, cfg, progress=False)
     skipped = [e["iteration"] for e in res.report["events"] if e["event"] == "opacity_reset_skipped"]
     assert skipped == [40, 60, 80, 100], skipped  # 20 runs (110 left); stop_fraction 0.8 ends resets at 104
