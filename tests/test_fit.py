@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from fit_configs import small_fit_config
 
 from wtopo import Scene, scenes
 from wtopo.fitting import FitAborted, FitConfig, fit
@@ -26,19 +27,9 @@ def tiny():
 
 
 def _config(warmup=30, coevolution=12):
-    cfg = FitConfig()
-    cfg.warmup.iterations = warmup
-    cfg.coevolution.iterations = coevolution
-    cfg.init.num_points = 400
-    cfg.densify.interval = 10  # a cadence (3DGS's 100), not a fraction: scaled to the short warm-up by hand
-    cfg.densify.opacity_reset_fraction = 0
-    cfg.tsdf.resolution, cfg.final.resolution, cfg.mesh.resolution = 48, 48, 32
+    cfg = small_fit_config(warmup, coevolution, points=400, grids=(48, 48, 32), max_faces=1500, density_every=10,
+                           eval_every=10, checkpoint_every=10)
     cfg.final.poisson_resolution = 48
-    cfg.tsdf.max_faces = 1500
-    cfg.runtime.eval_every = 10
-    cfg.runtime.usd_every = 0
-    cfg.runtime.checkpoint_every = 10
-    cfg.runtime.progress = False
     return cfg
 
 

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from fit_configs import small_fit_config
 
 import wtopo
 from wtopo import scenes
@@ -15,17 +16,8 @@ from wtopo.metrics import camera_clearance
 
 
 def _small(warmup=40, coevolution=12):
-    cfg = FitConfig()
-    cfg.warmup.iterations, cfg.coevolution.iterations = warmup, coevolution
-    cfg.init.num_points = 600
-    cfg.densify.interval = 10  # a cadence (3DGS's 100), not a fraction: scaled to the short warm-up by hand
-    cfg.densify.opacity_reset_fraction = 0
-    cfg.tsdf.resolution, cfg.final.resolution, cfg.mesh.resolution = 48, 64, 32
-    cfg.tsdf.max_faces = 1500
-    cfg.runtime.eval_every = 20
-    cfg.runtime.usd_every = 0
-    cfg.runtime.progress = False
-    return cfg
+    return small_fit_config(warmup, coevolution, points=600, grids=(48, 64, 32), max_faces=1500, density_every=10,
+                            eval_every=20)
 
 
 @pytest.fixture(scope="module")

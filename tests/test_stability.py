@@ -50,21 +50,13 @@ def sphere_scene():
 def tiny_config(warmup: int = 12, coevolution: int = 6):
     """A fit of a few seconds on the sphere scene: every stage runs (warm-up with density control,
     TSDF re-initialisation, co-evolution with the proxy mesh and mesh guidance, final TSDF)."""
-    from wtopo.fitting import FitConfig
+    from fit_configs import small_fit_config
 
-    cfg = FitConfig()
-    cfg.warmup.iterations, cfg.coevolution.iterations = warmup, coevolution  # milestones are stage fractions
-    cfg.init.num_points = 300
-    cfg.densify.interval = max(1, warmup // 3)  # a cadence in iterations: 3 density steps in the warm-up
-    cfg.densify.opacity_reset_fraction = 0.0
-    cfg.tsdf.resolution, cfg.final.resolution, cfg.mesh.resolution = 40, 40, 24
-    cfg.tsdf.max_faces = 800
+    # a cadence in iterations: 3 density steps in the warm-up
+    cfg = small_fit_config(warmup, coevolution, points=300, grids=(40, 40, 24), max_faces=800,
+                           density_every=max(1, warmup // 3), eval_every=0)
     cfg.runtime.device = "cpu"
-    cfg.runtime.eval_every = 0
-    cfg.runtime.usd_every = 0
-    cfg.runtime.checkpoint_every = 0
     cfg.runtime.checkpoint_seconds = 0.0
-    cfg.runtime.progress = False
     return cfg
 
 

@@ -1,0 +1,34 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Small fit configurations for tests: every stage runs, in seconds, on scenes of 24-48 px."""
+
+from __future__ import annotations
+
+from wtopo.fitting import FitConfig
+
+
+def small_fit_config(warmup: int, coevolution: int, *, points: int, grids: tuple[int, int, int],
+                     max_faces: int, density_every: int, eval_every: int, checkpoint_every: int = 0) -> FitConfig:
+    """A short CPU-sized fit: no opacity reset, no USD timeline, no progress bars.
+
+    Args:
+        warmup: warm-up iterations (milestones are fractions of it).
+        coevolution: co-evolution iterations.
+        points: initial surfels drawn in the cameras' common volume.
+        grids: ``(tsdf.resolution, final.resolution, mesh.resolution)``.
+        max_faces: faces of the TSDF re-initialisation mesh (one surfel each).
+        density_every: ``densify.interval``, a cadence in iterations (3DGS's 100 is too slow here).
+        eval_every: iterations between history records (0: only at stage ends).
+        checkpoint_every: iterations between checkpoints (0: none on a cadence).
+    """
+    cfg = FitConfig()
+    cfg.warmup.iterations, cfg.coevolution.iterations = warmup, coevolution
+    cfg.init.num_points = points
+    cfg.densify.interval = density_every
+    cfg.densify.opacity_reset_fraction = 0.0
+    cfg.tsdf.resolution, cfg.final.resolution, cfg.mesh.resolution = grids
+    cfg.tsdf.max_faces = max_faces
+    cfg.runtime.eval_every = eval_every
+    cfg.runtime.usd_every = 0
+    cfg.runtime.checkpoint_every = checkpoint_every
+    cfg.runtime.progress = False
+    return cfg
