@@ -203,6 +203,7 @@ class Scene:
     test_indices: object = None
     info: dict = field(default_factory=dict)
     _norm_cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    _roi_cache: list = field(default_factory=list, init=False, repr=False, compare=False)
 
     def __post_init__(self):
         cams = list(self.cameras) if not isinstance(self.cameras, Camera) else [self.cameras]
@@ -401,12 +402,16 @@ class Scene:
         bounds = None
         if self.bounds is not None:
             bounds = (sim.to_internal(self.bounds[0]), sim.to_internal(self.bounds[1]))
+        info = dict(self.info)
+        if "region_of_interest" in info:  # an internal-frame box travels with the frame
+            info["region_of_interest"] = tuple(sim.to_internal(b) for b in info["region_of_interest"])
         return self._replace(
             cameras=[sim.to_internal(c) for c in self.cameras],
             depths=None if self.depths is None else self.depths * float(sim.scale),
             bounds=bounds,
             points=None if self.points is None else sim.to_internal(self.points),
             gt_mesh=None if self.gt_mesh is None else sim.to_internal(self.gt_mesh),
+            info=info,
         )
 
     def normalization(self, *, margin: float = NORMALIZATION_MARGIN) -> Similarity:
@@ -439,16 +444,25 @@ class Scene:
 
     def normalized(self, *, margin: float = NORMALIZATION_MARGIN) -> Scene:
         """The scene in the internal frame of :meth:`normalization`; its ``info["normalization"]``
-        holds that :class:`Similarity`, whose :meth:`~Similarity.to_world` maps results back."""
+        holds that :class:`Similarity`, whose :meth:`~Similarity.to_world` maps results back, and
+        ``info["region_of_interest"]`` the region it fitted, ``(lower [3], upper [3])`` internal units."""
         sim = self.normalization(margin=margin)
         out = self.transformed(sim)
-        out.info = {**self.info, "normalization": sim}
+        lo, hi = self.region_of_interest()
+        out.info = {**out.info, "normalization": sim, "region_of_interest": (sim.to_internal(lo), sim.to_internal(hi))}
         return out
 
     def region_of_interest(self) -> tuple[np.ndarray, np.ndarray]:
-        """The world-frame box ``(lower [3], upper [3])`` (float64) that :meth:`normalization` fits."""
+        """The world-frame box ``(lower [3], upper [3])`` (float64) that :meth:`normalization` fits
+        (estimated once per scene)."""
+        if not self._roi_cache:
+            self._roi_cache.append(self._estimate_region())
+        lo, hi = self._roi_cache[0]
+        return lo.copy(), hi.copy()
+
+    def _estimate_region(self) -> tuple[np.ndarray, np.ndarray]:
         if self.bounds is not None:
-            return self.bounds[0].copy(), self.bounds[1].copy()
+            return self.bounds[0], self.bounds[1]
         if self.masks is not None:
             return _visual_hull_box(self.cameras, self.masks)
         if self.points is not None and len(self.points) >= 8:

@@ -26,8 +26,6 @@ References:
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 
@@ -85,9 +83,9 @@ def background_surfels(scene, layout: SceneLayout, n: int, *, sh_degree: int, op
         cam = cams[i]
         col_f = uv[sel, 0] * cam.width
         row_f = uv[sel, 1] * cam.height
-        dirs = cam.pixel_directions_camera()
         r_i, c_i = np.minimum(row_f.astype(int), cam.height - 1), np.minimum(col_f.astype(int), cam.width - 1)
-        d = dirs[r_i, c_i] @ cam.R  # world direction, camera z = 1
+        _, rays = cam.pixel_rays("cpu", torch.float64)  # cached per camera: world directions, camera z = 1
+        d = rays[r_i, c_i].numpy()
         d = d / np.linalg.norm(d, axis=1, keepdims=True)
         o = cam.center
         # far root of |o + t d - c| = r: every shell lies beyond every camera, so it exists and t > 0
@@ -160,8 +158,3 @@ def prune_near_cameras(surfels: Surfels, state: BackgroundState) -> int:
     surfels.prune(~near)
     return k
 
-
-def background_count(num_points: int) -> int:
-    """Background surfels for ``num_points`` foreground ones: as many again (the background fills
-    most of an unmasked image)."""
-    return int(math.ceil(num_points))

@@ -75,10 +75,6 @@ class Evaluator:
         return {"psnr": float(np.mean(p)), "ssim": float(np.mean(s)),
                 "image_metrics_on": "held_out" if self.held_out else "training"}
 
-    def psnr(self, surfels) -> float:
-        """Mean PSNR [dB] of ``surfels`` rendered in the held-out views."""
-        return self.image_metrics(surfels)["psnr"]
-
     def __call__(self, surfels, *, mesh: trimesh.Trimesh | None = None, proxy=None) -> dict[str, float]:
         """``psnr`` and, of ``mesh`` or else of the proxy mesh (:class:`~wtopo.fitting.proxy.ProxyResult`),
         both internal frame, ``chamfer``, ``f_score``, ``accuracy``, ``completeness`` (relative to the

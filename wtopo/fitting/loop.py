@@ -148,15 +148,13 @@ class FitRun:
         self.last_good: tuple[dict, dict] | None = None  # (surfel, optimiser) state dicts of the last good step
         self.objective = Objective(cfg, self.train, render=self.render, mask_weight=float(self.plan["mask_loss"]),
                                    warmup_end=self.warmup_end, timers=self.timers)
+        # scenes keep a background: contracted steps outside the region, nothing on the lenses
+        self.background = BackgroundState(self.plan.layout, self.device) if self.plan["background_rule"] else None
         self.strategy = DensityStrategy(cfg, densify=bool(self.plan["densify"]), warmup_end=self.warmup_end,
-                                        generator=self.gen, record=self.record, timers=self.timers)
+                                        generator=self.gen, record=self.record, timers=self.timers,
+                                        background=self.background)
         self.evaluator = Evaluator(self.test, internal.gt_mesh, render=self.render, enabled=self.plan["gt_metrics"],
                                    seed=cfg.runtime.seed, images=cfg.runtime.eval_metrics, held_out=held_out)
-        layout = self.plan.layout
-        # scenes keep a background: contracted steps outside the region, nothing on the lenses
-        self.background = BackgroundState(layout, self.device) if self.plan["background_rule"] else None
-        if self.background is not None:
-            self.strategy.outside_roi = self.background.outside_roi
         self.checkpoints = Checkpointer(self, self.out_dir)
         self.stop = StopRequest(lambda signum: self.record("signal", signal=signum))
         self.timeline: FitTimeline | None = None
@@ -272,13 +270,7 @@ class FitRun:
                 if self.strategy.step_pre_forward(stage, self.it, self.surfels, self.proxy):
                     self.snapshot()
                 self._step(stage)
-                changed = self.strategy.step_end(stage, self.it, self.surfels)
-                if self.background is not None and self.strategy.is_density_step(stage, self.it):
-                    removed = prune_near_cameras(self.surfels, self.background)
-                    if removed:
-                        self.record("near_camera_prune", removed=removed)
-                    changed |= removed > 0
-                if changed:
+                if self.strategy.step_end(stage, self.it, self.surfels):
                     self.snapshot()
                 self.it += 1
                 if self.timeline is not None:
@@ -307,7 +299,7 @@ class FitRun:
             if n_bg > 0:
                 bg = background_surfels(self.train, self.plan.layout, n_bg, sh_degree=s.sh_degree,
                                         opacity=self.cfg.init.opacity, device=self.device, generator=self.gen)
-                s.append(*bg.take(torch.arange(len(bg), device=self.device)))
+                s.append(*bg.take(slice(None)))
                 if self.background is not None:  # nothing starts on a lens
                     prune_near_cameras(s, self.background)
             self.set_surfels(s)

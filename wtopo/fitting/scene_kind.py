@@ -98,19 +98,6 @@ class SceneLayout:
         """Half the diagonal of the region of interest."""
         return 0.5 * float(np.linalg.norm(self.roi_upper - self.roi_lower))
 
-    def inside(self, points: np.ndarray, *, grow: float = 0.0) -> np.ndarray:
-        """Boolean [P] mask of ``points`` [P, 3] inside the region of interest grown by ``grow``
-        (a fraction of its longest side) on every side."""
-        pad = grow * float(np.max(self.roi_upper - self.roi_lower))
-        p = np.asarray(points, np.float64)
-        return np.all((p >= self.roi_lower - pad) & (p <= self.roi_upper + pad), axis=1)
-
-    def to_dict(self) -> dict:
-        """JSON-ready kind, capture, region of interest, extent and near distance (no camera centres)."""
-        return {"kind": self.kind.value, "capture": self.capture.value, "roi_lower": self.roi_lower.tolist(),
-                "roi_upper": self.roi_upper.tolist(), "roi_source": self.roi_source,
-                "scene_extent": self.scene_extent, "near": self.near}
-
 
 def _roi_source(scene) -> str:
     if scene.bounds is not None:
@@ -135,9 +122,9 @@ def analyse_layout(scene, kind: SceneKind | str | None = None) -> SceneLayout:
     """
     if scene.bounds is not None:
         lo, hi = (np.asarray(b, np.float64) for b in scene.bounds)
+    elif "region_of_interest" in scene.info:  # what the normalisation estimated (Scene.normalized)
+        lo, hi = (np.asarray(b, np.float64) for b in scene.info["region_of_interest"])
     else:
-        # the normalisation fitted the region of interest into the cube, centred, longest side
-        # filling [m, 1 - m]; ask the scene for it again in the internal frame
         lo, hi = scene.region_of_interest()
     centers = np.stack([c.center for c in scene.cameras]).astype(np.float64)
     forwards = np.stack([c.forward for c in scene.cameras]).astype(np.float64)

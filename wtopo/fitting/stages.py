@@ -120,15 +120,6 @@ def roi_bounds(layout: SceneLayout, resolution: int, truncation_voxels: float) -
     return FusionBounds(lo, hi, voxel, truncation_voxels * voxel)
 
 
-def _light_cleanup(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    """Merge vertices and drop degenerate faces, nothing else (no hole filling: scenes stay open)."""
-    mesh = mesh.copy()
-    mesh.merge_vertices()
-    mesh.update_faces(mesh.nondegenerate_faces())
-    mesh.remove_unreferenced_vertices()
-    return mesh
-
-
 @dataclasses.dataclass
 class Reinit:
     """What :func:`tsdf_reinit` produced.
@@ -243,10 +234,9 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
         mesh = trimesh.Trimesh(pm.verts.detach().cpu().numpy(), pm.faces.cpu().numpy(), process=True)
     info: dict = {}
     if scene:
-        mesh = _light_cleanup(crop_to_box(mesh, layout.roi_lower, layout.roi_upper))
+        mesh = crop_to_box(mesh, layout.roi_lower, layout.roi_upper)
         mesh, info["near_camera_faces_removed"] = crop_near_cameras(mesh, layout.camera_centers, layout.near)
-        if fc.largest_component and len(mesh.faces):
-            mesh = max(mesh.split(only_watertight=False), key=lambda m: len(m.faces))
+        mesh = cleanup_mesh(mesh, largest_component=fc.largest_component, repair=False)
         mesh, info["components"] = supported_components(mesh, cameras, depths)
     else:
         mesh = cleanup_mesh(mesh, largest_component=fc.largest_component)

@@ -22,6 +22,7 @@ from collections.abc import Callable
 import torch
 
 from . import densify as dens
+from .background import BackgroundState, prune_near_cameras
 from .config import FitConfig, NormalFlip, stage_iteration
 from .proxy import ProxyMesh
 from .stages import ROI_EXTENT, Record, Stage
@@ -79,7 +80,7 @@ class DensityStrategy:
     """
 
     def __init__(self, cfg: FitConfig, *, densify: bool, warmup_end: int, generator: torch.Generator,
-                 record: Record, timers: Callable):
+                 record: Record, timers: Callable, background: BackgroundState | None = None):
         self.cfg = cfg
         self.densify = densify
         self.warmup_end = warmup_end
@@ -87,8 +88,9 @@ class DensityStrategy:
         self.record = record
         self.timers = timers
         self.gap = 1.0
-        self.outside_roi: Callable | None = None
-        """Scenes: ``outside_roi(means) -> bool [N]``, the background surfels the geometry-aware prune spares."""
+        self.background = background
+        """Scenes: the region of interest and cameras; background surfels are spared by the
+        geometry-aware prune and surfels on a lens are pruned at every density step."""
 
     # -- hooks ----------------------------------------------------------------------------------------
     def step_pre_forward(self, stage: Stage, it: int, surfels: Surfels, proxy: ProxyMesh) -> bool:
@@ -147,6 +149,11 @@ class DensityStrategy:
                     surfels.buffers["grad_count"].zero_()
             removed = dens.prune_by_opacity(surfels, dc.prune_opacity)
             changed |= removed > 0
+            if self.background is not None:
+                near = prune_near_cameras(surfels, self.background)
+                if near:
+                    self.record("near_camera_prune", removed=near)
+                changed |= near > 0
             reset_every = max(1, stage_iteration(dc.opacity_reset_fraction, W)) if dc.opacity_reset_fraction else 0
             if reset_every and it % reset_every == 0 and it < dc.stop_fraction * W:
                 if W - it >= _RESET_RECOVERY:
@@ -182,8 +189,8 @@ class DensityStrategy:
                                                     max_surfels=self.cfg.runtime.max_surfels, generator=self.gen)
             dist = torch.cat([dist, torch.zeros(len(s) - dist.shape[0], dtype=dist.dtype, device=dist.device)])
         if dc.geometry_prune:
-            if self.outside_roi is not None:  # background surfels are far from the proxy by design
-                dist = torch.where(self.outside_roi(s.means), torch.zeros_like(dist), dist)
+            if self.background is not None:  # background surfels are far from the proxy by design
+                dist = torch.where(self.background.outside_roi(s.means), torch.zeros_like(dist), dist)
             info["pruned"] = dens.geometry_prune(s, dist, max_distance=dc.geometry_prune_distance * ROI_EXTENT,
                                                  max_opacity=dc.geometry_prune_opacity)
         self.record("mesh_guidance", **info)

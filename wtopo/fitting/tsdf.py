@@ -154,8 +154,9 @@ def fuse_depths(cameras: Sequence[Camera], depths: Sequence[np.ndarray], colors:
     return tm
 
 
-def cleanup_mesh(mesh: trimesh.Trimesh, *, largest_component: bool = True) -> trimesh.Trimesh:
-    """Merge vertices, drop degenerate faces, keep the largest component, fill small holes."""
+def cleanup_mesh(mesh: trimesh.Trimesh, *, largest_component: bool = True, repair: bool = True) -> trimesh.Trimesh:
+    """Merge vertices, drop degenerate faces, keep the largest component (``largest_component``), and
+    with ``repair`` fill small holes and orient the faces (``False`` for open scene meshes)."""
     mesh = mesh.copy()
     mesh.merge_vertices()
     mesh.update_faces(mesh.nondegenerate_faces())
@@ -164,9 +165,10 @@ def cleanup_mesh(mesh: trimesh.Trimesh, *, largest_component: bool = True) -> tr
         parts = mesh.split(only_watertight=False)
         if len(parts) > 1:
             mesh = max(parts, key=lambda m: len(m.faces))
-    if not mesh.is_watertight:
-        trimesh.repair.fill_holes(mesh)
-    trimesh.repair.fix_normals(mesh)
+    if repair:
+        if not mesh.is_watertight:
+            trimesh.repair.fill_holes(mesh)
+        trimesh.repair.fix_normals(mesh)
     return mesh
 
 
