@@ -116,9 +116,13 @@ class InitSource(str, enum.Enum):
     """Where the initial surfels come from."""
 
     AUTO = "auto"
-    """The scene's points when it has them (at least 100), else ``CAMERAS``."""
+    """The scene's points when it has them (at least 100); else ``MVS`` for a scene without masks,
+    ``CAMERAS`` for a masked object."""
     POINTS = "points"
     """The scene's points (an error without them)."""
+    MVS = "mvs"
+    """Plane-sweep stereo over the training views (:mod:`wtopo.fitting.mvs`): confirmed depths
+    as oriented points."""
     CAMERAS = "cameras"
     """Random points in the cameras' common volume."""
 
@@ -157,7 +161,7 @@ class InitConfig:
     source: InitSource = InitSource.AUTO
     """Where the initial surfels come from."""
     num_points: int = _f(5000, POSITIVE)
-    """Surfels drawn in the common volume when the scene has no points."""
+    """Surfels drawn in the common volume, or kept of the stereo points, when the scene has no points."""
     background_points: int | None = _f(None, COUNT)
     """Background surfels on shells beyond the cameras (scenes without masks,
     :mod:`wtopo.fitting.background`); ``None``: the plan's (as many as ``num_points`` for a scene,

@@ -1,5 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Stage 1: the initial surfels, from the scene's points or from the cameras' common volume.
+"""Stage 1: the initial surfels, from the scene's points, plane-sweep stereo
+(:mod:`wtopo.fitting.mvs`) or the cameras' common volume.
 
 Without points, candidate positions fill the normalised region of interest and are kept where
 the masks' visual hull (or, without masks, 90 % of the camera frusta) contains them, the test
@@ -7,6 +8,8 @@ the masks' visual hull (or, without masks, 90 % of the camera frusta) contains t
 """
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 import torch
@@ -16,7 +19,9 @@ from ..scene import _carve
 from .config import InitConfig, InitSource
 from .surfels import Surfels
 
-__all__ = ["initial_surfels", "common_volume_points", "projected_colors"]
+__all__ = ["initial_surfels", "common_volume_points", "projected_colors", "spread_subset", "MIN_MVS_POINTS"]
+
+MIN_MVS_POINTS = 100  # fewer confirmed stereo points than this: the capture is too untextured, use CAMERAS
 
 _SCALE_NEIGHBOURS = 3  # initial scale = mean distance to this many nearest neighbours (3DGS)
 _MAX_INIT_SCALE = 0.05  # no initial surfel wider than 5 % of the unit cube (isolated points)
@@ -82,24 +87,70 @@ def projected_colors(scene, points: np.ndarray) -> np.ndarray:
     return out
 
 
+def spread_subset(points: np.ndarray, n: int, generator: torch.Generator) -> np.ndarray:
+    """Indices of at most ``n`` of ``points`` [P, 3] spread evenly in space: one random point per
+    cell of the coarsest grid that has at least ``n`` occupied cells (dense image regions would
+    otherwise take the whole budget)."""
+    if len(points) <= n:
+        return np.arange(len(points))
+    lo = points.min(0)
+    span = float(np.ptp(points, axis=0).max()) or 1.0
+    order = torch.randperm(len(points), generator=generator).numpy()
+    cells = 2
+    while True:
+        key = np.floor((points[order] - lo) / span * cells).astype(np.int64)
+        _, first = np.unique(key, axis=0, return_index=True)
+        if len(first) >= n or cells >= 4096:
+            break
+        cells *= 2
+    pick = order[np.sort(first)]
+    if len(pick) > n:
+        pick = pick[torch.randperm(len(pick), generator=generator).numpy()[:n]]
+    return np.sort(pick)
+
+
+def _stereo_points(scene, cfg: InitConfig, layout, device, generator):
+    """``(points, colours, normals)`` of plane-sweep stereo, thinned to ``cfg.num_points``; ``None``
+    (with a warning) when too few depths are confirmed."""
+    from .mvs import plane_sweep_points
+
+    lo, hi = (np.zeros(3), np.ones(3)) if layout is None else (layout.roi_lower, layout.roi_upper)
+    near = 0.01 if layout is None else layout.near
+    found = plane_sweep_points(scene.cameras, scene.images, lo, hi, near=near, device=device)
+    if len(found.points) < MIN_MVS_POINTS:
+        warnings.warn(f"plane-sweep stereo confirmed {len(found.points)} points (< {MIN_MVS_POINTS}): the images are "
+                      "too untextured; starting from random points in the cameras' common volume", RuntimeWarning,
+                      stacklevel=3)
+        return None
+    keep = spread_subset(found.points, int(cfg.num_points), generator)
+    return found.points[keep], found.colors[keep], found.normals[keep]
+
+
 def initial_surfels(scene, cfg: InitConfig, source: InitSource | str, *, sh_degree: int, device: torch.device,
-                    generator: torch.Generator) -> Surfels:
+                    generator: torch.Generator, layout=None) -> Surfels:
     """Surfels for stage 1 in the internal frame of the normalised ``scene``.
 
-    Scales are the mean distance to ``_SCALE_NEIGHBOURS`` nearest neighbours; rotations random;
-    colours the scene's point colours or the mean colour the points project to.
+    Scales are the mean distance to ``_SCALE_NEIGHBOURS`` nearest neighbours; rotations random
+    (stereo points: facing their reference camera along the depth map's normal); colours the
+    scene's point colours, the stereo reference pixel's, or the mean colour the points project to.
+    ``layout`` (:class:`~wtopo.fitting.scene_kind.SceneLayout`) gives the stereo sweep its region of
+    interest and near distance; without it, the unit cube and 1 % of it.
     """
-    if source == InitSource.POINTS:
+    normals = None
+    stereo = _stereo_points(scene, cfg, layout, device, generator) if source == InitSource.MVS else None
+    if stereo is not None:
+        pts, cols, normals = stereo
+    elif source in (InitSource.MVS, InitSource.CAMERAS):
+        pts = common_volume_points(scene, int(cfg.num_points), generator)
+        cols = projected_colors(scene, pts)
+    elif source == InitSource.POINTS:
         if scene.points is None or len(scene.points) == 0:
             raise ValueError("init.source is 'points' but the scene has no points")
         pts = np.asarray(scene.points, np.float64)
         cols = (np.asarray(scene.point_colors, np.float64) if scene.point_colors is not None
                 else np.full_like(pts, 0.5))
-    elif source == InitSource.CAMERAS:
-        pts = common_volume_points(scene, int(cfg.num_points), generator)
-        cols = projected_colors(scene, pts)
     else:
-        raise ValueError(f"init source must be 'points' or 'cameras', got {source!r}")
+        raise ValueError(f"init source must be 'points', 'mvs' or 'cameras', got {source!r}")
     k = min(_SCALE_NEIGHBOURS + 1, len(pts))
     if k > 1:
         d, _ = cKDTree(pts).query(pts, k=k)
@@ -109,4 +160,6 @@ def initial_surfels(scene, cfg: InitConfig, source: InitSource | str, *, sh_degr
     return Surfels.from_points(torch.as_tensor(pts, dtype=torch.float32, device=device),
                                torch.as_tensor(cols, dtype=torch.float32, device=device),
                                scales=torch.as_tensor(scale, dtype=torch.float32, device=device),
+                               normals=None if normals is None else torch.as_tensor(normals, dtype=torch.float32,
+                                                                                     device=device),
                                opacity=cfg.opacity, sh_degree=sh_degree, generator=generator)

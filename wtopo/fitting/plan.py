@@ -170,9 +170,14 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
 
     # -- initialisation
     n_pts = 0 if points is None else len(points)
-    src = "points" if n_pts >= 100 else "cameras"
-    why = (f"the scene has {n_pts} points" if src == "points"
-           else f"the scene has {n_pts} points (< 100): random points in the cameras' common volume")
+    if n_pts >= 100:
+        src, why = "points", f"the scene has {n_pts} points"
+    elif is_scene and n_views >= 2:
+        src, why = "mvs", (f"the scene has {n_pts} points (< 100) and no masks: plane-sweep stereo over the "
+                           "training views, depths confirmed by their neighbours")
+    else:
+        src, why = "cameras", (f"the scene has {n_pts} points (< 100): random points in the cameras' common volume"
+                               + (" (the masks' visual hull)" if has_masks else ""))
     plan.set("init_source", src, why, None if cfg.init.source == "auto" else cfg.init.source)
 
     # -- masks and background

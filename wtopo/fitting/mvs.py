@@ -1,0 +1,318 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Plane-sweep multi-view stereo: initial points for captures that come without any.
+
+A capture with cameras but no sparse points (DTU, a synthetic rig, a ``transforms.json`` without
+its point cloud) used to start from random points in the cameras' common volume, which a few
+hundred CPU iterations cannot pull onto a textured scene. This module gives every training view a
+depth map by sweeping depth hypotheses through its region-of-interest depth range and scoring each
+by normalised cross-correlation (NCC) of a window against its neighbouring views, keeps the depths
+that the neighbours' own depth maps confirm (forward-backward reprojection), and returns the
+confirmed pixels as coloured, oriented points.
+
+* Neighbours: per reference view, the ``_NEIGHBOURS`` views whose triangulation angle at the
+  region of interest's centre is best scored (a Gaussian around ``_BEST_ANGLE``, wider above it)
+  among those that look the same way (optical axes within 75 degrees).
+* Hypotheses: uniform in inverse depth between the nearest and farthest corner of the region of
+  interest seen from the reference camera (never nearer than the scene's near distance), about
+  one plane per pixel of epipolar travel in the best neighbour (``_MIN_PLANES`` to ``_MAX_PLANES``).
+* Warping uses the cameras' own projection (distortion and skew), so no undistortion is needed.
+* Score: per hypothesis the mean of the best half of the neighbours' NCCs (robust to a neighbour
+  that is occluded there); untextured windows (sky, flat paint) get no depth. The winner's depth is
+  refined by a parabola through its neighbouring hypotheses.
+* Filter: a depth is kept when at least ``_MIN_CONSISTENT`` neighbours' depths reproject to within
+  ``_REPROJ_PIXELS`` px and ``_DEPTH_REL`` relative depth of it.
+
+Everything is torch (CPU or CUDA, the fit's device); nothing here is differentiated.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..camera import Camera
+
+__all__ = ["MVSPoints", "plane_sweep_points", "select_neighbours"]
+
+_NEIGHBOURS = 4  # source views per reference view
+_BEST_ANGLE = 12.0  # degrees: preferred triangulation angle at the region of interest
+_ANGLE_SIGMA_BELOW = 4.0  # degrees: score falls off this fast below the preferred angle ...
+_ANGLE_SIGMA_ABOVE = 15.0  # ... and this fast above it (wide baselines still triangulate)
+_MAX_AXIS_ANGLE = 75.0  # degrees: a neighbour must look within this of the reference's direction
+_WINDOW = 7  # NCC window side, pixels
+_MIN_TEXTURE = 1e-4  # window variance (grey levels in [0, 1]) below this has no depth
+_MIN_SCORE = 0.5  # aggregated NCC a winning hypothesis needs
+_MIN_PLANES, _MAX_PLANES = 48, 192
+_REPROJ_PIXELS = 1.0  # forward-backward reprojection tolerance, pixels
+_DEPTH_REL = 0.01  # relative depth tolerance of the forward-backward check
+_MIN_CONSISTENT = 2  # neighbours that must confirm a depth (fewer when a view has fewer neighbours)
+_CHUNK_BYTES = 256 * 2**20  # bytes of warped neighbour images held at once per reference view
+
+
+@dataclass
+class MVSPoints:
+    """Confirmed plane-sweep points in the cameras' frame.
+
+    Attributes:
+        points: float64 [P, 3] positions (the cameras' units).
+        colors: float64 [P, 3] RGB in [0, 1] of the reference pixel.
+        normals: float64 [P, 3] unit normals facing the reference camera (from the depth map).
+        view_fraction: float, fraction of the views' pixels that kept a depth (a diagnostic).
+    """
+
+    points: np.ndarray
+    colors: np.ndarray
+    normals: np.ndarray
+    view_fraction: float
+
+
+def select_neighbours(cameras: list[Camera], center: np.ndarray, k: int = _NEIGHBOURS) -> list[list[int]]:
+    """For each camera, up to ``k`` neighbour indices, best first (see the module docstring).
+
+    Args:
+        cameras: the views.
+        center: [3] the region of interest's centre, the cameras' units.
+        k: neighbours per view.
+    """
+    c = np.stack([cam.center for cam in cameras])
+    fwd = np.stack([cam.forward for cam in cameras])
+    to_c = c - np.asarray(center, np.float64)[None]
+    to_c /= np.maximum(np.linalg.norm(to_c, axis=1, keepdims=True), 1e-12)
+    tri = np.degrees(np.arccos(np.clip(to_c @ to_c.T, -1.0, 1.0)))
+    axis = np.degrees(np.arccos(np.clip(fwd @ fwd.T, -1.0, 1.0)))
+    sigma = np.where(tri < _BEST_ANGLE, _ANGLE_SIGMA_BELOW, _ANGLE_SIGMA_ABOVE)
+    score = np.exp(-0.5 * ((tri - _BEST_ANGLE) / sigma) ** 2)
+    # parallel rigs (forward-facing): the angle at the centre is small; baseline still separates them
+    dist = np.linalg.norm(c[:, None] - c[None], axis=-1)
+    score = np.where((axis <= _MAX_AXIS_ANGLE) & (dist > 1e-9), score, -1.0)
+    np.fill_diagonal(score, -1.0)
+    out = []
+    for i in range(len(cameras)):
+        order = np.argsort(-score[i], kind="stable")
+        out.append([int(j) for j in order[:k] if score[i, j] > 0])
+    return out
+
+
+class _TorchCam:
+    """A camera's projection and rays as torch tensors on one device (float32)."""
+
+    def __init__(self, cam: Camera, device: torch.device):
+        self.cam = cam
+        f32 = dict(dtype=torch.float32, device=device)
+        self.R = torch.as_tensor(cam.R, **f32)
+        self.t = torch.as_tensor(cam.t, **f32)
+        self.K = torch.as_tensor(cam.K, **f32)
+        self.dist = None if cam.distortion is None else [float(x) for x in cam.distortion]
+        self.origin, self.dirs = cam.pixel_rays(device, torch.float32)  # [H, W, 3] each, dirs z = 1
+        self.W, self.H = cam.width, cam.height
+
+    def project(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """World points [..., 3] -> pixel u, v (continuous, centres at +0.5) and z-depth."""
+        p = x @ self.R.T + self.t
+        z = p[..., 2]
+        zs = torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
+        xn, yn = p[..., 0] / zs, p[..., 1] / zs
+        if self.dist is not None:
+            k1, k2, p1, p2, k3 = self.dist
+            r2 = xn * xn + yn * yn
+            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xn, yn = (xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn),
+                      yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn)
+        u = self.K[0, 0] * xn + self.K[0, 1] * yn + self.K[0, 2]
+        v = self.K[1, 1] * yn + self.K[1, 2]
+        return u, v, z
+
+    def grid(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """Pixel coordinates -> ``grid_sample`` coordinates (align_corners=False)."""
+        return torch.stack([u / self.W * 2 - 1, v / self.H * 2 - 1], dim=-1)
+
+
+def _box_sum(x: torch.Tensor, dim: int) -> torch.Tensor:
+    """Sum over a ``_WINDOW`` run along ``dim`` (zero outside), by a running sum."""
+    h = _WINDOW // 2
+    pad = [0, 0] * (x.ndim - 1 - (dim % x.ndim)) + [h + 1, h]
+    c = torch.cumsum(F.pad(x, pad), dim=dim)
+    n = x.shape[dim]
+    return c.narrow(dim, _WINDOW, n) - c.narrow(dim, 0, n)
+
+
+def _box(x: torch.Tensor) -> torch.Tensor:
+    """Window mean over the last two dims [..., H, W]; border windows average their in-image pixels."""
+    ones = torch.ones(x.shape[-2:], dtype=x.dtype, device=x.device)
+    count = _box_sum(_box_sum(ones, -1), -2)
+    return _box_sum(_box_sum(x, -1), -2) / count
+
+
+def _depth_range(cam: Camera, lower: np.ndarray, upper: np.ndarray, near: float) -> tuple[float, float]:
+    corners = np.array([[(lower, upper)[b >> a & 1][a] for a in range(3)] for b in range(8)])
+    z = corners @ cam.R.T[:, 2] + cam.t[2]
+    inside = bool(np.all(cam.center >= lower) and np.all(cam.center <= upper))
+    lo = near if inside else max(float(z.min()), near)
+    hi = max(float(z.max()), 2.0 * lo)
+    return lo, hi
+
+
+def _n_planes(ref: _TorchCam, src: _TorchCam, lo: float, hi: float) -> int:
+    """About one plane per pixel of epipolar travel of the reference's central pixel."""
+    o = ref.origin[ref.H // 2, ref.W // 2]
+    d = ref.dirs[ref.H // 2, ref.W // 2]
+    u, v, z = src.project(torch.stack([o + d * lo, o + d * hi]))
+    if bool((z <= 0).any()):
+        return _MAX_PLANES
+    travel = float(torch.hypot(u[1] - u[0], v[1] - v[0]))
+    return int(np.clip(math.ceil(travel), _MIN_PLANES, _MAX_PLANES))
+
+
+def _gray(img: torch.Tensor) -> torch.Tensor:
+    return (img @ torch.tensor([0.299, 0.587, 0.114], dtype=img.dtype, device=img.device))
+
+
+def _sweep(ref: _TorchCam, srcs: list[_TorchCam], ref_gray: torch.Tensor, src_gray: torch.Tensor,
+           lo: float, hi: float, n_planes: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Winning depth [H, W] (0: none) and its aggregated NCC [H, W] of one reference view."""
+    H, W = ref.H, ref.W
+    K = len(srcs)
+    inv = torch.linspace(1.0 / lo, 1.0 / hi, n_planes, device=ref_gray.device)
+    r = ref_gray[None, None]
+    mu_r = _box(r)
+    var_r = (_box(r * r) - mu_r * mu_r).clamp_min(0)
+    best_k = max(1, (K + 1) // 2)
+    costs = torch.empty(n_planes, H, W, device=ref_gray.device)
+    chunk = max(1, int(_CHUNK_BYTES // (4 * K * H * W * 6)))
+    srcs_img = src_gray[:, None]  # [K, 1, H, W]
+    for s in range(0, n_planes, chunk):
+        depth = 1.0 / inv[s:s + chunk]  # [P]
+        P = depth.shape[0]
+        x = ref.origin[None] + ref.dirs[None] * depth[:, None, None, None]  # [P, H, W, 3]
+        warped, valid = [], []
+        for k, src in enumerate(srcs):
+            u, v, z = src.project(x)
+            g = src.grid(u, v)  # [P, H, W, 2]
+            w = F.grid_sample(srcs_img[k:k + 1].expand(P, -1, -1, -1), g, mode="bilinear",
+                              padding_mode="zeros", align_corners=False)[:, 0]
+            ok = (z > 0) & (u >= 0) & (u <= src.W) & (v >= 0) & (v <= src.H)
+            warped.append(w)
+            valid.append(ok)
+        w = torch.stack(warped, 1)  # [P, K, H, W]
+        ok = torch.stack(valid, 1)
+        flat = w.reshape(P * K, 1, H, W)
+        mu_s = _box(flat)
+        var_s = (_box(flat * flat) - mu_s * mu_s).clamp_min(0)
+        cov = _box(flat * r) - mu_s * mu_r
+        ncc = (cov / torch.sqrt(var_s * var_r + 1e-12)).reshape(P, K, H, W)
+        ncc = torch.where(ok & (var_s.reshape(P, K, H, W) > _MIN_TEXTURE), ncc, torch.full_like(ncc, -1.0))
+        costs[s:s + P] = ncc.topk(best_k, dim=1).values.mean(1)
+    score, idx = costs.max(0)
+    # parabola through the winner and its neighbours (in plane index, then inverse depth)
+    i0 = idx.clamp(1, n_planes - 2)
+    c_m = costs.gather(0, (i0 - 1)[None])[0]
+    c_0 = costs.gather(0, i0[None])[0]
+    c_p = costs.gather(0, (i0 + 1)[None])[0]
+    den = c_m - 2 * c_0 + c_p
+    off = torch.where(den < -1e-9, 0.5 * (c_m - c_p) / den, torch.zeros_like(den)).clamp(-0.5, 0.5)
+    off = torch.where(idx == i0, off, torch.zeros_like(off))
+    step = inv[1] - inv[0] if n_planes > 1 else inv.new_tensor(0.0)
+    inv_d = inv[idx] + off * step
+    depth = 1.0 / inv_d.clamp_min(1e-12)
+    keep = (score > _MIN_SCORE) & (var_r[0, 0] > _MIN_TEXTURE)
+    return torch.where(keep, depth, torch.zeros_like(depth)), score
+
+
+def _consistent(ref: _TorchCam, depth: torch.Tensor, srcs: list[_TorchCam],
+                src_depths: list[torch.Tensor]) -> torch.Tensor:
+    """Per reference pixel, how many neighbours' depth maps confirm its depth."""
+    x = ref.origin + ref.dirs * depth[..., None]
+    count = torch.zeros_like(depth, dtype=torch.int32)
+    ju, jv = torch.meshgrid(torch.arange(ref.W, device=depth.device) + 0.5,
+                            torch.arange(ref.H, device=depth.device) + 0.5, indexing="xy")
+    for src, sd in zip(srcs, src_depths):
+        u, v, z = src.project(x)
+        ui, vi = u.floor().long(), v.floor().long()
+        inside = (z > 0) & (ui >= 0) & (ui < src.W) & (vi >= 0) & (vi < src.H)
+        ui, vi = ui.clamp(0, src.W - 1), vi.clamp(0, src.H - 1)
+        d_s = sd[vi, ui]
+        y = src.origin[vi, ui] + src.dirs[vi, ui] * d_s[..., None]
+        u2, v2, z2 = ref.project(y)
+        ok = (inside & (d_s > 0) & (depth > 0) & (torch.hypot(u2 - ju, v2 - jv) < _REPROJ_PIXELS)
+              & ((z2 - depth).abs() < _DEPTH_REL * depth))
+        count += ok.int()
+    return count
+
+
+def _normals(ref: _TorchCam, depth: torch.Tensor) -> torch.Tensor:
+    """Unit normals [H, W, 3] from the depth map's central differences, facing the camera; 0 where
+    a neighbour has no depth."""
+    x = ref.origin + ref.dirs * depth[..., None]
+    n = torch.zeros_like(x)
+    dx = x[1:-1, 2:] - x[1:-1, :-2]
+    dy = x[2:, 1:-1] - x[:-2, 1:-1]
+    c = torch.cross(dx, dy, dim=-1)
+    has = (depth[1:-1, 2:] > 0) & (depth[1:-1, :-2] > 0) & (depth[2:, 1:-1] > 0) & (depth[:-2, 1:-1] > 0)
+    c = torch.where(has[..., None], c, torch.zeros_like(c))
+    flip = (c * ref.dirs[1:-1, 1:-1]).sum(-1, keepdim=True) > 0
+    c = torch.where(flip, -c, c)
+    n[1:-1, 1:-1] = c / c.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return n
+
+
+def plane_sweep_points(cameras: list[Camera], images: torch.Tensor, roi_lower: np.ndarray, roi_upper: np.ndarray,
+                       *, near: float, device: torch.device | str = "cpu") -> MVSPoints:
+    """Coloured, oriented points from plane-sweep stereo over every view (module docstring).
+
+    Args:
+        cameras: the training views (any lens model :class:`wtopo.Camera` supports).
+        images: float [N, H, W, 3] RGB in [0, 1], one per camera (sizes may differ only if passed as
+            a list).
+        roi_lower: [3] lower corner of the region of interest, the cameras' units.
+        roi_upper: [3] its upper corner: each view sweeps the depths of the box's corners.
+        near: no hypothesis nearer than this to a camera (the cameras' units, > 0).
+        device: where the sweep runs (the fit's device).
+
+    Returns:
+        :class:`MVSPoints` (empty arrays when nothing is confirmed: an untextured capture).
+    """
+    if len(cameras) < 2:
+        raise ValueError(f"plane-sweep stereo needs at least 2 views, got {len(cameras)}")
+    if not near > 0:
+        raise ValueError(f"near must be > 0, got {near!r}")
+    lower, upper = np.asarray(roi_lower, np.float64), np.asarray(roi_upper, np.float64)
+    dev = torch.device(device)
+    tcams = [_TorchCam(c, dev) for c in cameras]
+    grays = [_gray(torch.as_tensor(images[i], dtype=torch.float32).to(dev)) for i in range(len(cameras))]
+    nbrs = select_neighbours(cameras, 0.5 * (lower + upper))
+    depths = []
+    with torch.no_grad():
+        for i, ref in enumerate(tcams):
+            if not nbrs[i]:
+                depths.append(torch.zeros(ref.H, ref.W, device=dev))
+                continue
+            srcs = [tcams[j] for j in nbrs[i]]
+            if any((s.H, s.W) != (ref.H, ref.W) for s in srcs):
+                raise ValueError("plane-sweep stereo needs views of one size; resize the images first")
+            lo, hi = _depth_range(cameras[i], lower, upper, near)
+            n_planes = _n_planes(ref, srcs[0], lo, hi)
+            d, _ = _sweep(ref, srcs, grays[i], torch.stack([grays[j] for j in nbrs[i]]), lo, hi, n_planes)
+            depths.append(d)
+        pts, cols, nrms = [], [], []
+        kept = total = 0
+        for i, ref in enumerate(tcams):
+            if not nbrs[i]:
+                continue
+            need = min(_MIN_CONSISTENT, len(nbrs[i]))
+            n_ok = _consistent(ref, depths[i], [tcams[j] for j in nbrs[i]], [depths[j] for j in nbrs[i]])
+            nrm = _normals(ref, depths[i])
+            good = (n_ok >= need) & (depths[i] > 0) & (nrm.norm(dim=-1) > 0)
+            total += good.numel()
+            kept += int(good.sum())
+            x = ref.origin + ref.dirs * depths[i][..., None]
+            pts.append(x[good].double().cpu().numpy())
+            cols.append(torch.as_tensor(images[i], dtype=torch.float32)[good.cpu()].double().numpy())
+            nrms.append(nrm[good].double().cpu().numpy())
+    if not pts:
+        z = np.zeros((0, 3))
+        return MVSPoints(z, z.copy(), z.copy(), 0.0)
+    return MVSPoints(np.concatenate(pts), np.concatenate(cols), np.concatenate(nrms), kept / max(total, 1))
