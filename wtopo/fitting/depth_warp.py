@@ -29,6 +29,7 @@ the field's undistorted radius (where a polynomial lens model folds back into th
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,6 +72,9 @@ class PinholeWarp:
             ray (so integer values are source pixel centres), shape [height * width, 2], float32;
             ``None`` for the identity.
         magnification: ``m``, the ideal focal lengths over the source's (1 for the identity).
+        field_radius: largest undistorted normalised radius ``|(x, y)|`` the source image sees; beyond
+            it the lens model folds back into the image, so nothing there is seen (``inf`` for the
+            identity).
 
     Limitations:
         Where depths are sampled nearest (edges, the image border) a depth moves by up to half a
@@ -87,6 +91,7 @@ class PinholeWarp:
     source: np.ndarray | None
     position: np.ndarray | None
     magnification: float
+    field_radius: float = math.inf
 
     @property
     def identity(self) -> bool:
@@ -242,4 +247,4 @@ def _build_warp(cam: Camera) -> PinholeWarp:
     valid = ((col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
              & ((xi ** 2).sum(axis=-1) <= r_max * r_max))
     flat = np.where(valid, row * cam.width + col, cam.width * cam.height).astype(np.int32).ravel()
-    return PinholeWarp(K, width, height, flat, (src - 0.5).reshape(-1, 2).astype(np.float32), m)
+    return PinholeWarp(K, width, height, flat, (src - 0.5).reshape(-1, 2).astype(np.float32), m, r_max)

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 import trimesh
 
+from .._profile import section
 from ..camera import Camera
 from ..scene import NORMALIZATION_MARGIN
 from .depth_warp import pinhole_warp
@@ -87,64 +88,57 @@ def _far_depth(camera: Camera, bounds: FusionBounds) -> float:
 
 
 def fuse_depths(cameras: Sequence[Camera], depths: Sequence[np.ndarray], colors: Sequence[np.ndarray],
-                bounds: FusionBounds) -> trimesh.Trimesh:
+                bounds: FusionBounds, *, backend: str = "open3d",
+                device: torch.device | str = "cpu") -> trimesh.Trimesh:
     """Fuse z-depth maps into a TSDF and extract its mesh, cropped to ``bounds``.
 
-    Each view is integrated along its camera's own per-pixel rays (principal point, skew and
-    OpenCV distortion): a distorted or skewed view's depth and colour are resampled (nearest) onto
-    an ideal pinhole camera of the same pose covering its whole field
-    (:func:`wtopo.fitting.depth_warp.pinhole_warp`); a pinhole view without skew goes straight in.
+    Both backends integrate each view along its camera's own per-pixel rays (principal point, skew
+    and OpenCV distortion) with the same rule: truncation ``bounds.truncation``, per-view depth
+    cut-off at the farthest corner of the bounds, weight 1 per view, depth 0 (or NaN / inf) = no data.
+
+    * ``"open3d"``: Open3D's sparse ``ScalableTSDFVolume`` on the CPU; a distorted or skewed view's
+      depth and colour are first resampled onto an ideal pinhole camera of the same pose covering its
+      whole field (:func:`wtopo.fitting.depth_warp.pinhole_warp`), a pinhole view goes straight in.
+    * ``"warp"``: :func:`wtopo.tsdf_fusion.fuse_tsdf` on ``device`` (CPU or CUDA), projecting every
+      node through the lens directly; the surface is open where no view observed the grid.
 
     Args:
         cameras: one camera per depth map (internal frame).
         depths: z-depth [H, W] float (0 = no measurement), internal units, in the camera's pixel grid.
         colors: RGB [H, W, 3] float in [0, 1].
         bounds: from :func:`auto_bounds`.
+        backend: ``"open3d"`` or ``"warp"`` (:class:`~wtopo.fitting.config.TSDFBackend` values; the fit's
+            plan resolves ``"auto"``).
+        device: where the ``"warp"`` backend fuses.
 
     Returns:
         A vertex-coloured mesh in the internal frame.
 
     Raises:
-        ValueError: a depth or colour map whose size is not its camera's image size.
+        ValueError: a depth or colour map whose size is not its camera's image size, an unknown ``backend``.
         TSDFEmptyError: no surface (every depth empty, or depths in other units than the cameras).
     """
-    import open3d as o3d
-
-    vol = o3d.pipelines.integration.ScalableTSDFVolume(
-        voxel_length=bounds.voxel, sdf_trunc=bounds.truncation,
-        color_type=o3d.pipelines.integration.TSDFVolumeColorType.RGB8)
-    n_valid = 0
+    backend = str(getattr(backend, "value", backend))
+    if backend not in ("open3d", "warp"):
+        raise ValueError(f"backend must be 'open3d' or 'warp', got {backend!r}")
+    views = []
     for cam, dep, col in zip(cameras, depths, colors):
         dep = np.ascontiguousarray(np.nan_to_num(np.asarray(dep, np.float32), nan=0.0, posinf=0.0, neginf=0.0))
         if dep.shape != (cam.height, cam.width) or np.shape(col)[:2] != (cam.height, cam.width):
             raise ValueError(f"depth and colour of camera {cam.name!r} must be [{cam.height}, {cam.width}] "
                              f"(its image size), got {list(dep.shape)} and {list(np.shape(col))}")
-        if not (dep > 0).any():
-            continue
-        n_valid += 1
-        # Open3D takes only a pinhole intrinsic: a distorted or skewed view is first resampled onto
-        # the ideal pinhole camera of the same pose that covers its field (depth_warp).
-        warp = pinhole_warp(cam)
-        dep = np.ascontiguousarray(warp.resample_depth(dep))
-        # Open3D puts pixel centres at integer coordinates; wtopo at +0.5 (camera.py).
-        intr = o3d.camera.PinholeCameraIntrinsic(warp.width, warp.height, warp.K[0, 0], warp.K[1, 1],
-                                                 warp.K[0, 2] - 0.5, warp.K[1, 2] - 0.5)
-        rgb = np.ascontiguousarray(warp.resample((np.clip(np.asarray(col), 0, 1) * 255).astype(np.uint8)))
-        rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
-            o3d.geometry.Image(rgb), o3d.geometry.Image(dep), depth_scale=1.0,
-            depth_trunc=_far_depth(cam, bounds), convert_rgb_to_intensity=False)
-        vol.integrate(rgbd, intr, cam.world_to_camera)
-    mesh = vol.extract_triangle_mesh()
-    v = np.asarray(mesh.vertices)
-    f = np.asarray(mesh.triangles)
-    if n_valid == 0 or f.shape[0] == 0:
+        if (dep > 0).any():
+            views.append((cam, dep, np.clip(np.asarray(col, np.float32), 0, 1)))
+    v = f = c = np.zeros((0, 3))
+    with section("tsdf_fusion"):
+        if views:
+            v, f, c = (_fuse_warp if backend == "warp" else _fuse_open3d)(views, bounds, device)
+    if not views or f.shape[0] == 0:
         raise TSDFEmptyError(
-            f"TSDF fusion of {len(depths)} depth maps ({n_valid} with valid pixels) produced no surface; "
+            f"TSDF fusion of {len(depths)} depth maps ({len(views)} with valid pixels) produced no surface; "
             f"voxel {bounds.voxel:.4g}, truncation {bounds.truncation:.4g} (internal units). Depths must be "
             "z-depths in the cameras' units (Open3D #4419: a wrong depth scale or a cut-off below the scene).")
-    c = np.asarray(mesh.vertex_colors)
-    tm = trimesh.Trimesh(v, f, vertex_colors=(np.clip(c, 0, 1) * 255).astype(np.uint8) if c.size else None,
-                         process=True)
+    tm = trimesh.Trimesh(v, f, vertex_colors=c if c.size else None, process=True)
     inside = np.all((tm.vertices >= bounds.lower - bounds.voxel) & (tm.vertices <= bounds.upper + bounds.voxel), axis=1)
     if not inside.all():
         tm.update_faces(inside[tm.faces].all(axis=1))
@@ -152,6 +146,43 @@ def fuse_depths(cameras: Sequence[Camera], depths: Sequence[np.ndarray], colors:
     if len(tm.faces) == 0:
         raise TSDFEmptyError("TSDF mesh lies entirely outside the automatic bounds")
     return tm
+
+
+def _fuse_open3d(views: list, bounds: FusionBounds, device) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Open3D ``ScalableTSDFVolume`` of ``views`` ``(camera, depth, colour)``: vertices, faces, uint8 colours."""
+    import open3d as o3d
+
+    vol = o3d.pipelines.integration.ScalableTSDFVolume(
+        voxel_length=bounds.voxel, sdf_trunc=bounds.truncation,
+        color_type=o3d.pipelines.integration.TSDFVolumeColorType.RGB8)
+    for cam, dep, col in views:
+        # Open3D takes only a pinhole intrinsic: a distorted or skewed view is first resampled onto
+        # the ideal pinhole camera of the same pose that covers its field (depth_warp).
+        warp = pinhole_warp(cam)
+        dep = np.ascontiguousarray(warp.resample_depth(dep))
+        # Open3D puts pixel centres at integer coordinates; wtopo at +0.5 (camera.py).
+        intr = o3d.camera.PinholeCameraIntrinsic(warp.width, warp.height, warp.K[0, 0], warp.K[1, 1],
+                                                 warp.K[0, 2] - 0.5, warp.K[1, 2] - 0.5)
+        rgb = np.ascontiguousarray(warp.resample((col * 255).astype(np.uint8)))
+        rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(rgb), o3d.geometry.Image(dep), depth_scale=1.0,
+            depth_trunc=_far_depth(cam, bounds), convert_rgb_to_intensity=False)
+        vol.integrate(rgbd, intr, cam.world_to_camera)
+    mesh = vol.extract_triangle_mesh()
+    c = np.asarray(mesh.vertex_colors)
+    return (np.asarray(mesh.vertices), np.asarray(mesh.triangles),
+            (np.clip(c, 0, 1) * 255).astype(np.uint8) if c.size else np.zeros((0, 3), np.uint8))
+
+
+def _fuse_warp(views: list, bounds: FusionBounds, device) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`wtopo.tsdf_fusion.fuse_tsdf` of ``views`` ``(camera, depth, colour)`` on ``device``."""
+    from ..tsdf_fusion import fuse_tsdf
+
+    cams = [cam for cam, _, _ in views]
+    m = fuse_tsdf(cams, [d for _, d, _ in views], [c for _, _, c in views], lower=bounds.lower, upper=bounds.upper,
+                  voxel=bounds.voxel, truncation=bounds.truncation, far=[_far_depth(c, bounds) for c in cams],
+                  device=device)
+    return m.verts.cpu().numpy(), m.faces.cpu().numpy(), m.colors.cpu().numpy()
 
 
 def cleanup_mesh(mesh: trimesh.Trimesh, *, largest_component: bool = True, repair: bool = True) -> trimesh.Trimesh:
