@@ -247,3 +247,26 @@ def test_bad_input_is_rejected_before_any_launch(monkeypatch):
     with pytest.raises(ValueError, match="backend must be 'open3d' or 'warp'"):
         fuse_depths(cams, depths, cols, FusionBounds(np.zeros(3), np.ones(3), 0.1, 0.4), backend="cuda")
     assert not launched
+
+
+def test_plan_picks_the_backend_by_device(monkeypatch):
+    """Choose Warp on CUDA and Open3D on the CPU (Warp without Open3D); honour tsdf.backend."""
+    import importlib.util
+
+    from wtopo import scenes
+    from wtopo.fitting import FitConfig, TSDFBackend
+    from wtopo.fitting.plan import make_plan, resolve_config
+
+    sc = scenes.from_mesh(trimesh.creation.icosphere(subdivisions=2), n_views=8, resolution=24).normalized()
+    cpu = make_plan(sc, FitConfig(), torch.device("cpu"))
+    gpu = make_plan(sc, FitConfig(), torch.device("cuda"))
+    assert cpu["tsdf_backend"] == "open3d" and "CPU" in cpu.decisions["tsdf_backend"].reason
+    assert gpu["tsdf_backend"] == "warp" and "CUDA" in gpu.decisions["tsdf_backend"].reason
+    assert resolve_config(FitConfig(), gpu).tsdf.backend is TSDFBackend.WARP
+    cfg = FitConfig()
+    cfg.tsdf.backend = "warp"
+    p = make_plan(sc, cfg, torch.device("cpu"))
+    assert p["tsdf_backend"] == "warp" and p.decisions["tsdf_backend"].overridden
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "open3d" else real(name, *a))
+    assert make_plan(sc, FitConfig(), torch.device("cpu"))["tsdf_backend"] == "warp"

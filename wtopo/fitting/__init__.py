@@ -48,6 +48,7 @@ from .config import (
     PoissonBox,
     RenderedDepth,
     RuntimeConfig,
+    TSDFBackend,
     TSDFConfig,
     WarmupConfig,
 )
@@ -60,6 +61,6 @@ __all__ = [
     "fit", "FitResult", "FitConfig", "FitAborted", "Plan", "Surfels", "InitConfig", "OptimConfig", "WarmupConfig",
     "TSDFConfig", "CoevolutionConfig", "FinalConfig", "DensifyConfig", "LossConfig", "MeshConfig",
     "RuntimeConfig", "NormalFlip", "DepthLoss", "InitSource", "RenderedDepth", "FinalMethod", "PoissonBox",
-    "SceneKind",
+    "TSDFBackend", "SceneKind",
 ]
 

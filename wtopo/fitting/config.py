@@ -40,6 +40,7 @@ __all__ = [
     "RenderedDepth",
     "FinalMethod",
     "PoissonBox",
+    "TSDFBackend",
     "DepthLoss",
     "config_hash",
     "stage_iteration",
@@ -50,7 +51,7 @@ __all__ = [
 ]
 
 _GRID_MIN = 8  # coarser Poisson / TSDF grids cannot resolve any shape
-_TSDF_MAX = 2048  # Open3D's TSDF volume is sparse (voxel blocks): 2048 voxels per side is still sane
+_TSDF_MAX = 2048  # Open3D's TSDF volume is sparse, the Warp one fused in slabs: 2048 per side stays in memory
 _POISSON_MAX = 1024  # the Poisson grid is dense (FFT): 1024^3 complex nodes already take 8 GiB per buffer
 _SEED_MAX = 2**32 - 1  # NumPy's default_rng and torch.manual_seed (times 1_000_003) both accept this range
 _SH_MAX = 3  # the renderer evaluates SH bands 0..3
@@ -154,6 +155,17 @@ class PoissonBox(str, enum.Enum):
     """The TSDF mesh's box + 10 % (public TopoSurfel code)."""
 
 
+class TSDFBackend(str, enum.Enum):
+    """Which TSDF fusion runs (:func:`wtopo.fitting.tsdf.fuse_depths`)."""
+
+    AUTO = "auto"
+    """The plan's: ``WARP`` on CUDA, ``OPEN3D`` on the CPU (``WARP`` when Open3D is not installed)."""
+    WARP = "warp"
+    """The Warp kernel (:func:`wtopo.tsdf_fusion.fuse_tsdf`) on the fit's device, CPU or CUDA."""
+    OPEN3D = "open3d"
+    """Open3D's sparse ``ScalableTSDFVolume`` on the CPU."""
+
+
 @dataclass(kw_only=True)
 class InitConfig:
     """Stage 1: initial surfels."""
@@ -204,7 +216,7 @@ class WarmupConfig:
 
 @dataclass(kw_only=True)
 class TSDFConfig:
-    """Stage 3 (and the final mesh): TSDF fusion of rendered surfel depth with Open3D.
+    """Stage 3 (and the final mesh): TSDF fusion of rendered surfel depth (Warp or Open3D).
 
     Bounds and truncation are derived from the cameras and the current surfels, never given.
     """
@@ -221,6 +233,9 @@ class TSDFConfig:
     """Pixels whose rendered opacity is below this are not fused."""
     max_faces: int = _f(8000, POSITIVE)
     """The re-initialisation mesh is decimated to at most this many faces (one surfel each)."""
+    backend: TSDFBackend = TSDFBackend.AUTO
+    """Fusion of the re-initialisation and the final TSDF mesh: ``AUTO`` (the plan's: Warp on CUDA,
+    Open3D on the CPU), ``WARP`` or ``OPEN3D``."""
 
 
 @dataclass(kw_only=True)

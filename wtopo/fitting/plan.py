@@ -9,12 +9,13 @@ choice and the plan says so. It is printed at the start of :func:`wtopo.fit` and
 
 from __future__ import annotations
 
+import importlib.util
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
-from .config import FitConfig
+from .config import FitConfig, TSDFBackend
 from .scene_kind import SceneKind, analyse_layout
 
 __all__ = ["Decision", "Plan", "make_plan", "resolve_config"]
@@ -242,6 +243,14 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     # -- stages
     plan.set("tsdf_reinit", cfg.tsdf.enabled, "configuration" if not cfg.tsdf.enabled else
              "re-initialise from fused surfel depth between warm-up and co-evolution")
+    if device.type == "cuda":
+        backend, why = "warp", "CUDA: the Warp TSDF kernel fuses on the GPU"
+    elif importlib.util.find_spec("open3d") is not None:
+        backend, why = "open3d", "CPU: Open3D's sparse voxel blocks"
+    else:
+        backend, why = "warp", "CPU without Open3D: the Warp TSDF kernel"
+    plan.set("tsdf_backend", backend, why,
+             None if cfg.tsdf.backend == TSDFBackend.AUTO else TSDFBackend(cfg.tsdf.backend).value)
     plan.set("mesh_loop", cfg.coevolution.enabled and int(plan["coevolution_iterations"]) > 0,
              "proxy mesh rebuilt and supervising the surfels" if cfg.coevolution.enabled
              else "disabled in the configuration")
@@ -294,4 +303,5 @@ def resolve_config(cfg: FitConfig, plan: Plan) -> FitConfig:
     out.runtime.image_scale = float(plan["image_scale"])
     out.mesh.resolution = int(plan["proxy_resolution"])
     out.final.resolution = int(plan["final_resolution"])
+    out.tsdf.backend = TSDFBackend(plan["tsdf_backend"])
     return out

@@ -154,7 +154,7 @@ def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: 
         bounds = auto_bounds(s.means, s.opacities, resolution=tc.resolution, truncation_voxels=tc.truncation_voxels)
     info = {"reinit_bounds": bounds.to_dict()}
     try:
-        mesh = fuse_depths(cams, depths, colors, bounds)
+        mesh = fuse_depths(cams, depths, colors, bounds, backend=tc.backend, device=device)
     except TSDFEmptyError as e:
         warnings.warn(f"TSDF re-initialisation skipped, keeping the warm-up surfels: {e}", RuntimeWarning,
                       stacklevel=3)
@@ -217,7 +217,8 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
                                  truncation_voxels=cfg.tsdf.truncation_voxels)
         tsdf_info["final_bounds"] = bounds.to_dict()
         try:
-            mesh = fuse_depths(cameras, depths, colors, bounds)
+            mesh = fuse_depths(cameras, depths, colors, bounds, backend=cfg.tsdf.backend,
+                               device=surfels.means.device)
         except TSDFEmptyError as e:
             warnings.warn(f"final TSDF empty, returning the proxy mesh: {e}", RuntimeWarning, stacklevel=3)
             record("final_tsdf_empty", why=str(e))
