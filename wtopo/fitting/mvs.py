@@ -50,6 +50,7 @@ _MIN_PLANES, _MAX_PLANES = 48, 192
 _REPROJ_PIXELS = 1.0  # forward-backward reprojection tolerance, pixels
 _DEPTH_REL = 0.01  # relative depth tolerance of the forward-backward check
 _MIN_CONSISTENT = 2  # neighbours that must confirm a depth (fewer when a view has fewer neighbours)
+_NORMAL_STEP = 2  # pixels between the depth samples a normal is taken from (1 is noisy at sub-pixel depth noise)
 _CHUNK_BYTES = 256 * 2**20  # bytes of warped neighbour images held at once per reference view
 
 
@@ -244,18 +245,24 @@ def _consistent(ref: _TorchCam, depth: torch.Tensor, srcs: list[_TorchCam],
 
 
 def _normals(ref: _TorchCam, depth: torch.Tensor) -> torch.Tensor:
-    """Unit normals [H, W, 3] from the depth map's central differences, facing the camera; 0 where
-    a neighbour has no depth."""
+    """Unit normals [H, W, 3] from the depth map's central differences ``_NORMAL_STEP`` pixels
+    apart, facing the camera; 0 where one of the four has no depth."""
     x = ref.origin + ref.dirs * depth[..., None]
     n = torch.zeros_like(x)
-    dx = x[1:-1, 2:] - x[1:-1, :-2]
-    dy = x[2:, 1:-1] - x[:-2, 1:-1]
+    k = _NORMAL_STEP
+    H, W = depth.shape
+    if min(H, W) <= 2 * k:
+        return n
+    inner = (slice(k, H - k), slice(k, W - k))
+    dx = x[k:H - k, 2 * k:] - x[k:H - k, :W - 2 * k]
+    dy = x[2 * k:, k:W - k] - x[:H - 2 * k, k:W - k]
     c = torch.cross(dx, dy, dim=-1)
-    has = (depth[1:-1, 2:] > 0) & (depth[1:-1, :-2] > 0) & (depth[2:, 1:-1] > 0) & (depth[:-2, 1:-1] > 0)
+    has = ((depth[k:H - k, 2 * k:] > 0) & (depth[k:H - k, :W - 2 * k] > 0) & (depth[2 * k:, k:W - k] > 0)
+           & (depth[:H - 2 * k, k:W - k] > 0))
     c = torch.where(has[..., None], c, torch.zeros_like(c))
-    flip = (c * ref.dirs[1:-1, 1:-1]).sum(-1, keepdim=True) > 0
+    flip = (c * ref.dirs[inner]).sum(-1, keepdim=True) > 0
     c = torch.where(flip, -c, c)
-    n[1:-1, 1:-1] = c / c.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    n[inner] = c / c.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     return n
 
 
