@@ -29,17 +29,25 @@ with the held-out PSNR / SSIM.
 Targets (issue 13; measured, not timed tests): no mesh face within 5 % of the scene extent of any
 camera centre; ROI F1 >= 0.60 (CPU default), >= 0.80 (GPU default); held-out PSNR >= 27 dB (GPU).
 
+``--fit-only`` fits and saves (``mesh.ply``, ``report.json``, ``bench.json`` with the wall time) without
+measuring: for a GPU machine without Open3D or ``../shared``; ``--measure`` then measures those
+saved fits here (same ``--run-dir`` / ``--label``), including the DTU picture.
+
 Commands (the results go into a ``## <label>`` section of ``--out``, other sections are kept)::
 
     PYTHONPATH=. .venv/bin/python benchmarks/real.py --label before --out benchmarks/real.md
     PYTHONPATH=. .venv/bin/python benchmarks/real.py --scenes orbit --device cuda:0 --label gpu
     PYTHONPATH=. .venv/bin/python benchmarks/real.py --dtu --scenes --label dtu_cpu
+    # on the GPU machine, then here:
+    python3 benchmarks/real.py --device cuda:0 --dtu .dtu --fit-only --run-dir $OUT --label gpu
+    PYTHONPATH=. .venv/bin/python benchmarks/real.py --dtu --measure --run-dir <fetched> --label gpu
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import os
 import platform
@@ -85,12 +93,34 @@ def estimated_roi(scene) -> str:
         return f"error: {e}"
 
 
+class _Mode:
+    """How a scene is handled: fit and measure (default), fit and save only, or measure saved fits."""
+
+    fit_only = False
+    measure = False
+
+
 def _fit(scene, cfg, out_dir):
+    """Fit (or, with ``--measure``, load the saved fit of) ``scene`` in ``out_dir``: ``(result, seconds)``."""
+    if _Mode.measure:
+        import types
+
+        import trimesh
+
+        with open(os.path.join(out_dir, "report.json")) as f:
+            report = json.load(f)
+        with open(os.path.join(out_dir, "bench.json")) as f:
+            elapsed = float(json.load(f)["time"])
+        mesh = trimesh.load(os.path.join(out_dir, "mesh.ply"), process=False)
+        return types.SimpleNamespace(mesh=mesh, report=report), elapsed
     if os.path.isdir(out_dir):  # a fit resumes from checkpoints in its out_dir: start afresh
         shutil.rmtree(out_dir)
     t = time.perf_counter()
     res = fit(scene, cfg, out_dir=out_dir, progress=False)
-    return res, time.perf_counter() - t
+    elapsed = time.perf_counter() - t
+    with open(os.path.join(out_dir, "bench.json"), "w") as f:
+        json.dump({"time": elapsed, "device": str(res.report.get("device", cfg.runtime.device))}, f)
+    return res, elapsed
 
 
 def _common(res, elapsed: float) -> dict:
@@ -114,6 +144,10 @@ def run_synthetic(key: str, cfg: FitConfig, run_dir: str, scene_kw: dict) -> dic
         print(f"[{key}] fit failed: {e}", flush=True)
         return {"scene": key, "roi": _roi_text(roi), "roi_estimated": est, "error": str(e),
                 "time": time.perf_counter() - t}
+    if _Mode.fit_only:
+        print(f"[{key}] {elapsed:.0f} s  PSNR {res.report.get('psnr', float('nan')):.2f} (saved, not measured)",
+              flush=True)
+        return {"scene": key, "roi": _roi_text(roi), "roi_estimated": est, **_common(res, elapsed)}
     return measure_synthetic(key, scene, res, elapsed, est, cfg.runtime.seed)
 
 
@@ -149,6 +183,9 @@ def run_dtu(path: str, cfg: FitConfig, run_dir: str) -> dict:
     print(f"[dtu] {len(scene)} views {scene.width}x{scene.height}; ROI {est}", flush=True)
     out = os.path.join(run_dir, "dtu_scan24")
     res, elapsed = _fit(scene, cfg, out)
+    if _Mode.fit_only:
+        print(f"[dtu] {elapsed:.0f} s  PSNR {res.report.get('psnr', float('nan')):.2f} (saved)", flush=True)
+        return {"scene": "dtu_scan24", "roi_estimated": est, **_common(res, elapsed)}
     v, fc = np.asarray(res.mesh.vertices), np.asarray(res.mesh.faces)
     picks = [0, len(scene) // 3, (2 * len(scene)) // 3]
     tiles = [_render_tile(v, fc, scene.cameras[i].scaled(PICTURE_SIZE / max(scene.width, scene.height)))
@@ -230,7 +267,11 @@ def main(argv=None) -> int:
                     help="fit output folders (<run-dir>/<label>/<scene>, replaced)")
     ap.add_argument("--label", default="run", help="section title in --out")
     ap.add_argument("--out", help="markdown file to write the section to (e.g. benchmarks/real.md)")
+    mode = ap.add_mutually_exclusive_group()
+    mode.add_argument("--fit-only", action="store_true", help="fit and save, measure later with --measure")
+    mode.add_argument("--measure", action="store_true", help="measure the fits --fit-only saved in --run-dir")
     args = ap.parse_args(argv)
+    _Mode.fit_only, _Mode.measure = args.fit_only, args.measure
 
     cfg = _config(args.device, args.set)
     kw = {}
