@@ -12,9 +12,16 @@ times of all sections add up to the wall time of the outermost one and nothing i
 the fit's ``"raycast"`` excludes the ``"bvh_build"`` inside it, ``"poisson"`` excludes the
 ``"scatter"`` inside it, ``"render"`` the rasterizer's sections inside it.
 
+A collector may also take ``record(path, self_seconds, seconds)``, called at every section's end
+with the names of the open sections from the outermost (a call tree: ``("tsdf", "tsdf_fusion",
+"marching_cubes")`` is not the proxy's ``("proxy", "marching_cubes")``), and ``sync()``, called
+at every section's start and end: the fit's ``runtime.profile`` passes ``torch.cuda.synchronize``
+so that on CUDA each section is charged its own kernels. Without ``sync`` no section synchronises.
+
 Limitations:
-    Wall-clock host time: on CUDA, kernels still running when a section ends are charged to the
-    section that next synchronises. Sections opened in other threads are not collected.
+    Wall-clock host time: without ``sync``, kernels still running when a section ends on CUDA are
+    charged to the section that next synchronises. Sections opened in other threads (CUDA
+    autograd's backward thread among them) are not collected: they count in the section around.
 """
 
 from __future__ import annotations
@@ -28,23 +35,32 @@ __all__ = ["section"]
 
 
 class _Collector:
-    def __init__(self, add: Callable[[str, float], None]):
+    def __init__(self, add: Callable[[str, float], None], sync: Callable[[], None] | None,
+                 record: Callable[[tuple[str, ...], float, float], None] | None):
         self.add = add
+        self.sync = sync
+        self.record = record
         self.child_time: list[float] = []  # per open section: wall time of its nested sections
+        self.names: list[str] = []  # the open sections, outermost first
 
 
 _ACTIVE: contextvars.ContextVar[_Collector | None] = contextvars.ContextVar("wtopo_profile", default=None)
 
 
 @contextlib.contextmanager
-def section(name: str, add: Callable[[str, float], None] | None = None) -> Iterator[None]:
+def section(name: str, add: Callable[[str, float], None] | None = None, *, sync: Callable[[], None] | None = None,
+            record: Callable[[tuple[str, ...], float, float], None] | None = None) -> Iterator[None]:
     """Time the enclosed block as ``name`` (self time, seconds) when a collector is active.
 
     Args:
         name: section name.
         add: ``add(name, seconds)``; when no collector is active this section becomes one and
             receives its own self time and that of every section nested in it. Ignored inside
-            an active collector (the outer one receives everything).
+            an active collector (the outer one receives everything), as are ``sync`` and ``record``.
+        sync: with ``add``, called at the start and end of this section and of every one nested in it
+            (a device synchronisation).
+        record: with ``add``, ``record(path, self_seconds, seconds)`` at the end of this section and of
+            every one nested in it; ``path`` names the open sections from the outermost to this one.
     """
     col = _ACTIVE.get()
     token = None
@@ -52,16 +68,24 @@ def section(name: str, add: Callable[[str, float], None] | None = None) -> Itera
         if add is None:
             yield
             return
-        col = _Collector(add)
+        col = _Collector(add, sync, record)
         token = _ACTIVE.set(col)
+    if col.sync is not None:
+        col.sync()
     col.child_time.append(0.0)
+    col.names.append(name)
     t = time.perf_counter()
     try:
         yield
     finally:
+        if col.sync is not None:
+            col.sync()
         dt = time.perf_counter() - t
         nested = col.child_time.pop()
         col.add(name, dt - nested)
+        if col.record is not None:
+            col.record(tuple(col.names), dt - nested, dt)
+        col.names.pop()
         if col.child_time:
             col.child_time[-1] += dt
         if token is not None:

@@ -115,6 +115,8 @@ def _config(args):
         cfg.runtime.image_scale = 1.0 / args.downscale
     if args.no_mesh_loop:
         cfg.coevolution.enabled = False
+    if args.profile:
+        cfg.runtime.profile = True
     for item in args.set or ():
         _apply_set(cfg, item)
     return cfg
@@ -193,6 +195,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--set", action="append", metavar="PATH=VALUE",
                    help="set any FitConfig field by its dotted path, after the other flags (repeatable), "
                         "e.g. --set losses.mask=0.5 --set final.method=proxy")
+    f.add_argument("--profile", action="store_true",
+                   help="print the time per stage at the end (runtime.profile; report.json 'profile'); on CUDA "
+                        "each stage then synchronises the device")
     f.add_argument("--quiet", action="store_true", help="no plan, no progress bars")
     f.set_defaults(func=_cmd_fit)
 

@@ -21,13 +21,15 @@ Modules:
 * ``losses``: the loss terms, pure torch and finite for any rendered input;
 * ``densify``: screen-space clone / split, opacity prune and reset, and the mesh-guided steps;
 * ``proxy``: the differentiable proxy mesh (oriented points, Poisson, marching cubes, ray cast);
-* ``tsdf``: Open3D TSDF fusion of rendered surfel depth and the TSDF re-initialisation;
+* ``tsdf``: TSDF fusion of rendered surfel depth (Open3D, or the Warp kernel of :mod:`wtopo.tsdf_fusion`)
+  and the TSDF re-initialisation;
 * ``depth_warp``: resampling a lens camera's depth and colour onto an ideal pinhole camera;
 * ``mesh_policy``: what the returned mesh keeps (which components, by view support);
 * ``evaluate``: history records (losses, timings; Chamfer / F-score / PSNR given a ground truth);
 * ``checkpoint``: atomic, validated, resumable checkpoint files;
 * ``checkpointing``: when checkpoints of a running fit are written and how a fit resumes;
 * ``timeline``: the USD timeline of a fit (cameras, surfels, proxy mesh, final mesh);
+* ``profiling``: the fit's section timers and the ``runtime.profile`` time table per stage;
 * ``progress``: what a running fit shows (tqdm bars) and how it is stopped (SIGINT / SIGTERM).
 """
 

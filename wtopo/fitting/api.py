@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from .checkpoint import versions
 from .config import FitConfig
 from .evaluate import geometry_metrics
 from .loop import FitRun
+from .profiling import format_profile
 from .surfels import Surfels
 from .validate_config import validate_config
 
@@ -33,7 +35,8 @@ class FitResult:
         plan: the stage plan, ``{name: {"value", "reason", "overridden"}}``.
         history: one record per evaluation (iteration, stage, elapsed, stage_times, losses,
             surfels, proxy_faces, held-out psnr / ssim and, with a ground-truth mesh, chamfer / f_score).
-        report: summary (status, times, counts, final metrics, mesh statistics, versions).
+        report: summary (status, times, counts, final metrics, mesh statistics, versions; with
+            ``runtime.profile`` the per-stage time table, ``"profile"``, :meth:`~.profiling.Timers.profile`).
     """
 
     mesh: trimesh.Trimesh
@@ -84,6 +87,8 @@ def _report(run: FitRun, mesh_world: trimesh.Trimesh, scene) -> dict:
         "events": run.events[-50:],
     }
     rep["scene_kind"] = run.plan["scene_kind"]
+    if run.cfg.runtime.profile:
+        rep["profile"] = run.timers.profile(time.perf_counter() - run.t_start)
     for k in ("psnr", "ssim", "image_metrics_on", "chamfer", "f_score", "accuracy", "completeness"):
         if k in final:
             rep[k] = final[k]
@@ -177,4 +182,6 @@ def fit(scene, config: FitConfig | None = None, *, out_dir: str | os.PathLike | 
         line = (f"wtopo fit {r['status']}: {r['iterations']} iterations, {r['elapsed_s']:.1f} s, "
                 f"{r['mesh']['faces']} faces")
         print(line + summary_metrics(r))
+    if cfg.runtime.profile:
+        print(format_profile(result.report["profile"]))
     return result

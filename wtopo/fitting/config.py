@@ -404,6 +404,11 @@ class RuntimeConfig:
     """Abort (with a checkpoint) after this many non-finite steps in a row."""
     progress: bool = True
     """tqdm progress bars (also ``fit(progress=...)``)."""
+    profile: bool = False
+    """Print the time per stage at the end of the fit (total seconds, calls, ms per call, % of the wall
+    time; :mod:`wtopo.fitting.profiling`) and store it in the report's ``"profile"``. On CUDA every timed
+    section then synchronises the device (slower, but each stage is charged its own kernels); off, no
+    section synchronises."""
     image_scale: float | None = _f(None, Range(0.0, 1.0, lo_open=True))
     """Train on images resized by this factor (1.0: full resolution); ``None``: the plan decides
     from the image size and the device."""

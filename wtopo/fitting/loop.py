@@ -15,14 +15,12 @@ from __future__ import annotations
 
 import math
 import time
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 import torch
 import trimesh
 
-from .._profile import section
 from .background import BackgroundState, background_surfels, contract_steps, prune_near_cameras
 from .checkpointing import Checkpointer
 from .config import FitConfig, config_hash
@@ -30,6 +28,7 @@ from .evaluate import Evaluator
 from .init import initial_surfels
 from .objective import LossLog, Objective
 from .plan import Plan, make_plan, resolve_config
+from .profiling import Timers
 from .progress import StageBar, StopRequest
 from .proxy import ProxyMesh, ProxyResult
 from .stages import Renderer, Stage, final_mesh, tsdf_reinit
@@ -44,20 +43,6 @@ _SNAPSHOT_EVERY = 25  # iterations between in-memory "last good" snapshots
 
 class FitAborted(RuntimeError):
     """Too many consecutive non-finite steps; a checkpoint of the last good state was written."""
-
-
-class _Timers:
-    """Self time per named section (``wtopo._profile``): sections nested in a timed block, such as
-    ``"scatter"`` inside ``"poisson"`` or ``"bvh_build"`` inside ``"raycast"``, are subtracted from it."""
-
-    def __init__(self):
-        self.total: dict[str, float] = defaultdict(float)
-
-    def _add(self, name: str, seconds: float) -> None:
-        self.total[name] += seconds
-
-    def __call__(self, name: str):
-        return section(name, add=self._add)
 
 
 def _resolve_device(name: str) -> torch.device:
@@ -114,7 +99,9 @@ class FitRun:
         self.progress = progress and cfg.runtime.progress
         self.out_dir = None if out_dir is None else Path(out_dir)
         self.device = _resolve_device(cfg.runtime.device)
-        self.timers = _Timers()
+        # runtime.profile on CUDA: every section waits for the device (no synchronisation otherwise)
+        profile_sync = cfg.runtime.profile and self.device.type == "cuda"
+        self.timers = Timers((lambda: torch.cuda.synchronize(self.device)) if profile_sync else None)
         self.t_start = time.perf_counter()
         self.elapsed_before = 0.0
         self.sim = scene.normalization()

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 import trimesh
 
+from .._profile import section
 from ..scene import NORMALIZATION_MARGIN
 from . import densify as dens
 from .config import FinalMethod, FitConfig, NormalFlip, PoissonBox, RenderedDepth
@@ -96,7 +97,7 @@ def render_depths(render: Renderer, surfels: Surfels, cameras: Sequence, which: 
     """Depth maps [H, W] (``which`` rendered depth) and colours [H, W, 3] per camera, as NumPy;
     depth is zero where the rendered opacity is below ``alpha_threshold``."""
     depths, colors = [], []
-    with torch.no_grad():
+    with torch.no_grad(), section("render_depths"):
         for cam in cameras:
             out = render(surfels, cam)
             d = out.median_depth if which == RenderedDepth.MEDIAN else out.depth

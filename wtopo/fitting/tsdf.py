@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""TSDF fusion of rendered surfel depth (Open3D 0.19 ``ScalableTSDFVolume``) and the TSDF
-re-initialisation of the surfels.
+"""TSDF fusion of rendered surfel depth (Open3D 0.19 ``ScalableTSDFVolume`` on the CPU, or the Warp
+kernel of :mod:`wtopo.tsdf_fusion` on CPU or CUDA) and the TSDF re-initialisation of the surfels.
 
 Bounds, voxel size, truncation and the per-view depth cut-off are derived from the cameras and
 the current surfels, never given by hand: the bounds are a robust box around the opaque surfels
