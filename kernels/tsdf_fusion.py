@@ -39,6 +39,12 @@ MIN_ABS_TSDF = wp.constant(1.0e-3)
 UNOBSERVED_TSDF = wp.constant(1.0)  # unobserved nodes are outside: they never make an inside region of their own
 DEPTH_NONE_MIN = wp.constant(3.0e38)  # min-depth of a texel holding no valid depth (greater than any depth)
 DEPTH_NONE_MAX = wp.constant(-3.0e38)  # max-depth of a texel holding no valid depth
+# Block test: at most this many texels per axis are read from the depth-range pyramid. The coarser the texels, the
+# wider the window and its depth range (self-occlusion edges, grazing views) and the more blocks pass. Measured on
+# the bunny, 48 views of 160 x 120, 192^3: 2 texels mark 75 % of the blocks, 4: 53 %, 8: 42 %, 16: 39 % (blocks
+# holding a node with TSDF < 1: 22 %; the rest is the box's own depth and its one-node growth); 8 (at most 64 reads)
+# costs 0.07 s against the fusion's 1.5 s there.
+QUERY_TEXELS = wp.constant(8)
 BEHIND = wp.constant(1.0e-12)  # camera depth at or below which a point is behind the camera (depth units)
 
 
@@ -313,10 +319,10 @@ def mark_blocks_kernel(
     A node whose mean TSDF is below 1 is within the band of a view, and every corner of a cell holding
     such a node lies in a block grown by one node that holds it: fusing only active blocks changes no
     cell that can hold a face. The test per view: the box's camera depth range (exact, from its 8
-    corners) against the depth range (pyramid ``levels``, ``(offset, height, width, -)`` per level)
-    over its projected pixel box, grown by ``margin_px`` (+ a quarter of its size for a distorted lens,
-    whose image of a box bulges past its corners' box). A box partly behind the camera or beyond a
-    distorted lens's field is tested against the whole image.
+    corners) against the depth range (pyramid ``levels``, ``(offset, height, width, -)`` per level,
+    at most ``QUERY_TEXELS`` texels per axis) over its projected pixel box, grown by ``margin_px`` (+ a
+    quarter of its size for a distorted lens, whose image of a box bulges past its corners' box). A
+    box partly behind the camera or beyond a distorted lens's field is tested against the whole image.
     """
     n = offset + wp.tid()
     bk = n % vol.nbz
@@ -372,10 +378,10 @@ def mark_blocks_kernel(
                 if umin > umax or vmin > vmax:
                     seen = False  # the box projects outside the image
                 else:
-                    # the finest level at which the pixel box spans at most 2 x 2 texels
-                    span = int(wp.max(umax - umin, vmax - vmin)) + 1
+                    # the finest level at which the pixel box spans at most QUERY_TEXELS texels per axis
                     li = int(0)
-                    while li < nlev - 1 and (1 << li) < span:
+                    while li < nlev - 1 and ((int(umax) >> li) - (int(umin) >> li) >= QUERY_TEXELS
+                                             or (int(vmax) >> li) - (int(vmin) >> li) >= QUERY_TEXELS):
                         li += 1
                     lev = levels[li]
                     c0 = int(umin) >> li
