@@ -270,3 +270,19 @@ def test_plan_picks_the_backend_by_device(monkeypatch):
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "open3d" else real(name, *a))
     assert make_plan(sc, FitConfig(), torch.device("cpu"))["tsdf_backend"] == "warp"
+
+
+def test_reinit_surfels_without_open3d_cover_the_mesh(monkeypatch):
+    """Draw max_faces faces by area when Open3D is missing; their discs add up to the mesh's area."""
+    import importlib.util
+
+    from wtopo.fitting.tsdf import mesh_to_surfels
+
+    mesh = trimesh.creation.icosphere(subdivisions=4)  # 5120 faces
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "open3d" else real(name, *a))
+    s = mesh_to_surfels(mesh, max_faces=500, device="cpu", sh_degree=0, opacity=0.8)
+    assert len(s) == 500
+    area = float((np.pi * s.scales[:, 0] * s.scales[:, 1]).sum().detach())
+    np.testing.assert_allclose(area, mesh.area, rtol=1e-5)
+    np.testing.assert_allclose(s.means.detach().norm(dim=1).numpy(), 1.0, atol=0.01)  # centroids of the sphere's faces

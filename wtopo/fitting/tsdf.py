@@ -11,6 +11,7 @@ the farthest corner of the bounds from that camera.
 
 from __future__ import annotations
 
+import importlib.util
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -33,6 +34,7 @@ _BOX_MARGIN = 0.05  # box grows by this fraction of its longest side on every si
 # farther than one more margin outside the unit cube
 _SCENE_LIMIT = (-NORMALIZATION_MARGIN, 1.0 + NORMALIZATION_MARGIN)
 _MIN_OPACITY = 0.1  # surfels below this opacity do not shape the bounds
+_SAMPLE_SEED = 0  # faces drawn for the re-initialisation without Open3D: the same draw for the same mesh
 
 
 class TSDFEmptyError(RuntimeError):
@@ -209,9 +211,13 @@ def mesh_to_surfels(mesh: trimesh.Trimesh, *, max_faces: int, device: torch.devi
 
     Centre at the centroid, normal = face normal, first tangent along the first edge, both scales
     ``sqrt(area / pi)`` (a disc of one sigma has the triangle's area, so neighbours overlap and the
-    surface is covered from the start), colour the mean of the vertex colours.
+    surface is covered from the start), colour the mean of the vertex colours. The decimation is
+    Open3D's quadric one; without Open3D (a GPU machine may lack it) ``max_faces`` faces are drawn
+    with probability proportional to their area (seeded) and each surfel's disc takes an equal share
+    of the whole mesh's area, so the surface stays covered.
     """
-    if len(mesh.faces) > max_faces:
+    sample = len(mesh.faces) > max_faces and importlib.util.find_spec("open3d") is None
+    if len(mesh.faces) > max_faces and not sample:
         import open3d as o3d
 
         om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
@@ -236,6 +242,12 @@ def mesh_to_surfels(mesh: trimesh.Trimesh, *, max_faces: int, device: torch.devi
     else:
         col = torch.full((f.shape[0], 3), 0.5)
     scale = torch.sqrt(area / np.pi)
+    if sample and area.shape[0] > max_faces:
+        p = area.double().numpy()
+        pick = np.random.default_rng(_SAMPLE_SEED).choice(p.size, size=int(max_faces), replace=False, p=p / p.sum())
+        pick = torch.as_tensor(np.sort(pick))
+        tri, cr, e1, col = tri[pick], cr[pick], e1[pick], col[pick]
+        scale = torch.full((pick.numel(),), float(np.sqrt(p.sum() / pick.numel() / np.pi)))
     s = Surfels.from_points(tri.mean(dim=1), col, scales=scale, normals=cr, tangents=e1, opacity=opacity,
                             sh_degree=sh_degree)
     return _to(s, device)
