@@ -2,7 +2,9 @@
 """Error measures for reconstructed meshes and rendered images.
 
 Geometry (host, float64, SciPy ``cKDTree``): :func:`chamfer`, :func:`chamfer_vertices`,
-:func:`f_score`, :func:`normal_consistency`, :func:`mesh_stats`, and for scenes
+:func:`f_score` (and its two halves with their components and areas: :func:`floaters`, reconstructed
+surface far from the truth, and :func:`holes`, true surface far from the reconstruction),
+:func:`normal_consistency`, :func:`mesh_stats`, and for scenes
 :func:`roi_f_score` (Tanks-and-Temples F-score inside a region of interest) and
 :func:`camera_clearance` (how close a mesh comes to the cameras). Surfaces are sampled uniformly by
 area; distances are exact point-to-triangle distances to the other surface (closest face from
@@ -27,9 +29,13 @@ from scipy.spatial import cKDTree
 __all__ = [
     "ChamferResult",
     "FScore",
+    "Floaters",
+    "Holes",
     "chamfer",
     "chamfer_vertices",
     "f_score",
+    "floaters",
+    "holes",
     "normal_consistency",
     "psnr",
     "ssim",
@@ -522,9 +528,6 @@ def mesh_stats(mesh) -> dict:
         ``area`` and ``volume`` (signed, ``None`` unless watertight).
     """
     v, f = _mesh_arrays("mesh", mesh)
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     used = np.unique(f)
     nv, nf = int(len(used)), int(len(f))
     directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
@@ -536,13 +539,7 @@ def mesh_stats(mesh) -> dict:
     _, dcounts = np.unique(directed, axis=0, return_counts=True) if nf else (None, np.zeros(0))
     watertight = nf > 0 and boundary == 0 and nonmanifold == 0
     winding = bool(watertight and (dcounts == 1).all())
-    if nf:
-        rows = np.repeat(np.arange(nf), 3)
-        adj = coo_matrix((np.ones(3 * nf), (rows, f.reshape(-1))), shape=(nf, len(v))).tocsr()
-        ff = adj @ adj.T
-        ncomp = int(connected_components(ff, directed=False)[0])
-    else:
-        ncomp = 0
+    ncomp = _face_components(f, len(v))[0]
     euler = nv - ne + nf
     tri = v[f]
     cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -556,3 +553,131 @@ def mesh_stats(mesh) -> dict:
         "n_components": ncomp, "euler": int(euler), "genus": genus,
         "area": area, "volume": volume,
     }
+
+
+# -- what a reconstruction adds and misses: floaters and holes -------------------------------------
+def _face_components(f: np.ndarray, n_vertices: int) -> tuple[int, np.ndarray]:
+    """Connected components of faces that share a vertex: ``(count, label [F])``."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    nf = len(f)
+    if nf == 0:
+        return 0, np.zeros(0, np.int64)
+    rows = np.repeat(np.arange(nf), 3)
+    adj = coo_matrix((np.ones(3 * nf), (rows, f.reshape(-1))), shape=(nf, n_vertices)).tocsr()
+    n, label = connected_components(adj @ adj.T, directed=False)
+    return int(n), label.astype(np.int64)
+
+
+def _check_tau(tau) -> float:
+    t = float(tau)
+    if not (math.isfinite(t) and t > 0):
+        raise ValueError(f"tau must be finite and > 0, got {tau!r}")
+    return t
+
+
+@dataclass
+class Floaters:
+    """Reconstructed surface that the ground truth does not explain.
+
+    Attributes:
+        area_fraction: fraction of the reconstruction's area farther than ``tau`` from the ground
+            truth (``1 - precision`` of :func:`f_score` with the same samples).
+        area: that area, in the meshes' units squared.
+        count: connected components of the reconstruction with no point within ``tau`` of the
+            ground truth (detached floaters).
+        count_area: total area of those components.
+        components: connected components of the reconstruction (faces sharing a vertex).
+        tau: the threshold, in the meshes' units.
+    """
+
+    area_fraction: float
+    area: float
+    count: int
+    count_area: float
+    components: int
+    tau: float
+
+
+def floaters(pred, gt, tau: float, *, n_samples: int = _DEFAULT_SAMPLES, seed: int = 0) -> Floaters:
+    """Floaters of reconstruction ``pred`` against the reference ``gt`` at distance ``tau``.
+
+    ``pred`` is sampled uniformly by area (as in :func:`f_score`: the same ``seed`` gives the same
+    samples, so ``area_fraction == 1 - precision``); each sample's exact distance to ``gt``
+    decides whether it is far. A component is a floater when none of its area samples and none of
+    its vertices lies within ``tau`` of ``gt``: the vertices make the count independent of the
+    sampling for small components (a component smaller than the sample spacing still has its
+    corners tested), while a component whose only contact with ``tau`` is inside a face and between
+    samples may be counted as a floater.
+
+    Args:
+        pred: reconstruction (``trimesh.Trimesh`` or ``(verts, faces)``); an empty mesh has no floaters.
+        gt: reference mesh.
+        tau: distance threshold, the meshes' units (e.g. ``0.005 * diagonal``).
+        n_samples: area samples on ``pred``.
+        seed: sampling seed.
+    """
+    t = _check_tau(tau)
+    n = _check_samples(n_samples)
+    pv, pf = _mesh_arrays("pred", pred)
+    if len(pf) == 0:
+        return Floaters(0.0, 0.0, 0, 0.0, 0, t)
+    sp = _Surface("pred", (pv, pf), n, seed)
+    sg = _Surface("gt", gt, 0, seed + 1)
+    area = 0.5 * np.linalg.norm(np.cross(sp.tri[:, 1] - sp.tri[:, 0], sp.tri[:, 2] - sp.tri[:, 0]), axis=1)
+    d = sg.closest(sp.points)[0]
+    far = float((d > t).mean())
+    n_comp, label = _face_components(pf, len(pv))
+    near = np.zeros(n_comp, bool)
+    near[np.unique(label[sp.face_index[d <= t]])] = True
+    vlabel = np.full(len(pv), -1, np.int64)
+    vlabel[pf.reshape(-1)] = np.repeat(label, 3)
+    used = np.nonzero(vlabel >= 0)[0]
+    dv = sg.closest(pv[used])[0]
+    near[np.unique(vlabel[used[dv <= t]])] = True
+    comp_area = np.bincount(label, weights=area, minlength=n_comp)
+    total = float(area.sum())
+    return Floaters(far, far * total, int((~near).sum()), float(comp_area[~near].sum()), n_comp, t)
+
+
+@dataclass
+class Holes:
+    """Reference surface that the reconstruction misses.
+
+    Attributes:
+        area_fraction: fraction of the reference's area farther than ``tau`` from the
+            reconstruction (``1 - recall`` of :func:`f_score` with the same samples); 1 for an
+            empty reconstruction.
+        area: that area, in the meshes' units squared.
+        tau: the threshold, in the meshes' units.
+    """
+
+    area_fraction: float
+    area: float
+    tau: float
+
+
+def holes(pred, gt, tau: float, *, n_samples: int = _DEFAULT_SAMPLES, seed: int = 0) -> Holes:
+    """Holes of reconstruction ``pred``: the area of the reference ``gt`` farther than ``tau`` from it.
+
+    ``gt`` is sampled uniformly by area (the samples of :func:`f_score` with the same ``seed``, so
+    ``area_fraction == 1 - recall``); each sample's exact distance to ``pred`` decides.
+
+    Args:
+        pred: reconstruction (``trimesh.Trimesh`` or ``(verts, faces)``); may be empty.
+        gt: reference mesh.
+        tau: distance threshold, the meshes' units.
+        n_samples: area samples on ``gt``.
+        seed: sampling seed.
+    """
+    t = _check_tau(tau)
+    n = _check_samples(n_samples)
+    sg = _Surface("gt", gt, n, seed + 1)
+    total = float(0.5 * np.linalg.norm(np.cross(sg.tri[:, 1] - sg.tri[:, 0], sg.tri[:, 2] - sg.tri[:, 0]),
+                                       axis=1).sum())
+    if _n_faces("pred", pred) == 0:
+        return Holes(1.0, total, t)
+    d = _Surface("pred", pred, 0, seed).closest(sg.points)[0]
+    frac = float((d > t).mean())
+    return Holes(frac, frac * total, t)

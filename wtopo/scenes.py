@@ -33,7 +33,8 @@ __all__ = ["from_mesh", "load", "names", "bunny_mesh", "rig_cameras", "Photometr
            "ROI_HORIZONTAL_GROWTH"]
 
 RIGS = ("sphere", "hemisphere", "orbit", "forward")
-TEXTURES = ("astronaut", "coffee", "rocket", "chelsea", "colorwheel", "brick", "gravel", "grass", "camera")
+TEXTURES = ("astronaut", "coffee", "rocket", "chelsea", "colorwheel", "brick", "gravel", "grass", "camera", "flat")
+_FLAT_ALBEDO = 0.7  # texture="flat": one grey albedo, so only the shading tells the shape
 _BACKGROUNDS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
 _AMBIENT = 0.3  # light reaching faces turned away from both lights (keeps their texture visible)
 _LIGHTS = ((0.55, 0.95, 0.35), (0.35, -0.25, -0.8))  # (right, up, front) directions of key and fill light
@@ -79,7 +80,9 @@ def _texture(name: str) -> np.ndarray:
     import skimage.data
 
     if name not in TEXTURES:
-        raise ValueError(f"texture must be one of {TEXTURES} (scikit-image's bundled images), got {name!r}")
+        raise ValueError(f"texture must be one of {TEXTURES} (scikit-image's bundled images or 'flat'), got {name!r}")
+    if name == "flat":
+        return np.full((1, 1, 3), _FLAT_ALBEDO, np.float32)
     a = np.asarray(getattr(skimage.data, name)(), dtype=np.float32) / 255.0
     if a.ndim == 2:
         a = np.repeat(a[..., None], 3, axis=2)
@@ -376,7 +379,8 @@ def from_mesh(mesh, *, n_views: int = 32, resolution=128, rig: str = "sphere", t
         n_views: training views.
         resolution: image size, ``int`` or ``(width, height)``.
         rig: camera rig (see :func:`rig_cameras`).
-        texture: scikit-image picture used as the object's albedo (see :data:`TEXTURES`).
+        texture: scikit-image picture used as the object's albedo (see :data:`TEXTURES`), or
+            ``"flat"``: one grey albedo (0.7), so that only the Lambertian shading shows the shape.
         background: ``"black"``, ``"white"`` or 3 floats (constant; masks are returned), or
             ``"room"`` (textured floor, walls and ceiling; no masks) or ``"ground"`` (a textured
             floor under the object, constant black elsewhere; no masks): for these only the object
