@@ -46,8 +46,9 @@ def test_plan_budget_follows_the_device(room):
     """Give CUDA a larger budget than the CPU; honour an explicit image scale."""
     cpu = make_plan(room.normalized(), FitConfig(), torch.device("cpu"))
     gpu = make_plan(room.normalized(), FitConfig(), torch.device("cuda"))
-    for k in ("warmup_iterations", "coevolution_iterations", "max_surfels", "proxy_resolution"):
+    for k in ("warmup_iterations", "coevolution_iterations", "max_surfels", "proxy_resolution", "reinit_faces"):
         assert gpu[k] > cpu[k], k
+    assert gpu["reinit_faces"] < gpu["max_surfels"]  # room to densify after the re-initialisation
     cfg = FitConfig()
     cfg.runtime.image_scale = 0.5
     p = make_plan(room.normalized(), cfg, torch.device("cpu"))

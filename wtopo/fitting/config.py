@@ -231,8 +231,9 @@ class TSDFConfig:
     """Which rendered depth to fuse."""
     alpha_threshold: float = _f(0.5, RATE)
     """Pixels whose rendered opacity is below this are not fused."""
-    max_faces: int = _f(8000, POSITIVE)
-    """The re-initialisation mesh is decimated to at most this many faces (one surfel each)."""
+    max_faces: int | None = _f(None, POSITIVE)
+    """The re-initialisation mesh is decimated to at most this many faces (one surfel each);
+    ``None``: the plan's (CPU 8,000; CUDA a quarter of the surfel cap)."""
     backend: TSDFBackend = TSDFBackend.AUTO
     """Fusion of the re-initialisation and the final TSDF mesh: ``AUTO`` (the plan's: Warp on CUDA,
     Open3D on the CPU), ``WARP`` or ``OPEN3D``."""

@@ -30,6 +30,7 @@ _MIN_EVAL_VIEWS = 12
 # CUDA: the method's schedule shortened to minutes on one GPU (3,000 + 1,000 iterations at ~30 ms).
 _ITERATIONS = {"cpu": (400, 200), "cuda": (3000, 1000)}
 _MAX_SURFELS = {"cpu": 40_000, "cuda": 400_000}
+_REINIT_FACES = 8000  # CPU: faces of the TSDF re-initialisation mesh (one surfel each)
 _PROXY_GRID = {"cpu": (64, 64), "cuda": (128, 256)}  # (min, max) Poisson nodes per side
 _FINAL_GRID = {"cpu": (96, 192), "cuda": (192, 768)}  # (min, max) TSDF voxels along the fusion box
 _PROXY_FOOTPRINTS = 2.0  # proxy grid cell ~ 2 pixel footprints (a finer Poisson grid only adds noise)
@@ -275,6 +276,9 @@ def _budget(plan: Plan, scene, cfg: FitConfig, device: torch.device, layout, ima
     plan.set("warmup_iterations", warm, f"{dev} budget", cfg.warmup.iterations)
     plan.set("coevolution_iterations", coevo, f"{dev} budget", cfg.coevolution.iterations)
     plan.set("max_surfels", _MAX_SURFELS[dev], f"{dev} budget", cfg.runtime.max_surfels)
+    faces = _REINIT_FACES if dev == "cpu" else _MAX_SURFELS[dev] // 4
+    plan.set("reinit_faces", faces, f"{dev} budget: one surfel per face of the re-initialisation mesh"
+             + ("" if dev == "cpu" else ", a quarter of the surfel cap (room to densify)"), cfg.tsdf.max_faces)
     fp = _footprint(scene, layout, image_scale)
     side = float(np.max(layout.roi_upper - layout.roi_lower))
     lo, hi = _PROXY_GRID[dev]
@@ -300,6 +304,7 @@ def resolve_config(cfg: FitConfig, plan: Plan) -> FitConfig:
     out.warmup.iterations = int(plan["warmup_iterations"])
     out.coevolution.iterations = int(plan["coevolution_iterations"])
     out.runtime.max_surfels = int(plan["max_surfels"])
+    out.tsdf.max_faces = int(plan["reinit_faces"])
     out.runtime.image_scale = float(plan["image_scale"])
     out.mesh.resolution = int(plan["proxy_resolution"])
     out.final.resolution = int(plan["final_resolution"])
