@@ -156,7 +156,7 @@ def test_programming_errors_keep_their_traceback(tmp_path, monkeypatch, capsys):
     """Let errors that are not user errors propagate; --traceback re-raises user errors too."""
     import pytest
 
-    def broken(scene):
+    def broken(scene, **kwargs):
         raise KeyError("a bug")
 
     monkeypatch.setattr(cli, "_load", broken)

@@ -6,6 +6,7 @@ Examples::
     wtopo scenes
     wtopo fit bunny --out runs/bunny
     wtopo fit path/to/dataset --out runs/x --iterations 2000 --device cuda
+    wtopo fit path/to/photos --out runs/p    # images only: camera poses by structure from motion
     wtopo fit bunny --out runs/b --set losses.mask=0.5 --set final.method=proxy
     wtopo report runs/bunny
     wtopo export runs/bunny runs/bunny/final.obj
@@ -24,8 +25,9 @@ __all__ = ["main", "build_parser"]
 # Errors a user causes and can fix (a bad path, flag, config value or dataset): reported as one line
 # ``wtopo <command>: error: ...`` with exit code 2, as argparse reports a bad flag. OSError covers
 # unreadable files, permissions and a full disk. Anything else is a bug and keeps its traceback;
-# ``--traceback`` shows it for these too.
-_USER_ERRORS = (ValueError, TypeError, OSError)
+# ``--traceback`` shows it for these too. ModuleNotFoundError: an optional dependency the input needs
+# is missing (pycolmap for a folder of photos); the message says what to install.
+_USER_ERRORS = (ValueError, TypeError, OSError, ModuleNotFoundError)
 _USAGE_ERROR = 2  # argparse's exit status for a usage error
 
 
@@ -36,13 +38,18 @@ class _Parser(argparse.ArgumentParser):
         self.exit(_USAGE_ERROR, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def _load(scene: str):
+def _load(scene: str, *, sfm: bool = False, progress: bool = True):
     from . import scenes
 
+    if sfm and not os.path.isdir(scene):
+        raise ValueError(f"--sfm takes a folder of photographs, got {scene!r}")
     if os.path.exists(scene):
-        from .loaders import load_scene
+        from .loaders import detect_format, load_scene
 
-        return load_scene(scene)
+        fmt = "photos" if sfm else detect_format(scene)
+        if fmt == "photos":  # structure from motion prints its plan and shows progress bars
+            return load_scene(scene, format=fmt, progress=progress)
+        return load_scene(scene, format=fmt)
     if scene in scenes.names():
         return scenes.load(scene)
     raise FileNotFoundError(f"{scene!r} is neither an existing path nor a built-in scene "
@@ -128,7 +135,7 @@ def _cmd_fit(args) -> int:
 
     cfg = _config(args)  # before the scene is loaded: a bad flag is reported at once
     validate_config(cfg)
-    scene = _load(args.scene)
+    scene = _load(args.scene, sfm=args.sfm, progress=not args.quiet)
     result = fit(scene, cfg, out_dir=args.out, progress=not args.quiet)
     if args.quiet:
         r = result.report
@@ -169,7 +176,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     f = sub.add_parser("fit", parents=[common],
                        help="fit a scene and write mesh.ply, surfels.ply, history/report/plan JSON")
-    f.add_argument("scene", help="dataset path (Blender, COLMAP, DTU, nerfstudio) or a built-in name (wtopo scenes)")
+    f.add_argument("scene", help="dataset path (Blender, COLMAP, DTU, nerfstudio, or a folder of photos) or a built-in "
+                   "name (wtopo scenes)")
     f.add_argument("--out", required=True, help="run directory (resumes when it holds checkpoints)")
     f.add_argument("--iterations", type=int, help="total iterations, split evenly between warm-up and co-evolution")
     f.add_argument("--warmup", type=int, help="warm-up iterations")
@@ -198,6 +206,10 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--profile", action="store_true",
                    help="print the time per stage at the end (runtime.profile; report.json 'profile'); on CUDA "
                         "each stage then synchronises the device")
+    f.add_argument("--sfm", action="store_true",
+                   help="camera poses by structure from motion (pycolmap: pip install \"wtopo[sfm]\"), ignoring any "
+                        "cameras the folder has; a folder with images and no cameras gets this without the flag. The "
+                        "model is written to sparse/0 beside the images and reused by the next run")
     f.add_argument("--quiet", action="store_true", help="no plan, no progress bars")
     f.set_defaults(func=_cmd_fit)
 

@@ -6,7 +6,8 @@ Geometry (host, float64, SciPy ``cKDTree``): :func:`chamfer`, :func:`chamfer_ver
 surface far from the truth, and :func:`holes`, true surface far from the reconstruction),
 :func:`normal_consistency`, :func:`mesh_stats`, and for scenes
 :func:`roi_f_score` (Tanks-and-Temples F-score inside a region of interest) and
-:func:`camera_clearance` (how close a mesh comes to the cameras). Surfaces are sampled uniformly by
+:func:`camera_clearance` (how close a mesh comes to the cameras); for recovered camera poses
+:func:`align_similarity` (least-squares similarity between two point sets, Umeyama). Surfaces are sampled uniformly by
 area; distances are exact point-to-triangle distances to the other surface (closest face from
 Open3D's Embree scene, distance recomputed in float64), so the result does not carry the sampling
 density's bias of a plain point-to-point Chamfer.
@@ -44,6 +45,8 @@ __all__ = [
     "ROIFScore",
     "roi_f_score",
     "camera_clearance",
+    "SimilarityAlignment",
+    "align_similarity",
 ]
 
 _DEFAULT_SAMPLES = 100_000
@@ -425,6 +428,77 @@ def camera_clearance(mesh, camera_centers) -> np.ndarray:
     if _n_faces("mesh", mesh) == 0 or len(c) == 0:
         return np.full(len(c), math.inf)
     return _Surface("mesh", mesh, 0, 0).closest(c)[0]
+
+
+@dataclass(frozen=True)
+class SimilarityAlignment:
+    """The least-squares similarity ``target ~ scale * rotation @ source + translation`` found by
+    :func:`align_similarity`, and how far each point stays from its target after it."""
+
+    scale: float
+    """Scale factor, > 0."""
+    rotation: np.ndarray
+    """Proper rotation [3, 3], float64 (determinant +1)."""
+    translation: np.ndarray
+    """Translation [3], float64, the target's units."""
+    residuals: np.ndarray
+    """Distance of each mapped source point from its target [N], float64, the target's units."""
+
+    @property
+    def rms(self) -> float:
+        """Root mean square of :attr:`residuals` (the target's units)."""
+        return float(np.sqrt(np.mean(self.residuals ** 2)))
+
+    def apply(self, points) -> np.ndarray:
+        """Map points [..., 3] of the source frame into the target frame (float64)."""
+        p = np.asarray(points, dtype=np.float64)
+        return self.scale * p @ self.rotation.T + self.translation
+
+
+def align_similarity(source, target) -> SimilarityAlignment:
+    """The similarity (scale, rotation, translation) that best maps ``source`` onto ``target`` in
+    the least-squares sense, in closed form (Umeyama 1991): e.g. camera centres recovered by
+    structure from motion, which live in a frame of their own, onto the true centres.
+
+    Args:
+        source: points [N, 3] (N >= 3, not all on one line), any units.
+        target: corresponding points [N, 3].
+
+    Returns:
+        :class:`SimilarityAlignment` with the residual of every point.
+
+    Raises:
+        ValueError: shapes differ or are not [N >= 3, 3], non-finite values, or ``source`` is
+            degenerate (all points coincide or lie on a line: the rotation is undetermined).
+
+    References:
+        S. Umeyama, "Least-squares estimation of transformation parameters between two point
+        patterns", IEEE TPAMI 13(4), 1991.
+    """
+    x = np.asarray(source, dtype=np.float64)
+    y = np.asarray(target, dtype=np.float64)
+    if x.ndim != 2 or x.shape[1] != 3 or x.shape != y.shape or len(x) < 3:
+        raise ValueError(f"source and target must both have shape [N >= 3, 3], got {list(x.shape)} and "
+                         f"{list(y.shape)}")
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+        raise ValueError("source and target must be finite")
+    mx, my = x.mean(0), y.mean(0)
+    xc, yc = x - mx, y - my
+    var_x = float((xc ** 2).sum(1).mean())
+    u, d, vt = np.linalg.svd(yc.T @ xc / len(x))
+    # the source must span at least a plane; relative to its spread, a second singular value this
+    # small means colinear points (float64 round-off sits near 1e-16)
+    _, sx, _ = np.linalg.svd(xc / max(math.sqrt(var_x), np.finfo(np.float64).tiny))
+    if var_x == 0 or sx[1] < 1e-9 * sx[0]:
+        raise ValueError("source points must not all coincide or lie on one line: the rotation is undetermined")
+    sign = np.ones(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:  # a reflection would fit better: take the best rotation
+        sign[2] = -1.0
+    rot = (u * sign) @ vt
+    scale = float((d * sign).sum() / var_x)
+    trans = my - scale * rot @ mx
+    res = np.linalg.norm(scale * x @ rot.T + trans - y, axis=1)
+    return SimilarityAlignment(scale, rot, trans, res)
 
 
 # -- images -------------------------------------------------------------------------------------

@@ -4,7 +4,9 @@
 
 Formats (field names and axis conventions in each loader's module docstring): Blender / NeRF-synthetic
 ``transforms_{train,val,test}.json``; COLMAP ``sparse/0`` (text or binary); DTU
-``cameras_sphere.npz`` / ``cameras.npz`` (IDR / NeuS layout); nerfstudio ``transforms.json``.
+``cameras_sphere.npz`` / ``cameras.npz`` (IDR / NeuS layout); nerfstudio ``transforms.json``; a
+folder of photographs without cameras (``"photos"``: poses from structure from motion with
+pycolmap, :mod:`wtopo.loaders.sfm`, written as ``sparse/0`` beside the images and read back as COLMAP).
 """
 
 from __future__ import annotations
@@ -15,16 +17,19 @@ from .blender import load_blender, write_blender
 from .colmap import find_colmap_model, load_colmap
 from .dtu import load_dtu
 from .nerfstudio import load_nerfstudio
+from .sfm import SfMError, SfMOptions, find_photos, load_photos, run_sfm
 
 __all__ = ["load_scene", "detect_format", "load_blender", "write_blender", "load_colmap", "load_dtu",
-           "load_nerfstudio"]
+           "load_nerfstudio", "load_photos", "run_sfm", "SfMOptions", "SfMError"]
 
-_LOADERS = {"blender": load_blender, "colmap": load_colmap, "dtu": load_dtu, "nerfstudio": load_nerfstudio}
+_LOADERS = {"blender": load_blender, "colmap": load_colmap, "dtu": load_dtu, "nerfstudio": load_nerfstudio,
+            "photos": load_photos}
 
 
 def detect_format(path: str) -> str:
     """``"blender"``, ``"nerfstudio"``, ``"dtu"`` or ``"colmap"`` for a dataset folder (or a
-    ``transforms*.json`` / ``cameras*.npz`` file)."""
+    ``transforms*.json`` / ``cameras*.npz`` file); ``"photos"`` for a folder of images (or one
+    holding ``images/``) with none of these cameras."""
     p = os.fspath(path)
     if os.path.isfile(p):
         base = os.path.basename(p)
@@ -45,9 +50,12 @@ def detect_format(path: str) -> str:
         return "dtu"
     if find_colmap_model(p) is not None:
         return "colmap"
+    if find_photos(p) is not None:
+        return "photos"
     raise ValueError(f"{p} holds no known dataset: looked for transforms_{{train,val,test}}.json (Blender), "
-                     "transforms.json (nerfstudio), cameras_sphere.npz / cameras.npz (DTU) and "
-                     "cameras.{bin,txt} in ., sparse/0 or sparse (COLMAP)")
+                     "transforms.json (nerfstudio), cameras_sphere.npz / cameras.npz (DTU), "
+                     "cameras.{bin,txt} in ., sparse/0 or sparse (COLMAP) and image files in . or images/ "
+                     "(photos, posed by structure from motion)")
 
 
 def load_scene(path, *, format: str | None = None, **kwargs):
@@ -55,11 +63,16 @@ def load_scene(path, *, format: str | None = None, **kwargs):
 
     Args:
         path: dataset folder (or its ``transforms*.json`` / ``cameras*.npz``).
-        format: force ``"blender"``, ``"colmap"``, ``"dtu"`` or ``"nerfstudio"`` instead of detecting.
-        **kwargs: passed to the reader (``background``, ``downscale``, and per-format options).
+        format: force ``"blender"``, ``"colmap"``, ``"dtu"``, ``"nerfstudio"`` or ``"photos"`` instead
+            of detecting (``"photos"`` ignores any cameras the folder has and poses the images by
+            structure from motion, reusing its earlier ``sparse/0``).
+        **kwargs: passed to the reader (``background``, ``downscale``, and per-format options, e.g.
+            ``progress``, ``out_dir`` and ``options`` of :func:`~wtopo.loaders.sfm.load_photos`).
 
     Raises:
-        ValueError: unknown format, unsupported camera model, bad cameras (naming the camera index).
+        ValueError: unknown format, unsupported camera model, bad cameras (naming the camera index);
+            :class:`~wtopo.loaders.sfm.SfMError` when structure from motion registers too few photos.
+        ModuleNotFoundError: ``"photos"`` without pycolmap (the message says ``pip install "wtopo[sfm]"``).
     """
     p = os.fspath(path)
     fmt = format or detect_format(p)

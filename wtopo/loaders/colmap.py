@@ -206,10 +206,15 @@ def read_model(model_dir: str):
     return cams, imgs, pts
 
 
-def _image_root(path: str, model_dir: str) -> str:
-    for d in (os.path.join(path, "images"), os.path.join(os.path.dirname(os.path.dirname(model_dir)), "images"),
+def _image_root(path: str, model_dir: str, first_name: str | None) -> str:
+    workspace = os.path.dirname(os.path.dirname(model_dir))
+    for d in (os.path.join(path, "images"), os.path.join(workspace, "images"),
               os.path.join(os.path.dirname(model_dir), "images")):
         if os.path.isdir(d):
+            return d
+    # a folder of photos that wtopo's structure from motion gave a model: photos/sparse/0 beside the images
+    for d in (path, workspace):
+        if first_name is not None and os.path.isfile(os.path.join(d, first_name)):
             return d
     raise FileNotFoundError(f"no images/ folder next to the COLMAP model in {path}")
 
@@ -217,14 +222,18 @@ def _image_root(path: str, model_dir: str) -> str:
 def load_colmap(path: str, *, background=None, downscale: float = 1, images_dir: str | None = None):
     """Read a COLMAP workspace (``images/`` + ``sparse/0``), images sorted by name.
 
-    Masks are read from ``masks/<name>`` or ``masks/<name>.png`` when present for every image.
+    Masks are read from ``masks/<name>`` or ``masks/<name>.png`` when present for every image; an
+    RGBA image (a photo whose background a matting tool removed) is composited onto ``background``
+    (black when ``None``) and its alpha is the mask unless a mask file is given (COLMAP itself ignores
+    alpha).
     ``points3D`` become the scene's init points and colours.
 
     Args:
         path: workspace folder (or the model folder itself).
         background: constant background colour the images show, or ``None`` (real background).
         downscale: image size divisor (>= 1).
-        images_dir: image folder, default ``<path>/images``.
+        images_dir: image folder, default ``<path>/images`` (or ``<path>`` itself when it holds the
+            images beside ``sparse/``, as :func:`~wtopo.loaders.sfm.run_sfm` leaves a folder of photos).
 
     Images the model lists whose file is missing are skipped with one warning naming them.
 
@@ -241,7 +250,7 @@ def load_colmap(path: str, *, background=None, downscale: float = 1, images_dir:
     if model_dir is None:
         raise FileNotFoundError(f"no COLMAP model (cameras.bin/.txt) in {path}, {path}/sparse/0 or {path}/sparse")
     cams, imgs, pts = read_model(model_dir)
-    root = images_dir or _image_root(path, model_dir)
+    root = images_dir or _image_root(path, model_dir, min((v[3] for v in imgs.values()), default=None))
     mask_root = os.path.join(os.path.dirname(root), "masks")
     listing, cameras_file = _model_file(model_dir, "images")[0], _model_file(model_dir, "cameras")[0]
     stack = ImageStack(downscale, parse_background(background), source=listing)
@@ -268,7 +277,7 @@ def load_colmap(path: str, *, background=None, downscale: float = 1, images_dir:
             if os.path.isfile(mp):
                 mask = read_mask(mp)
                 break
-        stack.add(cam, read_image(image_file)[..., :3], mask)
+        stack.add(cam, read_image(image_file), mask)  # RGBA: composited onto the background, alpha is the mask
     cameras, images, masks = stack.arrays()
     points, colors = (None, None) if pts is None or len(pts[0]) == 0 else pts
     return Scene(cameras, images, masks=masks, points=points, point_colors=colors,
