@@ -64,13 +64,16 @@ def test_only_a_profiled_cuda_fit_synchronises(tiny, device):
 
 
 @pytest.mark.slow
-def test_profiled_fit_reports_every_stage_within_the_wall_time(tiny, tmp_path, capsys):
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs CUDA"))])
+def test_profiled_fit_reports_every_stage_within_the_wall_time(tiny, tmp_path, capsys, device):
     """Print and store the stage table of a tiny fit: every stage, calls, sums within the wall time."""
     cfg = small_fit_config(24, 8, points=300, grids=(32, 40, 32), max_faces=800, density_every=8, eval_every=16,
                            checkpoint_every=16)
     cfg.densify.start_fraction = 0.0
     cfg.tsdf.backend = "warp"  # the Warp fusion in a fit, end to end
     cfg.runtime.profile = True
+    cfg.runtime.device = device
     res = fit(tiny, cfg, out_dir=tmp_path, progress=False)
     prof = res.report["profile"]
     rows = {r["path"]: r for r in prof["rows"]}
@@ -85,7 +88,7 @@ def test_profiled_fit_reports_every_stage_within_the_wall_time(tiny, tmp_path, c
     assert abs(sum(r["total_s"] for r in tops) - prof["sections_s"]) < 1e-2
     assert 0 < prof["sections_s"] <= prof["wall_s"]
     assert sum(r["percent_wall"] for r in tops) <= 100.0 + 1e-6
-    assert prof["synchronized"] is False  # CPU: nothing to synchronise
+    assert prof["synchronized"] is device.startswith("cuda")  # the CPU has nothing to synchronise
     out = capsys.readouterr().out
     for label in ("wtopo fit profile", "render forward", "backward", "losses", "optimizer", "density control",
                   "proxy mesh", "marching cubes", "BVH build", "TSDF re-initialisation", "TSDF fusion",

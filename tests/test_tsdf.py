@@ -8,6 +8,8 @@ rerun the old behaviour (the pinhole intrinsic on distorted depth) to show it fa
 tolerances.
 """
 
+import importlib.util
+
 import numpy as np
 import pytest
 import torch
@@ -22,7 +24,9 @@ from wtopo.scenes import rig_cameras
 
 # Open3D (CPU) resamples a lens view onto an ideal pinhole camera; the Warp kernel projects through the
 # lens itself (wtopo.tsdf_fusion), on the CPU and on CUDA where there is one.
-BACKENDS = [("open3d", "cpu"), ("warp", "cpu"),
+BACKENDS = [pytest.param("open3d", "cpu", marks=pytest.mark.skipif(importlib.util.find_spec("open3d") is None,
+                                                                     reason="needs Open3D")),
+            ("warp", "cpu"),
             pytest.param("warp", "cuda:0", marks=pytest.mark.skipif(not torch.cuda.is_available(),
                                                                     reason="needs CUDA"))]
 
