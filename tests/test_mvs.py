@@ -39,15 +39,17 @@ def plane():
 
 def test_plane_points_lie_on_the_plane_and_face_up(plane):
     sc, res = plane
-    assert len(res.points) > 1000, "the sweep confirmed too few depths on a textured plane"
+    assert len(res.points) > 4000, "the sweep confirmed too few depths on a textured plane"
     px = _footprint(sc)
     err = np.abs(res.points[:, 2])
-    # measured (10 views of 64 x 48 px, 40-degree baselines): median 0.47, 95th percentile 1.5 pixel
-    # footprints; a wrong projection or sweep puts them tens of footprints off
-    assert np.median(err) < 1.0 * px and np.quantile(err, 0.95) < 2.5 * px
-    # the 7-px NCC window fattens the quad's edge against the black background by up to ~3 px
-    assert np.all(np.abs(res.points[:, :2]) < 1.0 + 4 * px), "points outside the textured quad"
-    assert np.median(res.normals[:, 2]) > 0.9, "normals do not face the cameras above the plane"
+    # measured (10 views of 64 x 48 px, 40-degree baselines; the level-plane family warps the quad
+    # exactly): median 0.11, 95th percentile 0.39 pixel footprints (camera-facing planes alone: 0.47 /
+    # 1.5); a wrong projection or sweep puts them tens of footprints off
+    assert np.median(err) < 0.3 * px and np.quantile(err, 0.95) < 1.0 * px
+    # the 7-px window fattens the quad's edge into the black (depth-ambiguous) background: measured
+    # up to 5.5 px
+    assert np.all(np.abs(res.points[:, :2]) < 1.0 + 7 * px), "points far outside the textured quad"
+    assert np.median(res.normals[:, 2]) > 0.99, "normals do not face the cameras above the plane"
     np.testing.assert_allclose(np.linalg.norm(res.normals, axis=1), 1.0, atol=1e-5)
     assert np.all((res.colors >= 0) & (res.colors <= 1))
 

@@ -12,9 +12,14 @@ confirmed pixels as coloured, oriented points.
 * Neighbours: per reference view, the ``_NEIGHBOURS`` views whose triangulation angle at the
   region of interest's centre is best scored (a Gaussian around ``_BEST_ANGLE``, wider above it)
   among those that look the same way (optical axes within 75 degrees).
-* Hypotheses: uniform in inverse depth between the nearest and farthest corner of the region of
-  interest seen from the reference camera (never nearer than the scene's near distance), about
-  one plane per pixel of epipolar travel in the best neighbour (``_MIN_PLANES`` to ``_MAX_PLANES``).
+* Hypotheses: two plane families (multi-direction plane sweep). Planes facing the reference camera,
+  uniform in inverse depth between the nearest and farthest corner of the region of interest seen
+  from it (never nearer than the scene's near distance), about one plane per pixel of epipolar
+  travel in the best neighbour (``_MIN_PLANES`` to ``_MAX_PLANES``); and, when the cameras agree on
+  an up direction, level planes across it spanning the region's height: a ground or table seen at
+  a grazing angle is foreshortened too much for a camera-facing window to match, a level plane
+  warps it exactly. Each pixel keeps the family that matches best; a level winner takes the up
+  direction as its normal.
 * Warping uses the cameras' own projection (distortion and skew), so no undistortion is needed.
 * Score: per hypothesis the mean of the best half of the neighbours' NCCs (robust to a neighbour
   that is occluded there); untextured windows (sky, flat paint) get no depth. The winner's depth is
@@ -43,6 +48,7 @@ _BEST_ANGLE = 12.0  # degrees: preferred triangulation angle at the region of in
 _ANGLE_SIGMA_BELOW = 4.0  # degrees: score falls off this fast below the preferred angle ...
 _ANGLE_SIGMA_ABOVE = 15.0  # ... and this fast above it (wide baselines still triangulate)
 _MAX_AXIS_ANGLE = 75.0  # degrees: a neighbour must look within this of the reference's direction
+_UP_AGREEMENT = 0.7  # the cameras' up axes must agree this much for a level-plane sweep
 _WINDOW = 7  # NCC window side, pixels
 _MIN_TEXTURE = 1e-4  # window variance (grey levels in [0, 1]) below this has no depth
 _MIN_SCORE = 0.5  # aggregated NCC a winning hypothesis needs
@@ -69,6 +75,15 @@ class MVSPoints:
     colors: np.ndarray
     normals: np.ndarray
     view_fraction: float
+
+
+def capture_up(cameras: list[Camera]) -> np.ndarray | None:
+    """The capture's up direction [3]: the mean of the cameras' image-up axes when they agree (mean
+    length >= ``_UP_AGREEMENT``: phones held upright, orbits, rigs), else ``None``."""
+    ups = np.stack([-cam.R[1] for cam in cameras])  # OpenCV: image y points down
+    m = ups.mean(0)
+    n = float(np.linalg.norm(m))
+    return m / n if n >= _UP_AGREEMENT else None
 
 
 def select_neighbours(cameras: list[Camera], center: np.ndarray, k: int = _NEIGHBOURS) -> list[list[int]]:
@@ -172,12 +187,52 @@ def _gray(img: torch.Tensor) -> torch.Tensor:
     return (img @ torch.tensor([0.299, 0.587, 0.114], dtype=img.dtype, device=img.device))
 
 
+class _Fronto:
+    """Planes facing the reference camera, uniform in inverse depth between ``lo`` and ``hi``."""
+
+    def __init__(self, lo: float, hi: float, n: int, device):
+        self.params = torch.linspace(1.0 / lo, 1.0 / hi, n, device=device)
+        self.shape: tuple[int, int] | None = None
+
+    def depth(self, p: torch.Tensor) -> torch.Tensor:
+        return (1.0 / p)[:, None, None].expand(-1, *self.shape)
+
+    def depth_at(self, p: torch.Tensor) -> torch.Tensor:
+        return 1.0 / p.clamp_min(1e-12)
+
+
+class _Level:
+    """Planes across ``up`` (floors, ground, table tops) at heights ``params`` spanning the region of
+    interest; a pixel's depth is where its ray meets the plane, kept within ``[lo, hi]``."""
+
+    def __init__(self, ref: _TorchCam, up: np.ndarray, heights: tuple[float, float], lo: float, hi: float, n: int):
+        u = torch.as_tensor(up, dtype=torch.float32, device=ref.dirs.device)
+        self.a = (ref.origin * u).sum(-1)  # [H, W] camera height
+        self.b = (ref.dirs * u).sum(-1)  # [H, W] height change per unit depth
+        self.params = torch.linspace(heights[0], heights[1], n, device=ref.dirs.device)
+        self.lo, self.hi = lo, hi
+        self.shape = tuple(ref.dirs.shape[:2])
+
+    def _valid(self, d: torch.Tensor) -> torch.Tensor:
+        return torch.where((d >= self.lo) & (d <= self.hi), d, torch.full_like(d, -1.0))
+
+    def depth(self, p: torch.Tensor) -> torch.Tensor:
+        b = torch.where(self.b.abs() < 1e-6, torch.full_like(self.b, 1e-6), self.b)
+        return self._valid((p[:, None, None] - self.a) / b)
+
+    def depth_at(self, p: torch.Tensor) -> torch.Tensor:
+        b = torch.where(self.b.abs() < 1e-6, torch.full_like(self.b, 1e-6), self.b)
+        return self._valid((p - self.a) / b)
+
+
 def _sweep(ref: _TorchCam, srcs: list[_TorchCam], ref_gray: torch.Tensor, src_gray: torch.Tensor,
-           lo: float, hi: float, n_planes: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Winning depth [H, W] (0: none) and its aggregated NCC [H, W] of one reference view."""
+           family: _Fronto | _Level) -> tuple[torch.Tensor, torch.Tensor]:
+    """Best depth [H, W] (0: none) and its aggregated NCC [H, W] (-1: none) of one reference view over
+    one ``family`` of planes."""
+    params = family.params
     H, W = ref.H, ref.W
     K = len(srcs)
-    inv = torch.linspace(1.0 / lo, 1.0 / hi, n_planes, device=ref_gray.device)
+    n_planes = int(params.shape[0])
     r = ref_gray[None, None]
     mu_r = _box(r)
     var_r = (_box(r * r) - mu_r * mu_r).clamp_min(0)
@@ -186,16 +241,16 @@ def _sweep(ref: _TorchCam, srcs: list[_TorchCam], ref_gray: torch.Tensor, src_gr
     chunk = max(1, int(_CHUNK_BYTES // (4 * K * H * W * 6)))
     srcs_img = src_gray[:, None]  # [K, 1, H, W]
     for s in range(0, n_planes, chunk):
-        depth = 1.0 / inv[s:s + chunk]  # [P]
+        depth = family.depth(params[s:s + chunk])  # [P, H, W]
         P = depth.shape[0]
-        x = ref.origin[None] + ref.dirs[None] * depth[:, None, None, None]  # [P, H, W, 3]
+        x = ref.origin[None] + ref.dirs[None] * depth[..., None]  # [P, H, W, 3]
         warped, valid = [], []
         for k, src in enumerate(srcs):
             u, v, z = src.project(x)
             g = src.grid(u, v)  # [P, H, W, 2]
             w = F.grid_sample(srcs_img[k:k + 1].expand(P, -1, -1, -1), g, mode="bilinear",
                               padding_mode="zeros", align_corners=False)[:, 0]
-            ok = (z > 0) & (u >= 0) & (u <= src.W) & (v >= 0) & (v <= src.H)
+            ok = (z > 0) & (depth > 0) & (u >= 0) & (u <= src.W) & (v >= 0) & (v <= src.H)
             warped.append(w)
             valid.append(ok)
         w = torch.stack(warped, 1)  # [P, K, H, W]
@@ -208,19 +263,18 @@ def _sweep(ref: _TorchCam, srcs: list[_TorchCam], ref_gray: torch.Tensor, src_gr
         ncc = torch.where(ok & (var_s.reshape(P, K, H, W) > _MIN_TEXTURE), ncc, torch.full_like(ncc, -1.0))
         costs[s:s + P] = ncc.topk(best_k, dim=1).values.mean(1)
     score, idx = costs.max(0)
-    # parabola through the winner and its neighbours (in plane index, then inverse depth)
-    i0 = idx.clamp(1, n_planes - 2)
-    c_m = costs.gather(0, (i0 - 1)[None])[0]
+    # parabola through the winner and its neighbours, in the family's parameter
+    i0 = idx.clamp(1, max(n_planes - 2, 1)) if n_planes >= 3 else idx
+    c_m = costs.gather(0, (i0 - 1).clamp_min(0)[None])[0]
     c_0 = costs.gather(0, i0[None])[0]
-    c_p = costs.gather(0, (i0 + 1)[None])[0]
+    c_p = costs.gather(0, (i0 + 1).clamp_max(n_planes - 1)[None])[0]
     den = c_m - 2 * c_0 + c_p
     off = torch.where(den < -1e-9, 0.5 * (c_m - c_p) / den, torch.zeros_like(den)).clamp(-0.5, 0.5)
     off = torch.where(idx == i0, off, torch.zeros_like(off))
-    step = inv[1] - inv[0] if n_planes > 1 else inv.new_tensor(0.0)
-    inv_d = inv[idx] + off * step
-    depth = 1.0 / inv_d.clamp_min(1e-12)
-    keep = (score > _MIN_SCORE) & (var_r[0, 0] > _MIN_TEXTURE)
-    return torch.where(keep, depth, torch.zeros_like(depth)), score
+    step = params[1] - params[0] if n_planes > 1 else params.new_tensor(0.0)
+    depth = family.depth_at(params[idx] + off * step)
+    keep = (score > _MIN_SCORE) & (var_r[0, 0] > _MIN_TEXTURE) & (depth > 0)
+    return torch.where(keep, depth, torch.zeros_like(depth)), torch.where(keep, score, torch.full_like(score, -1.0))
 
 
 def _consistent(ref: _TorchCam, depth: torch.Tensor, srcs: list[_TorchCam],
@@ -291,19 +345,33 @@ def plane_sweep_points(cameras: list[Camera], images: torch.Tensor, roi_lower: n
     tcams = [_TorchCam(c, dev) for c in cameras]
     grays = [_gray(torch.as_tensor(images[i], dtype=torch.float32).to(dev)) for i in range(len(cameras))]
     nbrs = select_neighbours(cameras, 0.5 * (lower + upper))
-    depths = []
+    up = capture_up(cameras)
+    corners = np.array([[(lower, upper)[b >> a & 1][a] for a in range(3)] for b in range(8)])
+    depths, level = [], []
     with torch.no_grad():
         for i, ref in enumerate(tcams):
             if not nbrs[i]:
                 depths.append(torch.zeros(ref.H, ref.W, device=dev))
+                level.append(torch.zeros(ref.H, ref.W, dtype=torch.bool, device=dev))
                 continue
             srcs = [tcams[j] for j in nbrs[i]]
             if any((s.H, s.W) != (ref.H, ref.W) for s in srcs):
                 raise ValueError("plane-sweep stereo needs views of one size; resize the images first")
             lo, hi = _depth_range(cameras[i], lower, upper, near)
             n_planes = _n_planes(ref, srcs[0], lo, hi)
-            d, _ = _sweep(ref, srcs, grays[i], torch.stack([grays[j] for j in nbrs[i]]), lo, hi, n_planes)
+            src_gray = torch.stack([grays[j] for j in nbrs[i]])
+            fronto = _Fronto(lo, hi, n_planes, dev)
+            fronto.shape = (ref.H, ref.W)
+            d, score = _sweep(ref, srcs, grays[i], src_gray, fronto)
+            won = torch.zeros_like(d, dtype=torch.bool)
+            if up is not None:
+                h = corners @ up
+                d2, score2 = _sweep(ref, srcs, grays[i], src_gray,
+                                    _Level(ref, up, (float(h.min()), float(h.max())), lo, hi, n_planes))
+                won = score2 > score
+                d = torch.where(won, d2, d)
             depths.append(d)
+            level.append(won & (d > 0))
         pts, cols, nrms = [], [], []
         kept = total = 0
         for i, ref in enumerate(tcams):
@@ -312,12 +380,16 @@ def plane_sweep_points(cameras: list[Camera], images: torch.Tensor, roi_lower: n
             need = min(_MIN_CONSISTENT, len(nbrs[i]))
             n_ok = _consistent(ref, depths[i], [tcams[j] for j in nbrs[i]], [depths[j] for j in nbrs[i]])
             nrm = _normals(ref, depths[i])
+            if up is not None:  # a level plane's winners take its normal, facing the camera
+                u = torch.as_tensor(up, dtype=torch.float32, device=dev).expand_as(nrm)
+                u = torch.where(((ref.dirs * u).sum(-1, keepdim=True) > 0), -u, u)
+                nrm = torch.where(level[i][..., None], u, nrm)
             good = (n_ok >= need) & (depths[i] > 0) & (nrm.norm(dim=-1) > 0)
             total += good.numel()
             kept += int(good.sum())
             x = ref.origin + ref.dirs * depths[i][..., None]
             pts.append(x[good].double().cpu().numpy())
-            cols.append(torch.as_tensor(images[i], dtype=torch.float32)[good.cpu()].double().numpy())
+            cols.append(torch.as_tensor(images[i], dtype=torch.float32).to(dev)[good].double().cpu().numpy())
             nrms.append(nrm[good].double().cpu().numpy())
     if not pts:
         z = np.zeros((0, 3))
