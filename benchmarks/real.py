@@ -137,6 +137,8 @@ def run_synthetic(key: str, cfg: FitConfig, run_dir: str, scene_kw: dict) -> dic
     roi = scene.info["roi"]
     est = estimated_roi(scene)
     print(f"[{key}] intended ROI {_roi_text(roi)}; estimated from the cameras {est}", flush=True)
+    if _Mode.fit_only:  # no geometry metrics during the fit (they need Open3D): --measure does them
+        scene.gt_mesh = None
     t = time.perf_counter()
     try:
         res, elapsed = _fit(scene, cfg, os.path.join(run_dir, key))
