@@ -166,3 +166,14 @@ def test_bad_arguments_are_named():
         plane_sweep_points(sc.cameras, sc.images, np.full(3, -1.0), np.full(3, 1.0), near=0.0)
     with pytest.raises(ValueError, match="at least 2 views"):
         plane_sweep_points(sc.cameras[:1], sc.images[:1], np.full(3, -1.0), np.full(3, 1.0), near=0.1)
+
+
+def test_max_views_sweeps_an_even_subset(plane):
+    sc, full = plane
+    lo, hi = np.array([-1.2, -1.2, -0.3]), np.array([1.2, 1.2, 0.3])
+    half = plane_sweep_points(sc.cameras, sc.images, lo, hi, near=0.05, max_views=5)
+    assert 0 < len(half.points) < len(full.points)
+    assert np.median(np.abs(half.points[:, 2])) < 0.3 * _footprint(sc)
+    for bad in (1, 2.5, True):
+        with pytest.raises(ValueError, match="max_views"):
+            plane_sweep_points(sc.cameras, sc.images, lo, hi, near=0.05, max_views=bad)

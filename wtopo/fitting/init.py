@@ -21,6 +21,7 @@ from .surfels import Surfels
 
 __all__ = ["initial_surfels", "common_volume_points", "projected_colors", "spread_subset", "MIN_MVS_POINTS"]
 
+_CPU_STEREO_VIEWS = 24  # views a CPU fit sweeps (evenly spaced): the points are thinned to num_points anyway
 MIN_MVS_POINTS = 100  # fewer confirmed stereo points than this: the capture is too untextured, use CAMERAS
 
 _SCALE_NEIGHBOURS = 3  # initial scale = mean distance to this many nearest neighbours (3DGS)
@@ -116,7 +117,8 @@ def _stereo_points(scene, cfg: InitConfig, layout, device, generator):
 
     lo, hi = (np.zeros(3), np.ones(3)) if layout is None else (layout.roi_lower, layout.roi_upper)
     near = 0.01 if layout is None else layout.near
-    found = plane_sweep_points(scene.cameras, scene.images, lo, hi, near=near, device=device)
+    max_views = None if torch.device(device).type == "cuda" else _CPU_STEREO_VIEWS
+    found = plane_sweep_points(scene.cameras, scene.images, lo, hi, near=near, device=device, max_views=max_views)
     if len(found.points) < MIN_MVS_POINTS:
         warnings.warn(f"plane-sweep stereo confirmed {len(found.points)} points (< {MIN_MVS_POINTS}): the images are "
                       "too untextured; starting from random points in the cameras' common volume", RuntimeWarning,

@@ -280,9 +280,10 @@ class FitRun:
         """Resume from the run directory's checkpoints, or draw the initial surfels; open the timeline."""
         resumed = self.checkpoints.resume()
         if not resumed:
-            s = initial_surfels(self.train, self.cfg.init, self.plan["init_source"],
-                                sh_degree=int(self.plan["sh_degree"]), device=self.device, generator=self.gen,
-                                layout=self.plan.layout)
+            with self.timers("init"):
+                s = initial_surfels(self.train, self.cfg.init, self.plan["init_source"],
+                                    sh_degree=int(self.plan["sh_degree"]), device=self.device, generator=self.gen,
+                                    layout=self.plan.layout)
             n_bg = int(self.plan["background_points"])
             if n_bg > 0:
                 bg = background_surfels(self.train, self.plan.layout, n_bg, sh_degree=s.sh_degree,

@@ -321,7 +321,7 @@ def _normals(ref: _TorchCam, depth: torch.Tensor) -> torch.Tensor:
 
 
 def plane_sweep_points(cameras: list[Camera], images: torch.Tensor, roi_lower: np.ndarray, roi_upper: np.ndarray,
-                       *, near: float, device: torch.device | str = "cpu") -> MVSPoints:
+                       *, near: float, device: torch.device | str = "cpu", max_views: int | None = None) -> MVSPoints:
     """Coloured, oriented points from plane-sweep stereo over every view (module docstring).
 
     Args:
@@ -332,6 +332,9 @@ def plane_sweep_points(cameras: list[Camera], images: torch.Tensor, roi_lower: n
         roi_upper: [3] its upper corner: each view sweeps the depths of the box's corners.
         near: no hypothesis nearer than this to a camera (the cameras' units, > 0).
         device: where the sweep runs (the fit's device).
+        max_views: sweep at most this many views, evenly spaced through the list (each still has its
+            neighbours among them); ``None``: every view. The points are thinned to the surfel
+            budget anyway, so a CPU fit need not pay for every view.
 
     Returns:
         :class:`MVSPoints` (empty arrays when nothing is confirmed: an untextured capture).
@@ -340,6 +343,12 @@ def plane_sweep_points(cameras: list[Camera], images: torch.Tensor, roi_lower: n
         raise ValueError(f"plane-sweep stereo needs at least 2 views, got {len(cameras)}")
     if not near > 0:
         raise ValueError(f"near must be > 0, got {near!r}")
+    if max_views is not None and (isinstance(max_views, bool) or int(max_views) != max_views or max_views < 2):
+        raise ValueError(f"max_views must be an integer >= 2 or None, got {max_views!r}")
+    if max_views is not None and len(cameras) > max_views:
+        pick = np.unique(np.round(np.linspace(0, len(cameras) - 1, int(max_views))).astype(np.int64))
+        cameras = [cameras[i] for i in pick]
+        images = [images[i] for i in pick]
     lower, upper = np.asarray(roi_lower, np.float64), np.asarray(roi_upper, np.float64)
     dev = torch.device(device)
     tcams = [_TorchCam(c, dev) for c in cameras]

@@ -27,6 +27,7 @@ __all__ = ["Timers", "format_profile"]
 
 LABELS = {
     "render": "render forward",
+    "init": "initial surfels (stereo)",
     "rasterize_binning": "binning",
     "rasterize_sort": "depth sort",
     "rasterize_forward": "rasterize",
@@ -56,8 +57,8 @@ LABELS = {
 }
 """What the table calls each section (sections without an entry show their name)."""
 
-ORDER = ("render", "losses", "backward", "optimizer", "densify", "guidance", "proxy", "raycast", "tsdf", "final",
-         "evaluate", "checkpoint", "timeline")
+ORDER = ("init", "render", "losses", "backward", "optimizer", "densify", "guidance", "proxy", "raycast", "tsdf",
+         "final", "evaluate", "checkpoint", "timeline")
 """Order of the top-level rows (the loop's order); nested rows follow by time."""
 
 
