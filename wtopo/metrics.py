@@ -7,8 +7,8 @@ surface far from the truth, and :func:`holes`, true surface far from the reconst
 :func:`normal_consistency`, :func:`mesh_stats`, and for scenes
 :func:`roi_f_score` (Tanks-and-Temples F-score inside a region of interest) and
 :func:`camera_clearance` (how close a mesh comes to the cameras); for recovered camera poses
-:func:`align_similarity` (least-squares similarity between two point sets, Umeyama). Surfaces are sampled uniformly by
-area; distances are exact point-to-triangle distances to the other surface (closest face from
+:func:`align_similarity` (least-squares similarity between two point sets, Umeyama). Surfaces are
+sampled uniformly by area; distances are exact point-to-triangle distances to the other surface (closest face from
 Open3D's Embree scene, distance recomputed in float64), so the result does not carry the sampling
 density's bias of a plain point-to-point Chamfer.
 
@@ -453,6 +453,17 @@ class SimilarityAlignment:
         """Map points [..., 3] of the source frame into the target frame (float64)."""
         p = np.asarray(points, dtype=np.float64)
         return self.scale * p @ self.rotation.T + self.translation
+
+    def apply_to_camera(self, camera):
+        """A :class:`wtopo.Camera` of the source frame as the same camera in the target frame: it sees
+        :meth:`apply` of every point where ``camera`` saw the point (intrinsics and distortion kept)."""
+        from .camera import Camera
+
+        w2c = camera.world_to_camera
+        out = np.eye(4)
+        out[:3, :3] = w2c[:3, :3] @ self.rotation.T
+        out[:3, 3] = self.scale * w2c[:3, 3] - out[:3, :3] @ self.translation  # camera coordinates scaled by s
+        return Camera(camera.K, out, camera.width, camera.height, camera.distortion, camera.name)
 
 
 def align_similarity(source, target) -> SimilarityAlignment:

@@ -1,0 +1,171 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Camera poses from photos alone (issue 17): ``wtopo.loaders.run_sfm`` (pycolmap) on the 2-core CPU.
+
+Two captures whose true cameras are known; the structure from motion never reads them:
+
+* ``synthetic``: the bunny (astronaut albedo) in the textured room of ``wtopo.scenes`` (gravel
+  floor, brick walls), 64 views of 256 px from the upper hemisphere, written as RGBA PNG (alpha =
+  the bunny's silhouette, which COLMAP ignores and the fit takes as the mask). Then fits of the
+  same images and masks at 64 px (``--fit-downscale``), 150 + 50 iterations (``--fit-iterations``;
+  the test-sized configuration), every other registered view: one from the true cameras, one from the
+  recovered ones moved into the true frame by the similarity between the camera centres (the
+  controlled comparison of the test: same frame, same random draws), each scored by Chamfer against
+  the bunny; and a third fit in the model's own frame, as a user runs it, its mesh mapped into the
+  true frame afterwards.
+* ``dtu``: DTU scan24 (``../shared/data/dtu_scan24/image``, 49 views of 384 px; research data:
+  read from there, never copied; the model is written to a temporary folder). The given cameras
+  (``cameras_sphere.npz``, read by the DTU loader, millimetres) are used only to score.
+  ``--dtu-fit`` also fits DTU from both camera sets with the CPU default (about 5 minutes each)
+  and reports held-out PSNR / SSIM of each and the Chamfer distance between the two meshes.
+
+Reported per capture: registered views, mean reprojection error (px), time per step (features,
+matching, mapping) on ``--threads`` CPU threads, camera-centre RMS after a similarity alignment
+(Umeyama; absolute and as a fraction of the camera extent, the diagonal of the true centres' box),
+recovered focal length against the true one.
+
+Command (figures in benchmarks/sfm.md)::
+
+    PYTHONPATH=. nice -n 10 .venv/bin/python benchmarks/sfm.py --threads 2 --dtu-fit
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+
+import numpy as np
+import torch
+import trimesh
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(ROOT, "tests"))  # the test-sized fit configuration
+
+from fit_configs import small_fit_config  # noqa: E402
+
+from wtopo import Scene, load_scene, ops, scenes  # noqa: E402
+from wtopo.fitting import FitConfig, fit  # noqa: E402
+from wtopo.fitting.evaluate import geometry_metrics  # noqa: E402
+from wtopo.loaders import SfMOptions, load_photos  # noqa: E402
+from wtopo.metrics import align_similarity, chamfer  # noqa: E402
+
+DTU = os.path.join(ROOT, "..", "shared", "data", "dtu_scan24")
+
+
+def _centre_error(recovered, truth_by_name) -> dict:
+    """Similarity from recovered to true camera centres and the residual figures."""
+    names = [c.name for c in recovered.cameras]
+    true = np.array([truth_by_name[n].center for n in names])
+    al = align_similarity(np.array([c.center for c in recovered.cameras]), true)
+    every = np.array([c.center for c in truth_by_name.values()])
+    extent = float(np.linalg.norm(every.max(0) - every.min(0)))
+    return {"alignment": al, "rms": al.rms, "max": float(al.residuals.max()), "extent": extent,
+            "rms_fraction": al.rms / extent}
+
+
+def _sfm_row(label: str, scene, err: dict, true_focal: float, unit: str) -> dict:
+    s = scene.info["sfm"]
+    row = {"capture": label, "registered": f"{len(s['registered'])} / {len(s['images'])}",
+           "reprojection_px": round(s["reprojection_error"], 3), "points": s["points"],
+           "seconds": s["seconds"], "matcher": s["matcher"],
+           "centre_rms": f"{err['rms']:.4g} {unit}", "centre_rms_pct_extent": round(100 * err["rms_fraction"], 3),
+           "centre_max": f"{err['max']:.4g} {unit}",
+           "focal_px": [round(s["camera"]["params"][0], 2), round(true_focal, 2)],
+           "dropped": s["dropped"]}
+    print(json.dumps(row, indent=1), flush=True)
+    return row
+
+
+def synthetic(threads: int, work: str, warmup: int, coevolution: int, downscale: int) -> dict:
+    from PIL import Image
+
+    room = scenes.load("bunny_room", n_views=64, resolution=256)
+    gt = room.gt_mesh
+    sil = ops.raycast_mesh(torch.as_tensor(gt.vertices, dtype=torch.float32),
+                           torch.as_tensor(gt.faces, dtype=torch.int32), room.cameras).mask.numpy()
+    photos = os.path.join(work, "synthetic", "images")
+    os.makedirs(photos)
+    rgba = np.concatenate([np.asarray(room.images), sil[..., None].astype(np.float32)], axis=-1)
+    for i, a in enumerate(rgba):
+        Image.fromarray((np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)).save(os.path.join(photos, f"{i:03d}.png"))
+    rec = load_photos(os.path.dirname(photos), options=SfMOptions(num_threads=threads), downscale=downscale)
+    err = _centre_error(rec, {f"{i:03d}.png": c for i, c in enumerate(room.cameras)})
+    row = _sfm_row("synthetic", rec, err, room.cameras[0].K[0, 0], "units")
+    al = err["alignment"]
+    true_cams = [room.cameras[int(c.name[:3])].scaled(1 / downscale) for c in rec.cameras]
+    kept = dict(images=rec.images[::2], masks=rec.masks[::2], points=al.apply(rec.points),
+                point_colors=rec.point_colors)
+    # controlled: the recovered cameras moved into the true frame (same normalisation, same random
+    # draws; only the cameras differ); sfm_frame: the fit as a user runs it, in the model's frame,
+    # its mesh mapped into the true frame by the centres' similarity afterwards
+    runs = (("true", Scene(true_cams[::2], **kept), None),
+            ("recovered", Scene([al.apply_to_camera(c) for c in rec.cameras][::2], **kept), None),
+            ("recovered_sfm_frame", Scene(rec.cameras[::2], rec.images[::2], masks=rec.masks[::2], points=rec.points,
+                                          point_colors=rec.point_colors), al.apply))
+    for label, s, to_true in runs:
+        cfg = small_fit_config(warmup, coevolution, points=600, grids=(48, 64, 32), max_faces=1500, density_every=10,
+                               eval_every=0)
+        t = time.perf_counter()
+        mesh = fit(s, cfg, progress=False).mesh
+        if to_true is not None:
+            mesh = trimesh.Trimesh(to_true(mesh.vertices), mesh.faces, process=False)
+        g = geometry_metrics(mesh, gt)
+        row[f"fit_{label}"] = {"s": round(time.perf_counter() - t, 1), "chamfer_pct": round(100 * g["chamfer_rel"], 4),
+                               "f_score": round(g["f_score"], 3)}
+    for label in ("recovered", "recovered_sfm_frame"):
+        row[f"chamfer_ratio_{label}"] = round(row[f"fit_{label}"]["chamfer_pct"] / row["fit_true"]["chamfer_pct"], 3)
+    print(json.dumps({k: v for k, v in row.items() if k.startswith(("fit_", "chamfer"))}, indent=1), flush=True)
+    return row
+
+
+def dtu(threads: int, work: str, do_fit: bool) -> dict:
+    given = load_scene(DTU)  # DTU world, millimetres
+    rec = load_photos(os.path.join(DTU, "image"), out_dir=os.path.join(work, "dtu"),
+                      options=SfMOptions(num_threads=threads))
+    err = _centre_error(rec, {c.name: c for c in given.cameras})
+    row = _sfm_row("dtu_scan24", rec, err, given.cameras[0].K[0, 0], "mm")
+    if not do_fit:
+        return row
+    al = err["alignment"]
+    meshes = {}
+    for label, s, to_world in (("given", given, lambda v: v), ("recovered", rec, al.apply)):
+        t = time.perf_counter()
+        res = fit(s, FitConfig(), progress=False)
+        meshes[label] = trimesh.Trimesh(to_world(res.mesh.vertices), res.mesh.faces, process=False)
+        row[f"fit_{label}"] = {"s": round(time.perf_counter() - t, 1), "psnr": round(res.report.get("psnr", 0), 2),
+                               "ssim": round(res.report.get("ssim", 0), 3), "faces": len(res.mesh.faces)}
+    c = chamfer(meshes["recovered"], meshes["given"])
+    row["mesh_to_mesh_chamfer_mm"] = round(c.chamfer, 3)
+    print(json.dumps({k: v for k, v in row.items() if k.startswith(("fit_", "mesh_"))}, indent=1), flush=True)
+    return row
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--threads", type=int, default=2, help="CPU threads for pycolmap")
+    p.add_argument("--skip-synthetic", action="store_true")
+    p.add_argument("--skip-dtu", action="store_true")
+    p.add_argument("--dtu-fit", action="store_true", help="also fit DTU from both camera sets (~10 min)")
+    p.add_argument("--fit-iterations", type=int, nargs=2, default=(150, 50), metavar=("WARMUP", "COEVOLUTION"),
+                   help="iterations of the synthetic fits (default: the test's)")
+    p.add_argument("--fit-downscale", type=int, default=4, help="synthetic fits on 256 / F px images (the test: 8)")
+    p.add_argument("--json", help="write the rows here")
+    a = p.parse_args()
+    print(f"load average at start: {os.getloadavg()}", flush=True)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="wtopo_sfm_bench_") as work:
+        if not a.skip_synthetic:
+            rows.append(synthetic(a.threads, work, *a.fit_iterations, a.fit_downscale))
+        if not a.skip_dtu:
+            rows.append(dtu(a.threads, work, a.dtu_fit))
+    print(f"load average at end: {os.getloadavg()}", flush=True)
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump(rows, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()
