@@ -262,3 +262,21 @@ def test_align_similarity_recovers_a_known_similarity():
     np.testing.assert_allclose(moved.project(x)[0], cam.project(y)[0], atol=1e-9)
     with pytest.raises(ValueError, match="one line"):
         align_similarity(np.outer(np.arange(5.0), [1, 2, 3]), y[:5])
+
+
+def test_photo_folders_are_detected(tmp_path):
+    """Detect images directly in a folder, in images/ or in image/ (IDR layout) as photos; the model goes beside."""
+    from wtopo.loaders.sfm import find_photos
+
+    for layout in ("flat", "images", "image"):
+        root = tmp_path / layout
+        folder = root if layout == "flat" else root / layout
+        _noise_photos(folder, 2, size=(16, 12))
+        (root / "notes.txt").write_text("not a photo")
+        assert detect_format(root) == "photos"
+        found, names = find_photos(root)
+        assert found == str(folder) and names == ["noise_00.png", "noise_01.png"]
+    os.makedirs(tmp_path / "none")
+    (tmp_path / "none" / "notes.txt").write_text("not a photo")
+    with pytest.raises(ValueError, match="image files in ., images/ or image/"):
+        detect_format(tmp_path / "none")

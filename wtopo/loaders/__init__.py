@@ -54,7 +54,7 @@ def detect_format(path: str) -> str:
         return "photos"
     raise ValueError(f"{p} holds no known dataset: looked for transforms_{{train,val,test}}.json (Blender), "
                      "transforms.json (nerfstudio), cameras_sphere.npz / cameras.npz (DTU), "
-                     "cameras.{bin,txt} in ., sparse/0 or sparse (COLMAP) and image files in . or images/ "
+                     "cameras.{bin,txt} in ., sparse/0 or sparse (COLMAP) and image files in ., images/ or image/ "
                      "(photos, posed by structure from motion)")
 
 

@@ -209,7 +209,7 @@ def read_model(model_dir: str):
 def _image_root(path: str, model_dir: str, first_name: str | None) -> str:
     workspace = os.path.dirname(os.path.dirname(model_dir))
     for d in (os.path.join(path, "images"), os.path.join(workspace, "images"),
-              os.path.join(os.path.dirname(model_dir), "images")):
+              os.path.join(os.path.dirname(model_dir), "images"), os.path.join(workspace, "image")):
         if os.path.isdir(d):
             return d
     # a folder of photos that wtopo's structure from motion gave a model: photos/sparse/0 beside the images

@@ -14,7 +14,7 @@ pycolmap is an optional dependency: ``pip install "wtopo[sfm]"`` (a 38 MB manyli
 CPU SIFT, matching and mapping).
 
 Layout (``workspace``: the folder the images are in, its parent when that folder is called
-``images``, or ``out_dir``)::
+``images`` or ``image``, or ``out_dir``)::
 
     workspace/database.db          features and matches (reused by a later run)
     workspace/sparse/0/            the model (text and binary)
@@ -50,6 +50,7 @@ _MATCH_CHUNK = 64  # image pairs per matching call: one progress-bar step (a cal
 _EXTRACT_CHUNK = 4  # images per feature-extraction call: one progress-bar step
 _MAX_NAMED = 20  # an error names at most this many dropped images (then "and N more")
 _SUMMARY = "sfm.json"
+_IMAGE_FOLDERS = ("images", "image")  # a workspace's image folder: the model goes beside it, not into it
 
 
 class Matcher(str, enum.Enum):
@@ -177,10 +178,10 @@ def _image_names(folder: str) -> list[str]:
 
 def find_photos(path: str) -> tuple[str, list[str]] | None:
     """``(image folder, sorted image names)`` when ``path`` is a folder of photographs (or holds
-    one called ``images``), else ``None``. Only files with an :data:`IMAGE_EXTENSIONS` suffix count;
-    other files (a ``masks/`` folder, notes) are ignored."""
+    one called ``images``, or ``image`` as in the IDR / NeuS layout), else ``None``. Only files with
+    an :data:`IMAGE_EXTENSIONS` suffix count; other files (a ``masks/`` folder, notes) are ignored."""
     p = os.fspath(path)
-    for d in (os.path.join(p, "images"), p):
+    for d in (*(os.path.join(p, f) for f in _IMAGE_FOLDERS), p):
         names = _image_names(d)
         if names:
             return d, names
@@ -188,7 +189,8 @@ def find_photos(path: str) -> tuple[str, list[str]] | None:
 
 
 def _workspace(image_dir: str) -> str:
-    return os.path.dirname(image_dir) if os.path.basename(os.path.normpath(image_dir)) == "images" else image_dir
+    named = os.path.basename(os.path.normpath(image_dir)) in _IMAGE_FOLDERS
+    return os.path.dirname(os.path.normpath(image_dir)) if named else image_dir
 
 
 def _frame_sequence(names: list[str]) -> bool:
@@ -474,7 +476,7 @@ def run_sfm(image_dir, *, out_dir=None, options: SfMOptions | None = None, reuse
         image_dir: folder of photographs (or a folder holding ``images/``); only
             :data:`IMAGE_EXTENSIONS` files count, sorted by name.
         out_dir: workspace for ``database.db``, ``sparse/`` and ``sfm.json``; default beside the
-            images (their folder, or its parent when it is called ``images``). Give one for
+            images (their folder, or its parent when it is called ``images`` or ``image``). Give one for
             read-only image folders.
         options: :class:`SfMOptions` (default ones when ``None``).
         reuse: return an existing ``sparse/0`` of the workspace as it is instead of running.
