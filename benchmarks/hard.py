@@ -1,13 +1,16 @@
 # SPDX-License-Identifier: Apache-2.0
 """Hard-scene suite with ground truth (issue 15, "the mesh loop must earn its place").
 
-Seven synthetic scenes rendered by :func:`wtopo.scenes.from_mesh` from meshes built here with fixed
+Eight synthetic scenes rendered by :func:`wtopo.scenes.from_mesh` from meshes built here with fixed
 seeds, each a case the proxy-mesh loop is meant to help with (32 training + 6 held-out views of
 128 px unless said otherwise, masks on a black background):
 
 * ``torus``: genus 1 (``trimesh.creation.torus``, tilted 30 degrees), textured;
 * ``mug``: a cup (a deep concavity seen only from above) with a handle (genus 1), textured;
 * ``chair``: thin parts (legs and seat 0.06 thick, about 4 px), a back rest that closes a loop (genus 1);
+* ``chair_box``: the same chair with ``Scene.bounds`` given (its box grown by 10 % of the diagonal):
+  without them the region of interest comes from a visual hull carved on a 32^3 grid of cell centres
+  around the cameras, and a 0.06-thick chair leaves it empty (the fit refuses the scene);
 * ``bowl``: a hemispherical shell, concave inside, self-occluding;
 * ``blob_flat``: a bumpy closed surface with one grey albedo (``texture="flat"``): only the
   shading tells the shape;
@@ -227,6 +230,16 @@ def _object_scene(mesh, name, texture="astronaut", n_views=32, seed=0):
                             background="black", seed=seed, up=(0, 0, 1), n_test=N_TEST, name=name)
 
 
+def _with_box(scene, margin: float = 0.1):
+    """The scene with ``Scene.bounds``: its truth's bounding box grown by ``margin`` of its diagonal
+    (as datasets that ship a box give it)."""
+    import dataclasses
+
+    lo, hi = scene.gt_mesh.bounds
+    pad = margin * float(np.linalg.norm(hi - lo))
+    return dataclasses.replace(scene, bounds=(lo - pad, hi + pad))
+
+
 def _chair_ground():
     sc = scenes.from_mesh(chair_mesh(), n_views=32, resolution=128, rig="hemisphere", texture="astronaut",
                           background="ground", seed=6, up=(0, 0, 1), n_test=N_TEST, name="chair_ground",
@@ -238,6 +251,7 @@ SCENES = {  # name -> () -> (scene, the truth to score against when not scene.gt
     "torus": lambda: (_object_scene(torus_mesh(), "torus", seed=0), None),
     "mug": lambda: (_object_scene(mug_mesh(), "mug", seed=1), None),
     "chair": lambda: (_object_scene(chair_mesh(), "chair", seed=2), None),
+    "chair_box": lambda: (_with_box(_object_scene(chair_mesh(), "chair_box", seed=2)), None),
     "bowl": lambda: (_object_scene(bowl_mesh(), "bowl", texture="coffee", seed=3), None),
     "blob_flat": lambda: (_object_scene(blob_mesh(), "blob_flat", texture="flat", seed=4), None),
     "mug_sparse": lambda: (_object_scene(mug_mesh(), "mug_sparse", n_views=10, seed=5), None),
@@ -247,6 +261,7 @@ DESCRIPTIONS = {
     "torus": "genus 1, textured, 32 views",
     "mug": "cup with a handle: concavity + genus 1, 32 views",
     "chair": "thin legs and seat (4 px), back-rest loop (genus 1), 32 views",
+    "chair_box": "the chair with Scene.bounds given (its box + 10 % of the diagonal)",
     "bowl": "hemispherical shell: concave, self-occluding, 32 views",
     "blob_flat": "bumpy blob, flat grey albedo (shading only), 32 views",
     "mug_sparse": "the mug from 10 views",
