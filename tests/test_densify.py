@@ -151,3 +151,47 @@ def test_normals_to_quats_roundtrip():
     tp = t - (t * n).sum(-1, keepdim=True) * n
     cos = (R[:, :, 0] * tp).sum(-1) / tp.norm(dim=-1)
     assert bool((cos > 1 - 1e-4).all())
+
+
+def _strategy(background):
+    from wtopo.fitting.config import FitConfig
+    from wtopo.fitting.stages import Stage
+    from wtopo.fitting.strategy import DensityStrategy
+
+    events = []
+    cfg = FitConfig()
+    cfg.densify.grad_threshold = 0.5
+    cfg.runtime.max_surfels = 100
+    st = DensityStrategy(cfg, densify=True, warmup_end=400, generator=torch.Generator().manual_seed(0),
+                         record=lambda name, **kw: events.append(name), timers=lambda name: _NullTimer(),
+                         background=background)
+    st.gap = 0.0  # every pixel covered
+    return st, events, Stage.WARMUP
+
+
+class _NullTimer:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def test_a_scene_densifies_by_gradient_although_its_background_leaves_no_gap():
+    """Objects wait for a coverage gap; a scene (background covers every pixel) clones by gradient."""
+    import types
+
+    import numpy as np
+
+    from wtopo.fitting.background import BackgroundState
+
+    layout = types.SimpleNamespace(roi_center=np.full(3, 0.5), roi_radius=0.8, roi_lower=np.zeros(3),
+                                   roi_upper=np.ones(3), camera_centers=np.array([[0.5, 0.5, 5.0]]), near=0.05)
+    for background, grows in ((None, False), (BackgroundState(layout, torch.device("cpu")), True)):
+        s, _ = _surfels(n=10)
+        s.buffers["grad_accum"][:3] = 1.0
+        s.buffers["grad_count"][:] = 1.0
+        st, events, warmup = _strategy(background)
+        st.step_end(warmup, 200, s)
+        assert (len(s) > 10) == grows, (background, len(s))
+        assert ("densify" in events) == grows and ("densify_skipped" in events) != grows

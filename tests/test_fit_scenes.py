@@ -34,6 +34,7 @@ def test_plan_tells_objects_from_scenes(room):
     p = make_plan(room.normalized(), FitConfig(), dev)
     assert p["scene_kind"] == "scene" and p["mesh_policy"] == "open_roi" and p["background_points"] > 0
     assert "360" in p.decisions["scene_kind"].reason
+    assert p["densify"] and "gradient" in p.decisions["densify"].reason  # no coverage gap to wait for
     masked = scenes.from_mesh(trimesh.creation.icosphere(subdivisions=2), n_views=8, resolution=24)
     q = make_plan(masked.normalized(), FitConfig(), dev)
     assert q["scene_kind"] == "object" and q["mesh_policy"] == "watertight" and q["background_points"] == 0

@@ -217,11 +217,14 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     plan.set("sh_degree", deg, why, cfg.sh_degree)
 
     # -- density control
-    dens = src == "cameras" or n_pts < 2000
-    plan.set("densify", dens,
-             "sparse initialisation: clone/split while coverage gaps exist" if dens
-             else f"{n_pts} initial points: clone/split only while coverage gaps exist",
-             cfg.densify.enabled)
+    dens = src == "cameras" or n_pts < 2000 or is_scene
+    if is_scene:  # the background covers every pixel: a coverage gap never opens
+        why = "scene: clone/split by screen-space gradient (3DGS) at every density step of the warm-up"
+    elif dens:
+        why = "sparse initialisation: clone/split while coverage gaps exist"
+    else:
+        why = f"{n_pts} initial points: clone/split only while coverage gaps exist"
+    plan.set("densify", dens, why, cfg.densify.enabled)
 
     # -- image size
     h, w = images.shape[1:3]

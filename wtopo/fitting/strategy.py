@@ -90,7 +90,8 @@ class DensityStrategy:
         self.gap = 1.0
         self.background = background
         """Scenes: the region of interest and cameras; background surfels are spared by the
-        geometry-aware prune and surfels on a lens are pruned at every density step."""
+        geometry-aware prune, surfels on a lens are pruned at every density step, and clone/split
+        runs by gradient alone (the background leaves no coverage gap to wait for)."""
 
     # -- hooks ----------------------------------------------------------------------------------------
     def step_pre_forward(self, stage: Stage, it: int, surfels: Surfels, proxy: ProxyMesh) -> bool:
@@ -139,7 +140,8 @@ class DensityStrategy:
         changed = False
         with self.timers("densify"):
             if self.densify and it < dc.stop_fraction * W:
-                if self.gap > _GAP_THRESHOLD:
+                # scenes: the background covers every pixel, so no gap opens; the gradient decides
+                if self.background is not None or self.gap > _GAP_THRESHOLD:
                     c, sp = dens.clone_and_split(surfels, dc, ROI_EXTENT, self.cfg.runtime.max_surfels, self.gen)
                     self.record("densify", cloned=c, split=sp, gap=self.gap)
                     changed = True
