@@ -19,18 +19,23 @@ from . import _bridge
 from ._validate import require_same_device, require_tensor
 from .kernels import photometric as _k
 
-__all__ = ["photometric_loss"]
+__all__ = ["photometric_loss", "gaussian_window"]
 
 _windows: dict = {}
 
 
-def _window(size: int, sigma: float, dtype, device) -> torch.Tensor:
-    """The normalised 1-D Gaussian window of :func:`wtopo.metrics.ssim` (cached per device and dtype)."""
-    from .metrics import _gaussian_window
+def gaussian_window(size: int, sigma: float, dtype, device) -> torch.Tensor:
+    """Normalised 1-D Gaussian window [size] of standard deviation ``sigma`` [pixels], centred (SSIM's window)."""
+    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
+    g = torch.exp(-(x ** 2) / (2 * sigma ** 2))
+    return g / g.sum()
 
+
+def _window(size: int, sigma: float, dtype, device) -> torch.Tensor:
+    """:func:`gaussian_window`, cached per size, sigma, dtype and device (no upload per call)."""
     key = (size, float(sigma), dtype, str(device))
     if key not in _windows:
-        _windows[key] = _gaussian_window(size, sigma, dtype, device)
+        _windows[key] = gaussian_window(size, sigma, dtype, device)
     return _windows[key]
 
 
