@@ -527,7 +527,9 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
             sums = wp.empty((h, w), dtype=v3, device=wdev)
             last = wp.empty((h, w), dtype=wp.int32, device=wdev)
             median_idx = wp.empty((h, w), dtype=wp.int32, device=wdev)
-            vis_w = wp.zeros((workers, n), dtype=wp.int32, device=wdev)
+            visibility = wp.zeros(n, dtype=wp.int32, device=wdev) if workers == 1 else None
+            # one worker (CUDA): the kernel counts straight into the output, no per-worker buffer to sum
+            vis_w = visibility.reshape((1, n)) if workers == 1 else wp.zeros((workers, n), dtype=wp.int32, device=wdev)
             geo = wp.empty(n, dtype=_k.SURFEL[s], device=wdev)
             _bridge.launch_split(_k.pack_surfels_kernel, n, [uax, vax, nrm, auv, m2, zc, bins.cutoff], [geo],
                                  device=wdev)
@@ -536,23 +538,32 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
                           [bins.tile_start, bins.tile_end, bins.ids, rays_wp, cam_rec, *surf],
                           [*outs, t_final, sums, last, median_idx, vis_w], device=wdev, workers=workers,
                           tiles_per_chunk=config.tiles_per_chunk)
-            visibility = wp.empty(n, dtype=wp.int32, device=wdev)
-            _bridge.launch_split(_kb.sum_visibility_kernel, n, [vis_w], [visibility], device=wdev)
+            if workers > 1:
+                visibility = wp.empty(n, dtype=wp.int32, device=wdev)
+                _bridge.launch_split(_kb.sum_visibility_kernel, n, [vis_w], [visibility], device=wdev)
+
+        # gradient order: uax, vax, nrm, auv, nrm_face, m2, zc, color, opacity, shift
+        grad_types = (v3, v3, v3, v3, v3, v2, s, v3, s, v2)
 
         def backward():
             with section("rasterize_backward"):
-                bufs = [wp.zeros((workers, n), dtype=t, device=wdev) for t in (v3, v3, v3, v3, v3, v2, s, v3, s, v2)]
-                _launch_tiles(_k.render_backward_kernel, n_tiles, ts * ts,
-                              [bins.tile_start, bins.ids, rays_wp, cam_rec, *surf, t_final, sums, last, median_idx,
-                               *(o.grad for o in outs)],
-                              bufs, device=wdev, workers=workers, tiles_per_chunk=config.tiles_per_chunk)
-
                 def grad_or_empty(a, t):
                     return a.grad if a.requires_grad else wp.zeros(0, dtype=t, device=wdev)
 
                 targets = [*(a.grad for a in prep), grad_or_empty(opacities, s), grad_or_empty(means2d, v2)]
-                # bufs order: uax, vax, nrm, auv, nrm_face, m2, zc, color, opacity, shift
-                _bridge.launch_split(_k.reduce_gradients_kernel, n, bufs, targets, device=wdev)
+                if workers == 1:
+                    # one worker (CUDA): accumulate straight into the tape's zeroed gradient arrays (same sums
+                    # as a zeroed buffer added to them), no buffers to clear and no reduction launch
+                    bufs = [g.reshape((1, n)) if g.shape[0] else wp.zeros((1, n), dtype=t, device=wdev)
+                            for g, t in zip(targets, grad_types)]
+                else:
+                    bufs = [wp.zeros((workers, n), dtype=t, device=wdev) for t in grad_types]
+                _launch_tiles(_k.render_backward_kernel, n_tiles, ts * ts,
+                              [bins.tile_start, bins.ids, rays_wp, cam_rec, *surf, t_final, sums, last, median_idx,
+                               *(o.grad for o in outs)],
+                              bufs, device=wdev, workers=workers, tiles_per_chunk=config.tiles_per_chunk)
+                if workers > 1:
+                    _bridge.launch_split(_k.reduce_gradients_kernel, n, bufs, targets, device=wdev)
 
         tape = _bridge.active_tape()
         if tape is not None and n > 0:  # N = 0: nothing to differentiate (empty arrays have no grad buffer)
