@@ -21,6 +21,7 @@ import numpy as np
 import torch
 import trimesh
 
+from .._validate import trusted_values
 from .background import BackgroundState, background_surfels, contract_steps, prune_near_cameras
 from .checkpointing import Checkpointer
 from .config import FitConfig, config_hash
@@ -266,9 +267,10 @@ class FitRun:
         bar = StageBar(self.progress, stage.value, start, end, self.it)
         try:
             while self.it < end and not self.stop.requested:
-                if self.strategy.step_pre_forward(stage, self.it, self.surfels, self.proxy):
-                    self.snapshot()
-                self._step(stage)
+                with trusted_values():  # the fit's own tensors, checked by its guards after every step
+                    if self.strategy.step_pre_forward(stage, self.it, self.surfels, self.proxy):
+                        self.snapshot()
+                    self._step(stage)
                 if self.strategy.step_end(stage, self.it, self.surfels):
                     self.snapshot()
                 self.it += 1
