@@ -373,7 +373,16 @@ def _step_path(path: str, args, device, cam) -> dict:
     n = max(1, args.step_iters)
     return {"ms_per_iteration": {st: v / n for st, v in sums.items()},
             "wall_ms_per_iteration": statistics.median(wall[args.warmup:]), "overflows": overflows,
-            "final_loss": vals[0]}
+            "final_loss": vals[0], "torch_peak_mb": torch.cuda.max_memory_allocated(device) / 2**20,
+            "warp_pool_high_mb": _warp_pool_high_mb(device)}
+
+
+def _warp_pool_high_mb(device) -> float | None:
+    """High-water mark of Warp's CUDA memory pool since the process started [MB] (None where unavailable)."""
+    try:
+        return wp.get_mempool_used_mem_high(wp.device_from_torch(device)) / 2**20
+    except Exception:  # noqa: BLE001 - older Warp or no pool: not reported
+        return None
 
 
 def bench_step(args, device) -> dict:
@@ -382,6 +391,7 @@ def bench_step(args, device) -> dict:
     cam = make_camera(w, h)
     out = {"size": [w, h], "surfels": args.step_surfels, "iterations": args.step_iters}
     for path in ("public", "fit_path"):
+        torch.cuda.reset_peak_memory_stats(device)
         out[path] = _step_path(path, args, device, cam)
     return out
 
@@ -396,6 +406,11 @@ def print_step(res) -> None:
         t = res[path]["ms_per_iteration"]
         print(f"{path:<10} " + " ".join(f"{t[s]:9.3f}" for s in stages) + f" {sum(t.values()):8.3f} "
               f"{res[path]['wall_ms_per_iteration']:8.3f}")
+    for path in ("public", "fit_path"):
+        r = res[path]
+        pool = r["warp_pool_high_mb"]
+        print(f"{path}: torch peak {r['torch_peak_mb']:.0f} MB, Warp pool high-water "
+              f"{'n/a' if pool is None else f'{pool:.0f} MB'} (since process start), overflows {r['overflows']}")
 
 
 def main() -> int:
