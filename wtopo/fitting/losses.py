@@ -62,7 +62,7 @@ def photometric(pred: torch.Tensor, target: torch.Tensor, dssim: float) -> torch
     bit for bit what they were).
     """
     if pred.is_cuda and min(pred.shape[0], pred.shape[1]) >= _SSIM_WINDOW:
-        return photometric_loss(pred, target.detach(), dssim=dssim)
+        return photometric_loss(pred, target.detach().to(pred.dtype), dssim=dssim)
     loss = (1.0 - dssim) * l1(pred, target)
     if dssim > 0:
         loss = loss + dssim * (1.0 - ssim(pred, target))
