@@ -61,8 +61,20 @@ def _loss(out: dict | R.RenderOutput, ups: dict):
     return sum((get(k) * u).sum() for k, u in ups.items())
 
 
-def time_op(cam, params, repeats: int, config=None):
-    """Median wall seconds of forward and backward, the last run's self seconds per section, and its output."""
+def _fit_path(*params, config=None):
+    """The fit's unchecked entry (``wtopo.rasterize._rasterize_trusted``): no argument checks, black background."""
+    cam = params[-1]
+    bg = torch.zeros(3, dtype=params[0].dtype, device=params[0].device)
+    return R._rasterize_trusted(*params[:-1], cam, sh_degree=None, background=bg,
+                                config=config or R.RasterConfig())
+
+
+def time_op(cam, params, repeats: int, config=None, op=None):
+    """Median wall seconds of forward and backward, the last run's self seconds per section, and its output.
+
+    ``op``: the entry timed, :func:`wtopo.rasterize.rasterize_surfels` (default) or :func:`_fit_path`.
+    """
+    op = op or R.rasterize_surfels
     g = torch.Generator().manual_seed(1)
     ups = {k: torch.randn((cam.height, cam.width, 3) if k in ("rgb", "normal") else (cam.height, cam.width),
                           generator=g) for k in IMAGES}
@@ -71,7 +83,7 @@ def time_op(cam, params, repeats: int, config=None):
         prof = defaultdict(float)
         with section("outside_rasterizer", add=lambda name, sec, prof=prof: prof.__setitem__(name, prof[name] + sec)):
             t0 = time.perf_counter()
-            out = R.rasterize_surfels(*params, cam, config=config)
+            out = op(*params, cam, config=config)
             t1 = time.perf_counter()
             _loss(out, ups).backward()
             t2 = time.perf_counter()
@@ -87,7 +99,8 @@ def count_intersections(cam, params, config) -> int:
     means, quats, scales, ops = (p.detach() for p in params[:4])
     near, far = R._default_clip(means, cam, None, None, config)
     _, tables = R._camera_tables(cam, means.device, means.dtype, config.tile_size)
-    rec = R._camera_record(cam, near, far, means.dtype, config.filter_sigma)
+    rec = R._camera_record(cam, R._clip_from_host(near, far, means.device).to(means.dtype), means.dtype,
+                           config.filter_sigma)
     bins = R._bin(means, quats, scales, ops, rec, tables, cam, config, wtopo._bridge.warp_device(means.device))
     return int((bins.tile_end.numpy().astype("int64") - bins.tile_start.numpy()).sum())
 
@@ -120,6 +133,8 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--tile", type=int, default=None, help="tile size (default: RasterConfig's)")
     ap.add_argument("--no-reference", action="store_true", help="time the op only")
+    ap.add_argument("--fit-path", action="store_true",
+                    help="also time the fit's unchecked entry (no argument checks) in the same process")
     args = ap.parse_args()
     tile = R.RasterConfig().tile_size if args.tile is None else args.tile
     print(f"device {args.device}, threads {wtopo._bridge.cpu_threads()}, image {args.res}x{args.res}, float32, "
@@ -137,6 +152,11 @@ def main() -> None:
         print(f"  op   forward {fw * 1e3:8.1f} ms  backward {bw * 1e3:8.1f} ms  total {total * 1e3:8.1f} ms  "
               f"{px / total / 1e6:6.3f} Mpixel/s")
         print("  split (last run) " + "  ".join(f"{k} {v * 1e3:.1f} ms" for k, v in split.items()))
+        if args.fit_path:
+            ffw, fbw, _, _ = time_op(cam, params, args.repeats, cfg, op=_fit_path)
+            print(f"  fit path forward {ffw * 1e3:8.1f} ms  backward {fbw * 1e3:8.1f} ms  "
+                  f"total {(ffw + fbw) * 1e3:8.1f} ms  "
+                  f"(public / fit path: forward {fw / ffw:.2f}x, total {total / (ffw + fbw):.2f}x)")
         if args.no_reference:
             continue
         p1, p2 = (64, 256) if n <= 20_000 else (16, 64)  # memory: [pixels, n] tensors

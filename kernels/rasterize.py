@@ -41,8 +41,10 @@ RHO_TIE = 1.0e-9
 # Warp types of each argument role, per float dtype: kernels are generic (``typing.Any``) and
 # instantiated for both dtypes by :func:`declare_float_overloads`; records by :func:`float_structs`.
 _TYPES = {
-    wp.float32: {"s": wp.float32, "v2": wp.vec2, "v3": wp.vec3, "v4": wp.vec4, "m33": wp.mat33, "int": int},
-    wp.float64: {"s": wp.float64, "v2": wp.vec2d, "v3": wp.vec3d, "v4": wp.vec4d, "m33": wp.mat33d, "int": int},
+    wp.float32: {"s": wp.float32, "v2": wp.vec2, "v3": wp.vec3, "v4": wp.vec4, "m33": wp.mat33, "int": int,
+                 "s_array": wp.array(dtype=wp.float32)},
+    wp.float64: {"s": wp.float64, "v2": wp.vec2d, "v3": wp.vec3d, "v4": wp.vec4d, "m33": wp.mat33d, "int": int,
+                 "s_array": wp.array(dtype=wp.float64)},
 }
 
 
@@ -73,8 +75,10 @@ class CameraRecord:
         center: camera centre in world coordinates [world units].
         fx, fy, cx, cy, skew: pinhole intrinsics [pixels] (``K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]]``).
         k1, k2, p1, p2, k3: OpenCV distortion coefficients (0 without distortion).
-        near: near plane (z-depth, world units): contributions in front of it are skipped.
-        far: far value of the distortion depth mapping (world units).
+        clip: ``[near, far]`` on the device, shape [2]: ``near`` is the near plane (z-depth, world
+            units; contributions in front of it are skipped), ``far`` the far value of the distortion
+            depth mapping (world units). An array rather than two scalars so that the scene-relative
+            defaults are computed on the device without a host synchronisation.
         filter_inv_sq: ``1 / filter_sigma^2`` of the screen-space low-pass [1/px^2].
         width, height: image size [pixels].
     """
@@ -92,8 +96,7 @@ class CameraRecord:
     p1: "s"
     p2: "s"
     k3: "s"
-    near: "s"
-    far: "s"
+    clip: "s_array"
     filter_inv_sq: "s"
     width: "int"
     height: "int"
@@ -235,7 +238,7 @@ def prepare_surfels_kernel(
         nrm_face[i] = n
     pc = cam_point(cam, p)
     zc[i] = pc[2]
-    if pc[2] > cam.near:
+    if pc[2] > cam.clip[0]:
         m2[i] = project_pixel(cam, pc)
     else:
         m2[i] = wp.vector(type(f_ref)(0.0), type(f_ref)(0.0))  # culled by the near plane; never read
@@ -384,8 +387,8 @@ def render_forward_kernel(
         return
     d = rays[py, px]
     f_ref = d[0]
-    near = cam.near
-    far = cam.far
+    near = cam.clip[0]
+    far = cam.clip[1]
     pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
     zero = type(f_ref)(0.0)
     T = type(f_ref)(1.0)
@@ -497,8 +500,8 @@ def render_backward_kernel(
     f_ref = d[0]
     zero = type(f_ref)(0.0)
     one = type(f_ref)(1.0)
-    near = cam.near
-    far = cam.far
+    near = cam.clip[0]
+    far = cam.clip[1]
     pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
     T = t_final[py, px]
     acc = one - T

@@ -121,7 +121,7 @@ def bin_surfels_kernel(
     cutoff[i] = type(x0c)(-1.0)
     pc_op = cam_point(cam, p)
     op = wp.float64(opacities[i])
-    near = wp.float64(cam.near)
+    near = wp.float64(cam.clip[0])
     pcz = wp.float64(pc_op[2])
     if op < wp.float64(ALPHA_MIN) or not (pcz > near):
         return
@@ -203,22 +203,26 @@ def emit_intersections_kernel(
     rank: wp.array[wp.int64],
     tiles_x: int,
     rank_bits: int,
+    capacity: int,
     keys: wp.array[Any],
     values: wp.array[wp.int32],
 ):
     """Write one ``(tile << rank_bits | depth rank, surfel)`` pair per tile a surfel's rectangle covers.
 
-    ``keys`` is int32 when the key fits in 31 bits (fewer radix passes), int64 otherwise.
+    ``keys`` is int32 when the key fits in 31 bits (fewer radix passes), int64 otherwise. Pairs at
+    or beyond ``capacity`` are dropped (the caller sized the buffers from an earlier count and
+    reports the overflow; the buffers hold ``2 * capacity`` entries for the radix sort).
     """
     i = wp.tid() + offset
     r = rect[i]
     k = offsets[i]
     for ty in range(r[1], r[3]):
         for tx in range(r[0], r[2]):
-            key = (wp.int64(ty * tiles_x + tx) << wp.int64(rank_bits)) | rank[i]
-            old = keys[k]
-            keys[k] = type(old)(key)
-            values[k] = i
+            if k < capacity:
+                key = (wp.int64(ty * tiles_x + tx) << wp.int64(rank_bits)) | rank[i]
+                old = keys[k]
+                keys[k] = type(old)(key)
+                values[k] = i
             k += 1
 
 
@@ -231,10 +235,16 @@ def tile_ranges_kernel(
     tile_start: wp.array[wp.int32],
     tile_end: wp.array[wp.int32],
 ):
-    """Start and end of each tile's run in the sorted intersection list (empty tiles stay 0, 0)."""
+    """Start and end of each tile's run in the sorted intersection list (empty tiles stay 0, 0).
+
+    Keys whose tile is ``tile_start.shape[0]`` or more are padding (sorted after every real pair)
+    and are ignored.
+    """
     k = wp.tid() + offset
     sh = wp.int64(rank_bits)
     tile = int(wp.int64(keys[k]) >> sh)
+    if tile >= tile_start.shape[0]:
+        return
     if k == 0:  # noqa: SIM114  Warp's `or` does not short-circuit: it would read keys[-1]
         tile_start[tile] = k
     elif int(wp.int64(keys[k - 1]) >> sh) != tile:

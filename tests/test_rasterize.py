@@ -558,3 +558,85 @@ def test_needle_and_duplicates(device):
     for a, b in zip(go, gr):
         assert bool(torch.isfinite(a).all())
         _assert_close(a, b)
+
+
+# -- the fit's trusted path: no validation, device-side clip defaults, deferred pair count -----------
+
+def _trusted(params, cam, **kw):
+    from wtopo.rasterize import _rasterize_trusted
+
+    bg = torch.tensor([0.1, 0.2, 0.3], dtype=params[0].dtype, device=params[0].device)
+    return _rasterize_trusted(*params, cam, sh_degree=None, background=bg, config=RasterConfig(), **kw)
+
+
+def _assert_outputs_equal(a, b, params):
+    """Every image, the discrete outputs and the VJP of two renders are bit-identical."""
+    for k in (*IMAGES, "visibility", "radii"):
+        torch.testing.assert_close(getattr(a, k), getattr(b, k), rtol=0, atol=0, msg=k)
+    g = torch.Generator().manual_seed(3)
+    ups = {k: torch.randn(getattr(a, k).shape, generator=g, dtype=a.rgb.dtype).to(a.rgb.device) for k in IMAGES}
+    ga = torch.autograd.grad(sum((getattr(a, k) * u).sum() for k, u in ups.items()), params)
+    gb = torch.autograd.grad(sum((getattr(b, k) * u).sum() for k, u in ups.items()), params)
+    for x, y in zip(ga, gb):
+        torch.testing.assert_close(x, y, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("device_clip", [False, True], ids=["host-clip", "device-clip"])
+@pytest.mark.parametrize("defer_count", [False, True], ids=["exact-count", "deferred-count"])
+def test_trusted_path_equals_public_path(device, device_clip, defer_count):
+    """Render bit-identically through the fit's unchecked path, whichever clip and count mode it uses."""
+    from wtopo import rasterize as R
+
+    R._capacities.clear()
+    cam = _camera()
+    params = _surfels(300, dtype=torch.float32, device=device)
+    for _ in range(2):  # the second deferred call uses the capacity the first one measured
+        ref = rasterize_surfels(*params, cam, background=(0.1, 0.2, 0.3))
+        out = _trusted(params, cam, device_clip=device_clip, defer_count=defer_count)
+        _assert_outputs_equal(out, ref, params)
+    assert out.near == ref.near and out.far == ref.far
+    if defer_count:
+        assert not bool(out.overflow)
+    else:
+        assert out.overflow is None
+
+
+@pytest.mark.parametrize("case", ["odd", "even", "none-in-front", "empty"])
+def test_device_clip_defaults_equal_host_median(device, case):
+    """Compute the default near / far on the device exactly as the host median does."""
+    from wtopo import rasterize as R
+
+    cam = _camera()
+    n = {"odd": 301, "even": 300, "none-in-front": 50, "empty": 0}[case]
+    means = _surfels(n, dtype=torch.float32, device=device)[0].detach()
+    if case == "none-in-front":
+        means = means - torch.tensor([0.0, 0.0, 10.0], device=device)  # every centre behind the camera
+    cfg = RasterConfig()
+    host = R._default_clip(means, cam, None, None, cfg)
+    dev = R._default_clip_device(means, cam, cfg)
+    assert dev.dtype == torch.float64
+    assert tuple(dev.tolist()) == host
+
+
+def test_deferred_count_overflow_then_growth(device):
+    """Flag a view whose pairs exceed the kept capacity, then grow it: later calls equal fresh ones."""
+    from wtopo import rasterize as R
+
+    R._capacities.clear()
+    cam = _camera()
+    small = _surfels(40, dtype=torch.float32, device=device, scale=(0.01, 0.03))
+    big = _surfels(800, dtype=torch.float32, device=device, seed=1)
+    first = _trusted(small, cam, defer_count=True)  # sizes the capacity (one read)
+    assert not bool(first.overflow)
+    cap = R._pair_capacity(R._bridge.warp_device(device))
+    cap.value = 64  # as if earlier views had been tiny: the big one cannot fit
+    over = _trusted(big, cam, defer_count=True)
+    assert bool(over.overflow)
+    assert torch.isfinite(over.rgb).all()  # incomplete, never out of bounds or NaN
+    again = _trusted(big, cam, defer_count=True)  # the overflowing count was observed: capacity grown
+    assert not bool(again.overflow)
+    assert cap.value >= R._CAPACITY_MIN
+    _assert_outputs_equal(again, rasterize_surfels(*big, cam, background=(0.1, 0.2, 0.3)), big)
+    # fewer surfels after more: same results as a fresh call with the larger buffers kept
+    _assert_outputs_equal(_trusted(small, cam, defer_count=True),
+                          rasterize_surfels(*small, cam, background=(0.1, 0.2, 0.3)), small)

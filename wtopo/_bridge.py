@@ -46,6 +46,7 @@ __all__ = [
     "cpu_threads",
     "float_dtype",
     "vec_dtype",
+    "torch_stream",
 ]
 
 _init_lock = threading.Lock()
@@ -159,6 +160,15 @@ def _on_torch_stream(wdev, device):
                 yield
         else:
             yield
+
+
+def torch_stream(wdev, device):
+    """Context: Warp launches on ``wdev`` and, on CUDA, on torch's current stream of ``device``.
+
+    For launches an op makes outside :func:`apply` (discrete set-up such as binning), so they are
+    ordered with the torch ops around them.
+    """
+    return _on_torch_stream(wdev, device)
 
 
 class _WarpFunction(torch.autograd.Function):

@@ -7,6 +7,8 @@ what was expected and what was given.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 from collections.abc import Sequence
 
@@ -14,7 +16,31 @@ import numpy as np
 import torch
 
 __all__ = ["require_tensor", "require_finite", "all_finite", "require_same_device", "require_positive",
-           "require_int_range"]
+           "require_int_range", "trusted_values", "value_checks"]
+
+_trusted = contextvars.ContextVar("wtopo_trusted_values", default=False)
+
+
+@contextlib.contextmanager
+def trusted_values():
+    """Skip the value checks that read the device (finiteness, ranges, index bounds) inside the block.
+
+    For a caller whose tensors come from its own checked state, which vouches that they are finite
+    and in range: the fit's iterations (its guards check losses, gradients and parameters after
+    every step; its proxy-mesh faces come from marching cubes). Type, dtype, shape and device
+    checks still run (they read no tensor data). Never around user data: an unchecked NaN can send
+    a kernel out of bounds.
+    """
+    token = _trusted.set(True)
+    try:
+        yield
+    finally:
+        _trusted.reset(token)
+
+
+def value_checks() -> bool:
+    """Whether value checks run here (``False`` inside :func:`trusted_values`)."""
+    return not _trusted.get()
 
 
 def require_tensor(name: str, t, *, shape: Sequence[int | None] | None = None, dtypes=(torch.float32, torch.float64),
@@ -60,7 +86,7 @@ def require_finite(name: str, t: torch.Tensor) -> torch.Tensor:
     One reduction (:func:`all_finite`) when ``t`` is finite; the indexed search only when it is not,
     so the op wrappers call this directly on every launch.
     """
-    if all_finite(t):
+    if not value_checks() or all_finite(t):
         return t
     bad = ~torch.isfinite(t.detach())
     if bool(bad.any()):

@@ -27,6 +27,8 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from .photometric import gaussian_window as _gaussian_window
+
 __all__ = [
     "ChamferResult",
     "FScore",
@@ -550,12 +552,6 @@ def psnr(pred: torch.Tensor, target: torch.Tensor, *, mask: torch.Tensor | None 
         m = m.to(pred.dtype)[..., None]
         mse = (se * m).sum(dim=(1, 2, 3)) / (3 * m.sum(dim=(1, 2, 3))).clamp_min(1)
     return (10 * torch.log10(max_val ** 2 / mse)).mean()
-
-
-def _gaussian_window(size: int, sigma: float, dtype, device) -> torch.Tensor:
-    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
-    g = torch.exp(-(x ** 2) / (2 * sigma ** 2))
-    return g / g.sum()
 
 
 def ssim(pred: torch.Tensor, target: torch.Tensor, *, window: int = 11, sigma: float = 1.5,

@@ -21,6 +21,7 @@ _OPS = {
     "raycast_mesh": "wtopo.raycast",
     "MeshRender": "wtopo.raycast",
     "closest_faces": "wtopo.raycast",
+    "photometric_loss": "wtopo.photometric",
 }
 
 __all__ = list(_OPS)

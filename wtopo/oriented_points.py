@@ -9,7 +9,7 @@ import torch
 import warp as wp
 
 from . import _bridge
-from ._validate import require_finite, require_positive, require_same_device, require_tensor
+from ._validate import require_finite, require_positive, require_same_device, require_tensor, value_checks
 from .kernels.oriented_points import oriented_points_kernel
 
 __all__ = ["OrientedPoints", "oriented_points"]
@@ -109,8 +109,8 @@ def oriented_points(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tens
         sign = torch.ones(n, dtype=dtype, device=means.device)
     else:
         sign = normal_sign.detach().to(dtype)
-        bad = (sign.abs() != 1).nonzero()
-        if bad.numel():  # host sync: validation only
+        bad = (sign.abs() != 1).nonzero() if value_checks() else None
+        if bad is not None and bad.numel():  # host sync: validation only
             i = int(bad[0])
             raise ValueError(f"normal_sign must hold +-1, got {normal_sign[i].item()} at index {i}")
     if n == 0:

@@ -18,7 +18,7 @@ from typing import NamedTuple
 import torch
 
 from ._profile import section
-from ._validate import require_int_range, require_positive, require_same_device, require_tensor
+from ._validate import require_int_range, require_positive, require_same_device, require_tensor, value_checks
 from .scatter import check_finite, check_unit_points, sample_unchecked, scatter_unchecked
 
 __all__ = ["PoissonField", "PoissonContext", "poisson_indicator"]
@@ -159,13 +159,14 @@ def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torc
     require_int_range("resolution", resolution, 4)
     sigma = require_positive("sigma", sigma, allow_zero=True)
     padding = require_positive("padding", padding, allow_zero=True)
-    check_unit_points("points", points, -padding, 1.0 + padding, closed=True)
-    check_finite("normals", normals)
-    check_finite("weights", weights)
-    neg = (weights.detach() < 0).nonzero()
-    if neg.numel():  # host sync: validation only
-        i = int(neg[0])
-        raise ValueError(f"weights must be >= 0, got {weights[i].item()} at index {i}")
+    if value_checks():  # host syncs: validation only (points are clamped into the grid below either way)
+        check_unit_points("points", points, -padding, 1.0 + padding, closed=True)
+        check_finite("normals", normals)
+        check_finite("weights", weights)
+        neg = (weights.detach() < 0).nonzero()
+        if neg.numel():
+            i = int(neg[0])
+            raise ValueError(f"weights must be >= 0, got {weights[i].item()} at index {i}")
 
     r = resolution
     period = (1.0 + 2.0 * padding) * r / (r - 1)

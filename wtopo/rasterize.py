@@ -23,7 +23,8 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -93,8 +94,11 @@ class RenderOutput:
             (the densification statistic): the filter branch sees ``pixel - (centre + shift)``,
             the object-space branch the ray through ``pixel - shift`` (pinhole intrinsics; exact
             without lens distortion). The value of this tensor is never read by the op.
-        near: near plane used (world units).
-        far: far value of the distortion mapping (world units).
+        clip: ``(near, far)`` used, float64 [2] on the device (see :attr:`near`, :attr:`far`).
+        overflow: ``None``, except from the fit's deferred-count path (``_rasterize_trusted`` with
+            ``defer_count``): a bool scalar on the device, ``True`` when the view had more
+            (tile, surfel) pairs than the buffers sized from earlier calls held, so the images are
+            incomplete and the caller must render it again.
     """
 
     rgb: torch.Tensor
@@ -106,16 +110,26 @@ class RenderOutput:
     visibility: torch.Tensor
     radii: torch.Tensor
     means2d: torch.Tensor
-    near: float
-    far: float
+    clip: torch.Tensor
+    overflow: torch.Tensor | None = None
+    _host_clip: tuple[float, float] | None = field(default=None, repr=False)
+
+    @property
+    def near(self) -> float:
+        """Near plane used (world units; a host read of :attr:`clip` when it was defaulted on the device)."""
+        return self._host_clip[0] if self._host_clip is not None else float(self.clip[0])
+
+    @property
+    def far(self) -> float:
+        """Far value of the distortion mapping (world units; as :attr:`near`)."""
+        return self._host_clip[1] if self._host_clip is not None else float(self.clip[1])
 
 
 # -- validation ------------------------------------------------------------------------------
 
 
-def _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, background, near, far, config):
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera must be a wtopo.Camera, got {type(camera).__name__}")
+def _validate_config(config: RasterConfig | None) -> RasterConfig:
+    """Check a :class:`RasterConfig` (``None``: the defaults) and return it."""
     if config is None:
         config = RasterConfig()
     elif not isinstance(config, RasterConfig):
@@ -137,6 +151,13 @@ def _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, 
         raise ValueError(f"config.filter_sigma must be a number of pixels in [{lo}, {hi}], got {fs!r}")
     if not (isinstance(config.tiles_per_chunk, int) and config.tiles_per_chunk >= 0):
         raise ValueError(f"config.tiles_per_chunk must be an int >= 0, got {config.tiles_per_chunk!r}")
+    return config
+
+
+def _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, background, near, far, config):
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera must be a wtopo.Camera, got {type(camera).__name__}")
+    config = _validate_config(config)
     require_tensor("means", means, shape=(None, 3))
     n = means.shape[0]
     require_tensor("quats", quats, shape=(n, 4))
@@ -225,10 +246,20 @@ def _camera_tables(camera: Camera, device, dtype, tile_size: int):
     return cache[key]
 
 
-def _camera_record(camera: Camera, near: float, far: float, dtype, filter_sigma: float):
+def _depth_row(camera: Camera, device, dtype) -> torch.Tensor:
+    """Third row of the world-to-camera rotation [3] on the device (cached on the camera: no copy per call)."""
+    key = ("wtopo.rasterize.depth_row", str(device), dtype)
+    cache = camera._rays_cache  # noqa: SLF001 - the camera's per-device cache, shared with pixel_rays
+    if key not in cache:
+        cache[key] = torch.as_tensor(camera.R[2], dtype=dtype, device=device)
+    return cache[key]
+
+
+def _camera_record(camera: Camera, clip: torch.Tensor, dtype, filter_sigma: float):
     """Everything the kernels read per view, as a :class:`wtopo.kernels.rasterize.CameraRecord` of the op dtype.
 
-    Values are computed in float64 on the host and rounded once to the op dtype when assigned.
+    Values are computed in float64 on the host and rounded once to the op dtype when assigned;
+    ``clip`` ([near, far] of the op dtype on the device) is referenced, not copied.
     """
     rec = _k.CAMERA[wp.float64 if dtype == torch.float64 else wp.float32]()
     fx, skew, cx = (float(v) for v in camera.K[0])
@@ -238,7 +269,7 @@ def _camera_record(camera: Camera, near: float, far: float, dtype, filter_sigma:
     rec.center = type(rec.center)(*(float(v) for v in camera.center))
     rec.fx, rec.fy, rec.cx, rec.cy, rec.skew = fx, float(camera.K[1, 1]), cx, float(camera.K[1, 2]), skew
     rec.k1, rec.k2, rec.p1, rec.p2, rec.k3 = (float(v) for v in dist)
-    rec.near, rec.far = float(near), float(far)
+    rec.clip = _bridge.to_warp(clip)
     rec.filter_inv_sq = 1.0 / float(filter_sigma) ** 2
     rec.width, rec.height = int(camera.width), int(camera.height)
     return rec
@@ -247,8 +278,7 @@ def _camera_record(camera: Camera, near: float, far: float, dtype, filter_sigma:
 def _default_clip(means: torch.Tensor, camera: Camera, near, far, config: RasterConfig):
     if near is not None and far is not None:
         return float(near), float(far)
-    R = torch.as_tensor(camera.R[2], dtype=means.dtype, device=means.device)
-    z = means.detach() @ R + float(camera.t[2])
+    z = means.detach() @ _depth_row(camera, means.device, means.dtype) + float(camera.t[2])
     z = z[z > 0]
     zref = float(z.median()) if z.numel() else 1.0  # host sync: scene-relative clip defaults
     near = config.near_fraction * zref if near is None else float(near)
@@ -256,6 +286,32 @@ def _default_clip(means: torch.Tensor, camera: Camera, near, far, config: Raster
     if not near < far:
         raise ValueError(f"near must be < far, got near={near}, far={far} (one was defaulted from the scene)")
     return near, far
+
+
+def _clip_from_host(near: float, far: float, device) -> torch.Tensor:
+    """``[near, far]`` float64 [2] on ``device`` from host values (two fills: no blocking copy)."""
+    clip = torch.empty(2, dtype=torch.float64, device=device)
+    clip[0] = near
+    clip[1] = far
+    return clip
+
+
+def _default_clip_device(means: torch.Tensor, camera: Camera, config: RasterConfig) -> torch.Tensor:
+    """:func:`_default_clip` with both planes defaulted, computed on the device without a host sync.
+
+    Same values: ``torch.median`` is the lower middle of the sorted positive depths, picked here by
+    index from a sort that sends the others to ``+inf``; the products are taken in float64 as the
+    host path does.
+    """
+    n = means.shape[0]
+    if n == 0:
+        return _clip_from_host(config.near_fraction, config.far_multiple, means.device)
+    z = means.detach() @ _depth_row(camera, means.device, means.dtype) + float(camera.t[2])
+    pos = z > 0
+    k = pos.sum()
+    zs = torch.where(pos, z, torch.full_like(z, math.inf)).sort().values
+    zref = torch.where(k > 0, zs.gather(0, ((k - 1).clamp_min(0) // 2).view(1)), torch.ones_like(zs[:1])).double()
+    return torch.cat([zref * config.near_fraction, zref * config.far_multiple])
 
 
 # -- CPU work distribution ------------------------------------------------------------------
@@ -313,9 +369,67 @@ class _Bins:
     radii: torch.Tensor
     means2d: torch.Tensor
     cutoff: wp.array
+    overflow: torch.Tensor | None = None
 
 
-def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, config: RasterConfig, wdev) -> _Bins:
+_CAPACITY_HEADROOM = 1.25  # deferred path: sort buffers hold this times the largest recent pair count ...
+_CAPACITY_MIN = 4096  # ... and at least this many pairs
+_CAPACITY_SHRINK = 4.0  # shrink once a count falls below 1 / this of the capacity (after fewer surfels)
+_PENDING_MAX = 8  # device counts in flight at most (pinned host copies)
+
+
+class _PairCapacity:
+    """Number of (tile, surfel) pairs the deferred-count binning sizes its sort for, kept per device.
+
+    Every deferred call posts its pair count into pinned host memory with a non-blocking copy and an
+    event; later calls read the counts whose events have completed, so no call waits for the device.
+    """
+
+    def __init__(self):
+        self.value = 0
+        self.pending: deque = deque()
+
+    def observe(self, total: int, limit: int) -> None:
+        """Fit the capacity to a measured pair count (grow above it, shrink when far below)."""
+        if total > self.value or total * _CAPACITY_SHRINK < self.value:
+            self.value = min(limit, max(_CAPACITY_MIN, math.ceil(total * _CAPACITY_HEADROOM)))
+
+    def post(self, total: torch.Tensor, limit: int) -> None:
+        """Queue a device pair count (int64 scalar tensor) to be observed once the device has it."""
+        if not total.is_cuda:
+            self.observe(int(total), limit)  # CPU: the value is already there, reading it costs nothing
+            return
+        if len(self.pending) >= _PENDING_MAX:
+            return
+        host = torch.empty((), dtype=torch.int64, pin_memory=True)
+        host.copy_(total, non_blocking=True)
+        event = torch.cuda.Event()
+        event.record()
+        self.pending.append((event, host, limit))
+
+    def poll(self) -> None:
+        """Observe the posted counts that have arrived (never blocks)."""
+        while self.pending and self.pending[0][0].query():
+            _, host, limit = self.pending.popleft()
+            self.observe(int(host), limit)
+
+
+_capacities: dict[str, _PairCapacity] = {}
+
+
+def _pair_capacity(wdev) -> _PairCapacity:
+    return _capacities.setdefault(str(wdev), _PairCapacity())
+
+
+def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, config: RasterConfig, wdev, *,
+         defer_count: bool = False) -> _Bins:
+    """Tile ranges and depth-sorted surfel ids per tile.
+
+    With ``defer_count`` the sort buffers are sized from :class:`_PairCapacity` (counts of earlier
+    calls) instead of this call's count, so nothing waits for the device; pairs beyond the capacity
+    are dropped and ``overflow`` says so (a device flag). Without it the count is read (one host
+    sync) and the result is always complete.
+    """
     n = means.shape[0]
     ts = config.tile_size
     tiles_x, tiles_y = -(-camera.width // ts), -(-camera.height // ts)
@@ -329,11 +443,24 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
     inputs = [_bridge.to_warp(means, _bridge.vec_dtype(means, 3)), _bridge.to_warp(quats, _bridge.vec_dtype(quats, 4)),
               _bridge.to_warp(scales, _bridge.vec_dtype(scales, 2)), _bridge.to_warp(opacities, dt), cam_rec, *tables,
               ts]
+    capacity = _pair_capacity(wdev)
+    overflow = None
     with section("rasterize_binning"):
         _bridge.launch_split(_kb.bin_surfels_kernel, n, inputs, [rect, counts, radii, means2d, cutoff], device=wdev)
         counts_t = wp.to_torch(counts)
         csum = torch.cumsum(counts_t, 0, dtype=torch.int64)
-        total = int(csum[-1]) if n else 0  # host sync: the intersection count sizes the sort buffers
+        defer = defer_count and n > 0
+        if defer:
+            capacity.poll()
+            if capacity.value == 0:  # host sync: once per device, the first count sizes the capacity
+                capacity.observe(int(csum[-1]), config.max_intersections)
+            total = capacity.value  # pairs sorted: the real ones, then padding keys after every tile
+            overflow = csum[-1] > total
+            capacity.post(csum[-1], config.max_intersections)
+        else:
+            total = int(csum[-1]) if n else 0  # host sync: the intersection count sizes the sort buffers
+            if total <= config.max_intersections:
+                capacity.observe(total, config.max_intersections)
     if total > config.max_intersections:
         raise ValueError(f"rasterize_surfels: {n} surfels cover {total} (tile, surfel) pairs, above "
                          f"config.max_intersections = {config.max_intersections}; raise the budget, use a larger "
@@ -341,23 +468,29 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
     tile_start = wp.zeros(n_tiles, dtype=wp.int32, device=wdev)
     tile_end = wp.zeros(n_tiles, dtype=wp.int32, device=wdev)
     rank_bits = max(1, (n - 1).bit_length())
-    key_bits = rank_bits + max(1, (n_tiles - 1).bit_length())
+    # deferred: one more tile value for the padding keys (tile n_tiles), sorted after every real pair
+    key_bits = rank_bits + max(1, (n_tiles if defer else n_tiles - 1).bit_length())
     keys = wp.empty(max(2 * total, 1), dtype=wp.int32 if key_bits <= 31 else wp.int64, device=wdev)
     values = wp.empty(max(2 * total, 1), dtype=wp.int32, device=wdev)
     if total:
         with section("rasterize_sort"):
             # depth rank of every surfel (Warp's stable radix sort on the centre z-depths)
             zc = torch.empty(2 * n, dtype=means.dtype, device=means.device)
-            zc[:n] = means.detach() @ torch.as_tensor(camera.R[2], dtype=means.dtype, device=means.device)
+            zc[:n] = means.detach() @ _depth_row(camera, means.device, means.dtype)
             order = torch.empty(2 * n, dtype=torch.int32, device=means.device)
             order[:n] = torch.arange(n, dtype=torch.int32, device=means.device)
             wp.utils.radix_sort_pairs(_bridge.to_warp(zc), _bridge.to_warp(order), n)
             rank = torch.empty(n, dtype=torch.int64, device=means.device)
             rank[order[:n].long()] = torch.arange(n, dtype=torch.int64, device=means.device)
         with section("rasterize_binning"):
-            offsets = (csum - counts_t).to(torch.int32)
+            if defer:
+                keys[:total].fill_(n_tiles << rank_bits)
+            offsets = csum - counts_t
+            if defer:  # pairs past the capacity are dropped: keep the offsets (int32) at most there
+                offsets = offsets.clamp_max(total)
+            offsets = offsets.to(torch.int32)
             _bridge.launch_split(_kb.emit_intersections_kernel, n,
-                                 [rect, _bridge.to_warp(offsets), _bridge.to_warp(rank), tiles_x, rank_bits],
+                                 [rect, _bridge.to_warp(offsets), _bridge.to_warp(rank), tiles_x, rank_bits, total],
                                  [keys, values],
                                  device=wdev)
         with section("rasterize_sort"):
@@ -365,7 +498,7 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
         with section("rasterize_binning"):
             _bridge.launch_split(_kb.tile_ranges_kernel, total, [keys, total, rank_bits], [tile_start, tile_end],
                                  device=wdev)
-    return _Bins(tile_start, tile_end, values, wp.to_torch(radii), wp.to_torch(means2d), cutoff)
+    return _Bins(tile_start, tile_end, values, wp.to_torch(radii), wp.to_torch(means2d), cutoff, overflow)
 
 
 # -- the differentiable op -------------------------------------------------------------------
@@ -394,7 +527,9 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
             sums = wp.empty((h, w), dtype=v3, device=wdev)
             last = wp.empty((h, w), dtype=wp.int32, device=wdev)
             median_idx = wp.empty((h, w), dtype=wp.int32, device=wdev)
-            vis_w = wp.zeros((workers, n), dtype=wp.int32, device=wdev)
+            visibility = wp.zeros(n, dtype=wp.int32, device=wdev) if workers == 1 else None
+            # one worker (CUDA): the kernel counts straight into the output, no per-worker buffer to sum
+            vis_w = visibility.reshape((1, n)) if workers == 1 else wp.zeros((workers, n), dtype=wp.int32, device=wdev)
             geo = wp.empty(n, dtype=_k.SURFEL[s], device=wdev)
             _bridge.launch_split(_k.pack_surfels_kernel, n, [uax, vax, nrm, auv, m2, zc, bins.cutoff], [geo],
                                  device=wdev)
@@ -403,23 +538,32 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
                           [bins.tile_start, bins.tile_end, bins.ids, rays_wp, cam_rec, *surf],
                           [*outs, t_final, sums, last, median_idx, vis_w], device=wdev, workers=workers,
                           tiles_per_chunk=config.tiles_per_chunk)
-            visibility = wp.empty(n, dtype=wp.int32, device=wdev)
-            _bridge.launch_split(_kb.sum_visibility_kernel, n, [vis_w], [visibility], device=wdev)
+            if workers > 1:
+                visibility = wp.empty(n, dtype=wp.int32, device=wdev)
+                _bridge.launch_split(_kb.sum_visibility_kernel, n, [vis_w], [visibility], device=wdev)
+
+        # gradient order: uax, vax, nrm, auv, nrm_face, m2, zc, color, opacity, shift
+        grad_types = (v3, v3, v3, v3, v3, v2, s, v3, s, v2)
 
         def backward():
             with section("rasterize_backward"):
-                bufs = [wp.zeros((workers, n), dtype=t, device=wdev) for t in (v3, v3, v3, v3, v3, v2, s, v3, s, v2)]
-                _launch_tiles(_k.render_backward_kernel, n_tiles, ts * ts,
-                              [bins.tile_start, bins.ids, rays_wp, cam_rec, *surf, t_final, sums, last, median_idx,
-                               *(o.grad for o in outs)],
-                              bufs, device=wdev, workers=workers, tiles_per_chunk=config.tiles_per_chunk)
-
                 def grad_or_empty(a, t):
                     return a.grad if a.requires_grad else wp.zeros(0, dtype=t, device=wdev)
 
                 targets = [*(a.grad for a in prep), grad_or_empty(opacities, s), grad_or_empty(means2d, v2)]
-                # bufs order: uax, vax, nrm, auv, nrm_face, m2, zc, color, opacity, shift
-                _bridge.launch_split(_k.reduce_gradients_kernel, n, bufs, targets, device=wdev)
+                if workers == 1:
+                    # one worker (CUDA): accumulate straight into the tape's zeroed gradient arrays (same sums
+                    # as a zeroed buffer added to them), no buffers to clear and no reduction launch
+                    bufs = [g.reshape((1, n)) if g.shape[0] else wp.zeros((1, n), dtype=t, device=wdev)
+                            for g, t in zip(targets, grad_types)]
+                else:
+                    bufs = [wp.zeros((workers, n), dtype=t, device=wdev) for t in grad_types]
+                _launch_tiles(_k.render_backward_kernel, n_tiles, ts * ts,
+                              [bins.tile_start, bins.ids, rays_wp, cam_rec, *surf, t_final, sums, last, median_idx,
+                               *(o.grad for o in outs)],
+                              bufs, device=wdev, workers=workers, tiles_per_chunk=config.tiles_per_chunk)
+                if workers > 1:
+                    _bridge.launch_split(_k.reduce_gradients_kernel, n, bufs, targets, device=wdev)
 
         tape = _bridge.active_tape()
         if tape is not None and n > 0:  # N = 0: nothing to differentiate (empty arrays have no grad buffer)
@@ -491,12 +635,50 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     """
     config, sh_degree, bg, device = _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree,
                                               background, near, far, config)
-    dtype = means.dtype
     near, far = _default_clip(means, camera, near, far, config)
+    return _render(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, bg,
+                   _clip_from_host(near, far, device), config, host_clip=(near, far), defer_count=False)
+
+
+def _rasterize_trusted(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                       colors_or_sh: torch.Tensor, camera: Camera, *, sh_degree: int | None,
+                       background: torch.Tensor, config: RasterConfig, defer_count: bool = False,
+                       device_clip: bool | None = None) -> RenderOutput:
+    """:func:`rasterize_surfels` without argument checks, for callers whose tensors are checked already.
+
+    The fit's renderer calls this every iteration: its surfel tensors are its own (finite by its
+    guards, scales and opacities from ``exp`` / ``sigmoid``), ``background`` is a [3] tensor on
+    their device and ``config`` was validated once. Nothing here reads the device: the default
+    near / far planes are computed on the device when ``device_clip`` (default: on CUDA; on CPU the
+    host median is faster and equal), and with ``defer_count`` the (tile, surfel) pair count is not
+    read either (see :func:`_bin`): the caller must check :attr:`RenderOutput.overflow` (for
+    instance with the loss it reads anyway) and render again when it is set. Same results as
+    :func:`rasterize_surfels` otherwise (bit for bit).
+    """
+    device = means.device
+    if device_clip is None:
+        device_clip = device.type == "cuda"
+    if device_clip:
+        clip, host = _default_clip_device(means, camera, config), None
+    else:
+        host = _default_clip(means, camera, None, None, config)
+        clip = _clip_from_host(*host, device)
+    if colors_or_sh.ndim == 3 and sh_degree is None:
+        sh_degree = int(round(math.sqrt(colors_or_sh.shape[1]))) - 1
+    return _render(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, background.detach(), clip,
+                   config, host_clip=host, defer_count=defer_count)
+
+
+def _render(means, quats, scales, opacities, colors_or_sh, camera: Camera, sh_degree, bg: torch.Tensor,
+            clip: torch.Tensor, config: RasterConfig, *, host_clip, defer_count: bool) -> RenderOutput:
+    """The op after validation; ``clip`` = ``[near, far]`` float64 [2] on the device."""
+    dtype = means.dtype
+    device = means.device
     wdev = _bridge.warp_device(device)
     rays, tables = _camera_tables(camera, device, dtype, config.tile_size)
-    cam_rec = _camera_record(camera, near, far, dtype, config.filter_sigma)
-    bins = _bin(means, quats, scales, opacities, cam_rec, tables, camera, config, wdev)
+    cam_rec = _camera_record(camera, clip.to(dtype), dtype, config.filter_sigma)
+    with _bridge.torch_stream(wdev, device):
+        bins = _bin(means, quats, scales, opacities, cam_rec, tables, camera, config, wdev, defer_count=defer_count)
     needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (means, quats, scales, opacities,
                                                                            colors_or_sh))
     means2d = bins.means2d.clone().requires_grad_(needs_grad)
@@ -518,4 +700,5 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     )
     rgb, alpha, depth, median, normal, dist, vis = _bridge.apply(op, means, quats, scales, opacities, sh, means2d)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist,
-                        visibility=vis, radii=bins.radii, means2d=means2d, near=near, far=far)
+                        visibility=vis, radii=bins.radii, means2d=means2d, clip=clip, overflow=bins.overflow,
+                        _host_clip=host_clip)

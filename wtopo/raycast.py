@@ -25,7 +25,7 @@ import warp as wp
 
 from wtopo import _bridge
 from wtopo._profile import section
-from wtopo._validate import require_finite, require_same_device, require_tensor
+from wtopo._validate import require_finite, require_same_device, require_tensor, value_checks
 from wtopo.camera import Camera
 from wtopo.kernels import raycast as _k
 
@@ -69,7 +69,7 @@ def _validate_mesh(verts, faces) -> tuple[torch.Tensor, torch.Tensor]:
     require_tensor("faces", faces, shape=(None, 3), dtypes=(torch.int32, torch.int64))
     require_same_device(verts=verts, faces=faces)
     require_finite("verts", verts)
-    if faces.shape[0] > 0:
+    if faces.shape[0] > 0 and value_checks():
         lo, hi = int(faces.min()), int(faces.max())  # host sync: validation only
         if lo < 0 or hi >= verts.shape[0]:
             bad = lo if lo < 0 else hi

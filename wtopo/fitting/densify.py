@@ -49,8 +49,9 @@ def accumulate_gradients(surfels: Surfels, means2d_grad: torch.Tensor, visible: 
         width: image width in pixels, to convert the gradient to NDC units.
         height: image height in pixels, to convert the gradient to NDC units.
     """
-    g = means2d_grad.detach() * torch.tensor([0.5 * width, 0.5 * height], device=means2d_grad.device,
-                                             dtype=means2d_grad.dtype)
+    g = means2d_grad.detach().clone()  # scaled per column in place: no host-to-device copy of the factors
+    g[:, 0] *= 0.5 * width
+    g[:, 1] *= 0.5 * height
     norm = torch.where(visible, g.norm(dim=-1), torch.zeros_like(g[:, 0]))
     surfels.buffers["grad_accum"] += norm.float()
     surfels.buffers["grad_count"] += visible.float()

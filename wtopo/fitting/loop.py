@@ -21,6 +21,7 @@ import numpy as np
 import torch
 import trimesh
 
+from .._validate import trusted_values
 from .background import BackgroundState, background_surfels, contract_steps, prune_near_cameras
 from .checkpointing import Checkpointer
 from .config import FitConfig, config_hash
@@ -212,21 +213,33 @@ class FitRun:
 
     def _step(self, stage: Stage) -> None:
         vi = self._view(self.it)
-        t = self.objective(stage, self.it, vi, self.surfels, self.proxy)
+        mask = None if self.train.masks is None else self.train.masks[vi]
+        # the binning sizes its buffers from earlier views (no read of this view's pair count); an
+        # overflow, read below with the losses, renders the view again with the exact count
+        for defer in (True, False):
+            t = self.objective(stage, self.it, vi, self.surfels, self.proxy, defer_count=defer)
+            info = StepInfo(stage, t.render, t.covered, mask, self.train.cameras[vi])
+            extra = [self.strategy.coverage_counts(info)]
+            if t.render.overflow is not None:
+                extra.append(t.render.overflow.double().view(1))
+            # host sync: the one read of an iteration (loss terms, coverage, overflow flag)
+            read = torch.cat([torch.stack([v.detach() for v in t.losses.values()]).double(), *extra]).tolist()
+            if t.render.overflow is None or not read[-1]:
+                break
         if t.proxy_built:
             self.proxy_mesh = t.proxy
-        info = StepInfo(stage, t.render, t.covered, None if self.train.masks is None else self.train.masks[vi],
-                        self.train.cameras[vi])
-        self.strategy.step_pre_backward(info)
+        nl = len(t.losses)
+        self.strategy.step_pre_backward(info, read[nl:nl + 2])
         total = sum(t.losses.values())
-        terms = {k: float(v.detach()) for k, v in t.losses.items()}  # host sync: one per iteration
+        terms = dict(zip(t.losses, read[:nl]))
         if not math.isfinite(sum(terms.values())):
             self._failure("loss", {k: v for k, v in terms.items() if not math.isfinite(v)})
             return
         with self.timers("backward"):
             total.backward()
-        bad = [k for k, p in self.surfels.params.items()
-               if p.grad is not None and not bool(torch.isfinite(p.grad).all())]
+        grads = [(k, p.grad) for k, p in self.surfels.params.items() if p.grad is not None]
+        finite = torch.stack([torch.isfinite(g).all() for _, g in grads]).tolist() if grads else []  # one read
+        bad = [k for (k, _), ok in zip(grads, finite) if not ok]
         if bad:
             self._failure("gradient", {k: float("nan") for k in bad})
             return
@@ -254,9 +267,10 @@ class FitRun:
         bar = StageBar(self.progress, stage.value, start, end, self.it)
         try:
             while self.it < end and not self.stop.requested:
-                if self.strategy.step_pre_forward(stage, self.it, self.surfels, self.proxy):
-                    self.snapshot()
-                self._step(stage)
+                with trusted_values():  # the fit's own tensors, checked by its guards after every step
+                    if self.strategy.step_pre_forward(stage, self.it, self.surfels, self.proxy):
+                        self.snapshot()
+                    self._step(stage)
                 if self.strategy.step_end(stage, self.it, self.surfels):
                     self.snapshot()
                 self.it += 1

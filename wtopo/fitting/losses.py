@@ -12,6 +12,7 @@ import torch
 import torch.nn.functional as F
 
 from ..metrics import ssim
+from ..photometric import photometric_loss
 
 __all__ = [
     "masked_mean",
@@ -30,6 +31,7 @@ __all__ = [
 ]
 
 _NORMAL_EPS = 1e-8  # below this length a normal is treated as absent (zero alpha)
+_SSIM_WINDOW = 11  # window of wtopo.metrics.ssim's defaults (smaller images take the torch path and its error)
 
 
 def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -53,7 +55,14 @@ def l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def photometric(pred: torch.Tensor, target: torch.Tensor, dssim: float) -> torch.Tensor:
-    """``(1 - dssim) * L1 + dssim * (1 - SSIM)`` of images [H, W, 3] (SSIM of :func:`wtopo.metrics.ssim`)."""
+    """``(1 - dssim) * L1 + dssim * (1 - SSIM)`` of images [H, W, 3] (SSIM of :func:`wtopo.metrics.ssim`).
+
+    On CUDA the fused Warp loss :func:`wtopo.ops.photometric_loss` (four launches, equal up to
+    float32 summation order); on CPU the torch formulation below (kept: the fits' CPU results stay
+    bit for bit what they were).
+    """
+    if pred.is_cuda and min(pred.shape[0], pred.shape[1]) >= _SSIM_WINDOW:
+        return photometric_loss(pred, target.detach().to(pred.dtype), dssim=dssim)
     loss = (1.0 - dssim) * l1(pred, target)
     if dssim > 0:
         loss = loss + dssim * (1.0 - ssim(pred, target))

@@ -85,14 +85,16 @@ class Objective:
             band = self._bands[vi] = boundary_band(self.train.masks[vi], lc.silhouette_band)
         return band
 
-    def __call__(self, stage: Stage, it: int, vi: int, surfels: Surfels, proxy: ProxyMesh) -> Terms:
+    def __call__(self, stage: Stage, it: int, vi: int, surfels: Surfels, proxy: ProxyMesh, *,
+                 defer_count: bool = False) -> Terms:
         """Render training view ``vi`` and compute its terms; in co-evolution build ``proxy`` from
-        ``surfels`` (differentiably) for the mesh terms."""
+        ``surfels`` (differentiably) for the mesh terms. ``defer_count``: see :class:`Renderer`
+        (the caller checks ``terms.render.overflow``)."""
         lc, s, T = self.cfg.losses, surfels, self.timers
         cam = self.train.cameras[vi]
         img = self.train.images[vi]
         with T("render"):
-            out = self.render(s, cam)
+            out = self.render(s, cam, defer_count=defer_count)
         L: dict[str, torch.Tensor] = {}
         with T("losses"):
             band = self._band(vi)

@@ -80,16 +80,26 @@ class Renderer:
     """
 
     def __init__(self, background: torch.Tensor, config):
-        self.background = background
-        self.config = config
+        from ..rasterize import _validate_config
 
-    def __call__(self, surfels: Surfels, camera):
-        """:func:`wtopo.rasterize.rasterize_surfels` of ``surfels`` seen by ``camera`` (differentiable)."""
-        from ..rasterize import rasterize_surfels
+        self.background = background
+        self.config = _validate_config(config)  # once: the per-call path does not check it again
+
+    def __call__(self, surfels: Surfels, camera, *, defer_count: bool = False):
+        """:func:`wtopo.rasterize.rasterize_surfels` of ``surfels`` seen by ``camera`` (differentiable).
+
+        The fit's tensors are its own and checked by its guards, so the op's argument checks (host
+        synchronisations on CUDA) are skipped. ``defer_count``: size the binning from earlier
+        calls without reading this call's count; the caller checks ``overflow`` of the output and
+        renders again (without it) when set.
+        """
+        from ..rasterize import _rasterize_trusted
 
         s = surfels
-        return rasterize_surfels(s.means, s.quats, s.scales, s.opacities, s.sh, camera, sh_degree=s.sh_degree,
-                                 background=self.background, config=self.config)
+        # on CPU reading the count costs nothing and sorting only the real pairs is faster
+        defer = defer_count and s.means.is_cuda
+        return _rasterize_trusted(s.means, s.quats, s.scales, s.opacities, s.sh, camera, sh_degree=s.sh_degree,
+                                  background=self.background, config=self.config, defer_count=defer)
 
 
 def render_depths(render: Renderer, surfels: Surfels, cameras: Sequence, which: RenderedDepth,

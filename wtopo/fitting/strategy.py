@@ -17,7 +17,7 @@ Hooks that change the surfels return ``True`` so the driver snapshots the new la
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 
@@ -105,14 +105,27 @@ class DensityStrategy:
             self._mesh_guidance(surfels, proxy)
         return True
 
-    def step_pre_backward(self, info: StepInfo) -> None:
-        """Update the running coverage gap from the rendered view."""
+    @staticmethod
+    def coverage_counts(info: StepInfo) -> torch.Tensor:
+        """What :meth:`step_pre_backward` needs from the rendered view, float64 [2] on the device.
+
+        With a mask: uncovered object pixels and object pixels; without: the uncovered fraction
+        (float32 mean, as before) and 1. The fit reads it together with its losses (one host read).
+        """
         covered = info.covered
         if info.mask is not None:
             m = info.mask
-            gap = float((m & ~covered).sum()) / max(1.0, float(m.sum()))
-        else:
-            gap = float((~covered).float().mean())
+            return torch.stack([(m & ~covered).sum(), m.sum()]).double()
+        frac = (~covered).float().mean()
+        return torch.stack([frac.double(), torch.ones_like(frac, dtype=torch.float64)])
+
+    def step_pre_backward(self, info: StepInfo, counts: Sequence[float] | None = None) -> None:
+        """Update the running coverage gap from the rendered view (``counts``: :meth:`coverage_counts`,
+        already read to the host)."""
+        if counts is None:
+            counts = self.coverage_counts(info).tolist()  # host sync
+        uncovered, total = counts
+        gap = uncovered / max(1.0, total) if info.mask is not None else uncovered
         self.gap = _GAP_EMA * self.gap + (1 - _GAP_EMA) * gap
 
     def step_post_backward(self, surfels: Surfels, info: StepInfo) -> None:
@@ -122,8 +135,16 @@ class DensityStrategy:
             visible = out.visibility > 0
             if info.stage == Stage.WARMUP and out.means2d.grad is not None:
                 dens.accumulate_gradients(surfels, out.means2d.grad, visible, cam.width, cam.height)
-            center = torch.as_tensor(cam.center, dtype=torch.float32, device=surfels.means.device)
+            center = self._center(cam, surfels.means.device)
             dens.accumulate_view_directions(surfels, center, visible)
+
+    def _center(self, cam, device) -> torch.Tensor:
+        """Camera centre [3] float32 on ``device``, copied once per camera (no blocking copy per step)."""
+        key = ("wtopo.fit.center", str(device))
+        cache = cam._rays_cache  # noqa: SLF001 - the camera's per-device cache
+        if key not in cache:
+            cache[key] = torch.as_tensor(cam.center, dtype=torch.float32, device=device)
+        return cache[key]
 
     def is_density_step(self, stage: Stage, it: int) -> bool:
         """Whether :meth:`step_end` runs density control at iteration ``it``."""

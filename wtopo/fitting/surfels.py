@@ -306,4 +306,4 @@ class Surfels:
 
     def is_finite(self) -> bool:
         """Whether every parameter is finite (host sync)."""
-        return all(bool(torch.isfinite(v).all()) for v in self.params.values())
+        return bool(torch.stack([torch.isfinite(v).all() for v in self.params.values()]).all())  # one read
