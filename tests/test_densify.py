@@ -151,3 +151,42 @@ def test_normals_to_quats_roundtrip():
     tp = t - (t * n).sum(-1, keepdim=True) * n
     cos = (R[:, :, 0] * tp).sum(-1) / tp.norm(dim=-1)
     assert bool((cos > 1 - 1e-4).all())
+
+
+def test_geometry_densify_skips_faces_outside_the_candidates():
+    """An uncovered face left out of ``candidates`` (unsupported) gets no surfel."""
+    s, _ = _surfels(n=20)
+    v, f = _square()
+    n0 = len(s)
+    added = D.geometry_densify(s, v, f, torch.zeros(n0, dtype=torch.int32), max_new=10, max_surfels=100,
+                               candidates=torch.tensor([True, False]))
+    assert added == 0 and len(s) == n0
+
+
+def _patch_surfels(n=400, seed=0):
+    """Opaque surfels on the square [0.3, 0.7]^2 of the plane z = 0.5, facing +z: an open surface."""
+    g = torch.Generator().manual_seed(seed)
+    xy = 0.3 + 0.4 * torch.rand(n, 2, generator=g)
+    p = torch.cat([xy, torch.full((n, 1), 0.5)], dim=1)
+    nrm = torch.tensor([[0.0, 0.0, 1.0]]).expand(n, 3)
+    return Surfels.from_points(p, torch.rand(n, 3, generator=g), scales=torch.full((n,), 0.01), normals=nrm,
+                               opacity=0.9)
+
+
+def test_proxy_support_marks_the_poisson_closure_unsupported():
+    """Faces on an open patch of surfels are supported, the closure Poisson adds far from it is not."""
+    from wtopo.fitting.config import MeshConfig
+    from wtopo.fitting.proxy import ProxyMesh
+
+    s = _patch_surfels()
+    proxy = ProxyMesh(MeshConfig(resolution=32, support_voxels=2.0))
+    pm = proxy.build(s)
+    sup = proxy.supported(pm, s)
+    assert sup.dtype == torch.bool and sup.shape == (pm.num_faces,)
+    c = pm.verts.detach()[pm.faces.long()].mean(dim=1)
+    on_patch = ((c[:, 2] - 0.5).abs() < 0.02) & ((c[:, :2] - 0.5).abs() < 0.17).all(dim=1)
+    d = torch.cdist(c, s.means.detach()).min(dim=1).values
+    far = d > 0.15  # the support distance is 2 cells of 1/32 + 2 scales of 0.01 = 0.083
+    assert bool(on_patch.any()) and bool(far.any()), "the Poisson surface should close the patch far from it"
+    assert bool(sup[on_patch].all()) and not bool(sup[far].any())
+    assert ProxyMesh(MeshConfig(resolution=32)).supported(pm, s) is None  # support_voxels = 0: all supported
