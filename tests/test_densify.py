@@ -190,3 +190,29 @@ def test_proxy_support_marks_the_poisson_closure_unsupported():
     assert bool(on_patch.any()) and bool(far.any()), "the Poisson surface should close the patch far from it"
     assert bool(sup[on_patch].all()) and not bool(sup[far].any())
     assert ProxyMesh(MeshConfig(resolution=32)).supported(pm, s) is None  # support_voxels = 0: all supported
+
+
+def test_proxy_supported_pixels_see_the_patch_not_the_closure():
+    """A pixel that sees the patch of surfels is supported; one that sees the Poisson closure far from it is not."""
+    import numpy as np
+
+    from wtopo import Camera
+    from wtopo.fitting.config import MeshConfig
+    from wtopo.fitting.proxy import ProxyMesh
+
+    s = _patch_surfels()
+    proxy = ProxyMesh(MeshConfig(resolution=32, support_voxels=2.0))
+    pm = proxy.build(s)
+    c = pm.verts.detach()[pm.faces.long()].mean(dim=1)
+    far = c[torch.cdist(c, s.means.detach()).min(dim=1).values.argmax()].double().numpy()
+    out = far - np.array([0.5, 0.5, 0.5])
+    out /= np.linalg.norm(out)
+    # centre pixel of each 25 px view: the patch's centre from above, the farthest face from outside
+    for eye, target, want in (([0.5, 0.5, 1.5], [0.5, 0.5, 0.5], True), (far + 1.0 * out, far, False)):
+        up = [0, 1, 0] if abs(out[1]) < 0.9 else [1, 0, 0]
+        cam = Camera.look_at(eye, target, up, fov_x=0.2, width=25, height=25)
+        mr = proxy.render(pm, cam)
+        px = proxy.supported_pixels(pm, mr, s)
+        assert px.shape == mr.mask.shape and not bool((px & ~mr.mask).any())  # misses are never supported
+        assert bool(mr.mask[12, 12]) and bool(px[12, 12]) == want
+    assert ProxyMesh(MeshConfig(resolution=32)).supported_pixels(pm, mr, s) is None

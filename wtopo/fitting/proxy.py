@@ -145,6 +145,14 @@ class ProxyMesh:
         ok = dist <= k * voxel + reach[idx]
         return torch.as_tensor(ok, device=f.device)
 
+    def supported_pixels(self, mesh: ProxyResult, render: MeshRender, surfels: Surfels) -> torch.Tensor | None:
+        """Pixels [H, W] bool of ``render`` (this proxy's :meth:`render` of ``mesh``) whose hit face is
+        :meth:`supported`; ``None`` when every face is (``cfg.support_voxels`` 0). Misses are ``False``."""
+        sup = self.supported(mesh, surfels)
+        if sup is None:
+            return None
+        return render.mask & sup[render.face_id.clamp_min(0).long()]
+
     def render(self, mesh: ProxyResult, camera) -> MeshRender:
         """Ray cast the proxy mesh from ``camera`` (BVH refitted or rebuilt as needed)."""
         return self.raycaster.raycast(mesh.verts, mesh.faces, camera)
