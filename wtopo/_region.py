@@ -103,7 +103,7 @@ def mask_distances(masks_np: np.ndarray) -> np.ndarray:
     return np.stack([distance_transform_edt(~m) for m in masks_np])
 
 
-def carve(cameras, masks_np, lo, hi, res, *, mask_dist=None):
+def carve(cameras, masks_np, lo, hi, res, *, mask_dist=None, footprint: bool = True):
     """Centres [P, 3] (float64, world units) of the cells of a ``res``^3 grid over the box ``[lo, hi]``
     that the visual hull of ``masks_np`` (bool [N, H, W]) keeps, or, for ``masks_np=None``, that 90 % of
     the camera frusta hold.
@@ -123,6 +123,9 @@ def carve(cameras, masks_np, lo, hi, res, *, mask_dist=None):
         hi: its upper corner [3].
         res: cells per axis.
         mask_dist: :func:`mask_distances` of ``masks_np`` when already computed (float64 [N, H, W]).
+        footprint: ``False`` tests the cells' centres only (a cell is removed when its centre's pixel is
+            outside a mask): tighter, for sampling points near the hull's surface, but a coarse grid misses
+            parts thinner than a cell.
     """
     axes = [lo[k] + (np.arange(res) + 0.5) * (hi[k] - lo[k]) / res for k in range(3)]
     g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -132,14 +135,17 @@ def carve(cameras, masks_np, lo, hi, res, *, mask_dist=None):
     if masks_np is None:
         keep = seen >= math.ceil(0.9 * n)
     else:
-        if mask_dist is None:
-            mask_dist = mask_distances(masks_np)
-        radius = 0.5 * float(np.linalg.norm((np.asarray(hi) - np.asarray(lo)) / res))  # cell's bounding sphere
-        near = depth - radius
-        with np.errstate(divide="ignore", invalid="ignore"):
-            footprint = np.where(near > 0, radius * focal * dist / (depth * near), np.inf)
-        gap = mask_dist[np.arange(n)[:, None], rows, cols]
-        rejected = (ok & (gap > footprint + 2.0 * _PIXEL_SLACK)).any(axis=0)
+        if footprint:
+            if mask_dist is None:
+                mask_dist = mask_distances(masks_np)
+            radius = 0.5 * float(np.linalg.norm((np.asarray(hi) - np.asarray(lo)) / res))  # cell's bounding sphere
+            near = depth - radius
+            with np.errstate(divide="ignore", invalid="ignore"):
+                reach = np.where(near > 0, radius * focal * dist / (depth * near), np.inf)
+            gap = mask_dist[np.arange(n)[:, None], rows, cols]
+            rejected = (ok & (gap > reach + 2.0 * _PIXEL_SLACK)).any(axis=0)
+        else:
+            rejected = (ok & ~masks_np[np.arange(n)[:, None], rows, cols]).any(axis=0)
         keep = ~rejected & (seen >= max(min(2, n), math.ceil(0.5 * n)))
     return g[keep]
 

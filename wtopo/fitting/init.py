@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from .._region import carve, mask_distances
+from .._region import carve
 from .config import InitConfig, InitSource
 from .surfels import Surfels
 
@@ -47,16 +47,15 @@ def common_volume_points(scene, n: int, generator: torch.Generator) -> np.ndarra
     they fill the region seen by 90 % of the cameras.
     """
     masks = None if scene.masks is None else scene.masks.detach().cpu().numpy().astype(bool)
-    mask_dist = None if masks is None else mask_distances(masks)
     lo, hi = np.zeros(3), np.ones(3)
     res = 16
-    kept = carve(scene.cameras, masks, lo, hi, res, mask_dist=mask_dist)
+    kept = carve(scene.cameras, masks, lo, hi, res, footprint=False)
     if masks is not None:
         kept = _boundary(kept, lo, (hi - lo) / res, res)
     # refine the grid until it holds enough cells (the hull may fill a small part of the cube)
     while len(kept) < n and res < 128:
         res *= 2
-        kept = carve(scene.cameras, masks, lo, hi, res, mask_dist=mask_dist)
+        kept = carve(scene.cameras, masks, lo, hi, res, footprint=False)
         if masks is not None:
             kept = _boundary(kept, lo, (hi - lo) / res, res)
     if len(kept) == 0:
