@@ -16,10 +16,14 @@ bounding-box diagonal (the region of interest's truth for ``chair_ground``):
 * ``bad_px``: % of the pixels the mesh-depth term uses where the proxy's depth is farther than tau
   from the truth's depth while the surfels' is not (the term pulls good surfels to a wrong proxy).
 
-Command::
+and ``helpful_px`` the reverse. The final mesh is scored as ``benchmarks/hard.py`` scores it.
 
-    PYTHONPATH=. nice -n 10 python benchmarks/loop_diagnose.py --scene chair_ground --every 20 \
-        --out /tmp/diag_default.json [--set coevolution.enabled=false]
+Command (``--resume-from`` starts at a suite run's warm-up checkpoint, so the variants share the warm-up;
+``--set coevolution.enabled=true`` forces the loop on for a scene, where the plan leaves it out)::
+
+    PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 10 python benchmarks/loop_diagnose.py --scene chair_ground \
+        --every 20 --out /tmp/diag_loop.json --set coevolution.enabled=true \
+        [--resume-from /tmp/wtopo_hard/<label>/chair_ground_default/checkpoints/ckpt_00000400.pt]
 """
 
 from __future__ import annotations
