@@ -8,9 +8,9 @@ seeds, each a case the proxy-mesh loop is meant to help with (32 training + 6 he
 * ``torus``: genus 1 (``trimesh.creation.torus``, tilted 30 degrees), textured;
 * ``mug``: a cup (a deep concavity seen only from above) with a handle (genus 1), textured;
 * ``chair``: thin parts (legs and seat 0.06 thick, about 4 px), a back rest that closes a loop (genus 1);
-* ``chair_box``: the same chair with ``Scene.bounds`` given (its box grown by 10 % of the diagonal):
-  without them the region of interest comes from a visual hull carved on a 32^3 grid of cell centres
-  around the cameras, and a 0.06-thick chair leaves it empty (the fit refuses the scene);
+* ``chair_box``: the same chair with ``Scene.bounds`` given (its box grown by 10 % of the diagonal);
+  ``chair`` finds its region of interest from the masks' visual hull (carved by cell footprints, so the
+  0.06-thick parts survive the coarse grid; a test of cell centres left the hull empty);
 * ``bowl``: a hemispherical shell, concave inside, self-occluding;
 * ``blob_flat``: a bumpy closed surface with one grey albedo (``texture="flat"``): only the
   shading tells the shape;
@@ -23,7 +23,8 @@ The cup, chair and bowl are unions and differences of signed distance functions 
 marching cubes (exact booleans up to the grid, no boolean engine needed), so the ground truth has
 no interior faces. Variants (``--variants``; ``wtopo fit --set`` overrides):
 
-* ``default``: the CPU default configuration;
+* ``default``: the CPU default configuration (the plan runs the mesh loop for objects only, so for
+  ``chair_ground`` it is ``no_loop``'s configuration);
 * ``no_loop``: ``coevolution.enabled=false``, the same iterations with no proxy mesh: no mesh-depth
   or mesh-normal term, no mesh-guided normal signs, no geometry-aware prune or densification;
 * ``raw``: ``final.watertight=false``, no Poisson re-mesh of an open final TSDF mesh. Two final

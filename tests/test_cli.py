@@ -17,7 +17,7 @@ def test_fit_flags_override_the_config():
     assert cfg.final.poisson_resolution == 96 and cfg.runtime.image_scale == 0.25
     assert cfg.coevolution.enabled is False
     later = cli._config(cli.build_parser().parse_args(["fit", "bunny", "--out", "x", "--warmup", "5"]))
-    assert later.warmup.iterations == 5 and later.coevolution.enabled is True
+    assert later.warmup.iterations == 5 and later.coevolution.enabled is None  # the plan decides
     assert later.runtime.image_scale is None  # without --downscale the plan decides
 
 

@@ -195,3 +195,67 @@ def test_a_scene_densifies_by_gradient_although_its_background_leaves_no_gap():
         st.step_end(warmup, 200, s)
         assert (len(s) > 10) == grows, (background, len(s))
         assert ("densify" in events) == grows and ("densify_skipped" in events) != grows
+
+def test_geometry_densify_skips_faces_outside_the_candidates():
+    """An uncovered face left out of ``candidates`` (unsupported) gets no surfel."""
+    s, _ = _surfels(n=20)
+    v, f = _square()
+    n0 = len(s)
+    added = D.geometry_densify(s, v, f, torch.zeros(n0, dtype=torch.int32), max_new=10, max_surfels=100,
+                               candidates=torch.tensor([True, False]))
+    assert added == 0 and len(s) == n0
+
+
+def _patch_surfels(n=400, seed=0):
+    """Opaque surfels on the square [0.3, 0.7]^2 of the plane z = 0.5, facing +z: an open surface."""
+    g = torch.Generator().manual_seed(seed)
+    xy = 0.3 + 0.4 * torch.rand(n, 2, generator=g)
+    p = torch.cat([xy, torch.full((n, 1), 0.5)], dim=1)
+    nrm = torch.tensor([[0.0, 0.0, 1.0]]).expand(n, 3)
+    return Surfels.from_points(p, torch.rand(n, 3, generator=g), scales=torch.full((n,), 0.01), normals=nrm,
+                               opacity=0.9)
+
+
+def test_proxy_support_marks_the_poisson_closure_unsupported():
+    """Faces on an open patch of surfels are supported, the closure Poisson adds far from it is not."""
+    from wtopo.fitting.config import MeshConfig
+    from wtopo.fitting.proxy import ProxyMesh
+
+    s = _patch_surfels()
+    proxy = ProxyMesh(MeshConfig(resolution=32, support_voxels=2.0))
+    pm = proxy.build(s)
+    sup = proxy.supported(pm, s)
+    assert sup.dtype == torch.bool and sup.shape == (pm.num_faces,)
+    c = pm.verts.detach()[pm.faces.long()].mean(dim=1)
+    on_patch = ((c[:, 2] - 0.5).abs() < 0.02) & ((c[:, :2] - 0.5).abs() < 0.17).all(dim=1)
+    d = torch.cdist(c, s.means.detach()).min(dim=1).values
+    far = d > 0.15  # the support distance is 2 cells of 1/32 + 2 scales of 0.01 = 0.083
+    assert bool(on_patch.any()) and bool(far.any()), "the Poisson surface should close the patch far from it"
+    assert bool(sup[on_patch].all()) and not bool(sup[far].any())
+    assert ProxyMesh(MeshConfig(resolution=32)).supported(pm, s) is None  # support_voxels = 0: all supported
+
+
+def test_proxy_supported_pixels_see_the_patch_not_the_closure():
+    """A pixel that sees the patch of surfels is supported; one that sees the Poisson closure far from it is not."""
+    import numpy as np
+
+    from wtopo import Camera
+    from wtopo.fitting.config import MeshConfig
+    from wtopo.fitting.proxy import ProxyMesh
+
+    s = _patch_surfels()
+    proxy = ProxyMesh(MeshConfig(resolution=32, support_voxels=2.0))
+    pm = proxy.build(s)
+    c = pm.verts.detach()[pm.faces.long()].mean(dim=1)
+    far = c[torch.cdist(c, s.means.detach()).min(dim=1).values.argmax()].double().numpy()
+    out = far - np.array([0.5, 0.5, 0.5])
+    out /= np.linalg.norm(out)
+    # centre pixel of each 25 px view: the patch's centre from above, the farthest face from outside
+    for eye, target, want in (([0.5, 0.5, 1.5], [0.5, 0.5, 0.5], True), (far + 1.0 * out, far, False)):
+        up = [0, 1, 0] if abs(out[1]) < 0.9 else [1, 0, 0]
+        cam = Camera.look_at(eye, target, up, fov_x=0.2, width=25, height=25)
+        mr = proxy.render(pm, cam)
+        px = proxy.supported_pixels(pm, mr, s)
+        assert px.shape == mr.mask.shape and not bool((px & ~mr.mask).any())  # misses are never supported
+        assert bool(mr.mask[12, 12]) and bool(px[12, 12]) == want
+    assert ProxyMesh(MeshConfig(resolution=32)).supported_pixels(pm, mr, s) is None

@@ -10,7 +10,7 @@ from fit_configs import small_fit_config
 import wtopo
 from wtopo import scenes
 from wtopo.fitting import FitConfig
-from wtopo.fitting.plan import make_plan
+from wtopo.fitting.plan import make_plan, resolve_config
 from wtopo.fitting.scene_kind import NEAR_FRACTION
 from wtopo.metrics import camera_clearance
 
@@ -41,6 +41,20 @@ def test_plan_tells_objects_from_scenes(room):
     cfg = FitConfig()
     cfg.kind = "object"
     assert make_plan(room.normalized(), cfg, dev)["scene_kind"] == "object"
+
+
+def test_plan_runs_the_mesh_loop_for_objects_only(room):
+    """Leave the proxy-mesh loop out for a scene, run it for an object, honour an explicit setting."""
+    dev = torch.device("cpu")
+    p = make_plan(room.normalized(), FitConfig(), dev)
+    assert p["mesh_loop"] is False and "scene" in p.decisions["mesh_loop"].reason
+    masked = scenes.from_mesh(trimesh.creation.icosphere(subdivisions=2), n_views=8, resolution=24)
+    assert make_plan(masked.normalized(), FitConfig(), dev)["mesh_loop"] is True
+    cfg = FitConfig()
+    cfg.coevolution.enabled = True
+    p = make_plan(room.normalized(), cfg, dev)
+    assert p["mesh_loop"] is True and p.decisions["mesh_loop"].overridden
+    assert resolve_config(FitConfig(), make_plan(room.normalized(), FitConfig(), dev)).coevolution.enabled is False
 
 
 def test_plan_budget_follows_the_device(room):

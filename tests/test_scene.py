@@ -214,3 +214,22 @@ def test_forward_facing_rig_gets_a_region_in_front_of_it():
     assert lo[2] > 0.0, "the region must lie in front of the cameras"
     assert np.all(lo <= [0.0, 0.0, depth]) and np.all(hi >= [0.0, 0.0, depth])
     assert depth - radius - growth <= lo[2] and hi[2] <= depth + radius + growth
+
+
+def test_region_of_interest_holds_a_thin_object():
+    """Find a tight region of interest for a masked object a few pixels thick (a coarse grid's cell
+    centres miss it; the footprint test must keep it)."""
+    import trimesh
+
+    # a cross of two bars 0.06 thick and 1.6 long: about 3 px thick in these 64 px views, while the
+    # first carving pass has cells of about 2 x 3.4 / 32 = 0.2, whose centres miss the bars
+    bars = [trimesh.creation.box(extents=e) for e in ((1.6, 0.06, 0.06), (0.06, 0.06, 1.6))]
+    mesh = trimesh.util.concatenate(bars)
+    sc = scenes.from_mesh(mesh, n_views=12, resolution=64, rig="sphere", texture="flat", seed=1)
+    thick = 0.06 * sc.cameras[0].K[0, 0] / np.linalg.norm(sc.cameras[0].center)
+    assert thick < 4.0, f"the bars should be a few pixels thick, got {thick:.2f} px"
+    lo, hi = sc.region_of_interest()
+    v = np.asarray(mesh.vertices)
+    assert np.all(v >= lo) and np.all(v <= hi), (lo, hi, mesh.bounds)
+    # tight: grown by no more than 15 % of the object's extent (1.6) on any side
+    assert np.all(mesh.bounds[0] - lo <= 0.24) and np.all(hi - mesh.bounds[1] <= 0.24), (lo, hi)

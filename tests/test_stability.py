@@ -169,7 +169,7 @@ def case_tiny_scales() -> str:
 
 
 def case_huge_lr() -> str:
-    """Every learning rate 1000x the default: the surfels leave the scene and the fit says no mesh can be made."""
+    """Every learning rate 1000x the default: the fit stays finite and still makes a mesh."""
     cfg = tiny_config()
     for f in ("means", "means_final", "quats", "scales", "opacities", "sh_dc", "sh_rest"):
         setattr(cfg.optim, f, 1000.0 * getattr(cfg.optim, f))
@@ -387,12 +387,6 @@ class Case:
         return f"{info.type.__name__}: {info.value}"
 
 
-def _tsdf_empty_error() -> type[Exception]:
-    from wtopo.fitting.tsdf import TSDFEmptyError
-
-    return TSDFEmptyError
-
-
 CASES: dict[str, Case] = {
     "scale_1e-3": Case(_transformed_case(1e-3, 0.0), slow=True),
     "scale_1e3": Case(_transformed_case(1e3, 0.0), slow=True),
@@ -400,7 +394,9 @@ CASES: dict[str, Case] = {
     "offset_1e6": Case(_transformed_case(1.0, 1e6), slow=True),
     "grazing_rig": Case(case_grazing_rig, slow=True),
     "scales_1e-8": Case(case_tiny_scales, slow=True),
-    "lr_x1000": Case(case_huge_lr, _tsdf_empty_error(), "TSDF fusion and the proxy mesh are both empty", slow=True),
+    # completes, finite: with the centre-tested visual hull's smaller region the 1000x steps carried every surfel
+    # out and the fit raised TSDFEmptyError; since the footprint hull's region (wider at 32 px) it makes a mesh
+    "lr_x1000": Case(case_huge_lr, slow=True),
     "prune_everything": Case(case_prune_everything, slow=True),
     "tsdf_empty": Case(case_tsdf_empty, slow=True),
     "empty_masks": Case(case_empty_masks, ValueError, r"masks\[0\] is empty"),

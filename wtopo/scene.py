@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
+from ._region import points_box, visual_hull_box
 from ._validate import all_finite
 from .camera import Camera
 
@@ -27,10 +28,6 @@ for the Poisson padding, so the indicator field does not wrap onto the opposite 
 
 _IMAGE_RANGE_TOL = 1e-4  # images outside [0, 1] by less than this (float rounding of composites) are clipped
 _UNIT_NORMAL_TOL = 1e-2  # normals must be unit (or 0 = invalid) within this (float32 exports)
-_HULL_GRID = (32, 48)  # visual-hull / frustum grid resolution per axis: coarse pass, refined pass
-_DEGENERATE_SPREAD = 1e-9  # camera centres closer than this (relative to the scene extent) coincide
-_FORWARD_OVERLAP = 2.0  # forward-facing rigs: the frusta's common width at the focus, in rig spreads
-_COLINEAR_RATIO = 1e-6  # second / first singular value of the centred camera centres below this: colinear
 
 
 def _to_numpy64(x) -> np.ndarray:
@@ -464,12 +461,12 @@ class Scene:
         if self.bounds is not None:
             return self.bounds[0], self.bounds[1]
         if self.masks is not None:
-            return _visual_hull_box(self.cameras, self.masks)
+            return visual_hull_box(self.cameras, self.masks)
         if self.points is not None and len(self.points) >= 8:
-            box = _points_box(self.cameras, self.points)
+            box = points_box(self.cameras, self.points)
             if box is not None:
                 return box
-        return _visual_hull_box(self.cameras, None)
+        return visual_hull_box(self.cameras, None)
 
     # -- output ---------------------------------------------------------------------------------
     def save(self, path) -> None:
@@ -480,148 +477,3 @@ class Scene:
         from .loaders.blender import write_blender
 
         write_blender(self, path)
-
-
-# -- region-of-interest estimation (host, float64) ------------------------------------------------
-def _check_camera_spread(centers: np.ndarray, ref_len: float) -> None:
-    n = len(centers)
-    if n < 2:
-        raise ValueError(f"estimating the region of interest from cameras needs at least 2 cameras, got {n}; "
-                         "give Scene(bounds=...)")
-    c = centers - centers.mean(axis=0)
-    sv = np.linalg.svd(c, compute_uv=False)
-    if sv[0] == 0 or sv[0] <= _DEGENERATE_SPREAD * ref_len:
-        raise ValueError(f"all {n} camera centres coincide (cameras[0] at {centers[0].tolist()}); "
-                         "the region of interest cannot be estimated, give Scene(bounds=...)")
-    if sv[1] <= _COLINEAR_RATIO * sv[0]:
-        far = int(np.argmax(np.linalg.norm(centers - centers[0], axis=1)))  # never cameras[0] itself
-        raise ValueError(f"all {n} camera centres lie on one line (e.g. cameras[0] at {centers[0].tolist()}, "
-                         f"cameras[{far}] at {centers[far].tolist()}); the region of interest cannot be "
-                         "estimated, give Scene(bounds=...)")
-
-
-def _pixel_ray_world(cam: Camera, u: float, v: float) -> np.ndarray:
-    """World direction of the ray through continuous pixel coordinates (u, v)."""
-    y = (v - cam.K[1, 2]) / cam.K[1, 1]
-    x = (u - cam.K[0, 2] - cam.K[0, 1] * y) / cam.K[0, 0]
-    xy = cam.undistort(np.array([[x, y]]))[0]
-    return cam.R.T @ np.array([xy[0], xy[1], 1.0])
-
-
-def _converge_point(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray | None:
-    """Least-squares point closest to the lines ``origins + t dirs`` (None when near-parallel)."""
-    d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-    P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-    A = P.sum(axis=0)
-    b = np.einsum("nij,nj->i", P, origins)
-    w = np.linalg.eigvalsh(A)
-    if w[0] <= 1e-6 * w[-1]:
-        return None
-    return np.linalg.solve(A, b)
-
-
-def _project_all(cameras, pts: np.ndarray):
-    """Pixel (row, col) int indices and in-image flags of ``pts`` [M, 3] in every camera: ([N, M] x3)."""
-    n, m = len(cameras), len(pts)
-    rows, cols = np.zeros((n, m), np.int64), np.zeros((n, m), np.int64)
-    ok = np.zeros((n, m), bool)
-    for i, cam in enumerate(cameras):
-        if cam.distortion is None:  # pinhole fast path (same maths as Camera.project)
-            pc = pts @ cam.R.T + cam.t
-            z = pc[:, 2]
-            zs = np.where(z > 0, z, 1.0)
-            y = pc[:, 1] / zs
-            u = cam.K[0, 0] * (pc[:, 0] / zs) + cam.K[0, 1] * y + cam.K[0, 2]
-            v = cam.K[1, 1] * y + cam.K[1, 2]
-        else:
-            uv, z = cam.project(pts)
-            u, v = uv[:, 0], uv[:, 1]
-        ok[i] = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        rows[i] = np.clip(np.floor(v), 0, cam.height - 1)
-        cols[i] = np.clip(np.floor(u), 0, cam.width - 1)
-    return rows, cols, ok
-
-
-def _carve(cameras, masks_np, lo, hi, res):
-    """Centres of the grid cells over [lo, hi] kept by the visual hull (masks) or frustum test."""
-    axes = [lo[k] + (np.arange(res) + 0.5) * (hi[k] - lo[k]) / res for k in range(3)]
-    g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    rows, cols, ok = _project_all(cameras, g)
-    n = len(cameras)
-    seen = ok.sum(axis=0)
-    if masks_np is None:
-        keep = seen >= math.ceil(0.9 * n)
-    else:
-        inside = masks_np[np.arange(n)[:, None], rows, cols]
-        rejected = (ok & ~inside).any(axis=0)
-        keep = ~rejected & (seen >= max(min(2, n), math.ceil(0.5 * n)))
-    return g[keep]
-
-
-def _forward_focus(cameras, centers: np.ndarray) -> tuple[np.ndarray | None, float]:
-    """Focus and radius for parallel optical axes (a forward-facing rig, as LLFF): along the mean
-    viewing direction, at the depth where the frusta overlap over ``_FORWARD_OVERLAP`` times the
-    rig's spread (a narrower overlap leaves nothing that 90 % of the cameras see); the radius is half
-    that depth. A guess from the cameras alone: give ``bounds`` or points to do better."""
-    fwd = np.stack([c.forward for c in cameras]).mean(axis=0)
-    norm = float(np.linalg.norm(fwd))
-    if norm < 1e-6:
-        return None, 0.0
-    fwd = fwd / norm
-    lateral = (centers - centers.mean(axis=0)) - np.outer((centers - centers.mean(axis=0)) @ fwd, fwd)
-    spread = 2.0 * float(np.max(np.linalg.norm(lateral, axis=1)))
-    # the narrower half field of view of the rig (pixel extent over focal length)
-    tan_half = min(min(0.5 * c.width / c.K[0, 0], 0.5 * c.height / c.K[1, 1]) for c in cameras)
-    if spread <= 0 or tan_half <= 0:
-        return None, 0.0
-    depth = (1.0 + _FORWARD_OVERLAP) * spread / (2.0 * tan_half)
-    return centers.mean(axis=0) + depth * fwd, 0.5 * depth
-
-
-def _visual_hull_box(cameras, masks) -> tuple[np.ndarray, np.ndarray]:
-    centers = np.stack([c.center for c in cameras])
-    _check_camera_spread(centers, float(np.max(np.abs(centers))))
-    masks_np = None
-    if masks is not None:
-        masks_np = masks.detach().cpu().numpy().astype(bool)
-        if not masks_np.any(axis=(1, 2)).all():
-            i = int(np.argmin(masks_np.any(axis=(1, 2))))
-            raise ValueError(f"masks[{i}] is empty; every image with a mask must show the object")
-        # rays through each mask's centroid converge on the object even for parallel optical axes
-        dirs = []
-        for cam, m in zip(cameras, masks_np):
-            r, c = np.nonzero(m)
-            dirs.append(_pixel_ray_world(cam, c.mean() + 0.5, r.mean() + 0.5))
-        focus = _converge_point(centers, np.stack(dirs))
-    else:
-        focus = _converge_point(centers, np.stack([c.forward for c in cameras]))
-    radius = None
-    if focus is None and masks_np is None:
-        focus, radius = _forward_focus(cameras, centers)
-    if focus is None:
-        raise ValueError("the cameras' viewing rays are parallel, so the region of interest cannot be "
-                         "estimated from them; give Scene(bounds=...) or init points")
-    if radius is None:
-        radius = float(np.median(np.linalg.norm(centers - focus, axis=1)))
-    lo, hi = focus - radius, focus + radius
-    for res in _HULL_GRID:
-        kept = _carve(cameras, masks_np, lo, hi, res)
-        if len(kept) == 0:
-            what = "visual hull of the masks" if masks_np is not None else "intersection of the camera frusta"
-            raise ValueError(f"the {what} is empty around {focus.tolist()} (radius {radius:.6g}); "
-                             "give Scene(bounds=...)")
-        cell = (hi - lo) / res
-        lo, hi = kept.min(axis=0) - 1.5 * cell, kept.max(axis=0) + 1.5 * cell
-    return lo, hi
-
-
-def _points_box(cameras, points: np.ndarray):
-    _, _, ok = _project_all(cameras, points)
-    vis = points[ok.sum(axis=0) >= math.ceil(0.5 * len(cameras))]
-    if len(vis) < 8:
-        return None
-    lo, hi = np.percentile(vis, 2, axis=0), np.percentile(vis, 98, axis=0)
-    pad = 0.05 * (hi - lo).max()
-    if pad <= 0:
-        return None
-    return lo - pad, hi + pad

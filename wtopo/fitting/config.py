@@ -11,16 +11,13 @@ from __future__ import annotations
 
 import dataclasses
 import enum
-import functools
 import hashlib
 import json
 import math
-import types
-import typing
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 from ..rasterize import FILTER_SIGMA_RANGE
+from .config_fields import Leaf, leaves, set_field
 from .scene_kind import SceneKind
 
 __all__ = [
@@ -248,8 +245,13 @@ class CoevolutionConfig:
     correspondence_fraction: float = _f(0.5, FRACTION)
     """Refresh nearest-face correspondences (normal signs, geometry-aware density) every this fraction
     of the co-evolution (:func:`stage_iteration`; at least every iteration), from its first iteration."""
-    enabled: bool = True
-    """``False`` drops the mesh loop (ablation): the iterations run photometric losses only."""
+    enabled: bool | None = None
+    """Whether the proxy-mesh loop runs; ``False`` drops it (ablation): the iterations run photometric
+    losses only. ``None``: the plan decides: on for objects, off for scenes (no masks, background kept),
+    whose Poisson proxy closes the open, box-cut surface where no view supports it (on the hard suite's
+    chair on a ground, ``benchmarks/hard.md``: proxy 1.9-7.8 % of the diagonal from the truth against
+    1.2 % for the surfels, the mesh-depth term pulling correct surfels on 30-50 % of its pixels and
+    helping on 0-4 %)."""
 
 
 @dataclass(kw_only=True)
@@ -372,6 +374,12 @@ class MeshConfig:
     """Domain of the Poisson solve."""
     surface_prior: float = _f(0.0, RATE)
     """Weight of a surface prior splatted from the TSDF mesh into the Poisson input (public code: on)."""
+    support_voxels: float = _f(0.0, RATE)
+    """Proxy faces whose centroid lies farther than this many Poisson grid cells, plus twice the
+    larger scale of the nearest surfel, from every surfel centre of opacity >= 0.1 are unsupported:
+    surface the Poisson solve closes over where no surfel is (the far side of a cut-open floor, the
+    inside of an opening). The mesh terms skip the pixels that see them and geometry-aware
+    densification spawns nothing on them. 0: every face is supported."""
 
 
 @dataclass(kw_only=True)
@@ -504,88 +512,6 @@ class FitConfig:
         for path, value in flat(d, ""):
             set_field(cfg, path, value)
         return cfg
-
-
-@dataclass(frozen=True)
-class Leaf:
-    """One leaf field of a :class:`FitConfig`, as :func:`leaves` finds it."""
-
-    path: str
-    """Dotted path below ``FitConfig`` (``"warmup.iterations"``)."""
-    owner: object
-    """The (stage) config holding the field."""
-    field: dataclasses.Field
-    """The field; ``field.metadata`` holds its ``"check"`` (or ``"pattern"`` for a string)."""
-    type: object
-    """The resolved type annotation (``int | None``, an enum class, ...)."""
-
-    @property
-    def value(self):
-        """The field's current value."""
-        return getattr(self.owner, self.field.name)
-
-    @property
-    def base(self):
-        """The annotation without ``None`` (``int`` for ``int | None``)."""
-        return _base_type(self.type)
-
-    def set(self, value) -> None:
-        """Set the field from a Python or JSON value: an enum's string becomes its member (unknown strings
-        raise ``ValueError`` naming the path and the members), a list becomes a tuple; nothing else is
-        converted (:func:`~wtopo.fitting.validate_config.validate_config` checks the rest)."""
-        base = self.base
-        if isinstance(base, type) and issubclass(base, enum.Enum) and isinstance(value, str):
-            try:
-                value = base(value)
-            except ValueError:
-                raise ValueError(f"{self.path} must be one of {[m.value for m in base]}, got {value!r}") from None
-        elif isinstance(value, list):  # the only sequences in FitConfig are tuples (background)
-            value = tuple(value)
-        setattr(self.owner, self.field.name, value)
-
-
-@functools.cache
-def _hints(cls) -> dict:
-    return typing.get_type_hints(cls)
-
-
-def _base_type(hint):
-    """``X`` for ``X | None``, else ``hint`` itself."""
-    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
-        args = [a for a in typing.get_args(hint) if a is not type(None)]
-        return args[0] if len(args) == 1 else hint
-    return hint
-
-
-def leaves(cfg, prefix: str = "") -> Iterator[Leaf]:
-    """Every leaf field below ``cfg`` (a :class:`FitConfig` or a stage config), in declaration order.
-
-    The one walk over the configuration: :meth:`FitConfig.from_dict`, :func:`set_field` (the CLI's
-    ``--set``) and :func:`~wtopo.fitting.validate_config.validate_config` all use it.
-
-    Raises:
-        TypeError: a stage group is not its config class.
-    """
-    hints = _hints(type(cfg))
-    for f in dataclasses.fields(cfg):
-        hint, value, path = hints[f.name], getattr(cfg, f.name), prefix + f.name
-        if dataclasses.is_dataclass(hint):
-            if not isinstance(value, hint):
-                raise TypeError(f"FitConfig.{path} must be a {hint.__name__}, got {value!r} ({type(value).__name__})")
-            yield from leaves(value, path + ".")
-        else:
-            yield Leaf(path, cfg, f, hint)
-
-
-def set_field(cfg: FitConfig, path: str, value) -> None:
-    """Set the leaf at dotted ``path`` (:meth:`Leaf.set`); an unknown path or a group raises ``ValueError``."""
-    for leaf in leaves(cfg):
-        if leaf.path == path:
-            leaf.set(value)
-            return
-    if any(leaf.path.startswith(path + ".") for leaf in leaves(cfg)):
-        raise ValueError(f"{path!r} is a group of FitConfig, set one of its fields")
-    raise ValueError(f"FitConfig has no field {path!r}")
 
 
 def stage_iteration(fraction: float, iterations: int) -> int:

@@ -148,8 +148,9 @@ def geometry_prune(surfels: Surfels, distance: torch.Tensor, *, max_distance: fl
 
 def geometry_densify(surfels: Surfels, verts: torch.Tensor, faces: torch.Tensor, nearest_face: torch.Tensor, *,
                      max_new: int, max_surfels: int, opacity: float = 0.1,
-                     generator: torch.Generator | None = None) -> int:
-    """Spawn one surfel on each proxy face that is no surfel's nearest face.
+                     generator: torch.Generator | None = None, candidates: torch.Tensor | None = None) -> int:
+    """Spawn one surfel on each proxy face that is no surfel's nearest face (among ``candidates``,
+    bool [F], when given: e.g. the faces :meth:`~wtopo.fitting.proxy.ProxyMesh.supported` keeps).
 
     The new surfel sits at the face centroid, its normal is the face normal, its scale comes from
     the face area and its colour from the surfel nearest to the centroid. At most ``max_new``
@@ -161,6 +162,8 @@ def geometry_densify(surfels: Surfels, verts: torch.Tensor, faces: torch.Tensor,
     covered = torch.zeros(nf, dtype=torch.bool, device=faces.device)
     ok = nearest_face >= 0
     covered[nearest_face[ok].long()] = True
+    if candidates is not None:
+        covered |= ~candidates
     idx = torch.nonzero(~covered).flatten()
     budget = min(max_new, max(0, max_surfels - len(surfels)))
     if idx.numel() == 0 or budget == 0:

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from ..scene import _carve
+from .._region import carve
 from .config import InitConfig, InitSource
 from .surfels import Surfels
 
@@ -49,13 +49,13 @@ def common_volume_points(scene, n: int, generator: torch.Generator) -> np.ndarra
     masks = None if scene.masks is None else scene.masks.detach().cpu().numpy().astype(bool)
     lo, hi = np.zeros(3), np.ones(3)
     res = 16
-    kept = _carve(scene.cameras, masks, lo, hi, res)
+    kept = carve(scene.cameras, masks, lo, hi, res, footprint=False)
     if masks is not None:
         kept = _boundary(kept, lo, (hi - lo) / res, res)
     # refine the grid until it holds enough cells (the hull may fill a small part of the cube)
     while len(kept) < n and res < 128:
         res *= 2
-        kept = _carve(scene.cameras, masks, lo, hi, res)
+        kept = carve(scene.cameras, masks, lo, hi, res, footprint=False)
         if masks is not None:
             kept = _boundary(kept, lo, (hi - lo) / res, res)
     if len(kept) == 0:

@@ -126,6 +126,9 @@ class Objective:
                     mr = proxy.render(pm, cam)
                 with T("losses"):
                     both = mr.mask & covered
+                    supported = proxy.supported_pixels(pm, mr, s)
+                    if supported is not None:  # pixels that see surface no surfel backs carry no mesh term
+                        both = both & supported
                     if lc.mesh_depth > 0:
                         sd = out.median_depth if lc.mesh_depth_source == RenderedDepth.MEDIAN else out.depth
                         form = str(getattr(lc.depth_form, "value", lc.depth_form))

@@ -255,9 +255,14 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
         backend, why = "warp", "CPU without Open3D: the Warp TSDF kernel"
     plan.set("tsdf_backend", backend, why,
              None if cfg.tsdf.backend == TSDFBackend.AUTO else TSDFBackend(cfg.tsdf.backend).value)
-    plan.set("mesh_loop", cfg.coevolution.enabled and int(plan["coevolution_iterations"]) > 0,
-             "proxy mesh rebuilt and supervising the surfels" if cfg.coevolution.enabled
-             else "disabled in the configuration")
+    if int(plan["coevolution_iterations"]) == 0:
+        loop, why = False, "no co-evolution iterations"
+    elif is_scene:
+        loop, why = False, ("scene: the Poisson proxy would close the open surface the region of interest cuts, "
+                            "where no view supports it, and pull the surfels there")
+    else:
+        loop, why = True, "object: proxy mesh rebuilt and supervising the surfels"
+    plan.set("mesh_loop", loop, why, cfg.coevolution.enabled)
     plan.set("gt_metrics", getattr(scene, "gt_mesh", None) is not None and cfg.runtime.eval_metrics,
              "ground-truth mesh given: Chamfer / F-score at evaluations" if getattr(scene, "gt_mesh", None)
              is not None else "no ground-truth mesh")
@@ -306,6 +311,7 @@ def resolve_config(cfg: FitConfig, plan: Plan) -> FitConfig:
     out.init.background_points = int(plan["background_points"])
     out.warmup.iterations = int(plan["warmup_iterations"])
     out.coevolution.iterations = int(plan["coevolution_iterations"])
+    out.coevolution.enabled = bool(plan["mesh_loop"])
     out.runtime.max_surfels = int(plan["max_surfels"])
     out.tsdf.max_faces = int(plan["reinit_faces"])
     out.runtime.image_scale = float(plan["image_scale"])

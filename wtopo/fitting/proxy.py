@@ -21,6 +21,8 @@ from .surfels import Surfels
 __all__ = ["ProxyMesh", "ProxyResult", "poisson_mesh"]
 
 _BOX_GROWTH = 0.1  # "initial_mesh" Poisson box: the TSDF mesh's box grown by 10 % (public code)
+_SUPPORT_OPACITY = 0.1  # surfels at least this opaque support proxy faces (the opacity of a reset or a spawn)
+_SUPPORT_SCALES = 2.0  # a surfel reaches this many of its (larger) scales from its centre
 
 
 def poisson_mesh(points: torch.Tensor, normals: torch.Tensor, weights: torch.Tensor, resolution: int, *,
@@ -116,6 +118,40 @@ class ProxyMesh:
         if faces.shape[0] == 0:
             return None
         return ProxyResult(self._from_box(verts), faces)
+
+    def supported(self, mesh: ProxyResult, surfels: Surfels) -> torch.Tensor | None:
+        """Which faces of ``mesh`` lie near a surfel: bool [F] on the mesh's device, or ``None`` when
+        ``cfg.support_voxels`` is 0 (every face supported).
+
+        A face is supported when its centroid is within ``support_voxels`` grid cells (of this proxy's
+        Poisson domain) plus :data:`_SUPPORT_SCALES` times the larger scale of the nearest surfel
+        centre among the surfels of opacity >= :data:`_SUPPORT_OPACITY`. Discrete; a host round trip
+        (KD-tree on the CPU).
+        """
+        from scipy.spatial import cKDTree
+
+        k = float(self.cfg.support_voxels)
+        if k <= 0:
+            return None
+        f = mesh.faces.long()
+        centroid = mesh.verts.detach()[f].mean(dim=1)
+        opaque = surfels.opacities.detach().reshape(-1) >= _SUPPORT_OPACITY
+        if not bool(opaque.any()):  # host sync: nothing opaque supports anything
+            return torch.zeros(f.shape[0], dtype=torch.bool, device=f.device)
+        means = surfels.means.detach()[opaque].cpu().numpy()
+        reach = surfels.scales.detach()[opaque].amax(dim=1).cpu().numpy() * _SUPPORT_SCALES
+        dist, idx = cKDTree(means).query(centroid.cpu().numpy())
+        voxel = self.size / int(self.cfg.resolution)
+        ok = dist <= k * voxel + reach[idx]
+        return torch.as_tensor(ok, device=f.device)
+
+    def supported_pixels(self, mesh: ProxyResult, render: MeshRender, surfels: Surfels) -> torch.Tensor | None:
+        """Pixels [H, W] bool of ``render`` (this proxy's :meth:`render` of ``mesh``) whose hit face is
+        :meth:`supported`; ``None`` when every face is (``cfg.support_voxels`` 0). Misses are ``False``."""
+        sup = self.supported(mesh, surfels)
+        if sup is None:
+            return None
+        return render.mask & sup[render.face_id.clamp_min(0).long()]
 
     def render(self, mesh: ProxyResult, camera) -> MeshRender:
         """Ray cast the proxy mesh from ``camera`` (BVH refitted or rebuilt as needed)."""

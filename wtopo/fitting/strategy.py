@@ -209,7 +209,8 @@ class DensityStrategy:
                                                 max_distance=_FLIP_DISTANCE * ROI_EXTENT, generator=self.gen)
         if dc.geometry_densify:
             info["spawned"] = dens.geometry_densify(s, verts, faces, fid, max_new=_GEOMETRY_DENSIFY_MAX,
-                                                    max_surfels=self.cfg.runtime.max_surfels, generator=self.gen)
+                                                    max_surfels=self.cfg.runtime.max_surfels, generator=self.gen,
+                                                    candidates=proxy.supported(pm, s))
             dist = torch.cat([dist, torch.zeros(len(s) - dist.shape[0], dtype=dist.dtype, device=dist.device)])
         if dc.geometry_prune:
             if self.background is not None:  # background surfels are far from the proxy by design
