@@ -577,8 +577,11 @@ def _assert_outputs_equal(a, b, params):
     ups = {k: torch.randn(getattr(a, k).shape, generator=g, dtype=a.rgb.dtype).to(a.rgb.device) for k in IMAGES}
     ga = torch.autograd.grad(sum((getattr(a, k) * u).sum() for k, u in ups.items()), params)
     gb = torch.autograd.grad(sum((getattr(b, k) * u).sum() for k, u in ups.items()), params)
+    # CUDA sums the gradients with float atomics whose order varies from run to run (measured on an
+    # H100: ~10 % of the entries differ by up to 4e-6); the CPU's sums are ordered, so bit-identical
+    tol = dict(rtol=1e-4, atol=1e-5) if a.rgb.is_cuda else dict(rtol=0, atol=0)
     for x, y in zip(ga, gb):
-        torch.testing.assert_close(x, y, rtol=0, atol=0)
+        torch.testing.assert_close(x, y, **tol)
 
 
 @pytest.mark.parametrize("device_clip", [False, True], ids=["host-clip", "device-clip"])
@@ -618,6 +621,13 @@ def test_device_clip_defaults_equal_host_median(device, case):
     assert tuple(dev.tolist()) == host
 
 
+def _settle(cap, device):
+    """Let the posted pair counts arrive (CUDA) and observe them; a no-op on the CPU."""
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+    cap.poll()
+
+
 def test_deferred_count_overflow_then_growth(device):
     """Flag a view whose pairs exceed the kept capacity, then grow it: later calls equal fresh ones."""
     from wtopo import rasterize as R
@@ -629,10 +639,12 @@ def test_deferred_count_overflow_then_growth(device):
     first = _trusted(small, cam, defer_count=True)  # sizes the capacity (one read)
     assert not bool(first.overflow)
     cap = R._pair_capacity(R._bridge.warp_device(device))
+    _settle(cap, device)  # CUDA posts the first count asynchronously: take it in before overriding it
     cap.value = 64  # as if earlier views had been tiny: the big one cannot fit
     over = _trusted(big, cam, defer_count=True)
     assert bool(over.overflow)
     assert torch.isfinite(over.rgb).all()  # incomplete, never out of bounds or NaN
+    _settle(cap, device)
     again = _trusted(big, cam, defer_count=True)  # the overflowing count was observed: capacity grown
     assert not bool(again.overflow)
     assert cap.value >= R._CAPACITY_MIN
