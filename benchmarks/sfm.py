@@ -48,13 +48,14 @@ sys.path.insert(0, os.path.join(ROOT, "tests"))  # the test-sized fit configurat
 
 from fit_configs import small_fit_config  # noqa: E402
 
-from wtopo import Scene, load_scene, ops, scenes  # noqa: E402
+from wtopo import Camera, Scene, load_scene, ops, scenes  # noqa: E402
 from wtopo.fitting import FitConfig, fit  # noqa: E402
 from wtopo.fitting.evaluate import geometry_metrics  # noqa: E402
 from wtopo.loaders import SfMOptions, load_photos  # noqa: E402
 from wtopo.metrics import align_similarity, chamfer, refine_alignment  # noqa: E402
 
 DTU = os.path.join(ROOT, "..", "shared", "data", "dtu_scan24")
+SYNTHETIC_VARIANTS = ("true", "recovered", "recovered_true_intrinsics", "recovered_sfm_frame")
 
 
 def _centre_error(recovered, truth_by_name) -> dict:
@@ -87,45 +88,68 @@ def _sfm_row(label: str, scene, err: dict, true_focal: float, unit: str) -> dict
     return row
 
 
-def synthetic(threads: int, work: str, warmup: int, coevolution: int, downscale: int) -> dict:
+def _camera(like, K, world_to_camera, distortion):
+    return Camera(K, world_to_camera, like.width, like.height, distortion, like.name)
+
+
+def synthetic(threads: int, work: str, warmup: int, coevolution: int, downscale: int, seeds: list[int],
+              variants: list[str]) -> dict:
     from PIL import Image
 
     room = scenes.load("bunny_room", n_views=64, resolution=256)
     gt = room.gt_mesh
-    sil = ops.raycast_mesh(torch.as_tensor(gt.vertices, dtype=torch.float32),
-                           torch.as_tensor(gt.faces, dtype=torch.int32), room.cameras).mask.numpy()
     photos = os.path.join(work, "synthetic", "images")
-    os.makedirs(photos)
-    rgba = np.concatenate([np.asarray(room.images), sil[..., None].astype(np.float32)], axis=-1)
-    for i, a in enumerate(rgba):
-        Image.fromarray((np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)).save(os.path.join(photos, f"{i:03d}.png"))
+    if not os.path.isdir(photos):  # --work: a rerun reuses the photos and the model
+        sil = ops.raycast_mesh(torch.as_tensor(gt.vertices, dtype=torch.float32),
+                               torch.as_tensor(gt.faces, dtype=torch.int32), room.cameras).mask.numpy()
+        os.makedirs(photos)
+        rgba = np.concatenate([np.asarray(room.images), sil[..., None].astype(np.float32)], axis=-1)
+        for i, a in enumerate(rgba):
+            Image.fromarray((np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)).save(os.path.join(photos, f"{i:03d}.png"))
     rec = load_photos(os.path.dirname(photos), options=SfMOptions(num_threads=threads), downscale=downscale)
     err = _centre_error(rec, {f"{i:03d}.png": c for i, c in enumerate(room.cameras)})
     row = _sfm_row("synthetic", rec, err, room.cameras[0].K[0, 0], "units")
     al = err["alignment"]
     true_cams = [room.cameras[int(c.name[:3])].scaled(1 / downscale) for c in rec.cameras]
+    moved = [al.apply_to_camera(c) for c in rec.cameras]
     kept = dict(images=rec.images[::2], masks=rec.masks[::2], points=al.apply(rec.points),
                 point_colors=rec.point_colors)
     # controlled: the recovered cameras moved into the true frame (same normalisation, same random
-    # draws; only the cameras differ); sfm_frame: the fit as a user runs it, in the model's frame,
-    # its mesh mapped into the true frame by the centres' similarity afterwards
-    runs = (("true", Scene(true_cams[::2], **kept), None),
-            ("recovered", Scene([al.apply_to_camera(c) for c in rec.cameras][::2], **kept), None),
-            ("recovered_sfm_frame", Scene(rec.cameras[::2], rec.images[::2], masks=rec.masks[::2], points=rec.points,
-                                          point_colors=rec.point_colors), al.apply))
-    for label, s, to_true in runs:
-        cfg = small_fit_config(warmup, coevolution, points=600, grids=(48, 64, 32), max_faces=1500, density_every=10,
-                               eval_every=0)
-        t = time.perf_counter()
-        mesh = fit(s, cfg, progress=False).mesh
-        if to_true is not None:
-            mesh = trimesh.Trimesh(to_true(mesh.vertices), mesh.faces, process=False)
-        g = geometry_metrics(mesh, gt)
-        row[f"fit_{label}"] = {"s": round(time.perf_counter() - t, 1), "chamfer_pct": round(100 * g["chamfer_rel"], 4),
-                               "f_score": round(g["f_score"], 3)}
-    for label in ("recovered", "recovered_sfm_frame"):
-        row[f"chamfer_ratio_{label}"] = round(row[f"fit_{label}"]["chamfer_pct"] / row["fit_true"]["chamfer_pct"], 3)
-    print(json.dumps({k: v for k, v in row.items() if k.startswith(("fit_", "chamfer"))}, indent=1), flush=True)
+    # draws; only the cameras differ); recovered_true_intrinsics: their poses with the true K and no
+    # distortion (which part of the gap the intrinsics make); sfm_frame: the fit as a user runs it,
+    # in the model's frame, its mesh mapped into the true frame by the centres' similarity afterwards
+    scenes_by_label = {
+        "true": (Scene(true_cams[::2], **kept), None),
+        "recovered": (Scene(moved[::2], **kept), None),
+        "recovered_true_intrinsics": (Scene([_camera(t, t.K, m.world_to_camera, None)
+                                             for t, m in zip(true_cams, moved)][::2], **kept), None),
+        "recovered_sfm_frame": (Scene(rec.cameras[::2], rec.images[::2], masks=rec.masks[::2], points=rec.points,
+                                      point_colors=rec.point_colors), al.apply)}
+    for label in variants:
+        s, to_true = scenes_by_label[label]
+        for seed in seeds:
+            cfg = small_fit_config(warmup, coevolution, points=600, grids=(48, 64, 32), max_faces=1500,
+                                   density_every=10, eval_every=0)
+            cfg.runtime.seed = seed
+            t = time.perf_counter()
+            mesh = fit(s, cfg, progress=False).mesh
+            secs = round(time.perf_counter() - t, 1)
+            if to_true is not None:
+                mesh = trimesh.Trimesh(to_true(mesh.vertices), mesh.faces, process=False)
+            g = geometry_metrics(mesh, gt)
+            # Tanks and Temples: the camera alignment refined by ICP against the truth
+            ref = refine_alignment(mesh, gt)
+            gr = geometry_metrics(ref.apply_to_mesh(mesh), gt)
+            row[f"fit_{label}_seed{seed}"] = r = {
+                "s": secs, "chamfer_pct": round(100 * g["chamfer_rel"], 4), "f_score": round(g["f_score"], 3),
+                "refined_chamfer_pct": round(100 * gr["chamfer_rel"], 4), "refined_f_score": round(gr["f_score"], 3),
+                "refinement_scale": round(ref.scale, 5)}
+            print(label, seed, json.dumps(r), flush=True)
+    for key in ("chamfer_pct", "refined_chamfer_pct"):
+        mean = {label: float(np.mean([row[f"fit_{label}_seed{k}"][key] for k in seeds])) for label in variants}
+        if "true" in mean:
+            row[f"ratio_to_true_{key}"] = {label: round(m / mean["true"], 3) for label, m in mean.items()}
+    print(json.dumps({k: v for k, v in row.items() if k.startswith("ratio")}, indent=1), flush=True)
     return row
 
 
@@ -180,6 +204,9 @@ def main() -> None:
     p.add_argument("--work", help="keep the photos and models here (a rerun reuses them) instead of a temporary folder")
     p.add_argument("--fit-iterations", type=int, nargs=2, default=(150, 50), metavar=("WARMUP", "COEVOLUTION"),
                    help="iterations of the synthetic fits (default: the test's)")
+    p.add_argument("--fit-seeds", type=int, nargs="+", default=[0, 1], help="seeds of each synthetic fit")
+    p.add_argument("--fit-variants", nargs="+", default=list(SYNTHETIC_VARIANTS), choices=SYNTHETIC_VARIANTS,
+                   help="camera sets of the synthetic fits")
     p.add_argument("--fit-downscale", type=int, default=4, help="synthetic fits on 256 / F px images (the test: 8)")
     p.add_argument("--json", help="write the rows here")
     a = p.parse_args()
@@ -188,7 +215,8 @@ def main() -> None:
     with contextlib.ExitStack() as stack:
         work = a.work or stack.enter_context(tempfile.TemporaryDirectory(prefix="wtopo_sfm_bench_"))
         if not a.skip_synthetic:
-            rows.append(synthetic(a.threads, work, *a.fit_iterations, a.fit_downscale))
+            rows.append(synthetic(a.threads, work, *a.fit_iterations, a.fit_downscale, a.fit_seeds,
+                                   a.fit_variants))
         if not a.skip_dtu:
             rows.append(dtu(a.threads, work, a.dtu_fit, a.dtu_set))
     print(f"load average at end: {os.getloadavg()}", flush=True)
