@@ -7,25 +7,32 @@ Two captures whose true cameras are known; the structure from motion never reads
   floor, brick walls), 64 views of 256 px from the upper hemisphere, written as RGBA PNG (alpha =
   the bunny's silhouette, which COLMAP ignores and the fit takes as the mask). Then fits of the
   same images and masks at 64 px (``--fit-downscale``), 150 + 50 iterations (``--fit-iterations``;
-  the test-sized configuration), every other registered view: one from the true cameras, one from the
-  recovered ones moved into the true frame by the similarity between the camera centres (the
-  controlled comparison of the test: same frame, same random draws), each scored by Chamfer against
-  the bunny; and a third fit in the model's own frame, as a user runs it, its mesh mapped into the
-  true frame afterwards.
+  the test-sized configuration), every other registered view, each of ``--fit-seeds``, from each of
+  ``--fit-variants``: the true cameras; the recovered ones (photos undistorted to pinhole cameras by
+  ``load_photos``) moved into the true frame by the similarity between the camera centres (the
+  controlled comparison of the test: same frame, same random draws); the recovered poses with the
+  true intrinsics; and a fit in the model's own frame, as a user runs it, its mesh mapped into the
+  true frame afterwards. Each mesh is scored by Chamfer against the bunny where the camera
+  alignment puts it and after the Tanks-and-Temples refinement of that alignment by ICP against
+  the bunny (``wtopo.metrics.refine_alignment``).
 * ``dtu``: DTU scan24 (``../shared/data/dtu_scan24/image``, 49 views of 384 px; research data:
-  read from there, never copied; the model is written to a temporary folder). The given cameras
-  (``cameras_sphere.npz``, read by the DTU loader, millimetres) are used only to score.
-  ``--dtu-fit`` also fits DTU from both camera sets with the CPU default (about 5 minutes each)
-  and reports held-out PSNR / SSIM of each and the Chamfer distance between the two meshes.
+  read from there, never copied; the model is written to ``--work`` or a temporary folder). The
+  given cameras (``cameras_sphere.npz``, read by the DTU loader, millimetres) are used only to score.
+  ``--dtu-fit`` also fits DTU from the given cameras and from the recovered ones moved into DTU's
+  frame (same photos, held-out split and region; ``--dtu-set`` shrinks the budget) and reports
+  held-out PSNR / SSIM of each and the Chamfer distance between the two meshes, camera-aligned and
+  refined.
 
 Reported per capture: registered views, mean reprojection error (px), time per step (features,
 matching, mapping) on ``--threads`` CPU threads, camera-centre RMS after a similarity alignment
 (Umeyama; absolute and as a fraction of the camera extent, the diagonal of the true centres' box),
 recovered focal length against the true one.
 
-Command (figures in benchmarks/sfm.md)::
+Commands (figures in benchmarks/sfm.md)::
 
-    PYTHONPATH=. nice -n 10 .venv/bin/python benchmarks/sfm.py --threads 2 --dtu-fit
+    PYTHONPATH=. nice -n 10 .venv/bin/python benchmarks/sfm.py --threads 2 --skip-dtu
+    PYTHONPATH=. nice -n 10 .venv/bin/python benchmarks/sfm.py --threads 2 --skip-synthetic --dtu-fit \
+        --dtu-set warmup.iterations=150 --dtu-set coevolution.iterations=50 --dtu-set runtime.image_scale=0.5
 """
 
 from __future__ import annotations
@@ -157,8 +164,10 @@ def dtu(threads: int, work: str, do_fit: bool, sets: list[str]) -> dict:
     from wtopo.cli import _apply_set
 
     given = load_scene(DTU)  # DTU world, millimetres
+    # undistort=False: the fits below take DTU's photos as they are with the recovered cameras, lens
+    # (SIMPLE_RADIAL k) included
     rec = load_photos(os.path.join(DTU, "image"), out_dir=os.path.join(work, "dtu"),
-                      options=SfMOptions(num_threads=threads))
+                      options=SfMOptions(num_threads=threads), undistort=False)
     err = _centre_error(rec, {c.name: c for c in given.cameras})
     row = _sfm_row("dtu_scan24", rec, err, given.cameras[0].K[0, 0], "mm")
     if not do_fit:

@@ -91,7 +91,7 @@ def test_recovered_camera_centres_match_the_true_ones(capture, recovered):
     assert r.model_dir == os.path.join(root, "sparse", "0")
     with open(root / "sfm.json") as fh:
         assert json.load(fh)["registered"] == r.registered
-    loaded = load_scene(root)  # COLMAP now: the model beside the images
+    loaded = load_scene(root)  # the model beside the images, reused
     names = [c.name for c in loaded.cameras]
     assert names == r.registered
     assert loaded.points is not None and len(loaded.points) == r.points >= 100  # they seed the surfels
@@ -146,7 +146,14 @@ def test_second_run_reuses_the_model(capture, recovered, monkeypatch, capsys):
     assert "reusing" in capsys.readouterr().out
     scene = cli._load(str(root), sfm=True, progress=False)
     assert [c.name for c in scene.cameras] == recovered.registered
-    assert detect_format(root) == "colmap"
+    assert all(c.distortion is None for c in scene.cameras)  # undistorted as on the first run
+    assert detect_format(root) == "photos"  # the model run_sfm wrote (sfm.json beside sparse/)
+    os.remove(root / "sfm.json")
+    try:
+        assert detect_format(root) == "colmap"  # a model made elsewhere is a COLMAP dataset
+    finally:
+        with open(root / "sfm.json", "w") as fh:
+            json.dump(recovered.to_dict(), fh)
 
 
 def _noise_photos(folder, n, size=(160, 120), seed=0, ext="png"):

@@ -49,7 +49,8 @@ _CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENC
 _MATCH_CHUNK = 64  # image pairs per matching call: one progress-bar step (a call costs ~1 ms of set-up)
 _EXTRACT_CHUNK = 4  # images per feature-extraction call: one progress-bar step
 _MAX_NAMED = 20  # an error names at most this many dropped images (then "and N more")
-_SUMMARY = "sfm.json"
+SFM_SUMMARY = "sfm.json"
+"""What :func:`run_sfm` did, written in its workspace beside ``sparse/`` (also how a later load tells its model)."""
 _IMAGE_FOLDERS = ("images", "image")  # a workspace's image folder: the model goes beside it, not into it
 
 
@@ -439,7 +440,7 @@ def _camera_dict(rec, focal_prior: str) -> dict:
 def _reuse(model_dir: str, workspace: str, image_dir: str, names: list[str]) -> SfMResult:
     from .colmap import read_model
 
-    summary = os.path.join(workspace, _SUMMARY)
+    summary = os.path.join(workspace, SFM_SUMMARY)
     if os.path.isfile(summary):
         with open(summary) as fh:
             data = json.load(fh)
@@ -582,7 +583,7 @@ def run_sfm(image_dir, *, out_dir=None, options: SfMOptions | None = None, reuse
     res = SfMResult(model_dir, workspace, img_dir, list(names), registered, dropped, matcher, why,
                     _camera_dict(rec, focal_prior), int(rec.num_points3D()),
                     float(rec.compute_mean_reprojection_error()), seconds)
-    with open(os.path.join(workspace, _SUMMARY), "w") as fh:
+    with open(os.path.join(workspace, SFM_SUMMARY), "w") as fh:
         json.dump({k: v for k, v in res.to_dict().items() if k not in ("model_dir", "workspace", "image_dir",
                                                                          "reused")}, fh, indent=1)
     if progress:
