@@ -62,6 +62,7 @@ from wtopo.loaders import SfMOptions, load_photos  # noqa: E402
 from wtopo.metrics import align_similarity, chamfer, refine_alignment  # noqa: E402
 
 DTU = os.path.join(ROOT, "..", "shared", "data", "dtu_scan24")
+DTU_VARIANTS = ("given", "recovered", "recovered_undistorted")
 SYNTHETIC_VARIANTS = ("true", "recovered", "recovered_true_intrinsics", "recovered_sfm_frame")
 
 
@@ -160,12 +161,12 @@ def synthetic(threads: int, work: str, warmup: int, coevolution: int, downscale:
     return row
 
 
-def dtu(threads: int, work: str, do_fit: bool, sets: list[str]) -> dict:
+def dtu(threads: int, work: str, do_fit: bool, sets: list[str], variants: list[str]) -> dict:
     from wtopo.cli import _apply_set
 
     given = load_scene(DTU)  # DTU world, millimetres
-    # undistort=False: the fits below take DTU's photos as they are with the recovered cameras, lens
-    # (SIMPLE_RADIAL k) included
+    # undistort=False: the "recovered" fit takes DTU's photos as they are with the recovered cameras,
+    # lens (SIMPLE_RADIAL k) included
     rec = load_photos(os.path.join(DTU, "image"), out_dir=os.path.join(work, "dtu"),
                       options=SfMOptions(num_threads=threads), undistort=False)
     err = _centre_error(rec, {c.name: c for c in given.cameras})
@@ -173,31 +174,51 @@ def dtu(threads: int, work: str, do_fit: bool, sets: list[str]) -> dict:
     if not do_fit:
         return row
     al = err["alignment"]
-    by_name = {c.name: c for c in rec.cameras}
     # controlled, as on the synthetic capture: the recovered cameras (intrinsics, distortion, poses)
-    # moved into DTU's frame by the centres' similarity; images, held-out split and region of
-    # interest (scale_mat) are the given scene's, so only the cameras differ
-    moved = dataclasses.replace(given, cameras=[al.apply_to_camera(by_name[c.name]) for c in given.cameras])
+    # moved into DTU's frame by the centres' similarity; held-out split and region of interest
+    # (scale_mat) are the given scene's, so only the cameras differ ("recovered"), or the cameras and
+    # the photos undistorted to them ("recovered_undistorted", what load_photos gives by default)
+    by_name = {c.name: c for c in rec.cameras}
+    order = [c.name for c in given.cameras]
+    scenes_by_label = {"given": lambda: given,
+                       "recovered": lambda: dataclasses.replace(
+                           given, cameras=[al.apply_to_camera(by_name[n]) for n in order])}
+
+    def undistorted():
+        u = load_photos(os.path.join(DTU, "image"), out_dir=os.path.join(work, "dtu"), progress=False)
+        idx = {c.name: i for i, c in enumerate(u.cameras)}
+        images = np.asarray(u.images)[[idx[n] for n in order]]
+        return dataclasses.replace(given, cameras=[al.apply_to_camera(u.cameras[idx[n]]) for n in order],
+                                   images=images)
+
+    scenes_by_label["recovered_undistorted"] = undistorted
     meshes = {}
-    for label, s in (("given", given), ("recovered", moved)):
-        cfg = FitConfig()
-        for item in sets:
-            _apply_set(cfg, item)
-        cfg.runtime.progress = False
-        t = time.perf_counter()
-        res = fit(s, cfg, progress=False)
-        meshes[label] = res.mesh
-        row[f"fit_{label}"] = {"s": round(time.perf_counter() - t, 1), "psnr": round(res.report.get("psnr", 0), 2),
-                               "ssim": round(res.report.get("ssim", 0), 3), "faces": len(res.mesh.faces)}
-        print(label, json.dumps(row[f"fit_{label}"]), flush=True)
-    c = chamfer(meshes["recovered"], meshes["given"])
-    ref = refine_alignment(meshes["recovered"], meshes["given"])
-    c_ref = chamfer(ref.apply_to_mesh(meshes["recovered"]), meshes["given"])
-    row["mesh_to_mesh"] = {"chamfer_mm": round(c.chamfer, 3), "chamfer_pct_diag": round(100 * c.chamfer_rel, 4),
-                           "refined_chamfer_mm": round(c_ref.chamfer, 3),
-                           "refined_chamfer_pct_diag": round(100 * c_ref.chamfer_rel, 4),
-                           "refinement": {"scale": round(ref.scale, 5),
-                                          "moved_mm": round(_motion(ref, meshes["given"]), 3)}}
+    for label in DTU_VARIANTS:
+        path = os.path.join(work, "dtu", f"fit_{label}.ply")
+        if label in variants:
+            cfg = FitConfig()
+            for item in sets:
+                _apply_set(cfg, item)
+            cfg.runtime.progress = False
+            t = time.perf_counter()
+            res = fit(scenes_by_label[label](), cfg, progress=False)
+            res.mesh.export(path)
+            row[f"fit_{label}"] = {"s": round(time.perf_counter() - t, 1), "psnr": round(res.report.get("psnr", 0), 2),
+                                   "ssim": round(res.report.get("ssim", 0), 3), "faces": len(res.mesh.faces)}
+            print(label, json.dumps(row[f"fit_{label}"]), flush=True)
+        if os.path.isfile(path):  # an earlier run's mesh (--work) takes part in the comparison
+            meshes[label] = trimesh.load(path, process=False)
+    for label in ("recovered", "recovered_undistorted"):
+        if label not in meshes or "given" not in meshes:
+            continue
+        c = chamfer(meshes[label], meshes["given"])
+        ref = refine_alignment(meshes[label], meshes["given"])
+        c_ref = chamfer(ref.apply_to_mesh(meshes[label]), meshes["given"])
+        row[f"mesh_to_mesh_{label}"] = {
+            "chamfer_mm": round(c.chamfer, 3), "chamfer_pct_diag": round(100 * c.chamfer_rel, 4),
+            "refined_chamfer_mm": round(c_ref.chamfer, 3),
+            "refined_chamfer_pct_diag": round(100 * c_ref.chamfer_rel, 4),
+            "refinement": {"scale": round(ref.scale, 5), "moved_mm": round(_motion(ref, meshes["given"]), 3)}}
     print(json.dumps({k: v for k, v in row.items() if k.startswith(("fit_", "mesh_"))}, indent=1), flush=True)
     return row
 
@@ -210,6 +231,8 @@ def main() -> None:
     p.add_argument("--dtu-fit", action="store_true", help="also fit DTU from both camera sets")
     p.add_argument("--dtu-set", action="append", default=[], metavar="PATH=VALUE",
                    help="FitConfig override of the DTU fits, as wtopo fit --set (e.g. warmup.iterations=150)")
+    p.add_argument("--dtu-variants", nargs="+", default=list(DTU_VARIANTS), choices=DTU_VARIANTS,
+                   help="camera sets of the DTU fits (with --work, earlier fits' meshes join the comparison)")
     p.add_argument("--work", help="keep the photos and models here (a rerun reuses them) instead of a temporary folder")
     p.add_argument("--fit-iterations", type=int, nargs=2, default=(150, 50), metavar=("WARMUP", "COEVOLUTION"),
                    help="iterations of the synthetic fits (default: the test's)")
@@ -227,7 +250,7 @@ def main() -> None:
             rows.append(synthetic(a.threads, work, *a.fit_iterations, a.fit_downscale, a.fit_seeds,
                                    a.fit_variants))
         if not a.skip_dtu:
-            rows.append(dtu(a.threads, work, a.dtu_fit, a.dtu_set))
+            rows.append(dtu(a.threads, work, a.dtu_fit, a.dtu_set, a.dtu_variants))
     print(f"load average at end: {os.getloadavg()}", flush=True)
     if a.json:
         with open(a.json, "w") as fh:
