@@ -8,7 +8,7 @@ length prior from the EXIF data when the photos carry it), refines the model by 
 adjustment with a robust (Cauchy) loss and writes it as
 ``sparse/0/{cameras,images,points3D}.{bin,txt}`` beside the images, where a second run (and any
 COLMAP tool) finds it. :func:`load_photos` reads the result with the COLMAP loader, so the
-model's points seed the surfels.
+model's points seed the surfels, and undistorts the photos to pinhole cameras.
 
 pycolmap is an optional dependency: ``pip install "wtopo[sfm]"`` (a 38 MB manylinux wheel with
 CPU SIFT, matching and mapping).
