@@ -17,7 +17,7 @@ from .blender import load_blender, write_blender
 from .colmap import find_colmap_model, load_colmap
 from .dtu import load_dtu
 from .nerfstudio import load_nerfstudio
-from .sfm import SfMError, SfMOptions, find_photos, load_photos, run_sfm
+from .sfm import SFM_SUMMARY, SfMError, SfMOptions, find_photos, load_photos, run_sfm
 
 __all__ = ["load_scene", "detect_format", "load_blender", "write_blender", "load_colmap", "load_dtu",
            "load_nerfstudio", "load_photos", "run_sfm", "SfMOptions", "SfMError"]
@@ -29,7 +29,8 @@ _LOADERS = {"blender": load_blender, "colmap": load_colmap, "dtu": load_dtu, "ne
 def detect_format(path: str) -> str:
     """``"blender"``, ``"nerfstudio"``, ``"dtu"`` or ``"colmap"`` for a dataset folder (or a
     ``transforms*.json`` / ``cameras*.npz`` file); ``"photos"`` for a folder of images (or one
-    holding ``images/``) with none of these cameras."""
+    holding ``images/``) with none of these cameras, or with the COLMAP model :func:`run_sfm` wrote
+    there (its ``sfm.json`` beside ``sparse/``)."""
     p = os.fspath(path)
     if os.path.isfile(p):
         base = os.path.basename(p)
@@ -49,6 +50,10 @@ def detect_format(path: str) -> str:
     if any(os.path.isfile(os.path.join(p, f)) for f in ("cameras_sphere.npz", "cameras.npz")):
         return "dtu"
     if find_colmap_model(p) is not None:
+        # a model run_sfm made (its sfm.json beside sparse/): load_photos reuses it and undistorts
+        # the photos as on the first run
+        if os.path.isfile(os.path.join(p, SFM_SUMMARY)) and find_photos(p) is not None:
+            return "photos"
         return "colmap"
     if find_photos(p) is not None:
         return "photos"
