@@ -175,6 +175,13 @@ class Camera:
         xy = self.undistort(np.stack([x, y], axis=-1))
         return np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
 
+    def cached(self, key, build):
+        """``build()`` computed once per ``key`` and kept on this camera (derived per-device tensors
+        that ops would otherwise copy to the device on every call); ``key`` must name the device."""
+        if key not in self._rays_cache:
+            self._rays_cache[key] = build()
+        return self._rays_cache[key]
+
     def pixel_rays(self, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32):
         """World-frame rays through every pixel centre.
 
@@ -183,16 +190,13 @@ class Camera:
             *not* unit length: their camera-z component is 1, so the ray parameter of a hit is its
             z-depth in this camera. Cached per (device, dtype).
         """
-        key = (str(device), dtype)
-        if key not in self._rays_cache:
-            d_cam = self.pixel_directions_camera()
-            d_world = d_cam @ self.R  # == (R^T d)^T
+        def build():
+            d_world = self.pixel_directions_camera() @ self.R  # == (R^T d)^T
             o = np.broadcast_to(self.center, d_world.shape)
-            self._rays_cache[key] = (
-                torch.as_tensor(np.ascontiguousarray(o), dtype=dtype, device=device),
-                torch.as_tensor(np.ascontiguousarray(d_world), dtype=dtype, device=device),
-            )
-        return self._rays_cache[key]
+            return (torch.as_tensor(np.ascontiguousarray(o), dtype=dtype, device=device),
+                    torch.as_tensor(np.ascontiguousarray(d_world), dtype=dtype, device=device))
+
+        return self.cached((str(device), dtype), build)
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Project world points [N, 3] to continuous pixel coordinates [N, 2] and z-depth [N] (float64)."""

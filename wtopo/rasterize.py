@@ -222,37 +222,36 @@ def _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, 
 
 def _camera_tables(camera: Camera, device, dtype, tile_size: int):
     """Rays [H, W, 3] and per-tile-column / per-tile-row normalised-coordinate ranges (cached on the camera)."""
-    key = ("wtopo.rasterize.tables", str(device), dtype, tile_size)
-    cache = camera._rays_cache  # noqa: SLF001 - the camera's per-device cache, shared with pixel_rays
-    if key not in cache:
-        _, dirs = camera.pixel_rays(device, dtype)
-        d_cam = dirs.detach().cpu().double().numpy() @ camera.R.T
-        h, w = camera.height, camera.width
-        tx, ty = -(-w // tile_size), -(-h // tile_size)
-        x = d_cam[..., 0]
-        y = d_cam[..., 1]
-        colx_min = np.array([x[:, j * tile_size:(j + 1) * tile_size].min() for j in range(tx)])
-        colx_max = np.array([x[:, j * tile_size:(j + 1) * tile_size].max() for j in range(tx)])
-        rowy_min = np.array([y[i * tile_size:(i + 1) * tile_size].min() for i in range(ty)])
-        rowy_max = np.array([y[i * tile_size:(i + 1) * tile_size].max() for i in range(ty)])
-        # binary searches need non-decreasing tables; a lens that folds the image gets full ranges
-        if np.any(np.diff(colx_min) < 0) or np.any(np.diff(colx_max) < 0):
-            colx_min[:], colx_max[:] = -np.inf, np.inf
-        if np.any(np.diff(rowy_min) < 0) or np.any(np.diff(rowy_max) < 0):
-            rowy_min[:], rowy_max[:] = -np.inf, np.inf
-        wdev = _bridge.warp_device(device)
-        tables = tuple(wp.array(a, dtype=wp.float64, device=wdev) for a in (colx_min, colx_max, rowy_min, rowy_max))
-        cache[key] = (dirs, tables)
-    return cache[key]
+    return camera.cached(("wtopo.rasterize.tables", str(device), dtype, tile_size),
+                         lambda: _build_camera_tables(camera, device, dtype, tile_size))
+
+
+def _build_camera_tables(camera: Camera, device, dtype, tile_size: int):
+    """What :func:`_camera_tables` caches."""
+    _, dirs = camera.pixel_rays(device, dtype)
+    d_cam = dirs.detach().cpu().double().numpy() @ camera.R.T
+    h, w = camera.height, camera.width
+    tx, ty = -(-w // tile_size), -(-h // tile_size)
+    x = d_cam[..., 0]
+    y = d_cam[..., 1]
+    colx_min = np.array([x[:, j * tile_size:(j + 1) * tile_size].min() for j in range(tx)])
+    colx_max = np.array([x[:, j * tile_size:(j + 1) * tile_size].max() for j in range(tx)])
+    rowy_min = np.array([y[i * tile_size:(i + 1) * tile_size].min() for i in range(ty)])
+    rowy_max = np.array([y[i * tile_size:(i + 1) * tile_size].max() for i in range(ty)])
+    # binary searches need non-decreasing tables; a lens that folds the image gets full ranges
+    if np.any(np.diff(colx_min) < 0) or np.any(np.diff(colx_max) < 0):
+        colx_min[:], colx_max[:] = -np.inf, np.inf
+    if np.any(np.diff(rowy_min) < 0) or np.any(np.diff(rowy_max) < 0):
+        rowy_min[:], rowy_max[:] = -np.inf, np.inf
+    wdev = _bridge.warp_device(device)
+    tables = tuple(wp.array(a, dtype=wp.float64, device=wdev) for a in (colx_min, colx_max, rowy_min, rowy_max))
+    return dirs, tables
 
 
 def _depth_row(camera: Camera, device, dtype) -> torch.Tensor:
     """Third row of the world-to-camera rotation [3] on the device (cached on the camera: no copy per call)."""
-    key = ("wtopo.rasterize.depth_row", str(device), dtype)
-    cache = camera._rays_cache  # noqa: SLF001 - the camera's per-device cache, shared with pixel_rays
-    if key not in cache:
-        cache[key] = torch.as_tensor(camera.R[2], dtype=dtype, device=device)
-    return cache[key]
+    return camera.cached(("wtopo.rasterize.depth_row", str(device), dtype),
+                         lambda: torch.as_tensor(camera.R[2], dtype=dtype, device=device))
 
 
 def _camera_record(camera: Camera, clip: torch.Tensor, dtype, filter_sigma: float):

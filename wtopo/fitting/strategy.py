@@ -109,15 +109,16 @@ class DensityStrategy:
     def coverage_counts(info: StepInfo) -> torch.Tensor:
         """What :meth:`step_pre_backward` needs from the rendered view, float64 [2] on the device.
 
-        With a mask: uncovered object pixels and object pixels; without: the uncovered fraction
-        (float32 mean, as before) and 1. The fit reads it together with its losses (one host read).
+        Uncovered object pixels and object pixels (every pixel without a mask). The fit reads it
+        together with its losses (one host read).
         """
-        covered = info.covered
-        if info.mask is not None:
-            m = info.mask
-            return torch.stack([(m & ~covered).sum(), m.sum()]).double()
-        frac = (~covered).float().mean()
-        return torch.stack([frac.double(), torch.ones_like(frac, dtype=torch.float64)])
+        if info.mask is None:
+            uncovered = ~info.covered
+            total = uncovered.new_full((), float(uncovered.numel()), dtype=torch.float64)  # a fill, no copy
+        else:
+            uncovered = info.mask & ~info.covered
+            total = info.mask.sum().double()
+        return torch.stack([uncovered.sum().double(), total])
 
     def step_pre_backward(self, info: StepInfo, counts: Sequence[float] | None = None) -> None:
         """Update the running coverage gap from the rendered view (``counts``: :meth:`coverage_counts`,
@@ -125,7 +126,7 @@ class DensityStrategy:
         if counts is None:
             counts = self.coverage_counts(info).tolist()  # host sync
         uncovered, total = counts
-        gap = uncovered / max(1.0, total) if info.mask is not None else uncovered
+        gap = uncovered / max(1.0, total)
         self.gap = _GAP_EMA * self.gap + (1 - _GAP_EMA) * gap
 
     def step_post_backward(self, surfels: Surfels, info: StepInfo) -> None:
@@ -135,16 +136,10 @@ class DensityStrategy:
             visible = out.visibility > 0
             if info.stage == Stage.WARMUP and out.means2d.grad is not None:
                 dens.accumulate_gradients(surfels, out.means2d.grad, visible, cam.width, cam.height)
-            center = self._center(cam, surfels.means.device)
+            dev = surfels.means.device  # the centre is copied to the device once per camera, not per step
+            center = cam.cached(("wtopo.fit.center", str(dev)),
+                                lambda: torch.as_tensor(cam.center, dtype=torch.float32, device=dev))
             dens.accumulate_view_directions(surfels, center, visible)
-
-    def _center(self, cam, device) -> torch.Tensor:
-        """Camera centre [3] float32 on ``device``, copied once per camera (no blocking copy per step)."""
-        key = ("wtopo.fit.center", str(device))
-        cache = cam._rays_cache  # noqa: SLF001 - the camera's per-device cache
-        if key not in cache:
-            cache[key] = torch.as_tensor(cam.center, dtype=torch.float32, device=device)
-        return cache[key]
 
     def is_density_step(self, stage: Stage, it: int) -> bool:
         """Whether :meth:`step_end` runs density control at iteration ``it``."""
