@@ -94,6 +94,19 @@ def make_wtopo_fit_path(cam):
     return render, last
 
 
+def per_pixel_atomics(render):
+    """``render`` with the previous CUDA kernels' work order (one atomic per pixel; ``COOPERATIVE_WARPS`` off)."""
+
+    def run(*a):
+        R.COOPERATIVE_WARPS = False
+        try:
+            return render(*a)
+        finally:
+            R.COOPERATIVE_WARPS = True
+
+    return run
+
+
 def gsplat_inputs(params, cam, near: float):
     """Leaves of gsplat for the same surfels: scales [N, 3] (the third is unused by 2DGS), viewmats, Ks."""
     means, quats, scales, ops, sh = (p.detach() for p in params)
@@ -213,7 +226,8 @@ def bench_rasterizer(args, device) -> list[dict]:
                "coverage_wtopo": float((ref.alpha > 0).float().mean())}
         fit_render, last = make_wtopo_fit_path(cam)
         impls = {"wtopo_public": (lambda p: wtopo_public(p, cam), (params,), params),
-                 "wtopo_fit_path": (fit_render, (params,), params)}
+                 "wtopo_fit_path": (fit_render, (params,), params),
+                 "wtopo_fit_per_pixel": (per_pixel_atomics(fit_render), (params,), params)}
         if gsplat_version is not None:
             try:
                 leaves, viewmat, K = gsplat_inputs(params, cam, near)
@@ -236,6 +250,12 @@ def bench_rasterizer(args, device) -> list[dict]:
                          "forward_pipelined": time_pipelined(fwd, args.warmup, args.repeats),
                          "forward_backward_pipelined": time_pipelined(both, args.warmup, args.repeats),
                          "torch_peak_mb": torch.cuda.max_memory_allocated(device) / 2**20}
+        if args.profile:
+            for name in ("wtopo_fit_per_pixel", "wtopo_fit_path", "gsplat_2dgs"):
+                if name in impls:
+                    render, rargs, leaves = impls[name]
+                    row.setdefault("profile", {})[name] = profile_kernels(_fwd_bwd(render, rargs, leaves, ups)[1],
+                                                                          f"{name}, N={n}, forward + backward")
         if last.get("overflow") is not None:
             row["fit_path_overflow_last_call"] = bool(last["overflow"])
         rows.append(row)
@@ -244,26 +264,53 @@ def bench_rasterizer(args, device) -> list[dict]:
     return rows
 
 
+def profile_kernels(fn, label: str, calls: int = 5, top: int = 8) -> list:
+    """CUDA kernel times of ``calls`` calls of ``fn`` (torch.profiler, CUPTI: Warp's kernels included), printed."""
+    from torch.profiler import ProfilerActivity, profile
+
+    fn()
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        for _ in range(calls):
+            fn()
+        torch.cuda.synchronize()
+    rows = []
+    for e in prof.key_averages():
+        us = getattr(e, "device_time_total", None)
+        if us is None:
+            us = e.cuda_time_total
+        if us > 0:
+            rows.append((e.key, us / calls / 1e3, e.count // calls))
+    rows.sort(key=lambda r: -r[1])
+    total = sum(r[1] for r in rows)
+    print(f"\nkernel profile, {label}: {total:.3f} ms of kernels per call")
+    for key, ms, cnt in rows[:top]:
+        print(f"  {ms:8.3f} ms  x{cnt:<3} {key[:90]}")
+    return [{"kernel": k, "ms_per_call": ms, "launches_per_call": c} for k, ms, c in rows[:top]] + [
+        {"kernel": "total", "ms_per_call": total}]
+
+
 def print_rasterizer(rows) -> None:
     print("\nRasterizer, one camera (ms; latency = from an idle device, pipelined = back-to-back calls)")
-    print(f"{'N':>9} {'impl':<16} {'fwd':>8} {'fwd+bwd':>8} {'fwd pipe':>9} {'f+b pipe':>9} {'host fwd':>9} "
+    print(f"{'N':>9} {'impl':<20} {'fwd':>8} {'fwd+bwd':>8} {'fwd pipe':>9} {'f+b pipe':>9} {'host fwd':>9} "
           f"{'peak MB':>8}")
     for r in rows:
-        for name in ("wtopo_public", "wtopo_fit_path", "gsplat_2dgs"):
+        for name in ("wtopo_public", "wtopo_fit_path", "wtopo_fit_per_pixel", "gsplat_2dgs"):
             if name not in r:
                 continue
             t = r[name]
-            print(f"{r['surfels']:>9} {name:<16} {t['forward']['ms']:8.2f} {t['forward_backward']['ms']:8.2f} "
+            print(f"{r['surfels']:>9} {name:<20} {t['forward']['ms']:8.2f} {t['forward_backward']['ms']:8.2f} "
                   f"{t['forward_pipelined']['ms']:9.2f} {t['forward_backward_pipelined']['ms']:9.2f} "
                   f"{t['forward']['host_ms']:9.2f} {t['torch_peak_mb']:8.0f}")
         if "gsplat_2dgs" in r:
             g = r["gsplat_2dgs"]
-            for name in ("wtopo_public", "wtopo_fit_path"):
+            for name in ("wtopo_public", "wtopo_fit_path", "wtopo_fit_per_pixel"):
                 t = r[name]
                 ratios = [t[k]["ms"] / g[k]["ms"] for k in ("forward", "forward_backward", "forward_pipelined",
                                                             "forward_backward_pipelined")]
                 r.setdefault("ratios_vs_gsplat", {})[name] = ratios
-                print(f"{'':>9} {name + '/gsplat':<16} " + " ".join(f"{x:8.2f}x" for x in ratios))
+                label = name.removeprefix("wtopo_") + "/gsplat"
+                print(f"{'':>9} {label:<20} " + " ".join(f"{x:8.2f}x" for x in ratios))
             print(f"{'':>9} coverage wtopo {r['coverage_wtopo']:.3f} "
                   f"gsplat {r.get('coverage_gsplat', float('nan')):.3f}, "
                   f"mean |alpha diff| {r.get('alpha_mean_abs_diff', float('nan')):.4f}, "
@@ -349,6 +396,7 @@ def _step_path(path: str, args, device, cam) -> dict:
         ev[0].record()
         a = (params["means"], params["quats"], params["log_scales"].exp(), torch.sigmoid(params["opacity_logits"]),
              params["sh"])
+        R.COOPERATIVE_WARPS = path != "fit_path_per_pixel"
         if path == "public":
             o = R.rasterize_surfels(*a, cam, background=bg, config=cfg)
         else:
@@ -357,6 +405,7 @@ def _step_path(path: str, args, device, cam) -> dict:
         loss = photometric_loss(o.rgb, target, dssim=0.2) + 0.01 * o.distortion.mean()
         ev[2].record()
         loss.backward()
+        R.COOPERATIVE_WARPS = True
         ev[3].record()
         opt.step()
         opt.zero_grad(set_to_none=True)
@@ -390,7 +439,7 @@ def bench_step(args, device) -> dict:
     w, h = args.step_size
     cam = make_camera(w, h)
     out = {"size": [w, h], "surfels": args.step_surfels, "iterations": args.step_iters}
-    for path in ("public", "fit_path"):
+    for path in ("public", "fit_path", "fit_path_per_pixel"):
         torch.cuda.reset_peak_memory_stats(device)
         out[path] = _step_path(path, args, device, cam)
     return out
@@ -401,12 +450,12 @@ def print_step(res) -> None:
     print(f"\nFit-like step, {res['surfels']} surfels, {w}x{h}, {res['iterations']} iterations (ms per iteration; "
           f"stage = CUDA events between its launches, wall = host time of the whole step)")
     stages = list(res["public"]["ms_per_iteration"])
-    print(f"{'path':<10} " + " ".join(f"{s:>9}" for s in stages) + f" {'sum':>8} {'wall':>8}")
-    for path in ("public", "fit_path"):
+    print(f"{'path':<18} " + " ".join(f"{s:>9}" for s in stages) + f" {'sum':>8} {'wall':>8}")
+    for path in ("public", "fit_path", "fit_path_per_pixel"):
         t = res[path]["ms_per_iteration"]
-        print(f"{path:<10} " + " ".join(f"{t[s]:9.3f}" for s in stages) + f" {sum(t.values()):8.3f} "
+        print(f"{path:<18} " + " ".join(f"{t[s]:9.3f}" for s in stages) + f" {sum(t.values()):8.3f} "
               f"{res[path]['wall_ms_per_iteration']:8.3f}")
-    for path in ("public", "fit_path"):
+    for path in ("public", "fit_path", "fit_path_per_pixel"):
         r = res[path]
         pool = r["warp_pool_high_mb"]
         print(f"{path}: torch peak {r['torch_peak_mb']:.0f} MB, Warp pool high-water "
@@ -425,6 +474,9 @@ def main() -> int:
     ap.add_argument("--step-surfels", type=int, default=150_000)
     ap.add_argument("--step-iters", type=int, default=50)
     ap.add_argument("--no-gsplat", action="store_true", help="do not time gsplat even when importable")
+    ap.add_argument("--profile", action="store_true",
+                    help="rasterizer section: also print the CUDA kernel times of the fit path (both kernel modes) "
+                         "and gsplat (torch.profiler)")
     ap.add_argument("--only", nargs="+", choices=["rasterizer", "loss", "step"], default=["rasterizer", "loss", "step"])
     ap.add_argument("--out", default="/tmp/bench_rasterize_gpu", help="folder for bench_rasterize_gpu.json")
     args = ap.parse_args()

@@ -353,6 +353,78 @@ def ndc_depth(z: Any, near: Any, far: Any):
     return k * (type(z)(1.0) - near / z), k * near / (z * z)
 
 
+# -- warp-cooperative helpers ------------------------------------------------------------------
+# With ``coop`` (CUDA launches), the 32 pixels of a warp walk their tile's list in step and the helpers
+# act on the whole warp: a per-surfel sum over the warp and one atomic add by lane 0 instead of one per
+# pixel (the pixels of a tile all hit the same surfels, so per-pixel atomics serialise). Without it
+# (CPU, or CUDA for comparison) each acts on its own pixel. Native code: the warp intrinsics exist only
+# in the CUDA build; the C++ build (CPU) is the per-pixel form.
+# Contract of a ``coop`` launch: a multiple of 32 threads, the lanes of a warp in one tile (tiles of
+# >= 64 pixels in tile-major order, :func:`pixel_tile_coords`), and every lane calling the same helpers
+# in the same order (warp-uniform control flow around each call).
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    if (coop) {
+        int m = x;
+        for (int o = 16; o > 0; o >>= 1) m = max(m, __shfl_xor_sync(0xffffffffu, m, o));
+        return m;
+    }
+#endif
+    return x;
+""")
+def warp_max(x: int, coop: int) -> int:
+    """Maximum of ``x`` over the warp (``coop``) or ``x``."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    if (coop) return __any_sync(0xffffffffu, b) != 0;
+#endif
+    return b;
+""")
+def warp_any(b: bool, coop: int) -> bool:
+    """Whether ``b`` holds on any lane of the warp (``coop``) or ``b``."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    if (coop) {
+        auto s = v;
+        for (int o = 16; o > 0; o >>= 1) s += __shfl_down_sync(0xffffffffu, s, o);
+        if ((threadIdx.x & 31) == 0) wp::atomic_add(dest, w, i, s);
+        return;
+    }
+#endif
+    if (own) wp::atomic_add(dest, w, i, v);
+""")
+def warp_add_scalar(dest: wp.array2d[Any], w: int, i: int, v: Any, own: bool, coop: int):
+    """``dest[w, i] += v`` summed over the warp by lane 0 (``coop``: ``v`` is 0 on lanes without ``own``),
+    else added where ``own``."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    if (coop) {
+        auto s = v;
+        for (unsigned c = 0; c < sizeof(v) / sizeof(v[0]); ++c) {
+            for (int o = 16; o > 0; o >>= 1) s[c] += __shfl_down_sync(0xffffffffu, s[c], o);
+        }
+        if ((threadIdx.x & 31) == 0) wp::atomic_add(dest, w, i, s);
+        return;
+    }
+#endif
+    if (own) wp::atomic_add(dest, w, i, v);
+""")
+def warp_add_vec(dest: wp.array2d[Any], w: int, i: int, v: Any, own: bool, coop: int):
+    """:func:`warp_add_scalar` for a vector ``v``."""
+    ...
+
+
 @wp.kernel(enable_backward=False)
 def render_forward_kernel(
     offset: int,
@@ -369,6 +441,7 @@ def render_forward_kernel(
     background: wp.array[Any],
     tile_size: int,
     tiles_x: int,
+    coop: int,
     rgb: wp.array2d[Any],
     alpha: wp.array2d[Any],
     depth: wp.array2d[Any],
@@ -381,10 +454,16 @@ def render_forward_kernel(
     median_idx: wp.array2d[wp.int32],
     visibility: wp.array2d[wp.int32],
 ):
-    """Front-to-back compositing of one pixel over its tile's depth-sorted surfel list."""
+    """Front-to-back compositing of one pixel over its tile's depth-sorted surfel list.
+
+    With ``coop`` (CUDA) the 32 pixels of a warp walk the list together until every one of them has
+    stopped, and the visibility counts are summed over the warp before one atomic add per surfel.
+    """
     tile, px, py = pixel_tile_coords(wp.tid() + offset, tile_size, tiles_x)
-    if px >= rgb.shape[1] or py >= rgb.shape[0]:
-        return
+    # pixels past the image edge (partial tiles) still walk with their warp, writing nothing
+    inside = px < rgb.shape[1] and py < rgb.shape[0]
+    px = wp.min(px, rgb.shape[1] - 1)
+    py = wp.min(py, rgb.shape[0] - 1)
     d = rays[py, px]
     f_ref = d[0]
     near = cam.clip[0]
@@ -401,34 +480,43 @@ def render_forward_kernel(
     med = zero
     med_k = int(-1)
     end = tile_start[tile]
-    for k in range(tile_start[tile], tile_end[tile]):
+    k_end = tile_end[tile]
+    done = not inside
+    k = tile_start[tile]
+    while k < k_end and warp_any(not done, coop):
         i = ids[k]
-        g = geo[i]
-        if surely_outside(d, g, pix, cam.filter_inv_sq):
-            continue
-        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam.filter_inv_sq)
-        if rho > g.cutoff:  # alpha < 1/255 for sure: skip the exp
-            continue
-        a = wp.min(type(f_ref)(ALPHA_MAX), opacity[i] * wp.exp(type(f_ref)(-0.5) * rho))
-        if a < type(f_ref)(ALPHA_MIN) or z < near:
-            continue
-        test_t = T * (type(f_ref)(1.0) - a)
-        if test_t < type(f_ref)(T_MIN):
-            break
-        w = a * T
-        c = c + w * color[i]
-        nacc = nacc + w * nrm_face[i]
-        dsum = dsum + w * z
-        m, dm = ndc_depth(z, near, far)
-        dist = dist + w * (m * m * (type(f_ref)(1.0) - T) + m2s - type(f_ref)(2.0) * m * m1)
-        m1 = m1 + w * m
-        m2s = m2s + w * m * m
-        if T > type(f_ref)(0.5):  # noqa: SIM300  T is the running transmittance, not a constant
-            med = z
-            med_k = k
-        T = test_t
-        end = k + 1
-        wp.atomic_add(visibility, worker, i, 1)  # plain add on CPU: one worker per buffer
+        hit = False
+        if not done:
+            g = geo[i]
+            if not surely_outside(d, g, pix, cam.filter_inv_sq):
+                rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam.filter_inv_sq)
+                if not (rho > g.cutoff):  # else alpha < 1/255 for sure: skip the exp
+                    a = wp.min(type(f_ref)(ALPHA_MAX), opacity[i] * wp.exp(type(f_ref)(-0.5) * rho))
+                    if not (a < type(f_ref)(ALPHA_MIN) or z < near):
+                        test_t = T * (type(f_ref)(1.0) - a)
+                        if test_t < type(f_ref)(T_MIN):
+                            done = True
+                        else:
+                            hit = True
+                            w = a * T
+                            c = c + w * color[i]
+                            nacc = nacc + w * nrm_face[i]
+                            dsum = dsum + w * z
+                            m, dm = ndc_depth(z, near, far)
+                            dist = dist + w * (m * m * (type(f_ref)(1.0) - T) + m2s - type(f_ref)(2.0) * m * m1)
+                            m1 = m1 + w * m
+                            m2s = m2s + w * m * m
+                            if T > type(f_ref)(0.5):  # noqa: SIM300  T is the running transmittance
+                                med = z
+                                med_k = k
+                            T = test_t
+                            end = k + 1
+        if warp_any(hit, coop):
+            # int counts: plain add on CPU (one worker per buffer)
+            warp_add_scalar(visibility, worker, i, wp.where(hit, 1, 0), hit, coop)
+        k = k + 1
+    if not inside:
+        return
     acc = type(f_ref)(1.0) - T
     rgb[py, px] = c + T * background[0]
     alpha[py, px] = acc
@@ -460,6 +548,7 @@ def render_backward_kernel(
     background: wp.array[Any],
     tile_size: int,
     tiles_x: int,
+    coop: int,
     t_final: wp.array2d[Any],
     sums: wp.array2d[Any],
     last: wp.array2d[wp.int32],
@@ -488,14 +577,21 @@ def render_backward_kernel(
     gives ``dL/dalpha_i = T_i (g . f_i) - rg / (1 - alpha_i)`` with ``T_i`` recovered from the
     saved final transmittance. Distortion ``= A M2 - M1^2`` (equal to the forward's pairwise sum)
     and depth ``= D / A`` are differentiated through their aggregates.
+
+    With ``coop`` (CUDA) the 32 pixels of a warp walk their tile's list together, from the warp's
+    largest ``last`` down, each pixel contributing only below its own, and each per-surfel gradient is
+    summed over the warp before one atomic add (:func:`warp_add_vec`); without it (CPU) each pixel
+    walks from its own ``last`` and adds its own terms. Same per-pixel arithmetic either way.
     """
     tile, px, py = pixel_tile_coords(wp.tid() + offset, tile_size, tiles_x)
-    if px >= t_final.shape[1] or py >= t_final.shape[0]:
-        return
+    # pixels past the image edge (partial tiles) still walk with their warp, contributing nothing
+    inside = px < t_final.shape[1] and py < t_final.shape[0]
+    px = wp.min(px, t_final.shape[1] - 1)
+    py = wp.min(py, t_final.shape[0] - 1)
     start = tile_start[tile]
-    end = last[py, px]
-    if end <= start:
-        return
+    end = start
+    if inside:
+        end = last[py, px]
     d = rays[py, px]
     f_ref = d[0]
     zero = type(f_ref)(0.0)
@@ -526,61 +622,87 @@ def render_backward_kernel(
     fy = cam.fy
     sk = cam.skew
     R = cam.R
-    k = end - 1
+    z3 = wp.vector(zero, zero, zero)
+    z2 = wp.vector(zero, zero)
+    k = warp_max(end, coop) - 1
     while k >= start:
         i = ids[k]
         g = geo[i]
-        if surely_outside(d, g, pix, cam.filter_inv_sq):
-            k = k - 1
-            continue
-        rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam.filter_inv_sq)
-        if rho > g.cutoff:
-            k = k - 1
-            continue
-        op = opacity[i]
-        G = wp.exp(type(f_ref)(-0.5) * rho)
-        raw = op * G
-        a = wp.min(type(f_ref)(ALPHA_MAX), raw)
-        if a >= type(f_ref)(ALPHA_MIN) and z >= near:
-            T = T / (one - a)
-            w = a * T
-            col = color[i]
-            nf = nrm_face[i]
-            m, dm = ndc_depth(z, near, far)
-            gf = wp.dot(gc, col) + g_d * z + wp.dot(gn, nf) + g_a + g_m1 * m + g_m2 * m * m
-            g_alpha_i = T * gf - rg / (one - a)
-            rg = rg + w * gf
-            wp.atomic_add(d_color, worker, i, w * gc)
-            wp.atomic_add(d_nrm_face, worker, i, w * gn)
-            gz = w * (g_d + (g_m1 + type(f_ref)(2.0) * m * g_m2) * dm)
-            if k == med_k:
-                gz = gz + gmed
-            g_raw = zero
-            if raw < type(f_ref)(ALPHA_MAX):
-                g_raw = g_alpha_i
-            wp.atomic_add(d_opacity, worker, i, g_raw * G)
-            g_rho = type(f_ref)(-0.5) * G * op * g_raw
-            if b3:
-                gu = type(f_ref)(2.0) * u * g_rho
-                gv = type(f_ref)(2.0) * v * g_rho
-                gt = gz + gu * du + gv * dv
-                inv_dn = one / dn
-                gdn = gt * g.auv[2] * inv_dn * inv_dn
-                wp.atomic_add(d_auv, worker, i, wp.vector(gu, gv, -gt * inv_dn))
-                wp.atomic_add(d_uax, worker, i, (gu * t) * d)
-                wp.atomic_add(d_vax, worker, i, (gv * t) * d)
-                wp.atomic_add(d_nrm, worker, i, gdn * d)
-                gd = (gu * t) * g.U + (gv * t) * g.V + gdn * g.n
-                # d' = d - R^T [Kinv2 shift, 0]  =>  dL/dshift = -Kinv2^T (R gd)[:2]
-                gcx = R[0, 0] * gd[0] + R[0, 1] * gd[1] + R[0, 2] * gd[2]
-                gcy = R[1, 0] * gd[0] + R[1, 1] * gd[1] + R[1, 2] * gd[2]
-                wp.atomic_add(d_shift, worker, i, wp.vector(-gcx / fx, gcx * sk / (fx * fy) - gcy / fy))
-            else:
-                diff = pix - g.m2
-                gm = (type(f_ref)(-2.0) * cam.filter_inv_sq * g_rho) * diff
-                wp.atomic_add(d_m2, worker, i, gm)
-                wp.atomic_add(d_shift, worker, i, gm)
-                wp.atomic_add(d_zc, worker, i, gz)
+        hit = False
+        b3 = False
+        c_color = z3
+        c_nf = z3
+        c_op = zero
+        c_shift = z2
+        c_auv = z3
+        c_uax = z3
+        c_vax = z3
+        c_nrm = z3
+        c_m2 = z2
+        c_zc = zero
+        if k < end and not surely_outside(d, g, pix, cam.filter_inv_sq):
+            rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam.filter_inv_sq)
+            if not (rho > g.cutoff):
+                op = opacity[i]
+                G = wp.exp(type(f_ref)(-0.5) * rho)
+                raw = op * G
+                a = wp.min(type(f_ref)(ALPHA_MAX), raw)
+                if a >= type(f_ref)(ALPHA_MIN) and z >= near:
+                    hit = True
+                    T = T / (one - a)
+                    w = a * T
+                    col = color[i]
+                    nf = nrm_face[i]
+                    m, dm = ndc_depth(z, near, far)
+                    gf = wp.dot(gc, col) + g_d * z + wp.dot(gn, nf) + g_a + g_m1 * m + g_m2 * m * m
+                    g_alpha_i = T * gf - rg / (one - a)
+                    rg = rg + w * gf
+                    c_color = w * gc
+                    c_nf = w * gn
+                    gz = w * (g_d + (g_m1 + type(f_ref)(2.0) * m * g_m2) * dm)
+                    if k == med_k:
+                        gz = gz + gmed
+                    g_raw = zero
+                    if raw < type(f_ref)(ALPHA_MAX):
+                        g_raw = g_alpha_i
+                    c_op = g_raw * G
+                    g_rho = type(f_ref)(-0.5) * G * op * g_raw
+                    if b3:
+                        gu = type(f_ref)(2.0) * u * g_rho
+                        gv = type(f_ref)(2.0) * v * g_rho
+                        gt = gz + gu * du + gv * dv
+                        inv_dn = one / dn
+                        gdn = gt * g.auv[2] * inv_dn * inv_dn
+                        c_auv = wp.vector(gu, gv, -gt * inv_dn)
+                        c_uax = (gu * t) * d
+                        c_vax = (gv * t) * d
+                        c_nrm = gdn * d
+                        gd = (gu * t) * g.U + (gv * t) * g.V + gdn * g.n
+                        # d' = d - R^T [Kinv2 shift, 0]  =>  dL/dshift = -Kinv2^T (R gd)[:2]
+                        gcx = R[0, 0] * gd[0] + R[0, 1] * gd[1] + R[0, 2] * gd[2]
+                        gcy = R[1, 0] * gd[0] + R[1, 1] * gd[1] + R[1, 2] * gd[2]
+                        c_shift = wp.vector(-gcx / fx, gcx * sk / (fx * fy) - gcy / fy)
+                    else:
+                        diff = pix - g.m2
+                        c_m2 = (type(f_ref)(-2.0) * cam.filter_inv_sq * g_rho) * diff
+                        c_shift = c_m2
+                        c_zc = gz
+        # warp-uniform from here: every lane of the warp takes the same branches
+        if warp_any(hit, coop):
+            warp_add_vec(d_color, worker, i, c_color, hit, coop)
+            warp_add_vec(d_nrm_face, worker, i, c_nf, hit, coop)
+            warp_add_scalar(d_opacity, worker, i, c_op, hit, coop)
+            warp_add_vec(d_shift, worker, i, c_shift, hit, coop)
+            h3 = hit and b3
+            if warp_any(h3, coop):
+                warp_add_vec(d_auv, worker, i, c_auv, h3, coop)
+                warp_add_vec(d_uax, worker, i, c_uax, h3, coop)
+                warp_add_vec(d_vax, worker, i, c_vax, h3, coop)
+                warp_add_vec(d_nrm, worker, i, c_nrm, h3, coop)
+            h2 = hit and not b3
+            if warp_any(h2, coop):
+                warp_add_vec(d_m2, worker, i, c_m2, h2, coop)
+                warp_add_scalar(d_zc, worker, i, c_zc, h2, coop)
         k = k - 1
 
 

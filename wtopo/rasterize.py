@@ -16,7 +16,9 @@ On CPU the pixel kernels run as interleaved tile chunks on one Python thread per
 releases the GIL); each worker accumulates per-surfel gradients and visibility counts into its
 own buffer (Warp's CPU ``atomic_add`` is not atomic across threads) and the buffers are summed
 afterwards in a fixed order, so reruns are bit-identical. On CUDA each pixel kernel is one launch
-with real atomics.
+with real atomics, the 32 pixels of a warp walking their tile's list in step so that per-surfel
+gradients and visibility counts are summed over the warp before one atomic add
+(:data:`COOPERATIVE_WARPS`).
 """
 
 from __future__ import annotations
@@ -40,6 +42,11 @@ from .kernels import rasterize_binning as _kb
 __all__ = ["RasterConfig", "RenderOutput", "rasterize_surfels", "FILTER_SIGMA_RANGE"]
 
 FILTER_SIGMA_RANGE = (0.05, 100.0)  # accepted RasterConfig.filter_sigma [pixels]
+# CUDA: the 32 pixels of a warp composite in step and sum their per-surfel gradients and visibility
+# counts before one atomic add (kernels/rasterize.py, "warp-cooperative helpers"); False restores one
+# atomic per pixel (the previous kernels' order of work, kept for comparison in tests and benchmarks).
+# CPU launches never use it (one pixel at a time: bit-identical either way).
+COOPERATIVE_WARPS = True
 
 
 @dataclass(kw_only=True)
@@ -512,6 +519,7 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
     s = wp.float64 if dtype == torch.float64 else wp.float32
     v2, v3 = (wp.vec2d, wp.vec3d) if dtype == torch.float64 else (wp.vec2, wp.vec3)
     rays_wp = _bridge.to_warp(rays, v3)
+    coop = int(COOPERATIVE_WARPS and not wdev.is_cpu)
 
     def run(means, quats, scales, opacities, sh, means2d):
         n = means.shape[0]
@@ -532,7 +540,7 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
             geo = wp.empty(n, dtype=_k.SURFEL[s], device=wdev)
             _bridge.launch_split(_k.pack_surfels_kernel, n, [uax, vax, nrm, auv, m2, zc, bins.cutoff], [geo],
                                  device=wdev)
-            surf = [geo, nrm_face, color, opacities, bg_wp, ts, tiles_x]
+            surf = [geo, nrm_face, color, opacities, bg_wp, ts, tiles_x, coop]
             _launch_tiles(_k.render_forward_kernel, n_tiles, ts * ts,
                           [bins.tile_start, bins.tile_end, bins.ids, rays_wp, cam_rec, *surf],
                           [*outs, t_final, sums, last, median_idx, vis_w], device=wdev, workers=workers,
