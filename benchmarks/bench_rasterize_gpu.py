@@ -94,15 +94,17 @@ def make_wtopo_fit_path(cam):
     return render, last
 
 
-def per_pixel_atomics(render):
-    """``render`` with the previous CUDA kernels' work order (one atomic per pixel; ``COOPERATIVE_WARPS`` off)."""
+def kernel_mode(render, coop: bool, batch: int):
+    """``render`` with other pixel-kernel settings: ``coop=False`` is the previous CUDA kernels' work order
+    (one atomic per pixel), ``batch=1`` warp cooperation without the batched id loads and prefetches."""
 
     def run(*a):
-        R.COOPERATIVE_WARPS = False
+        saved = R.COOPERATIVE_WARPS, R.PREFETCH_BATCH
+        R.COOPERATIVE_WARPS, R.PREFETCH_BATCH = coop, batch
         try:
             return render(*a)
         finally:
-            R.COOPERATIVE_WARPS = True
+            R.COOPERATIVE_WARPS, R.PREFETCH_BATCH = saved
 
     return run
 
@@ -227,7 +229,8 @@ def bench_rasterizer(args, device) -> list[dict]:
         fit_render, last = make_wtopo_fit_path(cam)
         impls = {"wtopo_public": (lambda p: wtopo_public(p, cam), (params,), params),
                  "wtopo_fit_path": (fit_render, (params,), params),
-                 "wtopo_fit_per_pixel": (per_pixel_atomics(fit_render), (params,), params)}
+                 "wtopo_fit_per_pixel": (kernel_mode(fit_render, False, 1), (params,), params),
+                 "wtopo_fit_no_batch": (kernel_mode(fit_render, True, 1), (params,), params)}
         if gsplat_version is not None:
             try:
                 leaves, viewmat, K = gsplat_inputs(params, cam, near)
@@ -251,7 +254,7 @@ def bench_rasterizer(args, device) -> list[dict]:
                          "forward_backward_pipelined": time_pipelined(both, args.warmup, args.repeats),
                          "torch_peak_mb": torch.cuda.max_memory_allocated(device) / 2**20}
         if args.profile:
-            for name in ("wtopo_fit_per_pixel", "wtopo_fit_path", "gsplat_2dgs"):
+            for name in ("wtopo_fit_per_pixel", "wtopo_fit_no_batch", "wtopo_fit_path", "gsplat_2dgs"):
                 if name in impls:
                     render, rargs, leaves = impls[name]
                     row.setdefault("profile", {})[name] = profile_kernels(_fwd_bwd(render, rargs, leaves, ups)[1],
@@ -295,7 +298,7 @@ def print_rasterizer(rows) -> None:
     print(f"{'N':>9} {'impl':<20} {'fwd':>8} {'fwd+bwd':>8} {'fwd pipe':>9} {'f+b pipe':>9} {'host fwd':>9} "
           f"{'peak MB':>8}")
     for r in rows:
-        for name in ("wtopo_public", "wtopo_fit_path", "wtopo_fit_per_pixel", "gsplat_2dgs"):
+        for name in ("wtopo_public", "wtopo_fit_path", "wtopo_fit_per_pixel", "wtopo_fit_no_batch", "gsplat_2dgs"):
             if name not in r:
                 continue
             t = r[name]
@@ -304,7 +307,7 @@ def print_rasterizer(rows) -> None:
                   f"{t['forward']['host_ms']:9.2f} {t['torch_peak_mb']:8.0f}")
         if "gsplat_2dgs" in r:
             g = r["gsplat_2dgs"]
-            for name in ("wtopo_public", "wtopo_fit_path", "wtopo_fit_per_pixel"):
+            for name in ("wtopo_public", "wtopo_fit_path", "wtopo_fit_per_pixel", "wtopo_fit_no_batch"):
                 t = r[name]
                 ratios = [t[k]["ms"] / g[k]["ms"] for k in ("forward", "forward_backward", "forward_pipelined",
                                                             "forward_backward_pipelined")]

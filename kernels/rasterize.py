@@ -392,6 +392,61 @@ def warp_any(b: bool, coop: int) -> bool:
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
+    if (coop) return threadIdx.x & 31;
+#endif
+    return 0;
+""")
+def lane_id(coop: int) -> int:
+    """Lane of this thread in its warp (``coop``) or 0."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    if (coop) return __shfl_sync(0xffffffffu, x, src);
+#endif
+    return x;
+""")
+def warp_bcast(x: int, src: int, coop: int) -> int:
+    """``x`` of lane ``src`` (``coop``) or ``x``."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    asm volatile("prefetch.global.L1 [%0];" :: "l"(wp::address(a, i)));
+#else
+    (void)a;
+    (void)i;
+#endif
+""")
+def prefetch(a: wp.array[Any], i: int):
+    """Start loading ``a[i]`` into the L1 cache (CUDA; nothing on CPU)."""
+    ...
+
+
+@wp.func
+def fetch_batch(ids: wp.array[wp.int32], k: int, step: int, nb: int, lane: int, geo: wp.array[Any],
+                opacity: wp.array[Any], color: wp.array[Any], nrm_face: wp.array[Any]):
+    """Lane ``j < nb`` reads ``ids[k + j * step]`` and prefetches that surfel's records; returns the id.
+
+    The list is walked one surfel at a time, each step a chain of dependent loads (id, record, then
+    opacity, colour, normal) that the warp waits for; fetching the next ``nb`` ids with one load per
+    lane and prefetching their records overlaps those latencies (the records of 1M surfels, 64 MB in
+    float32, do not fit the L2 cache).
+    """
+    mine = int(0)
+    if lane < nb:
+        mine = int(ids[k + lane * step])
+        prefetch(geo, mine)
+        prefetch(opacity, mine)
+        prefetch(color, mine)
+        prefetch(nrm_face, mine)
+    return mine
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
     if (coop) {
         auto s = v;
         for (int o = 16; o > 0; o >>= 1) s += __shfl_down_sync(0xffffffffu, s, o);
@@ -442,6 +497,7 @@ def render_forward_kernel(
     tile_size: int,
     tiles_x: int,
     coop: int,
+    batch: int,
     rgb: wp.array2d[Any],
     alpha: wp.array2d[Any],
     depth: wp.array2d[Any],
@@ -482,39 +538,46 @@ def render_forward_kernel(
     end = tile_start[tile]
     k_end = tile_end[tile]
     done = not inside
-    k = tile_start[tile]
-    while k < k_end and warp_any(not done, coop):
-        i = ids[k]
-        hit = False
-        if not done:
-            g = geo[i]
-            if not surely_outside(d, g, pix, cam.filter_inv_sq):
-                rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam.filter_inv_sq)
-                if not (rho > g.cutoff):  # else alpha < 1/255 for sure: skip the exp
-                    a = wp.min(type(f_ref)(ALPHA_MAX), opacity[i] * wp.exp(type(f_ref)(-0.5) * rho))
-                    if not (a < type(f_ref)(ALPHA_MIN) or z < near):
-                        test_t = T * (type(f_ref)(1.0) - a)
-                        if test_t < type(f_ref)(T_MIN):
-                            done = True
-                        else:
-                            hit = True
-                            w = a * T
-                            c = c + w * color[i]
-                            nacc = nacc + w * nrm_face[i]
-                            dsum = dsum + w * z
-                            m, dm = ndc_depth(z, near, far)
-                            dist = dist + w * (m * m * (type(f_ref)(1.0) - T) + m2s - type(f_ref)(2.0) * m * m1)
-                            m1 = m1 + w * m
-                            m2s = m2s + w * m * m
-                            if T > type(f_ref)(0.5):  # noqa: SIM300  T is the running transmittance
-                                med = z
-                                med_k = k
-                            T = test_t
-                            end = k + 1
-        if warp_any(hit, coop):
-            # int counts: plain add on CPU (one worker per buffer)
-            warp_add_scalar(visibility, worker, i, wp.where(hit, 1, 0), hit, coop)
-        k = k + 1
+    lane = lane_id(coop)
+    kb = tile_start[tile]
+    while kb < k_end and warp_any(not done, coop):
+        nb = wp.min(batch, k_end - kb)
+        mine = fetch_batch(ids, kb, 1, nb, lane, geo, opacity, color, nrm_face)
+        j = int(0)
+        while j < nb and warp_any(not done, coop):
+            k = kb + j
+            i = warp_bcast(mine, j, coop)
+            hit = False
+            if not done:
+                g = geo[i]
+                if not surely_outside(d, g, pix, cam.filter_inv_sq):
+                    rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam.filter_inv_sq)
+                    if not (rho > g.cutoff):  # else alpha < 1/255 for sure: skip the exp
+                        a = wp.min(type(f_ref)(ALPHA_MAX), opacity[i] * wp.exp(type(f_ref)(-0.5) * rho))
+                        if not (a < type(f_ref)(ALPHA_MIN) or z < near):
+                            test_t = T * (type(f_ref)(1.0) - a)
+                            if test_t < type(f_ref)(T_MIN):
+                                done = True
+                            else:
+                                hit = True
+                                w = a * T
+                                c = c + w * color[i]
+                                nacc = nacc + w * nrm_face[i]
+                                dsum = dsum + w * z
+                                m, dm = ndc_depth(z, near, far)
+                                dist = dist + w * (m * m * (type(f_ref)(1.0) - T) + m2s - type(f_ref)(2.0) * m * m1)
+                                m1 = m1 + w * m
+                                m2s = m2s + w * m * m
+                                if T > type(f_ref)(0.5):  # noqa: SIM300  T is the running transmittance
+                                    med = z
+                                    med_k = k
+                                T = test_t
+                                end = k + 1
+            if warp_any(hit, coop):
+                # int counts: plain add on CPU (one worker per buffer)
+                warp_add_scalar(visibility, worker, i, wp.where(hit, 1, 0), hit, coop)
+            j = j + 1
+        kb = kb + nb
     if not inside:
         return
     acc = type(f_ref)(1.0) - T
@@ -549,6 +612,7 @@ def render_backward_kernel(
     tile_size: int,
     tiles_x: int,
     coop: int,
+    batch: int,
     t_final: wp.array2d[Any],
     sums: wp.array2d[Any],
     last: wp.array2d[wp.int32],
@@ -624,86 +688,91 @@ def render_backward_kernel(
     R = cam.R
     z3 = wp.vector(zero, zero, zero)
     z2 = wp.vector(zero, zero)
-    k = warp_max(end, coop) - 1
-    while k >= start:
-        i = ids[k]
-        g = geo[i]
-        hit = False
-        b3 = False
-        c_color = z3
-        c_nf = z3
-        c_op = zero
-        c_shift = z2
-        c_auv = z3
-        c_uax = z3
-        c_vax = z3
-        c_nrm = z3
-        c_m2 = z2
-        c_zc = zero
-        if k < end and not surely_outside(d, g, pix, cam.filter_inv_sq):
-            rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam.filter_inv_sq)
-            if not (rho > g.cutoff):
-                op = opacity[i]
-                G = wp.exp(type(f_ref)(-0.5) * rho)
-                raw = op * G
-                a = wp.min(type(f_ref)(ALPHA_MAX), raw)
-                if a >= type(f_ref)(ALPHA_MIN) and z >= near:
-                    hit = True
-                    T = T / (one - a)
-                    w = a * T
-                    col = color[i]
-                    nf = nrm_face[i]
-                    m, dm = ndc_depth(z, near, far)
-                    gf = wp.dot(gc, col) + g_d * z + wp.dot(gn, nf) + g_a + g_m1 * m + g_m2 * m * m
-                    g_alpha_i = T * gf - rg / (one - a)
-                    rg = rg + w * gf
-                    c_color = w * gc
-                    c_nf = w * gn
-                    gz = w * (g_d + (g_m1 + type(f_ref)(2.0) * m * g_m2) * dm)
-                    if k == med_k:
-                        gz = gz + gmed
-                    g_raw = zero
-                    if raw < type(f_ref)(ALPHA_MAX):
-                        g_raw = g_alpha_i
-                    c_op = g_raw * G
-                    g_rho = type(f_ref)(-0.5) * G * op * g_raw
-                    if b3:
-                        gu = type(f_ref)(2.0) * u * g_rho
-                        gv = type(f_ref)(2.0) * v * g_rho
-                        gt = gz + gu * du + gv * dv
-                        inv_dn = one / dn
-                        gdn = gt * g.auv[2] * inv_dn * inv_dn
-                        c_auv = wp.vector(gu, gv, -gt * inv_dn)
-                        c_uax = (gu * t) * d
-                        c_vax = (gv * t) * d
-                        c_nrm = gdn * d
-                        gd = (gu * t) * g.U + (gv * t) * g.V + gdn * g.n
-                        # d' = d - R^T [Kinv2 shift, 0]  =>  dL/dshift = -Kinv2^T (R gd)[:2]
-                        gcx = R[0, 0] * gd[0] + R[0, 1] * gd[1] + R[0, 2] * gd[2]
-                        gcy = R[1, 0] * gd[0] + R[1, 1] * gd[1] + R[1, 2] * gd[2]
-                        c_shift = wp.vector(-gcx / fx, gcx * sk / (fx * fy) - gcy / fy)
-                    else:
-                        diff = pix - g.m2
-                        c_m2 = (type(f_ref)(-2.0) * cam.filter_inv_sq * g_rho) * diff
-                        c_shift = c_m2
-                        c_zc = gz
-        # warp-uniform from here: every lane of the warp takes the same branches
-        if warp_any(hit, coop):
-            warp_add_vec(d_color, worker, i, c_color, hit, coop)
-            warp_add_vec(d_nrm_face, worker, i, c_nf, hit, coop)
-            warp_add_scalar(d_opacity, worker, i, c_op, hit, coop)
-            warp_add_vec(d_shift, worker, i, c_shift, hit, coop)
-            h3 = hit and b3
-            if warp_any(h3, coop):
-                warp_add_vec(d_auv, worker, i, c_auv, h3, coop)
-                warp_add_vec(d_uax, worker, i, c_uax, h3, coop)
-                warp_add_vec(d_vax, worker, i, c_vax, h3, coop)
-                warp_add_vec(d_nrm, worker, i, c_nrm, h3, coop)
-            h2 = hit and not b3
-            if warp_any(h2, coop):
-                warp_add_vec(d_m2, worker, i, c_m2, h2, coop)
-                warp_add_scalar(d_zc, worker, i, c_zc, h2, coop)
-        k = k - 1
+    lane = lane_id(coop)
+    kb = warp_max(end, coop) - 1
+    while kb >= start:
+        nb = wp.min(batch, kb - start + 1)
+        mine = fetch_batch(ids, kb, -1, nb, lane, geo, opacity, color, nrm_face)
+        for j in range(nb):
+            k = kb - j
+            i = warp_bcast(mine, j, coop)
+            g = geo[i]
+            hit = False
+            b3 = False
+            c_color = z3
+            c_nf = z3
+            c_op = zero
+            c_shift = z2
+            c_auv = z3
+            c_uax = z3
+            c_vax = z3
+            c_nrm = z3
+            c_m2 = z2
+            c_zc = zero
+            if k < end and not surely_outside(d, g, pix, cam.filter_inv_sq):
+                rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam.filter_inv_sq)
+                if not (rho > g.cutoff):
+                    op = opacity[i]
+                    G = wp.exp(type(f_ref)(-0.5) * rho)
+                    raw = op * G
+                    a = wp.min(type(f_ref)(ALPHA_MAX), raw)
+                    if a >= type(f_ref)(ALPHA_MIN) and z >= near:
+                        hit = True
+                        T = T / (one - a)
+                        w = a * T
+                        col = color[i]
+                        nf = nrm_face[i]
+                        m, dm = ndc_depth(z, near, far)
+                        gf = wp.dot(gc, col) + g_d * z + wp.dot(gn, nf) + g_a + g_m1 * m + g_m2 * m * m
+                        g_alpha_i = T * gf - rg / (one - a)
+                        rg = rg + w * gf
+                        c_color = w * gc
+                        c_nf = w * gn
+                        gz = w * (g_d + (g_m1 + type(f_ref)(2.0) * m * g_m2) * dm)
+                        if k == med_k:
+                            gz = gz + gmed
+                        g_raw = zero
+                        if raw < type(f_ref)(ALPHA_MAX):
+                            g_raw = g_alpha_i
+                        c_op = g_raw * G
+                        g_rho = type(f_ref)(-0.5) * G * op * g_raw
+                        if b3:
+                            gu = type(f_ref)(2.0) * u * g_rho
+                            gv = type(f_ref)(2.0) * v * g_rho
+                            gt = gz + gu * du + gv * dv
+                            inv_dn = one / dn
+                            gdn = gt * g.auv[2] * inv_dn * inv_dn
+                            c_auv = wp.vector(gu, gv, -gt * inv_dn)
+                            c_uax = (gu * t) * d
+                            c_vax = (gv * t) * d
+                            c_nrm = gdn * d
+                            gd = (gu * t) * g.U + (gv * t) * g.V + gdn * g.n
+                            # d' = d - R^T [Kinv2 shift, 0]  =>  dL/dshift = -Kinv2^T (R gd)[:2]
+                            gcx = R[0, 0] * gd[0] + R[0, 1] * gd[1] + R[0, 2] * gd[2]
+                            gcy = R[1, 0] * gd[0] + R[1, 1] * gd[1] + R[1, 2] * gd[2]
+                            c_shift = wp.vector(-gcx / fx, gcx * sk / (fx * fy) - gcy / fy)
+                        else:
+                            diff = pix - g.m2
+                            c_m2 = (type(f_ref)(-2.0) * cam.filter_inv_sq * g_rho) * diff
+                            c_shift = c_m2
+                            c_zc = gz
+            # warp-uniform from here: every lane of the warp takes the same branches
+            if warp_any(hit, coop):
+                warp_add_vec(d_color, worker, i, c_color, hit, coop)
+                warp_add_vec(d_nrm_face, worker, i, c_nf, hit, coop)
+                warp_add_scalar(d_opacity, worker, i, c_op, hit, coop)
+                warp_add_vec(d_shift, worker, i, c_shift, hit, coop)
+                h3 = hit and b3
+                if warp_any(h3, coop):
+                    warp_add_vec(d_auv, worker, i, c_auv, h3, coop)
+                    warp_add_vec(d_uax, worker, i, c_uax, h3, coop)
+                    warp_add_vec(d_vax, worker, i, c_vax, h3, coop)
+                    warp_add_vec(d_nrm, worker, i, c_nrm, h3, coop)
+                h2 = hit and not b3
+                if warp_any(h2, coop):
+                    warp_add_vec(d_m2, worker, i, c_m2, h2, coop)
+                    warp_add_scalar(d_zc, worker, i, c_zc, h2, coop)
+        kb = kb - nb
 
 
 @wp.kernel(enable_backward=False)

@@ -492,7 +492,8 @@ COOP_F32_RTOL, COOP_F32_ATOL = 1e-3, 1e-4
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA only: CPU launches never use warp cooperation")
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("tile_size", [8, 16, 32])
-def test_cooperative_warps_equal_per_pixel_kernels(monkeypatch, dtype, tile_size):
+@pytest.mark.parametrize("batch", [1, 7, 32])  # 7: batches that end mid-list and mid-warp
+def test_cooperative_warps_equal_per_pixel_kernels(monkeypatch, dtype, tile_size, batch):
     """Render and differentiate identically with and without warp-cooperative CUDA kernels."""
     from wtopo import rasterize as R
 
@@ -501,6 +502,7 @@ def test_cooperative_warps_equal_per_pixel_kernels(monkeypatch, dtype, tile_size
     params = _surfels(400, dtype=dtype, device="cuda:0", seed=59)
     g = torch.Generator().manual_seed(5)
     res = []
+    monkeypatch.setattr(R, "PREFETCH_BATCH", batch)
     for coop in (False, True):
         monkeypatch.setattr(R, "COOPERATIVE_WARPS", coop)
         out = rasterize_surfels(*params, cam, background=(0.1, 0.2, 0.3), config=RasterConfig(tile_size=tile_size))

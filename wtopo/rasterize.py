@@ -47,6 +47,9 @@ FILTER_SIGMA_RANGE = (0.05, 100.0)  # accepted RasterConfig.filter_sigma [pixels
 # atomic per pixel (the previous kernels' order of work, kept for comparison in tests and benchmarks).
 # CPU launches never use it (one pixel at a time: bit-identical either way).
 COOPERATIVE_WARPS = True
+# With COOPERATIVE_WARPS: surfels of a tile's list fetched per step of the walk, one id load and L1 prefetch
+# of its records per lane (1..32; 1: each surfel's id, then its records, loaded when it is reached).
+PREFETCH_BATCH = 32
 
 
 @dataclass(kw_only=True)
@@ -520,6 +523,7 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
     v2, v3 = (wp.vec2d, wp.vec3d) if dtype == torch.float64 else (wp.vec2, wp.vec3)
     rays_wp = _bridge.to_warp(rays, v3)
     coop = int(COOPERATIVE_WARPS and not wdev.is_cpu)
+    batch = PREFETCH_BATCH if coop else 1  # a batch is spread over the lanes of a warp
 
     def run(means, quats, scales, opacities, sh, means2d):
         n = means.shape[0]
@@ -540,7 +544,7 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
             geo = wp.empty(n, dtype=_k.SURFEL[s], device=wdev)
             _bridge.launch_split(_k.pack_surfels_kernel, n, [uax, vax, nrm, auv, m2, zc, bins.cutoff], [geo],
                                  device=wdev)
-            surf = [geo, nrm_face, color, opacities, bg_wp, ts, tiles_x, coop]
+            surf = [geo, nrm_face, color, opacities, bg_wp, ts, tiles_x, coop, batch]
             _launch_tiles(_k.render_forward_kernel, n_tiles, ts * ts,
                           [bins.tile_start, bins.tile_end, bins.ids, rays_wp, cam_rec, *surf],
                           [*outs, t_final, sums, last, median_idx, vis_w], device=wdev, workers=workers,
