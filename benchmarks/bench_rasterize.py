@@ -35,6 +35,7 @@ from reference.rasterize import rasterize_reference  # noqa: E402
 import wtopo  # noqa: E402
 from wtopo import rasterize as R  # noqa: E402
 from wtopo._profile import section  # noqa: E402
+from wtopo.rasterize import _binning, _camera  # noqa: E402
 
 IMAGES = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
 STAGES = ("binning", "sort", "forward", "backward")
@@ -97,11 +98,11 @@ def time_op(cam, params, repeats: int, config=None, op=None):
 def count_intersections(cam, params, config) -> int:
     """(tile, surfel) pairs the binning emits for this view (the rasterizer's private binning stage, run once)."""
     means, quats, scales, ops = (p.detach() for p in params[:4])
-    near, far = R._default_clip(means, cam, None, None, config)
-    _, tables = R._camera_tables(cam, means.device, means.dtype, config.tile_size)
-    rec = R._camera_record(cam, R._clip_from_host(near, far, means.device).to(means.dtype), means.dtype,
+    near, far = _camera._default_clip(means, cam, None, None, config)
+    _, tables = _camera._camera_tables(cam, means.device, means.dtype, config.tile_size)
+    rec = _camera._camera_record(cam, _camera._clip_from_host(near, far, means.device).to(means.dtype), means.dtype,
                            config.filter_sigma)
-    bins = R._bin(means, quats, scales, ops, rec, tables, cam, config, wtopo._bridge.warp_device(means.device))
+    bins = _binning._bin(means, quats, scales, ops, rec, tables, cam, config, wtopo._bridge.warp_device(means.device))
     return int((bins.tile_end.numpy().astype("int64") - bins.tile_start.numpy()).sum())
 
 

@@ -49,6 +49,7 @@ from bench_rasterize import scene as cpu_scene  # noqa: E402
 import wtopo  # noqa: E402
 from wtopo import rasterize as R  # noqa: E402
 from wtopo.photometric import photometric_loss  # noqa: E402
+from wtopo.rasterize import _run as K  # noqa: E402  kernel-mode switches
 
 IMAGES = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
 
@@ -99,12 +100,12 @@ def kernel_mode(render, coop: bool, batch: int):
     (one atomic per pixel), ``batch=1`` warp cooperation without the batched id loads and prefetches."""
 
     def run(*a):
-        saved = R.COOPERATIVE_WARPS, R.PREFETCH_BATCH
-        R.COOPERATIVE_WARPS, R.PREFETCH_BATCH = coop, batch
+        saved = K.COOPERATIVE_WARPS, K.PREFETCH_BATCH
+        K.COOPERATIVE_WARPS, K.PREFETCH_BATCH = coop, batch
         try:
             return render(*a)
         finally:
-            R.COOPERATIVE_WARPS, R.PREFETCH_BATCH = saved
+            K.COOPERATIVE_WARPS, K.PREFETCH_BATCH = saved
 
     return run
 
@@ -399,7 +400,7 @@ def _step_path(path: str, args, device, cam) -> dict:
         ev[0].record()
         a = (params["means"], params["quats"], params["log_scales"].exp(), torch.sigmoid(params["opacity_logits"]),
              params["sh"])
-        R.COOPERATIVE_WARPS = path != "fit_path_per_pixel"
+        K.COOPERATIVE_WARPS = path != "fit_path_per_pixel"
         if path == "public":
             o = R.rasterize_surfels(*a, cam, background=bg, config=cfg)
         else:
@@ -408,7 +409,7 @@ def _step_path(path: str, args, device, cam) -> dict:
         loss = photometric_loss(o.rgb, target, dssim=0.2) + 0.01 * o.distortion.mean()
         ev[2].record()
         loss.backward()
-        R.COOPERATIVE_WARPS = True
+        K.COOPERATIVE_WARPS = True
         ev[3].record()
         opt.step()
         opt.zero_grad(set_to_none=True)

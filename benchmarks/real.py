@@ -194,7 +194,7 @@ def seen_recall(mesh, points: np.ndarray, seen: np.ndarray, tau: float) -> float
     pts = points[seen]
     if len(pts) == 0 or len(mesh.faces) == 0:
         return 0.0
-    from wtopo.metrics import _Surface
+    from wtopo.metrics._surface import _Surface
 
     d = _Surface("mesh", (np.asarray(mesh.vertices), np.asarray(mesh.faces)), 0, 0).closest(pts)[0]
     return float((d <= tau).mean())

@@ -6,10 +6,12 @@ Kernels are generic over float32/float64 (``typing.Any`` arguments). The per-sur
 per-pixel compositing kernels have explicit adjoints (:func:`render_backward_kernel`, reverse
 traversal with the saved final transmittance) and compile with ``enable_backward=False``.
 
-Kernel arguments are records (``@wp.struct``, one type per float dtype, see :func:`float_structs`):
-``cam`` a :class:`CameraRecord` (everything the kernels read per view) and ``geo`` an array of
-:class:`SurfelRecord` (what the pixel kernels test per surfel, written by
-:func:`pack_surfels_kernel`). Both are inputs only: nothing is differentiated w.r.t. the camera.
+Kernel arguments are records (``@wp.struct``, one type per float dtype, see
+:func:`~.rasterize_records.float_structs`): ``cam`` a :class:`~.rasterize_records.CameraRecord`
+(everything the kernels read per view) and ``geo`` an array of :class:`~.rasterize_records.SurfelRecord`
+(what the pixel kernels test per surfel, written by :func:`pack_surfels_kernel`). Both are inputs
+only: nothing is differentiated w.r.t. the camera. The records and the float32 / float64 overload
+declarations are in :mod:`.rasterize_records`.
 
 Per-surfel quantities the pixel kernels read (written by :func:`prepare_surfels_kernel`):
 ``uax = t_u / s_u`` and ``vax = t_v / s_v`` (tangent axes divided by the scales, so the local
@@ -22,6 +24,13 @@ from typing import Any
 
 import warp as wp
 
+from .rasterize_records import CAMERA as CAMERA
+from .rasterize_records import SURFEL as SURFEL
+from .rasterize_records import CameraRecord as CameraRecord
+from .rasterize_records import SurfelRecord as SurfelRecord
+from .rasterize_records import declare_float_overloads
+from .rasterize_records import float_structs as float_structs
+from .rasterize_warp import fetch_batch, lane_id, warp_add_scalar, warp_add_vec, warp_any, warp_bcast, warp_max
 from .rotation import quat_axes
 
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped (3DGS/2DGS convention)
@@ -42,97 +51,6 @@ RHO_TIE = 1.0e-9
 # 100k and 1M surfels: 5.87 -> 4.70 ms, 11.26 -> 9.08 ms; 96: 5.16 / 10.06, 80: 5.02 / 10.04, 64: 8.80 /
 # 18.86). The forward (128 registers) ran slower capped (96: 1.79 / 3.57 ms against 1.64 / 3.28).
 BWD_MAX_REGS = 128
-
-# Warp types of each argument role, per float dtype: kernels are generic (``typing.Any``) and
-# instantiated for both dtypes by :func:`declare_float_overloads`; records by :func:`float_structs`.
-_TYPES = {
-    wp.float32: {"s": wp.float32, "v2": wp.vec2, "v3": wp.vec3, "v4": wp.vec4, "m33": wp.mat33, "int": int,
-                 "s_array": wp.array(dtype=wp.float32)},
-    wp.float64: {"s": wp.float64, "v2": wp.vec2d, "v3": wp.vec3d, "v4": wp.vec4d, "m33": wp.mat33d, "int": int,
-                 "s_array": wp.array(dtype=wp.float64)},
-}
-
-
-def float_structs(template: type) -> dict:
-    """One ``@wp.struct`` per float dtype from a template class annotated with roles of ``_TYPES``.
-
-    Warp structs cannot be generic, so the float32 and float64 records are two types built from
-    one field list; generic kernels take them as ``typing.Any`` arguments.
-
-    Returns:
-        ``{wp.float32: struct, wp.float64: struct}``, named ``<template>_float32`` and ``_float64``.
-    """
-    out = {}
-    for scalar, table in _TYPES.items():
-        name = f"{template.__name__}_{scalar.__name__}"
-        fields = {k: table[role] for k, role in template.__annotations__.items()}
-        ns = {"__annotations__": fields, "__module__": __name__, "__qualname__": name, "__doc__": template.__doc__}
-        out[scalar] = wp.struct(type(name, (), ns))
-    return out
-
-
-class CameraRecord:
-    """Per-view constants of the rasterizer kernels (op dtype; ``wtopo.rasterize._camera_record``).
-
-    Attributes:
-        R: world-to-camera rotation, camera = ``R world + t``.
-        t: world-to-camera translation [world units].
-        center: camera centre in world coordinates [world units].
-        fx, fy, cx, cy, skew: pinhole intrinsics [pixels] (``K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]]``).
-        k1, k2, p1, p2, k3: OpenCV distortion coefficients (0 without distortion).
-        clip: ``[near, far]`` on the device, shape [2]: ``near`` is the near plane (z-depth, world
-            units; contributions in front of it are skipped), ``far`` the far value of the distortion
-            depth mapping (world units). An array rather than two scalars so that the scene-relative
-            defaults are computed on the device without a host synchronisation.
-        filter_inv_sq: ``1 / filter_sigma^2`` of the screen-space low-pass [1/px^2].
-        width, height: image size [pixels].
-    """
-
-    R: "m33"
-    t: "v3"
-    center: "v3"
-    fx: "s"
-    fy: "s"
-    cx: "s"
-    cy: "s"
-    skew: "s"
-    k1: "s"
-    k2: "s"
-    p1: "s"
-    p2: "s"
-    k3: "s"
-    clip: "s_array"
-    filter_inv_sq: "s"
-    width: "int"
-    height: "int"
-
-
-class SurfelRecord:
-    """What the pixel kernels test for every (pixel, surfel) pair, packed per surfel (:func:`pack_surfels_kernel`).
-
-    One record (16 scalars: a 64-byte cache line in float32) instead of seven arrays: the pair
-    loop is bound by these loads, most pairs being rejected.
-
-    Attributes:
-        U, V: tangent axes divided by the scales (``uax``, ``vax``).
-        n: plane normal.
-        auv: ``(a.U, a.V, a.n)`` with ``a = camera centre - surfel centre``.
-        m2: projected centre [pixels].
-        zc: centre z-depth [world units].
-        cutoff: exponent above which alpha < 1/255 for sure (negative: culled).
-    """
-
-    U: "v3"
-    V: "v3"
-    n: "v3"
-    auv: "v3"
-    m2: "v2"
-    zc: "s"
-    cutoff: "s"
-
-
-CAMERA = float_structs(CameraRecord)
-SURFEL = float_structs(SurfelRecord)
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -356,133 +274,6 @@ def ndc_depth(z: Any, near: Any, far: Any):
     """2DGS distortion depth mapping ``far / (far - near) * (1 - near / z)`` and its derivative."""
     k = far / (far - near)
     return k * (type(z)(1.0) - near / z), k * near / (z * z)
-
-
-# -- warp-cooperative helpers ------------------------------------------------------------------
-# With ``coop`` (CUDA launches), the 32 pixels of a warp walk their tile's list in step and the helpers
-# act on the whole warp: a per-surfel sum over the warp and one atomic add by lane 0 instead of one per
-# pixel (the pixels of a tile all hit the same surfels, so per-pixel atomics serialise). Without it
-# (CPU, or CUDA for comparison) each acts on its own pixel. Native code: the warp intrinsics exist only
-# in the CUDA build; the C++ build (CPU) is the per-pixel form.
-# Contract of a ``coop`` launch: a multiple of 32 threads, the lanes of a warp in one tile (tiles of
-# >= 64 pixels in tile-major order, :func:`pixel_tile_coords`), and every lane calling the same helpers
-# in the same order (warp-uniform control flow around each call).
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-    if (coop) {
-        int m = x;
-        for (int o = 16; o > 0; o >>= 1) m = max(m, __shfl_xor_sync(0xffffffffu, m, o));
-        return m;
-    }
-#endif
-    return x;
-""")
-def warp_max(x: int, coop: int) -> int:
-    """Maximum of ``x`` over the warp (``coop``) or ``x``."""
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-    if (coop) return __any_sync(0xffffffffu, b) != 0;
-#endif
-    return b;
-""")
-def warp_any(b: bool, coop: int) -> bool:
-    """Whether ``b`` holds on any lane of the warp (``coop``) or ``b``."""
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-    if (coop) return threadIdx.x & 31;
-#endif
-    return 0;
-""")
-def lane_id(coop: int) -> int:
-    """Lane of this thread in its warp (``coop``) or 0."""
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-    if (coop) return __shfl_sync(0xffffffffu, x, src);
-#endif
-    return x;
-""")
-def warp_bcast(x: int, src: int, coop: int) -> int:
-    """``x`` of lane ``src`` (``coop``) or ``x``."""
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-    asm volatile("prefetch.global.L1 [%0];" :: "l"(wp::address(a, i)));
-#else
-    (void)a;
-    (void)i;
-#endif
-""")
-def prefetch(a: wp.array[Any], i: int):
-    """Start loading ``a[i]`` into the L1 cache (CUDA; nothing on CPU)."""
-    ...
-
-
-@wp.func
-def fetch_batch(ids: wp.array[wp.int32], k: int, step: int, nb: int, lane: int, geo: wp.array[Any],
-                opacity: wp.array[Any], color: wp.array[Any], nrm_face: wp.array[Any]):
-    """Lane ``j < nb`` reads ``ids[k + j * step]`` and prefetches that surfel's records; returns the id.
-
-    The list is walked one surfel at a time, each step a chain of dependent loads (id, record, then
-    opacity, colour, normal) that the warp waits for; fetching the next ``nb`` ids with one load per
-    lane and prefetching their records overlaps those latencies (the records of 1M surfels, 64 MB in
-    float32, do not fit the L2 cache).
-    """
-    mine = int(0)
-    if lane < nb:
-        mine = int(ids[k + lane * step])
-        prefetch(geo, mine)
-        prefetch(opacity, mine)
-        prefetch(color, mine)
-        prefetch(nrm_face, mine)
-    return mine
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-    if (coop) {
-        auto s = v;
-        for (int o = 16; o > 0; o >>= 1) s += __shfl_down_sync(0xffffffffu, s, o);
-        if ((threadIdx.x & 31) == 0) wp::atomic_add(dest, w, i, s);
-        return;
-    }
-#endif
-    if (own) wp::atomic_add(dest, w, i, v);
-""")
-def warp_add_scalar(dest: wp.array2d[Any], w: int, i: int, v: Any, own: bool, coop: int):
-    """``dest[w, i] += v`` summed over the warp by lane 0 (``coop``: ``v`` is 0 on lanes without ``own``),
-    else added where ``own``."""
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-    if (coop) {
-        auto s = v;
-        for (unsigned c = 0; c < sizeof(v) / sizeof(v[0]); ++c) {
-            for (int o = 16; o > 0; o >>= 1) s[c] += __shfl_down_sync(0xffffffffu, s[c], o);
-        }
-        if ((threadIdx.x & 31) == 0) wp::atomic_add(dest, w, i, s);
-        return;
-    }
-#endif
-    if (own) wp::atomic_add(dest, w, i, v);
-""")
-def warp_add_vec(dest: wp.array2d[Any], w: int, i: int, v: Any, own: bool, coop: int):
-    """:func:`warp_add_scalar` for a vector ``v``."""
-    ...
 
 
 @wp.kernel(enable_backward=False)
@@ -821,44 +612,7 @@ def reduce_gradients_kernel(
             g_shift[i] = g_shift[i] + d_shift[w, i]
 
 
-# -- explicit float32 / float64 overloads ----------------------------------------------------
-# Declared up front so each module compiles once with every overload, instead of being rebuilt
-# each time a new (kernel, dtype) pair is first launched (measured: 4+ rebuilds per dtype).
-
-_VEC_LEN = {
-    "s": ["zc", "cutoff", "opacity", "opacities", "alpha", "depth", "median", "distortion", "t_final",
-          "g_alpha", "g_depth", "g_median", "g_dist", "d_zc", "d_opacity", "g_zc", "g_opacity"],
-    "v2": ["scales", "m2", "means2d", "d_m2", "d_shift", "g_m2", "g_shift"],
-    "v3": ["means", "uax", "vax", "nrm", "auv", "nrm_face", "color", "background", "sh", "rays", "rgb", "normal",
-           "sums", "g_rgb", "g_normal", "d_uax", "d_vax", "d_nrm", "d_auv", "d_nrm_face", "d_color", "g_uax", "g_vax",
-           "g_nrm", "g_auv", "g_nrm_face", "g_color"],
-    "v4": ["quats"],
-    "cam": ["cam"],
-    "rec": ["geo"],
-}
-_ROLE = {name: kind for kind, names in _VEC_LEN.items() for name in names}
-for _scalar, _table in _TYPES.items():
-    _table["cam"] = CAMERA[_scalar]
-    _table["rec"] = SURFEL[_scalar]
-
-
-def declare_float_overloads(kernel) -> None:
-    """Instantiate a generic kernel for float32 and float64 (argument roles looked up by name).
-
-    ``Any`` arguments (the records) take the role's type, ``wp.array[Any]`` arguments arrays of it.
-    """
-    for table in _TYPES.values():
-        types = {}
-        for arg in kernel.adj.args:
-            if arg.label not in _ROLE:
-                continue
-            if arg.type is Any:
-                types[arg.label] = table[_ROLE[arg.label]]
-            elif getattr(arg.type, "dtype", None) is Any:
-                types[arg.label] = wp.array(dtype=table[_ROLE[arg.label]], ndim=arg.type.ndim)
-        wp.overload(kernel, types)
-
-
+# one compile of this module with every overload (see kernels/rasterize_records.py)
 for _kernel in (prepare_surfels_kernel, pack_surfels_kernel, render_forward_kernel, render_backward_kernel,
                 reduce_gradients_kernel):
     declare_float_overloads(_kernel)

@@ -26,9 +26,9 @@ from .rasterize import (
     QUAT_MIN_SQ,
     SCALE_MIN,
     cam_point,
-    declare_float_overloads,
     project_pixel,
 )
+from .rasterize_records import declare_float_overloads
 from .rotation import quat_axes
 
 wp.set_module_options({"enable_backward": False})
@@ -265,7 +265,7 @@ def sum_visibility_kernel(offset: int, per_worker: wp.array2d[wp.int32], visibil
     visibility[i] = total
 
 
-# one compile of this module with every overload (see kernels/rasterize.py)
+# one compile of this module with every overload (see kernels/rasterize_records.py)
 declare_float_overloads(bin_surfels_kernel)
 for _key_type in (wp.int32, wp.int64):
     wp.overload(emit_intersections_kernel, {"keys": wp.array(dtype=_key_type)})

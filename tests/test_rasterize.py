@@ -495,16 +495,16 @@ COOP_F32_RTOL, COOP_F32_ATOL = 1e-3, 1e-4
 @pytest.mark.parametrize("batch", [1, 7, 32])  # 7: batches that end mid-list and mid-warp
 def test_cooperative_warps_equal_per_pixel_kernels(monkeypatch, dtype, tile_size, batch):
     """Render and differentiate identically with and without warp-cooperative CUDA kernels."""
-    from wtopo import rasterize as R
+    from wtopo.rasterize import _run
 
     # 67 x 45: partial tiles on two edges at every tile size (their pixels walk with their warp)
     cam = _camera(67, 45)
     params = _surfels(400, dtype=dtype, device="cuda:0", seed=59)
     g = torch.Generator().manual_seed(5)
     res = []
-    monkeypatch.setattr(R, "PREFETCH_BATCH", batch)
+    monkeypatch.setattr(_run, "PREFETCH_BATCH", batch)
     for coop in (False, True):
-        monkeypatch.setattr(R, "COOPERATIVE_WARPS", coop)
+        monkeypatch.setattr(_run, "COOPERATIVE_WARPS", coop)
         out = rasterize_surfels(*params, cam, background=(0.1, 0.2, 0.3), config=RasterConfig(tile_size=tile_size))
         if not res:
             ups = {k: torch.randn(getattr(out, k).shape, generator=g, dtype=dtype).to("cuda:0") for k in IMAGES}
@@ -627,9 +627,9 @@ def _assert_outputs_equal(a, b, params):
 @pytest.mark.parametrize("defer_count", [False, True], ids=["exact-count", "deferred-count"])
 def test_trusted_path_equals_public_path(device, device_clip, defer_count):
     """Render bit-identically through the fit's unchecked path, whichever clip and count mode it uses."""
-    from wtopo import rasterize as R
+    from wtopo.rasterize import _binning
 
-    R._capacities.clear()
+    _binning._capacities.clear()
     cam = _camera()
     params = _surfels(300, dtype=torch.float32, device=device)
     for _ in range(2):  # the second deferred call uses the capacity the first one measured
@@ -646,7 +646,7 @@ def test_trusted_path_equals_public_path(device, device_clip, defer_count):
 @pytest.mark.parametrize("case", ["odd", "even", "none-in-front", "empty"])
 def test_device_clip_defaults_equal_host_median(device, case):
     """Compute the default near / far on the device exactly as the host median does."""
-    from wtopo import rasterize as R
+    from wtopo.rasterize import _camera as C
 
     cam = _camera()
     n = {"odd": 301, "even": 300, "none-in-front": 50, "empty": 0}[case]
@@ -654,8 +654,8 @@ def test_device_clip_defaults_equal_host_median(device, case):
     if case == "none-in-front":
         means = means - torch.tensor([0.0, 0.0, 10.0], device=device)  # every centre behind the camera
     cfg = RasterConfig()
-    host = R._default_clip(means, cam, None, None, cfg)
-    dev = R._default_clip_device(means, cam, cfg)
+    host = C._default_clip(means, cam, None, None, cfg)
+    dev = C._default_clip_device(means, cam, cfg)
     assert dev.dtype == torch.float64
     assert tuple(dev.tolist()) == host
 
@@ -669,15 +669,16 @@ def _settle(cap, device):
 
 def test_deferred_count_overflow_then_growth(device):
     """Flag a view whose pairs exceed the kept capacity, then grow it: later calls equal fresh ones."""
-    from wtopo import rasterize as R
+    from wtopo import _bridge
+    from wtopo.rasterize import _binning
 
-    R._capacities.clear()
+    _binning._capacities.clear()
     cam = _camera()
     small = _surfels(40, dtype=torch.float32, device=device, scale=(0.01, 0.03))
     big = _surfels(800, dtype=torch.float32, device=device, seed=1)
     first = _trusted(small, cam, defer_count=True)  # sizes the capacity (one read)
     assert not bool(first.overflow)
-    cap = R._pair_capacity(R._bridge.warp_device(device))
+    cap = _binning._pair_capacity(_bridge.warp_device(device))
     _settle(cap, device)  # CUDA posts the first count asynchronously: take it in before overriding it
     cap.value = 64  # as if earlier views had been tiny: the big one cannot fit
     over = _trusted(big, cam, defer_count=True)
@@ -686,7 +687,7 @@ def test_deferred_count_overflow_then_growth(device):
     _settle(cap, device)
     again = _trusted(big, cam, defer_count=True)  # the overflowing count was observed: capacity grown
     assert not bool(again.overflow)
-    assert cap.value >= R._CAPACITY_MIN
+    assert cap.value >= _binning._CAPACITY_MIN
     _assert_outputs_equal(again, rasterize_surfels(*big, cam, background=(0.1, 0.2, 0.3)), big)
     # fewer surfels after more: same results as a fresh call with the larger buffers kept
     _assert_outputs_equal(_trusted(small, cam, defer_count=True),

@@ -340,6 +340,14 @@ class LossConfig:
     """Surfel depth compared with the mesh depth (``EXPECTED`` averages in semi-transparent layers
     behind the surface and drags the proxy inwards: bunny Chamfer 0.281 %
     against 0.262 % with the median, ``benchmarks/fit.md``)."""
+    multiview: float = _f(0.0, RATE)
+    """Multi-view photometric consistency (:mod:`wtopo.fitting.multiview`, PGSR's patch NCC): each
+    training view's rendered plane at sampled pixels is warped into two neighbouring photographs and
+    scored by ``1 - NCC``; 0 turns it off."""
+    multiview_start_fraction: float = _f(0.5, FRACTION)
+    """The multi-view term is on from this fraction of the warm-up (:func:`stage_iteration`)."""
+    multiview_pixels: int = _f(4096, COUNT)
+    """Reference pixels drawn per iteration for the multi-view term (each a 7 x 7 window)."""
     silhouette_band: int = _f(0, COUNT)
     """With masks: pixels within this many pixels of the mask boundary are left out of the
     photometric and mask terms (0 keeps them). A mask and an image rendered one ray per pixel say

@@ -135,7 +135,8 @@ class FitRun:
         self.opt: torch.optim.Adam | None = None
         self.last_good: tuple[dict, dict] | None = None  # (surfel, optimiser) state dicts of the last good step
         self.objective = Objective(cfg, self.train, render=self.render, mask_weight=float(self.plan["mask_loss"]),
-                                   warmup_end=self.warmup_end, timers=self.timers)
+                                   warmup_end=self.warmup_end, timers=self.timers,
+                                   roi_center=self.plan.layout.roi_center)
         # scenes keep a background: contracted steps outside the region, nothing on the lenses
         self.background = BackgroundState(self.plan.layout, self.device) if self.plan["background_rule"] else None
         self.strategy = DensityStrategy(cfg, densify=bool(self.plan["densify"]), warmup_end=self.warmup_end,

@@ -22,6 +22,7 @@ from .losses import (
     photometric,
     scale_regularizer,
 )
+from .multiview import MultiViewNCC
 from .proxy import ProxyMesh, ProxyResult
 from .stages import ROI_EXTENT, Renderer, Stage
 from .surfels import Surfels
@@ -65,10 +66,18 @@ class Objective:
         mask_weight: the plan's mask-loss weight.
         warmup_end: first co-evolution iteration.
         timers: the fit's section timers (``"render"``, ``"losses"``, ``"proxy"``, ``"raycast"``).
+        roi_center: [3] the region of interest's centre (internal frame): picks the neighbouring views
+            of the multi-view term (``losses.multiview``); ``None`` leaves that term out.
     """
 
-    def __init__(self, cfg: FitConfig, train, *, render: Renderer, mask_weight: float, warmup_end: int, timers):
+    def __init__(self, cfg: FitConfig, train, *, render: Renderer, mask_weight: float, warmup_end: int, timers,
+                 roi_center=None):
         self.cfg = cfg
+        lc = cfg.losses
+        self.multiview = None
+        if lc.multiview > 0 and roi_center is not None and len(train.cameras) > 1:
+            self.multiview = MultiViewNCC(train.cameras, train.images, roi_center, pixels=lc.multiview_pixels,
+                                          seed=cfg.runtime.seed)
         self.train = train
         self.render = render
         self.mask_weight = float(mask_weight)
@@ -113,6 +122,10 @@ class Objective:
                 L["normal"] = lc.normal * normal_consistency(out.normal, dn, out.alpha, dmask)
             if lc.distortion > 0 and (late or it >= stage_iteration(lc.distortion_start_fraction, self.warmup_end)):
                 L["distortion"] = lc.distortion * distortion(out.distortion)
+            mv = self.multiview
+            if mv is not None and mv.has_neighbours(vi) and (
+                    late or it >= stage_iteration(lc.multiview_start_fraction, self.warmup_end)):
+                L["multiview"] = lc.multiview * mv(it, vi, out.median_depth, out.normal, out.alpha)
             if lc.scale > 0:
                 L["scale"] = lc.scale * scale_regularizer(s.scales, _MAX_ANISOTROPY)
         terms = Terms(L, out, covered)

@@ -80,7 +80,7 @@ class Renderer:
     """
 
     def __init__(self, background: torch.Tensor, config):
-        from ..rasterize import _validate_config
+        from ..rasterize._config import _validate_config
 
         self.background = background
         self.config = _validate_config(config)  # once: the per-call path does not check it again

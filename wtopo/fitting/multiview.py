@@ -1,0 +1,158 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Multi-view photometric consistency of the rendered geometry (PGSR's patch NCC term).
+
+The photometric loss compares each training view only with its own rendering, so a surface can
+sit anywhere along the rays as long as its colours reproduce the photo: a textured ground seen at
+a grazing angle, a weakly textured wall, a sparsely seen object come back at the wrong depth with
+the right picture. Neighbouring photographs disagree with such a surface. For sampled pixels of
+the reference view this term takes the rendered plane there (median depth and rendered normal),
+maps a ``patch x patch`` window of reference pixels through that plane into neighbouring views
+(the plane-induced homography, evaluated per pixel with the cameras' own rays and projection, so
+distortion and skew need no undistortion), and scores the window's normalised cross-correlation
+(NCC) against the neighbours' photographs. The loss is ``1 - NCC``; a gradient moves the depth and
+the normal of the surfels the reference view's pixels rest on.
+
+* Neighbours: :func:`wtopo.fitting.mvs.select_neighbours` (good triangulation angle at the region
+  of interest's centre, optical axes within 75 degrees); two are drawn per iteration, each window
+  keeps the better of the two costs (an occluded neighbour does not vote).
+* Windows whose best cost reaches ``_MAX_COST`` (no neighbour correlates: occlusion, a view that
+  does not see the point, a wildly wrong plane) and windows without texture (grey-level standard
+  deviation under ``_MIN_STD``) carry no loss, as in PGSR (its ``ncc < 0.9`` mask).
+* Pixels are drawn uniformly in the image interior without a host read: pixels the surfels do not
+  cover (opacity under one half) are weighted out.
+
+Everything is torch on the fit's device; only the rendered depth and normal carry gradients.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..camera import Camera
+from .mvs import _TorchCam, select_neighbours
+
+__all__ = ["MultiViewNCC"]
+
+_MAX_COST = 0.9  # windows whose best 1 - NCC reaches this carry no loss (PGSR: ncc < 0.9)
+_MIN_STD = 0.01  # reference windows with a grey-level std below this (of [0, 1]) carry no loss
+_NCC_EPS = 1e-6
+_DRAWN_NEIGHBOURS = 2  # neighbours scored per iteration; each window keeps its better one
+_GRAZING = 0.05  # |cos| between a patch ray and the plane normal below which the window is dropped
+
+
+def _gray(img: torch.Tensor) -> torch.Tensor:
+    """[H, W, 3] RGB in [0, 1] -> [H, W] luma."""
+    return img[..., 0] * 0.299 + img[..., 1] * 0.587 + img[..., 2] * 0.114
+
+
+class MultiViewNCC:
+    """The multi-view patch NCC term for training views.
+
+    Args:
+        cameras: training cameras (internal frame), at the resolution of ``images``.
+        images: training images ``[V, H, W, 3]`` float32 in [0, 1], or a list of ``[H, W, 3]``.
+        center: [3] the region of interest's centre (internal frame), for neighbour selection.
+        pixels: reference pixels drawn per call.
+        patch: window side in pixels (odd).
+        seed: pixel and neighbour draws (deterministic given it and the iteration).
+
+    Raises:
+        ValueError: ``patch`` not odd and >= 3, ``pixels`` < 1.
+    """
+
+    def __init__(self, cameras: list[Camera], images, center: np.ndarray, *, pixels: int = 4096,
+                 patch: int = 7, seed: int = 0):
+        if patch < 3 or patch % 2 == 0:
+            raise ValueError(f"patch must be odd and >= 3, got {patch!r}")
+        if pixels < 1:
+            raise ValueError(f"pixels must be >= 1, got {pixels!r}")
+        self.cameras = cameras
+        self.images = images
+        self.neighbours = select_neighbours(cameras, np.asarray(center, np.float64))
+        self.pixels = int(pixels)
+        self.half = patch // 2
+        self.seed = int(seed)
+        self._tcams: dict[int, _TorchCam] = {}
+        self._grays: dict[int, torch.Tensor] = {}
+        self._offsets: dict[torch.device, torch.Tensor] = {}
+
+    def has_neighbours(self, vi: int) -> bool:
+        """View ``vi`` has a neighbour to compare with."""
+        return len(self.neighbours[vi]) > 0
+
+    def _cam(self, i: int, device: torch.device) -> _TorchCam:
+        c = self._tcams.get(i)
+        if c is None:
+            c = self._tcams[i] = _TorchCam(self.cameras[i], device)
+        return c
+
+    def _gray_of(self, i: int) -> torch.Tensor:
+        g = self._grays.get(i)
+        if g is None:
+            g = self._grays[i] = _gray(self.images[i].float())
+        return g
+
+    def _window(self, device: torch.device) -> torch.Tensor:
+        w = self._offsets.get(device)
+        if w is None:
+            r = torch.arange(-self.half, self.half + 1, device=device)
+            dy, dx = torch.meshgrid(r, r, indexing="ij")
+            w = self._offsets[device] = torch.stack([dy.reshape(-1), dx.reshape(-1)], -1)  # [K, 2] (row, col)
+        return w
+
+    def __call__(self, it: int, vi: int, median_depth: torch.Tensor, normal: torch.Tensor,
+                 alpha: torch.Tensor) -> torch.Tensor:
+        """The term for training view ``vi`` at iteration ``it`` (a scalar tensor, 0 when nothing counts).
+
+        Args:
+            it: iteration (seeds the draws).
+            vi: reference training view.
+            median_depth: rendered z-depth ``[H, W]`` float32 (differentiable).
+            normal: rendered alpha-weighted world normal ``[H, W, 3]`` (differentiable).
+            alpha: rendered opacity ``[H, W]`` (only its value is used).
+        """
+        dev = median_depth.device
+        ref = self._cam(vi, dev)
+        H, W, h = ref.H, ref.W, self.half
+        if 2 * h >= H or 2 * h >= W or not self.neighbours[vi]:
+            return median_depth.sum() * 0.0
+        g = torch.Generator().manual_seed(self.seed * 1_000_003 + it)
+        py = torch.randint(h, H - h, (self.pixels,), generator=g).to(dev)
+        px = torch.randint(h, W - h, (self.pixels,), generator=g).to(dev)
+        nb = self.neighbours[vi]
+        pick = torch.randperm(len(nb), generator=g)[:_DRAWN_NEIGHBOURS].tolist()
+        # the plane at each drawn pixel: its rendered point and unit normal
+        d = median_depth[py, px]
+        n = normal[py, px]
+        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+        x = ref.origin[py, px] + ref.dirs[py, px] * d[:, None]  # [P, 3]
+        off = self._window(dev)
+        qy, qx = py[:, None] + off[None, :, 0], px[:, None] + off[None, :, 1]  # [P, K]
+        oq, dq = ref.origin[qy, qx], ref.dirs[qy, qx]  # [P, K, 3]
+        den = (dq * n[:, None]).sum(-1)
+        cos = den.detach() / dq.detach().norm(dim=-1)
+        ok = (alpha.detach()[py, px] >= 0.5) & (d.detach() > 0) & (cos.abs().amin(1) > _GRAZING)
+        den = torch.where(den.abs() < 1e-8, torch.full_like(den, 1e-8), den)
+        t = ((x[:, None] - oq) * n[:, None]).sum(-1) / den
+        y = oq + dq * t[..., None]  # window points on the plane [P, K, 3]
+        rv = self._gray_of(vi)[qy, qx]  # [P, K]
+        rc = rv - rv.mean(1, keepdim=True)
+        rvar = (rc * rc).mean(1)
+        ok = ok & (rvar.sqrt() >= _MIN_STD)
+        costs = []
+        for j in pick:
+            src = self._cam(nb[j], dev)
+            u, v, z = src.project(y)
+            inside = ((z > 0) & (u >= 0) & (u <= src.W) & (v >= 0) & (v <= src.H)).all(1)
+            sv = F.grid_sample(self._gray_of(nb[j])[None, None], src.grid(u, v)[None], mode="bilinear",
+                               padding_mode="border", align_corners=False)[0, 0]  # [P, K]
+            sc = sv - sv.mean(1, keepdim=True)
+            ncc = (rc * sc).mean(1) / (rvar * (sc * sc).mean(1) + _NCC_EPS).sqrt()
+            cost = (1.0 - ncc).clamp(0.0, 2.0)
+            costs.append(torch.where(inside, cost, torch.full_like(cost, 2.0)))
+        best = torch.stack(costs).amin(0)
+        use = ok & (best.detach() < _MAX_COST)
+        w = use.to(best.dtype)
+        return (best * w).sum() / w.sum().clamp_min(1.0)

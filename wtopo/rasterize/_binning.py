@@ -1,0 +1,159 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Binning of surfels to screen tiles (discrete, outside the tape), with the per-device pair capacity
+that sizes the sort buffers of the fit's deferred-count path (kernels in ``kernels/rasterize_binning.py``)."""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import torch
+import warp as wp
+
+from .. import _bridge
+from .._profile import section
+from ..camera import Camera
+from ..kernels import rasterize_binning as _kb
+from ._camera import _depth_row
+from ._config import RasterConfig
+
+
+@dataclass
+class _Bins:
+    tile_start: wp.array
+    tile_end: wp.array
+    ids: wp.array
+    radii: torch.Tensor
+    means2d: torch.Tensor
+    cutoff: wp.array
+    overflow: torch.Tensor | None = None
+
+
+_CAPACITY_HEADROOM = 1.25  # deferred path: sort buffers hold this times the largest recent pair count ...
+_CAPACITY_MIN = 4096  # ... and at least this many pairs
+_CAPACITY_SHRINK = 4.0  # shrink once a count falls below 1 / this of the capacity (after fewer surfels)
+_PENDING_MAX = 8  # device counts in flight at most (pinned host copies)
+
+
+class _PairCapacity:
+    """Number of (tile, surfel) pairs the deferred-count binning sizes its sort for, kept per device.
+
+    Every deferred call posts its pair count into pinned host memory with a non-blocking copy and an
+    event; later calls read the counts whose events have completed, so no call waits for the device.
+    """
+
+    def __init__(self):
+        self.value = 0
+        self.pending: deque = deque()
+
+    def observe(self, total: int, limit: int) -> None:
+        """Fit the capacity to a measured pair count (grow above it, shrink when far below)."""
+        if total > self.value or total * _CAPACITY_SHRINK < self.value:
+            self.value = min(limit, max(_CAPACITY_MIN, math.ceil(total * _CAPACITY_HEADROOM)))
+
+    def post(self, total: torch.Tensor, limit: int) -> None:
+        """Queue a device pair count (int64 scalar tensor) to be observed once the device has it."""
+        if not total.is_cuda:
+            self.observe(int(total), limit)  # CPU: the value is already there, reading it costs nothing
+            return
+        if len(self.pending) >= _PENDING_MAX:
+            return
+        host = torch.empty((), dtype=torch.int64, pin_memory=True)
+        host.copy_(total, non_blocking=True)
+        event = torch.cuda.Event()
+        event.record()
+        self.pending.append((event, host, limit))
+
+    def poll(self) -> None:
+        """Observe the posted counts that have arrived (never blocks)."""
+        while self.pending and self.pending[0][0].query():
+            _, host, limit = self.pending.popleft()
+            self.observe(int(host), limit)
+
+
+_capacities: dict[str, _PairCapacity] = {}
+
+
+def _pair_capacity(wdev) -> _PairCapacity:
+    return _capacities.setdefault(str(wdev), _PairCapacity())
+
+
+def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, config: RasterConfig, wdev, *,
+         defer_count: bool = False) -> _Bins:
+    """Tile ranges and depth-sorted surfel ids per tile.
+
+    With ``defer_count`` the sort buffers are sized from :class:`_PairCapacity` (counts of earlier
+    calls) instead of this call's count, so nothing waits for the device; pairs beyond the capacity
+    are dropped and ``overflow`` says so (a device flag). Without it the count is read (one host
+    sync) and the result is always complete.
+    """
+    n = means.shape[0]
+    ts = config.tile_size
+    tiles_x, tiles_y = -(-camera.width // ts), -(-camera.height // ts)
+    n_tiles = tiles_x * tiles_y
+    dt = _bridge.float_dtype(means)
+    rect = wp.empty(n, dtype=wp.vec4i, device=wdev)
+    counts = wp.empty(n, dtype=wp.int32, device=wdev)
+    radii = wp.empty(n, dtype=wp.int32, device=wdev)
+    means2d = wp.empty(n, dtype=_bridge.vec_dtype(means, 2), device=wdev)
+    cutoff = wp.empty(n, dtype=dt, device=wdev)
+    inputs = [_bridge.to_warp(means, _bridge.vec_dtype(means, 3)), _bridge.to_warp(quats, _bridge.vec_dtype(quats, 4)),
+              _bridge.to_warp(scales, _bridge.vec_dtype(scales, 2)), _bridge.to_warp(opacities, dt), cam_rec, *tables,
+              ts]
+    capacity = _pair_capacity(wdev)
+    overflow = None
+    with section("rasterize_binning"):
+        _bridge.launch_split(_kb.bin_surfels_kernel, n, inputs, [rect, counts, radii, means2d, cutoff], device=wdev)
+        counts_t = wp.to_torch(counts)
+        csum = torch.cumsum(counts_t, 0, dtype=torch.int64)
+        defer = defer_count and n > 0
+        if defer:
+            capacity.poll()
+            if capacity.value == 0:  # host sync: once per device, the first count sizes the capacity
+                capacity.observe(int(csum[-1]), config.max_intersections)
+            total = capacity.value  # pairs sorted: the real ones, then padding keys after every tile
+            overflow = csum[-1] > total
+            capacity.post(csum[-1], config.max_intersections)
+        else:
+            total = int(csum[-1]) if n else 0  # host sync: the intersection count sizes the sort buffers
+            if total <= config.max_intersections:
+                capacity.observe(total, config.max_intersections)
+    if total > config.max_intersections:
+        raise ValueError(f"rasterize_surfels: {n} surfels cover {total} (tile, surfel) pairs, above "
+                         f"config.max_intersections = {config.max_intersections}; raise the budget, use a larger "
+                         f"tile_size, or prune/shrink large surfels")
+    tile_start = wp.zeros(n_tiles, dtype=wp.int32, device=wdev)
+    tile_end = wp.zeros(n_tiles, dtype=wp.int32, device=wdev)
+    rank_bits = max(1, (n - 1).bit_length())
+    # deferred: one more tile value for the padding keys (tile n_tiles), sorted after every real pair
+    key_bits = rank_bits + max(1, (n_tiles if defer else n_tiles - 1).bit_length())
+    keys = wp.empty(max(2 * total, 1), dtype=wp.int32 if key_bits <= 31 else wp.int64, device=wdev)
+    values = wp.empty(max(2 * total, 1), dtype=wp.int32, device=wdev)
+    if total:
+        with section("rasterize_sort"):
+            # depth rank of every surfel (Warp's stable radix sort on the centre z-depths)
+            zc = torch.empty(2 * n, dtype=means.dtype, device=means.device)
+            zc[:n] = means.detach() @ _depth_row(camera, means.device, means.dtype)
+            order = torch.empty(2 * n, dtype=torch.int32, device=means.device)
+            order[:n] = torch.arange(n, dtype=torch.int32, device=means.device)
+            wp.utils.radix_sort_pairs(_bridge.to_warp(zc), _bridge.to_warp(order), n)
+            rank = torch.empty(n, dtype=torch.int64, device=means.device)
+            rank[order[:n].long()] = torch.arange(n, dtype=torch.int64, device=means.device)
+        with section("rasterize_binning"):
+            if defer:
+                keys[:total].fill_(n_tiles << rank_bits)
+            offsets = csum - counts_t
+            if defer:  # pairs past the capacity are dropped: keep the offsets (int32) at most there
+                offsets = offsets.clamp_max(total)
+            offsets = offsets.to(torch.int32)
+            _bridge.launch_split(_kb.emit_intersections_kernel, n,
+                                 [rect, _bridge.to_warp(offsets), _bridge.to_warp(rank), tiles_x, rank_bits, total],
+                                 [keys, values],
+                                 device=wdev)
+        with section("rasterize_sort"):
+            wp.utils.radix_sort_pairs(keys, values, total, end_bit=key_bits)
+        with section("rasterize_binning"):
+            _bridge.launch_split(_kb.tile_ranges_kernel, total, [keys, total, rank_bits], [tile_start, tile_end],
+                                 device=wdev)
+    return _Bins(tile_start, tile_end, values, wp.to_torch(radii), wp.to_torch(means2d), cutoff, overflow)

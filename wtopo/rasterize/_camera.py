@@ -1,0 +1,109 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Per-view inputs of the rasterizer: pixel rays and tile tables (cached on the camera), the
+kernels' camera record, and the default near / far planes (host median or on the device)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import warp as wp
+
+from .. import _bridge
+from ..camera import Camera
+from ..kernels import rasterize as _k
+from ._config import RasterConfig
+
+
+def _camera_tables(camera: Camera, device, dtype, tile_size: int):
+    """Rays [H, W, 3] and per-tile-column / per-tile-row normalised-coordinate ranges (cached on the camera)."""
+    return camera.cached(("wtopo.rasterize.tables", str(device), dtype, tile_size),
+                         lambda: _build_camera_tables(camera, device, dtype, tile_size))
+
+
+def _build_camera_tables(camera: Camera, device, dtype, tile_size: int):
+    """What :func:`_camera_tables` caches."""
+    _, dirs = camera.pixel_rays(device, dtype)
+    d_cam = dirs.detach().cpu().double().numpy() @ camera.R.T
+    h, w = camera.height, camera.width
+    tx, ty = -(-w // tile_size), -(-h // tile_size)
+    x = d_cam[..., 0]
+    y = d_cam[..., 1]
+    colx_min = np.array([x[:, j * tile_size:(j + 1) * tile_size].min() for j in range(tx)])
+    colx_max = np.array([x[:, j * tile_size:(j + 1) * tile_size].max() for j in range(tx)])
+    rowy_min = np.array([y[i * tile_size:(i + 1) * tile_size].min() for i in range(ty)])
+    rowy_max = np.array([y[i * tile_size:(i + 1) * tile_size].max() for i in range(ty)])
+    # binary searches need non-decreasing tables; a lens that folds the image gets full ranges
+    if np.any(np.diff(colx_min) < 0) or np.any(np.diff(colx_max) < 0):
+        colx_min[:], colx_max[:] = -np.inf, np.inf
+    if np.any(np.diff(rowy_min) < 0) or np.any(np.diff(rowy_max) < 0):
+        rowy_min[:], rowy_max[:] = -np.inf, np.inf
+    wdev = _bridge.warp_device(device)
+    tables = tuple(wp.array(a, dtype=wp.float64, device=wdev) for a in (colx_min, colx_max, rowy_min, rowy_max))
+    return dirs, tables
+
+
+def _depth_row(camera: Camera, device, dtype) -> torch.Tensor:
+    """Third row of the world-to-camera rotation [3] on the device (cached on the camera: no copy per call)."""
+    return camera.cached(("wtopo.rasterize.depth_row", str(device), dtype),
+                         lambda: torch.as_tensor(camera.R[2], dtype=dtype, device=device))
+
+
+def _camera_record(camera: Camera, clip: torch.Tensor, dtype, filter_sigma: float):
+    """Everything the kernels read per view, as a :class:`wtopo.kernels.rasterize.CameraRecord` of the op dtype.
+
+    Values are computed in float64 on the host and rounded once to the op dtype when assigned;
+    ``clip`` ([near, far] of the op dtype on the device) is referenced, not copied.
+    """
+    rec = _k.CAMERA[wp.float64 if dtype == torch.float64 else wp.float32]()
+    fx, skew, cx = (float(v) for v in camera.K[0])
+    dist = camera.distortion if camera.distortion is not None else np.zeros(5)
+    rec.R = type(rec.R)(*(float(v) for v in camera.R.reshape(-1)))
+    rec.t = type(rec.t)(*(float(v) for v in camera.t))
+    rec.center = type(rec.center)(*(float(v) for v in camera.center))
+    rec.fx, rec.fy, rec.cx, rec.cy, rec.skew = fx, float(camera.K[1, 1]), cx, float(camera.K[1, 2]), skew
+    rec.k1, rec.k2, rec.p1, rec.p2, rec.k3 = (float(v) for v in dist)
+    rec.clip = _bridge.to_warp(clip)
+    rec.filter_inv_sq = 1.0 / float(filter_sigma) ** 2
+    rec.width, rec.height = int(camera.width), int(camera.height)
+    return rec
+
+
+def _default_clip(means: torch.Tensor, camera: Camera, near, far, config: RasterConfig):
+    if near is not None and far is not None:
+        return float(near), float(far)
+    z = means.detach() @ _depth_row(camera, means.device, means.dtype) + float(camera.t[2])
+    z = z[z > 0]
+    zref = float(z.median()) if z.numel() else 1.0  # host sync: scene-relative clip defaults
+    near = config.near_fraction * zref if near is None else float(near)
+    far = config.far_multiple * zref if far is None else float(far)
+    if not near < far:
+        raise ValueError(f"near must be < far, got near={near}, far={far} (one was defaulted from the scene)")
+    return near, far
+
+
+def _clip_from_host(near: float, far: float, device) -> torch.Tensor:
+    """``[near, far]`` float64 [2] on ``device`` from host values (two fills: no blocking copy)."""
+    clip = torch.empty(2, dtype=torch.float64, device=device)
+    clip[0] = near
+    clip[1] = far
+    return clip
+
+
+def _default_clip_device(means: torch.Tensor, camera: Camera, config: RasterConfig) -> torch.Tensor:
+    """:func:`_default_clip` with both planes defaulted, computed on the device without a host sync.
+
+    Same values: ``torch.median`` is the lower middle of the sorted positive depths, picked here by
+    index from a sort that sends the others to ``+inf``; the products are taken in float64 as the
+    host path does.
+    """
+    n = means.shape[0]
+    if n == 0:
+        return _clip_from_host(config.near_fraction, config.far_multiple, means.device)
+    z = means.detach() @ _depth_row(camera, means.device, means.dtype) + float(camera.t[2])
+    pos = z > 0
+    k = pos.sum()
+    zs = torch.where(pos, z, torch.full_like(z, math.inf)).sort().values
+    zref = torch.where(k > 0, zs.gather(0, ((k - 1).clamp_min(0) // 2).view(1)), torch.ones_like(zs[:1])).double()
+    return torch.cat([zref * config.near_fraction, zref * config.far_multiple])

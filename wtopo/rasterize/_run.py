@@ -1,0 +1,139 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The differentiable op's Warp launches: per-surfel preparation, per-pixel compositing and the
+explicit reverse-traversal adjoint recorded on the tape; on CPU the per-pixel kernels run as tile
+chunks spread over worker threads with per-worker gradient buffers summed in a fixed order."""
+
+from __future__ import annotations
+
+import threading
+
+import torch
+import warp as wp
+
+from .. import _bridge
+from .._profile import section
+from ..camera import Camera
+from ..kernels import rasterize as _k
+from ..kernels import rasterize_binning as _kb
+from ._binning import _Bins
+
+# CUDA: the 32 pixels of a warp composite in step and sum their per-surfel gradients and visibility
+# counts before one atomic add (kernels/rasterize.py, "warp-cooperative helpers"); False restores one
+# atomic per pixel (the previous kernels' order of work, kept for comparison in tests and benchmarks).
+# CPU launches never use it (one pixel at a time: bit-identical either way).
+COOPERATIVE_WARPS = True
+# With COOPERATIVE_WARPS: surfels of a tile's list fetched per step of the walk, one id load and L1 prefetch
+# of its records per lane (1..32; 1: each surfel's id, then its records, loaded when it is reached).
+PREFETCH_BATCH = 32
+
+_compiled: set = set()
+_compile_lock = threading.Lock()
+
+
+def _launch_tiles(kernel, n_tiles: int, tile_px: int, inputs: list, outputs: list, *, device, workers: int,
+                  tiles_per_chunk: int) -> None:
+    """Launch a per-pixel kernel ``(offset, worker, ...)`` over tiles, in chunks spread over ``workers`` threads."""
+    if n_tiles <= 0:
+        return
+    key = (kernel.key, str(device), tuple(getattr(a, "dtype", type(a)) for a in (*inputs, *outputs)))
+    if workers <= 1:
+        wp.launch(kernel, dim=n_tiles * tile_px, inputs=[0, 0, *inputs], outputs=outputs, device=device,
+                  record_tape=False)
+        return
+    chunk = tiles_per_chunk or max(1, n_tiles // (16 * workers))
+    n_chunks = -(-n_tiles // chunk)
+
+    def work(w: int) -> None:
+        # static interleaved assignment: balanced for spatially clustered cost, and each worker's
+        # buffer always sums the same chunks in the same order (bit-identical reruns)
+        for c in range(w, n_chunks, workers):
+            lo, hi = c * chunk, min(n_tiles, (c + 1) * chunk)
+            wp.launch(kernel, dim=(hi - lo) * tile_px, inputs=[lo * tile_px, w, *inputs], outputs=outputs,
+                      device=device, record_tape=False)
+
+    if key not in _compiled:
+        with _compile_lock:  # the first launch compiles: never from two threads at once
+            for w in range(workers):  # same chunk-to-worker assignment as the threaded path: same sums
+                work(w)
+            _compiled.add(key)
+        return
+    futures = [_bridge._get_pool(workers).submit(work, w) for w in range(workers)]  # noqa: SLF001
+    for f in futures:
+        f.result()
+
+
+def _num_workers(wdev, n_tiles: int) -> int:
+    if not wdev.is_cpu:
+        return 1  # CUDA: one launch, real atomics
+    return max(1, min(_bridge.cpu_threads(), n_tiles))
+
+
+def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, camera: Camera, config, wdev, dtype):
+    ts = config.tile_size
+    tiles_x, tiles_y = -(-camera.width // ts), -(-camera.height // ts)
+    n_tiles = tiles_x * tiles_y
+    h, w = camera.height, camera.width
+    workers = _num_workers(wdev, n_tiles)
+    s = wp.float64 if dtype == torch.float64 else wp.float32
+    v2, v3 = (wp.vec2d, wp.vec3d) if dtype == torch.float64 else (wp.vec2, wp.vec3)
+    rays_wp = _bridge.to_warp(rays, v3)
+    coop = int(COOPERATIVE_WARPS and not wdev.is_cpu)
+    batch = PREFETCH_BATCH if coop else 1  # a batch is spread over the lanes of a warp
+
+    def run(means, quats, scales, opacities, sh, means2d):
+        n = means.shape[0]
+        with section("rasterize_forward"):
+            prep = [wp.empty(n, dtype=t, device=wdev, requires_grad=True) for t in (v3, v3, v3, v3, v3, v2, s, v3)]
+            uax, vax, nrm, auv, nrm_face, m2, zc, color = prep
+            _bridge.launch_split(_k.prepare_surfels_kernel, n, [means, quats, scales, sh, cam_rec, sh_degree], prep,
+                                 device=wdev, record_tape=True)
+            outs = [wp.empty((h, w), dtype=t, device=wdev, requires_grad=True) for t in (v3, s, s, s, v3, s)]
+            rgb, alpha, depth, median, normal, dist = outs
+            t_final = wp.empty((h, w), dtype=s, device=wdev)
+            sums = wp.empty((h, w), dtype=v3, device=wdev)
+            last = wp.empty((h, w), dtype=wp.int32, device=wdev)
+            median_idx = wp.empty((h, w), dtype=wp.int32, device=wdev)
+            visibility = wp.zeros(n, dtype=wp.int32, device=wdev) if workers == 1 else None
+            # one worker (CUDA): the kernel counts straight into the output, no per-worker buffer to sum
+            vis_w = visibility.reshape((1, n)) if workers == 1 else wp.zeros((workers, n), dtype=wp.int32, device=wdev)
+            geo = wp.empty(n, dtype=_k.SURFEL[s], device=wdev)
+            _bridge.launch_split(_k.pack_surfels_kernel, n, [uax, vax, nrm, auv, m2, zc, bins.cutoff], [geo],
+                                 device=wdev)
+            surf = [geo, nrm_face, color, opacities, bg_wp, ts, tiles_x, coop, batch]
+            _launch_tiles(_k.render_forward_kernel, n_tiles, ts * ts,
+                          [bins.tile_start, bins.tile_end, bins.ids, rays_wp, cam_rec, *surf],
+                          [*outs, t_final, sums, last, median_idx, vis_w], device=wdev, workers=workers,
+                          tiles_per_chunk=config.tiles_per_chunk)
+            if workers > 1:
+                visibility = wp.empty(n, dtype=wp.int32, device=wdev)
+                _bridge.launch_split(_kb.sum_visibility_kernel, n, [vis_w], [visibility], device=wdev)
+
+        # gradient order: uax, vax, nrm, auv, nrm_face, m2, zc, color, opacity, shift
+        grad_types = (v3, v3, v3, v3, v3, v2, s, v3, s, v2)
+
+        def backward():
+            with section("rasterize_backward"):
+                def grad_or_empty(a, t):
+                    return a.grad if a.requires_grad else wp.zeros(0, dtype=t, device=wdev)
+
+                targets = [*(a.grad for a in prep), grad_or_empty(opacities, s), grad_or_empty(means2d, v2)]
+                if workers == 1:
+                    # one worker (CUDA): accumulate straight into the tape's zeroed gradient arrays (same sums
+                    # as a zeroed buffer added to them), no buffers to clear and no reduction launch
+                    bufs = [g.reshape((1, n)) if g.shape[0] else wp.zeros((1, n), dtype=t, device=wdev)
+                            for g, t in zip(targets, grad_types)]
+                else:
+                    bufs = [wp.zeros((workers, n), dtype=t, device=wdev) for t in grad_types]
+                _launch_tiles(_k.render_backward_kernel, n_tiles, ts * ts,
+                              [bins.tile_start, bins.ids, rays_wp, cam_rec, *surf, t_final, sums, last, median_idx,
+                               *(o.grad for o in outs)],
+                              bufs, device=wdev, workers=workers, tiles_per_chunk=config.tiles_per_chunk)
+                if workers > 1:
+                    _bridge.launch_split(_k.reduce_gradients_kernel, n, bufs, targets, device=wdev)
+
+        tape = _bridge.active_tape()
+        if tape is not None and n > 0:  # N = 0: nothing to differentiate (empty arrays have no grad buffer)
+            tape.record_func(backward, [*outs, *prep, *(a for a in (opacities, means2d) if a.requires_grad)])
+        return (*outs, visibility)
+
+    return run
