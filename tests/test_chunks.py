@@ -209,3 +209,22 @@ def test_two_processes_share_the_chunks_through_gloo(tmp_path):
     assert rep["world_size"] == 2
     assert {c["index"]: c["rank"] for c in rep["per_chunk"]} == {0: 0, 1: 1}
     assert (tmp_path / "mesh.ply").exists()
+
+
+def test_chunk_runs_its_share_of_the_iteration_budget():
+    """Scale the configured iterations, or the device budget when left to the plan, by the chunk's view share."""
+    from wtopo.chunks.engine import chunk_fit_config
+    from wtopo.fitting import FitConfig
+
+    c = chunk_fit_config(_tiny_config(warmup=20), "cpu", 0.5)
+    assert (c.warmup.iterations, c.coevolution.iterations, c.runtime.device) == (10, 0, "cpu")
+    d = chunk_fit_config(FitConfig(), "cpu", 0.25)
+    assert (d.warmup.iterations, d.coevolution.iterations) == (100, 50)  # the CPU budget 400 + 200
+
+
+def test_cli_rejects_a_bad_chunk_count(tmp_path, capsys):
+    """Report ``--chunks 0`` as a one-line user error before any scene is loaded."""
+    from wtopo.cli import main
+
+    assert main(["fit", "sphere", "--out", str(tmp_path), "--chunks", "0"]) == 2
+    assert "--chunks takes a number of chunks >= 1 or 'auto', got '0'" in capsys.readouterr().err

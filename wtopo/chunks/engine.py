@@ -29,7 +29,7 @@ from ..io._common import atomic_write
 from .merge import merge_meshes, merge_surfels
 from .partition import ChunkConfig, ChunkPlan, plan_chunks
 
-__all__ = ["fit_chunked", "ChunkedResult", "chunk_scene", "rank_chunks", "dist_info"]
+__all__ = ["fit_chunked", "ChunkedResult", "chunk_scene", "chunk_fit_config", "rank_chunks", "dist_info"]
 
 
 @dataclass
@@ -95,7 +95,25 @@ def _write_json(path: Path, data) -> None:
     atomic_write(path, lambda tmp: Path(tmp).write_text(text))
 
 
-def _fit_one(scene, plan: ChunkPlan, index: int, cfg, out: Path, device: str, rank: int, progress: bool) -> dict:
+def chunk_fit_config(cfg, device: str, share: float):
+    """A copy of ``cfg`` on ``device`` whose warm-up and co-evolution iterations are ``share`` of the
+    budget (the configured counts, or the plan's budget for the device when left to it)."""
+    import copy
+
+    from ..fitting.plan import _ITERATIONS
+
+    c = copy.deepcopy(cfg)
+    c.runtime.device = device
+    warm, coevo = _ITERATIONS["cuda" if device.startswith("cuda") else "cpu"]
+    warm = warm if cfg.warmup.iterations is None else cfg.warmup.iterations
+    coevo = coevo if cfg.coevolution.iterations is None else cfg.coevolution.iterations
+    c.warmup.iterations = max(1, round(share * warm)) if warm else 0
+    c.coevolution.iterations = max(1, round(share * coevo)) if coevo else 0
+    return c
+
+
+def _fit_one(scene, plan: ChunkPlan, index: int, cfg, ccfg: ChunkConfig, out: Path, device: str, rank: int,
+             progress: bool) -> dict:
     import torch
 
     from ..fitting import fit
@@ -104,14 +122,20 @@ def _fit_one(scene, plan: ChunkPlan, index: int, cfg, out: Path, device: str, ra
     if (final / "chunk.json").exists():
         return json.loads((final / "chunk.json").read_text()) | {"resumed": True}
     chunk = plan.chunks[index]
-    c = dataclasses.replace(cfg, runtime=dataclasses.replace(cfg.runtime, device=device))
+    train = range(len(scene)) if scene.train_indices is None else scene.train_indices
+    share = 1.0
+    if ccfg.iteration_share:
+        share = max(ccfg.min_iteration_share, len(set(chunk.cameras) & {int(i) for i in train}) / len(train))
+    c = chunk_fit_config(cfg, device, share)
     cuda = device.startswith("cuda")
     if cuda:
         torch.cuda.reset_peak_memory_stats(device)
     t = time.perf_counter()
     res = fit(chunk_scene(scene, chunk), c, out_dir=partial, progress=progress)
     info = {"index": index, "rank": rank, "device": device, "seconds": round(time.perf_counter() - t, 3),
-            "views": len(chunk.cameras), "faces": int(len(res.mesh.faces)), "status": res.report["status"],
+            "views": len(chunk.cameras), "iteration_share": round(share, 4),
+            "iterations": [c.warmup.iterations, c.coevolution.iterations], "faces": int(len(res.mesh.faces)),
+            "status": res.report["status"],
             "peak_memory_bytes": int(torch.cuda.max_memory_allocated(device)) if cuda else None}
     _write_json(partial / "chunk.json", info)
     if final.exists():  # a stale, incomplete result (no chunk.json): replaced
@@ -211,7 +235,7 @@ def fit_chunked(scene, out_dir: str | os.PathLike, config=None, *, chunk_config:
             print(f"wtopo chunks: {len(plan.chunks)} chunks, grid {plan.grid}: {plan.reason}", flush=True)
     device = _rank_device(str(cfg.runtime.device), local, world)
     mine = [i for i in rank_chunks(len(plan.chunks), rank, world) if not plan.chunks[i].skipped]
-    infos = [_fit_one(scene, plan, i, cfg, out, device, rank, progress) for i in mine]
+    infos = [_fit_one(scene, plan, i, cfg, ccfg, out, device, rank, progress) for i in mine]
     peak = max((i["peak_memory_bytes"] or 0 for i in infos), default=0) if device.startswith("cuda") else None
     mine_report = {"rank": rank, "device": device, "chunks": mine, "peak_memory_bytes": peak,
                    "peak_rss_bytes": _peak_rss(), "fit_seconds": round(time.perf_counter() - t0, 3)}

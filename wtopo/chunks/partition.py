@@ -57,6 +57,12 @@ class ChunkConfig:
     (``torch.cuda.mem_get_info``), or ``cpu_memory_bytes`` on CPU."""
     cpu_memory_bytes: int = 8 << 30
     """Memory assumed for a chunk on CPU when ``memory_bytes`` is ``None``."""
+    iteration_share: bool = True
+    """Each chunk runs the share of the iteration budget (warm-up and co-evolution) that its training
+    views are of the scene's, so every view is visited as often as in a fit of the whole scene;
+    ``False``: every chunk runs the full budget."""
+    min_iteration_share: float = 0.25
+    """The smallest share of the budget a chunk runs."""
     weld_fraction: float = 0.75
     """Merge: boundary vertices of different chunks closer than this fraction of the median
     boundary edge length are welded into one."""
@@ -82,6 +88,8 @@ class ChunkConfig:
         if self.memory_bytes is not None and (isinstance(self.memory_bytes, bool) or
                                               not isinstance(self.memory_bytes, int) or self.memory_bytes < 1):
             raise ValueError(f"ChunkConfig.memory_bytes must be an integer >= 1 or None, got {self.memory_bytes!r}")
+        if not (isinstance(self.min_iteration_share, (int, float)) and 0 < self.min_iteration_share <= 1):
+            raise ValueError(f"ChunkConfig.min_iteration_share must be in (0, 1], got {self.min_iteration_share!r}")
         if not (isinstance(self.weld_fraction, (int, float)) and 0 <= self.weld_fraction <= 2):
             raise ValueError(f"ChunkConfig.weld_fraction must be a number in [0, 2], got {self.weld_fraction!r}")
 
