@@ -228,3 +228,17 @@ def test_cli_rejects_a_bad_chunk_count(tmp_path, capsys):
 
     assert main(["fit", "sphere", "--out", str(tmp_path), "--chunks", "0"]) == 2
     assert "--chunks takes a number of chunks >= 1 or 'auto', got '0'" in capsys.readouterr().err
+
+
+def test_a_failing_chunk_is_reported_by_name(tmp_path, monkeypatch):
+    """Raise one error naming the chunk when its fit fails, and leave no result directory for it."""
+    import wtopo.fitting
+
+    def boom(*a, **k):
+        raise ValueError("no surfels left")
+
+    monkeypatch.setattr(wtopo.fitting, "fit", boom)
+    with pytest.raises(RuntimeError, match=r"chunk 0 \(rank 0\): ValueError: no surfels left"):
+        wc.fit_chunked(_camera_scene(), tmp_path, _tiny_config(), chunk_config=wc.ChunkConfig(chunks=3),
+                       progress=False)
+    assert not (tmp_path / "chunks" / "0").exists() and (tmp_path / "chunk_plan.json").exists()

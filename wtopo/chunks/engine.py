@@ -205,6 +205,7 @@ def fit_chunked(scene, out_dir: str | os.PathLike, config=None, *, chunk_config:
     Raises:
         TypeError: ``scene``, ``config`` or ``chunk_config`` of the wrong type.
         ValueError: ``out_dir`` is None; a bad configuration; no chunk has enough views.
+        RuntimeError: a chunk's fit failed (on every rank; the message names the chunk and the error).
     """
     from ..fitting import FitConfig
     from ..fitting.validate_config import validate_config
@@ -222,12 +223,19 @@ def fit_chunked(scene, out_dir: str | os.PathLike, config=None, *, chunk_config:
     rank, world, local = dist_info()
     out = Path(out_dir)
     t0 = time.perf_counter()
-    plan = [plan_chunks(scene, ccfg, fit_config=cfg, world_size=world) if rank == 0 else None]
+    plan = [None]
+    if rank == 0:
+        try:
+            plan[0] = plan_chunks(scene, ccfg, fit_config=cfg, world_size=world)
+        except (TypeError, ValueError) as e:  # every rank raises it, none waits for a plan that never comes
+            plan[0] = e
     if world > 1:
         import torch.distributed as dist
 
         dist.broadcast_object_list(plan, src=0)
     plan = plan[0]
+    if isinstance(plan, Exception):
+        raise plan
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         _write_json(out / "chunk_plan.json", plan.to_dict())
@@ -235,11 +243,21 @@ def fit_chunked(scene, out_dir: str | os.PathLike, config=None, *, chunk_config:
             print(f"wtopo chunks: {len(plan.chunks)} chunks, grid {plan.grid}: {plan.reason}", flush=True)
     device = _rank_device(str(cfg.runtime.device), local, world)
     mine = [i for i in rank_chunks(len(plan.chunks), rank, world) if not plan.chunks[i].skipped]
-    infos = [_fit_one(scene, plan, i, cfg, ccfg, out, device, rank, progress) for i in mine]
-    peak = max((i["peak_memory_bytes"] or 0 for i in infos), default=0) if device.startswith("cuda") else None
+    infos = []
+    for i in mine:
+        try:
+            infos.append(_fit_one(scene, plan, i, cfg, ccfg, out, device, rank, progress))
+        except Exception as e:  # noqa: BLE001 - reported on every rank after the gather, so none waits forever
+            infos.append({"index": i, "rank": rank, "error": f"{type(e).__name__}: {e}"})
+            break
+    peak = max((i.get("peak_memory_bytes") or 0 for i in infos), default=0) if device.startswith("cuda") else None
     mine_report = {"rank": rank, "device": device, "chunks": mine, "peak_memory_bytes": peak,
                    "peak_rss_bytes": _peak_rss(), "fit_seconds": round(time.perf_counter() - t0, 3)}
     ranks = _gather({"rank": mine_report, "chunks": infos}, world)  # also the barrier: every rank is done
+    failed = [c for r in ranks for c in r["chunks"] if "error" in c]
+    if failed:
+        raise RuntimeError("chunked fit failed: " + "; ".join(f"chunk {c['index']} (rank {c['rank']}): {c['error']}"
+                                                              for c in failed) + f"; finished chunks stay in {out}")
     if rank != 0:
         return None
     t_fit = time.perf_counter() - t0
