@@ -167,8 +167,8 @@ def run_chunked(scene, cfg, args, name: str) -> None:
     if world > 1:
         torch.distributed.barrier()  # every rank has its scene and the old run is gone: the clock starts together
     t = time.perf_counter()
-    res = fit_chunked(scene, out, cfg, chunk_config=ChunkConfig(chunks=args.chunks, overlap=args.overlap),
-                      progress=rank == 0)
+    ccfg = ChunkConfig(chunks=args.chunks, overlap=args.overlap, min_share=args.min_share)
+    res = fit_chunked(scene, out, cfg, chunk_config=ccfg, progress=rank == 0)
     seconds = time.perf_counter() - t
     if res is None:
         return
@@ -229,6 +229,7 @@ def main(argv=None) -> int:
     p.add_argument("--device", default="cuda:0", help="cpu, cuda:N (single process) or cuda (--torchrun)")
     p.add_argument("--chunks", type=int, default=2)
     p.add_argument("--overlap", type=float, default=0.15)
+    p.add_argument("--min-share", type=float, default=0.1, help="ChunkConfig.min_share (camera assignment)")
     p.add_argument("--objects", type=int, help="objects in the row (default 6, smoke 3)")
     p.add_argument("--points", type=int, default=0, help="sparse truth points given to the scene (0: stereo init)")
     p.add_argument("--smoke", action="store_true", help="small scene and short fits (CPU)")

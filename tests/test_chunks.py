@@ -73,7 +73,7 @@ def test_partition_covers_the_roi_and_cores_are_disjoint():
 def test_plan_decides_the_count_and_records_why():
     """Take the configured count when given; else at least one chunk per process, with the reason."""
     scene = _camera_scene()
-    p = wc.plan_chunks(scene, wc.ChunkConfig(chunks=3, min_pixels=0.05))
+    p = wc.plan_chunks(scene, wc.ChunkConfig(chunks=3))
     assert p.grid == (3, 1, 1) and p.overridden and "ChunkConfig.chunks" in p.reason
     auto = wc.plan_chunks(scene, wc.ChunkConfig(), world_size=2)
     assert len(auto.chunks) >= 2 and not auto.overridden and "for one per process" in auto.reason
@@ -88,7 +88,7 @@ def test_plan_decides_the_count_and_records_why():
 def test_cameras_go_to_the_chunks_they_see():
     """Give each object's orbit ring to that object's chunk; a camera looking away from a chunk does not get it."""
     scene = _camera_scene(n_objects=3, orbit=6, forward=6)
-    plan = wc.plan_chunks(scene, wc.ChunkConfig(chunks=3, min_pixels=0.05))
+    plan = wc.plan_chunks(scene, wc.ChunkConfig(chunks=3))
     for k in range(3):
         ring = set(range(6 * k, 6 * k + 6))
         assert ring <= set(plan.chunks[k].cameras), (k, plan.chunks[k].cameras)

@@ -17,7 +17,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-__all__ = ["ChunkConfig", "Chunk", "ChunkPlan", "plan_chunks", "chunk_grid", "assign_cameras", "core_owner"]
+__all__ = ["ChunkConfig", "Chunk", "ChunkPlan", "plan_chunks", "chunk_grid", "assign_cameras", "view_shares",
+           "core_owner"]
 
 # Per-view bytes on the fit's device, per pixel: colour, depth, normal (7 floats), the mask and the
 # cached pixel rays (6 floats) and the rasterizer's per-pixel outputs (about as many again): a rough
@@ -28,7 +29,8 @@ _BYTES_PER_PIXEL = 104
 # (poisson.py's complex FFT buffers count twice).
 _GRID_ARRAYS = 12
 _BYTES_PER_SURFEL = 4 * 64  # means, quats, scales, opacity, SH (degree 3) and their Adam moments
-_BOX_SAMPLES = 6  # samples per axis of a core box for the visibility test (216 points)
+_RAY_GRID = 32  # rays per image row for the camera assignment (32 x 24 on a 4:3 image)
+_RAY_SAMPLES = 32  # samples along each ray's segment through the region of interest
 
 
 @dataclass(kw_only=True)
@@ -45,9 +47,10 @@ class ChunkConfig:
     """Cells per world axis (x, y, z), overriding ``chunks``."""
     overlap: float = 0.15
     """Overlap margin on each side of a cut, as a fraction of the core's side along that axis."""
-    min_pixels: float = 0.02
-    """A camera is given to a chunk when the chunk's core covers at least this fraction of its image
-    (the projected box, clipped to the image)."""
+    min_share: float = 0.1
+    """A camera is given to a chunk when at least this fraction of its image is expected to show
+    the chunk's box (:func:`view_shares`: rays clipped to the region of interest, the surface
+    anywhere along them)."""
     min_views: int = 3
     """A chunk seen by fewer cameras is skipped (recorded in the plan): too few views to fit."""
     max_views: int = 400
@@ -79,8 +82,8 @@ class ChunkConfig:
             self.grid = g
         if not (isinstance(self.overlap, (int, float)) and 0 <= self.overlap < 0.5):
             raise ValueError(f"ChunkConfig.overlap must be a number in [0, 0.5), got {self.overlap!r}")
-        if not (isinstance(self.min_pixels, (int, float)) and 0 <= self.min_pixels <= 1):
-            raise ValueError(f"ChunkConfig.min_pixels must be a fraction in [0, 1], got {self.min_pixels!r}")
+        if not (isinstance(self.min_share, (int, float)) and 0 <= self.min_share <= 1):
+            raise ValueError(f"ChunkConfig.min_share must be a fraction in [0, 1], got {self.min_share!r}")
         for name in ("min_views", "max_views", "cpu_memory_bytes"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -204,34 +207,60 @@ def core_owner(points, plan: ChunkPlan) -> np.ndarray:
     return (cell[:, 0] * g[1] + cell[:, 1]) * g[2] + cell[:, 2]
 
 
-def _box_points(lo, hi) -> np.ndarray:
-    axes = [np.linspace(lo[k], hi[k], _BOX_SAMPLES) for k in range(3)]
-    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+def _pixel_rays(camera, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Origin [3] and unit world directions [M, 3] of the rays through an ``n``-wide grid of pixel
+    centres (``n * height / width`` rows), through the camera's lens."""
+    cols = max(1, n)
+    rows = max(1, round(n * camera.height / camera.width))
+    u = (np.arange(cols) + 0.5) * camera.width / cols
+    v = (np.arange(rows) + 0.5) * camera.height / rows
+    uu, vv = (a.reshape(-1) for a in np.meshgrid(u, v))
+    K = camera.K
+    y = (vv - K[1, 2]) / K[1, 1]
+    x = (uu - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    xy = camera.undistort(np.stack([x, y], axis=1))
+    d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ camera.R  # rows: R^T [x, y, 1]
+    return camera.center, d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def image_coverage(camera, lower, upper) -> float:
-    """Fraction of ``camera``'s image covered by the box ``[lower, upper]`` (world units): the
-    bounding rectangle of the box's projected samples in front of the camera, clipped to the image.
-    Occlusion is not tested."""
-    uv, z = camera.project(_box_points(np.asarray(lower), np.asarray(upper)))
-    front = z > 0
-    if not front.any():
-        return 0.0
-    u, v = uv[front, 0], uv[front, 1]
-    w = max(0.0, min(float(u.max()), camera.width) - max(float(u.min()), 0.0))
-    h = max(0.0, min(float(v.max()), camera.height) - max(float(v.min()), 0.0))
-    return w * h / float(camera.width * camera.height)
+def view_shares(camera, boxes, roi_lower, roi_upper) -> np.ndarray:
+    """Expected fraction [B] of ``camera``'s image that shows each box ``(lower [3], upper [3])``.
+
+    Each ray of a grid of pixels is clipped to the region of interest and the surface it sees is
+    taken to lie anywhere along that segment with equal chance (the surface is unknown when the
+    chunks are planned): a box's share is the mean over all rays of the fraction of the ray's
+    segment inside the box (rays missing the region count 0). A far chunk that a camera sees along
+    a grazing line of sight thus gets a small share, a chunk filling the view a large one.
+    Occlusion is not modelled.
+    """
+    o, d = _pixel_rays(camera, _RAY_GRID)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t_a, t_b = (roi_lower - o) * inv, (roi_upper - o) * inv
+    t0 = np.nanmax(np.minimum(t_a, t_b), axis=1).clip(min=0.0)
+    t1 = np.nanmin(np.maximum(t_a, t_b), axis=1)
+    hit = t1 > t0
+    if not hit.any():
+        return np.zeros(len(boxes))
+    frac = (np.arange(_RAY_SAMPLES) + 0.5) / _RAY_SAMPLES
+    t = t0[hit, None] + frac[None] * (t1 - t0)[hit, None]
+    pts = o + t[..., None] * d[hit, None, :]  # [rays, samples, 3]
+    out = np.zeros(len(boxes))
+    for k, (lo, hi) in enumerate(boxes):
+        out[k] = np.all((pts >= lo) & (pts <= hi), axis=2).mean(axis=1).sum() / len(d)
+    return out
 
 
-def assign_cameras(cameras, chunks: list[Chunk], min_pixels: float, train=None) -> None:
-    """Give each chunk the training cameras whose image its core (clipped to its fitted box) covers
-    by at least ``min_pixels`` (in place, ``chunk.cameras``); held-out cameras go along when they
-    see it, so each chunk reports held-out image metrics."""
+def assign_cameras(cameras, chunks: list[Chunk], min_share: float, roi_lower, roi_upper, train=None) -> None:
+    """Give each chunk (in place, ``chunk.cameras``) the cameras whose image is expected to show its
+    fitted box on at least ``min_share`` of the pixels (:func:`view_shares`); a chunk with no
+    training camera gets none."""
+    boxes = [(ch.lower, ch.upper) for ch in chunks]
+    shares = np.stack([view_shares(cam, boxes, roi_lower, roi_upper) for cam in cameras])  # [N, B]
     allowed = set(range(len(cameras))) if train is None else {int(i) for i in train}
-    for ch in chunks:
-        lo, hi = np.maximum(ch.core_lower, ch.lower), np.minimum(ch.core_upper, ch.upper)
-        ch.cameras = [i for i, cam in enumerate(cameras) if image_coverage(cam, lo, hi) >= min_pixels]
-        if len([i for i in ch.cameras if i in allowed]) == 0:
+    for k, ch in enumerate(chunks):
+        ch.cameras = [int(i) for i in np.nonzero(shares[:, k] >= min_share)[0]]
+        if not allowed & set(ch.cameras):
             ch.cameras = []
 
 
@@ -326,7 +355,7 @@ def plan_chunks(scene, config: ChunkConfig | None = None, *, fit_config=None, wo
                f"{fixed_gib:.1f} GiB a chunk, {mem / 2**30:.1f} GiB from {mem_src})"]
         reason = f"{n} chunks: the largest of {'; '.join(why)}; cut along the longest axes"
     chunks = _grid_chunks(lo, hi, grid, float(cfg.overlap))
-    assign_cameras(scene.cameras, chunks, float(cfg.min_pixels), train)
+    assign_cameras(scene.cameras, chunks, float(cfg.min_share), lo, hi, train)
     allowed = set(range(len(scene))) if train is None else {int(i) for i in train}
     for ch in chunks:
         n_views = sum(1 for i in ch.cameras if i in allowed)
@@ -334,5 +363,5 @@ def plan_chunks(scene, config: ChunkConfig | None = None, *, fit_config=None, wo
             ch.skipped = f"{n_views} training views see it (< ChunkConfig.min_views = {cfg.min_views})"
     if all(ch.skipped for ch in chunks):
         raise ValueError(f"no chunk of grid {grid} is seen by ChunkConfig.min_views = {cfg.min_views} training views "
-                         f"(ChunkConfig.min_pixels = {cfg.min_pixels}); lower them or use fewer chunks")
+                         f"(ChunkConfig.min_share = {cfg.min_share}); lower them or use fewer chunks")
     return ChunkPlan(lo, hi, tuple(int(v) for v in grid), chunks, reason, overridden)
