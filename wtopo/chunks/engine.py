@@ -95,16 +95,27 @@ def _write_json(path: Path, data) -> None:
     atomic_write(path, lambda tmp: Path(tmp).write_text(text))
 
 
-def chunk_fit_config(cfg, device: str, share: float):
+def chunk_fit_config(cfg, device: str, share: float, space: float = 1.0):
     """A copy of ``cfg`` on ``device`` whose warm-up and co-evolution iterations are ``share`` of the
-    budget (the configured counts, or the plan's budget for the device when left to it)."""
+    budget and whose point budgets (initial points, surfel cap, re-initialisation faces, background
+    points when set) are ``space`` of theirs (the configured values, or the plan's for the device
+    when left to it)."""
     import copy
 
-    from ..fitting.plan import _ITERATIONS
+    from ..fitting.plan import _ITERATIONS, _MAX_SURFELS, _REINIT_FACES
 
     c = copy.deepcopy(cfg)
     c.runtime.device = device
-    warm, coevo = _ITERATIONS["cuda" if device.startswith("cuda") else "cpu"]
+    dev = "cuda" if device.startswith("cuda") else "cpu"
+    if space < 1.0:
+        cap = cfg.runtime.max_surfels or _MAX_SURFELS[dev]
+        faces = cfg.tsdf.max_faces or (_REINIT_FACES if dev == "cpu" else _MAX_SURFELS[dev] // 4)
+        c.runtime.max_surfels = max(1, round(space * cap))
+        c.tsdf.max_faces = max(1, round(space * faces))
+        c.init.num_points = max(1, round(space * cfg.init.num_points))
+        if cfg.init.background_points:
+            c.init.background_points = max(1, round(space * cfg.init.background_points))
+    warm, coevo = _ITERATIONS[dev]
     warm = warm if cfg.warmup.iterations is None else cfg.warmup.iterations
     coevo = coevo if cfg.coevolution.iterations is None else cfg.coevolution.iterations
     c.warmup.iterations = max(1, round(share * warm)) if warm else 0
@@ -123,17 +134,19 @@ def _fit_one(scene, plan: ChunkPlan, index: int, cfg, ccfg: ChunkConfig, out: Pa
         return json.loads((final / "chunk.json").read_text()) | {"resumed": True}
     chunk = plan.chunks[index]
     train = range(len(scene)) if scene.train_indices is None else scene.train_indices
-    share = 1.0
+    share = space = 1.0
     if ccfg.iteration_share:
-        share = max(ccfg.min_iteration_share, len(set(chunk.cameras) & {int(i) for i in train}) / len(train))
-    c = chunk_fit_config(cfg, device, share)
+        share = max(ccfg.min_budget_share, len(set(chunk.cameras) & {int(i) for i in train}) / len(train))
+    if ccfg.space_share:
+        space = max(ccfg.min_budget_share, min(1.0, chunk.volume_share(plan.roi_lower, plan.roi_upper)))
+    c = chunk_fit_config(cfg, device, share, space)
     cuda = device.startswith("cuda")
     if cuda:
         torch.cuda.reset_peak_memory_stats(device)
     t = time.perf_counter()
     res = fit(chunk_scene(scene, chunk), c, out_dir=partial, progress=progress)
     info = {"index": index, "rank": rank, "device": device, "seconds": round(time.perf_counter() - t, 3),
-            "views": len(chunk.cameras), "iteration_share": round(share, 4),
+            "views": len(chunk.cameras), "iteration_share": round(share, 4), "space_share": round(space, 4),
             "iterations": [c.warmup.iterations, c.coevolution.iterations], "faces": int(len(res.mesh.faces)),
             "status": res.report["status"],
             "peak_memory_bytes": int(torch.cuda.max_memory_allocated(device)) if cuda else None}

@@ -64,8 +64,13 @@ class ChunkConfig:
     """Each chunk runs the share of the iteration budget (warm-up and co-evolution) that its training
     views are of the scene's, so every view is visited as often as in a fit of the whole scene;
     ``False``: every chunk runs the full budget."""
-    min_iteration_share: float = 0.25
-    """The smallest share of the budget a chunk runs."""
+    space_share: bool = True
+    """Each chunk's point budgets (initial points, surfel cap, re-initialisation faces, background
+    points when set) are the share of the configured or planned ones that its box is of the region
+    of interest's volume, so its surfels are as dense as in a fit of the whole scene; ``False``:
+    every chunk gets the full budgets (a finer, slower fit)."""
+    min_budget_share: float = 0.25
+    """The smallest share of an iteration or point budget a chunk gets."""
     weld_fraction: float = 0.75
     """Merge: boundary vertices of different chunks closer than this fraction of the median
     boundary edge length are welded into one."""
@@ -91,8 +96,8 @@ class ChunkConfig:
         if self.memory_bytes is not None and (isinstance(self.memory_bytes, bool) or
                                               not isinstance(self.memory_bytes, int) or self.memory_bytes < 1):
             raise ValueError(f"ChunkConfig.memory_bytes must be an integer >= 1 or None, got {self.memory_bytes!r}")
-        if not (isinstance(self.min_iteration_share, (int, float)) and 0 < self.min_iteration_share <= 1):
-            raise ValueError(f"ChunkConfig.min_iteration_share must be in (0, 1], got {self.min_iteration_share!r}")
+        if not (isinstance(self.min_budget_share, (int, float)) and 0 < self.min_budget_share <= 1):
+            raise ValueError(f"ChunkConfig.min_budget_share must be in (0, 1], got {self.min_budget_share!r}")
         if not (isinstance(self.weld_fraction, (int, float)) and 0 <= self.weld_fraction <= 2):
             raise ValueError(f"ChunkConfig.weld_fraction must be a number in [0, 2], got {self.weld_fraction!r}")
 
@@ -120,6 +125,10 @@ class Chunk:
     upper: np.ndarray
     cameras: list = field(default_factory=list)
     skipped: str = ""
+
+    def volume_share(self, roi_lower, roi_upper) -> float:
+        """The fitted box's volume over the region of interest's."""
+        return float(np.prod((self.upper - self.lower) / (np.asarray(roi_upper) - np.asarray(roi_lower))))
 
     def to_dict(self) -> dict:
         """JSON-ready form (infinite core sides as ``null``)."""
