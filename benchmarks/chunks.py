@@ -16,17 +16,20 @@ memory to the mesh on disk (scene rendering excluded):
 Every process first runs a short untimed fit of 8 views (:func:`warm_up`), so Warp's kernel
 compilation and first-call costs are not charged to whichever run comes first.
 
-Per run: wall clock, peak memory per GPU (``torch.cuda.max_memory_allocated``; on CPU the peak
-resident set, labelled), ROI F1 (Tanks-and-Temples protocol, tau = 0.5 % of the ROI diagonal;
-exact distances with Open3D, else nearest of 2M surface samples, :class:`_Distance`),
-F1 inside a band around the chunk cuts (the seams; half-width = the chunks' overlap margin) and
-outside it, and the open edges left near the cuts. Every run writes ``<run-dir>/results/<run>.json``
-and the table in ``--out`` is rebuilt from all results there, under ``## <label>``; the speed-up is
-``single`` wall clock over each chunked run's.
+Per run: wall clock, peak memory per GPU (torch's ``max_memory_allocated`` plus Warp's memory-pool
+high-water mark, which cannot be reset: run ``single`` and ``chunked`` in separate processes with
+``--runs`` for clean figures; on CPU the peak resident set, labelled), ROI F1 (Tanks-and-Temples
+protocol, tau = 0.5 % of the ROI diagonal; exact distances with Open3D, else nearest of 2M surface
+samples, :class:`_Distance`), F1 inside a band around the chunk cuts (the seams; half-width = the
+chunks' overlap margin) and outside it, and the open edges left near the cuts. Every run writes
+``<run-dir>/results/<run>.json`` and the table in ``--out`` is rebuilt from all results there,
+under ``## <label>``; the speed-up is ``single`` wall clock over each chunked run's.
 
-Commands (a host with two GPUs; only the repository, warp, torch and trimesh are needed)::
+Commands (a host with two GPUs and the package's dependencies: warp, torch, trimesh, scipy, scikit-image;
+Open3D optional)::
 
-    python benchmarks/chunks.py --device cuda:0 --run-dir runs/chunks --label gpu
+    python benchmarks/chunks.py --device cuda:0 --runs single --run-dir runs/chunks --label gpu
+    python benchmarks/chunks.py --device cuda:0 --runs chunked --run-dir runs/chunks --label gpu
     torchrun --nproc-per-node 2 benchmarks/chunks.py --torchrun --device cuda --run-dir runs/chunks --label gpu
 
 CPU smoke (small scene, short fits; the figure says nothing about GPUs)::
@@ -50,6 +53,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # run from a checkout
 
 from wtopo.chunks import ChunkConfig, dist_info, fit_chunked, street_scene  # noqa: E402
+from wtopo.chunks.engine import cuda_peak  # noqa: E402
 from wtopo.chunks.partition import _grid_chunks  # noqa: E402
 from wtopo.fitting import FitConfig, fit  # noqa: E402
 from wtopo.metrics import _sample_in_box, _Surface  # noqa: E402
@@ -169,7 +173,7 @@ def measure(name: str, scene, mesh, seconds: float, memory: list, memory_kind: s
 
 def _peak(device: str) -> tuple[list, str]:
     if device.startswith("cuda"):
-        return [torch.cuda.max_memory_allocated(device)], "CUDA max_memory_allocated"
+        return [cuda_peak(device)["peak_memory_bytes"]], "CUDA torch peak + Warp pool high-water"
     import resource
 
     return [resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024], "CPU peak RSS of the process"
@@ -214,7 +218,7 @@ def run_chunked(scene, cfg, args, name: str) -> None:
         return
     ranks = res.report["per_rank"]
     if str(ranks[0]["device"]).startswith("cuda"):
-        mem, kind = [r["peak_memory_bytes"] for r in ranks], "CUDA max_memory_allocated per rank"
+        mem, kind = [r["peak_memory_bytes"] for r in ranks], "CUDA torch peak + Warp pool high-water per rank"
     else:
         mem, kind = [r["peak_rss_bytes"] for r in ranks], "CPU peak RSS per process"
     measure(name, scene, res.mesh, seconds, mem, kind, args,
@@ -275,7 +279,9 @@ def main(argv=None) -> int:
     p.add_argument("--points", type=int, default=0, help="sparse truth points given to the scene (0: stereo init)")
     p.add_argument("--smoke", action="store_true", help="small scene and short fits (CPU)")
     p.add_argument("--torchrun", action="store_true", help="launched by torchrun: the chunked fit on every rank")
-    p.add_argument("--skip-single", action="store_true")
+    p.add_argument("--runs", default="single,chunked",
+                   help="without --torchrun: which runs, in this order (single, chunked); one per process gives "
+                        "clean peak-memory figures (Warp's pool high-water mark cannot be reset)")
     p.add_argument("--no-warm-up", action="store_true", help="time the first fit of the process too")
     p.add_argument("--set", action="append", metavar="PATH=VALUE", help="FitConfig override (repeatable)")
     p.add_argument("--run-dir", default="runs/chunks")
@@ -300,9 +306,15 @@ def main(argv=None) -> int:
         run_chunked(scene, cfg, args, f"chunked_{world}{'gpu' if args.device.startswith('cuda') else 'proc'}")
         torch.distributed.destroy_process_group()
     else:
-        if not args.skip_single:
-            run_single(scene, cfg, args)
-        run_chunked(scene, cfg, args, "chunked_1proc")
+        runs = [r.strip() for r in args.runs.split(",") if r.strip()]
+        bad = [r for r in runs if r not in ("single", "chunked")]
+        if bad:
+            raise ValueError(f"--runs takes single and/or chunked, got {bad}")
+        for r in runs:
+            if r == "single":
+                run_single(scene, cfg, args)
+            else:
+                run_chunked(scene, cfg, args, "chunked_1proc")
     if rank == 0:
         write_markdown(args)
     return 0

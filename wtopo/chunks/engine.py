@@ -29,7 +29,7 @@ from ..io._common import atomic_write
 from .merge import merge_meshes, merge_surfels
 from .partition import ChunkConfig, ChunkPlan, plan_chunks
 
-__all__ = ["fit_chunked", "ChunkedResult", "chunk_scene", "chunk_fit_config", "rank_chunks", "dist_info"]
+__all__ = ["fit_chunked", "ChunkedResult", "chunk_scene", "chunk_fit_config", "rank_chunks", "dist_info", "cuda_peak"]
 
 
 @dataclass
@@ -148,13 +148,28 @@ def _fit_one(scene, plan: ChunkPlan, index: int, cfg, ccfg: ChunkConfig, out: Pa
     info = {"index": index, "rank": rank, "device": device, "seconds": round(time.perf_counter() - t, 3),
             "views": len(chunk.cameras), "iteration_share": round(share, 4), "space_share": round(space, 4),
             "iterations": [c.warmup.iterations, c.coevolution.iterations], "faces": int(len(res.mesh.faces)),
-            "status": res.report["status"],
-            "peak_memory_bytes": int(torch.cuda.max_memory_allocated(device)) if cuda else None}
+            "status": res.report["status"], **(cuda_peak(device) if cuda else {"peak_memory_bytes": None})}
     _write_json(partial / "chunk.json", info)
     if final.exists():  # a stale, incomplete result (no chunk.json): replaced
         shutil.rmtree(final)
     os.replace(partial, final)  # the result appears at once, complete
     return info
+
+
+def cuda_peak(device: str) -> dict:
+    """Peak device memory of this process on ``device``: torch's allocator since its last reset
+    (``torch.cuda.max_memory_allocated``) and Warp's memory-pool high-water mark
+    (``wp.get_mempool_used_mem_high``, which cannot be reset: the process's peak so far); their sum
+    is ``peak_memory_bytes``."""
+    import torch
+    import warp as wp
+
+    t = int(torch.cuda.max_memory_allocated(device))
+    try:
+        w = int(wp.get_mempool_used_mem_high(device))
+    except (RuntimeError, ValueError):  # no memory pool on this device: Warp allocations are not counted
+        w = 0
+    return {"peak_memory_bytes": t + w, "torch_peak_bytes": t, "warp_pool_high_bytes": w}
 
 
 def _peak_rss() -> int:
@@ -202,8 +217,9 @@ def fit_chunked(scene, out_dir: str | os.PathLike, config=None, *, chunk_config:
     with the same scene and configuration; rank 0 plans, the plan is broadcast, each rank fits its
     chunks, and rank 0 merges. Files in ``out_dir``: ``chunk_plan.json``, ``chunks/<i>/`` (each
     chunk's :func:`wtopo.fit` outputs and ``chunk.json``), ``mesh.ply``, ``surfels.ply`` (world
-    frame) and ``report.json`` (wall clock, per-chunk seconds, peak memory per rank: CUDA
-    ``max_memory_allocated`` or, on CPU, the process's peak resident set).
+    frame) and ``report.json`` (wall clock, per-chunk seconds, peak memory per rank: on CUDA torch's
+    ``max_memory_allocated`` plus Warp's memory-pool high-water mark, :func:`cuda_peak`; on CPU the
+    process's peak resident set).
 
     Args:
         scene: a :class:`wtopo.Scene` (world frame); its region of interest is partitioned.
