@@ -271,6 +271,12 @@ def fit_chunked(scene, out_dir: str | os.PathLike, config=None, *, chunk_config:
         if progress:
             print(f"wtopo chunks: {len(plan.chunks)} chunks, grid {plan.grid}: {plan.reason}", flush=True)
     device = _rank_device(str(cfg.runtime.device), local, world)
+    if device.startswith("cuda"):  # default devices too, for any allocation that names none
+        import torch
+        import warp as wp
+
+        torch.cuda.set_device(device)
+        wp.set_device(device)
     mine = [i for i in rank_chunks(len(plan.chunks), rank, world) if not plan.chunks[i].skipped]
     infos = []
     for i in mine:
