@@ -67,11 +67,24 @@ SMOKE = dict(n_objects=3, orbit_views=8, forward_views=8, resolution=(64, 48))
 
 
 def build_scene(args):
+    """The street scene, rendered once and kept in ``<run-dir>/scene_<key>.pt`` (rendering 204 views on
+    the host takes minutes; every later command and every torchrun rank loads it)."""
     kw = dict(SMOKE if args.smoke else FULL)
     if args.objects:
         kw["n_objects"] = args.objects
-    return street_scene(**kw, seed=0, points=args.points,
-                        photometric=Photometric(noise=0.01, exposure=0.1, white_balance=0.03))
+    key = "_".join(str(v) for v in (kw["n_objects"], kw["orbit_views"], kw["forward_views"], *kw["resolution"],
+                                     args.points))
+    path = os.path.join(args.run_dir, f"scene_{key}.pt")
+    if os.path.exists(path):
+        return torch.load(path, weights_only=False)
+    scene = street_scene(**kw, seed=0, points=args.points,
+                         photometric=Photometric(noise=0.01, exposure=0.1, white_balance=0.03))
+    if dist_info()[0] == 0:
+        os.makedirs(args.run_dir, exist_ok=True)
+        tmp = f"{path}.{os.getpid()}.tmp"
+        torch.save(scene, tmp)
+        os.replace(tmp, path)  # another process never reads a half-written file
+    return scene
 
 
 def build_config(args) -> FitConfig:
