@@ -77,6 +77,7 @@ def test_plan_decides_the_count_and_records_why():
     assert p.grid == (3, 1, 1) and p.overridden and "ChunkConfig.chunks" in p.reason
     auto = wc.plan_chunks(scene, wc.ChunkConfig(), world_size=2)
     assert len(auto.chunks) >= 2 and not auto.overridden and "for one per process" in auto.reason
+    assert wc.plan_chunks(scene, wc.ChunkConfig(chunks=1)).chunks[0].cameras == list(range(len(scene)))
     few = wc.plan_chunks(scene, wc.ChunkConfig(max_views=10))
     assert len(few.chunks) >= 3 and "at most 10 a chunk" in few.reason
     with pytest.raises(ValueError, match="ChunkConfig.overlap"):

@@ -263,7 +263,10 @@ def view_shares(camera, boxes, roi_lower, roi_upper) -> np.ndarray:
 def assign_cameras(cameras, chunks: list[Chunk], min_share: float, roi_lower, roi_upper, train=None) -> None:
     """Give each chunk (in place, ``chunk.cameras``) the cameras whose image is expected to show its
     fitted box on at least ``min_share`` of the pixels (:func:`view_shares`); a chunk with no
-    training camera gets none."""
+    training camera gets none. A single chunk gets every camera."""
+    if len(chunks) == 1:  # one chunk is the whole fit: every camera, as wtopo.fit would use
+        chunks[0].cameras = list(range(len(cameras)))
+        return
     boxes = [(ch.lower, ch.upper) for ch in chunks]
     shares = np.stack([view_shares(cam, boxes, roi_lower, roi_upper) for cam in cameras])  # [N, B]
     allowed = set(range(len(cameras))) if train is None else {int(i) for i in train}
