@@ -246,3 +246,20 @@ def test_a_failing_chunk_is_reported_by_name(tmp_path, monkeypatch):
         wc.fit_chunked(_camera_scene(), tmp_path, _tiny_config(), chunk_config=wc.ChunkConfig(chunks=3),
                        progress=False)
     assert not (tmp_path / "chunks" / "0").exists() and (tmp_path / "chunk_plan.json").exists()
+
+
+def test_an_interrupted_chunk_is_not_taken_as_done(tmp_path, monkeypatch):
+    """Keep an interrupted chunk's partial directory (to resume) and publish no result for it."""
+    import types
+
+    import wtopo.fitting
+
+    def interrupted(scene, cfg, out_dir=None, progress=True):
+        os.makedirs(out_dir, exist_ok=True)
+        return types.SimpleNamespace(mesh=trimesh.creation.box(), report={"status": "interrupted"})
+
+    monkeypatch.setattr(wtopo.fitting, "fit", interrupted)
+    with pytest.raises(RuntimeError, match="status 'interrupted'; a rerun resumes it"):
+        wc.fit_chunked(_camera_scene(), tmp_path, _tiny_config(), chunk_config=wc.ChunkConfig(chunks=3),
+                       progress=False)
+    assert (tmp_path / "chunks" / "0.partial").is_dir() and not (tmp_path / "chunks" / "0").exists()

@@ -145,6 +145,8 @@ def _fit_one(scene, plan: ChunkPlan, index: int, cfg, ccfg: ChunkConfig, out: Pa
         torch.cuda.reset_peak_memory_stats(device)
     t = time.perf_counter()
     res = fit(chunk_scene(scene, chunk), c, out_dir=partial, progress=progress)
+    if res.report["status"] != "completed":  # interrupted: its checkpoints stay, a rerun resumes it
+        raise RuntimeError(f"the fit stopped with status {res.report['status']!r}; a rerun resumes it from {partial}")
     info = {"index": index, "rank": rank, "device": device, "seconds": round(time.perf_counter() - t, 3),
             "views": len(chunk.cameras), "iteration_share": round(share, 4), "space_share": round(space, 4),
             "iterations": [c.warmup.iterations, c.coevolution.iterations], "faces": int(len(res.mesh.faces)),
