@@ -135,12 +135,38 @@ def _cmd_fit(args) -> int:
 
     cfg = _config(args)  # before the scene is loaded: a bad flag is reported at once
     validate_config(cfg)
+    chunks = _chunks_arg(args.chunks)
     scene = _load(args.scene, sfm=args.sfm, progress=not args.quiet)
+    if chunks is not None:
+        return _fit_chunks(scene, cfg, args, chunks)
     result = fit(scene, cfg, out_dir=args.out, progress=not args.quiet)
     if args.quiet:
         r = result.report
         print(f"{r['status']}: {r['iterations']} iterations in {r['elapsed_s']:.1f} s, mesh {args.out}/mesh.ply")
     return 130 if result.report["status"] == "interrupted" else 0
+
+
+def _chunks_arg(text: str | None):
+    """``--chunks``: ``None`` (no chunking), ``"auto"`` (the plan decides) or a count >= 1."""
+    if text is None or text == "auto":
+        return text
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise ValueError(f"--chunks takes a number of chunks >= 1 or 'auto', got {text!r}")
+    return n
+
+
+def _fit_chunks(scene, cfg, args, chunks) -> int:
+    from .chunks import ChunkConfig, fit_chunked
+
+    result = fit_chunked(scene, args.out, cfg, chunk_config=ChunkConfig(chunks=None if chunks == "auto" else chunks),
+                         progress=not args.quiet)
+    if result is not None and args.quiet:
+        print(f"{result.report['chunks']} chunks in {result.report['wall_s']:.1f} s, mesh {args.out}/mesh.ply")
+    return 0
 
 
 def _cmd_scenes(args) -> int:
@@ -210,6 +236,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="camera poses by structure from motion (pycolmap: pip install \"wtopo[sfm]\"), ignoring any "
                         "cameras the folder has; a folder with images and no cameras gets this without the flag. The "
                         "model is written to sparse/0 beside the images and reused by the next run")
+    f.add_argument("--chunks", metavar="N|auto",
+                   help="fit the region of interest as N overlapping chunks (auto: the plan decides from the views "
+                        "and the memory) and merge them; under torchrun use python -m wtopo.chunks.run")
     f.add_argument("--quiet", action="store_true", help="no plan, no progress bars")
     f.set_defaults(func=_cmd_fit)
 

@@ -81,7 +81,7 @@ def _roi_box(used: np.ndarray, frame: np.ndarray, floor_level: float) -> tuple[l
 def from_mesh(mesh, *, n_views: int = 32, resolution=128, rig: str = "sphere", texture: str = "astronaut",
               background="black", seed: int = 0, mapping: str = "triplanar", up=(0, 0, 1), fov: float | None = None,
               n_test: int = 0, name: str = "mesh", elevation: float | None = None,
-              photometric: Photometric | None = None, bounds_from_roi: bool = False):
+              photometric: Photometric | None = None, bounds_from_roi: bool = False, cameras=None):
     """Render a synthetic scene of a triangle mesh.
 
     Args:
@@ -115,6 +115,9 @@ def from_mesh(mesh, *, n_views: int = 32, resolution=128, rig: str = "sphere", t
         bounds_from_roi: with a scenery background, set ``Scene.bounds`` to ``info["roi"]`` (as
             datasets that ship a bounding box do: DTU ``scale_mat``, nerfstudio ``aabb``); by
             default the fit must find the region of interest itself.
+        cameras: render from these :class:`~wtopo.Camera` s (one size) instead of a rig: ``n_views``
+            becomes their count and ``rig``, ``n_test`` and ``elevation`` are not used (large scenes
+            with several camera segments, :func:`wtopo.chunks.street_scene`).
 
     Returns:
         :class:`wtopo.Scene` with images, depths (z-depth, 0 on misses), camera-facing normals,
@@ -147,7 +150,7 @@ def from_mesh(mesh, *, n_views: int = 32, resolution=128, rig: str = "sphere", t
             raise ValueError(f"background must be 'black', 'white', 3 floats, {', '.join(map(repr, _SCENERIES))}, "
                              f"got {background!r}")
         bg = tuple(float(x) for x in bg)
-    elif rig == "sphere":
+    elif rig == "sphere" and cameras is None:
         raise ValueError(f"background={background!r} puts a floor under the object: use rig 'hemisphere', "
                          "'orbit' or 'forward', got 'sphere'")
     if bounds_from_roi and scenery is None:
@@ -177,8 +180,14 @@ def from_mesh(mesh, *, n_views: int = 32, resolution=128, rig: str = "sphere", t
                             elevation=elevation))]
         return cams
 
-    cams = rig_at(center)
-    if env:  # lift the rig so that every camera stands above the ground
+    if cameras is not None:
+        cams = list(cameras)
+        if not cams or not all(isinstance(c, Camera) for c in cams):
+            raise TypeError("cameras must be a non-empty list of wtopo.Camera or None")
+        n_views, n_test = len(cams), 0
+    else:
+        cams = rig_at(center)
+    if env and cameras is None:  # lift the rig so that every camera stands above the ground
         low = min(float(cm.center @ frame[1]) for cm in cams) - floor
         lift = _ENV_CAMERA_CLEARANCE * radius - low
         if lift > 0:

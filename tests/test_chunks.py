@@ -1,0 +1,265 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Chunked fitting: partition, camera assignment, merge without seams, the engine on one and two processes."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from fit_configs import small_fit_config
+
+from wtopo import chunks as wc
+from wtopo import metrics
+from wtopo.chunks.partition import _grid_chunks
+from wtopo.chunks.synthetic import street_cameras
+from wtopo.fitting import fit
+from wtopo.io.ply import SurfelArrays
+from wtopo.scene import Scene
+
+# The 2-chunk fit against the single fit of the same tiny scene (2 objects, 16 views of 40 x 30 px,
+# 20 warm-up iterations): F1 against the truth at tau = 1 % of the ROI diagonal. Measured on this
+# project's 2-core CPU: single 0.24, 2 chunks 0.34 (each chunk gets the whole proxy / TSDF grid,
+# so it is finer); the chunked fit may not be worse than the single fit by more than this.
+F1_TOLERANCE = 0.05
+# Symmetric Chamfer between the two meshes, fraction of the ROI diagonal: measured 1.4-1.7 %; both fits
+# are coarse (a voxel of the single fit's 48^3 final grid is 1.3 % of the ROI's longest side).
+CHAMFER_TOLERANCE = 0.03
+TAU_FRACTION = 0.01
+
+
+def _tiny_config(warmup=20):
+    return small_fit_config(warmup, 0, points=300, grids=(32, 48, 32), max_faces=800, density_every=10, eval_every=0)
+
+
+def _camera_scene(n_objects=3, orbit=6, forward=6):
+    """The street rig's cameras over blank images (enough for planning: no rendering)."""
+    cams = street_cameras(n_objects, orbit, forward, (32, 24))
+    lo, hi = np.array([-2.5, -1.5, -0.1]), np.array([4.5 * (n_objects - 1) + 2.5, 1.5, 2.2])
+    return Scene(cams, np.zeros((len(cams), 24, 32, 3), np.float32), bounds=(lo, hi))
+
+
+def _plan(lo, hi, grid, overlap=0.15) -> wc.ChunkPlan:
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    return wc.ChunkPlan(lo, hi, grid, _grid_chunks(lo, hi, grid, overlap), "test", True)
+
+
+def test_chunk_grid_cuts_the_longest_axes():
+    """Cut the longest axis first and keep cutting whichever cells are longest."""
+    assert wc.chunk_grid((10.0, 3.0, 2.0), 2) == (2, 1, 1)
+    assert wc.chunk_grid((4.0, 4.0, 1.0), 4) == (2, 2, 1)
+    assert wc.chunk_grid((9.0, 3.0, 1.0), 3) == (3, 1, 1)
+    with pytest.raises(ValueError, match="extent"):
+        wc.chunk_grid((1.0, 0.0, 1.0), 2)
+
+
+def test_partition_covers_the_roi_and_cores_are_disjoint():
+    """Give every point of the ROI (and beyond) exactly one core; boxes hold their cores and stay in the ROI."""
+    plan = _plan([-1, 0, 0], [5, 2, 1], (3, 2, 1))
+    rng = np.random.default_rng(0)
+    pts = rng.uniform([-3, -1, -1], [7, 3, 2], (5000, 3))
+    inside = np.stack([np.all((pts >= np.where(np.isinf(c.core_lower), -np.inf, c.core_lower))
+                              & (pts < c.core_upper), axis=1) for c in plan.chunks])
+    np.testing.assert_array_equal(inside.sum(axis=0), 1)  # half-open cores: one owner each
+    np.testing.assert_array_equal(np.argmax(inside, axis=0), wc.core_owner(pts, plan))
+    for c in plan.chunks:
+        core_lo, core_hi = np.maximum(c.core_lower, plan.roi_lower), np.minimum(c.core_upper, plan.roi_upper)
+        assert np.all(c.lower <= core_lo) and np.all(c.upper >= core_hi)
+        assert np.all(c.lower >= plan.roi_lower) and np.all(c.upper <= plan.roi_upper)
+    assert plan.cuts() == [(0, 1.0), (0, 3.0), (1, 1.0)]
+
+
+def test_plan_decides_the_count_and_records_why():
+    """Take the configured count when given; else at least one chunk per process, with the reason."""
+    scene = _camera_scene()
+    p = wc.plan_chunks(scene, wc.ChunkConfig(chunks=3))
+    assert p.grid == (3, 1, 1) and p.overridden and "ChunkConfig.chunks" in p.reason
+    auto = wc.plan_chunks(scene, wc.ChunkConfig(), world_size=2)
+    assert len(auto.chunks) >= 2 and not auto.overridden and "for one per process" in auto.reason
+    assert wc.plan_chunks(scene, wc.ChunkConfig(chunks=1)).chunks[0].cameras == list(range(len(scene)))
+    few = wc.plan_chunks(scene, wc.ChunkConfig(max_views=10))
+    assert len(few.chunks) >= 3 and "at most 10 a chunk" in few.reason
+    with pytest.raises(ValueError, match="ChunkConfig.overlap"):
+        wc.plan_chunks(scene, wc.ChunkConfig(overlap=0.7))
+    with pytest.raises(ValueError, match="world_size"):
+        wc.plan_chunks(scene, wc.ChunkConfig(), world_size=0)
+
+
+def test_cameras_go_to_the_chunks_they_see():
+    """Give each object's orbit ring to that object's chunk; a camera looking away from a chunk does not get it."""
+    scene = _camera_scene(n_objects=3, orbit=6, forward=6)
+    plan = wc.plan_chunks(scene, wc.ChunkConfig(chunks=3))
+    for k in range(3):
+        ring = set(range(6 * k, 6 * k + 6))
+        assert ring <= set(plan.chunks[k].cameras), (k, plan.chunks[k].cameras)
+    # ring 0's camera 0 looks along -x, away from chunk 2; ring 2's camera 3 looks along +x, away from
+    # chunk 0 (occlusion is not tested: ring 0's camera 3 looks along the row and gets every chunk)
+    assert 0 not in plan.chunks[2].cameras and 15 not in plan.chunks[0].cameras
+    forward = set(range(18, 24))
+    assert all(set(c.cameras) & forward for c in plan.chunks)  # the drive-by line films every chunk
+
+
+def _split_sphere(jitter: float):
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    plan = _plan([-1.2, -1.2, -1.2], [1.2, 1.2, 1.2], (2, 1, 1))
+    rng = np.random.default_rng(1)
+    meshes = {}
+    for i in range(2):  # each chunk has its own copy of the vertices, moved a little along the cut plane
+        v = np.asarray(sphere.vertices) + rng.uniform(-jitter, jitter, sphere.vertices.shape) * [0, 1, 1]
+        meshes[i] = trimesh.Trimesh(v, sphere.faces, process=False)
+    return sphere, plan, meshes
+
+
+# exact copies, and copies that differ by up to 1/10 of an edge (0.14-0.16) along the cut plane (moving
+# vertices across it would move face centroids across and give a face to both cores or to neither)
+@pytest.mark.parametrize("jitter", [0.0, 0.01])
+def test_merge_of_two_halves_has_no_seam(jitter):
+    """Weld the two cores of a split sphere back into one closed surface with the original edges."""
+    sphere, plan, meshes = _split_sphere(jitter)
+    merged, info = wc.merge_meshes(meshes, plan)
+    assert len(merged.faces) == len(sphere.faces)
+    assert len(merged.edges_unique) == len(sphere.edges_unique)
+    assert merged.is_watertight and info["open_edges_near_cuts_after"] == 0
+    assert info["open_edges_near_cuts_before"] > 0 and info["welded"] > 0
+    assert sum(info["faces_per_chunk"].values()) == len(sphere.faces)
+
+
+def test_merge_leaves_a_crack_wider_than_the_tolerance_open():
+    """Keep a seam open (and count it) where the two chunks disagree by more than the weld tolerance."""
+    sphere, plan, meshes = _split_sphere(0.0)
+    meshes[1] = trimesh.Trimesh(np.asarray(sphere.vertices) + [0.0, 0.0, 0.3], sphere.faces, process=False)
+    merged, info = wc.merge_meshes(meshes, plan)
+    assert not merged.is_watertight and info["open_edges_near_cuts_after"] > 0
+
+
+def test_merge_surfels_keeps_each_core_once():
+    """Keep each chunk's surfels in its core: two identical chunk copies give back the original set."""
+    plan = _plan([0, 0, 0], [2, 1, 1], (2, 1, 1))
+    rng = np.random.default_rng(2)
+    n = 200
+    s = SurfelArrays(means=rng.uniform(-1, 3, (n, 3)).astype(np.float32),
+                     quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)), scales=np.full((n, 2), 0.01, np.float32),
+                     opacities=np.full(n, 0.5, np.float32), sh=rng.uniform(0, 1, (n, 1, 3)).astype(np.float32))
+    means, quats, scales, opac, sh = wc.merge_surfels({0: s, 1: s}, plan)
+    assert len(means) == n and sh.shape == (n, 1, 3)
+    np.testing.assert_array_equal(np.sort(means[:, 0]), np.sort(s.means[:, 0]))
+
+
+def test_rank_assignment_splits_the_chunks():
+    """Give rank r the chunks i % world == r: disjoint, and together all of them."""
+    got = [wc.rank_chunks(5, r, 2) for r in range(2)]
+    assert got == [[0, 2, 4], [1, 3]]
+    with pytest.raises(ValueError, match="rank"):
+        wc.rank_chunks(5, 2, 2)
+
+
+@pytest.fixture(scope="module")
+def street():
+    """Two objects in a row on the environment's ground, 12 orbit + 4 forward views of 40 x 30 px, 2000 points."""
+    return wc.street_scene(2, orbit_views=6, forward_views=4, resolution=(40, 30), points=2000)
+
+
+@pytest.mark.slow
+def test_two_chunk_fit_matches_the_single_fit(street, tmp_path):
+    """Fit the scene whole and as 2 chunks: the merged mesh is as good against the truth and close to the whole fit."""
+    cfg = _tiny_config()
+    single = fit(street, cfg, progress=False)
+    res = wc.fit_chunked(street, tmp_path, cfg, chunk_config=wc.ChunkConfig(chunks=2), progress=False)
+    lo, hi = street.bounds
+    diag = float(np.linalg.norm(hi - lo))
+    tau = TAU_FRACTION * diag
+    f_single = metrics.roi_f_score(single.mesh, street.gt_mesh, lo, hi, tau, n_samples=20000).f_score
+    f_chunks = metrics.roi_f_score(res.mesh, street.gt_mesh, lo, hi, tau, n_samples=20000).f_score
+    cd = metrics.chamfer(res.mesh, single.mesh, n_samples=20000).chamfer / diag
+    print(f"2-chunk vs single fit: F1 {f_chunks:.3f} vs {f_single:.3f}, Chamfer {100 * cd:.2f} % of the ROI diagonal")
+    assert f_chunks >= f_single - F1_TOLERANCE, (f_chunks, f_single)
+    assert cd < CHAMFER_TOLERANCE, cd
+    for name in ("mesh.ply", "surfels.ply", "report.json", "chunk_plan.json", "chunks/0/chunk.json",
+                 "chunks/1/mesh.ply"):
+        assert (tmp_path / name).exists(), name
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert [c["index"] for c in rep["per_chunk"]] == [0, 1] and rep["per_rank"][0]["peak_rss_bytes"] > 0
+    again = wc.fit_chunked(street, tmp_path, cfg, chunk_config=wc.ChunkConfig(chunks=2), progress=False)
+    assert all(c.get("resumed") for c in again.report["per_chunk"])  # finished chunks are not fitted again
+
+
+def _worker(rank: int, world: int, port: int, out: str) -> None:
+    import torch.distributed as dist
+
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), LOCAL_RANK=str(rank))
+    dist.init_process_group("gloo", rank=rank, world_size=world)
+    try:
+        scene = wc.street_scene(2, orbit_views=4, forward_views=4, resolution=(24, 18), points=500)
+        cfg = small_fit_config(4, 0, points=100, grids=(16, 16, 16), max_faces=200, density_every=10, eval_every=0)
+        wc.fit_chunked(scene, out, cfg, chunk_config=wc.ChunkConfig(chunks=2), progress=False)
+    finally:
+        dist.destroy_process_group()
+
+
+@pytest.mark.slow
+def test_two_processes_share_the_chunks_through_gloo(tmp_path):
+    """Run world size 2 on gloo (torch.multiprocessing): each rank fits one chunk, rank 0 merges."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    torch.multiprocessing.spawn(_worker, args=(2, port, str(tmp_path)), nprocs=2, join=True)
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["world_size"] == 2
+    assert {c["index"]: c["rank"] for c in rep["per_chunk"]} == {0: 0, 1: 1}
+    assert (tmp_path / "mesh.ply").exists()
+
+
+def test_chunk_runs_its_share_of_the_iteration_budget():
+    """Scale iterations by the chunk's view share and point budgets by its space share (configured or planned)."""
+    from wtopo.chunks.engine import chunk_fit_config
+    from wtopo.fitting import FitConfig
+
+    c = chunk_fit_config(_tiny_config(warmup=20), "cpu", 0.5)
+    assert (c.warmup.iterations, c.coevolution.iterations, c.runtime.device) == (10, 0, "cpu")
+    d = chunk_fit_config(FitConfig(), "cpu", 0.25, 0.5)
+    assert (d.warmup.iterations, d.coevolution.iterations) == (100, 50)  # the CPU budget 400 + 200
+    # half the space: half the CPU surfel cap (40k) and re-initialisation faces (8k), half the points
+    assert (d.runtime.max_surfels, d.tsdf.max_faces, d.init.num_points) == (20000, 4000, 2500)
+    assert d.init.background_points is None  # left to the plan (as many as num_points for a scene)
+
+
+def test_cli_rejects_a_bad_chunk_count(tmp_path, capsys):
+    """Report ``--chunks 0`` as a one-line user error before any scene is loaded."""
+    from wtopo.cli import main
+
+    assert main(["fit", "sphere", "--out", str(tmp_path), "--chunks", "0"]) == 2
+    assert "--chunks takes a number of chunks >= 1 or 'auto', got '0'" in capsys.readouterr().err
+
+
+def test_a_failing_chunk_is_reported_by_name(tmp_path, monkeypatch):
+    """Raise one error naming the chunk when its fit fails, and leave no result directory for it."""
+    import wtopo.fitting
+
+    def boom(*a, **k):
+        raise ValueError("no surfels left")
+
+    monkeypatch.setattr(wtopo.fitting, "fit", boom)
+    with pytest.raises(RuntimeError, match=r"chunk 0 \(rank 0\): ValueError: no surfels left"):
+        wc.fit_chunked(_camera_scene(), tmp_path, _tiny_config(), chunk_config=wc.ChunkConfig(chunks=3),
+                       progress=False)
+    assert not (tmp_path / "chunks" / "0").exists() and (tmp_path / "chunk_plan.json").exists()
+
+
+def test_an_interrupted_chunk_is_not_taken_as_done(tmp_path, monkeypatch):
+    """Keep an interrupted chunk's partial directory (to resume) and publish no result for it."""
+    import types
+
+    import wtopo.fitting
+
+    def interrupted(scene, cfg, out_dir=None, progress=True):
+        os.makedirs(out_dir, exist_ok=True)
+        return types.SimpleNamespace(mesh=trimesh.creation.box(), report={"status": "interrupted"})
+
+    monkeypatch.setattr(wtopo.fitting, "fit", interrupted)
+    with pytest.raises(RuntimeError, match="status 'interrupted'; a rerun resumes it"):
+        wc.fit_chunked(_camera_scene(), tmp_path, _tiny_config(), chunk_config=wc.ChunkConfig(chunks=3),
+                       progress=False)
+    assert (tmp_path / "chunks" / "0.partial").is_dir() and not (tmp_path / "chunks" / "0").exists()
