@@ -131,12 +131,62 @@ def test_normal_sign_alignment_modes():
     s.buffers["view_dirs"][:] = torch.tensor([0.0, 0.0, -1.0])  # cameras below: view says flip
     mesh_n = torch.tensor([[0.0, 0, 1]]).expand(4, 3)
     dist = torch.tensor([0.0, 0.0, 1.0, 1.0])  # first two close to the mesh
-    counts = D.align_normal_signs(s, NormalFlip.MESH, mesh_normal=mesh_n, distance=dist, max_distance=0.1)
-    assert s.buffers["normal_sign"].tolist() == [1.0, 1.0, -1.0, -1.0] and counts == {"view": 2, "mesh": 2}
+    counts = D.align_normal_signs(s, NormalFlip.MESH, mesh_normal=mesh_n, distance=dist, distance_scales=3.0)
+    assert s.buffers["normal_sign"].tolist() == [1.0, 1.0, -1.0, -1.0]
+    assert counts == {"view": 2, "mesh": 2, "kept": 0}
     D.align_normal_signs(s, NormalFlip.VIEW)
     assert s.buffers["normal_sign"].tolist() == [-1.0] * 4
     D.align_normal_signs(s, NormalFlip.RANDOM, generator=torch.Generator().manual_seed(0))
     assert set(s.buffers["normal_sign"].tolist()) <= {-1.0, 1.0}
+
+
+def _signs_case(scales, mesh_sign, view_z=-1.0):
+    """Surfels with +z normals, sign +1, cameras on the ``view_z`` side, in-plane sigmas ``scales``."""
+    n = len(scales)
+    s, _ = _surfels(n=n)
+    with torch.no_grad():
+        s.params["quats"][:] = normals_to_quats(torch.tensor([[0.0, 0, 1]]).expand(n, 3))
+        s.params["log_scales"][:] = torch.log(torch.tensor(scales))[:, None]
+    s.buffers["view_dirs"][:] = torch.tensor([0.0, 0.0, view_z])
+    s.buffers["mesh_sign"][:] = torch.tensor(mesh_sign)
+    return s
+
+
+def test_mesh_signs_keep_the_scaffold_sign_far_from_the_proxy():
+    """A re-initialised surfel with no proxy face near keeps its triangle's sign against the cameras'."""
+    # 0.05 is 5 sigmas away: no face near; the old rule (fixed 0.02 of the extent) took the view side
+    s = _signs_case([0.01, 0.01], mesh_sign=[1.0, 0.0])
+    mesh_n = torch.tensor([[0.0, 0, -1]]).expand(2, 3)
+    counts = D.align_normal_signs(s, NormalFlip.MESH, mesh_normal=mesh_n, distance=torch.tensor([0.05, 0.05]),
+                                  distance_scales=3.0)
+    assert s.buffers["normal_sign"].tolist() == [1.0, -1.0]  # the scaffold surfel kept +1, the other saw cameras
+    assert counts == {"mesh": 0, "kept": 1, "view": 1}
+    D.align_normal_signs(s, NormalFlip.MESH)  # no proxy at all (loop off): the same rule without faces
+    assert s.buffers["normal_sign"].tolist() == [1.0, -1.0]
+
+
+def test_mesh_signs_follow_a_near_face_by_the_surfels_size():
+    """A face within 3 in-plane sigmas sets the sign (over the view and the scaffold's); farther it does not."""
+    # same face distance 0.015 (inside the old fixed 0.02): near for sigma 0.01, far for sigma 0.001;
+    # distance 0.05 (outside the old 0.02) is near for sigma 0.03
+    s = _signs_case([0.01, 0.001, 0.03, 0.01], mesh_sign=[0.0, 0.0, 1.0, 1.0], view_z=1.0)
+    mesh_n = torch.tensor([[0.0, 0, -1]]).expand(4, 3)  # the faces say flip, the cameras say keep
+    dist = torch.tensor([0.015, 0.015, 0.05, float("inf")])
+    counts = D.align_normal_signs(s, NormalFlip.MESH, mesh_normal=mesh_n, distance=dist, distance_scales=3.0)
+    assert s.buffers["normal_sign"].tolist() == [-1.0, 1.0, -1.0, 1.0]
+    assert s.buffers["mesh_sign"].tolist() == [1.0, 0.0, 1.0, 1.0]  # a face-given sign is kept from now on
+    assert counts == {"mesh": 2, "kept": 1, "view": 1}
+
+
+def test_mesh_sign_buffer_follows_prune_and_spawn():
+    """Spawned surfels carry their face's sign as a mesh sign; a prune keeps the flags aligned."""
+    s, _ = _surfels(n=20)
+    s.buffers["mesh_sign"][:10] = 1.0
+    s.prune(torch.arange(20) % 2 == 0)
+    assert s.buffers["mesh_sign"].tolist() == [1.0] * 5 + [0.0] * 5
+    v, f = _square()
+    D.geometry_densify(s, v, f, torch.zeros(len(s), dtype=torch.int32), max_new=10, max_surfels=100)
+    assert s.buffers["mesh_sign"][-1].item() == 1.0
 
 
 def test_normals_to_quats_roundtrip():

@@ -6,7 +6,8 @@ The mesh-guided steps use nearest-face queries on the proxy mesh's BVH
 
 * geometry-aware prune: surfels far from the mesh AND of low opacity go;
 * geometry-aware densification: faces that are no surfel's nearest face spawn a surfel;
-* normal sign alignment: the sign of each surfel's normal fed to the Poisson solve.
+* normal sign alignment: the sign of each surfel's normal fed to the Poisson solve (a nearby proxy
+  face's, else the TSDF scaffold triangle's, else the cameras' side).
 
 Every step keeps the optimiser state aligned (:class:`wtopo.fitting.surfels.Surfels`), never removes
 all surfels and respects a hard cap on the count.
@@ -192,37 +193,59 @@ def geometry_densify(surfels: Surfels, verts: torch.Tensor, faces: torch.Tensor,
         "sh_rest": p["sh_rest"],
     }
     b["normal_sign"] = torch.ones(idx.numel(), device=means.device)
+    b["mesh_sign"] = torch.ones(idx.numel(), device=means.device)  # the face normal's side
     surfels.append(new, b)
     return int(idx.numel())
 
 
 def align_normal_signs(surfels: Surfels, mode: NormalFlip, *, mesh_normal: torch.Tensor | None = None,
-                       distance: torch.Tensor | None = None, max_distance: float = 0.0,
+                       distance: torch.Tensor | None = None, distance_scales: float = 0.0,
                        min_agreement: float = 0.5, generator: torch.Generator | None = None) -> dict[str, int]:
     """Choose each surfel's normal sign for the Poisson solve (``buffers["normal_sign"]``).
 
-    ``mesh``: where the nearest proxy face is closer than ``max_distance`` and its normal agrees
-    with the surfel's axis (``|cos| >= min_agreement``), take the face normal's side; elsewhere,
-    and always in ``view`` mode, take the side of the accumulated directions towards the cameras
-    that saw the surfel (surfels never seen keep their sign). ``random``: a random sign.
-    Returns how many surfels each rule decided.
+    ``mesh`` (mesh-guided signs): where the nearest proxy face is closer than ``distance_scales``
+    times the surfel's larger in-plane scale and its normal agrees with the surfel's axis
+    (``|cos| >= min_agreement``), take the face normal's side and mark the sign as the mesh's
+    (``buffers["mesh_sign"]``); a surfel with no such face keeps a sign that came from a mesh (the
+    TSDF scaffold triangle it was put on, a proxy face it was spawned on or aligned to), and only
+    the others take the side of the accumulated directions towards the cameras that saw them
+    (surfels never seen keep their sign). Without ``mesh_normal`` / ``distance`` (no proxy) only
+    the last two rules apply. ``view``: the camera side for every seen surfel (ablation).
+    ``random``: a random sign (ablation).
+
+    Args:
+        surfels: updated in place (``normal_sign``, ``mesh_sign``).
+        mode: the rule.
+        mesh_normal: unit normal [N, 3] of each surfel's nearest proxy face (any value where none).
+        distance: distance [N] to that face (``inf`` where none was found).
+        distance_scales: the face is near when closer than this many in-plane sigmas of the surfel.
+        min_agreement: least ``|cos|`` between the surfel's axis and the face normal.
+        generator: seeds ``random``.
+
+    Returns:
+        How many surfels each rule decided (``mesh``, ``kept``: a mesh-given sign kept, ``view``).
     """
     n = surfels.normals()
-    sign = surfels.buffers["normal_sign"].clone()
+    b = surfels.buffers
+    sign = b["normal_sign"].clone()
     if mode == NormalFlip.RANDOM:
         r = torch.randint(0, 2, (len(surfels),), generator=generator, device="cpu").to(n.device)
-        surfels.buffers["normal_sign"] = (r * 2 - 1).float()
+        b["normal_sign"] = (r * 2 - 1).float()
         return {"random": len(surfels)}
-    vd = surfels.buffers["view_dirs"]
-    vdot = (n * vd).sum(-1)
+    vd = b["view_dirs"]
+    view_sign = torch.where((n * vd).sum(-1) >= 0, 1.0, -1.0)
     seen = vd.norm(dim=-1) > 0
-    sign = torch.where(seen, torch.where(vdot >= 0, 1.0, -1.0), sign)
-    counts = {"view": int(seen.sum()), "mesh": 0}
-    if mode == NormalFlip.MESH and mesh_normal is not None and distance is not None:
+    if mode == NormalFlip.VIEW:
+        b["normal_sign"] = torch.where(seen, view_sign, sign).float()
+        return {"view": int(seen.sum())}
+    fixed = b["mesh_sign"] > 0
+    use = torch.zeros_like(seen)
+    if mesh_normal is not None and distance is not None:
         mdot = (n * mesh_normal).sum(-1)
-        use = (distance < max_distance) & (mdot.abs() >= min_agreement)
+        size = surfels.scales.detach().max(dim=-1).values
+        use = (distance < distance_scales * size) & (mdot.abs() >= min_agreement)
         sign = torch.where(use, torch.where(mdot >= 0, 1.0, -1.0), sign)
-        counts["mesh"] = int(use.sum())
-        counts["view"] = int((seen & ~use).sum())
-    surfels.buffers["normal_sign"] = sign.float()
-    return counts
+        b["mesh_sign"] = torch.where(use, torch.ones_like(sign), b["mesh_sign"])
+    view = seen & ~use & ~fixed
+    b["normal_sign"] = torch.where(view, view_sign, sign).float()
+    return {"mesh": int(use.sum()), "kept": int((fixed & ~use).sum()), "view": int(view.sum())}
