@@ -369,12 +369,13 @@ class MeshConfig:
     normal_flip: NormalFlip = NormalFlip.MESH
     """Normal sign rule (mesh | view | random)."""
     sign_distance: float = _f(3.0, RATE)
-    """Mesh-guided signs: a surfel takes its nearest proxy face's normal side when that face is closer
-    than this many of the surfel's in-plane sigmas (its larger scale); otherwise a sign that came from a
-    mesh (the TSDF scaffold's triangle) is kept and only the other surfels take the cameras' side.
-    Before: a fixed 0.02 of the scene extent for every surfel and the cameras' side for all others,
-    which flipped 37 % of the scaffold surfels of the hard suite's ``chair_ground`` and moved its proxy
-    from 1.1 % to 7.8 % of the diagonal off the truth (``benchmarks/hard.md``)."""
+    """Mesh-guided signs: a surfel not made on a mesh triangle takes its nearest proxy face's normal
+    side when that face is closer than this many of the surfel's in-plane sigmas (its larger scale),
+    the cameras' side otherwise; surfels made on a triangle (the TSDF scaffold, a spawn) keep its sign
+    (:func:`~wtopo.fitting.densify.align_normal_signs`). Before: every surfel took the face's side
+    within a fixed 0.02 of the scene extent and the cameras' side elsewhere, which flipped 37 % of the
+    hard suite's ``chair_ground`` scaffold surfels and moved its proxy from 1.1 % to 7.8 % of the
+    diagonal off the truth (``benchmarks/hard.md``)."""
     opacity_threshold: float = _f(0.0, FRACTION)
     """Surfels below this opacity do not contribute oriented points."""
     poisson_box: PoissonBox = PoissonBox.UNIT
