@@ -285,6 +285,28 @@ def test_proxy_support_marks_the_poisson_closure_unsupported():
     assert ProxyMesh(MeshConfig(resolution=32)).supported(pm, s) is None  # support_voxels = 0: all supported
 
 
+def test_geometry_densify_by_distance_spawns_only_on_the_uncovered_closure():
+    """Counted by distance, faces on a dense patch need no surfel; only faces far from every surfel spawn one."""
+    from wtopo.fitting.config import MeshConfig
+    from wtopo.fitting.proxy import ProxyMesh
+
+    s = _patch_surfels()
+    proxy = ProxyMesh(MeshConfig(resolution=32))
+    pm = proxy.build(s)
+    near = proxy.near_surfels(pm, s, 2.0)
+    fid, _, _ = proxy.closest(pm, s.means)
+    nearest = torch.zeros(pm.num_faces, dtype=torch.bool)
+    nearest[fid[fid >= 0].long()] = True
+    c = pm.verts.detach()[pm.faces.long()].mean(dim=1)
+    on_patch = ((c[:, 2] - 0.5).abs() < 0.02) & ((c[:, :2] - 0.5).abs() < 0.17).all(dim=1)
+    # the artefact: patch faces that are nobody's nearest face count as holes by the old rule
+    assert bool((on_patch & ~nearest).any()) and bool(near[on_patch].all())
+    n0 = len(s)
+    added = D.geometry_densify(s, pm.verts, pm.faces, fid, max_new=10_000, max_surfels=100_000, covered=near)
+    assert added == int((~near).sum()) and added > 0
+    assert bool((torch.cdist(s.means.detach()[n0:], s.means.detach()[:n0]).min(dim=1).values > 0.06).all())
+
+
 def test_proxy_supported_pixels_see_the_patch_not_the_closure():
     """A pixel that sees the patch of surfels is supported; one that sees the Poisson closure far from it is not."""
     import numpy as np

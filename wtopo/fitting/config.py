@@ -191,6 +191,10 @@ class OptimConfig:
     """Means, in unit-cube lengths per step; decays to ``means_final``."""
     means_final: float = _f(1.6e-5, RATE)
     """Means learning rate at the last iteration (exponential decay)."""
+    means_restart: bool = False
+    """Restart the means schedule at the co-evolution: ``means`` at its first iteration decaying to
+    ``means_final`` at its last (the public code's). ``False`` (before): one decay over both stages, so
+    the co-evolution starts at ~7e-5 on the CPU budget (400 + 200) and moves surfels by < 1 pixel."""
     quats: float = _f(3e-3, RATE)
     """Rotations (unnormalised quaternions)."""
     scales: float = _f(1e-2, RATE)
@@ -310,7 +314,13 @@ class DensifyConfig:
     geometry_prune_opacity: float = _f(0.3, FRACTION)
     """"Low opacity" for the geometry-aware prune."""
     geometry_densify: bool = True
-    """Proxy faces that are no surfel's nearest spawn a surfel (co-evolution)."""
+    """Proxy faces no surfel covers spawn a surfel (co-evolution)."""
+    geometry_densify_voxels: float = _f(0.0, RATE)
+    """Which proxy faces no surfel covers: ``> 0``, faces whose centroid is farther than this many
+    Poisson grid cells plus two scales of the nearest surfel from every surfel of opacity >= 0.1
+    (:meth:`~wtopo.fitting.proxy.ProxyMesh.near_surfels`); 0 (before): faces that are no surfel's
+    nearest face, which counts every face beyond the surfel count as a hole (the proxy has more
+    faces than there are surfels, and the 2,000 cap is hit at every refresh)."""
 
 
 @dataclass(kw_only=True)
@@ -334,6 +344,10 @@ class LossConfig:
     """Mesh-depth agreement (co-evolution)."""
     mesh_normal: float = _f(0.05, RATE)
     """Mesh-normal agreement (co-evolution)."""
+    mesh_start_fraction: float = _f(0.0, FRACTION)
+    """The mesh terms are on from this fraction of the co-evolution (:func:`stage_iteration`); the
+    proxy still guides signs and density from its first iteration. 0 (before): from the first
+    iteration, where their gradient peaks (the method waits 500 of its iterations)."""
     depth_form: DepthLoss = DepthLoss.LOG_RATIO
     """Form of the mesh-depth term."""
     mesh_depth_source: RenderedDepth = RenderedDepth.MEDIAN

@@ -149,9 +149,12 @@ def geometry_prune(surfels: Surfels, distance: torch.Tensor, *, max_distance: fl
 
 def geometry_densify(surfels: Surfels, verts: torch.Tensor, faces: torch.Tensor, nearest_face: torch.Tensor, *,
                      max_new: int, max_surfels: int, opacity: float = 0.1,
-                     generator: torch.Generator | None = None, candidates: torch.Tensor | None = None) -> int:
+                     generator: torch.Generator | None = None, candidates: torch.Tensor | None = None,
+                     covered: torch.Tensor | None = None) -> int:
     """Spawn one surfel on each proxy face that is no surfel's nearest face (among ``candidates``,
     bool [F], when given: e.g. the faces :meth:`~wtopo.fitting.proxy.ProxyMesh.supported` keeps).
+    ``covered`` (bool [F]), when given, replaces the nearest-face rule: the faces that need no surfel
+    (e.g. :meth:`~wtopo.fitting.proxy.ProxyMesh.near_surfels`).
 
     The new surfel sits at the face centroid, its normal is the face normal, its scale comes from
     the face area and its colour from the surfel nearest to the centroid. At most ``max_new``
@@ -160,9 +163,12 @@ def geometry_densify(surfels: Surfels, verts: torch.Tensor, faces: torch.Tensor,
     nf = faces.shape[0]
     if nf == 0 or len(surfels) == 0:
         return 0
-    covered = torch.zeros(nf, dtype=torch.bool, device=faces.device)
-    ok = nearest_face >= 0
-    covered[nearest_face[ok].long()] = True
+    if covered is None:
+        covered = torch.zeros(nf, dtype=torch.bool, device=faces.device)
+        ok = nearest_face >= 0
+        covered[nearest_face[ok].long()] = True
+    else:
+        covered = covered.clone()
     if candidates is not None:
         covered |= ~candidates
     idx = torch.nonzero(~covered).flatten()

@@ -202,9 +202,10 @@ class DensityStrategy:
         info["signs"] = dens.align_normal_signs(s, NormalFlip(mc.normal_flip), mesh_normal=mn, distance=dist,
                                                 distance_scales=mc.sign_distance, generator=self.gen)
         if dc.geometry_densify:
+            near = proxy.near_surfels(pm, s, dc.geometry_densify_voxels) if dc.geometry_densify_voxels > 0 else None
             info["spawned"] = dens.geometry_densify(s, verts, faces, fid, max_new=_GEOMETRY_DENSIFY_MAX,
                                                     max_surfels=self.cfg.runtime.max_surfels, generator=self.gen,
-                                                    candidates=proxy.supported(pm, s))
+                                                    candidates=proxy.supported(pm, s), covered=near)
             dist = torch.cat([dist, torch.zeros(len(s) - dist.shape[0], dtype=dist.dtype, device=dist.device)])
         if dc.geometry_prune:
             if self.background is not None:  # background surfels are far from the proxy by design
