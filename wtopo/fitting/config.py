@@ -344,12 +344,12 @@ class LossConfig:
     """Mesh-depth agreement (co-evolution)."""
     mesh_normal: float = _f(0.05, RATE)
     """Mesh-normal agreement (co-evolution)."""
-    mesh_start_fraction: float = _f(0.25, FRACTION)
+    mesh_start_fraction: float = _f(0.0, FRACTION)
     """The mesh terms are on from this fraction of the co-evolution (:func:`stage_iteration`); the
-    proxy still guides signs and density from its first iteration. Before: 0, from the first
-    iteration, where their gradient peaks (the method waits 500 of its iterations). On the hard
-    suite's screening subset (torus, chair_box, mug_sparse) 0.25 moved the mean Chamfer from 0.614 %
-    to 0.612 % (within noise; ``benchmarks/hard.md``)."""
+    proxy still guides signs and density from its first iteration. 0: from the first iteration,
+    where their gradient peaks (the method waits 500 of its iterations). 0.25 won on the hard suite's
+    screening subset (mean Chamfer 0.614 -> 0.612 %) and lost on the whole suite (0.516 -> 0.518 %:
+    bowl, mug, blob_flat worse), so it is off (``benchmarks/hard.md``)."""
     depth_form: DepthLoss = DepthLoss.LOG_RATIO
     """Form of the mesh-depth term."""
     mesh_depth_source: RenderedDepth = RenderedDepth.MEDIAN
