@@ -116,8 +116,8 @@ def main(argv=None) -> int:
 
     obj_call = run.objective.__call__
 
-    def objective(stage, it, vi, surfels, proxy):
-        t = obj_call(stage, it, vi, surfels, proxy)
+    def objective(stage, it, vi, surfels, proxy, **kw):
+        t = obj_call(stage, it, vi, surfels, proxy, **kw)
         if stage == Stage.COEVOLUTION and (it - run.warmup_end) % args.every == 0:
             rec = measure_state(it, stage.value)
             means = surfels.params["means"]

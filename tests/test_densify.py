@@ -131,12 +131,62 @@ def test_normal_sign_alignment_modes():
     s.buffers["view_dirs"][:] = torch.tensor([0.0, 0.0, -1.0])  # cameras below: view says flip
     mesh_n = torch.tensor([[0.0, 0, 1]]).expand(4, 3)
     dist = torch.tensor([0.0, 0.0, 1.0, 1.0])  # first two close to the mesh
-    counts = D.align_normal_signs(s, NormalFlip.MESH, mesh_normal=mesh_n, distance=dist, max_distance=0.1)
-    assert s.buffers["normal_sign"].tolist() == [1.0, 1.0, -1.0, -1.0] and counts == {"view": 2, "mesh": 2}
+    counts = D.align_normal_signs(s, NormalFlip.MESH, mesh_normal=mesh_n, distance=dist, distance_scales=3.0)
+    assert s.buffers["normal_sign"].tolist() == [1.0, 1.0, -1.0, -1.0]
+    assert counts == {"view": 2, "mesh": 2, "kept": 0}
     D.align_normal_signs(s, NormalFlip.VIEW)
     assert s.buffers["normal_sign"].tolist() == [-1.0] * 4
     D.align_normal_signs(s, NormalFlip.RANDOM, generator=torch.Generator().manual_seed(0))
     assert set(s.buffers["normal_sign"].tolist()) <= {-1.0, 1.0}
+
+
+def _signs_case(scales, mesh_sign, view_z=-1.0):
+    """Surfels with +z normals, sign +1, cameras on the ``view_z`` side, in-plane sigmas ``scales``."""
+    n = len(scales)
+    s, _ = _surfels(n=n)
+    with torch.no_grad():
+        s.params["quats"][:] = normals_to_quats(torch.tensor([[0.0, 0, 1]]).expand(n, 3))
+        s.params["log_scales"][:] = torch.log(torch.tensor(scales))[:, None]
+    s.buffers["view_dirs"][:] = torch.tensor([0.0, 0.0, view_z])
+    s.buffers["mesh_sign"][:] = torch.tensor(mesh_sign)
+    return s
+
+
+def test_mesh_signs_keep_the_scaffold_sign_far_from_the_proxy():
+    """A re-initialised surfel with no proxy face near keeps its triangle's sign against the cameras'."""
+    # 0.05 is 5 sigmas away: no face near; the old rule (fixed 0.02 of the extent) took the view side
+    s = _signs_case([0.01, 0.01], mesh_sign=[1.0, 0.0])
+    mesh_n = torch.tensor([[0.0, 0, -1]]).expand(2, 3)
+    counts = D.align_normal_signs(s, NormalFlip.MESH, mesh_normal=mesh_n, distance=torch.tensor([0.05, 0.05]),
+                                  distance_scales=3.0)
+    assert s.buffers["normal_sign"].tolist() == [1.0, -1.0]  # the scaffold surfel kept +1, the other saw cameras
+    assert counts == {"mesh": 0, "kept": 1, "view": 1}
+    D.align_normal_signs(s, NormalFlip.MESH)  # no proxy at all (loop off): the same rule without faces
+    assert s.buffers["normal_sign"].tolist() == [1.0, -1.0]
+
+
+def test_mesh_signs_follow_a_near_face_by_the_surfels_size():
+    """A face within 3 in-plane sigmas sets a free surfel's sign over the cameras'; a scaffold sign stays."""
+    # same face distance 0.015 (inside the old fixed 0.02): near for sigma 0.01, far for sigma 0.001;
+    # distance 0.05 (outside the old 0.02) is near for sigma 0.03; the last surfel is a scaffold one
+    # beside a disagreeing face (the other side of a thin part): it keeps its triangle's sign
+    s = _signs_case([0.01, 0.001, 0.03, 0.01], mesh_sign=[0.0, 0.0, 0.0, 1.0], view_z=1.0)
+    mesh_n = torch.tensor([[0.0, 0, -1]]).expand(4, 3)  # the faces say flip, the cameras say keep
+    dist = torch.tensor([0.015, 0.015, 0.05, 0.001])
+    counts = D.align_normal_signs(s, NormalFlip.MESH, mesh_normal=mesh_n, distance=dist, distance_scales=3.0)
+    assert s.buffers["normal_sign"].tolist() == [-1.0, 1.0, -1.0, 1.0]
+    assert counts == {"mesh": 2, "kept": 1, "view": 1}
+
+
+def test_mesh_sign_buffer_follows_prune_and_spawn():
+    """Spawned surfels carry their face's sign as a mesh sign; a prune keeps the flags aligned."""
+    s, _ = _surfels(n=20)
+    s.buffers["mesh_sign"][:10] = 1.0
+    s.prune(torch.arange(20) % 2 == 0)
+    assert s.buffers["mesh_sign"].tolist() == [1.0] * 5 + [0.0] * 5
+    v, f = _square()
+    D.geometry_densify(s, v, f, torch.zeros(len(s), dtype=torch.int32), max_new=10, max_surfels=100)
+    assert s.buffers["mesh_sign"][-1].item() == 1.0
 
 
 def test_normals_to_quats_roundtrip():
@@ -233,6 +283,28 @@ def test_proxy_support_marks_the_poisson_closure_unsupported():
     assert bool(on_patch.any()) and bool(far.any()), "the Poisson surface should close the patch far from it"
     assert bool(sup[on_patch].all()) and not bool(sup[far].any())
     assert ProxyMesh(MeshConfig(resolution=32)).supported(pm, s) is None  # support_voxels = 0: all supported
+
+
+def test_geometry_densify_by_distance_spawns_only_on_the_uncovered_closure():
+    """Counted by distance, faces on a dense patch need no surfel; only faces far from every surfel spawn one."""
+    from wtopo.fitting.config import MeshConfig
+    from wtopo.fitting.proxy import ProxyMesh
+
+    s = _patch_surfels()
+    proxy = ProxyMesh(MeshConfig(resolution=32))
+    pm = proxy.build(s)
+    near = proxy.near_surfels(pm, s, 2.0)
+    fid, _, _ = proxy.closest(pm, s.means)
+    nearest = torch.zeros(pm.num_faces, dtype=torch.bool)
+    nearest[fid[fid >= 0].long()] = True
+    c = pm.verts.detach()[pm.faces.long()].mean(dim=1)
+    on_patch = ((c[:, 2] - 0.5).abs() < 0.02) & ((c[:, :2] - 0.5).abs() < 0.17).all(dim=1)
+    # the artefact: patch faces that are nobody's nearest face count as holes by the old rule
+    assert bool((on_patch & ~nearest).any()) and bool(near[on_patch].all())
+    n0 = len(s)
+    added = D.geometry_densify(s, pm.verts, pm.faces, fid, max_new=10_000, max_surfels=100_000, covered=near)
+    assert added == int((~near).sum()) and added > 0
+    assert bool((torch.cdist(s.means.detach()[n0:], s.means.detach()[:n0]).min(dim=1).values > 0.06).all())
 
 
 def test_proxy_supported_pixels_see_the_patch_not_the_closure():

@@ -120,3 +120,41 @@ def test_late_opacity_reset_is_skipped(tiny):
     ran = [e["iteration"] for e in res.report["events"] if e["event"] == "opacity_reset"]
     assert ran == [20], ran
     assert all(e["remaining_warmup"] < 100 for e in res.report["events"] if e["event"] == "opacity_reset_skipped")
+
+
+@pytest.mark.parametrize("restart", [False, True])
+def test_means_schedule_restarts_at_the_coevolution_when_asked(tiny, restart):
+    """The means rate decays over both stages, or restarts at ``optim.means`` for the co-evolution."""
+    from wtopo.fitting.loop import FitRun
+
+    cfg = _config(10, 10)
+    cfg.optim.means_restart = restart
+    run = FitRun(tiny, cfg, None, progress=False)
+    run._start()
+    o = run.cfg.optim
+
+    def lr(it):
+        run.it = it
+        run._update_lr()
+        return next(g["lr"] for g in run.opt.param_groups if g["name"] == "means")
+
+    ratio = o.means_final / o.means
+    assert lr(5) == pytest.approx(o.means * ratio ** 0.25)  # the warm-up is the same either way
+    assert lr(10) == pytest.approx(o.means if restart else o.means * ratio ** 0.5)
+    assert lr(20) == pytest.approx(o.means_final)
+
+
+def test_mesh_terms_wait_for_their_start_fraction(tiny):
+    """With ``losses.mesh_start_fraction`` the mesh terms are off before that point of the co-evolution."""
+    from wtopo.fitting.loop import FitRun
+    from wtopo.fitting.stages import Stage
+
+    cfg = _config(10, 8)
+    cfg.coevolution.enabled = True
+    cfg.losses.mesh_start_fraction = 0.5  # iteration 10 + 4
+    run = FitRun(tiny, cfg, None, progress=False)
+    run._start()
+    before = run.objective(Stage.COEVOLUTION, 13, 0, run.surfels, run.proxy)
+    after = run.objective(Stage.COEVOLUTION, 14, 0, run.surfels, run.proxy)
+    assert not before.proxy_built and "mesh_depth" not in before.losses
+    assert after.proxy_built and "mesh_depth" in after.losses

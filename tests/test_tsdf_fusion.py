@@ -287,3 +287,4 @@ def test_reinit_surfels_without_open3d_cover_the_mesh(monkeypatch):
     area = float((np.pi * s.scales[:, 0] * s.scales[:, 1]).sum().detach())
     np.testing.assert_allclose(area, mesh.area, rtol=1e-5)
     np.testing.assert_allclose(s.means.detach().norm(dim=1).numpy(), 1.0, atol=0.01)  # centroids of the sphere's faces
+    assert bool((s.buffers["mesh_sign"] == 1.0).all())  # the triangles' signs, kept by a sign refresh

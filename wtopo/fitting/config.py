@@ -191,6 +191,10 @@ class OptimConfig:
     """Means, in unit-cube lengths per step; decays to ``means_final``."""
     means_final: float = _f(1.6e-5, RATE)
     """Means learning rate at the last iteration (exponential decay)."""
+    means_restart: bool = False
+    """Restart the means schedule at the co-evolution: ``means`` at its first iteration decaying to
+    ``means_final`` at its last (the public code's). ``False`` (before): one decay over both stages, so
+    the co-evolution starts at ~7e-5 on the CPU budget (400 + 200) and moves surfels by < 1 pixel."""
     quats: float = _f(3e-3, RATE)
     """Rotations (unnormalised quaternions)."""
     scales: float = _f(1e-2, RATE)
@@ -251,7 +255,8 @@ class CoevolutionConfig:
     whose Poisson proxy closes the open, box-cut surface where no view supports it (on the hard suite's
     chair on a ground, ``benchmarks/hard.md``: proxy 1.9-7.8 % of the diagonal from the truth against
     1.2 % for the surfels, the mesh-depth term pulling correct surfels on 30-50 % of its pixels and
-    helping on 0-4 %)."""
+    helping on 0-4 %; with the mesh-guided sign fix the proxy still loses the floor under the mesh
+    terms and the final mesh is 0.91 % off against 0.63 % without the loop)."""
 
 
 @dataclass(kw_only=True)
@@ -310,7 +315,13 @@ class DensifyConfig:
     geometry_prune_opacity: float = _f(0.3, FRACTION)
     """"Low opacity" for the geometry-aware prune."""
     geometry_densify: bool = True
-    """Proxy faces that are no surfel's nearest spawn a surfel (co-evolution)."""
+    """Proxy faces no surfel covers spawn a surfel (co-evolution)."""
+    geometry_densify_voxels: float = _f(0.0, RATE)
+    """Which proxy faces no surfel covers: ``> 0``, faces whose centroid is farther than this many
+    Poisson grid cells plus two scales of the nearest surfel from every surfel of opacity >= 0.1
+    (:meth:`~wtopo.fitting.proxy.ProxyMesh.near_surfels`); 0 (before): faces that are no surfel's
+    nearest face, which counts every face beyond the surfel count as a hole (the proxy has more
+    faces than there are surfels, and the 2,000 cap is hit at every refresh)."""
 
 
 @dataclass(kw_only=True)
@@ -334,6 +345,12 @@ class LossConfig:
     """Mesh-depth agreement (co-evolution)."""
     mesh_normal: float = _f(0.05, RATE)
     """Mesh-normal agreement (co-evolution)."""
+    mesh_start_fraction: float = _f(0.0, FRACTION)
+    """The mesh terms are on from this fraction of the co-evolution (:func:`stage_iteration`); the
+    proxy still guides signs and density from its first iteration. 0: from the first iteration,
+    where their gradient peaks (the method waits 500 of its iterations). 0.25 won on the hard suite's
+    screening subset (mean Chamfer 0.614 -> 0.612 %) and lost on the whole suite (0.516 -> 0.518 %:
+    bowl, mug, blob_flat worse), so it is off (``benchmarks/hard.md``)."""
     depth_form: DepthLoss = DepthLoss.LOG_RATIO
     """Form of the mesh-depth term."""
     mesh_depth_source: RenderedDepth = RenderedDepth.MEDIAN
@@ -376,6 +393,14 @@ class MeshConfig:
     """Weight of the extra samples relative to the centre."""
     normal_flip: NormalFlip = NormalFlip.MESH
     """Normal sign rule (mesh | view | random)."""
+    sign_distance: float = _f(3.0, RATE)
+    """Mesh-guided signs: a surfel not made on a mesh triangle takes its nearest proxy face's normal
+    side when that face is closer than this many of the surfel's in-plane sigmas (its larger scale),
+    the cameras' side otherwise; surfels made on a triangle (the TSDF scaffold, a spawn) keep its sign
+    (:func:`~wtopo.fitting.densify.align_normal_signs`). Before: every surfel took the face's side
+    within a fixed 0.02 of the scene extent and the cameras' side elsewhere, which flipped 37 % of the
+    hard suite's ``chair_ground`` scaffold surfels and moved its proxy from 1.1 % to 7.8 % of the
+    diagonal off the truth (``benchmarks/hard.md``)."""
     opacity_threshold: float = _f(0.0, FRACTION)
     """Surfels below this opacity do not contribute oriented points."""
     poisson_box: PoissonBox = PoissonBox.UNIT

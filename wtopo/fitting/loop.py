@@ -194,6 +194,8 @@ class FitRun:
     def _update_lr(self) -> None:
         o = self.cfg.optim
         frac = min(1.0, self.it / max(1, self.total_iterations))
+        if o.means_restart and self.it >= self.warmup_end:  # the co-evolution's own decay
+            frac = min(1.0, (self.it - self.warmup_end) / max(1, self.total_iterations - self.warmup_end))
         lr = o.means * (o.means_final / o.means) ** frac if o.means > 0 and o.means_final > 0 else o.means
         for g in self.opt.param_groups:
             if g["name"] == "means":

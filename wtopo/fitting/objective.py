@@ -130,7 +130,8 @@ class Objective:
                 L["scale"] = lc.scale * scale_regularizer(s.scales, _MAX_ANISOTROPY)
         terms = Terms(L, out, covered)
         co = self.cfg.coevolution
-        if stage == Stage.COEVOLUTION and co.enabled and (lc.mesh_depth > 0 or lc.mesh_normal > 0):
+        mesh_on = it >= self.warmup_end + stage_iteration(lc.mesh_start_fraction, int(co.iterations or 0))
+        if stage == Stage.COEVOLUTION and co.enabled and mesh_on and (lc.mesh_depth > 0 or lc.mesh_normal > 0):
             with T("proxy"):
                 pm = proxy.build(s)
             terms.proxy_built, terms.proxy = True, pm

@@ -120,19 +120,19 @@ class ProxyMesh:
         return ProxyResult(self._from_box(verts), faces)
 
     def supported(self, mesh: ProxyResult, surfels: Surfels) -> torch.Tensor | None:
-        """Which faces of ``mesh`` lie near a surfel: bool [F] on the mesh's device, or ``None`` when
-        ``cfg.support_voxels`` is 0 (every face supported).
+        """Which faces of ``mesh`` lie near a surfel (:meth:`near_surfels` at ``cfg.support_voxels``):
+        bool [F] on the mesh's device, or ``None`` when ``cfg.support_voxels`` is 0 (every face supported)."""
+        k = float(self.cfg.support_voxels)
+        return self.near_surfels(mesh, surfels, k) if k > 0 else None
 
-        A face is supported when its centroid is within ``support_voxels`` grid cells (of this proxy's
-        Poisson domain) plus :data:`_SUPPORT_SCALES` times the larger scale of the nearest surfel
-        centre among the surfels of opacity >= :data:`_SUPPORT_OPACITY`. Discrete; a host round trip
-        (KD-tree on the CPU).
+    def near_surfels(self, mesh: ProxyResult, surfels: Surfels, voxels: float) -> torch.Tensor:
+        """Faces of ``mesh`` whose centroid is within ``voxels`` grid cells (of this proxy's Poisson
+        domain) plus :data:`_SUPPORT_SCALES` times the larger scale of the nearest surfel centre among
+        the surfels of opacity >= :data:`_SUPPORT_OPACITY`: bool [F] on the mesh's device. Discrete; a
+        host round trip (KD-tree on the CPU).
         """
         from scipy.spatial import cKDTree
 
-        k = float(self.cfg.support_voxels)
-        if k <= 0:
-            return None
         f = mesh.faces.long()
         centroid = mesh.verts.detach()[f].mean(dim=1)
         opaque = surfels.opacities.detach().reshape(-1) >= _SUPPORT_OPACITY
@@ -142,7 +142,7 @@ class ProxyMesh:
         reach = surfels.scales.detach()[opaque].amax(dim=1).cpu().numpy() * _SUPPORT_SCALES
         dist, idx = cKDTree(means).query(centroid.cpu().numpy())
         voxel = self.size / int(self.cfg.resolution)
-        ok = dist <= k * voxel + reach[idx]
+        ok = dist <= voxels * voxel + reach[idx]
         return torch.as_tensor(ok, device=f.device)
 
     def supported_pixels(self, mesh: ProxyResult, render: MeshRender, surfels: Surfels) -> torch.Tensor | None:

@@ -235,8 +235,9 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
             record("final_tsdf_empty", why=str(e))
     if mesh is None:
         if NormalFlip(cfg.mesh.normal_flip) != NormalFlip.RANDOM and not guided:
-            # no mesh guidance ran: orient the normals by the cameras that saw each surfel
-            dens.align_normal_signs(surfels, NormalFlip.VIEW)
+            # no mesh guidance ran: orient the normals by the cameras that saw each surfel (mesh mode
+            # keeps the scaffold's signs)
+            dens.align_normal_signs(surfels, NormalFlip(cfg.mesh.normal_flip))
         final = ProxyMesh(dataclasses.replace(cfg.mesh, resolution=fc.poisson_resolution), box=proxy.box,
                           prior=proxy.prior)
         with torch.no_grad():

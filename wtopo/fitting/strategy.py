@@ -34,7 +34,6 @@ _GAP_EMA = 0.9  # smoothing of the running uncovered-pixel fraction
 _GAP_THRESHOLD = 0.002  # clone/split runs while more than this fraction of object pixels is uncovered
 _OPACITY_RESET_VALUE = 0.1  # a reset clamps opacities to at most this (low, yet above the 0.05 prune threshold)
 _GEOMETRY_DENSIFY_MAX = 2000  # surfels spawned per geometry-aware step at most: bounds the growth of one step
-_FLIP_DISTANCE = 0.02  # a surfel takes the mesh normal's sign when the nearest face is closer (extent fraction)
 # warm-up iterations an opacity reset needs after it; later resets are skipped (a reset 20 iterations
 # before the TSDF re-initialisation left an 80-iteration fit at 15 % Chamfer, 0.78 % without it)
 _RESET_RECOVERY = 100
@@ -192,8 +191,8 @@ class DensityStrategy:
             with torch.no_grad():
                 pm = proxy.build(s)
         if pm is None:
-            mode = NormalFlip.VIEW if NormalFlip(mc.normal_flip) == NormalFlip.MESH else NormalFlip(mc.normal_flip)
-            info["signs"] = dens.align_normal_signs(s, mode, generator=self.gen)
+            # no proxy: mesh mode keeps the scaffold's signs and orients the others by the cameras
+            info["signs"] = dens.align_normal_signs(s, NormalFlip(mc.normal_flip), generator=self.gen)
             self.record("mesh_guidance", **info)
             return
         verts, faces = pm.verts.detach(), pm.faces
@@ -201,11 +200,12 @@ class DensityStrategy:
         fn, _ = dens.face_normals(verts, faces)
         mn = torch.where((fid >= 0)[:, None], fn[fid.clamp_min(0).long()], torch.zeros_like(s.means.detach()))
         info["signs"] = dens.align_normal_signs(s, NormalFlip(mc.normal_flip), mesh_normal=mn, distance=dist,
-                                                max_distance=_FLIP_DISTANCE * ROI_EXTENT, generator=self.gen)
+                                                distance_scales=mc.sign_distance, generator=self.gen)
         if dc.geometry_densify:
+            near = proxy.near_surfels(pm, s, dc.geometry_densify_voxels) if dc.geometry_densify_voxels > 0 else None
             info["spawned"] = dens.geometry_densify(s, verts, faces, fid, max_new=_GEOMETRY_DENSIFY_MAX,
                                                     max_surfels=self.cfg.runtime.max_surfels, generator=self.gen,
-                                                    candidates=proxy.supported(pm, s))
+                                                    candidates=proxy.supported(pm, s), covered=near)
             dist = torch.cat([dist, torch.zeros(len(s) - dist.shape[0], dtype=dist.dtype, device=dist.device)])
         if dc.geometry_prune:
             if self.background is not None:  # background surfels are far from the proxy by design

@@ -24,6 +24,10 @@ _BUFFERS = {  # name -> (trailing shape, fill value)
     "grad_count": ((), 0.0),
     "view_dirs": ((3,), 0.0),
     "normal_sign": ((), 1.0),
+    # 1 where ``normal_sign`` came from a mesh triangle when the surfel was made (the TSDF scaffold, the
+    # proxy face it was spawned on): a sign refresh keeps it; 0: a near proxy face or the cameras decide
+    # (densify.align_normal_signs)
+    "mesh_sign": ((), 0.0),
 }
 _EPS_SCALE = 1e-7  # log-scale floor: 1e-7 of the unit cube is far below any pixel footprint
 

@@ -211,7 +211,8 @@ def mesh_to_surfels(mesh: trimesh.Trimesh, *, max_faces: int, device: torch.devi
 
     Centre at the centroid, normal = face normal, first tangent along the first edge, both scales
     ``sqrt(area / pi)`` (a disc of one sigma has the triangle's area, so neighbours overlap and the
-    surface is covered from the start), colour the mean of the vertex colours. The decimation is
+    surface is covered from the start), colour the mean of the vertex colours; the normal's sign is
+    the triangle's and marked as a mesh's (``buffers["mesh_sign"]``). The decimation is
     Open3D's quadric one; without Open3D (a GPU machine may lack it) ``max_faces`` faces are drawn
     with probability proportional to their area (seeded) and each surfel's disc takes an equal share
     of the whole mesh's area, so the surface stays covered.
@@ -250,6 +251,7 @@ def mesh_to_surfels(mesh: trimesh.Trimesh, *, max_faces: int, device: torch.devi
         scale = torch.full((pick.numel(),), float(np.sqrt(p.sum() / pick.numel() / np.pi)))
     s = Surfels.from_points(tri.mean(dim=1), col, scales=scale, normals=cr, tangents=e1, opacity=opacity,
                             sh_degree=sh_degree)
+    s.buffers["mesh_sign"].fill_(1.0)  # the triangle's side: a sign refresh keeps it (align_normal_signs)
     return _to(s, device)
 
 
