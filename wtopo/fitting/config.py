@@ -357,10 +357,11 @@ class LossConfig:
     """Surfel depth compared with the mesh depth (``EXPECTED`` averages in semi-transparent layers
     behind the surface and drags the proxy inwards: bunny Chamfer 0.281 %
     against 0.262 % with the median, ``benchmarks/fit.md``)."""
-    multiview: float = _f(0.0, RATE)
+    multiview: float | None = _f(None, RATE)
     """Multi-view photometric consistency (:mod:`wtopo.fitting.multiview`, PGSR's patch NCC): each
     training view's rendered plane at sampled pixels is warped into two neighbouring photographs and
-    scored by ``1 - NCC``; 0 turns it off."""
+    scored by ``1 - NCC``; 0 turns it off. ``None``: the plan's (0.15 when the photographs have
+    texture, 0 for shading-only captures; ``benchmarks/hard.md``, ``benchmarks/real.md``)."""
     multiview_start_fraction: float = _f(0.5, FRACTION)
     """The multi-view term is on from this fraction of the warm-up (:func:`stage_iteration`)."""
     multiview_pixels: int = _f(4096, COUNT)

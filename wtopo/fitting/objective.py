@@ -75,7 +75,7 @@ class Objective:
         self.cfg = cfg
         lc = cfg.losses
         self.multiview = None
-        if lc.multiview > 0 and roi_center is not None and len(train.cameras) > 1:
+        if (lc.multiview or 0.0) > 0 and roi_center is not None and len(train.cameras) > 1:
             self.multiview = MultiViewNCC(train.cameras, train.images, roi_center, pixels=lc.multiview_pixels,
                                           seed=cfg.runtime.seed)
         self.train = train

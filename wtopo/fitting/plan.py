@@ -40,6 +40,11 @@ _FINAL_FOOTPRINTS = 0.4
 _MASK_WEIGHT = 0.2  # alpha-vs-mask BCE weight: 0.5 pulls the surface in, 0 leaves short fits semi-transparent
 # (benchmarks/fit.md)
 
+_MULTIVIEW_WEIGHT = 0.15  # PGSR's multi-view NCC weight (benchmarks/hard.md, benchmarks/real.md)
+# median 7x7 grey std below which the multi-view term is left out (measured: the flat-albedo blob 0.009,
+# every textured scene of the suite and the rigs >= 0.043)
+_MULTIVIEW_TEXTURE = 0.02
+
 
 @dataclass
 class Decision:
@@ -106,6 +111,22 @@ def _texture_std(images: np.ndarray, masks: np.ndarray | None) -> float:
     if px.shape[0] < 2:
         return 0.0
     return float(px.std(axis=0).mean())
+
+
+def _window_std(images: np.ndarray, masks: np.ndarray | None, window: int = 7) -> float:
+    """Median grey-level standard deviation of ``window`` x ``window`` windows over the foreground
+    (mask) pixels of up to 8 views: the texture a patch comparison between views can match."""
+    import torch.nn.functional as F
+
+    step = max(1, images.shape[0] // 8)
+    g = torch.as_tensor(images[::step].astype(np.float32))
+    g = (g[..., 0] * 0.299 + g[..., 1] * 0.587 + g[..., 2] * 0.114)[:, None]
+    mu = F.avg_pool2d(g, window, 1, window // 2, count_include_pad=False)
+    mu2 = F.avg_pool2d(g * g, window, 1, window // 2, count_include_pad=False)
+    std = (mu2 - mu * mu).clamp_min(0).sqrt()[:, 0]
+    if masks is not None:
+        std = std[torch.as_tensor(masks[::step].astype(bool))]
+    return float(std.median()) if std.numel() else 0.0
 
 
 def _view_inconsistency(scene, images: np.ndarray, depths: np.ndarray, rng: np.random.Generator) -> float:
@@ -216,6 +237,18 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
         deg, why = 1, f"textured (colour std {tex:.3f}) and no depth to test view dependence"
     plan.set("sh_degree", deg, why, cfg.sh_degree)
 
+    # -- multi-view consistency (PGSR's patch NCC): it needs texture that windows can match
+    wstd = _window_std(images, masks)
+    if n_views < 2:
+        mv, why = 0.0, "one view: no neighbour to compare with"
+    elif wstd < _MULTIVIEW_TEXTURE:
+        mv, why = 0.0, (f"shading only (median 7x7 grey std {wstd:.4f} < {_MULTIVIEW_TEXTURE}): windows do not "
+                        "match between views (flat-albedo blob: Chamfer 0.34 -> 0.50 % with the term)")
+    else:
+        mv, why = _MULTIVIEW_WEIGHT, (f"textured (median 7x7 grey std {wstd:.3f}): patch NCC against two "
+                                      "neighbouring views from mid warm-up")
+    plan.set("multiview", mv, why, cfg.losses.multiview)
+
     # -- density control
     dens = src == "cameras" or n_pts < 2000 or is_scene
     if is_scene:  # the background covers every pixel: a coverage gap never opens
@@ -312,6 +345,7 @@ def resolve_config(cfg: FitConfig, plan: Plan) -> FitConfig:
     out.warmup.iterations = int(plan["warmup_iterations"])
     out.coevolution.iterations = int(plan["coevolution_iterations"])
     out.coevolution.enabled = bool(plan["mesh_loop"])
+    out.losses.multiview = float(plan["multiview"])
     out.runtime.max_surfels = int(plan["max_surfels"])
     out.tsdf.max_faces = int(plan["reinit_faces"])
     out.runtime.image_scale = float(plan["image_scale"])
