@@ -9,14 +9,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 import trimesh
+from fit_configs import small_fit_config
+from lenses import barrel_twin
 
 from wtopo import scenes
 from wtopo.camera import Camera
 from wtopo.fitting.multiview import MultiViewNCC
 
-_BARREL = (-0.3, 0.05, 0.002, -0.002, 0.0)
 _LO, _HI = np.array([-1.2, -1.2, -0.3]), np.array([1.2, 1.2, 0.3])
 
 
@@ -84,21 +84,8 @@ def test_gradient_reaches_the_normal(plane):
     assert torch.isfinite(n.grad).all()
 
 
-def _distorted(sc):
-    cams, imgs = [], []
-    for cam, img in zip(sc.cameras, sc.images):
-        lens = Camera(cam.K, cam.world_to_camera, cam.width, cam.height, np.array(_BARREL), cam.name)
-        o, d = lens.pixel_rays()
-        uv, _ = cam.project((o + 3.0 * d).reshape(-1, 3).numpy())
-        g = torch.as_tensor(np.stack([uv[:, 0] / cam.width * 2 - 1, uv[:, 1] / cam.height * 2 - 1], -1),
-                            dtype=torch.float32).reshape(1, cam.height, cam.width, 2)
-        imgs.append(F.grid_sample(img.permute(2, 0, 1)[None], g, align_corners=False)[0].permute(1, 2, 0))
-        cams.append(lens)
-    return cams, torch.stack(imgs)
-
-
 def test_distorted_rig_scores_like_its_pinhole_twin(plane):
-    cams, imgs = _distorted(plane)
+    cams, imgs = barrel_twin(plane)
     d, n, a = _truth(cams[0])
     true = float(_term(cams, imgs)(0, 0, d, n, a))
     off = float(_term(cams, imgs)(0, 0, d * 1.04, n, a))
@@ -130,12 +117,6 @@ def test_bad_arguments_are_named(plane):
 
 def test_a_fit_with_the_term_records_it():
     """The term joins the fit from its start fraction, finite, with a gradient on the surfels."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from fit_configs import small_fit_config
-
     import wtopo
 
     sc = scenes.from_mesh(trimesh.creation.icosphere(subdivisions=3), n_views=8, resolution=32, texture="coffee",

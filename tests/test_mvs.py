@@ -7,16 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 import trimesh
+from lenses import barrel_twin
 
 from wtopo import scenes
-from wtopo.camera import Camera
 from wtopo.fitting.config import FitConfig, InitConfig, InitSource
 from wtopo.fitting.init import initial_surfels, spread_subset
 from wtopo.fitting.mvs import plane_sweep_points, select_neighbours
-
-_BARREL = (-0.3, 0.05, 0.002, -0.002, 0.0)  # ~3 px at the corners of 64 x 48 px
 
 
 def _plane_scene(n_views=10):
@@ -75,23 +72,9 @@ def test_sphere_points_lie_on_the_sphere(sphere):
     assert np.median(radial) > 0.85  # measured 0.91 (normals from 2-px depth differences)
 
 
-def _distorted_twin(sc):
-    """The scene's images seen through a barrel lens of the same pose (resampled from the pinhole)."""
-    cams, imgs = [], []
-    for cam, img in zip(sc.cameras, sc.images):
-        lens = Camera(cam.K, cam.world_to_camera, cam.width, cam.height, np.array(_BARREL), cam.name)
-        o, d = lens.pixel_rays()
-        uv, z = cam.project((o + 3.0 * d).reshape(-1, 3).numpy())
-        g = torch.as_tensor(np.stack([uv[:, 0] / cam.width * 2 - 1, uv[:, 1] / cam.height * 2 - 1], -1),
-                            dtype=torch.float32).reshape(1, cam.height, cam.width, 2)
-        imgs.append(F.grid_sample(img.permute(2, 0, 1)[None], g, align_corners=False)[0].permute(1, 2, 0))
-        cams.append(lens)
-    return cams, torch.stack(imgs)
-
-
 def test_distorted_rig_matches_its_undistorted_twin(sphere):
     sc, twin = sphere
-    cams, imgs = _distorted_twin(sc)
+    cams, imgs = barrel_twin(sc)
     lo, hi = np.full(3, -1.2), np.full(3, 1.2)
     res = plane_sweep_points(cams, imgs, lo, hi, near=0.05)
     assert len(res.points) > 0.5 * len(twin.points)

@@ -18,8 +18,9 @@ the normal of the surfels the reference view's pixels rest on.
 * Windows whose best cost reaches ``_MAX_COST`` (no neighbour correlates: occlusion, a view that
   does not see the point, a wildly wrong plane) and windows without texture (grey-level standard
   deviation under ``_MIN_STD``) carry no loss, as in PGSR (its ``ncc < 0.9`` mask).
-* Pixels are drawn uniformly in the image interior without a host read: pixels the surfels do not
-  cover (opacity under one half) are weighted out.
+* Pixels are drawn uniformly in the image interior on the fit's device (a generator there, seeded
+  per iteration: no host-to-device copy, no host read); pixels the surfels do not cover (opacity
+  under one half) are weighted out.
 
 Everything is torch on the fit's device; only the rendered depth and normal carry gradients.
 """
@@ -31,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from ..camera import Camera
-from .mvs import _TorchCam, select_neighbours
+from .mvs import _gray, _TorchCam, select_neighbours
 
 __all__ = ["MultiViewNCC"]
 
@@ -40,11 +41,6 @@ _MIN_STD = 0.01  # reference windows with a grey-level std below this (of [0, 1]
 _NCC_EPS = 1e-6
 _DRAWN_NEIGHBOURS = 2  # neighbours scored per iteration; each window keeps its better one
 _GRAZING = 0.05  # |cos| between a patch ray and the plane normal below which the window is dropped
-
-
-def _gray(img: torch.Tensor) -> torch.Tensor:
-    """[H, W, 3] RGB in [0, 1] -> [H, W] luma."""
-    return img[..., 0] * 0.299 + img[..., 1] * 0.587 + img[..., 2] * 0.114
 
 
 class MultiViewNCC:
@@ -77,6 +73,7 @@ class MultiViewNCC:
         self._tcams: dict[int, _TorchCam] = {}
         self._grays: dict[int, torch.Tensor] = {}
         self._offsets: dict[torch.device, torch.Tensor] = {}
+        self._generators: dict[torch.device, torch.Generator] = {}
 
     def has_neighbours(self, vi: int) -> bool:
         """View ``vi`` has a neighbour to compare with."""
@@ -118,11 +115,15 @@ class MultiViewNCC:
         H, W, h = ref.H, ref.W, self.half
         if 2 * h >= H or 2 * h >= W or not self.neighbours[vi]:
             return median_depth.sum() * 0.0
-        g = torch.Generator().manual_seed(self.seed * 1_000_003 + it)
-        py = torch.randint(h, H - h, (self.pixels,), generator=g).to(dev)
-        px = torch.randint(h, W - h, (self.pixels,), generator=g).to(dev)
+        seed = self.seed * 1_000_003 + it
+        g = self._generators.get(dev)
+        if g is None:
+            g = self._generators[dev] = torch.Generator(dev)
+        g.manual_seed(seed)
+        py = torch.randint(h, H - h, (self.pixels,), generator=g, device=dev)
+        px = torch.randint(h, W - h, (self.pixels,), generator=g, device=dev)
         nb = self.neighbours[vi]
-        pick = torch.randperm(len(nb), generator=g)[:_DRAWN_NEIGHBOURS].tolist()
+        pick = torch.randperm(len(nb), generator=torch.Generator().manual_seed(seed))[:_DRAWN_NEIGHBOURS].tolist()
         # the plane at each drawn pixel: its rendered point and unit normal
         d = median_depth[py, px]
         n = normal[py, px]

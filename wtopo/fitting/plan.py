@@ -14,8 +14,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from .config import FitConfig, TSDFBackend
+from .mvs import _gray
 from .scene_kind import SceneKind, analyse_layout
 
 __all__ = ["Decision", "Plan", "make_plan", "resolve_config"]
@@ -116,11 +118,8 @@ def _texture_std(images: np.ndarray, masks: np.ndarray | None) -> float:
 def _window_std(images: np.ndarray, masks: np.ndarray | None, window: int = 7) -> float:
     """Median grey-level standard deviation of ``window`` x ``window`` windows over the foreground
     (mask) pixels of up to 8 views: the texture a patch comparison between views can match."""
-    import torch.nn.functional as F
-
     step = max(1, images.shape[0] // 8)
-    g = torch.as_tensor(images[::step].astype(np.float32))
-    g = (g[..., 0] * 0.299 + g[..., 1] * 0.587 + g[..., 2] * 0.114)[:, None]
+    g = _gray(torch.as_tensor(images[::step].astype(np.float32)))[:, None]
     mu = F.avg_pool2d(g, window, 1, window // 2, count_include_pad=False)
     mu2 = F.avg_pool2d(g * g, window, 1, window // 2, count_include_pad=False)
     std = (mu2 - mu * mu).clamp_min(0).sqrt()[:, 0]
