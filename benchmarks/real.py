@@ -102,6 +102,7 @@ class _Mode:
 
     fit_only = False
     measure = False
+    oracle_roi = False
 
 
 def _fit(scene, cfg, out_dir):
@@ -140,6 +141,10 @@ def run_synthetic(key: str, cfg: FitConfig, run_dir: str, scene_kw: dict) -> dic
     scene = scenes.load(SCENES[key], **scene_kw)
     roi = scene.info["roi"]
     est = estimated_roi(scene)
+    if _Mode.oracle_roi:  # diagnostic: give the fit the intended region of interest as Scene.bounds
+        scene.bounds = (np.asarray(roi[0], np.float64), np.asarray(roi[1], np.float64))
+        scene.__post_init__()
+        est = "intended (--oracle-roi)"
     print(f"[{key}] intended ROI {_roi_text(roi)}; estimated from the cameras {est}", flush=True)
     if _Mode.fit_only:  # no geometry metrics during the fit (they need Open3D): --measure does them
         scene.gt_mesh = None
@@ -323,11 +328,13 @@ def main(argv=None) -> int:
                     help="fit output folders (<run-dir>/<label>/<scene>, replaced)")
     ap.add_argument("--label", default="run", help="section title in --out")
     ap.add_argument("--out", help="markdown file to write the section to (e.g. benchmarks/real.md)")
+    ap.add_argument("--oracle-roi", action="store_true",
+                    help="diagnostic: give the synthetic scenes their intended region of interest as Scene.bounds")
     mode = ap.add_mutually_exclusive_group()
     mode.add_argument("--fit-only", action="store_true", help="fit and save, measure later with --measure")
     mode.add_argument("--measure", action="store_true", help="measure the fits --fit-only saved in --run-dir")
     args = ap.parse_args(argv)
-    _Mode.fit_only, _Mode.measure = args.fit_only, args.measure
+    _Mode.fit_only, _Mode.measure, _Mode.oracle_roi = args.fit_only, args.measure, args.oracle_roi
 
     cfg = _config(args.device, args.set)
     kw = {}

@@ -206,3 +206,28 @@ def test_environment_photometric_and_seed(env_scene):
         scenes.load("bunny_env", photometric=0.01, **TINY_ENV)
     with pytest.raises(ValueError, match="bounds_from_roi"):
         scenes.from_mesh(trimesh.creation.icosphere(1), n_views=2, resolution=8, bounds_from_roi=True)
+
+
+def test_forward_rig_region_sits_at_the_depth_the_pictures_show():
+    """A forward-facing rig without bounds, masks or points: the region of interest is centred at the
+    depth stereo measures in the middle of the pictures (the object), not at the rig-geometry guess,
+    and holds the object's nearest point; a capture without texture falls back to the guess."""
+    from wtopo import Scene
+    from wtopo._region import visual_hull_box
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    s = scenes.from_mesh(ball, n_views=9, resolution=(64, 48), rig="forward", background="black", n_test=0)
+    sc = Scene(s.cameras, s.images)  # no masks: the fit would treat it as a scene
+    lo, hi = sc.region_of_interest()
+    fwd = s.cameras[0].forward
+    nearest = -fwd  # the point of the unit ball nearest the rig
+    assert np.all(lo <= nearest) and np.all(hi >= nearest)
+    guess = visual_hull_box(s.cameras, None)  # the cameras alone
+    origin = np.mean([c.center for c in s.cameras], axis=0)
+    depth = float((0.5 * (lo + hi) - origin) @ fwd)
+    truth = float(-origin @ fwd)  # the ball's centre
+    guessed = float((0.5 * (guess[0] + guess[1]) - origin) @ fwd)
+    assert abs(depth - truth) < 1.0, (depth, truth)  # within the ball's radius
+    assert abs(guessed - truth) > abs(depth - truth)
+    flat = Scene(s.cameras, torch.full_like(s.images, 0.5))
+    np.testing.assert_allclose(np.stack(flat.region_of_interest()), np.stack(guess))

@@ -24,6 +24,13 @@ _DEGENERATE_SPREAD = 1e-9  # camera centres closer than this (relative to the sc
 _FORWARD_OVERLAP = 2.0  # forward-facing rigs: the frusta's common width at the focus, in rig spreads
 _COLINEAR_RATIO = 1e-6  # second / first singular value of the centred camera centres below this: colinear
 _PIXEL_SLACK = math.sqrt(0.5)  # px: a projected point and its pixel's centre are at most half a diagonal apart
+# forward-facing rigs with images: the depth the cameras look at, measured by plane-sweep stereo on
+# this many views at about this many pixels along the longer image side, over depths from / to these
+# multiples of the rig-geometry guess, from the points within this fraction of the half field of view
+_STEREO_VIEWS = 8
+_STEREO_PIXELS = 64
+_STEREO_NEAR, _STEREO_FAR = 0.05, 8.0
+_STEREO_CENTRAL = 0.5
 
 
 # -- region-of-interest estimation (host, float64) ------------------------------------------------
@@ -150,11 +157,14 @@ def carve(cameras, masks_np, lo, hi, res, *, mask_dist=None, footprint: bool = T
     return g[keep]
 
 
-def _forward_focus(cameras, centers: np.ndarray) -> tuple[np.ndarray | None, float]:
+def _forward_focus(cameras, centers: np.ndarray, images=None) -> tuple[np.ndarray | None, float]:
     """Focus and radius for parallel optical axes (a forward-facing rig, as LLFF): along the mean
-    viewing direction, at the depth where the frusta overlap over ``_FORWARD_OVERLAP`` times the
-    rig's spread (a narrower overlap leaves nothing that 90 % of the cameras see); the radius is half
-    that depth. A guess from the cameras alone: give ``bounds`` or points to do better."""
+    viewing direction at depth ``d``, radius ``d / 2``.
+
+    ``d`` is the median depth of what the middle of the pictures shows (:func:`_stereo_depth`: plane
+    sweep stereo on a few downscaled views) when ``images`` are given and hold texture; otherwise a
+    guess from the cameras alone: the depth where the frusta overlap over ``_FORWARD_OVERLAP`` times
+    the rig's spread (a narrower overlap leaves nothing that 90 % of the cameras see)."""
     fwd = np.stack([c.forward for c in cameras]).mean(axis=0)
     norm = float(np.linalg.norm(fwd))
     if norm < 1e-6:
@@ -167,13 +177,50 @@ def _forward_focus(cameras, centers: np.ndarray) -> tuple[np.ndarray | None, flo
     if spread <= 0 or tan_half <= 0:
         return None, 0.0
     depth = (1.0 + _FORWARD_OVERLAP) * spread / (2.0 * tan_half)
+    if images is not None:
+        measured = _stereo_depth(cameras, images, centers.mean(axis=0), fwd, depth, tan_half)
+        depth = measured if measured is not None else depth
     return centers.mean(axis=0) + depth * fwd, 0.5 * depth
 
 
-def visual_hull_box(cameras, masks) -> tuple[np.ndarray, np.ndarray]:
+def _stereo_depth(cameras, images, origin: np.ndarray, fwd: np.ndarray, guess: float,
+                  tan_half: float) -> float | None:
+    """Median depth along ``fwd`` from ``origin`` (world units) of the stereo-confirmed points
+    (:func:`wtopo.fitting.mvs.plane_sweep_points`) within ``_STEREO_CENTRAL`` of the half field of view
+    ``tan_half`` around the rig's axis; ``None`` when fewer than 8 (an untextured capture) or the views
+    differ in size. The sweep runs on ``_STEREO_VIEWS`` views at ``_STEREO_PIXELS`` px in a frame
+    centred on ``origin`` and scaled by ``guess`` (the estimate does not depend on the input's units or
+    position), over depths from ``_STEREO_NEAR`` to ``_STEREO_FAR`` times ``guess``."""
+    import torch
+    import torch.nn.functional as fn
+
+    from .fitting.mvs import plane_sweep_points
+
+    img = torch.as_tensor(images, dtype=torch.float32)
+    if img.ndim != 4 or img.shape[0] != len(cameras) or len({(c.width, c.height) for c in cameras}) != 1:
+        return None
+    n = min(_STEREO_VIEWS, len(cameras))
+    pick = np.unique(np.round(np.linspace(0, len(cameras) - 1, n)).astype(np.int64))
+    factor = min(1.0, _STEREO_PIXELS / max(cameras[0].width, cameras[0].height))
+    cams = [cameras[i].transformed(1.0 / guess, -origin).scaled(factor) for i in pick]
+    small = img[torch.as_tensor(pick)].permute(0, 3, 1, 2)
+    small = fn.interpolate(small, size=(cams[0].height, cams[0].width), mode="area").permute(0, 2, 3, 1)
+    reach = np.full(3, _STEREO_FAR)
+    pts = plane_sweep_points(cams, small, -reach, reach, near=_STEREO_NEAR).points
+    z = pts @ fwd
+    off = np.linalg.norm(pts - np.outer(z, fwd), axis=1)
+    central = (z > 0) & (off <= _STEREO_CENTRAL * tan_half * z)
+    if int(central.sum()) < 8:
+        return None
+    return float(np.median(z[central])) * guess
+
+
+def visual_hull_box(cameras, masks, images=None) -> tuple[np.ndarray, np.ndarray]:
     """The box ``(lower [3], upper [3])`` (float64, world units) around the visual hull of ``masks``
     (bool [N, H, W] tensor), or for ``masks=None`` around the region 90 % of the frusta hold: carved on a
-    sphere around the point the viewing rays converge on, then on the box of the first pass.
+    sphere around the point the viewing rays converge on, then on the box of the first pass. For
+    parallel viewing rays (a forward-facing rig) the sphere lies at the depth the middle of the
+    ``images`` (float [N, H, W, 3], optional) shows, by stereo (:func:`_forward_focus`).
 
     Raises:
         ValueError: the cameras are degenerate (:func:`_check_camera_spread`), a mask is empty, the
@@ -197,7 +244,7 @@ def visual_hull_box(cameras, masks) -> tuple[np.ndarray, np.ndarray]:
         focus = _converge_point(centers, np.stack([c.forward for c in cameras]))
     radius = None
     if focus is None and masks_np is None:
-        focus, radius = _forward_focus(cameras, centers)
+        focus, radius = _forward_focus(cameras, centers, images)
     if focus is None:
         raise ValueError("the cameras' viewing rays are parallel, so the region of interest cannot be "
                          "estimated from them; give Scene(bounds=...) or init points")

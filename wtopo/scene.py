@@ -466,7 +466,7 @@ class Scene:
             box = points_box(self.cameras, self.points)
             if box is not None:
                 return box
-        return visual_hull_box(self.cameras, None)
+        return visual_hull_box(self.cameras, None, self.images)
 
     # -- output ---------------------------------------------------------------------------------
     def save(self, path) -> None:
