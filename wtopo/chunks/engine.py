@@ -226,6 +226,9 @@ def _merge(out: Path, plan: ChunkPlan, ccfg: ChunkConfig, scene, cfg, device: st
             continue
         if ccfg.merge == "weld":
             meshes[ch.index] = trimesh.load(d / "mesh.ply", process=False, force="mesh")
+            if len(meshes[ch.index].faces) == 0 and json.loads((d / "chunk.json").read_text()).get("faces") == 0:
+                raise RuntimeError(f"chunk {ch.index} in {d} was fitted without its own mesh (a re-fusing run); "
+                                   "merge='weld' needs it: remove the directory to fit the chunk again")
         if (d / "surfels.ply").exists():
             surfels[ch.index] = read_surfels_ply(d / "surfels.ply")
         resolutions[ch.index] = int(json.loads((d / "config.json").read_text())["final"]["resolution"])
@@ -261,6 +264,11 @@ def _gather(obj, world: int) -> list:
 def fit_chunked(scene, out_dir: str | os.PathLike, config=None, *, chunk_config: ChunkConfig | None = None,
                 progress: bool = True) -> ChunkedResult | None:
     """Fit ``scene`` as overlapping chunks and merge them into one mesh (see the module docstring).
+
+    The merge is ``chunk_config.merge``: ``"refuse"`` (default) meshes the chunks' merged core surfels
+    once over the whole region of interest with the fit's own final meshing on rank 0's device
+    (:func:`~.merge.refuse_mesh`; the chunks' fits then skip their own final mesh), ``"weld"`` welds
+    the chunks' own meshes at the cuts (:func:`~.merge.merge_meshes`).
 
     Under ``torchrun`` (an initialised ``torch.distributed`` process group) every rank calls this
     with the same scene and configuration; rank 0 plans, the plan is broadcast, each rank fits its

@@ -234,9 +234,7 @@ def _core_renderer(base, plan: ChunkPlan, sim, views: dict, which):
             owner = (cell[..., 0] * g[1] + cell[..., 1]) * g[2] + cell[..., 2]
             return dataclasses.replace(out, alpha=torch.where(allowed[owner], out.alpha, torch.zeros_like(out.alpha)))
 
-    r = _CoreViews.__new__(_CoreViews)
-    r.background, r.config = base.background, base.config
-    return r
+    return _CoreViews(base.background, base.config)
 
 
 def refuse_mesh(scene, surfels, config, *, resolution: int, device: str = "cpu", plan: ChunkPlan | None = None
