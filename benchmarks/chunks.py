@@ -13,6 +13,10 @@ memory to the mesh on disk (scene rendering excluded):
 * ``chunked_<N>gpu`` (``--torchrun``, launched by torchrun): the same chunks on N processes, one GPU
   each.
 
+``--merge weld`` runs the chunked fits with the old merge (each chunk meshes itself, the meshes are
+welded at the cuts) under the names ``chunked_1proc_weld`` / ``chunked_<N>gpu_weld``; the default
+``refuse`` re-fuses the merged surfels once over the region (``wtopo.chunks.refuse_mesh``).
+
 Every process first runs a short untimed fit of 8 views (:func:`warm_up`), so Warp's kernel
 compilation and first-call costs are not charged to whichever run comes first.
 
@@ -23,7 +27,10 @@ protocol, tau = 0.5 % of the ROI diagonal; exact distances with Open3D, else nea
 samples, :class:`_Distance`), F1 inside a band around the chunk cuts (the seams; half-width = the
 chunks' overlap margin) and outside it, and the open edges left near the cuts. Every run writes
 ``<run-dir>/results/<run>.json`` and the table in ``--out`` is rebuilt from all results there,
-under ``## <label>``; the speed-up is ``single`` wall clock over each chunked run's.
+under ``## <label>``. Speed-ups: over ``single`` (one fit of the whole scene on one device) and over
+``chunked_1proc`` (the same chunked fit, same merge, its chunks one after another on one device: the
+one-GPU run of equal quality), each with the F1 difference, so the table shows which comparison meets
+issue 18's "F1 within 0.01".
 
 Commands (a host with two GPUs and the package's dependencies: warp, torch, trimesh, scipy, scikit-image;
 Open3D optional)::
@@ -63,6 +70,7 @@ from wtopo.scenes import Photometric  # noqa: E402
 TAU_FRACTION = 0.005  # F-score threshold, fraction of the ROI diagonal (as benchmarks/real.py)
 EVAL_SAMPLES = 100_000  # in-box samples per surface
 REFERENCE_SAMPLES = 2_000_000  # without Open3D: samples standing in for each surface in distance queries
+F1_EQUAL = 0.01  # issue 18: "equal quality" is F1 within 0.01
 FULL = dict(n_objects=6, orbit_views=24, forward_views=60, resolution=(200, 150))
 SMOKE = dict(n_objects=3, orbit_views=8, forward_views=8, resolution=(64, 48))
 
@@ -225,7 +233,7 @@ def run_chunked(scene, cfg, args, name: str) -> None:
     if world > 1:
         torch.distributed.barrier()  # every rank has its scene and the old run is gone: the clock starts together
     t = time.perf_counter()
-    ccfg = ChunkConfig(chunks=args.chunks, overlap=args.overlap, min_share=args.min_share)
+    ccfg = ChunkConfig(chunks=args.chunks, overlap=args.overlap, min_share=args.min_share, merge=args.merge)
     res = fit_chunked(scene, out, cfg, chunk_config=ccfg, progress=rank == 0)
     seconds = time.perf_counter() - t
     if res is None:
@@ -236,7 +244,21 @@ def run_chunked(scene, cfg, args, name: str) -> None:
     else:
         mem, kind = [r["peak_rss_bytes"] for r in ranks], "CPU peak RSS per process"
     measure(name, scene, res.mesh, seconds, mem, kind, args,
-            {"per_chunk": res.report["per_chunk"], "merge": res.report["merge"], "grid": res.report["grid"]})
+            {"per_chunk": res.report["per_chunk"], "merge": res.report["merge"], "grid": res.report["grid"],
+             "merge_s": res.report["merge_s"], "merge_method": args.merge})
+
+
+def _suffix(args) -> str:
+    """Run-name suffix of the merge: none for the default re-fusion, ``_weld`` for the weld."""
+    return "" if args.merge == "refuse" else f"_{args.merge}"
+
+
+def _speedup(base, r) -> str:
+    """``base`` wall clock over ``r``'s, with ``r``'s F1 minus ``base``'s and whether it is within 0.01."""
+    if base is None:
+        return "-"
+    d = r["f1"]["all"]["f1"] - base["f1"]["all"]["f1"]
+    return f"{base['seconds'] / r['seconds']:.2f}x (F1 {d:+.3f}{', equal' if abs(d) <= F1_EQUAL else ''})"
 
 
 def write_markdown(args) -> None:
@@ -252,21 +274,27 @@ def write_markdown(args) -> None:
              f"Scene: {first['views']} views of {first['resolution'][0]}x{first['resolution'][1]} px, "
              f"device `{args.device}`, {args.chunks} chunks, overlap {args.overlap}; distances "
              f"{first['f1'].get('distance', 'exact (Open3D)')}.", "",
-             "| run | wall s | speed-up | peak memory GiB (per process) | F1 | F1 band | F1 rest "
-             "| open edges at cuts | faces |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| run | wall s | speed-up over `single` | speed-up over `chunked_1proc` (same merge) "
+             "| peak memory GiB (per process) | F1 | F1 band | F1 rest | open edges at cuts | faces |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name in sorted(rows, key=lambda k: (k != "single", k)):
         r = rows[name]
-        sp = f"{base['seconds'] / r['seconds']:.2f}x" if base else "-"
+        one = rows.get("chunked_1proc" + ("_weld" if r.get("merge_method") == "weld" else ""))
         mem = ", ".join(f"{m:.2f}" for m in r["memory_gib"]) + (" (RSS)" if "RSS" in r["memory_kind"] else "")
         f = r["f1"]
-        lines.append(f"| {name} | {r['seconds']:.1f} | {sp} | {mem} | {f['all']['f1']:.3f} | {f['band']['f1']:.3f} | "
-                     f"{f['rest']['f1']:.3f} | {r['open_edges_near_cuts']} | {r['faces']} |")
+        lines.append(f"| {name} | {r['seconds']:.1f} | {_speedup(base, r)} | "
+                     f"{_speedup(one, r) if 'per_chunk' in r else '-'} | {mem} | {f['all']['f1']:.3f} | "
+                     f"{f['band']['f1']:.3f} | {f['rest']['f1']:.3f} | {r['open_edges_near_cuts']} | {r['faces']} |")
     for name, r in sorted(rows.items()):
         if "per_chunk" in r:
-            per = "; ".join(f"chunk {c['index']}: {c['seconds']:.0f} s, {c['views']} views, share "
-                            f"{c.get('iteration_share', 1):.2f}, rank {c['rank']}" for c in r["per_chunk"])
-            lines.append(f"\n`{name}`: grid {r['grid']}; {per}; welded {r['merge'].get('welded', 0)} vertices.")
+            per = "; ".join(f"chunk {c['index']}: {c['seconds']:.0f} s (final mesh {c.get('final_s', 0):.2f} s), "
+                            f"{c['views']} views, share {c.get('iteration_share', 1):.2f}, rank {c['rank']}"
+                            for c in r["per_chunk"])
+            m = r["merge"]
+            how = (f"re-fused at {m.get('resolution')} voxels ({m.get('voxel') or 0:.3g} world units, "
+                   f"{m.get('tsdf_backend')}) in {r.get('merge_s', 0):.1f} s" if m.get("method", "weld") == "refuse"
+                   else f"welded {m.get('welded', 0)} vertices in {r.get('merge_s', 0):.1f} s")
+            lines.append(f"\n`{name}`: grid {r['grid']}; {per}; merge: {how}.")
     section = "\n".join(lines) + "\n"
     text = "# Chunked fitting (issue 18)\n\n"
     if os.path.exists(args.out):
@@ -291,6 +319,8 @@ def main(argv=None) -> int:
     # views (at most 1.47x on two GPUs); 0.05 / 0.2 give 115 (at most 1.77x), narrower seams to test
     p.add_argument("--overlap", type=float, default=0.05, help="ChunkConfig.overlap (library default 0.15)")
     p.add_argument("--min-share", type=float, default=0.2, help="ChunkConfig.min_share (library default 0.1)")
+    p.add_argument("--merge", choices=("refuse", "weld"), default="refuse",
+                   help="ChunkConfig.merge; weld runs are named chunked_*_weld")
     p.add_argument("--objects", type=int, help="objects in the row (default 6, smoke 3)")
     p.add_argument("--points", type=int, default=0, help="sparse truth points given to the scene (0: stereo init)")
     p.add_argument("--smoke", action="store_true", help="small scene and short fits (CPU)")
@@ -319,7 +349,8 @@ def main(argv=None) -> int:
         wcfg.runtime.device = device
         warm_up(scene, wcfg)
     if args.torchrun:
-        run_chunked(scene, cfg, args, f"chunked_{world}{'gpu' if args.device.startswith('cuda') else 'proc'}")
+        kind = "gpu" if args.device.startswith("cuda") else "proc"
+        run_chunked(scene, cfg, args, f"chunked_{world}{kind}{_suffix(args)}")
         torch.distributed.destroy_process_group()
     else:
         runs = [r.strip() for r in args.runs.split(",") if r.strip()]
@@ -330,7 +361,7 @@ def main(argv=None) -> int:
             if r == "single":
                 run_single(scene, cfg, args)
             else:
-                run_chunked(scene, cfg, args, "chunked_1proc")
+                run_chunked(scene, cfg, args, f"chunked_1proc{_suffix(args)}")
     if rank == 0:
         write_markdown(args)
     return 0

@@ -184,6 +184,86 @@ def test_two_chunk_fit_matches_the_single_fit(street, tmp_path):
     assert all(c.get("resumed") for c in again.report["per_chunk"])  # finished chunks are not fitted again
 
 
+def _sphere_surfels(center, radius: float, n: int):
+    """``n`` opaque surfels tiling a sphere (Fibonacci lattice, radial normals): world-frame arrays as
+    :func:`wtopo.chunks.merge_surfels` gives them."""
+    from wtopo.fitting.surfels import normals_to_quats
+
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    phi = np.pi * (1 + 5 ** 0.5) * k
+    nrm = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
+    sigma = radius * np.sqrt(4 * np.pi / n)  # one lattice spacing: neighbouring discs overlap, no holes
+    quats = normals_to_quats(torch.as_tensor(nrm, dtype=torch.float32)).numpy()
+    return (np.asarray(center) + radius * nrm).astype(np.float32), quats, np.full((n, 2), sigma, np.float32), \
+        np.full(n, 0.95, np.float32), np.zeros((n, 1, 3), np.float32)
+
+
+def test_refused_merge_is_closed_across_the_cut_and_in_the_world_frame():
+    """Re-fuse a sphere's surfels over a 2-chunk plan cut through it: no open edge at the cut, world frame."""
+    from wtopo.camera import Camera
+    from wtopo.chunks.merge import boundary_edges_near
+
+    center, radius = np.array([40.0, -25.0, 3.0]), 2.0  # far from the origin, not unit sized
+    rig = [(a, h) for h in (-5.0, 0.0, 5.0) for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)]
+    cams = [Camera.look_at(center + [7 * np.cos(a), 7 * np.sin(a), h], center, [0, 0, 1], fov_x=0.9, width=48,
+                           height=36, name=f"v{i}") for i, (a, h) in enumerate(rig)]
+    scene = Scene(cams, np.full((len(cams), 36, 48, 3), 0.5, np.float32), bounds=(center - 2.6, center + 2.6))
+    cfg = _tiny_config()
+    plan = wc.plan_chunks(scene, wc.ChunkConfig(chunks=2, min_views=1), fit_config=cfg)
+    # each chunk keeps the cameras on its side (every camera sees both halves here): each view fuses only
+    # its chunk's core, so the surface at the cut is fused from the two sides' views
+    x = np.array([c.center[0] for c in cams])
+    plan.chunks[0].cameras = np.nonzero(x <= center[0] + 0.1)[0].tolist()
+    plan.chunks[1].cameras = np.nonzero(x >= center[0] - 0.1)[0].tolist()
+    mesh, info = wc.refuse_mesh(scene, _sphere_surfels(center, radius, 3000), cfg, resolution=48, device="cpu",
+                                plan=plan)
+    (axis, cut), = plan.cuts()
+    assert axis == 0 and abs(cut - center[0]) < 1e-9  # the cut goes through the sphere
+    assert boundary_edges_near(mesh, plan.cuts(), radius) == 0
+    assert mesh.is_watertight
+    # on the sphere within a voxel (5.72 * 1.1 / 48 = 0.13 world units; silhouette pixels render a few
+    # vertices up to 2.5 voxels off): the world frame, not the internal one (unit cube)
+    r = np.linalg.norm(mesh.vertices - center, axis=1)
+    np.testing.assert_allclose(np.median(r), radius, atol=info["voxel"])
+    np.testing.assert_allclose(mesh.vertices.mean(axis=0), center, atol=info["voxel"])
+
+
+def test_refuse_resolution_keeps_the_finest_chunk_voxel():
+    """Scale the chunks' final resolution by the region over the box side, capped, never below the chunks'."""
+    plan = _plan([0, 0, 0], [10, 2, 2], (2, 1, 1), overlap=0.25)  # boxes 6.25 wide
+    assert wc.refuse_resolution(plan, {0: 100, 1: 80}) == 160
+    assert wc.refuse_resolution(plan, {0: 4000}) == wc.merge.MAX_REFUSE_RESOLUTION
+
+
+@pytest.mark.slow
+def test_refused_merge_has_no_seam_and_chunks_skip_their_mesh(street, tmp_path):
+    """Leave no more open edges at the cut than one fit at the same voxel; chunks build no mesh unless welding."""
+    from wtopo.chunks.merge import boundary_edges_near
+
+    cfg = _tiny_config()
+    refused = wc.fit_chunked(street, tmp_path / "refuse", cfg, chunk_config=wc.ChunkConfig(chunks=2), progress=False)
+    welded = wc.fit_chunked(street, tmp_path / "weld", cfg, chunk_config=wc.ChunkConfig(chunks=2, merge="weld"),
+                            progress=False)
+    m = refused.report["merge"]
+    assert m["method"] == "refuse" and welded.report["merge"]["method"] == "weld"
+    for c in refused.report["per_chunk"]:  # the merge re-fuses: no chunk paid for a mesh
+        assert c["faces"] == 0 and c["final_s"] == 0.0, c
+        assert "final" not in json.loads((tmp_path / "refuse" / "chunks" / str(c["index"]) / "report.json")
+                                         .read_text())["stage_times_s"]
+    assert all(c["faces"] > 0 for c in welded.report["per_chunk"])
+    one = small_fit_config(20, 0, points=300, grids=(32, m["resolution"], 32), max_faces=800, density_every=10,
+                           eval_every=0)
+    single = fit(street, one, progress=False)  # one fit whose final voxel is the merge's
+    seam = {k: boundary_edges_near(r.mesh, refused.plan.cuts(), m["band"][0])
+            for k, r in (("refuse", refused), ("weld", welded), ("single", single))}
+    print(f"open edges within {m['band'][0]:.2f} of the cut: {seam}")
+    assert seam["refuse"] == m["open_edges_near_cuts"]
+    assert seam["refuse"] <= seam["single"] and seam["refuse"] < seam["weld"], seam
+    lo, hi = street.bounds
+    assert np.all(refused.mesh.bounds[0] >= lo - 1e-6) and np.all(refused.mesh.bounds[1] <= hi + 1e-6)  # world frame
+
+
 def _worker(rank: int, world: int, port: int, out: str) -> None:
     import torch.distributed as dist
 
@@ -242,6 +322,7 @@ def test_a_failing_chunk_is_reported_by_name(tmp_path, monkeypatch):
         raise ValueError("no surfels left")
 
     monkeypatch.setattr(wtopo.fitting, "fit", boom)
+    monkeypatch.setattr(wc.engine, "fit_surfels", boom)  # the default merge re-fuses: chunks skip their mesh
     with pytest.raises(RuntimeError, match=r"chunk 0 \(rank 0\): ValueError: no surfels left"):
         wc.fit_chunked(_camera_scene(), tmp_path, _tiny_config(), chunk_config=wc.ChunkConfig(chunks=3),
                        progress=False)
@@ -259,6 +340,7 @@ def test_an_interrupted_chunk_is_not_taken_as_done(tmp_path, monkeypatch):
         return types.SimpleNamespace(mesh=trimesh.creation.box(), report={"status": "interrupted"})
 
     monkeypatch.setattr(wtopo.fitting, "fit", interrupted)
+    monkeypatch.setattr(wc.engine, "fit_surfels", interrupted)
     with pytest.raises(RuntimeError, match="status 'interrupted'; a rerun resumes it"):
         wc.fit_chunked(_camera_scene(), tmp_path, _tiny_config(), chunk_config=wc.ChunkConfig(chunks=3),
                        progress=False)

@@ -4,7 +4,9 @@
 The region of interest is cut into overlapping chunks (:func:`plan_chunks`), each chunk is a normal
 :func:`wtopo.fit` of the cameras that see it, run on ``torch.distributed`` (``torchrun``: one
 process per GPU) or one after another in one process (:func:`fit_chunked`), and the chunks' cores
-are merged into one mesh with the seams welded (:func:`merge_meshes`).
+are merged: by default their surfels (:func:`merge_surfels`) are meshed once over the whole region of
+interest by the fit's own final meshing (:func:`refuse_mesh`: one TSDF, no seam), or, with
+``ChunkConfig(merge="weld")``, their meshes are cut to the cores and welded (:func:`merge_meshes`).
 
 Command line::
 
@@ -14,11 +16,11 @@ Command line::
 
 from __future__ import annotations
 
-from .engine import ChunkedResult, chunk_scene, dist_info, fit_chunked, rank_chunks
-from .merge import merge_meshes, merge_surfels, weld_boundaries
+from .engine import ChunkedResult, chunk_scene, dist_info, fit_chunked, fit_surfels, rank_chunks
+from .merge import merge_meshes, merge_surfels, refuse_mesh, refuse_resolution, weld_boundaries
 from .partition import Chunk, ChunkConfig, ChunkPlan, assign_cameras, chunk_grid, core_owner, plan_chunks
 from .synthetic import street_scene
 
 __all__ = ["fit_chunked", "ChunkedResult", "ChunkConfig", "ChunkPlan", "Chunk", "plan_chunks", "chunk_grid",
            "assign_cameras", "core_owner", "chunk_scene", "rank_chunks", "dist_info", "merge_meshes",
-           "merge_surfels", "weld_boundaries", "street_scene"]
+           "merge_surfels", "weld_boundaries", "refuse_mesh", "refuse_resolution", "fit_surfels", "street_scene"]

@@ -26,10 +26,11 @@ import numpy as np
 import trimesh
 
 from ..io._common import atomic_write
-from .merge import merge_meshes, merge_surfels
+from .merge import boundary_edges_near, merge_meshes, merge_surfels, refuse_mesh, refuse_resolution
 from .partition import ChunkConfig, ChunkPlan, plan_chunks
 
-__all__ = ["fit_chunked", "ChunkedResult", "chunk_scene", "chunk_fit_config", "rank_chunks", "dist_info", "cuda_peak"]
+__all__ = ["fit_chunked", "ChunkedResult", "chunk_scene", "chunk_fit_config", "rank_chunks", "dist_info", "cuda_peak",
+           "fit_surfels"]
 
 
 @dataclass
@@ -39,7 +40,8 @@ class ChunkedResult:
     Attributes:
         mesh: the merged mesh, world (the caller's) frame.
         plan: the :class:`~.partition.ChunkPlan`.
-        report: timings (per chunk, fit wall clock, merge), peak memory per rank, weld counts.
+        report: timings (per chunk, fit wall clock, merge), peak memory per rank, the merge's record
+            (``"merge"``: method, open edges near the cuts, and the re-fusion's voxel or the weld counts).
     """
 
     mesh: trimesh.Trimesh
@@ -123,6 +125,37 @@ def chunk_fit_config(cfg, device: str, share: float, space: float = 1.0):
     return c
 
 
+def fit_surfels(scene, config, *, out_dir, progress: bool = True):
+    """:func:`wtopo.fit` without its final mesh: the surfels are the result (a chunk whose mesh the
+    merge re-fuses from the merged surfels, ``ChunkConfig.merge = "refuse"``).
+
+    Every stage but the final meshing runs as in :func:`wtopo.fit` (resumable from the same
+    checkpoints); ``result.mesh`` is empty and ``out_dir`` gets the same files (``mesh.ply`` empty).
+
+    Args:
+        scene: a :class:`wtopo.Scene` (world frame).
+        config: a validated :class:`wtopo.FitConfig`.
+        out_dir: run directory (required: the merge reads ``surfels.ply`` and ``config.json`` there).
+        progress: print the plan and show progress bars.
+
+    Returns:
+        :class:`wtopo.fitting.api.FitResult` with an empty ``mesh``.
+    """
+    from ..fitting.api import FitResult, _report, _write_outputs
+    from ..fitting.loop import FitRun
+
+    class _NoFinalMesh(FitRun):
+        def _final_mesh(self) -> trimesh.Trimesh:  # the merge meshes the merged surfels instead
+            return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), process=False)
+
+    run = _NoFinalMesh(scene, config, out_dir, progress)
+    mesh = run.run()
+    result = FitResult(mesh=mesh, surfels=run.surfels, plan=run.plan.to_dict(), history=run.history)
+    result.report = _report(run, mesh, scene)
+    _write_outputs(Path(out_dir), result, run)
+    return result
+
+
 def _fit_one(scene, plan: ChunkPlan, index: int, cfg, ccfg: ChunkConfig, out: Path, device: str, rank: int,
              progress: bool) -> dict:
     import torch
@@ -144,12 +177,14 @@ def _fit_one(scene, plan: ChunkPlan, index: int, cfg, ccfg: ChunkConfig, out: Pa
     if cuda:
         torch.cuda.reset_peak_memory_stats(device)
     t = time.perf_counter()
-    res = fit(chunk_scene(scene, chunk), c, out_dir=partial, progress=progress)
+    fitter = fit if ccfg.builds_chunk_meshes() else fit_surfels  # the re-fusing merge throws the chunk's mesh away
+    res = fitter(chunk_scene(scene, chunk), c, out_dir=partial, progress=progress)
     if res.report["status"] != "completed":  # interrupted: its checkpoints stay, a rerun resumes it
         raise RuntimeError(f"the fit stopped with status {res.report['status']!r}; a rerun resumes it from {partial}")
     info = {"index": index, "rank": rank, "device": device, "seconds": round(time.perf_counter() - t, 3),
             "views": len(chunk.cameras), "iteration_share": round(share, 4), "space_share": round(space, 4),
             "iterations": [c.warmup.iterations, c.coevolution.iterations], "faces": int(len(res.mesh.faces)),
+            "final_s": round(float(res.report.get("stage_times_s", {}).get("final", 0.0)), 3),
             "status": res.report["status"], **(cuda_peak(device) if cuda else {"peak_memory_bytes": None})}
     _write_json(partial / "chunk.json", info)
     if final.exists():  # a stale, incomplete result (no chunk.json): replaced
@@ -180,24 +215,39 @@ def _peak_rss() -> int:
     return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024  # Linux reports KiB
 
 
-def _merge(out: Path, plan: ChunkPlan, ccfg: ChunkConfig) -> tuple[trimesh.Trimesh, dict]:
+def _merge(out: Path, plan: ChunkPlan, ccfg: ChunkConfig, scene, cfg, device: str) -> tuple[trimesh.Trimesh, dict]:
     from ..io import export_mesh
     from ..io.ply import read_surfels_ply, write_surfels_ply
 
-    meshes, surfels = {}, {}
+    meshes, surfels, resolutions = {}, {}, {}
     for ch in plan.chunks:
         d = out / "chunks" / str(ch.index)
         if ch.skipped or not (d / "chunk.json").exists():
             continue
-        meshes[ch.index] = trimesh.load(d / "mesh.ply", process=False, force="mesh")
+        if ccfg.merge == "weld":
+            meshes[ch.index] = trimesh.load(d / "mesh.ply", process=False, force="mesh")
+            if len(meshes[ch.index].faces) == 0 and json.loads((d / "chunk.json").read_text()).get("faces") == 0:
+                raise RuntimeError(f"chunk {ch.index} in {d} was fitted without its own mesh (a re-fusing run); "
+                                   "merge='weld' needs it: remove the directory to fit the chunk again")
         if (d / "surfels.ply").exists():
             surfels[ch.index] = read_surfels_ply(d / "surfels.ply")
-    mesh, info = merge_meshes(meshes, plan, fraction=ccfg.weld_fraction)
+        resolutions[ch.index] = int(json.loads((d / "config.json").read_text())["final"]["resolution"])
+    merged = merge_surfels(surfels, plan) if surfels else None
+    if ccfg.merge == "weld":
+        mesh, info = merge_meshes(meshes, plan, fraction=ccfg.weld_fraction)
+        info["method"] = "weld"
+    else:
+        if merged is None:
+            raise RuntimeError(f"no chunk left surfels in {out / 'chunks'}: nothing to re-fuse")
+        mesh, info = refuse_mesh(scene, merged, cfg, resolution=refuse_resolution(plan, resolutions), device=device,
+                                 plan=plan)
+    band = [ccfg.overlap * float(plan.roi_upper[a] - plan.roi_lower[a]) / plan.grid[a] for a, _ in plan.cuts()]
+    info["open_edges_near_cuts"] = sum(boundary_edges_near(mesh, [c], w) for c, w in zip(plan.cuts(), band))
+    info["band"] = band
     export_mesh(mesh, out / "mesh.ply")
-    if surfels:
-        means, quats, scales, opac, sh = merge_surfels(surfels, plan)
-        write_surfels_ply(out / "surfels.ply", means, quats, scales, opac, sh)
-        info["surfels"] = int(len(means))
+    if merged is not None:
+        write_surfels_ply(out / "surfels.ply", *merged)
+        info["surfels"] = int(len(merged[0]))
     return mesh, info
 
 
@@ -214,6 +264,11 @@ def _gather(obj, world: int) -> list:
 def fit_chunked(scene, out_dir: str | os.PathLike, config=None, *, chunk_config: ChunkConfig | None = None,
                 progress: bool = True) -> ChunkedResult | None:
     """Fit ``scene`` as overlapping chunks and merge them into one mesh (see the module docstring).
+
+    The merge is ``chunk_config.merge``: ``"refuse"`` (default) meshes the chunks' merged core surfels
+    once over the whole region of interest with the fit's own final meshing on rank 0's device
+    (:func:`~.merge.refuse_mesh`; the chunks' fits then skip their own final mesh), ``"weld"`` welds
+    the chunks' own meshes at the cuts (:func:`~.merge.merge_meshes`).
 
     Under ``torchrun`` (an initialised ``torch.distributed`` process group) every rank calls this
     with the same scene and configuration; rank 0 plans, the plan is broadcast, each rank fits its
@@ -251,6 +306,9 @@ def fit_chunked(scene, out_dir: str | os.PathLike, config=None, *, chunk_config:
         raise TypeError(f"config must be a wtopo.FitConfig or None, got {type(cfg).__name__}")
     validate_config(cfg)
     ccfg = ChunkConfig() if chunk_config is None else chunk_config
+    if not isinstance(ccfg, ChunkConfig):
+        raise TypeError(f"chunk_config must be a wtopo.chunks.ChunkConfig or None, got {type(ccfg).__name__}")
+    ccfg.validate()  # on every rank: each reads the merge settings
     rank, world, local = dist_info()
     out = Path(out_dir)
     t0 = time.perf_counter()
@@ -299,7 +357,7 @@ def fit_chunked(scene, out_dir: str | os.PathLike, config=None, *, chunk_config:
         return None
     t_fit = time.perf_counter() - t0
     t = time.perf_counter()
-    mesh, merge_info = _merge(out, plan, ccfg)
+    mesh, merge_info = _merge(out, plan, ccfg, scene, cfg, device)
     report = {"chunks": len(plan.chunks), "grid": list(plan.grid), "reason": plan.reason, "world_size": world,
               "fit_wall_s": round(t_fit, 3), "merge_s": round(time.perf_counter() - t, 3),
               "wall_s": round(time.perf_counter() - t0, 3),

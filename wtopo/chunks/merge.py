@@ -1,27 +1,47 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Merge chunk results: each chunk keeps its core, meshes are welded across the cuts.
+"""Merge chunk results into one mesh: re-fuse the merged surfels (default) or weld the chunks' meshes.
 
-A chunk's mesh keeps the faces whose centroid lies in its core and its surfels those whose centre
-does (:func:`~.partition.core_owner`: the cores partition space, so nothing is kept twice or
-lost between two chunks). The pieces are concatenated and the vertices on their open boundaries
-that lie near a cut are welded to the nearest boundary vertex of the neighbouring chunk within a
-tolerance (``ChunkConfig.weld_fraction`` of the median boundary edge length), which closes the seam
-where the two fits agree to within a fraction of an edge; elsewhere the seam stays open (counted in
-the merge report).
+Both keep, of each chunk, what lies in its core (:func:`~.partition.core_owner`: the cores partition
+space, so nothing is kept twice or lost between two chunks): surfels by centre
+(:func:`merge_surfels`), faces by centroid (:func:`keep_core_faces`).
+
+``ChunkConfig.merge = "refuse"`` (:func:`refuse_mesh`): the merged surfels are the one surface, and
+the fit's own final meshing (:func:`wtopo.fitting.stages.final_mesh`: TSDF fusion of their rendered
+depth in every training view, then the scene's meshing policy) runs once over the whole region of
+interest, in the whole scene's internal frame and at the finest voxel size the chunks' own final
+meshes used. One fusion grid spans every cut, so there is no seam to close: marching cubes of one
+grid is closed across any plane. The grid is never dense in memory: the Warp backend fuses it one
+z-slab at a time (:data:`wtopo.tsdf_fusion.SLAB_NODES` nodes, about 350 MB, whatever the grid size)
+and Open3D's ``ScalableTSDFVolume`` keeps only the blocks near the surface.
+
+``ChunkConfig.merge = "weld"`` (:func:`merge_meshes`): the chunks' meshes are cut to their cores,
+concatenated, and the vertices on their open boundaries that lie near a cut are welded to the
+nearest boundary vertex of the neighbouring chunk within a tolerance (``ChunkConfig.weld_fraction``
+of the median boundary edge length).
 
 Limitations:
     Welding snaps vertices, it does not re-triangulate: where two chunks' surfaces differ by more
-    than the tolerance across a cut, a crack of that size stays.
+    than the tolerance across a cut, a crack of that size stays. Re-fusing renders every training
+    view once more on rank 0 (one device), and holds their depth and colour maps on the host (16
+    bytes per pixel) and, with the Warp backend, on the device (about 18 bytes per pixel).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import trimesh
 
 from .partition import ChunkPlan, core_owner
 
-__all__ = ["keep_core_faces", "weld_boundaries", "merge_meshes", "merge_surfels", "boundary_edges_near"]
+__all__ = ["keep_core_faces", "weld_boundaries", "merge_meshes", "merge_surfels", "boundary_edges_near", "refuse_mesh",
+           "refuse_resolution", "MAX_REFUSE_RESOLUTION"]
+
+MAX_REFUSE_RESOLUTION = 4096
+"""Most voxels along the longest side of the re-fusion grid: beyond it the voxel grows (recorded in the
+merge report). Memory does not depend on it (the fusion is slab by slab or sparse); the fusion time
+and the mesh grow with it."""
 
 
 def keep_core_faces(mesh: trimesh.Trimesh, plan: ChunkPlan, index: int) -> trimesh.Trimesh:
@@ -156,3 +176,146 @@ def merge_surfels(surfels: dict, plan: ChunkPlan):
     sh = np.concatenate([np.pad(s.sh[sel], ((0, 0), (0, k - s.sh.shape[1]), (0, 0))) for s, sel in keep]) \
         if keep else np.zeros((0, 1, 3), np.float32)
     return (cat(lambda s: s.means), cat(lambda s: s.quats), cat(lambda s: s.scales), cat(lambda s: s.opacities), sh)
+
+
+def refuse_resolution(plan: ChunkPlan, resolutions: dict) -> int:
+    """Voxels along the region of interest's longest side that give the re-fusion the finest voxel
+    the chunks' own final meshes had.
+
+    A chunk fitted as a scene fuses its box (its region of interest) grown by the same fraction on
+    every side with ``resolutions[i]`` voxels along the longest side, so its voxel is
+    ``side_i * (1 + 2 m) / resolutions[i]``; the whole region's fusion has the same margin ``m``,
+    which cancels: the result is ``max_i resolutions[i] * side / side_i``, rounded up and capped at
+    :data:`MAX_REFUSE_RESOLUTION`.
+
+    Args:
+        plan: the chunk plan (boxes and region of interest, world units).
+        resolutions: ``{chunk index: the chunk fit's resolved final.resolution}`` (int).
+
+    Returns:
+        int, at least the largest of ``resolutions``.
+    """
+    if not resolutions:
+        raise ValueError("resolutions must name at least one chunk's final resolution, got none")
+    side = float(np.max(plan.roi_upper - plan.roi_lower))
+    need = max(int(r) * side / float(np.max(plan.chunks[i].upper - plan.chunks[i].lower))
+               for i, r in resolutions.items())
+    return int(min(MAX_REFUSE_RESOLUTION, max(max(resolutions.values()), math.ceil(need - 1e-9))))
+
+
+def _core_renderer(base, plan: ChunkPlan, sim, views: dict, which):
+    """A :class:`wtopo.fitting.stages.Renderer` that renders as ``base`` does and then sets alpha to 0 on
+    the pixels whose surface (the ``which`` rendered z-depth, back-projected) lies in the core of a
+    chunk the view did not fit. ``views``: ``{id(camera): bool tensor [chunks]}``, the chunks each
+    (internal-frame) camera was given; other cameras render unchanged."""
+    import dataclasses
+
+    import torch
+
+    from ..fitting.config import RenderedDepth
+    from ..fitting.stages import Renderer
+
+    g = torch.as_tensor(plan.grid, device=base.background.device)
+    # the chunk grid in the internal frame: lower corner and cell size (the similarity only scales and shifts)
+    lo = torch.as_tensor(sim.to_internal(plan.roi_lower), dtype=torch.float32, device=g.device)
+    step = torch.as_tensor((plan.roi_upper - plan.roi_lower) * sim.scale / np.asarray(plan.grid), dtype=torch.float32,
+                           device=g.device)
+
+    class _CoreViews(Renderer):
+        def __call__(self, surfels, camera, *, defer_count: bool = False):
+            out = super().__call__(surfels, camera, defer_count=defer_count)
+            allowed = views.get(id(camera))
+            if allowed is None:
+                return out
+            z = out.median_depth if which == RenderedDepth.MEDIAN else out.depth
+            o, d = camera.pixel_rays(z.device)
+            cell = torch.floor((o + d * z[..., None] - lo) / step).long()
+            cell = torch.minimum(cell.clamp_min(0), g - 1)
+            owner = (cell[..., 0] * g[1] + cell[..., 1]) * g[2] + cell[..., 2]
+            return dataclasses.replace(out, alpha=torch.where(allowed[owner], out.alpha, torch.zeros_like(out.alpha)))
+
+    return _CoreViews(base.background, base.config)
+
+
+def refuse_mesh(scene, surfels, config, *, resolution: int, device: str = "cpu", plan: ChunkPlan | None = None
+                ) -> tuple[trimesh.Trimesh, dict]:
+    """The fit's own final mesh of ``surfels`` over the whole of ``scene``: the merge without seams.
+
+    The scene is normalised and planned as :func:`wtopo.fit` does it (:meth:`wtopo.Scene.normalization`,
+    :func:`wtopo.fitting.plan.make_plan`: scene kind, region of interest, background, image scale,
+    TSDF backend), the surfels are mapped into that internal frame, and
+    :func:`wtopo.fitting.stages.final_mesh` renders their depth in every training view of the scene
+    (one view at a time, on ``device``), fuses it into one TSDF over the region of interest at
+    ``resolution`` voxels along its longest side, and applies the meshing policy (crop to the
+    region, nothing near a camera, components the views support). Nothing is fitted.
+
+    Args:
+        scene: the whole :class:`wtopo.Scene` (world frame); only its cameras, split and region are
+            used by the meshing (the plan reads its images).
+        surfels: ``(means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 2], opacities [N], sh [N, K, 3])``
+            float32 NumPy arrays, world frame (:func:`merge_surfels`); scales are standard deviations
+            in world units, opacities in (0, 1).
+        config: the :class:`wtopo.FitConfig` the chunks ran (its ``final``, ``tsdf``, ``mesh`` and
+            ``filter_sigma`` settings; ``final.resolution`` is replaced by ``resolution``).
+        resolution: TSDF voxels along the longest side of the fusion bounds (:func:`refuse_resolution`).
+        device: where the surfels are rendered and, with the Warp backend, fused.
+        plan: the chunk plan the surfels were fitted under, or ``None``. With it, a view fuses only
+            the pixels whose rendered surface lies in the core of a chunk it was given (the chunk's
+            surfels elsewhere were never fitted to it: a floater that no view of that chunk sees
+            would otherwise be fused from this one); occlusion is still by every surfel.
+
+    Returns:
+        ``(mesh, info)``: the mesh in the world (the caller's) frame and a JSON-ready record (voxel in
+        world units, resolution, fusion bounds, views, the meshing policy's events).
+
+    Raises:
+        wtopo.fitting.tsdf.TSDFEmptyError: nothing was fused and the Poisson fallback is empty.
+    """
+    import copy
+
+    import torch
+
+    from ..fitting.plan import make_plan, resolve_config
+    from ..fitting.proxy import ProxyMesh
+    from ..fitting.stages import Renderer, final_mesh
+    from ..fitting.surfels import Surfels
+    from ..rasterize import RasterConfig
+
+    means, quats, scales, opacities, sh = surfels
+    dev = torch.device(device)
+    sim = scene.normalization()
+    internal = scene.normalized()
+    user = copy.deepcopy(config)
+    user.final.resolution = int(resolution)  # an override: the plan records it and resolve_config keeps it
+    fplan = make_plan(internal, user, dev)
+    cfg = resolve_config(user, fplan)
+    train = range(len(internal)) if internal.train_indices is None else internal.train_indices
+    scale = float(fplan["image_scale"])
+    cams = [internal.cameras[int(i)] for i in train]
+    cams = [c.scaled(scale) for c in cams] if scale < 1.0 else cams
+    t = lambda a: torch.as_tensor(np.asarray(a, np.float32), device=dev)  # noqa: E731
+    sh = np.asarray(sh, np.float32).reshape(len(means), -1, 3)
+    s = Surfels(means=t(sim.to_internal(np.asarray(means, np.float64))), quats=t(quats),
+                log_scales=torch.log(t(np.asarray(scales, np.float64) * sim.scale).clamp_min(1e-12)),
+                opacity_logits=torch.logit(t(opacities), eps=1e-6), sh_dc=t(sh[:, :1]), sh_rest=t(sh[:, 1:]))
+    render = Renderer(torch.tensor(fplan["background"], dtype=torch.float32, device=dev),
+                      RasterConfig(filter_sigma=cfg.filter_sigma))
+    if plan is not None:
+        given = {}
+        for ch in plan.chunks:
+            for i in ch.cameras:
+                given.setdefault(int(i), set()).add(ch.index)
+        mask = lambda i: torch.as_tensor([k in given.get(int(i), ()) for k in range(len(plan.chunks))],  # noqa: E731
+                                         device=dev)
+        render = _core_renderer(render, plan, sim, {id(c): mask(i) for i, c in zip(train, cams)}, cfg.tsdf.depth)
+    events, tsdf_info = [], {}
+    mesh = final_mesh(s, cams, cfg, render=render, proxy=ProxyMesh(cfg.mesh), guided=bool(cfg.coevolution.enabled),
+                      tsdf_info=tsdf_info, record=lambda event, **kw: events.append({"event": event, **kw}),
+                      layout=fplan.layout)
+    bounds = tsdf_info.get("final_bounds")
+    info = {"method": "refuse", "resolution": int(resolution), "views": len(cams), "surfels": int(len(means)),
+            "views_per_chunk_core": plan is not None, "scene_kind": fplan["scene_kind"],
+            "tsdf_backend": str(cfg.tsdf.backend.value),
+            "voxel": None if bounds is None else float(sim.length_to_world(bounds["voxel"])),
+            "final_bounds_internal": bounds, "events": events}
+    return sim.to_world(mesh), info

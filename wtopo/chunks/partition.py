@@ -71,9 +71,21 @@ class ChunkConfig:
     every chunk gets the full budgets (a finer, slower fit)."""
     min_budget_share: float = 0.25
     """The smallest share of an iteration or point budget a chunk gets."""
+    merge: str = "refuse"
+    """How the chunks become one mesh (:mod:`.merge`): ``"refuse"``, the fit's final meshing (TSDF
+    fusion of rendered depth, the meshing policy) of the merged surfels once over the whole region of
+    interest, seamless by construction; ``"weld"``, each chunk's own mesh cut to its core and the
+    boundary vertices near the cuts welded (seams stay open where the chunks disagree)."""
+    chunk_meshes: bool | None = None
+    """Whether each chunk's fit builds its own final mesh (``chunks/<i>/mesh.ply``); ``None``: only when
+    the merge uses them (``merge="weld"``), so a re-fusing merge does not pay for meshes it throws away."""
     weld_fraction: float = 0.75
-    """Merge: boundary vertices of different chunks closer than this fraction of the median
+    """Merge ``"weld"``: boundary vertices of different chunks closer than this fraction of the median
     boundary edge length are welded into one."""
+
+    def builds_chunk_meshes(self) -> bool:
+        """Whether the chunks' fits build their own final mesh (``chunk_meshes``, resolved)."""
+        return self.merge == "weld" if self.chunk_meshes is None else bool(self.chunk_meshes)
 
     def validate(self) -> None:
         """Raise ``ValueError`` / ``TypeError`` naming the first bad field."""
@@ -98,6 +110,10 @@ class ChunkConfig:
             raise ValueError(f"ChunkConfig.memory_bytes must be an integer >= 1 or None, got {self.memory_bytes!r}")
         if not (isinstance(self.min_budget_share, (int, float)) and 0 < self.min_budget_share <= 1):
             raise ValueError(f"ChunkConfig.min_budget_share must be in (0, 1], got {self.min_budget_share!r}")
+        if self.merge not in ("refuse", "weld"):
+            raise ValueError(f"ChunkConfig.merge must be 'refuse' or 'weld', got {self.merge!r}")
+        if self.chunk_meshes is not None and not isinstance(self.chunk_meshes, bool):
+            raise TypeError(f"ChunkConfig.chunk_meshes must be a bool or None, got {self.chunk_meshes!r}")
         if not (isinstance(self.weld_fraction, (int, float)) and 0 <= self.weld_fraction <= 2):
             raise ValueError(f"ChunkConfig.weld_fraction must be a number in [0, 2], got {self.weld_fraction!r}")
 
