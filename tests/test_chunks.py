@@ -247,6 +247,7 @@ def test_refused_merge_has_no_seam_and_chunks_skip_their_mesh(street, tmp_path):
                             progress=False)
     m = refused.report["merge"]
     assert m["method"] == "refuse" and welded.report["merge"]["method"] == "weld"
+    assert m["near"] == pytest.approx(wc.merge.chunk_near(street, refused.plan), rel=1e-6)
     for c in refused.report["per_chunk"]:  # the merge re-fuses: no chunk paid for a mesh
         assert c["faces"] == 0 and c["final_s"] == 0.0, c
         assert "final" not in json.loads((tmp_path / "refuse" / "chunks" / str(c["index"]) / "report.json")
@@ -345,3 +346,19 @@ def test_an_interrupted_chunk_is_not_taken_as_done(tmp_path, monkeypatch):
         wc.fit_chunked(_camera_scene(), tmp_path, _tiny_config(), chunk_config=wc.ChunkConfig(chunks=3),
                        progress=False)
     assert (tmp_path / "chunks" / "0.partial").is_dir() and not (tmp_path / "chunks" / "0").exists()
+
+
+def test_refused_merge_meshes_with_the_chunks_near_distance(street):
+    """The re-fused merge keeps faces as near the cameras as each chunk's fit would (the whole scene's
+    near distance, 5 % of its larger extent, would drop the ground under the cameras)."""
+    from wtopo.chunks.merge import chunk_near
+    from wtopo.fitting.scene_kind import analyse_layout
+
+    plan = wc.plan_chunks(street, wc.ChunkConfig(chunks=2))
+    near = chunk_near(street, plan)
+    whole = analyse_layout(street.normalized()).near / street.normalization().scale
+    per_chunk = []
+    for ch in plan.chunks:
+        sub = wc.chunk_scene(street, ch)
+        per_chunk.append(analyse_layout(sub.normalized()).near / sub.normalization().scale)
+    assert near == pytest.approx(min(per_chunk)) and near < whole, (near, per_chunk, whole)

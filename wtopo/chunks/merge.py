@@ -28,6 +28,7 @@ Limitations:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -237,6 +238,21 @@ def _core_renderer(base, plan: ChunkPlan, sim, views: dict, which):
     return _CoreViews(base.background, base.config)
 
 
+def chunk_near(scene, plan: ChunkPlan) -> float:
+    """The smallest near-camera distance (world units) of the chunks' own fits: the meshing policy's
+    "no face within the near distance of a camera" (:mod:`wtopo.fitting.scene_kind`) scales with the
+    extent of the scene it is given, and the whole scene's extent would remove real surface (the
+    ground under a camera) that every chunk kept."""
+    from ..fitting.scene_kind import analyse_layout
+    from .engine import chunk_scene
+
+    near = math.inf
+    for ch in plan.chunks:
+        sub = chunk_scene(scene, ch)
+        near = min(near, analyse_layout(sub.normalized()).near / sub.normalization().scale)
+    return near
+
+
 def refuse_mesh(scene, surfels, config, *, resolution: int, device: str = "cpu", plan: ChunkPlan | None = None
                 ) -> tuple[trimesh.Trimesh, dict]:
     """The fit's own final mesh of ``surfels`` over the whole of ``scene``: the merge without seams.
@@ -308,13 +324,17 @@ def refuse_mesh(scene, surfels, config, *, resolution: int, device: str = "cpu",
         mask = lambda i: torch.as_tensor([k in given.get(int(i), ()) for k in range(len(plan.chunks))],  # noqa: E731
                                          device=dev)
         render = _core_renderer(render, plan, sim, {id(c): mask(i) for i, c in zip(train, cams)}, cfg.tsdf.depth)
+    layout = fplan.layout
+    if plan is not None:  # the near-camera distance the chunks meshed with, not the whole scene's (module doc)
+        layout = dataclasses.replace(layout, near=min(layout.near, sim.scale * chunk_near(scene, plan)))
     events, tsdf_info = [], {}
     mesh = final_mesh(s, cams, cfg, render=render, proxy=ProxyMesh(cfg.mesh), guided=bool(cfg.coevolution.enabled),
                       tsdf_info=tsdf_info, record=lambda event, **kw: events.append({"event": event, **kw}),
-                      layout=fplan.layout)
+                      layout=layout)
     bounds = tsdf_info.get("final_bounds")
     info = {"method": "refuse", "resolution": int(resolution), "views": len(cams), "surfels": int(len(means)),
             "views_per_chunk_core": plan is not None, "scene_kind": fplan["scene_kind"],
+            "near": float(sim.length_to_world(layout.near)),
             "tsdf_backend": str(cfg.tsdf.backend.value),
             "voxel": None if bounds is None else float(sim.length_to_world(bounds["voxel"])),
             "final_bounds_internal": bounds, "events": events}
