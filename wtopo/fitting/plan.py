@@ -31,6 +31,12 @@ _MIN_EVAL_VIEWS = 12
 # Budgets per device. CPU: the default fit finishes in minutes on 2 cores (benchmarks/fit.md).
 # CUDA: the method's schedule shortened to minutes on one GPU (3,000 + 1,000 iterations at ~30 ms).
 _ITERATIONS = {"cpu": (400, 200), "cuda": (3000, 1000)}
+# CPU: the base budget covers this many training pixels to fit (unmasked pixels at the trained image
+# scale: twice the default bunny's 109k); a capture with more (an unmasked scene: every pixel is
+# ground, background or sky) gets proportionally more iterations, as long as the warm-up renders at
+# most _CPU_RENDER_PIXELS pixels (1,250 views of 160 x 120: a few minutes on 2 cores).
+_CPU_FIT_PIXELS = 250_000
+_CPU_RENDER_PIXELS = 24_000_000
 _MAX_SURFELS = {"cpu": 40_000, "cuda": 400_000}
 _REINIT_FACES = 8000  # CPU: faces of the TSDF re-initialisation mesh (one surfel each)
 _PROXY_GRID = {"cpu": (64, 64), "cuda": (128, 256)}  # (min, max) Poisson nodes per side
@@ -309,12 +315,32 @@ def _footprint(scene, layout, image_scale: float) -> float:
     return float(np.median(fp))
 
 
+def _fit_pixels(scene, image_scale: float) -> tuple[float, float]:
+    """``(pixels to fit, pixels per view)`` at the trained scale: the training views' mask pixels
+    (every pixel without masks) and one view's pixels."""
+    train = scene.train_indices if scene.train_indices is not None else range(len(scene.cameras))
+    train = [int(i) for i in train]
+    h, w = (int(x) for x in scene.images.shape[1:3])
+    per_view = h * w * image_scale ** 2
+    masks = getattr(scene, "masks", None)
+    cover = len(train) if masks is None else float(masks[train].float().mean(dim=(1, 2)).sum())
+    return cover * per_view, per_view
+
+
 def _budget(plan: Plan, scene, cfg: FitConfig, device: torch.device, layout, image_scale: float) -> None:
     """Iterations, surfel cap and grids from the device, the region's size and the pixel footprint."""
     dev = "cuda" if device.type == "cuda" else "cpu"
     warm, coevo = _ITERATIONS[dev]
-    plan.set("warmup_iterations", warm, f"{dev} budget", cfg.warmup.iterations)
-    plan.set("coevolution_iterations", coevo, f"{dev} budget", cfg.coevolution.iterations)
+    why = f"{dev} budget"
+    if dev == "cpu":
+        content, per_view = _fit_pixels(scene, image_scale)
+        k = max(1.0, min(content / _CPU_FIT_PIXELS, _CPU_RENDER_PIXELS / (warm * per_view)))
+        if k > 1.0:
+            warm, coevo = int(round(warm * k)), int(round(coevo * k))
+            why = (f"cpu budget x{k:.2f}: {content / 1e3:.0f}k training pixels to fit (> {_CPU_FIT_PIXELS // 1000}k), "
+                   f"at most {_CPU_RENDER_PIXELS / 1e6:.0f}M rendered pixels in the warm-up")
+    plan.set("warmup_iterations", warm, why, cfg.warmup.iterations)
+    plan.set("coevolution_iterations", coevo, why, cfg.coevolution.iterations)
     plan.set("max_surfels", _MAX_SURFELS[dev], f"{dev} budget", cfg.runtime.max_surfels)
     faces = _REINIT_FACES if dev == "cpu" else _MAX_SURFELS[dev] // 4
     plan.set("reinit_faces", faces, f"{dev} budget: one surfel per face of the re-initialisation mesh"
