@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 
 import numpy as np
 import trimesh
@@ -292,6 +293,7 @@ def refuse_mesh(scene, surfels, config, *, resolution: int, device: str = "cpu",
     import torch
 
     from ..fitting.plan import make_plan, resolve_config
+    from ..fitting.profiling import Timers
     from ..fitting.proxy import ProxyMesh
     from ..fitting.stages import Renderer, final_mesh
     from ..fitting.surfels import Surfels
@@ -328,14 +330,19 @@ def refuse_mesh(scene, surfels, config, *, resolution: int, device: str = "cpu",
     if plan is not None:  # the near-camera distance the chunks meshed with, not the whole scene's (module doc)
         layout = dataclasses.replace(layout, near=min(layout.near, sim.scale * chunk_near(scene, plan)))
     events, tsdf_info = [], {}
-    mesh = final_mesh(s, cams, cfg, render=render, proxy=ProxyMesh(cfg.mesh), guided=bool(cfg.coevolution.enabled),
-                      tsdf_info=tsdf_info, record=lambda event, **kw: events.append({"event": event, **kw}),
-                      layout=layout)
+    timers = Timers(torch.cuda.synchronize if dev.type == "cuda" else None)
+    t0 = time.perf_counter()
+    with timers("final"):
+        mesh = final_mesh(s, cams, cfg, render=render, proxy=ProxyMesh(cfg.mesh), guided=bool(cfg.coevolution.enabled),
+                          tsdf_info=tsdf_info, record=lambda event, **kw: events.append({"event": event, **kw}),
+                          layout=layout)
+    prof = timers.profile(time.perf_counter() - t0)
     bounds = tsdf_info.get("final_bounds")
     info = {"method": "refuse", "resolution": int(resolution), "views": len(cams), "surfels": int(len(means)),
             "views_per_chunk_core": plan is not None, "scene_kind": fplan["scene_kind"],
             "near": float(sim.length_to_world(layout.near)),
             "tsdf_backend": str(cfg.tsdf.backend.value),
             "voxel": None if bounds is None else float(sim.length_to_world(bounds["voxel"])),
-            "final_bounds_internal": bounds, "events": events}
+            "final_bounds_internal": bounds, "events": events,
+            "profile_s": {r["path"]: round(r["self_s"], 3) for r in prof["rows"]}}
     return sim.to_world(mesh), info

@@ -246,16 +246,19 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
             raise TSDFEmptyError("no final mesh: the TSDF fusion and the proxy mesh are both empty")
         mesh = trimesh.Trimesh(pm.verts.detach().cpu().numpy(), pm.faces.cpu().numpy(), process=True)
     info: dict = {}
-    if scene:
-        mesh = crop_to_box(mesh, layout.roi_lower, layout.roi_upper)
-        mesh, info["near_camera_faces_removed"] = crop_near_cameras(mesh, layout.camera_centers, layout.near)
-        mesh = cleanup_mesh(mesh, largest_component=fc.largest_component, repair=False)
-        mesh, info["components"] = supported_components(mesh, cameras, depths)
-    else:
-        mesh = cleanup_mesh(mesh, largest_component=fc.largest_component)
-        mesh, info["components"] = supported_components(mesh, cameras, depths)
-        if fc.watertight and not mesh.is_watertight:
-            mesh = poisson_remesh(mesh, cfg, record=record)
+    with section("mesh_policy"):
+        if scene:
+            mesh = crop_to_box(mesh, layout.roi_lower, layout.roi_upper)
+            mesh, info["near_camera_faces_removed"] = crop_near_cameras(mesh, layout.camera_centers, layout.near)
+            mesh = cleanup_mesh(mesh, largest_component=fc.largest_component, repair=False)
+            with section("supported_components"):
+                mesh, info["components"] = supported_components(mesh, cameras, depths)
+        else:
+            mesh = cleanup_mesh(mesh, largest_component=fc.largest_component)
+            with section("supported_components"):
+                mesh, info["components"] = supported_components(mesh, cameras, depths)
+            if fc.watertight and not mesh.is_watertight:
+                mesh = poisson_remesh(mesh, cfg, record=record)
     record("mesh_policy", policy="open_roi" if scene else "watertight", **info)
     if len(mesh.faces) == 0:
         raise TSDFEmptyError("the final mesh is empty after the meshing policy (nothing in the region of interest "
