@@ -51,6 +51,53 @@ def test_two_objects_are_both_kept_and_an_unseen_floater_goes():
     np.testing.assert_allclose(mesh.area, seen.area, rtol=1e-9)
 
 
+def _support_views_exhaustive(mesh, cams, depths):
+    """Reference: every view tested on every vertex of every component (the rule without early exit)."""
+    from wtopo.fitting import mesh_policy as mp
+
+    label = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    vlabel = np.full(len(mesh.vertices), -1)
+    vlabel[np.asarray(mesh.faces).reshape(-1)] = np.repeat(label, 3)
+    n = label.max() + 1
+    vcount = np.bincount(vlabel[vlabel >= 0], minlength=n)
+    views = np.zeros(n, int)
+    for c, d in zip(cams, depths):
+        agree = mp._vertex_agreement(np.asarray(mesh.vertices), c, d) & (vlabel >= 0)
+        views += np.bincount(vlabel[agree], minlength=n) / np.maximum(vcount, 1) >= mp._SUPPORT_VERTEX_FRACTION
+    return views
+
+
+def test_support_stops_testing_decided_components_without_changing_the_result():
+    """Keep and drop exactly the components the exhaustive rule does, with the same counts for the dropped
+    ones, on a scene with a seen pair, a floater and a component only two views support."""
+    from wtopo.fitting import mesh_policy as mp
+
+    torus = trimesh.creation.torus(0.6, 0.2)
+    torus.apply_translation([-0.7, 0, 0])
+    capsule = trimesh.creation.capsule(height=0.6, radius=0.2)
+    capsule.apply_translation([0.8, 0, 0])
+    cams = _ring_cameras()
+    seen = trimesh.util.concatenate([torus, capsule])
+    depths = _depths(seen, cams)
+    lone = trimesh.creation.icosphere(subdivisions=2, radius=0.15)
+    lone.apply_translation([0, 0, 1.0])
+    for k in (0, 1):  # two views also see it: below _MIN_SUPPORT_VIEWS
+        depths[k] = np.where(depths[k] > 0, depths[k], _depths(lone, [cams[k]])[0])
+    speck = trimesh.creation.icosphere(subdivisions=1, radius=0.05)
+    speck.apply_translation([0, 0.9, 0.9])
+    mesh = trimesh.util.concatenate([seen, lone, speck])
+    views = _support_views_exhaustive(mesh, cams, depths)
+    out, info = supported_components(mesh, cams, depths)
+    share = np.bincount(trimesh.graph.connected_component_labels(mesh.face_adjacency), weights=mesh.area_faces)
+    share = share / share.sum()
+    keep = (views >= mp._MIN_SUPPORT_VIEWS) & (share >= mp._MIN_AREA_FRACTION)
+    assert info["kept"] == int(keep.sum()) == 2 and info["components"] == 4
+    order = np.argsort(-share)
+    assert [d["views"] for d in info["dropped"]] == [int(views[c]) for c in order if not keep[c]]
+    assert any(d["views"] == 2 for d in info["dropped"])  # the component two views see was tested fully
+    np.testing.assert_allclose(out.area, seen.area, rtol=1e-9)
+
+
 def test_camera_clearance_is_the_exact_point_to_triangle_distance():
     """Match a brute-force closest-point query, including a camera facing a large triangle's interior."""
     tri = trimesh.Trimesh([[-10, -10, 0], [10, -10, 0], [0, 10, 0]], [[0, 1, 2]])

@@ -83,7 +83,9 @@ def supported_components(mesh: trimesh.Trimesh, cameras: Sequence, depths: Seque
     A view supports a component when at least ``_SUPPORT_VERTEX_FRACTION`` of the component's
     vertices agree with the view's rendered depth; a component needs ``_MIN_SUPPORT_VIEWS`` such
     views and ``_MIN_AREA_FRACTION`` of the mesh's area. Linear in faces and vertices times views
-    (components are labelled once, not split into meshes).
+    (components are labelled once, not split into meshes); a component stops being tested once it
+    has its ``_MIN_SUPPORT_VIEWS`` views (the views reported for a kept component are then a lower
+    bound; a dropped component's are exact).
 
     Args:
         mesh: the mesh, internal frame.
@@ -108,10 +110,17 @@ def supported_components(mesh: trimesh.Trimesh, cameras: Sequence, depths: Seque
     vcount = np.bincount(vlabel[used], minlength=n_comp).astype(np.float64)
     verts = np.asarray(mesh.vertices)
     views = np.zeros(n_comp, np.int64)
+    active = np.flatnonzero(used)
     for cam, dep in zip(cameras, depths):
-        agree = _vertex_agreement(verts, cam, dep) & used
+        # a component that has its _MIN_SUPPORT_VIEWS views is kept whatever the other views say: only
+        # the undecided ones' vertices are projected (a 700k-face scene mesh over 204 views: 5.5 s ->
+        # a few views' worth); the decision and the dropped components' counts are unchanged
+        if len(active) == 0:
+            break
+        agree = active[_vertex_agreement(verts[active], cam, dep)]
         frac = np.bincount(vlabel[agree], minlength=n_comp) / np.maximum(vcount, 1.0)
         views += frac >= _SUPPORT_VERTEX_FRACTION
+        active = active[views[vlabel[active]] < _MIN_SUPPORT_VIEWS]
     keep = (views >= _MIN_SUPPORT_VIEWS) & (share >= _MIN_AREA_FRACTION)
     worst = np.argsort(-share)
     dropped = [{"area_share": round(float(share[c]), 6), "views": int(views[c])} for c in worst if not keep[c]]
