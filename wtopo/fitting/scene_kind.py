@@ -99,13 +99,16 @@ class SceneLayout:
         return 0.5 * float(np.linalg.norm(self.roi_upper - self.roi_lower))
 
 
-def _roi_source(scene) -> str:
+def _roi_source(scene, capture: Capture | None = None) -> str:
     if scene.bounds is not None:
         return "the dataset's bounds"
     if scene.masks is not None:
         return "the visual hull of the masks"
     if scene.points is not None and len(scene.points) >= 8:
         return "the points seen by half of the cameras"
+    if capture is Capture.FORWARD:
+        return ("the volume seen by 90 % of the cameras (with parallel axes: around the depth stereo finds in the "
+                "middle of the pictures, or a guess from the rig's spread when they hold no texture)")
     return "the volume seen by 90 % of the cameras"
 
 
@@ -153,5 +156,5 @@ def analyse_layout(scene, kind: SceneKind | str | None = None) -> SceneLayout:
     dist = np.linalg.norm(centers - 0.5 * (lo + hi), axis=1)
     near = min(NEAR_FRACTION * extent, 0.5 * float(np.median(dist)))
     near = near if math.isfinite(near) and near > 0 else NEAR_FRACTION * extent
-    src = _roi_source(scene)
+    src = _roi_source(scene, capture)
     return SceneLayout(k, capture, lo, hi, src, centers, extent, near, f"{why}; region of interest from {src}")
