@@ -243,14 +243,17 @@ def chunk_near(scene, plan: ChunkPlan) -> float:
     """The smallest near-camera distance (world units) of the chunks' own fits: the meshing policy's
     "no face within the near distance of a camera" (:mod:`wtopo.fitting.scene_kind`) scales with the
     extent of the scene it is given, and the whole scene's extent would remove real surface (the
-    ground under a camera) that every chunk kept."""
-    from ..fitting.scene_kind import analyse_layout
-    from .engine import chunk_scene
+    ground under a camera) that every chunk kept. Each chunk's is
+    :func:`~wtopo.fitting.scene_kind.near_distance` of its cameras around its box (what its fit's
+    layout computes in the internal frame, here in world units)."""
+    from ..fitting.scene_kind import near_distance
 
     near = math.inf
     for ch in plan.chunks:
-        sub = chunk_scene(scene, ch)
-        near = min(near, analyse_layout(sub.normalized()).near / sub.normalization().scale)
+        if len(ch.cameras) == 0:
+            continue
+        centers = np.stack([scene.cameras[int(i)].center for i in ch.cameras])
+        near = min(near, near_distance(centers, ch.lower, ch.upper)[0])
     return near
 
 

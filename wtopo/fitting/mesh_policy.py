@@ -48,12 +48,19 @@ def crop_near_cameras(mesh: trimesh.Trimesh, centers: np.ndarray, near: float) -
     """Remove every face with a point within ``near`` of a camera centre; returns the mesh and how many."""
     if len(mesh.faces) == 0:
         return mesh, 0
+    from scipy.spatial import cKDTree
+
     tri = np.asarray(mesh.triangles)
     cen = tri.mean(axis=1)
     rad = np.linalg.norm(tri - cen[:, None], axis=2).max(axis=1)
     drop = np.zeros(len(tri), bool)
-    for c in np.asarray(centers, np.float64):
-        cand = np.nonzero(np.linalg.norm(cen - c, axis=1) - rad < near)[0]
+    centers = np.asarray(centers, np.float64).reshape(-1, 3)
+    # faces whose bounding sphere reaches within ``near`` of a camera (a k-d tree over the face centres,
+    # not a pass over every face per camera), then the exact point-to-triangle distance
+    reach = cKDTree(cen).query_ball_point(centers, r=near + float(rad.max()))
+    for c, ids in zip(centers, reach):
+        cand = np.asarray(ids, np.int64)
+        cand = cand[np.linalg.norm(cen[cand] - c, axis=1) - rad[cand] < near]
         if len(cand):
             drop[cand[_face_distance(tri[cand], c) < near]] = True
     if not drop.any():

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["SceneKind", "Capture", "SceneLayout", "analyse_layout"]
+__all__ = ["SceneKind", "Capture", "SceneLayout", "analyse_layout", "near_distance"]
 
 # A forward-facing capture: the mean of the unit viewing directions has at least this length,
 # i.e. the axes spread by less than about 35 degrees around their mean (LLFF rigs: < 20 degrees;
@@ -112,6 +112,22 @@ def _roi_source(scene, capture: Capture | None = None) -> str:
     return "the volume seen by 90 % of the cameras"
 
 
+def near_distance(centers: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> tuple[float, float]:
+    """``(near, extent)`` of :class:`SceneLayout` for cameras at ``centers`` [N, 3] around the box
+    ``[lower, upper]`` (any frame and units: both scale with them). ``extent`` is the diagonal of the box
+    around the box's corners and the centres; ``near`` is ``NEAR_FRACTION`` of it, capped by half the
+    cameras' median distance to the box's centre (a camera inside the region, as in a room scan, keeps
+    a near distance small against the surfaces it films)."""
+    centers = np.asarray(centers, np.float64).reshape(-1, 3)
+    lo, hi = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
+    allp = np.concatenate([centers, lo[None], hi[None]])
+    extent = float(np.linalg.norm(allp.max(axis=0) - allp.min(axis=0)))
+    dist = np.linalg.norm(centers - 0.5 * (lo + hi), axis=1)
+    near = min(NEAR_FRACTION * extent, 0.5 * float(np.median(dist)))
+    near = near if math.isfinite(near) and near > 0 else NEAR_FRACTION * extent
+    return near, extent
+
+
 def analyse_layout(scene, kind: SceneKind | str | None = None) -> SceneLayout:
     """Region of interest and kind of the normalised ``scene`` (internal frame).
 
@@ -148,13 +164,6 @@ def analyse_layout(scene, kind: SceneKind | str | None = None) -> SceneLayout:
     else:
         k = SceneKind(kind)
         why = f"{k.value}: set in the configuration ({how})"
-    allp = np.concatenate([centers, lo[None], hi[None]])
-    extent = float(np.linalg.norm(allp.max(axis=0) - allp.min(axis=0)))
-    # a camera inside the region of interest (a room scan) keeps a near distance that is still
-    # small against its distance to the nearest surface it films: cap by half the median distance
-    # of the cameras to the region's centre
-    dist = np.linalg.norm(centers - 0.5 * (lo + hi), axis=1)
-    near = min(NEAR_FRACTION * extent, 0.5 * float(np.median(dist)))
-    near = near if math.isfinite(near) and near > 0 else NEAR_FRACTION * extent
+    near, extent = near_distance(centers, lo, hi)
     src = _roi_source(scene, capture)
     return SceneLayout(k, capture, lo, hi, src, centers, extent, near, f"{why}; region of interest from {src}")
