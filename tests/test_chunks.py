@@ -315,6 +315,20 @@ def test_cli_rejects_a_bad_chunk_count(tmp_path, capsys):
     assert "--chunks takes a number of chunks >= 1 or 'auto', got '0'" in capsys.readouterr().err
 
 
+def test_cli_passes_the_merge_choice(tmp_path, monkeypatch, capsys):
+    """``--chunk-merge weld`` reaches the chunk configuration (default ``refuse``); a bad choice is a user error."""
+    from wtopo.cli import main
+
+    seen = []
+    monkeypatch.setattr(wc, "fit_chunked", lambda scene, out, cfg, chunk_config, progress: seen.append(chunk_config))
+    assert main(["fit", "sphere", "--out", str(tmp_path / "a"), "--chunks", "2", "--chunk-merge", "weld"]) == 0
+    assert main(["fit", "sphere", "--out", str(tmp_path / "b"), "--chunks", "2"]) == 0
+    assert [c.merge for c in seen] == ["weld", "refuse"] and seen[0].chunks == 2
+    with pytest.raises(SystemExit) as e:
+        main(["fit", "sphere", "--out", str(tmp_path / "c"), "--chunks", "2", "--chunk-merge", "glue"])
+    assert e.value.code == 2 and "glue" in capsys.readouterr().err
+
+
 def test_a_failing_chunk_is_reported_by_name(tmp_path, monkeypatch):
     """Raise one error naming the chunk when its fit fails, and leave no result directory for it."""
     import wtopo.fitting

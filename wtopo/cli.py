@@ -162,7 +162,8 @@ def _chunks_arg(text: str | None):
 def _fit_chunks(scene, cfg, args, chunks) -> int:
     from .chunks import ChunkConfig, fit_chunked
 
-    result = fit_chunked(scene, args.out, cfg, chunk_config=ChunkConfig(chunks=None if chunks == "auto" else chunks),
+    ccfg = ChunkConfig(chunks=None if chunks == "auto" else chunks, merge=args.chunk_merge)
+    result = fit_chunked(scene, args.out, cfg, chunk_config=ccfg,
                          progress=not args.quiet)
     if result is not None and args.quiet:
         print(f"{result.report['chunks']} chunks in {result.report['wall_s']:.1f} s, mesh {args.out}/mesh.ply")
@@ -239,6 +240,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--chunks", metavar="N|auto",
                    help="fit the region of interest as N overlapping chunks (auto: the plan decides from the views "
                         "and the memory) and merge them; under torchrun use python -m wtopo.chunks.run")
+    f.add_argument("--chunk-merge", choices=("refuse", "weld"), default="refuse",
+                   help="how chunks are merged: refuse (default) meshes the merged surfels once over the whole "
+                        "region, no seam; weld joins the chunks' own meshes at the cuts")
     f.add_argument("--quiet", action="store_true", help="no plan, no progress bars")
     f.set_defaults(func=_cmd_fit)
 
