@@ -142,10 +142,8 @@ def run_synthetic(key: str, cfg: FitConfig, run_dir: str, scene_kw: dict) -> dic
     roi = scene.info["roi"]
     est = estimated_roi(scene)
     if _Mode.oracle_roi:  # diagnostic: give the fit the intended region of interest as Scene.bounds
-        scene.bounds = (np.asarray(roi[0], np.float64), np.asarray(roi[1], np.float64))
-        scene.__post_init__()
-        scene._roi_cache.clear()  # estimated_roi() above cached the cameras' estimate
-        scene._norm_cache.clear()
+        # a new scene: validated, and without the estimate estimated_roi() cached on this one
+        scene = dataclasses.replace(scene, bounds=(np.asarray(roi[0], np.float64), np.asarray(roi[1], np.float64)))
         est = "intended (--oracle-roi)"
     print(f"[{key}] intended ROI {_roi_text(roi)}; estimated from the cameras {est}", flush=True)
     if _Mode.fit_only:  # no geometry metrics during the fit (they need Open3D): --measure does them

@@ -305,6 +305,9 @@ def test_chunk_runs_its_share_of_the_iteration_budget():
     # half the space: half the CPU surfel cap (40k) and re-initialisation faces (8k), half the points
     assert (d.runtime.max_surfels, d.tsdf.max_faces, d.init.num_points) == (20000, 4000, 2500)
     assert d.init.background_points is None  # left to the plan (as many as num_points for a scene)
+    # the whole scene's planned budget (a CPU plan scales it with the pixels to fit) is what the share divides
+    e = chunk_fit_config(FitConfig(), "cpu", 0.5, budget=(1250, 625))
+    assert (e.warmup.iterations, e.coevolution.iterations) == (625, 312)
 
 
 def test_cli_rejects_a_bad_chunk_count(tmp_path, capsys):

@@ -107,6 +107,8 @@ def test_cpu_budget_grows_with_the_pixels_to_fit():
     k = n_train * 128 * 128 / P._CPU_FIT_PIXELS  # below the render cap at 128 px
     assert k > 1.5 and p["warmup_iterations"] == round(400 * k) and p["coevolution_iterations"] == round(200 * k)
     assert "training pixels" in p.decisions["warmup_iterations"].reason
+    # the same rule outside the plan (chunked fits divide the whole scene's budget), any frame
+    assert P.iteration_budget(bare, dev)[:2] == (p["warmup_iterations"], p["coevolution_iterations"])
     cfg = FitConfig()
     cfg.warmup.iterations = 123  # an explicit budget is honoured
     assert make_plan(bare.normalized(), cfg, dev)["warmup_iterations"] == 123

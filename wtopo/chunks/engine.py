@@ -97,11 +97,13 @@ def _write_json(path: Path, data) -> None:
     atomic_write(path, lambda tmp: Path(tmp).write_text(text))
 
 
-def chunk_fit_config(cfg, device: str, share: float, space: float = 1.0):
+def chunk_fit_config(cfg, device: str, share: float, space: float = 1.0, budget: tuple[int, int] | None = None):
     """A copy of ``cfg`` on ``device`` whose warm-up and co-evolution iterations are ``share`` of the
     budget and whose point budgets (initial points, surfel cap, re-initialisation faces, background
     points when set) are ``space`` of theirs (the configured values, or the plan's for the device
-    when left to it)."""
+    when left to it). ``budget``: the whole scene's planned ``(warm-up, co-evolution)`` iterations
+    (:func:`wtopo.fitting.plan.iteration_budget`) for those the configuration leaves to the plan;
+    ``None``: the device's base budget."""
     import copy
 
     from ..fitting.plan import _ITERATIONS, _MAX_SURFELS, _REINIT_FACES
@@ -117,7 +119,7 @@ def chunk_fit_config(cfg, device: str, share: float, space: float = 1.0):
         c.init.num_points = max(1, round(space * cfg.init.num_points))
         if cfg.init.background_points:
             c.init.background_points = max(1, round(space * cfg.init.background_points))
-    warm, coevo = _ITERATIONS[dev]
+    warm, coevo = _ITERATIONS[dev] if budget is None else budget
     warm = warm if cfg.warmup.iterations is None else cfg.warmup.iterations
     coevo = coevo if cfg.coevolution.iterations is None else cfg.coevolution.iterations
     c.warmup.iterations = max(1, round(share * warm)) if warm else 0
@@ -161,6 +163,7 @@ def _fit_one(scene, plan: ChunkPlan, index: int, cfg, ccfg: ChunkConfig, out: Pa
     import torch
 
     from ..fitting import fit
+    from ..fitting.plan import iteration_budget
 
     final, partial = out / "chunks" / str(index), out / "chunks" / f"{index}.partial"
     if (final / "chunk.json").exists():
@@ -172,7 +175,9 @@ def _fit_one(scene, plan: ChunkPlan, index: int, cfg, ccfg: ChunkConfig, out: Pa
         share = max(ccfg.min_budget_share, len(set(chunk.cameras) & {int(i) for i in train}) / len(train))
     if ccfg.space_share:
         space = max(ccfg.min_budget_share, min(1.0, chunk.volume_share(plan.roi_lower, plan.roi_upper)))
-    c = chunk_fit_config(cfg, device, share, space)
+    # the share of what the whole scene's fit would run (the plan scales a CPU budget with the pixels to fit)
+    budget = iteration_budget(scene, torch.device(device), cfg.runtime.image_scale)[:2]
+    c = chunk_fit_config(cfg, device, share, space, budget)
     cuda = device.startswith("cuda")
     if cuda:
         torch.cuda.reset_peak_memory_stats(device)

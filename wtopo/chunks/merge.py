@@ -35,7 +35,7 @@ import time
 import numpy as np
 import trimesh
 
-from .partition import ChunkPlan, core_owner
+from .partition import ChunkPlan, core_owner, grid_owner
 
 __all__ = ["keep_core_faces", "weld_boundaries", "merge_meshes", "merge_surfels", "boundary_edges_near", "refuse_mesh",
            "refuse_resolution", "MAX_REFUSE_RESOLUTION"]
@@ -210,18 +210,14 @@ def _core_renderer(base, plan: ChunkPlan, sim, views: dict, which):
     the pixels whose surface (the ``which`` rendered z-depth, back-projected) lies in the core of a
     chunk the view did not fit. ``views``: ``{id(camera): bool tensor [chunks]}``, the chunks each
     (internal-frame) camera was given; other cameras render unchanged."""
-    import dataclasses
-
     import torch
 
     from ..fitting.config import RenderedDepth
     from ..fitting.stages import Renderer
 
-    g = torch.as_tensor(plan.grid, device=base.background.device)
-    # the chunk grid in the internal frame: lower corner and cell size (the similarity only scales and shifts)
-    lo = torch.as_tensor(sim.to_internal(plan.roi_lower), dtype=torch.float32, device=g.device)
-    step = torch.as_tensor((plan.roi_upper - plan.roi_lower) * sim.scale / np.asarray(plan.grid), dtype=torch.float32,
-                           device=g.device)
+    # the region of interest in the internal frame (the similarity only scales and shifts), on the device once
+    lo, hi = (torch.as_tensor(sim.to_internal(b), dtype=torch.float32, device=base.background.device)
+              for b in (plan.roi_lower, plan.roi_upper))
 
     class _CoreViews(Renderer):
         def __call__(self, surfels, camera, *, defer_count: bool = False):
@@ -231,9 +227,7 @@ def _core_renderer(base, plan: ChunkPlan, sim, views: dict, which):
                 return out
             z = out.median_depth if which == RenderedDepth.MEDIAN else out.depth
             o, d = camera.pixel_rays(z.device)
-            cell = torch.floor((o + d * z[..., None] - lo) / step).long()
-            cell = torch.minimum(cell.clamp_min(0), g - 1)
-            owner = (cell[..., 0] * g[1] + cell[..., 1]) * g[2] + cell[..., 2]
+            owner = grid_owner(o + d * z[..., None], lo, hi, plan.grid)
             return dataclasses.replace(out, alpha=torch.where(allowed[owner], out.alpha, torch.zeros_like(out.alpha)))
 
     return _CoreViews(base.background, base.config)
@@ -321,6 +315,7 @@ def refuse_mesh(scene, surfels, config, *, resolution: int, device: str = "cpu",
                 opacity_logits=torch.logit(t(opacities), eps=1e-6), sh_dc=t(sh[:, :1]), sh_rest=t(sh[:, 1:]))
     render = Renderer(torch.tensor(fplan["background"], dtype=torch.float32, device=dev),
                       RasterConfig(filter_sigma=cfg.filter_sigma))
+    layout = fplan.layout
     if plan is not None:
         given = {}
         for ch in plan.chunks:
@@ -329,8 +324,7 @@ def refuse_mesh(scene, surfels, config, *, resolution: int, device: str = "cpu",
         mask = lambda i: torch.as_tensor([k in given.get(int(i), ()) for k in range(len(plan.chunks))],  # noqa: E731
                                          device=dev)
         render = _core_renderer(render, plan, sim, {id(c): mask(i) for i, c in zip(train, cams)}, cfg.tsdf.depth)
-    layout = fplan.layout
-    if plan is not None:  # the near-camera distance the chunks meshed with, not the whole scene's (module doc)
+        # the near-camera distance the chunks meshed with, not the whole scene's (chunk_near)
         layout = dataclasses.replace(layout, near=min(layout.near, sim.scale * chunk_near(scene, plan)))
     events, tsdf_info = [], {}
     timers = Timers(torch.cuda.synchronize if dev.type == "cuda" else None)

@@ -223,13 +223,26 @@ def _grid_chunks(lo: np.ndarray, hi: np.ndarray, grid, overlap: float) -> list[C
     return out
 
 
+def grid_owner(points, lower, upper, grid):
+    """Index (int64, shape ``points.shape[:-1]``) of the cell of the ``grid`` (3 counts) over the box
+    ``[lower, upper]`` that holds each point [..., 3]; points outside belong to the nearest border cell
+    (the outer cells reach to infinity). NumPy in, NumPy out; a torch tensor stays on its device (then
+    ``lower`` / ``upper`` are [3] tensors or sequences on the host: a per-view call copies nothing)."""
+    g = [int(n) for n in grid]
+    if isinstance(points, np.ndarray) or not hasattr(points, "device"):
+        p = np.asarray(points, np.float64)
+        lo, hi = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
+        cell = [np.clip(np.floor((p[..., k] - lo[k]) / ((hi[k] - lo[k]) / g[k])), 0, g[k] - 1).astype(np.int64)
+                for k in range(3)]
+    else:
+        cell = [((points[..., k] - lower[k]) / ((upper[k] - lower[k]) / g[k])).floor().long().clamp(0, g[k] - 1)
+                for k in range(3)]
+    return (cell[0] * g[1] + cell[1]) * g[2] + cell[2]
+
+
 def core_owner(points, plan: ChunkPlan) -> np.ndarray:
     """Index [P] (int64) of the chunk whose core holds each point [P, 3] (world units)."""
-    p = np.asarray(points, np.float64).reshape(-1, 3)
-    g = np.asarray(plan.grid)
-    step = (plan.roi_upper - plan.roi_lower) / g
-    cell = np.clip(np.floor((p - plan.roi_lower) / step), 0, g - 1).astype(np.int64)
-    return (cell[:, 0] * g[1] + cell[:, 1]) * g[2] + cell[:, 2]
+    return grid_owner(np.asarray(points, np.float64).reshape(-1, 3), plan.roi_lower, plan.roi_upper, plan.grid)
 
 
 def _pixel_rays(camera, n: int) -> tuple[np.ndarray, np.ndarray]:

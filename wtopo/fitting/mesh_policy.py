@@ -16,6 +16,7 @@ from collections.abc import Sequence
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 __all__ = ["crop_to_box", "crop_near_cameras", "supported_components"]
 
@@ -48,8 +49,6 @@ def crop_near_cameras(mesh: trimesh.Trimesh, centers: np.ndarray, near: float) -
     """Remove every face with a point within ``near`` of a camera centre; returns the mesh and how many."""
     if len(mesh.faces) == 0:
         return mesh, 0
-    from scipy.spatial import cKDTree
-
     tri = np.asarray(mesh.triangles)
     cen = tri.mean(axis=1)
     rad = np.linalg.norm(tri - cen[:, None], axis=2).max(axis=1)

@@ -267,9 +267,8 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     # -- image size
     h, w = images.shape[1:3]
     cap = _GPU_MAX_SIDE if device.type == "cuda" else _CPU_MAX_SIDE
-    scale = min(1.0, cap / max(h, w))
-    plan.set("image_scale", scale, f"{w}x{h} images; longest side capped at {cap} px on {device.type}",
-             cfg.runtime.image_scale)
+    plan.set("image_scale", default_image_scale(h, w, device),
+             f"{w}x{h} images; longest side capped at {cap} px on {device.type}", cfg.runtime.image_scale)
     _budget(plan, scene, cfg, device, layout, float(plan["image_scale"]))
 
     # -- held-out views
@@ -327,18 +326,37 @@ def _fit_pixels(scene, image_scale: float) -> tuple[float, float]:
     return cover * per_view, per_view
 
 
+def default_image_scale(height: int, width: int, device: torch.device) -> float:
+    """The plan's image scale for images of ``height`` x ``width`` px on ``device``: the longest side
+    capped at ``_CPU_MAX_SIDE`` / ``_GPU_MAX_SIDE`` (never upsampled)."""
+    cap = _GPU_MAX_SIDE if device.type == "cuda" else _CPU_MAX_SIDE
+    return min(1.0, cap / max(height, width))
+
+
+def iteration_budget(scene, device: torch.device, image_scale: float | None = None) -> tuple[int, int, str]:
+    """``(warm-up, co-evolution, reason)``: the plan's iterations for ``scene`` on ``device`` when the
+    configuration leaves them to it. CUDA: ``_ITERATIONS["cuda"]``. CPU: 400 + 200 for up to
+    ``_CPU_FIT_PIXELS`` training pixels to fit (mask pixels; every pixel without masks), proportionally
+    more beyond while the warm-up renders at most ``_CPU_RENDER_PIXELS``. ``image_scale``: the trained
+    scale (``None``: :func:`default_image_scale`). Any frame: only the images, masks and split count."""
+    dev = "cuda" if device.type == "cuda" else "cpu"
+    warm, coevo = _ITERATIONS[dev]
+    if dev == "cuda":
+        return warm, coevo, "cuda budget"
+    h, w = (int(x) for x in scene.images.shape[1:3])
+    content, per_view = _fit_pixels(scene, default_image_scale(h, w, device) if image_scale is None else image_scale)
+    k = max(1.0, min(content / _CPU_FIT_PIXELS, _CPU_RENDER_PIXELS / (warm * per_view)))
+    if k == 1.0:
+        return warm, coevo, "cpu budget"
+    return (int(round(warm * k)), int(round(coevo * k)),
+            f"cpu budget x{k:.2f}: {content / 1e3:.0f}k training pixels to fit (> {_CPU_FIT_PIXELS // 1000}k), "
+            f"at most {_CPU_RENDER_PIXELS / 1e6:.0f}M rendered pixels in the warm-up")
+
+
 def _budget(plan: Plan, scene, cfg: FitConfig, device: torch.device, layout, image_scale: float) -> None:
     """Iterations, surfel cap and grids from the device, the region's size and the pixel footprint."""
     dev = "cuda" if device.type == "cuda" else "cpu"
-    warm, coevo = _ITERATIONS[dev]
-    why = f"{dev} budget"
-    if dev == "cpu":
-        content, per_view = _fit_pixels(scene, image_scale)
-        k = max(1.0, min(content / _CPU_FIT_PIXELS, _CPU_RENDER_PIXELS / (warm * per_view)))
-        if k > 1.0:
-            warm, coevo = int(round(warm * k)), int(round(coevo * k))
-            why = (f"cpu budget x{k:.2f}: {content / 1e3:.0f}k training pixels to fit (> {_CPU_FIT_PIXELS // 1000}k), "
-                   f"at most {_CPU_RENDER_PIXELS / 1e6:.0f}M rendered pixels in the warm-up")
+    warm, coevo, why = iteration_budget(scene, device, image_scale)
     plan.set("warmup_iterations", warm, why, cfg.warmup.iterations)
     plan.set("coevolution_iterations", coevo, why, cfg.coevolution.iterations)
     plan.set("max_surfels", _MAX_SURFELS[dev], f"{dev} budget", cfg.runtime.max_surfels)
