@@ -266,3 +266,17 @@ def test_camera_clearance_point_to_triangle():
     assert np.all(metrics.camera_clearance(empty, centers) == math.inf)
     with pytest.raises(ValueError, match="camera_centers"):
         metrics.camera_clearance(plane, np.zeros((2, 2)))
+
+
+def test_inward_offset_of_concentric_boxes_and_shifted_cube():
+    """A cube inside a larger one is inside by exactly the gap; one outside it by minus the gap; a shifted
+    copy is half in, half out, with a mean near 0."""
+    inner, outer = _box(2.0), _box(2.4)
+    r = metrics.inward_offset(inner, outer, n_samples=N_SAMPLES)
+    np.testing.assert_allclose([r.mean, r.median, r.inside], [0.2, 0.2, 1.0], atol=1e-9)
+    r = metrics.inward_offset(outer, inner, n_samples=N_SAMPLES)
+    # all outside; beyond the inner cube's edges the side of the closest face's plane is nearer than the gap
+    assert -0.2 - 1e-9 < r.mean < -0.15 and r.median == pytest.approx(-0.2) and r.inside == 0.0
+    shifted = _box(2.0, center=(0.1, 0.0, 0.0))
+    r = metrics.inward_offset(shifted, _box(2.0), n_samples=N_SAMPLES)
+    assert abs(r.mean) < 0.01 and 0.1 < r.inside < 0.5  # the x = -0.9 face in, x = 1.1 out, the rest on

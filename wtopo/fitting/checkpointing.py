@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+import torch
 
 from .checkpoint import CheckpointError, list_checkpoints, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from .proxy import ProxyMesh
@@ -53,7 +54,8 @@ class Checkpointer:
             "generator": r.gen.get_state(), "config_hash": r.hash, "config": r.cfg.to_dict(),
             "normalization": {"scale": r.sim.scale, "translation": list(r.sim.translation)},
             "proxy": {"box": None if r.proxy.box is None else [np.asarray(b).tolist() for b in r.proxy.box],
-                      "prior": r.proxy.prior},
+                      "prior": r.proxy.prior,
+                      "silhouette": None if r.proxy.silhouette is None else float(r.proxy.silhouette.value)},
             "tsdf_info": r.tsdf_info, "total_failures": r.total_failures,
         }
 
@@ -111,4 +113,6 @@ class Checkpointer:
         px = st["proxy"]
         r.proxy = ProxyMesh(r.cfg.mesh, box=None if px["box"] is None else tuple(np.asarray(b) for b in px["box"]),
                             prior=px["prior"])
+        if r.proxy.silhouette is not None and px.get("silhouette"):
+            r.proxy.silhouette.value = torch.tensor(float(px["silhouette"]), device=r.device)
         return True

@@ -332,7 +332,8 @@ class FitRun:
         with self.timers("final"):
             guided = self.cfg.coevolution.enabled and self.it > self.warmup_end
             return final_mesh(self.surfels, self.train.cameras, self.cfg, render=self.render, proxy=self.proxy,
-                              guided=guided, tsdf_info=self.tsdf_info, record=self.record, layout=self.plan.layout)
+                              guided=guided, tsdf_info=self.tsdf_info, record=self.record, layout=self.plan.layout,
+                              masks=self.train.masks)
 
     def _evaluate(self, stage: Stage, mesh: trimesh.Trimesh | None = None) -> dict:
         with self.timers("evaluate"):

@@ -138,6 +138,9 @@ class Objective:
             if pm is not None:
                 with T("raycast"):
                     mr = proxy.render(pm, cam)
+                if proxy.silhouette is not None and self.train.masks is not None:
+                    with torch.no_grad():  # the proxy's silhouette against the mask: its offset for the next builds
+                        proxy.silhouette.update(mr.mask, mr.depth, self.train.masks[vi], float(cam.K[0, 0]))
                 with T("losses"):
                     both = mr.mask & covered
                     supported = proxy.supported_pixels(pm, mr, s)

@@ -16,6 +16,7 @@ import torch
 from .._profile import section
 from ..raycast import MeshRaycaster, MeshRender
 from .config import MeshConfig
+from .silhouette import SilhouetteOffset, vertex_normals
 from .surfels import Surfels
 
 __all__ = ["ProxyMesh", "ProxyResult", "poisson_mesh"]
@@ -23,6 +24,7 @@ __all__ = ["ProxyMesh", "ProxyResult", "poisson_mesh"]
 _BOX_GROWTH = 0.1  # "initial_mesh" Poisson box: the TSDF mesh's box grown by 10 % (public code)
 _SUPPORT_OPACITY = 0.1  # surfels at least this opaque support proxy faces (the opacity of a reset or a spawn)
 _SUPPORT_SCALES = 2.0  # a surfel reaches this many of its (larger) scales from its centre
+_SILHOUETTE_LIMIT_CELLS = 2.0  # the silhouette offset stays within this many Poisson grid cells
 
 
 def poisson_mesh(points: torch.Tensor, normals: torch.Tensor, weights: torch.Tensor, resolution: int, *,
@@ -68,6 +70,11 @@ class ProxyMesh:
             the unit cube.
         prior: optional ``(points [P, 3], normals [P, 3])`` splatted into the Poisson input with
             weight ``cfg.surface_prior`` (the public TopoSurfel code's surface prior).
+
+    Attributes:
+        silhouette: the running silhouette offset (:mod:`.silhouette`; ``None`` when
+            ``cfg.silhouette_gain`` is 0): :meth:`build` moves the vertices along their normals by its
+            value. The fit updates it from each view's ray cast when the scene has masks.
     """
 
     def __init__(self, cfg: MeshConfig, *, box: tuple[np.ndarray, np.ndarray] | None = None,
@@ -82,6 +89,10 @@ class ProxyMesh:
             side = float(np.max(hi - lo)) * (1 + 2 * _BOX_GROWTH)
             self.lower, self.size = 0.5 * (lo + hi) - 0.5 * side, side
         self.prior = prior
+        self.silhouette = None
+        if float(cfg.silhouette_gain) > 0:
+            cell = self.size / int(cfg.resolution or 64)
+            self.silhouette = SilhouetteOffset(gain=float(cfg.silhouette_gain), limit=_SILHOUETTE_LIMIT_CELLS * cell)
 
     def _to_box(self, p: torch.Tensor) -> torch.Tensor:
         return (p - torch.as_tensor(self.lower, dtype=p.dtype, device=p.device)) / self.size
@@ -92,7 +103,8 @@ class ProxyMesh:
     def build(self, surfels: Surfels) -> ProxyResult | None:
         """The proxy mesh of the current surfels (``None`` when it has no faces).
 
-        Differentiable w.r.t. the surfel means, rotations, scales and opacities.
+        Differentiable w.r.t. the surfel means, rotations, scales and opacities. With a
+        :attr:`silhouette` offset the vertices are moved along their (discrete) normals by its value.
         """
         from ..oriented_points import oriented_points
 
@@ -117,7 +129,10 @@ class ProxyMesh:
         verts, faces = poisson_mesh(pts, nrm, w, int(c.resolution), sigma=c.sigma, padding=c.padding)
         if faces.shape[0] == 0:
             return None
-        return ProxyResult(self._from_box(verts), faces)
+        verts = self._from_box(verts)
+        if self.silhouette is not None and (torch.is_tensor(self.silhouette.value) or self.silhouette.value != 0.0):
+            verts = verts + self.silhouette.value * vertex_normals(verts, faces)
+        return ProxyResult(verts, faces)
 
     def supported(self, mesh: ProxyResult, surfels: Surfels) -> torch.Tensor | None:
         """Which faces of ``mesh`` lie near a surfel (:meth:`near_surfels` at ``cfg.support_voxels``):

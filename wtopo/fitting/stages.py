@@ -26,6 +26,7 @@ from .config import FinalMethod, FitConfig, NormalFlip, PoissonBox, RenderedDept
 from .mesh_policy import crop_near_cameras, crop_to_box, supported_components
 from .proxy import ProxyMesh, poisson_mesh
 from .scene_kind import SceneKind, SceneLayout
+from .silhouette import calibrate_mesh
 from .surfels import Surfels
 from .tsdf import (
     FusionBounds,
@@ -197,7 +198,8 @@ def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: 
 
 
 def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: Renderer, proxy: ProxyMesh,
-               guided: bool, tsdf_info: dict, record: Record, layout: SceneLayout | None = None) -> trimesh.Trimesh:
+               guided: bool, tsdf_info: dict, record: Record, layout: SceneLayout | None = None,
+               masks=None) -> trimesh.Trimesh:
     """The returned mesh in the internal frame: TSDF of rendered depth, or the Poisson proxy.
 
     Args:
@@ -212,6 +214,8 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
         layout: scene kind and region of interest; a scene's mesh is its region of interest's
             surface, open, with no face within ``layout.near`` of a camera centre
             (:mod:`.mesh_policy`). Objects are closed. Both keep the components the views support.
+        masks: the training views' [H, W] bool masks or ``None``; with ``final.silhouette_calibration``
+            an object's mesh is moved onto them (:func:`~.silhouette.calibrate_mesh`).
 
     Raises:
         TSDFEmptyError: the TSDF fusion and the proxy mesh are both empty.
@@ -259,6 +263,12 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
                 mesh, info["components"] = supported_components(mesh, cameras, depths)
             if fc.watertight and not mesh.is_watertight:
                 mesh = poisson_remesh(mesh, cfg, record=record)
+            if fc.silhouette_calibration and masks is not None and len(mesh.faces):
+                with section("silhouette_calibration"):
+                    v, cal = calibrate_mesh(torch.as_tensor(mesh.vertices, dtype=torch.float32),
+                                            torch.as_tensor(mesh.faces), cameras, masks)
+                mesh = trimesh.Trimesh(v.numpy().astype(np.float64), mesh.faces, process=False)
+                record("silhouette_calibration", **cal)
     record("mesh_policy", policy="open_roi" if scene else "watertight", **info)
     if len(mesh.faces) == 0:
         raise TSDFEmptyError("the final mesh is empty after the meshing policy (nothing in the region of interest "

@@ -186,6 +186,8 @@ class DensityStrategy:
         """Normal signs, geometry-aware prune and densification against a proxy of the current surfels."""
         co, dc, mc = self.cfg.coevolution, self.cfg.densify, self.cfg.mesh
         info = {}
+        if proxy.silhouette is not None:  # host read at a refresh only
+            info["silhouette_offset"] = float(proxy.silhouette.value)
         pm = None
         if co.enabled:
             with torch.no_grad():

@@ -28,7 +28,16 @@ Modules (private; import from ``wtopo.metrics``):
 """
 
 from ._alignment import SimilarityAlignment, align_similarity, refine_alignment
-from ._distance import ChamferResult, FScore, chamfer, chamfer_vertices, f_score, normal_consistency
+from ._distance import (
+    ChamferResult,
+    FScore,
+    InwardOffset,
+    chamfer,
+    chamfer_vertices,
+    f_score,
+    inward_offset,
+    normal_consistency,
+)
 from ._image import psnr, ssim
 from ._scene import ROIFScore, camera_clearance, roi_f_score
 from ._surface import sample_surface
@@ -37,6 +46,8 @@ from ._topology import Floaters, Holes, floaters, holes, mesh_stats
 __all__ = [
     "ChamferResult",
     "FScore",
+    "InwardOffset",
+    "inward_offset",
     "Floaters",
     "Holes",
     "chamfer",

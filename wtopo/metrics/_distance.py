@@ -132,3 +132,32 @@ def normal_consistency(a, b, *, n_samples: int = _DEFAULT_SAMPLES, seed: int = 0
         c = np.einsum("ij,ij->i", src.face_normals[src.face_index], dst.face_normals[fd])
         vals.append((c if oriented else np.abs(c)).mean())
     return float(0.5 * (vals[0] + vals[1]))
+
+
+@dataclass
+class InwardOffset:
+    """Signed offset of a reconstruction ``a`` from a closed reference ``b`` along ``b``'s normals.
+
+    Attributes:
+        mean: mean signed distance of ``a``'s area samples to ``b``, positive inside ``b`` (a shrunk
+            reconstruction), in the meshes' units; each sample's sign is its side of the plane of
+            the closest face of ``b`` (``b`` wound outwards).
+        median: the median of the same.
+        inside: fraction of ``a``'s area inside ``b`` (signed distance > 0).
+    """
+
+    mean: float
+    median: float
+    inside: float
+
+
+def inward_offset(a, b, *, n_samples: int = _DEFAULT_SAMPLES, seed: int = 0) -> InwardOffset:
+    """How far reconstruction ``a`` lies inside reference ``b`` on average (:class:`InwardOffset`):
+    a systematic shrink shows as a positive mean with most of the area inside, noise as a mean near 0.
+    Sampling as in :func:`chamfer`."""
+    n = _check_samples(n_samples)
+    sa, sb = _Surface("a", a, n, seed), _Surface("b", b, n, seed + 1)
+    _, fd = sb.closest(sa.points)
+    fd = np.asarray(fd, dtype=np.int64)
+    s = -np.einsum("ij,ij->i", sa.points - sb.v[sb.f[fd, 0]], sb.face_normals[fd])
+    return InwardOffset(float(s.mean()), float(np.median(s)), float((s > 0).mean()))
