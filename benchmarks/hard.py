@@ -37,7 +37,10 @@ no interior faces. Variants (``--variants``; ``wtopo fit --set`` overrides):
 
 Per row: Chamfer, accuracy (mean reconstruction -> truth distance) and completeness (mean truth ->
 reconstruction), all in % of the ground truth's bounding-box diagonal (of the region of interest
-for ``chair_ground``); F-score at tau = 0.5 % of that diagonal; floaters
+for ``chair_ground``); F-score at tau = 0.5 % of that diagonal; inward offset
+(:func:`wtopo.metrics.inward_offset`: the mesh's mean signed distance along the truth's normals,
+positive inside, and the share of its area inside: a shrunk mesh shows as a positive offset with
+most of the area inside); floaters
 (:func:`wtopo.metrics.floaters`: % of the mesh's area farther than tau from the truth, and the count
 of components with no point within tau); holes (:func:`wtopo.metrics.holes`: % of the truth's area
 farther than tau from the mesh); watertight, components and genus (:func:`wtopo.metrics.mesh_stats`);
@@ -309,7 +312,9 @@ def measure(mesh: trimesh.Trimesh, gt: trimesh.Trimesh, seed: int = 0) -> dict:
     fs = metrics.f_score(mesh, gt, tau, n_samples=EVAL_SAMPLES, seed=seed)
     fl = metrics.floaters(mesh, gt, tau, n_samples=EVAL_SAMPLES, seed=seed)
     ho = metrics.holes(mesh, gt, tau, n_samples=EVAL_SAMPLES, seed=seed)
-    return {**row, "chamfer": 100 * ch.chamfer / diag, "accuracy": 100 * ch.accuracy / diag,
+    io = metrics.inward_offset(mesh, gt, n_samples=EVAL_SAMPLES, seed=seed)
+    return {**row, "inward": 100 * io.mean / diag, "inside_frac": 100 * io.inside,
+            "chamfer": 100 * ch.chamfer / diag, "accuracy": 100 * ch.accuracy / diag,
             "completeness": 100 * ch.completeness / diag, "f_score": fs.f_score, "precision": fs.precision,
             "recall": fs.recall, "floater_frac": 100 * fl.area_fraction, "floater_count": fl.count,
             "floater_count_area_frac": 100 * fl.count_area / max(float(mesh.area), 1e-300),
@@ -350,7 +355,9 @@ def _f(x, spec: str) -> str:
     return format(x, spec)
 
 
-_COLUMNS = ("| scene | variant | Chamfer % | F@0.5 % | acc % | compl % | floaters % area (count) | holes % area | "
+_COLUMNS = ("| scene | variant | Chamfer % | F@0.5 % | acc % | compl % | inward % (area inside %) | "
+            "floaters % area (count) | "
+            "holes % area | "
             "watertight | comp. | genus | PSNR dB | SSIM | time s | policy dropped (area %) | remeshed |")
 
 
@@ -358,7 +365,8 @@ def _row_line(r: dict) -> str:
     if "error" in r:
         return f"| {r['scene']} | {r['variant']} | fit failed after {r['time']:.0f} s: {r['error']} |"
     return (f"| {r['scene']} | {r['variant']} | {_f(r['chamfer'], '.3f')} | {r['f_score']:.3f} | "
-            f"{_f(r['accuracy'], '.3f')} | {_f(r['completeness'], '.3f')} | {r['floater_frac']:.2f} "
+            f"{_f(r['accuracy'], '.3f')} | {_f(r['completeness'], '.3f')} | {_f(r.get('inward'), '+.3f')} "
+            f"({_f(r.get('inside_frac'), '.0f')}) | {r['floater_frac']:.2f} "
             f"({r['floater_count']}) | {r['hole_frac']:.2f} | {'yes' if r['watertight'] else 'no'} | "
             f"{r['components']} | {_f(r['genus'], 'd')} | {_f(r['psnr'], '.2f')} | {_f(r['ssim'], '.3f')} | "
             f"{r['time']:.0f} | {r['policy_dropped']} ({100 * r['policy_dropped_share']:.2f}) | "
@@ -392,6 +400,8 @@ def markdown(label: str, command: str, rows: list[dict], loads: tuple[float, flo
              f"{loads[0]:.1f} at start and {loads[1]:.1f} at end (shared cores: times are noisy); "
              f"torch {torch.__version__}.", "",
              "Relative figures in % of the truth's bounding-box diagonal; tau = 0.5 % of it for F, floaters, holes. "
+             "Inward: mean signed distance of the mesh along the truth's normals (positive inside) and the % of "
+             "its area inside. "
              "Floaters: % of the mesh's area farther than tau from the truth (detached components with no point "
              "within tau); holes: % of the truth's area farther than tau from the mesh. Policy dropped: "
              "components the final meshing policy removed (no switch turns it off) and their area share.", "",

@@ -158,3 +158,18 @@ def test_mesh_terms_wait_for_their_start_fraction(tiny):
     after = run.objective(Stage.COEVOLUTION, 14, 0, run.surfels, run.proxy)
     assert not before.proxy_built and "mesh_depth" not in before.losses
     assert after.proxy_built and "mesh_depth" in after.losses
+
+
+def test_silhouette_options_run_in_a_fit(tiny):
+    """The proxy's silhouette offset (mesh.silhouette_gain) and the final calibration both run on a masked
+    fit: the offset is recorded at the mesh guidance, the calibration's move is recorded and bounded."""
+    cfg = _config(30, 12)
+    cfg.mesh.silhouette_gain = 0.3
+    cfg.final.silhouette_calibration = True
+    res = fit(tiny, cfg, progress=False)
+    guidance = [e for e in res.report["events"] if e["event"] == "mesh_guidance"]
+    assert guidance and all("silhouette_offset" in e for e in guidance)
+    assert guidance[-1]["silhouette_offset"] != 0.0, "the co-evolution should have measured the proxy's rim"
+    cal = [e for e in res.report["events"] if e["event"] == "silhouette_calibration"]
+    assert len(cal) == 1 and len(cal[0]["rounds"]) >= 1 and abs(cal[0]["offset_px"]) <= 1.0 + 1e-6
+    assert len(res.mesh.faces) > 100
