@@ -9,6 +9,7 @@ import pytest
 import torch
 import trimesh
 from fit_configs import small_fit_config
+from shapes import sphere_lattice
 
 from wtopo import chunks as wc
 from wtopo import metrics
@@ -189,13 +190,9 @@ def _sphere_surfels(center, radius: float, n: int):
     :func:`wtopo.chunks.merge_surfels` gives them."""
     from wtopo.fitting.surfels import normals_to_quats
 
-    k = np.arange(n) + 0.5
-    z = 1 - 2 * k / n
-    phi = np.pi * (1 + 5 ** 0.5) * k
-    nrm = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
-    sigma = radius * np.sqrt(4 * np.pi / n)  # one lattice spacing: neighbouring discs overlap, no holes
+    nrm, p, sigma = sphere_lattice(n, radius)
     quats = normals_to_quats(torch.as_tensor(nrm, dtype=torch.float32)).numpy()
-    return (np.asarray(center) + radius * nrm).astype(np.float32), quats, np.full((n, 2), sigma, np.float32), \
+    return (np.asarray(center) + p).astype(np.float32), quats, np.full((n, 2), sigma, np.float32), \
         np.full(n, 0.95, np.float32), np.zeros((n, 1, 3), np.float32)
 
 

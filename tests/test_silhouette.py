@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from shapes import sphere_lattice
 
 from wtopo.camera import Camera
 from wtopo.fitting.config import MeshConfig
@@ -78,27 +79,32 @@ def test_bad_settings_are_refused(bad):
 
 
 def _sphere_surfels(radius: float, n: int) -> Surfels:
-    k = np.arange(n) + 0.5
-    z = 1 - 2 * k / n
-    phi = math.pi * (1 + 5 ** 0.5) * k
-    nrm = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
-    sigma = radius * math.sqrt(4 * math.pi / n)
-    p = torch.as_tensor(0.5 + radius * nrm, dtype=torch.float32)
-    return Surfels.from_points(p, torch.full((n, 3), 0.5), scales=torch.full((n,), sigma),
-                               normals=torch.as_tensor(nrm, dtype=torch.float32), opacity=0.95)
+    nrm, p, sigma = sphere_lattice(n, radius)
+    return Surfels.from_points(torch.as_tensor(0.5 + p, dtype=torch.float32), torch.full((n, 3), 0.5),
+                               scales=torch.full((n,), sigma), normals=torch.as_tensor(nrm, dtype=torch.float32),
+                               opacity=0.95)
+
+
+def _ring(n: int) -> list[Camera]:
+    """``n`` cameras on a ring 1.6 from the unit cube's centre, looking at it (96 px, fov 0.6)."""
+    return [Camera.look_at(0.5 + 1.6 * np.array([math.cos(a), math.sin(a), 0.3]), [0.5, 0.5, 0.5], [0, 0, 1],
+                           fov_x=0.6, width=96, height=96) for a in np.linspace(0, 2 * math.pi, n, endpoint=False)]
+
+
+def _sphere_masks(radius: float, cams) -> list[torch.Tensor]:
+    """Ray-cast masks of a sphere of ``radius`` at the unit cube's centre."""
+    s = trimesh.creation.icosphere(subdivisions=5, radius=radius)
+    v, f = torch.as_tensor(s.vertices + 0.5, dtype=torch.float32), torch.as_tensor(s.faces, dtype=torch.int32)
+    rc = MeshRaycaster()
+    return [rc.raycast(v, f, c).mask.clone() for c in cams]
 
 
 def test_closed_loop_moves_a_shrunk_proxy_onto_the_masks():
     """Surfels on a sphere of radius 0.25, masks of a sphere of radius 0.27: the running offset grows
     the proxy until its silhouettes match, i.e. to the masks' radius (within a fraction of a pixel)."""
     true_r, surf_r = 0.27, 0.25
-    cams = [Camera.look_at(0.5 + 1.6 * np.array([math.cos(a), math.sin(a), 0.3]), [0.5, 0.5, 0.5], [0, 0, 1],
-                           fov_x=0.6, width=96, height=96) for a in np.linspace(0, 2 * math.pi, 6, endpoint=False)]
-    truth = trimesh.creation.icosphere(subdivisions=5, radius=true_r)
-    tv = torch.as_tensor(truth.vertices + 0.5, dtype=torch.float32)
-    tf = torch.as_tensor(truth.faces, dtype=torch.int32)
-    rc = MeshRaycaster()
-    masks = [rc.raycast(tv, tf, c).mask.clone() for c in cams]
+    cams = _ring(6)
+    masks = _sphere_masks(true_r, cams)
     assert all(int(m.sum()) > 500 for m in masks)
     s = _sphere_surfels(surf_r, 1500)
     proxy = ProxyMesh(MeshConfig(resolution=48, silhouette_gain=0.5))
@@ -128,17 +134,13 @@ def test_calibrate_mesh_moves_a_shrunk_sphere_onto_the_masks_within_its_limit():
     """A sphere mesh half a pixel inside the masks comes out on them; a gap of 2 px is cut at 1 px."""
     from wtopo.fitting.silhouette import calibrate_mesh
 
-    cams = [Camera.look_at(0.5 + 1.6 * np.array([math.cos(a), math.sin(a), 0.3]), [0.5, 0.5, 0.5], [0, 0, 1],
-                           fov_x=0.6, width=96, height=96) for a in np.linspace(0, 2 * math.pi, 8, endpoint=False)]
+    cams = _ring(8)
     pixel = 1.6 / cams[0].K[0, 0]
-    rc = MeshRaycaster()
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.25)
     v = torch.as_tensor(sphere.vertices + 0.5, dtype=torch.float32)
     f = torch.as_tensor(sphere.faces, dtype=torch.int32)
     for gap_px, expect_px in ((0.5, 0.5), (2.0, 1.0)):
-        truth = trimesh.creation.icosphere(subdivisions=5, radius=0.25 + gap_px * pixel)
-        tv = torch.as_tensor(truth.vertices + 0.5, dtype=torch.float32)
-        masks = [rc.raycast(tv, torch.as_tensor(truth.faces, dtype=torch.int32), c).mask.clone() for c in cams]
+        masks = _sphere_masks(0.25 + gap_px * pixel, cams)
         out, info = calibrate_mesh(v, f, cams, masks)
         r = float((out - 0.5).norm(dim=-1).mean())
         assert out.shape == v.shape and out.dtype == v.dtype and len(info["rounds"]) == 3

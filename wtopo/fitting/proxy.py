@@ -91,7 +91,10 @@ class ProxyMesh:
         self.prior = prior
         self.silhouette = None
         if float(cfg.silhouette_gain) > 0:
-            cell = self.size / int(cfg.resolution or 64)
+            if cfg.resolution is None:
+                raise ValueError("mesh.silhouette_gain > 0 needs mesh.resolution set (its limit is two grid cells), "
+                                 "got None: pass the configuration resolved by the plan")
+            cell = self.size / int(cfg.resolution)
             self.silhouette = SilhouetteOffset(gain=float(cfg.silhouette_gain), limit=_SILHOUETTE_LIMIT_CELLS * cell)
 
     def _to_box(self, p: torch.Tensor) -> torch.Tensor:
@@ -130,7 +133,7 @@ class ProxyMesh:
         if faces.shape[0] == 0:
             return None
         verts = self._from_box(verts)
-        if self.silhouette is not None and (torch.is_tensor(self.silhouette.value) or self.silhouette.value != 0.0):
+        if self.silhouette is not None:
             verts = verts + self.silhouette.value * vertex_normals(verts, faces)
         return ProxyResult(verts, faces)
 

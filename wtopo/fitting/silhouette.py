@@ -23,6 +23,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from .densify import face_normals
+
 __all__ = ["SilhouetteOffset", "calibrate_mesh", "silhouette_gap", "vertex_normals", "mask_boundary"]
 
 
@@ -30,12 +32,11 @@ def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """Area-weighted unit vertex normals [V, 3] of a mesh (winding order: outward for
     :func:`wtopo.marching_cubes.marching_cubes` output); discrete (computed from detached vertices).
     A vertex of no face gets a zero normal."""
-    v = verts.detach()
+    fn, area = face_normals(verts, faces)
     f = faces.long()
-    c = torch.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]], dim=-1)  # 2 x area x unit normal
-    n = torch.zeros_like(v)
+    n = torch.zeros_like(verts.detach())
     for k in range(3):
-        n.index_add_(0, f[:, k], c)
+        n.index_add_(0, f[:, k], fn * area[:, None])
     return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-30)
 
 
@@ -47,8 +48,16 @@ def mask_boundary(mask: torch.Tensor) -> torch.Tensor:
     return mask & (eroded[0, 0] < 0.5)
 
 
-def silhouette_gap(hit: torch.Tensor, depth: torch.Tensor, mask: torch.Tensor, fx: float,
-                   band: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def _rim_footprint(hit: torch.Tensor, depth: torch.Tensor, fx: float) -> torch.Tensor:
+    """The mesh's mean depth on its own silhouette's boundary pixels over ``fx``: internal units per
+    pixel at its rim (scalar tensor, 0 when the mesh covers nothing)."""
+    rim = mask_boundary(hit)  # the mesh's own rim: where its silhouette is, whatever the mask's
+    nr = rim.sum().to(depth.dtype)
+    return torch.where(rim, depth.detach(), torch.zeros_like(depth)).sum() / nr.clamp_min(1.0) / float(fx)
+
+
+def silhouette_gap(hit: torch.Tensor, depth: torch.Tensor, mask: torch.Tensor,
+                   fx: float) -> tuple[torch.Tensor, torch.Tensor]:
     """How many pixels a mesh's silhouette lies inside a mask, on average along the mask's boundary.
 
     Args:
@@ -56,45 +65,37 @@ def silhouette_gap(hit: torch.Tensor, depth: torch.Tensor, mask: torch.Tensor, f
         depth: [H, W] z-depth of the mesh (internal units, 0 on misses).
         mask: [H, W] bool object mask of the view.
         fx: the view's focal length in pixels (pinhole footprint ``depth / fx`` per pixel).
-        band: count only pixels within this many pixels of the mask's boundary (a part the mesh
-            misses entirely then weighs no more than its rim); ``None`` counts every pixel.
 
     Returns:
         ``(px, footprint)`` scalar tensors: (mask pixels missed - pixels covered outside the mask) per
-        boundary pixel of the mask (positive: the mesh lies inside), and the mesh's mean depth on its
-        own silhouette's boundary pixels over ``fx`` (internal units per pixel there); both 0 when
-        the mask or the mesh's coverage is empty.
+        boundary pixel of the mask (positive: the mesh lies inside), and :func:`_rim_footprint`; both 0
+        when the mask or the mesh's coverage is empty.
     """
-    b = mask_boundary(mask)
-    missed, extra = mask & ~hit, hit & ~mask
-    if band is not None:
-        near = F.max_pool2d(b.float()[None, None], 2 * int(band) + 1, stride=1, padding=int(band))[0, 0] > 0.5
-        missed, extra = missed & near, extra & near
     dt = depth.dtype
-    nb = b.sum().to(dt)
-    rim = mask_boundary(hit)  # the mesh's own rim: where its silhouette is, whatever the mask's
-    nr = rim.sum().to(dt)
-    rim_depth = torch.where(rim, depth.detach(), torch.zeros_like(depth)).sum() / nr.clamp_min(1.0)
-    ok = (nb > 0) & (nr > 0)
-    px = torch.where(ok, (missed.sum().to(dt) - extra.sum().to(dt)) / nb.clamp_min(1.0), torch.zeros((), dtype=dt,
-                                                                                                       device=depth.device))
-    return px, torch.where(ok, rim_depth / float(fx), torch.zeros_like(rim_depth))
+    nb = mask_boundary(mask).sum().to(dt)
+    foot = _rim_footprint(hit, depth, fx)
+    ok = (nb > 0) & (foot > 0)
+    net = (mask & ~hit).sum().to(dt) - (hit & ~mask).sum().to(dt)
+    zero = torch.zeros((), dtype=dt, device=depth.device)
+    return torch.where(ok, net / nb.clamp_min(1.0), zero), torch.where(ok, foot, zero)
 
 
 def silhouette_gap_tiles(hit: torch.Tensor, depth: torch.Tensor, mask: torch.Tensor, fx: float, *, band: int,
                          tile: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`silhouette_gap` per ``tile`` x ``tile`` block of the image: the local gaps [T] (pixels, one per
-    block holding at least ``tile // 2`` boundary pixels of the mask) and the footprint (scalar). A
-    robust statistic over the blocks measures the gap along the boundary's smooth runs, where a
-    corner the mesh rounds off (a deficit that is no shrink) weighs one block."""
+    """:func:`silhouette_gap` per ``tile`` x ``tile`` block of the image, counting only pixels within
+    ``band`` pixels of the mask's boundary (a part the mesh misses entirely then weighs no more than
+    its rim): the local gaps [T] (pixels, one per block holding at least ``tile // 2`` boundary pixels
+    of the mask) and :func:`_rim_footprint` (scalar). A robust statistic over the blocks measures the
+    gap along the boundary's smooth runs, where a corner the mesh rounds off (a deficit that is no
+    shrink) weighs one block."""
     b = mask_boundary(mask)
-    near = F.max_pool2d(b.float()[None, None], 2 * int(band) + 1, stride=1, padding=int(band))[0, 0] > 0.5
+    k = 2 * int(band) + 1
+    near = F.max_pool2d(b.float()[None, None], k, stride=1, padding=int(band))[0, 0] > 0.5
     net = (mask & ~hit & near).float() - (hit & ~mask & near).float()
     t = int(tile)
     sums = F.avg_pool2d(torch.stack([net, b.float()])[None], t, stride=t, ceil_mode=True)[0] * (t * t)
     keep = sums[1] >= max(1, t // 2)
-    _, footprint = silhouette_gap(hit, depth, mask, fx)
-    return (sums[0][keep] / sums[1][keep]).to(depth.dtype), footprint
+    return (sums[0][keep] / sums[1][keep]).to(depth.dtype), _rim_footprint(hit, depth, fx)
 
 
 class SilhouetteOffset:
@@ -137,10 +138,10 @@ def calibrate_mesh(verts: torch.Tensor, faces: torch.Tensor, cameras, masks, *, 
 
     The surfels' soft rim covers the masks while the surface fused from their depth lies a fraction
     of a pixel inside (``benchmarks/hard.md``); this measures that gap on the training views and
-    removes it. Each round ray casts the mesh in up to ``max_views`` evenly spaced views, takes each
-    view's :func:`silhouette_gap` (within ``band`` pixels of the mask's boundary) times its footprint,
-    and moves the vertices by the median over the views; the total move is clamped to ``limit_px``
-    footprints (the median view's).
+    removes it. Each round ray casts the mesh in up to ``max_views`` evenly spaced views, takes the
+    blocks' gaps of every view (:func:`silhouette_gap_tiles`, within ``band`` pixels of the mask's
+    boundary) and moves the vertices by their inter-quartile mean times the median view's footprint;
+    the total move is clamped to ``limit_px`` footprints.
 
     Args:
         verts: [V, 3] float vertices (internal frame).
@@ -149,14 +150,14 @@ def calibrate_mesh(verts: torch.Tensor, faces: torch.Tensor, cameras, masks, *, 
         masks: their [H, W] bool masks.
         rounds: measure-and-move rounds.
         max_views: views measured per round.
-        band: see :func:`silhouette_gap`.
+        band: see :func:`silhouette_gap_tiles`.
         tile: block size of :func:`silhouette_gap_tiles`.
         limit_px: largest total move, in footprints.
 
     Returns:
-        ``(verts, info)``: the moved vertices [V, 3] (same dtype and device) and ``{"offset": the total
-        move in internal units, "offset_px": in footprints, "rounds": [per-round median gap in px]}``.
-        Discrete (no gradient).
+        ``(verts, info)``: the moved vertices [V, 3] (same dtype and device as ``verts``; the ray casts
+        run in float32) and ``{"offset": the total move in internal units, "offset_px": in footprints,
+        "rounds": [each round's gap in px]}``. Discrete (no gradient).
     """
     from ..raycast import MeshRaycaster
 
@@ -187,5 +188,5 @@ def calibrate_mesh(verts: torch.Tensor, faces: torch.Tensor, cameras, masks, *, 
         limit = float(limit_px) * footprint
         total = max(-limit, min(limit, total + step * footprint))
     info = {"offset": total, "offset_px": 0.0 if not footprint else total / footprint, "rounds": history}
-    return (v0 + total * nrm).to(verts.dtype), info
+    return verts.detach() + total * nrm.to(verts.dtype), info
 

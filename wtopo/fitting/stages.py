@@ -265,9 +265,8 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
                 mesh = poisson_remesh(mesh, cfg, record=record)
             if fc.silhouette_calibration and masks is not None and len(mesh.faces):
                 with section("silhouette_calibration"):
-                    v, cal = calibrate_mesh(torch.as_tensor(mesh.vertices, dtype=torch.float32),
-                                            torch.as_tensor(mesh.faces), cameras, masks)
-                mesh = trimesh.Trimesh(v.numpy().astype(np.float64), mesh.faces, process=False)
+                    v, cal = calibrate_mesh(torch.as_tensor(mesh.vertices), torch.as_tensor(mesh.faces), cameras, masks)
+                mesh = trimesh.Trimesh(v.numpy(), mesh.faces, process=False)
                 record("silhouette_calibration", **cal)
     record("mesh_policy", policy="open_roi" if scene else "watertight", **info)
     if len(mesh.faces) == 0:
