@@ -15,7 +15,10 @@ camera depth and ``m = |p_cam| / z`` its ray length per unit depth, ``sdf = (d -
 contributes when ``0 < d < far`` and ``sdf > -truncation``, with ``min(1, sdf / truncation)`` and
 weight 1 (Open3D's ``ScalableTSDFVolume`` rule; it takes ``m`` at the pixel centre's ray instead
 of the node's, a difference below a pixel's angle). The stored value is the mean of the
-contributions; a node no view contributes to is *unobserved*.
+contributions; a node no view contributes to is *unobserved*. An unobserved node that some view's
+ray crosses on its way to no surface (the node projects into the image, in front of the camera, onto a
+pixel without depth: ``d <= 0`` or ``d >= far``) is *seen free*; one that is not, but lies deeper than
+the truncation behind some view's depth, is *hidden*; the others lie outside every view.
 
 The module is discrete (``enable_backward=False``).
 """
@@ -45,6 +48,10 @@ DEPTH_NONE_MAX = wp.constant(-3.0e38)  # max-depth of a texel holding no valid d
 # holding a node with TSDF < 1: 22 %; the rest is the box's own depth and its one-node growth); 8 (at most 64 reads)
 # costs 0.07 s against the fusion's 1.5 s there.
 QUERY_TEXELS = wp.constant(8)
+OBS_NONE = wp.constant(wp.uint8(0))  # ``observed``: no view contributed and none saw the node free
+OBS_TSDF = wp.constant(wp.uint8(1))  # ``observed``: some view contributed a TSDF value
+OBS_FREE = wp.constant(wp.uint8(2))  # ``observed``: no contribution, but a ray through the node found no surface
+OBS_HIDDEN = wp.constant(wp.uint8(3))  # ``observed``: no contribution, not seen free, behind some view's surface
 BEHIND = wp.constant(1.0e-12)  # camera depth at or below which a point is behind the camera (depth units)
 
 
@@ -176,7 +183,8 @@ def integrate_kernel(
 ):
     """Fuse every view into the slab's node ``offset + tid`` (flat ``(i * ny + j) * nz + k``).
 
-    Writes the mean TSDF (``UNOBSERVED_TSDF`` where unobserved), ``observed`` (0 / 1) and, with
+    Writes the mean TSDF (``UNOBSERVED_TSDF`` where unobserved), ``observed`` (``OBS_TSDF``, ``OBS_FREE``,
+    ``OBS_HIDDEN`` or ``OBS_NONE``) and, with
     ``use_color``, the mean colour of the contributing pixels. With ``use_blocks``, nodes of
     blocks whose ``block_active`` is 0 are written as unobserved without projecting.
     """
@@ -187,13 +195,15 @@ def integrate_kernel(
     kg = vol.k0 + k
     if use_blocks != 0 and block_active[i // vol.block, j // vol.block, kg // vol.block] == wp.uint8(0):
         tsdf[i, j, k] = UNOBSERVED_TSDF
-        observed[i, j, k] = wp.uint8(0)
+        observed[i, j, k] = OBS_NONE
         if use_color != 0:
             node_color[i, j, k] = vec3ub(wp.uint8(0), wp.uint8(0), wp.uint8(0))
         return
     p = node_position(vol, i, j, kg)
     total = float(0.0)
     weight = float(0.0)
+    free = int(0)
+    hidden = int(0)
     rgb = wp.vec3(0.0, 0.0, 0.0)
     for vi in range(views.shape[0]):
         view = views[vi]
@@ -213,18 +223,22 @@ def integrate_kernel(
                         if use_color != 0:
                             c = color[pix]
                             rgb += wp.vec3(float(c[0]), float(c[1]), float(c[2]))
+                    else:
+                        hidden = 1
+                else:
+                    free = 1
     if weight > 0.0:
         t = total / weight
         if wp.abs(t) < MIN_ABS_TSDF:
             t = wp.where(t < 0.0, -MIN_ABS_TSDF, MIN_ABS_TSDF)
         tsdf[i, j, k] = t
-        observed[i, j, k] = wp.uint8(1)
+        observed[i, j, k] = OBS_TSDF
         if use_color != 0:
             m = rgb / weight + wp.vec3(0.5, 0.5, 0.5)  # + 0.5: round to the nearest 8-bit value
             node_color[i, j, k] = vec3ub(wp.uint8(int(m[0])), wp.uint8(int(m[1])), wp.uint8(int(m[2])))
     else:
         tsdf[i, j, k] = UNOBSERVED_TSDF
-        observed[i, j, k] = wp.uint8(0)
+        observed[i, j, k] = wp.where(free != 0, OBS_FREE, wp.where(hidden != 0, OBS_HIDDEN, OBS_NONE))
         if use_color != 0:
             node_color[i, j, k] = vec3ub(wp.uint8(0), wp.uint8(0), wp.uint8(0))
 

@@ -173,3 +173,16 @@ def test_silhouette_options_run_in_a_fit(tiny):
     cal = [e for e in res.report["events"] if e["event"] == "silhouette_calibration"]
     assert len(cal) == 1 and len(cal[0]["rounds"]) >= 1 and abs(cal[0]["offset_px"]) <= 1.0 + 1e-6
     assert len(res.mesh.faces) > 100
+
+
+def test_halo_target_and_carved_closure_run_in_a_fit(tiny):
+    """losses.mask_halo and final.closure=carve run on a masked fit: the final mesh is closed by the
+    carving fusion itself (no Poisson re-mesh) and recorded as such."""
+    cfg = _config(30, 12)
+    cfg.losses.mask_halo = True
+    cfg.final.closure = "carve"
+    res = fit(tiny, cfg, progress=False)
+    policy = [e for e in res.report["events"] if e["event"] == "mesh_policy"]
+    assert policy and policy[-1]["closure"] == "carve"
+    assert not any(e["event"] == "poisson_remesh" for e in res.report["events"])
+    assert res.mesh.is_watertight and len(res.mesh.faces) > 100

@@ -3,6 +3,7 @@
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -159,3 +160,28 @@ def test_boundary_band_is_the_ring_around_the_mask_edge():
     assert not L.boundary_band(m, 0).any()
     assert not L.boundary_band(torch.zeros(5, 5, dtype=torch.bool), 2).any()  # no edge, no band
     assert not L.boundary_band(torch.ones(5, 5, dtype=torch.bool), 2).any()
+
+
+def test_halo_target_is_the_low_pass_of_centres_on_the_silhouette():
+    """Half-plane mask: 1 inside; outside, the mean over where the edge lies within the pixel gap of
+    what a line of opaque centres on the edge renders through the Gaussian low-pass (checked by
+    sampling the edge's sub-pixel position), 0.44 on the first ring at sigma 0.35, vanishing beyond."""
+    sigma = 0.35
+    m = torch.zeros(6, 8, dtype=torch.bool)
+    m[:, :4] = True  # inside: columns 0-3; the first outside pixel centre is at x = 4.5
+    t = L.halo_target(m, sigma)
+    assert t.dtype == torch.float32 and t.shape == m.shape
+    assert torch.equal(t[:, :4], torch.ones(6, 4))
+    # the edge lies anywhere between the last inside centre (3.5) and the first outside one (4.5)
+    edge = 3.5 + (np.arange(200000) + 0.5) / 200000
+    for col in (4, 5, 6):
+        d = (col + 0.5) - edge
+        want = np.exp(-d ** 2 / (2 * sigma ** 2)).mean()
+        np.testing.assert_allclose(t[:, col].numpy(), want, rtol=1e-4, atol=1e-7)
+    assert abs(float(t[0, 4]) - 0.437) < 1e-3 and float(t[0, 5]) < 3e-3 and float(t[0, 7]) < 1e-12
+    # a diagonal neighbour of the mask's corner is further away: a smaller target
+    sq = torch.zeros(9, 9, dtype=torch.bool)
+    sq[3:6, 3:6] = True
+    ts = L.halo_target(sq, sigma)
+    assert 0.05 < float(ts[2, 2]) < float(ts[2, 4]) < 0.5
+    assert torch.equal(L.halo_target(torch.zeros(4, 4, dtype=torch.bool), sigma), torch.zeros(4, 4))

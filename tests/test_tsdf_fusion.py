@@ -75,6 +75,55 @@ def test_sphere_from_a_rig_lies_on_the_sphere(device):
     assert tm.volume > 0  # faces wound outwards (towards the cameras)
 
 
+# Sphere of radius 1 seen only from above (hemisphere rig, 5-80 degrees elevation), 96 px, 64 voxels over
+# 2.6: the carved closure never cuts into the sphere (measured min |r| - 1: -0.67 voxel, where the seen
+# cap meets the closure at grazing rays; the fully seen sphere above reaches 0.74 voxel from its
+# nearest-pixel reads) and the seen part stays on it.
+_CARVE_IN_TOL = 1.0  # voxels: how far inside the sphere a vertex of the closed mesh may lie
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_close_carves_a_watertight_hull_around_the_unseen_side(device):
+    """With ``close``, a sphere seen from above comes out closed: the seen cap on the sphere, the unseen
+    underside closed along the space the views saw empty (outside the sphere, never through it)."""
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    verts = torch.as_tensor(mesh.vertices, dtype=torch.float32)
+    faces = torch.as_tensor(mesh.faces, dtype=torch.int32)
+    cams = rig_cameras("hemisphere", 12, np.zeros(3), 1.0, resolution=96, fov=0.9)
+    depths = [raycast_mesh(verts, faces, c).depth.numpy() for c in cams]
+    g = _sphere_grid(64)
+    colors = [np.full((c.height, c.width, 3), 0.25, np.float32) for c in cams]
+    open_ = fuse_tsdf(cams, depths, colors, device=device, **g)
+    closed = fuse_tsdf(cams, depths, colors, device=device, close=True, **g)
+    to = trimesh.Trimesh(open_.verts.cpu().numpy(), open_.faces.cpu().numpy())
+    tc = trimesh.Trimesh(closed.verts.cpu().numpy(), closed.faces.cpu().numpy())
+    assert not to.is_watertight and len(to.faces) > 1000  # the open fusion leaves the underside out
+    assert tc.is_watertight and len(tc.split(only_watertight=False)) == 1 and tc.volume > 0
+    r = np.linalg.norm(tc.vertices, axis=1)
+    assert (r - 1).min() > -_CARVE_IN_TOL * g["voxel"], (r - 1).min() / g["voxel"]
+    # the seen cap stays on the sphere
+    top = tc.vertices[:, 2] > 0.3
+    assert np.percentile(np.abs(r[top] - 1), 99) < _SPHERE_P99_TOL * g["voxel"]
+    assert (tc.vertices[:, 2] < -0.9).any()  # the underside is closed, not cut off
+    assert closed.colors is not None and (closed.colors.float() - 64).abs().max() <= 64  # grey where unseen
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_close_seals_a_surface_cut_by_the_grid(device):
+    """A plane that leaves the grid on every side is closed by the grid's outer node layer: a slab
+    whose top is the fused plane."""
+    cams, depths = _plane_rig()
+    voxel = 0.04
+    m = fuse_tsdf(cams, depths, lower=[-0.6, -0.6, -0.3], upper=[0.6, 0.6, 0.3], voxel=voxel,
+                  truncation=4 * voxel, device=device, close=True)
+    tm = trimesh.Trimesh(m.verts.cpu().numpy(), m.faces.cpu().numpy())
+    assert tm.is_watertight and tm.volume > 0
+    v = tm.vertices
+    top = v[:, 2] > -0.25
+    inner = top & (np.abs(v[:, 0]) < 0.5) & (np.abs(v[:, 1]) < 0.5)
+    assert inner.sum() > 100 and np.abs(v[inner, 2]).max() < voxel
+
+
 # Plane z = 0 (35 degrees to some views) under five cameras looking down; 40 px images. Measured:
 # 99th percentile of |z| 0.11 voxel, max 0.15; nothing is observed deeper than the truncation below the plane.
 _PLANE_TOL = 0.25  # voxels, 99th percentile of |z| of the vertices
@@ -118,13 +167,15 @@ def test_volume_matches_the_numpy_reference(device):
     far = [1.6, 1.8, 2.5, 1.5, 1.7]  # the visible side spans depths 1.3 to 1.9: most views lose part of it
     g = _sphere_grid(28)
     vol = tsdf_volume(cams, depths, colors, far=far, device=device, cull=False, **g)
-    ref_t, ref_o, ref_c = tsdf_reference(cams, depths, colors, far=far, **g)
-    t, o, c = (x.cpu().numpy() for x in (vol.tsdf, vol.observed, vol.colors))
+    ref_t, ref_o, ref_f, ref_h, ref_c = tsdf_reference(cams, depths, colors, far=far, **g)
+    t, o, f, h, c = (x.cpu().numpy() for x in (vol.tsdf, vol.observed, vol.free, vol.hidden, vol.colors))
     assert t.shape == ref_t.shape and ref_o.mean() > 0.05  # measured 13 %: pixels off the sphere have no depth
     # float32 against float64: a node within ~1e-6 px of a pixel edge may read the neighbouring pixel
     # (measured: no such node here); allow one node in a thousand
-    same = (o == ref_o) & (np.abs(t - ref_t) < 1e-4)
+    same = (o == ref_o) & (f == ref_f) & (h == ref_h) & (np.abs(t - ref_t) < 1e-4)
     assert same.mean() > 0.999, same.mean()
+    # rays past the sphere and beyond the far cuts see nodes free; the sphere's core is hidden
+    assert ref_f.mean() > 0.05 and ref_h.mean() > 0.01 and not (f & o).any() and not (f & h).any()
     both = same & ref_o
     np.testing.assert_allclose(t[both], ref_t[both], atol=1e-5)  # float32 sums of at most 5 terms in [-1, 1]
     np.testing.assert_allclose(c[both], ref_c[both], atol=0.51)  # the 8-bit rounding of the mean

@@ -78,6 +78,10 @@ class TSDFVolume:
         tsdf: mean truncated signed distance in truncation units [X, Y, Z], float32, in ``[-1, 1]``
             (positive in front of the surface); 1 where unobserved.
         observed: [X, Y, Z] bool, whether any view contributed to the node.
+        free: [X, Y, Z] bool, unobserved nodes some view's ray crossed on its way to no surface (the
+            node projects onto a pixel without depth); ``False`` where observed.
+        hidden: [X, Y, Z] bool, unobserved nodes not ``free`` that lie deeper than the truncation
+            behind some view's depth.
         colors: mean colour [X, Y, Z, 3] uint8 (0 where unobserved), or ``None``.
         lower: position of node ``(0, 0, 0)`` [3], float64, world units.
         voxel: node spacing, world units.
@@ -85,6 +89,8 @@ class TSDFVolume:
 
     tsdf: torch.Tensor
     observed: torch.Tensor
+    free: torch.Tensor
+    hidden: torch.Tensor
     colors: torch.Tensor | None
     lower: np.ndarray
     voxel: float
@@ -212,21 +218,37 @@ class _Seam:
         self.xy, self.index = verts[top, :2], index[top]
 
 
-def _slab_mesh(tsdf: wp.array, observed: wp.array, color: wp.array | None, k0: int):
-    """Marching cubes of one slab in index space, faces with an unobserved edge end dropped.
+def _closed_field(tsdf: wp.array, observed: wp.array, k0: int, layers: int) -> torch.Tensor:
+    """The slab's TSDF with every node decided: hidden unobserved nodes (behind some view's surface,
+    seen free by none) are inside (-1), the other unobserved ones outside (+1), and so is the grid's
+    outer node layer (``layers`` node layers in all), so the zero level is closed."""
+    t = wp.to_torch(tsdf)
+    o = wp.to_torch(observed)
+    field = torch.where(o == int(_k.OBS_TSDF), t, torch.where(o == int(_k.OBS_HIDDEN), -1.0, 1.0))
+    field[0], field[-1], field[:, 0], field[:, -1] = 1.0, 1.0, 1.0, 1.0
+    if k0 == 0:
+        field[:, :, 0] = 1.0
+    if k0 + field.shape[2] == layers:
+        field[:, :, -1] = 1.0
+    return field
 
-    Returns ``(verts [V, 3] index space, faces [F, 3] int64 into verts, colours [V, 3] uint8 or None)``
-    with only the vertices the kept faces use.
+
+def _slab_mesh(tsdf: wp.array, observed: wp.array, color: wp.array | None, k0: int, layers: int | None = None):
+    """Marching cubes of one slab in index space, faces with an unobserved edge end dropped; with
+    ``layers`` (the grid's node layers) the closed field of :func:`_closed_field`, every face kept.
+
+    Returns ``(verts [V, 3] index space, faces [F, 3] int64 into verts, colours [V, 3] uint8 or None,
+    seen [V] bool: both ends of the vertex's grid edge observed)`` with only the vertices the kept faces use.
     """
     from .marching_cubes import marching_cubes
 
     nx, ny, nz = tsdf.shape
-    field = wp.to_torch(tsdf)
+    field = wp.to_torch(tsdf) if layers is None else _closed_field(tsdf, observed, k0, layers)
     with section("marching_cubes"):
         verts, faces = marching_cubes(field, 0.0, lower=(0.0, 0.0, float(k0)),
                                       upper=(float(nx - 1), float(ny - 1), float(k0 + nz - 1)))
     if faces.shape[0] == 0:
-        return verts, faces.long(), None
+        return verts, faces.long(), None, torch.zeros(0, dtype=torch.bool, device=verts.device)
     # every vertex lies on one grid edge: floor and ceil of its index coordinates are the edge's ends
     # (one node when it rounded onto it, which MIN_ABS_TSDF keeps to edges with both ends observed)
     lo = torch.floor(verts).long()
@@ -235,21 +257,29 @@ def _slab_mesh(tsdf: wp.array, observed: wp.array, color: wp.array | None, k0: i
     base = torch.tensor([0, 0, k0], device=verts.device)
     lo_i = ((lo - base) * stride).sum(1)
     hi_i = ((hi - base) * stride).sum(1)
-    obs = wp.to_torch(observed).reshape(-1)
-    ok = (obs[lo_i] != 0) & (obs[hi_i] != 0)
+    obs = wp.to_torch(observed).reshape(-1) == int(_k.OBS_TSDF)
     faces = faces.long()
-    faces = faces[ok[faces].all(dim=1)]
+    if layers is None:
+        ok = obs[lo_i] & obs[hi_i]
+        faces = faces[ok[faces].all(dim=1)]
     used = torch.zeros(verts.shape[0], dtype=torch.bool, device=verts.device)
     used[faces.reshape(-1)] = True
     remap = torch.cumsum(used.long(), 0) - 1
     faces = remap[faces]
     verts, lo_i, hi_i = verts[used], lo_i[used], hi_i[used]
+    seen = obs[lo_i] & obs[hi_i]
     cols = None
     if color is not None:
         frac = (verts - torch.floor(verts)).sum(1, keepdim=True)  # the position along the one fractional axis
         c = wp.to_torch(color).reshape(-1, 3).float()
-        cols = (c[lo_i] * (1 - frac) + c[hi_i] * frac + 0.5).clamp(0, 255).to(torch.uint8)
-    return verts, faces, cols
+        c_lo, c_hi = c[lo_i], c[hi_i]
+        if layers is not None:  # a closing vertex takes its observed end's colour (grey where neither is)
+            grey = torch.full_like(c_lo, 128.0)
+            o_lo, o_hi = obs[lo_i][:, None], obs[hi_i][:, None]
+            c_lo, c_hi = (torch.where(o_lo, c_lo, torch.where(o_hi, c_hi, grey)),
+                          torch.where(o_hi, c_hi, torch.where(o_lo, c_lo, grey)))
+        cols = (c_lo * (1 - frac) + c_hi * frac + 0.5).clamp(0, 255).to(torch.uint8)
+    return verts, faces, cols, seen
 
 
 class _Fusion:
@@ -371,7 +401,7 @@ def _slab_limit(slab_nodes, shape) -> int:
 def fuse_tsdf(cameras: Sequence[Camera], depths: Sequence, colors: Sequence | None = None, *, lower, upper,
               voxel: float, truncation: float, far: Sequence[float] | None = None,
               device: torch.device | str | None = None, cull: bool = True,
-              slab_nodes: int | None = None) -> TSDFMesh:
+              slab_nodes: int | None = None, close: bool = False) -> TSDFMesh:
     """Fuse z-depth maps (and colours) into a TSDF on a dense grid and extract its zero level.
 
     Each node of the grid is projected into every view through that camera's own lens model (pose,
@@ -382,6 +412,14 @@ def fuse_tsdf(cameras: Sequence[Camera], depths: Sequence, colors: Sequence | No
     (``z``: the node's camera depth, ``|p|``: its distance to the camera): Open3D's
     ``ScalableTSDFVolume`` rule. The surface is the zero level of the mean, kept only where both
     nodes of each vertex's grid edge were observed by some view: open where nothing was seen.
+
+    With ``close``, nothing is left undecided and the surface is closed (space carving): an
+    unobserved node that lies deeper than the truncation behind some view's depth and that no view's
+    ray crosses on its way to no surface (a pixel without depth) is inside; every other unobserved
+    node (seen empty, or seen by no view) and the grid's outer node layer are outside. Where no
+    view saw the surface, the mesh then closes along the boundary of the space the views saw empty,
+    the tightest closure the views allow (a cup's unseen floor, the underside of an object on a rig
+    above it).
 
     Args:
         cameras: one :class:`wtopo.Camera` per view (world frame of the grid).
@@ -398,6 +436,8 @@ def fuse_tsdf(cameras: Sequence[Camera], depths: Sequence, colors: Sequence | No
         cull: skip the nodes of blocks no view's truncation band reaches (the mesh is the same
             either way; ``False`` projects every node into every view).
         slab_nodes: most nodes fused at once (memory bound); ``None``: :data:`SLAB_NODES`.
+        close: close the surface by carving (above). Every node is projected (``cull`` is ignored:
+            a culled block would not know whether a view saw it free).
 
     Returns:
         A :class:`TSDFMesh` on ``device``; zero faces (and vertices) when nothing was fused or no
@@ -419,19 +459,19 @@ def fuse_tsdf(cameras: Sequence[Camera], depths: Sequence, colors: Sequence | No
         SIGGRAPH 1996. Q.-Y. Zhou, J. Park, V. Koltun, "Open3D: A modern library for 3D data
         processing", 2018 (``ScalableTSDFVolume``).
     """
-    fu = _Fusion(cameras, depths, colors, lower, upper, voxel, truncation, far, device, cull)
+    fu = _Fusion(cameras, depths, colors, lower, upper, voxel, truncation, far, device, cull and not close)
     limit = _slab_limit(slab_nodes, fu.shape)
     dev = fu.device
     empty = TSDFMesh(torch.zeros(0, 3, device=dev), torch.zeros(0, 3, dtype=torch.int32, device=dev),
                      torch.zeros(0, 3, dtype=torch.uint8, device=dev) if fu.has_color else None, fu.shape)
     if fu.n_views == 0:
         return empty
-    out_v, out_f, out_c = [], [], []
+    out_v, out_f, out_c, out_s = [], [], [], []
     seam = _Seam()
     count = 0
     with fu.scope():
         for k0, tsdf, observed, color in fu.slabs(limit):
-            verts, faces, cols = _slab_mesh(tsdf, observed, color, k0)
+            verts, faces, cols, seen = _slab_mesh(tsdf, observed, color, k0, fu.shape[2] if close else None)
             if faces.shape[0] == 0:
                 seam = _Seam()
                 continue
@@ -441,11 +481,38 @@ def fuse_tsdf(cameras: Sequence[Camera], depths: Sequence, colors: Sequence | No
             out_f.append(index[faces])
             if cols is not None:
                 out_c.append(cols[new])
+            out_s.append(seen[new])
             seam.keep(verts, index, k0 + tsdf.shape[2] - 1)
     if not out_f:
         return empty
     verts = torch.cat(out_v) * fu.voxel + torch.as_tensor(fu.lower, dtype=torch.float32, device=dev)
-    return TSDFMesh(verts, torch.cat(out_f).to(torch.int32), torch.cat(out_c) if fu.has_color else None, fu.shape)
+    faces, cols = torch.cat(out_f), (torch.cat(out_c) if fu.has_color else None)
+    if close:
+        verts, faces, cols = _drop_unseen_components(verts, faces, cols, torch.cat(out_s))
+    return TSDFMesh(verts, faces.to(torch.int32), cols, fu.shape)
+
+
+def _drop_unseen_components(verts, faces, cols, seen):
+    """Keep the connected components of a closed mesh that hold a vertex of observed surface: a
+    component made only of closing faces encloses space a view or two saw behind a surface and none
+    saw empty (a grid corner in one view's shadow), not an object. Host round trip (SciPy)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = faces.cpu().numpy()
+    n = verts.shape[0]
+    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]])
+    graph = coo_matrix((np.ones(len(edges), np.int8), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    keep_label = np.zeros(label.max() + 1, bool)
+    keep_label[label[seen.cpu().numpy()]] = True
+    keep_v = keep_label[label]
+    if keep_v.all():
+        return verts, faces, cols
+    remap = np.cumsum(keep_v) - 1
+    f = remap[f[keep_v[f[:, 0]]]]
+    kv = torch.as_tensor(keep_v, device=verts.device)
+    return (verts[kv], torch.as_tensor(f, device=faces.device), None if cols is None else cols[kv])
 
 
 def tsdf_volume(cameras: Sequence[Camera], depths: Sequence, colors: Sequence | None = None, *, lower, upper,
@@ -467,14 +534,19 @@ def tsdf_volume(cameras: Sequence[Camera], depths: Sequence, colors: Sequence | 
     dev = fu.device
     tsdf = torch.ones(fu.shape, dtype=torch.float32, device=dev)
     observed = torch.zeros(fu.shape, dtype=torch.bool, device=dev)
+    free = torch.zeros(fu.shape, dtype=torch.bool, device=dev)
+    hidden = torch.zeros(fu.shape, dtype=torch.bool, device=dev)
     colors_out = torch.zeros(fu.shape + (3,), dtype=torch.uint8, device=dev) if fu.has_color else None
     if fu.n_views:
         with fu.scope():
             for k0, t, o, c in fu.slabs(limit):
                 k1 = k0 + t.shape[2]
                 tsdf[:, :, k0:k1] = wp.to_torch(t)
-                observed[:, :, k0:k1] = wp.to_torch(o) != 0
+                state = wp.to_torch(o)
+                observed[:, :, k0:k1] = state == int(_k.OBS_TSDF)
+                free[:, :, k0:k1] = state == int(_k.OBS_FREE)
+                hidden[:, :, k0:k1] = state == int(_k.OBS_HIDDEN)
                 if c is not None:
                     colors_out[:, :, k0:k1] = wp.to_torch(c)
-    return TSDFVolume(tsdf, observed, colors_out, fu.lower.copy(), fu.voxel)
+    return TSDFVolume(tsdf, observed, free, hidden, colors_out, fu.lower.copy(), fu.voxel)
 

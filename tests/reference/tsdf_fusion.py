@@ -5,7 +5,9 @@ The same rule as :mod:`wtopo.kernels.tsdf_fusion` written out over arrays: node 
 ``lower + (i, j, k) * voxel``; per view the node goes through the camera's pose, ``x / z``, OpenCV
 distortion (nothing beyond the lens's field radius), the skewed ``K``; it reads the depth of the
 pixel it falls in; ``sdf = (d - z) * |p| / z`` contributes ``min(1, sdf / truncation)`` with weight 1
-when ``0 < d < far`` and ``sdf > -truncation``; the mean is moved off 0 by ``MIN_ABS_TSDF``.
+when ``0 < d < far`` and ``sdf > -truncation``; the mean is moved off 0 by ``MIN_ABS_TSDF``. A node no
+view contributes to is *seen free* when some view sees it on a pixel without depth (``d <= 0`` or
+``d >= far``), else *hidden* when some view's valid depth lies more than the truncation before it.
 """
 
 from __future__ import annotations
@@ -32,8 +34,8 @@ def tsdf_reference(cameras, depths, colors, *, lower, upper, voxel: float, trunc
         far: per-view depth cut-off or ``None``.
 
     Returns:
-        ``(tsdf [X, Y, Z] float64 (1 where unobserved), observed [X, Y, Z] bool, colour [X, Y, Z, 3]
-        float64 in 8-bit units or None)``.
+        ``(tsdf [X, Y, Z] float64 (1 where unobserved), observed [X, Y, Z] bool, free [X, Y, Z] bool,
+        hidden [X, Y, Z] bool, colour [X, Y, Z, 3] float64 in 8-bit units or None)``.
     """
     lower, upper = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
     shape = tuple(int(max(2, n)) for n in np.ceil((upper - lower) / voxel - 1e-9).astype(np.int64) + 1)
@@ -42,6 +44,8 @@ def tsdf_reference(cameras, depths, colors, *, lower, upper, voxel: float, trunc
     total = np.zeros(len(pts))
     weight = np.zeros(len(pts))
     rgb = np.zeros((len(pts), 3))
+    free = np.zeros(len(pts), bool)
+    behind = np.zeros(len(pts), bool)
     far = [np.inf] * len(cameras) if far is None else far
     for i, cam in enumerate(cameras):
         pc = pts @ cam.R.T + cam.t
@@ -62,6 +66,8 @@ def tsdf_reference(cameras, depths, colors, *, lower, upper, voxel: float, trunc
         ok = seen & (d > 0) & (d < far[i]) & (sdf > -truncation)
         total += np.where(ok, np.minimum(1.0, sdf / truncation), 0.0)
         weight += ok
+        free |= seen & ~((d > 0) & (d < far[i]))
+        behind |= seen & (d > 0) & (d < far[i]) & (sdf <= -truncation)
         if colors is not None:
             c = np.round(np.clip(np.asarray(colors[i], np.float64), 0, 1) * 255)[row, col]
             rgb += np.where(ok[:, None], c, 0.0)
@@ -70,4 +76,6 @@ def tsdf_reference(cameras, depths, colors, *, lower, upper, voxel: float, trunc
     small = observed & (np.abs(tsdf) < MIN_ABS_TSDF)
     tsdf[small] = np.where(tsdf[small] < 0, -MIN_ABS_TSDF, MIN_ABS_TSDF)
     color = None if colors is None else (rgb / np.maximum(weight, 1)[:, None]).reshape(shape + (3,))
-    return tsdf.reshape(shape), observed.reshape(shape), color
+    free &= ~observed
+    hidden = behind & ~free & ~observed
+    return tsdf.reshape(shape), observed.reshape(shape), free.reshape(shape), hidden.reshape(shape), color

@@ -35,6 +35,7 @@ Modules:
 
 from .api import FitResult, fit
 from .config import (
+    Closure,
     CoevolutionConfig,
     DensifyConfig,
     DepthLoss,
@@ -62,7 +63,7 @@ from .surfels import Surfels
 __all__ = [
     "fit", "FitResult", "FitConfig", "FitAborted", "Plan", "Surfels", "InitConfig", "OptimConfig", "WarmupConfig",
     "TSDFConfig", "CoevolutionConfig", "FinalConfig", "DensifyConfig", "LossConfig", "MeshConfig",
-    "RuntimeConfig", "NormalFlip", "DepthLoss", "InitSource", "RenderedDepth", "FinalMethod", "PoissonBox",
+    "RuntimeConfig", "NormalFlip", "DepthLoss", "InitSource", "RenderedDepth", "FinalMethod", "Closure", "PoissonBox",
     "TSDFBackend", "SceneKind",
 ]
 

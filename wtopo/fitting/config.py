@@ -143,6 +143,16 @@ class FinalMethod(str, enum.Enum):
     """The Poisson proxy mesh of the final surfels (closed by construction)."""
 
 
+class Closure(str, enum.Enum):
+    """How an object's final mesh is closed where the views left it open (:class:`FinalConfig`)."""
+
+    CARVE = "carve"
+    """Space carving in the TSDF fusion (:func:`wtopo.tsdf_fusion.fuse_tsdf` with ``close``): unobserved
+    space that no view's ray crossed empty counts as inside; the observed surface is kept as fused."""
+    POISSON = "poisson"
+    """Re-mesh the whole open TSDF mesh by Poisson of its area samples (smooths it everywhere)."""
+
+
 class PoissonBox(str, enum.Enum):
     """The domain of the proxy's Poisson solve."""
 
@@ -279,8 +289,12 @@ class FinalConfig:
     how well the views support them (size and the number of views that see them,
     :mod:`wtopo.fitting.mesh_policy`), never by rank, so a second object survives."""
     watertight: bool = True
-    """Objects: if the TSDF mesh is not closed, re-mesh it by Poisson (closed by construction).
-    Scenes (no masks) are never closed: the mesh stays open where nothing was observed."""
+    """Objects: close the mesh where the views left it open (``closure``); Poisson re-meshes whatever is
+    still not closed. Scenes (no masks) are never closed: the mesh stays open where nothing was observed."""
+    closure: Closure = Closure.POISSON
+    """How an object's TSDF mesh is closed (``watertight``): ``CARVE`` fuses with the Warp kernel and
+    closes along the space the views saw empty, keeping the fused surface; ``POISSON`` re-meshes an
+    open TSDF mesh whole."""
     silhouette_calibration: bool = False
     """Objects with masks: move the final mesh along its vertex normals until its silhouettes sit on
     the training masks (:func:`wtopo.fitting.silhouette.calibrate_mesh`; at most one pixel footprint).
@@ -381,6 +395,12 @@ class LossConfig:
     of halo there. On the bunny (3 seeds, ``benchmarks/fit.md``) a 2-pixel band lowers Chamfer a
     little (0.262-0.274 % against 0.272-0.277 %) but costs F-score (0.88 against 0.95) and 1.8 dB
     of PSNR, so it is off by default."""
+    mask_halo: bool = False
+    """With masks: the mask term's target outside the mask is the opacity the renderer's low-pass
+    draws around centres lying exactly on the silhouette (:func:`~wtopo.fitting.losses.halo_target`:
+    0.44 on the first ring of pixels at ``filter_sigma`` 0.35) instead of 0, and those ring pixels
+    are left out of the photometric term, so neither term pulls the centres inside the silhouette to
+    cancel the halo."""
 
 
 @dataclass(kw_only=True)

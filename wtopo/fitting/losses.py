@@ -19,6 +19,7 @@ __all__ = [
     "l1",
     "photometric",
     "mask_loss",
+    "halo_target",
     "boundary_band",
     "depth_to_points",
     "depth_normals",
@@ -70,9 +71,39 @@ def photometric(pred: torch.Tensor, target: torch.Tensor, dssim: float) -> torch
 
 
 def mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Binary cross-entropy between rendered opacity [H, W] and an object mask [H, W] bool."""
+    """Binary cross-entropy between rendered opacity [H, W] and an object mask [H, W]: bool, or a
+    float target opacity in [0, 1] (:func:`halo_target`)."""
     a = alpha.clamp(1e-6, 1 - 1e-6)  # BCE is infinite at exactly 0 / 1
     return F.binary_cross_entropy(a, mask.to(alpha.dtype))
+
+
+def halo_target(mask: torch.Tensor, filter_sigma: float) -> torch.Tensor:
+    """The opacity [H, W] (dtype float32, on ``mask``'s device) that splats whose centres lie exactly on
+    the object's silhouette render, from a binary mask [H, W] bool sampled one ray per pixel.
+
+    Inside the mask it is 1. Outside, the renderer's screen-space low-pass (a Gaussian of
+    ``filter_sigma`` pixels around every projected centre) still covers the pixel: at a distance ``d``
+    from the silhouette a line of opaque centres renders ``exp(-d^2 / (2 filter_sigma^2))``. The
+    silhouette lies somewhere between the pixel's nearest inside pixel centre (Euclidean distance
+    ``e``) and ``e - 1`` pixels from it, so the target is that opacity averaged over
+    ``d`` uniform in ``[max(e - 1, 0), e]``: 0.44 on the first ring at ``filter_sigma = 0.35``, 0.10
+    diagonally, below 0.003 from the second ring on; 0 everywhere for an empty mask. A binary target
+    there instead makes the fit pull the centres about ``filter_sigma sqrt(2 ln 2)`` inside the
+    silhouette to cancel the halo. Discrete (no gradient); computed on the CPU (SciPy's distance transform).
+    """
+    import math
+
+    from scipy.ndimage import distance_transform_edt
+
+    m = mask.detach().cpu().numpy().astype(bool)
+    if not m.any():  # no object in this view: nothing to halo (the transform has no inside pixel to measure to)
+        return torch.zeros(mask.shape, dtype=torch.float32, device=mask.device)
+    e = torch.as_tensor(distance_transform_edt(~m), dtype=torch.float64)  # 0 inside, >= 1 outside
+    lo, hi = (e - 1).clamp_min(0), e
+    k = 1.0 / (math.sqrt(2.0) * float(filter_sigma))
+    mean = (torch.erf(hi * k) - torch.erf(lo * k)) / (hi - lo).clamp_min(1e-12) * (math.sqrt(math.pi) / (2 * k))
+    out = torch.where(torch.as_tensor(m), torch.ones_like(e), mean)
+    return out.to(torch.float32).to(mask.device)
 
 
 def boundary_band(mask: torch.Tensor, width: int) -> torch.Tensor:

@@ -15,6 +15,7 @@ from .losses import (
     boundary_band,
     depth_normals,
     distortion,
+    halo_target,
     mask_loss,
     mesh_depth_loss,
     mesh_normal_loss,
@@ -34,6 +35,7 @@ ALPHA_COVERED = 0.5
 _DEPTH_EPS = 1e-4  # log-depth clamp, internal units (1e-4 of the unit cube)
 _LOSS_EMA = 0.9  # smoothing of the loss shown on the progress bar
 _DSSIM = 0.2  # weight of D-SSIM in the photometric term (1 - w) L1 + w (1 - SSIM): 3DGS's and 2DGS's value
+_HALO_RING = 0.01  # outside the mask, a halo target above this leaves the pixel out of the photometric term
 _MAX_ANISOTROPY = 10.0  # ratio of the two surfel scales above which the scale regulariser acts (stops needles)
 
 
@@ -84,6 +86,7 @@ class Objective:
         self.warmup_end = warmup_end
         self.timers = timers
         self._bands: dict[int, torch.Tensor] = {}  # training view -> silhouette band (masks are fixed)
+        self._halos: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # view -> (mask target, halo ring)
 
     def _band(self, vi: int) -> torch.Tensor | None:
         lc = self.cfg.losses
@@ -93,6 +96,18 @@ class Objective:
         if band is None:
             band = self._bands[vi] = boundary_band(self.train.masks[vi], lc.silhouette_band)
         return band
+
+    def _halo(self, vi: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """``(target opacity [H, W], ring [H, W] bool)`` of view ``vi`` with ``losses.mask_halo``: the
+        mask term's target and the pixels outside the mask the target lets the low-pass cover."""
+        if self.train.masks is None or not self.cfg.losses.mask_halo:
+            return None
+        h = self._halos.get(vi)
+        if h is None:
+            m = self.train.masks[vi]
+            t = halo_target(m, self.cfg.filter_sigma)
+            h = self._halos[vi] = (t, (t > _HALO_RING) & ~m)
+        return h
 
     def __call__(self, stage: Stage, it: int, vi: int, surfels: Surfels, proxy: ProxyMesh, *,
                  defer_count: bool = False) -> Terms:
@@ -107,14 +122,17 @@ class Objective:
         L: dict[str, torch.Tensor] = {}
         with T("losses"):
             band = self._band(vi)
+            halo = self._halo(vi)
+            skip = band if halo is None else (halo[1] if band is None else band | halo[1])
             # the band is left out by rendering the target there: zero loss, zero gradient
-            rgb = out.rgb if band is None else torch.where(band[..., None], img, out.rgb)
+            rgb = out.rgb if skip is None else torch.where(skip[..., None], img, out.rgb)
             L["photo"] = photometric(rgb, img, _DSSIM)
             covered = out.alpha.detach() >= ALPHA_COVERED
             if self.train.masks is not None and self.mask_weight > 0:
                 m = self.train.masks[vi]
-                a = out.alpha if band is None else torch.where(band, m.to(out.alpha.dtype), out.alpha)
-                L["mask"] = self.mask_weight * mask_loss(a, m)
+                target = m.to(out.alpha.dtype) if halo is None else halo[0].to(out.alpha.dtype)
+                a = out.alpha if band is None else torch.where(band, target, out.alpha)
+                L["mask"] = self.mask_weight * mask_loss(a, target)
             late = stage != Stage.WARMUP
             if lc.normal > 0 and (late or it >= stage_iteration(lc.normal_start_fraction, self.warmup_end)):
                 o, d = cam.pixel_rays(out.alpha.device)

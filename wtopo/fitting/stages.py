@@ -22,7 +22,7 @@ import trimesh
 from .._profile import section
 from ..scene import NORMALIZATION_MARGIN
 from . import densify as dens
-from .config import FinalMethod, FitConfig, NormalFlip, PoissonBox, RenderedDepth
+from .config import Closure, FinalMethod, FitConfig, NormalFlip, PoissonBox, RenderedDepth
 from .mesh_policy import crop_near_cameras, crop_to_box, supported_components
 from .proxy import ProxyMesh, poisson_mesh
 from .scene_kind import SceneKind, SceneLayout
@@ -223,6 +223,7 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
     fc = cfg.final
     mesh = None
     scene = _is_scene(layout)
+    carve = False
     depths, colors = render_depths(render, surfels, cameras, cfg.tsdf.depth, cfg.tsdf.alpha_threshold)
     if fc.method == FinalMethod.TSDF:
         if scene:
@@ -231,9 +232,10 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
             bounds = auto_bounds(surfels.means, surfels.opacities, resolution=fc.resolution,
                                  truncation_voxels=cfg.tsdf.truncation_voxels)
         tsdf_info["final_bounds"] = bounds.to_dict()
+        carve = not scene and fc.watertight and Closure(fc.closure) == Closure.CARVE
         try:
             mesh = fuse_depths(cameras, depths, colors, bounds, backend=cfg.tsdf.backend,
-                               device=surfels.means.device)
+                               device=surfels.means.device, close=carve)
         except TSDFEmptyError as e:
             warnings.warn(f"final TSDF empty, returning the proxy mesh: {e}", RuntimeWarning, stacklevel=3)
             record("final_tsdf_empty", why=str(e))
@@ -261,6 +263,7 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
             mesh = cleanup_mesh(mesh, largest_component=fc.largest_component)
             with section("supported_components"):
                 mesh, info["components"] = supported_components(mesh, cameras, depths)
+            info["closure"] = "carve" if carve else "poisson"
             if fc.watertight and not mesh.is_watertight:
                 mesh = poisson_remesh(mesh, cfg, record=record)
             if fc.silhouette_calibration and masks is not None and len(mesh.faces):

@@ -91,7 +91,7 @@ def _far_depth(camera: Camera, bounds: FusionBounds) -> float:
 
 def fuse_depths(cameras: Sequence[Camera], depths: Sequence[np.ndarray], colors: Sequence[np.ndarray],
                 bounds: FusionBounds, *, backend: str = "open3d",
-                device: torch.device | str = "cpu") -> trimesh.Trimesh:
+                device: torch.device | str = "cpu", close: bool = False) -> trimesh.Trimesh:
     """Fuse z-depth maps into a TSDF and extract its mesh, cropped to ``bounds``.
 
     Both backends integrate each view along its camera's own per-pixel rays (principal point, skew
@@ -112,6 +112,8 @@ def fuse_depths(cameras: Sequence[Camera], depths: Sequence[np.ndarray], colors:
         backend: ``"open3d"`` or ``"warp"`` (:class:`~wtopo.fitting.config.TSDFBackend` values; the fit's
             plan resolves ``"auto"``).
         device: where the ``"warp"`` backend fuses.
+        close: close the surface by space carving (:func:`wtopo.tsdf_fusion.fuse_tsdf`'s ``close``:
+            unobserved space no view saw empty is inside); always fused by the ``"warp"`` backend.
 
     Returns:
         A vertex-coloured mesh in the internal frame.
@@ -134,7 +136,10 @@ def fuse_depths(cameras: Sequence[Camera], depths: Sequence[np.ndarray], colors:
     v = f = c = np.zeros((0, 3))
     with section("tsdf_fusion"):
         if views:
-            v, f, c = (_fuse_warp if backend == "warp" else _fuse_open3d)(views, bounds, device)
+            if close or backend == "warp":
+                v, f, c = _fuse_warp(views, bounds, device, close=close)
+            else:
+                v, f, c = _fuse_open3d(views, bounds, device)
     if not views or f.shape[0] == 0:
         raise TSDFEmptyError(
             f"TSDF fusion of {len(depths)} depth maps ({len(views)} with valid pixels) produced no surface; "
@@ -176,14 +181,16 @@ def _fuse_open3d(views: list, bounds: FusionBounds, device) -> tuple[np.ndarray,
             (np.clip(c, 0, 1) * 255).astype(np.uint8) if c.size else np.zeros((0, 3), np.uint8))
 
 
-def _fuse_warp(views: list, bounds: FusionBounds, device) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`wtopo.tsdf_fusion.fuse_tsdf` of ``views`` ``(camera, depth, colour)`` on ``device``."""
+def _fuse_warp(views: list, bounds: FusionBounds, device, *,
+               close: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`wtopo.tsdf_fusion.fuse_tsdf` of ``views`` ``(camera, depth, colour)`` on ``device``
+    (``close``: carved shut)."""
     from ..tsdf_fusion import fuse_tsdf
 
     cams = [cam for cam, _, _ in views]
     m = fuse_tsdf(cams, [d for _, d, _ in views], [c for _, _, c in views], lower=bounds.lower, upper=bounds.upper,
                   voxel=bounds.voxel, truncation=bounds.truncation, far=[_far_depth(c, bounds) for c in cams],
-                  device=device)
+                  device=device, close=close)
     return m.verts.cpu().numpy(), m.faces.cpu().numpy(), m.colors.cpu().numpy()
 
 
