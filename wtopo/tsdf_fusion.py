@@ -496,23 +496,20 @@ def _drop_unseen_components(verts, faces, cols, seen):
     """Keep the connected components of a closed mesh that hold a vertex of observed surface: a
     component made only of closing faces encloses space a view or two saw behind a surface and none
     saw empty (a grid corner in one view's shadow), not an object. Host round trip (SciPy)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    from .metrics._topology import face_components
 
     f = faces.cpu().numpy()
-    n = verts.shape[0]
-    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]])
-    graph = coo_matrix((np.ones(len(edges), np.int8), (edges[:, 0], edges[:, 1])), shape=(n, n))
-    _, label = connected_components(graph, directed=False)
-    keep_label = np.zeros(label.max() + 1, bool)
-    keep_label[label[seen.cpu().numpy()]] = True
-    keep_v = keep_label[label]
-    if keep_v.all():
+    _, label = face_components(f, verts.shape[0])
+    keep = np.zeros(label.max() + 1, bool)
+    keep[label[seen.cpu().numpy()[f].any(axis=1)]] = True
+    keep_f = keep[label]
+    if keep_f.all():
         return verts, faces, cols
-    remap = np.cumsum(keep_v) - 1
-    f = remap[f[keep_v[f[:, 0]]]]
-    kv = torch.as_tensor(keep_v, device=verts.device)
-    return (verts[kv], torch.as_tensor(f, device=faces.device), None if cols is None else cols[kv])
+    used = np.zeros(verts.shape[0], bool)
+    used[f[keep_f]] = True
+    f = (np.cumsum(used) - 1)[f[keep_f]]
+    kv = torch.as_tensor(used, device=verts.device)
+    return verts[kv], torch.as_tensor(f, device=faces.device), None if cols is None else cols[kv]
 
 
 def tsdf_volume(cameras: Sequence[Camera], depths: Sequence, colors: Sequence | None = None, *, lower, upper,

@@ -123,7 +123,9 @@ class Objective:
         with T("losses"):
             band = self._band(vi)
             halo = self._halo(vi)
-            skip = band if halo is None else (halo[1] if band is None else band | halo[1])
+            skip = band  # pixels left out of the photometric term: the band and the halo's ring
+            if halo is not None:
+                skip = halo[1] if skip is None else skip | halo[1]
             # the band is left out by rendering the target there: zero loss, zero gradient
             rgb = out.rgb if skip is None else torch.where(skip[..., None], img, out.rgb)
             L["photo"] = photometric(rgb, img, _DSSIM)

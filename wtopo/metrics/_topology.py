@@ -33,7 +33,7 @@ def mesh_stats(mesh) -> dict:
     _, dcounts = np.unique(directed, axis=0, return_counts=True) if nf else (None, np.zeros(0))
     watertight = nf > 0 and boundary == 0 and nonmanifold == 0
     winding = bool(watertight and (dcounts == 1).all())
-    ncomp = _face_components(f, len(v))[0]
+    ncomp = face_components(f, len(v))[0]
     euler = nv - ne + nf
     tri = v[f]
     cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -50,8 +50,9 @@ def mesh_stats(mesh) -> dict:
 
 
 # -- what a reconstruction adds and misses: floaters and holes -------------------------------------
-def _face_components(f: np.ndarray, n_vertices: int) -> tuple[int, np.ndarray]:
-    """Connected components of faces that share a vertex: ``(count, label [F])``."""
+def face_components(f: np.ndarray, n_vertices: int) -> tuple[int, np.ndarray]:
+    """Connected components of faces [F, 3] (int) that share a vertex: ``(count, label [F] int64)``
+    (SciPy; also the TSDF fusion's closing step, :mod:`wtopo.tsdf_fusion`)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -115,7 +116,7 @@ def floaters(pred, gt, tau: float, *, n_samples: int = _DEFAULT_SAMPLES, seed: i
     area = 0.5 * np.linalg.norm(np.cross(sp.tri[:, 1] - sp.tri[:, 0], sp.tri[:, 2] - sp.tri[:, 0]), axis=1)
     d = sg.closest(sp.points)[0]
     far = float((d > t).mean())
-    n_comp, label = _face_components(pf, len(pv))
+    n_comp, label = face_components(pf, len(pv))
     near = np.zeros(n_comp, bool)
     near[np.unique(label[sp.face_index[d <= t]])] = True
     vlabel = np.full(len(pv), -1, np.int64)
