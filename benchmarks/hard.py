@@ -80,7 +80,14 @@ VARIANTS = {
     "no_loop": ("coevolution.enabled=false",),
     "raw": ("final.watertight=false",),
     "raw_no_loop": ("coevolution.enabled=false", "final.watertight=false"),
+    # the method's ablation (the loop on, one of its parts changed)
+    "view_signs": ("mesh.normal_flip=view",),
+    "random_signs": ("mesh.normal_flip=random",),
+    "no_geo_density": ("densify.geometry_prune=false", "densify.geometry_densify=false"),
+    "one_point": ("mesh.samples_per_surfel=1",),
 }
+RIG = {"views": 32, "resolution": 128}  # training views and pixels per side (``--gpu``: 64 of 512)
+MESH_CACHE: list[str] = []  # ``--mesh-cache``: a folder keeping the signed-distance meshes
 
 
 # -- meshes from signed distance functions (negative inside) --------------------------------------
@@ -109,6 +116,22 @@ def _sphere(p, center, radius):
 def sdf_mesh(sdf, lower, upper, spacing: float) -> trimesh.Trimesh:
     """The zero level of ``sdf`` (points [..., 3] -> values) on a grid over ``[lower, upper]``,
     outward-wound; surfaces that reach the grid's border stay open there."""
+    import hashlib
+
+    key = hashlib.sha1(repr((sdf.__qualname__, np.round(np.asarray(lower, np.float64), 9).tolist(),
+                             np.round(np.asarray(upper, np.float64), 9).tolist(), spacing)).encode()).hexdigest()[:16]
+    path = os.path.join(MESH_CACHE[0], f"{key}.npz") if MESH_CACHE else None
+    if path and os.path.exists(path):  # a machine without scikit-image reads what another one built
+        with np.load(path) as z:
+            return trimesh.Trimesh(z["vertices"], z["faces"], process=False)
+    mesh = _sdf_mesh(sdf, lower, upper, spacing)
+    if path:
+        os.makedirs(MESH_CACHE[0], exist_ok=True)
+        np.savez(path, vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces))
+    return mesh
+
+
+def _sdf_mesh(sdf, lower, upper, spacing: float) -> trimesh.Trimesh:
     from skimage.measure import marching_cubes
 
     # nodes off the planes the shapes are built on (no node exactly on the surface: no degenerate faces)
@@ -229,9 +252,9 @@ def clip_to_box(mesh: trimesh.Trimesh, lower, upper) -> trimesh.Trimesh:
 
 
 # -- the suite -------------------------------------------------------------------------------------
-def _object_scene(mesh, name, texture="astronaut", n_views=32, seed=0):
-    return scenes.from_mesh(mesh, n_views=n_views, resolution=128, rig="sphere", texture=texture,
-                            background="black", seed=seed, up=(0, 0, 1), n_test=N_TEST, name=name)
+def _object_scene(mesh, name, texture="astronaut", n_views=None, seed=0):
+    return scenes.from_mesh(mesh, n_views=n_views or RIG["views"], resolution=RIG["resolution"], rig="sphere",
+                            texture=texture, background="black", seed=seed, up=(0, 0, 1), n_test=N_TEST, name=name)
 
 
 def _with_box(scene, margin: float = 0.1):
@@ -245,9 +268,9 @@ def _with_box(scene, margin: float = 0.1):
 
 
 def _chair_ground():
-    sc = scenes.from_mesh(chair_mesh(), n_views=32, resolution=128, rig="hemisphere", texture="astronaut",
-                          background="ground", seed=6, up=(0, 0, 1), n_test=N_TEST, name="chair_ground",
-                          bounds_from_roi=True)
+    sc = scenes.from_mesh(chair_mesh(), n_views=RIG["views"], resolution=RIG["resolution"], rig="hemisphere",
+                          texture="astronaut", background="ground", seed=6, up=(0, 0, 1), n_test=N_TEST,
+                          name="chair_ground", bounds_from_roi=True)
     return sc, _ground_truth_on_floor(_chair_sdf, sc, 0.008)
 
 
@@ -273,13 +296,13 @@ DESCRIPTIONS = {
 }
 
 
-def _config(variant: str, sets) -> FitConfig:
+def _config(variant: str, sets, device: str = "cpu") -> FitConfig:
     from wtopo.cli import _apply_set
 
     cfg = FitConfig()
     for item in (*sets, *VARIANTS[variant]):  # --set first: the variant's own change wins
         _apply_set(cfg, item)
-    cfg.runtime.device = "cpu"
+    cfg.runtime.device = device
     cfg.runtime.usd_every = 0
     return cfg
 
@@ -321,9 +344,9 @@ def measure(mesh: trimesh.Trimesh, gt: trimesh.Trimesh, seed: int = 0) -> dict:
             "hole_frac": 100 * ho.area_fraction}
 
 
-def run_one(name: str, variant: str, built, run_dir: str, sets) -> dict:
+def run_one(name: str, variant: str, built, run_dir: str, sets, device: str = "cpu") -> dict:
     scene, gt, box = built
-    cfg = _config(variant, sets)
+    cfg = _config(variant, sets, device)
     out = os.path.join(run_dir, f"{name}_{variant}")
     if os.path.isdir(out):  # a fit resumes from checkpoints in its out_dir: start afresh
         shutil.rmtree(out)
@@ -361,10 +384,14 @@ _COLUMNS = ("| scene | variant | Chamfer % | F@0.5 % | acc % | compl % | inward 
             "watertight | comp. | genus | PSNR dB | SSIM | time s | policy dropped (area %) | remeshed |")
 
 
+def _scene_cell(r: dict) -> str:
+    return r["scene"] + (f" (seed {r['seed']})" if "seed" in r else "")
+
+
 def _row_line(r: dict) -> str:
     if "error" in r:
-        return f"| {r['scene']} | {r['variant']} | fit failed after {r['time']:.0f} s: {r['error']} |"
-    return (f"| {r['scene']} | {r['variant']} | {_f(r['chamfer'], '.3f')} | {r['f_score']:.3f} | "
+        return f"| {_scene_cell(r)} | {r['variant']} | fit failed after {r['time']:.0f} s: {r['error']} |"
+    return (f"| {_scene_cell(r)} | {r['variant']} | {_f(r['chamfer'], '.3f')} | {r['f_score']:.3f} | "
             f"{_f(r['accuracy'], '.3f')} | {_f(r['completeness'], '.3f')} | {_f(r.get('inward'), '+.3f')} "
             f"({_f(r.get('inside_frac'), '.0f')}) | {r['floater_frac']:.2f} "
             f"({r['floater_count']}) | {r['hole_frac']:.2f} | {'yes' if r['watertight'] else 'no'} | "
@@ -377,15 +404,53 @@ _MEAN_KEYS = ("chamfer", "f_score", "accuracy", "completeness", "floater_frac", 
               "ssim", "time")
 
 
+def _case(r: dict) -> tuple[str, int]:
+    return r["scene"], int(r.get("seed", 0))
+
+
+def ablation(rows: list[dict], base: str = "no_loop") -> list[str]:
+    """Per variant against ``base`` (the same scene and seed): the change of the mean Chamfer over the
+    cases both completed, per seed and over all, and the largest and smallest per-scene change of the
+    Chamfer averaged over seeds (the issue's rule: no scene more than 2 % worse)."""
+    ok = {(r["variant"], *_case(r)): r["chamfer"] for r in rows if "error" not in r}
+    if not any(k[0] == base for k in ok):
+        return []
+    seeds = sorted({k[2] for k in ok})
+    lines = ["", f"Each variant against `{base}` on the same scene and seed (Chamfer; the per-scene change uses "
+             "the Chamfer averaged over the seeds):", "",
+             "| variant | cases | mean Chamfer % | " + " | ".join(f"change, seed {s}" for s in seeds)
+             + " | change, all | worst scene | best scene |", "|" + "---|" * (6 + len(seeds))]
+    for v in dict.fromkeys(k[0] for k in ok):
+        cases = [(sc, sd) for (vv, sc, sd) in ok if vv == v and (base, sc, sd) in ok]
+        if not cases:
+            continue
+
+        def change(sel, v=v):
+            a = np.mean([ok[(v, *c)] for c in sel])
+            b = np.mean([ok[(base, *c)] for c in sel])
+            return 100 * (a / b - 1) if sel else float("nan")
+
+        per_seed = [change([c for c in cases if c[1] == s]) for s in seeds]
+        scenes_ = list(dict.fromkeys(c[0] for c in cases))
+        per_scene = {sc: change([c for c in cases if c[0] == sc]) for sc in scenes_}
+        worst = max(per_scene, key=per_scene.get)
+        best = min(per_scene, key=per_scene.get)
+        lines.append(f"| {v} | {len(cases)} | {np.mean([ok[(v, *c)] for c in cases]):.3f} | "
+                     + " | ".join(_f(x, '+.1f') + " %" for x in per_seed)
+                     + f" | {change(cases):+.1f} % | {worst} {per_scene[worst]:+.1f} % | "
+                     f"{best} {per_scene[best]:+.1f} % |")
+    return lines
+
+
 def variant_means(rows: list[dict]) -> dict[str, dict]:
     """Per variant, the mean of each figure over the scenes every listed variant completed (so the
     means compare like with like), with the number of scenes and of watertight meshes."""
     ok = [r for r in rows if "error" not in r]
     variants = list(dict.fromkeys(r["variant"] for r in rows))
-    common = set.intersection(*({r["scene"] for r in ok if r["variant"] == v} for v in variants)) if variants else set()
+    common = set.intersection(*({_case(r) for r in ok if r["variant"] == v} for v in variants)) if variants else set()
     out = {}
     for v in variants:
-        sel = [r for r in ok if r["variant"] == v and r["scene"] in common]
+        sel = [r for r in ok if r["variant"] == v and _case(r) in common]
         if sel:
             out[v] = {k: float(np.mean([r[k] for r in sel])) for k in _MEAN_KEYS}
             out[v]["scenes"] = len(sel)
@@ -408,6 +473,7 @@ def markdown(label: str, command: str, rows: list[dict], loads: tuple[float, flo
              "Scenes: " + "; ".join(f"`{k}` {DESCRIPTIONS[k]}" for k in dict.fromkeys(r["scene"] for r in rows)) + ".",
              "", _COLUMNS, "|" + "---|" * (_COLUMNS.count("|") - 1)]
     lines += [_row_line(r) for r in rows]
+    lines += ablation(rows)
     means = variant_means(rows)
     if means:
         lines += ["", "Means per variant over the scenes every variant completed:", "",
@@ -445,7 +511,17 @@ def main(argv=None) -> int:
     ap.add_argument("--label", default="run", help="section title in --out")
     ap.add_argument("--out", help="markdown file to write the section to (e.g. benchmarks/hard.md)")
     ap.add_argument("--resume", action="store_true", help="keep the rows of <run-dir>/<label>/rows.json, run the rest")
+    ap.add_argument("--seeds", nargs="+", type=int,
+                    help="fit seeds (runtime.seed), each a row of its own; without it one unlabelled row per variant")
+    ap.add_argument("--device", default="cpu", help="fit device (cpu, cuda:0)")
+    ap.add_argument("--gpu", action="store_true",
+                    help="the GPU settings: 64 training views of 512 px (mug_sparse keeps 10 views)")
+    ap.add_argument("--mesh-cache", help="folder keeping the signed-distance truth meshes (read when present)")
     args = ap.parse_args(argv)
+    if args.gpu:
+        RIG.update(views=64, resolution=512)
+    if args.mesh_cache:
+        MESH_CACHE[:] = [args.mesh_cache]
 
     run_dir = os.path.join(args.run_dir, args.label)
     os.makedirs(run_dir, exist_ok=True)
@@ -454,19 +530,22 @@ def main(argv=None) -> int:
     if args.resume and os.path.exists(rows_path):
         with open(rows_path) as f:
             rows = json.load(f)
-    done = {(r["scene"], r["variant"]) for r in rows}
+    done = {(r["scene"], r["variant"], r.get("seed")) for r in rows}
     load0 = os.getloadavg()[0]
     cmd = "PYTHONPATH=. .venv/bin/python benchmarks/hard.py " + " ".join(argv if argv is not None else sys.argv[1:])
     for name in args.scenes:  # one scene at a time, its variants one after another
-        todo = [v for v in args.variants if (name, v) not in done]
+        todo = [(v, sd) for sd in (args.seeds or [None]) for v in args.variants if (name, v, sd) not in done]
         if not todo:
             continue
         built = SCENES[name]()
         scene, gt = built
         box = tuple(np.asarray(b, np.float64) for b in scene.info["roi"]) if "roi" in scene.info else None
         gt = gt if gt is not None else scene.gt_mesh
-        for v in todo:
-            rows.append(run_one(name, v, (scene, gt, box), run_dir, args.set))
+        for v, sd in todo:
+            sets = args.set if sd is None else [*args.set, f"runtime.seed={sd}"]
+            out_dir = run_dir if sd is None else os.path.join(run_dir, f"seed{sd}")
+            row = run_one(name, v, (scene, gt, box), out_dir, sets, args.device)
+            rows.append(row if sd is None else {**row, "seed": sd})
             with open(rows_path, "w") as f:
                 json.dump(rows, f, indent=1)
             if args.out:  # rewritten after every fit: a long run keeps what it measured
