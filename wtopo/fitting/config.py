@@ -389,6 +389,14 @@ class LossConfig:
     texture, 0 for shading-only captures; ``benchmarks/hard.md``, ``benchmarks/real.md``)."""
     multiview_start_fraction: float = _f(0.5, FRACTION)
     """The multi-view term is on from this fraction of the warm-up (:func:`stage_iteration`)."""
+    multiview_geometric: float = _f(0.0, RATE)
+    """Multi-view geometric consistency (:mod:`wtopo.fitting.geometric`, PGSR's forward-backward
+    reprojection): sampled pixels of each training view are carried by its rendered depth into a
+    neighbouring view and back by that view's rendered depth (rendered without gradient); the loss
+    is the round-trip error in pixels (pixels missing by 1 px or more carry none), from
+    ``multiview_start_fraction`` of the warm-up on. 0 turns it off (the default; PGSR's weight is
+    0.03). Its pixels are ``multiview_pixels``. It needs no texture, so the plan's texture rule for
+    ``multiview`` does not apply to it."""
     multiview_pixels: int = _f(4096, COUNT)
     """Reference pixels drawn per iteration for the multi-view term (each a 7 x 7 window)."""
     silhouette_band: int = _f(0, COUNT)

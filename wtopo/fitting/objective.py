@@ -11,6 +11,7 @@ from collections import defaultdict
 import torch
 
 from .config import FitConfig, RenderedDepth, stage_iteration
+from .geometric import ForwardBackwardDepth
 from .losses import (
     boundary_band,
     depth_normals,
@@ -69,7 +70,8 @@ class Objective:
         warmup_end: first co-evolution iteration.
         timers: the fit's section timers (``"render"``, ``"losses"``, ``"proxy"``, ``"raycast"``).
         roi_center: [3] the region of interest's centre (internal frame): picks the neighbouring views
-            of the multi-view term (``losses.multiview``); ``None`` leaves that term out.
+            of the multi-view terms (``losses.multiview``, ``losses.multiview_geometric``); ``None``
+            leaves them out.
     """
 
     def __init__(self, cfg: FitConfig, train, *, render: Renderer, mask_weight: float, warmup_end: int, timers,
@@ -80,6 +82,10 @@ class Objective:
         if (lc.multiview or 0.0) > 0 and roi_center is not None and len(train.cameras) > 1:
             self.multiview = MultiViewNCC(train.cameras, train.images, roi_center, pixels=lc.multiview_pixels,
                                           seed=cfg.runtime.seed)
+        self.geometric = None
+        if lc.multiview_geometric > 0 and roi_center is not None and len(train.cameras) > 1:
+            self.geometric = ForwardBackwardDepth(train.cameras, roi_center, pixels=lc.multiview_pixels,
+                                                  seed=cfg.runtime.seed)
         self.train = train
         self.render = render
         self.mask_weight = float(mask_weight)
@@ -146,6 +152,14 @@ class Objective:
             if mv is not None and mv.has_neighbours(vi) and (
                     late or it >= stage_iteration(lc.multiview_start_fraction, self.warmup_end)):
                 L["multiview"] = lc.multiview * mv(it, vi, out.median_depth, out.normal, out.alpha)
+            gm = self.geometric
+            if gm is not None and gm.has_neighbours(vi) and (
+                    late or it >= stage_iteration(lc.multiview_start_fraction, self.warmup_end)):
+                nj = gm.neighbour(it, vi)
+                with torch.no_grad():  # the neighbour's depth is the target
+                    on = self.render(s, self.train.cameras[nj])
+                L["geometric"] = lc.multiview_geometric * gm(it, vi, out.median_depth, out.alpha, nj,
+                                                             on.median_depth, on.alpha)
             if lc.scale > 0:
                 L["scale"] = lc.scale * scale_regularizer(s.scales, _MAX_ANISOTROPY)
         terms = Terms(L, out, covered)
