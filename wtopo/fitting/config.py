@@ -18,6 +18,23 @@ from dataclasses import dataclass, field
 
 from ..rasterize import FILTER_SIGMA_RANGE
 from .config_fields import Leaf, leaves, set_field
+from .config_kinds import (
+    COUNT,
+    FRACTION,
+    OPEN_UNIT,
+    POSITIVE,
+    RATE,
+    Closure,
+    DepthLoss,
+    FinalMethod,
+    InitSource,
+    NormalFlip,
+    PoissonBox,
+    Range,
+    RenderedDepth,
+    TSDFBackend,
+    _f,
+)
 from .scene_kind import SceneKind
 
 __all__ = [
@@ -53,124 +70,6 @@ _POISSON_MAX = 1024  # the Poisson grid is dense (FFT): 1024^3 complex nodes alr
 _SEED_MAX = 2**32 - 1  # NumPy's default_rng and torch.manual_seed (times 1_000_003) both accept this range
 _SH_MAX = 3  # the renderer evaluates SH bands 0..3
 
-
-@dataclass(frozen=True)
-class Range:
-    """The accepted interval of a numeric field, kept in its ``dataclasses.field`` metadata (``"check"``).
-
-    Whether the field takes an int or a float, and ``None``, comes from its type annotation.
-    """
-
-    lo: float
-    hi: float | None = None
-    lo_open: bool = False
-    hi_open: bool = False
-
-    def __str__(self) -> str:
-        lo, hi = (f"{x:g}" if isinstance(x, float) else x for x in (self.lo, self.hi))
-        if hi is None:
-            return f"{'>' if self.lo_open else '>='} {lo}"
-        return f"in {'(' if self.lo_open else '['}{lo}, {hi}{')' if self.hi_open else ']'}"
-
-    def __contains__(self, v) -> bool:
-        below = v <= self.lo if self.lo_open else v < self.lo
-        above = self.hi is not None and (v >= self.hi if self.hi_open else v > self.hi)
-        return not (below or above)
-
-
-RATE = Range(0.0)  # a learning rate or loss weight: finite and >= 0
-FRACTION = Range(0.0, 1.0)  # a fraction, opacity threshold or weight in [0, 1]
-OPEN_UNIT = Range(0.0, 1.0, lo_open=True, hi_open=True)  # an opacity that goes through a logit
-COUNT = Range(0)  # iterations, intervals where 0 disables, counts
-POSITIVE = Range(1)  # intervals and counts that must be at least 1
-
-
-def _f(default, check):
-    """A field with ``default`` and its check: a :class:`Range`, or a tuple of the accepted ints."""
-    return field(default=default, metadata={"check": check})
-
-
-class NormalFlip(str, enum.Enum):
-    """How the sign of each surfel normal fed to the Poisson solve is chosen."""
-
-    MESH = "mesh"
-    """Mesh normal where the nearest proxy face is close and agrees, view directions otherwise."""
-    VIEW = "view"
-    """Only the accumulated directions towards the cameras that saw the surfel."""
-    RANDOM = "random"
-    """A random sign per surfel (ablation: shows what the alignment buys)."""
-
-
-class DepthLoss(str, enum.Enum):
-    """Form of the mesh-depth agreement term."""
-
-    LOG_RATIO = "log_ratio"
-    """``|log D_surfel - log D_mesh|`` (the method description)."""
-    LOG1P_ABS = "log1p_abs"
-    """``log1p(|D_mesh - D_surfel| / extent)`` (the public TopoSurfel code)."""
-
-
-class InitSource(str, enum.Enum):
-    """Where the initial surfels come from."""
-
-    AUTO = "auto"
-    """The scene's points when it has them (at least 100); else ``MVS`` for a scene without masks,
-    ``CAMERAS`` for a masked object."""
-    POINTS = "points"
-    """The scene's points (an error without them)."""
-    MVS = "mvs"
-    """Plane-sweep stereo over the training views (:mod:`wtopo.fitting.mvs`): confirmed depths
-    as oriented points."""
-    CAMERAS = "cameras"
-    """Random points in the cameras' common volume."""
-
-
-class RenderedDepth(str, enum.Enum):
-    """Which rendered surfel depth a stage uses."""
-
-    MEDIAN = "median"
-    """Where the transmittance crosses 0.5: the visible surface."""
-    EXPECTED = "expected"
-    """Alpha-weighted mean over the ray (averages in semi-transparent layers behind the surface)."""
-
-
-class FinalMethod(str, enum.Enum):
-    """How the returned mesh is built (:class:`FinalConfig`)."""
-
-    TSDF = "tsdf"
-    """TSDF fusion of the rendered surfel depth of every training view."""
-    PROXY = "proxy"
-    """The Poisson proxy mesh of the final surfels (closed by construction)."""
-
-
-class Closure(str, enum.Enum):
-    """How an object's final mesh is closed where the views left it open (:class:`FinalConfig`)."""
-
-    CARVE = "carve"
-    """Space carving in the TSDF fusion (:func:`wtopo.tsdf_fusion.fuse_tsdf` with ``close``): unobserved
-    space that no view's ray crossed empty counts as inside; the observed surface is kept as fused."""
-    POISSON = "poisson"
-    """Re-mesh the whole open TSDF mesh by Poisson of its area samples (smooths it everywhere)."""
-
-
-class PoissonBox(str, enum.Enum):
-    """The domain of the proxy's Poisson solve."""
-
-    UNIT = "unit"
-    """The normalised unit cube."""
-    INITIAL_MESH = "initial_mesh"
-    """The TSDF mesh's box + 10 % (public TopoSurfel code)."""
-
-
-class TSDFBackend(str, enum.Enum):
-    """Which TSDF fusion runs (:func:`wtopo.fitting.tsdf.fuse_depths`)."""
-
-    AUTO = "auto"
-    """The plan's: ``WARP`` on CUDA, ``OPEN3D`` on the CPU (``WARP`` when Open3D is not installed)."""
-    WARP = "warp"
-    """The Warp kernel (:func:`wtopo.tsdf_fusion.fuse_tsdf`) on the fit's device, CPU or CUDA."""
-    OPEN3D = "open3d"
-    """Open3D's sparse ``ScalableTSDFVolume`` on the CPU."""
 
 
 @dataclass(kw_only=True)
