@@ -156,7 +156,7 @@ class Objective:
             if gm is not None and gm.has_neighbours(vi) and (
                     late or it >= stage_iteration(lc.multiview_start_fraction, self.warmup_end)):
                 nj = gm.neighbour(it, vi)
-                with torch.no_grad():  # the neighbour's depth is the target
+                with T("render_neighbour"), torch.no_grad():  # the neighbour's depth is the target
                     on = self.render(s, self.train.cameras[nj])
                 L["geometric"] = lc.multiview_geometric * gm(it, vi, out.median_depth, out.alpha, nj,
                                                              on.median_depth, on.alpha)
