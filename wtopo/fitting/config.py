@@ -293,9 +293,10 @@ class LossConfig:
     reprojection): sampled pixels of each training view are carried by its rendered depth into a
     neighbouring view and back by that view's rendered depth (rendered without gradient); the loss
     is the round-trip error in pixels (pixels missing by 1 px or more carry none), from
-    ``multiview_start_fraction`` of the warm-up on. 0 turns it off (the default; PGSR's weight is
-    0.03). Its pixels are ``multiview_pixels``. It needs no texture, so the plan's texture rule for
-    ``multiview`` does not apply to it."""
+    ``multiview_start_fraction`` of the warm-up on. 0 turns it off (the default). Its pixels are
+    ``multiview_pixels``; it needs no texture, so the plan's texture rule for ``multiview`` does not
+    apply to it. At PGSR's weight 0.03 it made every object of the hard suite worse (mean Chamfer
+    0.437 -> 0.491 %, blob and mug +28-29 %; ``benchmarks/hard.md``, ``cpu_geometric``)."""
     multiview_pixels: int = _f(4096, COUNT)
     """Reference pixels drawn per iteration for the multi-view term (each a 7 x 7 window)."""
     silhouette_band: int = _f(0, COUNT)
