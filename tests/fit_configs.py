@@ -32,3 +32,20 @@ def small_fit_config(warmup: int, coevolution: int, *, points: int, grids: tuple
     cfg.runtime.checkpoint_every = checkpoint_every
     cfg.runtime.progress = False
     return cfg
+
+
+def fit_with_loss_term(term: str, **losses):
+    """Fit a small textured sphere (8 views of 32 px, 30 warm-up iterations) with ``losses`` set on
+    ``FitConfig.losses`` and return ``(the values history recorded for loss ``term``, the result)``."""
+    import trimesh
+
+    import wtopo
+    from wtopo import scenes
+
+    sc = scenes.from_mesh(trimesh.creation.icosphere(subdivisions=3), n_views=8, resolution=32, texture="coffee",
+                          seed=0)
+    cfg = small_fit_config(30, 0, points=400, grids=(32, 48, 32), max_faces=800, density_every=10, eval_every=10)
+    for k, v in losses.items():
+        setattr(cfg.losses, k, v)
+    res = wtopo.fit(sc, cfg, progress=False)
+    return [h["losses"][term] for h in res.history if term in h.get("losses", {})], res

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from fit_configs import small_fit_config
+from fit_configs import fit_with_loss_term
 from lenses import barrel_twin
 
 from wtopo import scenes
@@ -170,15 +170,7 @@ def test_bad_arguments_are_named(plane):
 
 def test_a_fit_with_the_term_records_it():
     """The term joins the fit from the multi-view start fraction, finite, and the fit still meshes."""
-    import wtopo
-
-    sc = scenes.from_mesh(trimesh.creation.icosphere(subdivisions=3), n_views=8, resolution=32, texture="coffee",
-                          seed=0)
-    cfg = small_fit_config(30, 0, points=400, grids=(32, 48, 32), max_faces=800, density_every=10, eval_every=10)
-    cfg.losses.multiview_geometric = 0.03
-    cfg.losses.multiview_start_fraction = 0.3
-    res = wtopo.fit(sc, cfg, progress=False)
-    geo = [h["losses"]["geometric"] for h in res.history if "geometric" in h.get("losses", {})]
+    geo, res = fit_with_loss_term("geometric", multiview_geometric=0.03, multiview_start_fraction=0.3)
     assert geo, "the geometric term never ran"
     assert all(np.isfinite(v) and v >= 0 for v in geo) and max(geo) > 0
     assert len(res.mesh.faces) > 0

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from fit_configs import small_fit_config
+from fit_configs import fit_with_loss_term
 from lenses import barrel_twin
 
 from wtopo import scenes
@@ -117,15 +117,7 @@ def test_bad_arguments_are_named(plane):
 
 def test_a_fit_with_the_term_records_it():
     """The term joins the fit from its start fraction, finite, with a gradient on the surfels."""
-    import wtopo
-
-    sc = scenes.from_mesh(trimesh.creation.icosphere(subdivisions=3), n_views=8, resolution=32, texture="coffee",
-                          seed=0)
-    cfg = small_fit_config(30, 0, points=400, grids=(32, 48, 32), max_faces=800, density_every=10, eval_every=10)
-    cfg.losses.multiview = 0.15
-    cfg.losses.multiview_start_fraction = 0.3
-    res = wtopo.fit(sc, cfg, progress=False)
-    mv = [h["losses"]["multiview"] for h in res.history if "multiview" in h.get("losses", {})]
+    mv, res = fit_with_loss_term("multiview", multiview=0.15, multiview_start_fraction=0.3)
     assert mv, "the multi-view term never ran"
     assert all(np.isfinite(v) and v > 0 for v in mv)
     assert len(res.mesh.faces) > 0

@@ -81,10 +81,8 @@ class ForwardBackwardDepth:
         """Camera ``i`` on ``device`` in ``dtype`` (the depth's: float64 for gradient checks)."""
         c = self._tcams.get((i, device, dtype))
         if c is None:
-            c = _TorchCam(self.cameras[i], device)
-            for k in ("R", "t", "K", "origin", "dirs"):
-                setattr(c, k, getattr(c, k).to(dtype))
-            self._tcams[(i, device, dtype)] = c
+            c = self._tcams[(i, device, dtype)] = _TorchCam(self.cameras[i], device, dtype)
+            c.rays = torch.cat([c.origin, c.dirs], -1).permute(2, 0, 1)[None]  # [1, 6, H, W] to sample at q
         return c
 
     def errors(self, it: int, vi: int, depth: torch.Tensor, alpha: torch.Tensor, nj: int, nb_depth: torch.Tensor,
@@ -105,10 +103,13 @@ class ForwardBackwardDepth:
         u, v, z = src.project(x)
         inside = (z > 0) & (u >= 0) & (u <= src.W) & (v >= 0) & (v <= src.H)
         grid = src.grid(u, v)[None, None]  # [1, 1, P, 2]
-        maps = torch.cat([nb_depth[None], nb_alpha[None], src.origin.permute(2, 0, 1), src.dirs.permute(2, 0, 1)])
-        s = F.grid_sample(maps[None], grid, mode="bilinear", padding_mode="border",
-                          align_corners=False)[0, :, 0]  # [8, P]
-        dn, an, on, rn = s[0], s[1], s[2:5].T, s[5:8].T
+
+        def at_q(maps):  # [1, C, H', W'] -> [C, P], bilinear at the neighbour's pixels q
+            return F.grid_sample(maps, grid, mode="bilinear", padding_mode="border", align_corners=False)[0, :, 0]
+
+        dn, an = at_q(torch.stack([nb_depth, nb_alpha])[None])
+        r = at_q(src.rays)
+        on, rn = r[:3].T, r[3:].T
         y = on + rn * dn[:, None]  # backward: the neighbour's point along its ray through q
         pu, pv, pz = ref.project(y)
         err = torch.stack([pu - (px.to(pu.dtype) + 0.5), pv - (py.to(pv.dtype) + 0.5)], -1).norm(dim=-1)

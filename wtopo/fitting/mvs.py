@@ -114,16 +114,16 @@ def select_neighbours(cameras: list[Camera], center: np.ndarray, k: int = _NEIGH
 
 
 class _TorchCam:
-    """A camera's projection and rays as torch tensors on one device (float32)."""
+    """A camera's projection and rays as torch tensors on one device (float32 unless ``dtype`` says)."""
 
-    def __init__(self, cam: Camera, device: torch.device):
+    def __init__(self, cam: Camera, device: torch.device, dtype: torch.dtype = torch.float32):
         self.cam = cam
-        f32 = dict(dtype=torch.float32, device=device)
-        self.R = torch.as_tensor(cam.R, **f32)
-        self.t = torch.as_tensor(cam.t, **f32)
-        self.K = torch.as_tensor(cam.K, **f32)
+        kw = dict(dtype=dtype, device=device)
+        self.R = torch.as_tensor(cam.R, **kw)
+        self.t = torch.as_tensor(cam.t, **kw)
+        self.K = torch.as_tensor(cam.K, **kw)
         self.dist = None if cam.distortion is None else [float(x) for x in cam.distortion]
-        self.origin, self.dirs = cam.pixel_rays(device, torch.float32)  # [H, W, 3] each, dirs z = 1
+        self.origin, self.dirs = cam.pixel_rays(device, dtype)  # [H, W, 3] each, dirs z = 1
         self.W, self.H = cam.width, cam.height
 
     def project(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -148,13 +148,11 @@ class Objective:
                 L["normal"] = lc.normal * normal_consistency(out.normal, dn, out.alpha, dmask)
             if lc.distortion > 0 and (late or it >= stage_iteration(lc.distortion_start_fraction, self.warmup_end)):
                 L["distortion"] = lc.distortion * distortion(out.distortion)
-            mv = self.multiview
-            if mv is not None and mv.has_neighbours(vi) and (
-                    late or it >= stage_iteration(lc.multiview_start_fraction, self.warmup_end)):
+            mv, gm = self.multiview, self.geometric
+            mv_on = late or it >= stage_iteration(lc.multiview_start_fraction, self.warmup_end)
+            if mv is not None and mv_on and mv.has_neighbours(vi):
                 L["multiview"] = lc.multiview * mv(it, vi, out.median_depth, out.normal, out.alpha)
-            gm = self.geometric
-            if gm is not None and gm.has_neighbours(vi) and (
-                    late or it >= stage_iteration(lc.multiview_start_fraction, self.warmup_end)):
+            if gm is not None and mv_on and gm.has_neighbours(vi):
                 nj = gm.neighbour(it, vi)
                 with T("render_neighbour"), torch.no_grad():  # the neighbour's depth is the target
                     on = self.render(s, self.train.cameras[nj])
