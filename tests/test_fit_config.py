@@ -119,6 +119,8 @@ BAD = [
     ("losses.depth_form", "log", ValueError),
     ("losses.depth_form", NormalFlip.MESH, ValueError),
     ("losses.depth_form", 1, TypeError),
+    ("losses.mesh_depth_debias", "yes", TypeError),
+    ("losses.mesh_depth_debias", 1, TypeError),
     ("mesh.resolution", 0, ValueError),
     ("mesh.samples_per_surfel", 3, ValueError),
     ("mesh.samples_per_surfel", 5.0, TypeError),

@@ -67,6 +67,63 @@ def test_mesh_depth_loss_gradcheck_float64():
     assert torch.autograd.gradcheck(lambda a, b: L.mesh_depth_loss(a, b, mask, eps=1e-4), (ds, dm), eps=GRADCHECK_EPS)
 
 
+@pytest.mark.parametrize("form", ["log_ratio", "log1p_abs"])
+def test_mesh_depth_loss_debias_ignores_a_constant_offset(form):
+    """Debiased, a proxy uniformly behind the surfels (log-ratio: by a factor; log1p: by a distance)
+    costs what the same proxy without the offset costs, with the same gradient, and a shifted copy of
+    the surfels costs nothing; without debias the offset adds its size."""
+    ds = (torch.rand(6, 7, dtype=torch.float64) + 1.0).requires_grad_()
+    shape = 1.0 + 0.1 * torch.rand(6, 7, dtype=torch.float64)
+    mask = torch.rand(6, 7) > 0.2
+    mask[0, 0] = True
+    grads = []
+    for dm in (ds.detach() * shape, ds.detach() * shape * 1.05) if form == "log_ratio" else \
+            (ds.detach() + shape - 1, ds.detach() + shape - 1 + 0.05):
+        ds.grad = None
+        loss = L.mesh_depth_loss(ds, dm, mask, eps=1e-4, form=form, debias=True)
+        loss.backward()
+        grads.append((loss.item(), ds.grad.clone()))
+    assert grads[0][0] > 1e-3  # the shape difference was measured
+    assert grads[1][0] == pytest.approx(grads[0][0], rel=1e-9)
+    torch.testing.assert_close(grads[1][1], grads[0][1], atol=1e-12, rtol=1e-9)
+    pull = grads[0][1] * (ds.detach() if form == "log_ratio" else 1.0)  # d loss / d log d_s for log-ratio
+    assert pull[mask].sum().abs().item() < 1e-12  # no pull on the surfels as a whole
+    copy = ds.detach() * 1.05 if form == "log_ratio" else ds.detach() + 0.05
+    assert L.mesh_depth_loss(ds, copy, mask, eps=1e-4, form=form, debias=True).item() < 1e-12
+    biased = L.mesh_depth_loss(ds, copy, mask, eps=1e-4, form=form)
+    assert biased.item() == pytest.approx(math.log(1.05) if form == "log_ratio" else math.log1p(0.05), rel=1e-9)
+
+
+def test_mesh_depth_loss_debias_keeps_shape_differences():
+    """Debiased, a bump on one pixel still costs its size relative to the median and pulls that
+    pixel's surfel depth towards the mesh; invalid pixels stay at zero gradient."""
+    ds = torch.full((1, 6), 2.0, dtype=torch.float64, requires_grad=True)
+    dm = torch.tensor([[2.2, 2.2, 2.2, 2.2, 3.0, 9.0]], dtype=torch.float64)
+    mask = torch.tensor([[True, True, True, True, True, False]])
+    loss = L.mesh_depth_loss(ds, dm, mask, eps=1e-4, debias=True)
+    loss.backward()
+    # the median of the five log ratios is log(2 / 2.2); only the bump differs from it
+    assert loss.item() == pytest.approx(math.log(3.0 / 2.2) / 5, rel=1e-9)
+    assert ds.grad[0, 4] < 0  # descent moves the bump's surfel depth out towards the mesh
+    assert ds.grad[0, 5] == 0
+
+
+def test_mesh_depth_loss_debias_empty_mask_is_zero_and_gradcheck():
+    """Empty mask: 0 with finite gradients (the median of nothing is taken as 0); non-empty: float64
+    finite differences agree (the median offset is a constant of the step)."""
+    ds = (torch.rand(4, 4, dtype=torch.float64) + 0.5).requires_grad_()
+    dm = (torch.rand(4, 4, dtype=torch.float64) + 0.5).requires_grad_()
+    empty = L.mesh_depth_loss(ds, dm, torch.zeros(4, 4, dtype=torch.bool), eps=1e-4, debias=True)
+    empty.backward()
+    assert empty.item() == 0.0 and torch.isfinite(ds.grad).all()
+    mask = torch.rand(4, 4) > 0.3
+    assert mask.any()
+    for form in ("log_ratio", "log1p_abs"):
+        assert torch.autograd.gradcheck(
+            lambda a, b, form=form: L.mesh_depth_loss(a, b, mask, eps=1e-4, form=form, debias=True), (ds, dm),
+            eps=GRADCHECK_EPS)
+
+
 def test_mesh_normal_loss_zero_normals_are_finite():
     """Zero rendered normals (zero alpha) give a finite loss and finite gradients, no NaN."""
     sn = torch.zeros(2, 2, 3, requires_grad=True)

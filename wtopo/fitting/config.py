@@ -277,6 +277,10 @@ class LossConfig:
     bowl, mug, blob_flat worse), so it is off (``benchmarks/hard.md``)."""
     depth_form: DepthLoss = DepthLoss.LOG_RATIO
     """Form of the mesh-depth term."""
+    mesh_depth_debias: bool = False
+    """The mesh-depth term ignores each view's median offset between the surfels' and the proxy's
+    depth (:func:`~wtopo.fitting.losses.mesh_depth_loss` ``debias``): the proxy passes on its shape
+    (closed holes, no floaters) but not the inward shift its Poisson smoothing gives convex objects."""
     mesh_depth_source: RenderedDepth = RenderedDepth.MEDIAN
     """Surfel depth compared with the mesh depth (``EXPECTED`` averages in semi-transparent layers
     behind the surface and drags the proxy inwards: bunny Chamfer 0.281 %

@@ -178,21 +178,32 @@ def scale_regularizer(scales: torch.Tensor, max_anisotropy: float) -> torch.Tens
 
 
 def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: torch.Tensor, *,
-                    eps: float, form: str = "log_ratio", extent: float = 1.0) -> torch.Tensor:
+                    eps: float, form: str = "log_ratio", extent: float = 1.0, debias: bool = False) -> torch.Tensor:
     """Agreement of surfel depth and proxy-mesh depth [H, W] on ``mask`` (pixels both cover).
 
     ``form="log_ratio"``: ``|log d_s - log d_m|``; ``"log1p_abs"``: ``log1p(|d_m - d_s| / extent)``.
     Depths are masked before the ``log`` and clamped to ``eps`` (scene units), so invalid pixels
     have exactly zero gradient. Empty mask -> 0.
+
+    ``debias=True`` subtracts the median over ``mask`` of the difference (``log d_s - log d_m``, or
+    ``d_s - d_m``) before the absolute value: a constant offset between the two surfaces in this
+    view (the Poisson proxy's smoothing puts it inside the surfels on convex objects) carries no
+    loss, and moving every pixel by the same amount gets no gradient; only the difference of their
+    shapes does. The median is part of the loss (its gradient reaches the median pixel) and is taken
+    without a host read (``nanmedian`` over the masked pixels; 0 when there are none).
     """
     ds = torch.where(mask, surfel_depth, torch.ones_like(surfel_depth)).clamp_min(eps)
     dm = torch.where(mask, mesh_depth, torch.ones_like(mesh_depth)).clamp_min(eps)
     if form == "log_ratio":
-        err = (torch.log(ds) - torch.log(dm)).abs()
+        diff = torch.log(ds) - torch.log(dm)
     elif form == "log1p_abs":
-        err = torch.log1p((dm - ds).abs() / extent)
+        diff = (ds - dm) / extent
     else:
         raise ValueError(f"form must be 'log_ratio' or 'log1p_abs', got {form!r}")
+    if debias:
+        offset = torch.nan_to_num(torch.nanmedian(torch.where(mask, diff, torch.full_like(diff, float("nan")))))
+        diff = diff - torch.where(mask, offset, torch.zeros_like(offset))
+    err = diff.abs() if form == "log_ratio" else torch.log1p(diff.abs())
     return masked_mean(err, mask)
 
 

@@ -182,7 +182,8 @@ class Objective:
                         sd = out.median_depth if lc.mesh_depth_source == RenderedDepth.MEDIAN else out.depth
                         form = str(getattr(lc.depth_form, "value", lc.depth_form))
                         L["mesh_depth"] = lc.mesh_depth * mesh_depth_loss(sd, mr.depth, both, eps=_DEPTH_EPS, form=form,
-                                                                          extent=ROI_EXTENT)
+                                                                          extent=ROI_EXTENT,
+                                                                          debias=lc.mesh_depth_debias)
                     if lc.mesh_normal > 0:
                         L["mesh_normal"] = lc.mesh_normal * mesh_normal_loss(out.normal, mr.normal, both)
         return terms
