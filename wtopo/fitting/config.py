@@ -269,7 +269,7 @@ class LossConfig:
     """Mesh-depth agreement (co-evolution). 3 with ``mesh_depth_debias`` (was 0.5 without): on the
     hard suite (7 objects x 2 seeds, CPU; ``benchmarks/hard.md``, ``cpu_mesh_depth``) the loop's
     gain against no loop goes from 2.8 % to 5.0 % of the mean Chamfer, every object better (torus
-    -9 %, blob -8 %, chair_box -0.2 %); at 10 the torus gains 22 % but the chair's thin parts swell
+    -9 %, blob -9 %, chair_box -0.2 %); at 10 the torus gains 22 % but the chair's thin parts swell
     and chair_box loses 13 %."""
     mesh_normal: float = _f(0.05, RATE)
     """Mesh-normal agreement (co-evolution)."""
