@@ -110,7 +110,7 @@ def test_mesh_depth_loss_debias_keeps_shape_differences():
 
 def test_mesh_depth_loss_debias_empty_mask_is_zero_and_gradcheck():
     """Empty mask: 0 with finite gradients (the median of nothing is taken as 0); non-empty: float64
-    finite differences agree (the median offset is a constant of the step)."""
+    finite differences agree (the median is part of the loss, so its gradient is the true one)."""
     ds = (torch.rand(4, 4, dtype=torch.float64) + 0.5).requires_grad_()
     dm = (torch.rand(4, 4, dtype=torch.float64) + 0.5).requires_grad_()
     empty = L.mesh_depth_loss(ds, dm, torch.zeros(4, 4, dtype=torch.bool), eps=1e-4, debias=True)

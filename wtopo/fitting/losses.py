@@ -201,8 +201,8 @@ def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: 
     else:
         raise ValueError(f"form must be 'log_ratio' or 'log1p_abs', got {form!r}")
     if debias:
-        offset = torch.nan_to_num(torch.nanmedian(torch.where(mask, diff, torch.full_like(diff, float("nan")))))
-        diff = diff - torch.where(mask, offset, torch.zeros_like(offset))
+        # pixels off the mask are left out of the median as NaN; their shifted value is masked out below
+        diff = diff - torch.nan_to_num(torch.nanmedian(torch.where(mask, diff, torch.full_like(diff, float("nan")))))
     err = diff.abs() if form == "log_ratio" else torch.log1p(diff.abs())
     return masked_mean(err, mask)
 
