@@ -121,6 +121,8 @@ BAD = [
     ("losses.depth_form", 1, TypeError),
     ("losses.mesh_depth_debias", "yes", TypeError),
     ("losses.mesh_depth_debias", 1, TypeError),
+    ("losses.mesh_depth_robust", -1.0, ValueError),
+    ("losses.mesh_depth_robust", float("nan"), ValueError),
     ("mesh.resolution", 0, ValueError),
     ("mesh.samples_per_surfel", 3, ValueError),
     ("mesh.samples_per_surfel", 5.0, TypeError),

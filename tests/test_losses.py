@@ -124,6 +124,55 @@ def test_mesh_depth_loss_debias_empty_mask_is_zero_and_gradcheck():
             eps=GRADCHECK_EPS)
 
 
+def test_mesh_depth_loss_robust_cauchy_values_and_pull():
+    """Robust (Cauchy) penalty ``s log1p(|diff| / s)``: about the plain absolute value where the two
+    depths agree well within ``robust``, its pull on the surfel depth halved where they differ by
+    exactly ``robust`` and a tenth of it at nine times ``robust``; ``log1p_abs`` with ``robust`` equal
+    to ``extent`` is the plain form."""
+    dm = torch.full((1, 3), 2.0, dtype=torch.float64)
+    r = 0.01  # scene units: s = r / d_m = 0.005 in log units
+    s = r / 2.0
+    ds = (dm * torch.exp(torch.tensor([[1e-6, s, 9 * s]], dtype=torch.float64))).requires_grad_()
+    mask = torch.ones(1, 3, dtype=torch.bool)
+    per_pixel = []
+    for k in range(3):
+        one = torch.zeros_like(mask)
+        one[0, k] = True
+        ds.grad = None
+        loss = L.mesh_depth_loss(ds, dm, one, eps=1e-4, robust=r)
+        loss.backward()
+        per_pixel.append((loss.item(), (ds.grad[0, k] * ds[0, k]).item()))  # d loss / d log d_s
+    assert per_pixel[0][0] == pytest.approx(1e-6, rel=1e-3) and per_pixel[0][1] == pytest.approx(1.0, rel=1e-3)
+    assert per_pixel[1][0] == pytest.approx(s * math.log(2.0), rel=1e-9)
+    assert per_pixel[1][1] == pytest.approx(0.5, rel=1e-9)
+    assert per_pixel[2][1] == pytest.approx(0.1, rel=1e-9)
+    a = (torch.rand(3, 4, dtype=torch.float64) + 1.0)
+    b = (torch.rand(3, 4, dtype=torch.float64) + 1.0)
+    m = torch.rand(3, 4) > 0.3
+    m[0, 0] = True
+    plain = L.mesh_depth_loss(a, b, m, eps=1e-4, form="log1p_abs", extent=0.8)
+    same = L.mesh_depth_loss(a, b, m, eps=1e-4, form="log1p_abs", extent=0.8, robust=0.8)
+    assert plain.item() > 1e-3 and same.item() == pytest.approx(plain.item(), rel=1e-12)
+
+
+def test_mesh_depth_loss_robust_gradcheck_and_empty_mask():
+    """float64 finite differences agree for both forms, debiased or not (the per-pixel scale
+    ``robust / d_m`` is part of the loss); an empty mask gives 0 with finite gradients."""
+    ds = (torch.rand(4, 4, dtype=torch.float64) + 0.5).requires_grad_()
+    dm = (torch.rand(4, 4, dtype=torch.float64) + 0.5).requires_grad_()
+    empty = L.mesh_depth_loss(ds, dm, torch.zeros(4, 4, dtype=torch.bool), eps=1e-4, robust=0.05)
+    empty.backward()
+    assert empty.item() == 0.0 and torch.isfinite(ds.grad).all()
+    mask = torch.rand(4, 4) > 0.3
+    mask[0, 0] = True
+    for form in ("log_ratio", "log1p_abs"):
+        for debias in (False, True):
+            assert torch.autograd.gradcheck(
+                lambda a, b, form=form, debias=debias: L.mesh_depth_loss(a, b, mask, eps=1e-4, form=form,
+                                                                          debias=debias, robust=0.05),
+                (ds, dm), eps=GRADCHECK_EPS)
+
+
 def test_mesh_normal_loss_zero_normals_are_finite():
     """Zero rendered normals (zero alpha) give a finite loss and finite gradients, no NaN."""
     sn = torch.zeros(2, 2, 3, requires_grad=True)

@@ -286,6 +286,11 @@ class LossConfig:
     depth (:func:`~wtopo.fitting.losses.mesh_depth_loss` ``debias``): the proxy passes on its shape
     (closed holes, no floaters) but not the inward shift its Poisson smoothing gives convex objects.
     Hard suite mean Chamfer 0.439 -> 0.437 % at weight 0.5, 0.431 -> 0.429 % at weight 3."""
+    mesh_depth_robust: float = _f(0.0, RATE)
+    """Cauchy scale of the mesh-depth term in Poisson grid cells of the proxy
+    (:func:`~wtopo.fitting.losses.mesh_depth_loss` ``robust``): pixels where the surfels and the
+    proxy disagree by more than this pull less and less (a thin part the proxy's smoothing swelled);
+    0: the plain absolute value."""
     mesh_depth_source: RenderedDepth = RenderedDepth.MEDIAN
     """Surfel depth compared with the mesh depth (``EXPECTED`` averages in semi-transparent layers
     behind the surface and drags the proxy inwards: bunny Chamfer 0.281 %

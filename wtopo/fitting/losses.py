@@ -178,7 +178,8 @@ def scale_regularizer(scales: torch.Tensor, max_anisotropy: float) -> torch.Tens
 
 
 def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: torch.Tensor, *,
-                    eps: float, form: str = "log_ratio", extent: float = 1.0, debias: bool = False) -> torch.Tensor:
+                    eps: float, form: str = "log_ratio", extent: float = 1.0, debias: bool = False,
+                    robust: float = 0.0) -> torch.Tensor:
     """Agreement of surfel depth and proxy-mesh depth [H, W] on ``mask`` (pixels both cover).
 
     ``form="log_ratio"``: ``|log d_s - log d_m|``; ``"log1p_abs"``: ``log1p(|d_m - d_s| / extent)``.
@@ -191,6 +192,13 @@ def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: 
     loss, and moving every pixel by the same amount gets no gradient; only the difference of their
     shapes does. The median is part of the loss (its gradient reaches the median pixel) and is taken
     without a host read (``nanmedian`` over the masked pixels; 0 when there are none).
+
+    ``robust > 0`` (scene units) makes the penalty Cauchy-like, ``s * log1p(|diff| / s)`` with ``s``
+    the depth ``robust`` in the form's units (``robust / d_m`` per pixel for the log ratio,
+    ``robust / extent`` for ``log1p_abs``): about ``|diff|`` where the surfaces agree within
+    ``robust``, its pull halved at ``robust`` and falling as ``1 / |diff|`` beyond, so pixels where the
+    proxy is far off (a thin part the Poisson smoothing swelled) pull little. ``log1p_abs`` with
+    ``robust == extent`` is the plain form. Differentiable in both depths (``s`` included).
     """
     ds = torch.where(mask, surfel_depth, torch.ones_like(surfel_depth)).clamp_min(eps)
     dm = torch.where(mask, mesh_depth, torch.ones_like(mesh_depth)).clamp_min(eps)
@@ -203,7 +211,11 @@ def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: 
     if debias:
         # pixels off the mask are left out of the median as NaN; their shifted value is masked out below
         diff = diff - torch.nan_to_num(torch.nanmedian(torch.where(mask, diff, torch.full_like(diff, float("nan")))))
-    err = diff.abs() if form == "log_ratio" else torch.log1p(diff.abs())
+    if robust > 0:
+        s = robust / dm if form == "log_ratio" else torch.full_like(dm, robust / extent)
+        err = s * torch.log1p(diff.abs() / s)
+    else:
+        err = diff.abs() if form == "log_ratio" else torch.log1p(diff.abs())
     return masked_mean(err, mask)
 
 

@@ -183,7 +183,9 @@ class Objective:
                         form = str(getattr(lc.depth_form, "value", lc.depth_form))
                         L["mesh_depth"] = lc.mesh_depth * mesh_depth_loss(sd, mr.depth, both, eps=_DEPTH_EPS, form=form,
                                                                           extent=ROI_EXTENT,
-                                                                          debias=lc.mesh_depth_debias)
+                                                                          debias=lc.mesh_depth_debias,
+                                                                          robust=(lc.mesh_depth_robust * proxy.cell
+                                                                                  if lc.mesh_depth_robust > 0 else 0.0))
                     if lc.mesh_normal > 0:
                         L["mesh_normal"] = lc.mesh_normal * mesh_normal_loss(out.normal, mr.normal, both)
         return terms

@@ -94,8 +94,15 @@ class ProxyMesh:
             if cfg.resolution is None:
                 raise ValueError("mesh.silhouette_gain > 0 needs mesh.resolution set (its limit is two grid cells), "
                                  "got None: pass the configuration resolved by the plan")
-            cell = self.size / int(cfg.resolution)
-            self.silhouette = SilhouetteOffset(gain=float(cfg.silhouette_gain), limit=_SILHOUETTE_LIMIT_CELLS * cell)
+            self.silhouette = SilhouetteOffset(gain=float(cfg.silhouette_gain),
+                                               limit=_SILHOUETTE_LIMIT_CELLS * self.cell)
+
+    @property
+    def cell(self) -> float:
+        """Edge of one Poisson grid cell in the fit's internal frame (``cfg.resolution`` must be set)."""
+        if self.cfg.resolution is None:
+            raise ValueError("mesh.resolution is None: pass the configuration resolved by the plan")
+        return self.size / int(self.cfg.resolution)
 
     def _to_box(self, p: torch.Tensor) -> torch.Tensor:
         return (p - torch.as_tensor(self.lower, dtype=p.dtype, device=p.device)) / self.size
@@ -159,8 +166,7 @@ class ProxyMesh:
         means = surfels.means.detach()[opaque].cpu().numpy()
         reach = surfels.scales.detach()[opaque].amax(dim=1).cpu().numpy() * _SUPPORT_SCALES
         dist, idx = cKDTree(means).query(centroid.cpu().numpy())
-        voxel = self.size / int(self.cfg.resolution)
-        ok = dist <= voxels * voxel + reach[idx]
+        ok = dist <= voxels * self.cell + reach[idx]
         return torch.as_tensor(ok, device=f.device)
 
     def supported_pixels(self, mesh: ProxyResult, render: MeshRender, surfels: Surfels) -> torch.Tensor | None:
