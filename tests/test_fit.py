@@ -160,54 +160,50 @@ def test_mesh_terms_wait_for_their_start_fraction(tiny):
     assert after.proxy_built and "mesh_depth" in after.losses
 
 
-def test_mesh_depth_debias_reaches_the_objective(tiny):
-    """``losses.mesh_depth_debias`` changes the co-evolution's mesh-depth term on the same state, and
-    only downwards (the median minimises the mean absolute deviation); its gradient is finite."""
+def _mesh_depth_terms(scene, field: str, values) -> tuple[list[torch.Tensor], object]:
+    """The co-evolution's mesh-depth term on one fixed state (iteration 12, view 0) for each value of
+    ``losses.<field>``, and the run (to read gradients)."""
     from wtopo.fitting.loop import FitRun
     from wtopo.fitting.stages import Stage
 
     cfg = _config(10, 8)
     cfg.coevolution.enabled = True
-    run = FitRun(tiny, cfg, None, progress=False)
+    run = FitRun(scene, cfg, None, progress=False)
     run._start()
-    values = []
-    for debias in (False, True):
-        run.cfg.losses.mesh_depth_debias = debias
+    out = []
+    for v in values:
+        setattr(run.cfg.losses, field, v)
         terms = run.objective(Stage.COEVOLUTION, 12, 0, run.surfels, run.proxy)
         assert terms.proxy_built and "mesh_depth" in terms.losses
-        values.append(terms.losses["mesh_depth"])
-    plain, debiased = (float(v) for v in values)
-    assert plain > 0 and debiased != plain and debiased <= plain * (1 + 1e-6)
+        out.append(terms.losses["mesh_depth"])
+    return out, run
+
+
+def _assert_means_gradient(loss: torch.Tensor, run) -> None:
     run.surfels.means.grad = None
-    values[1].backward()
+    loss.backward()
     g = run.surfels.means.grad
     assert g is not None and torch.isfinite(g).all() and g.abs().max() > 0
+
+
+def test_mesh_depth_debias_reaches_the_objective(tiny):
+    """``losses.mesh_depth_debias`` changes the co-evolution's mesh-depth term on the same state, and
+    only downwards (the median minimises the mean absolute deviation); its gradient is finite."""
+    values, run = _mesh_depth_terms(tiny, "mesh_depth_debias", (False, True))
+    plain, debiased = (float(v) for v in values)
+    assert plain > 0 and debiased != plain and debiased <= plain * (1 + 1e-6)
+    _assert_means_gradient(values[1], run)
 
 
 def test_mesh_depth_robust_reaches_the_objective(tiny):
     """``losses.mesh_depth_robust`` (in proxy grid cells) changes the co-evolution's mesh-depth term on
     the same state, only downwards (``s log1p(x / s) <= x``), and less so the larger the scale; its
     gradient is finite and non-zero."""
-    from wtopo.fitting.loop import FitRun
-    from wtopo.fitting.stages import Stage
-
-    cfg = _config(10, 8)
-    cfg.coevolution.enabled = True
-    run = FitRun(tiny, cfg, None, progress=False)
-    run._start()
+    values, run = _mesh_depth_terms(tiny, "mesh_depth_robust", (0.0, 0.5, 50.0))
     assert run.proxy.cell > 0
-    values = []
-    for robust in (0.0, 0.5, 50.0):
-        run.cfg.losses.mesh_depth_robust = robust
-        terms = run.objective(Stage.COEVOLUTION, 12, 0, run.surfels, run.proxy)
-        assert terms.proxy_built and "mesh_depth" in terms.losses
-        values.append(terms.losses["mesh_depth"])
     plain, tight, loose = (float(v) for v in values)
     assert plain > 0 and tight < loose <= plain * (1 + 1e-6)
-    run.surfels.means.grad = None
-    values[1].backward()
-    g = run.surfels.means.grad
-    assert g is not None and torch.isfinite(g).all() and g.abs().max() > 0
+    _assert_means_gradient(values[1], run)
 
 
 def test_silhouette_options_run_in_a_fit(tiny):

@@ -212,7 +212,7 @@ def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: 
         # pixels off the mask are left out of the median as NaN; their shifted value is masked out below
         diff = diff - torch.nan_to_num(torch.nanmedian(torch.where(mask, diff, torch.full_like(diff, float("nan")))))
     if robust > 0:
-        s = robust / dm if form == "log_ratio" else torch.full_like(dm, robust / extent)
+        s = robust / dm if form == "log_ratio" else robust / extent
         err = s * torch.log1p(diff.abs() / s)
     else:
         err = diff.abs() if form == "log_ratio" else torch.log1p(diff.abs())
