@@ -122,9 +122,10 @@ def test_late_opacity_reset_is_skipped(tiny):
     assert all(e["remaining_warmup"] < 100 for e in res.report["events"] if e["event"] == "opacity_reset_skipped")
 
 
-@pytest.mark.parametrize("restart", [False, True])
+@pytest.mark.parametrize("restart", [0.0, 1.0, 0.25, 1e-4])
 def test_means_schedule_restarts_at_the_coevolution_when_asked(tiny, restart):
-    """The means rate decays over both stages, or restarts at ``optim.means`` for the co-evolution."""
+    """The means rate decays over both stages, or restarts at a fraction of ``optim.means`` for the
+    co-evolution (never below where the single decay stands at its start)."""
     from wtopo.fitting.loop import FitRun
 
     cfg = _config(10, 10)
@@ -139,9 +140,14 @@ def test_means_schedule_restarts_at_the_coevolution_when_asked(tiny, restart):
         return next(g["lr"] for g in run.opt.param_groups if g["name"] == "means")
 
     ratio = o.means_final / o.means
+    single = o.means * ratio ** 0.5  # the single decay at the co-evolution's first iteration
+    start = max(restart * o.means, single)
     assert lr(5) == pytest.approx(o.means * ratio ** 0.25)  # the warm-up is the same either way
-    assert lr(10) == pytest.approx(o.means if restart else o.means * ratio ** 0.5)
+    assert lr(10) == pytest.approx(start)
+    assert lr(15) == pytest.approx(start * (o.means_final / start) ** 0.5)  # half-way down its own decay
     assert lr(20) == pytest.approx(o.means_final)
+    if restart == 0.25:
+        assert lr(10) == pytest.approx(0.25 * o.means)
 
 
 def test_mesh_terms_wait_for_their_start_fraction(tiny):

@@ -100,13 +100,14 @@ class OptimConfig:
     """Means, in unit-cube lengths per step; decays to ``means_final``."""
     means_final: float = _f(1.6e-5, RATE)
     """Means learning rate at the last iteration (exponential decay)."""
-    means_restart: bool = False
-    """Restart the means schedule at the co-evolution: ``means`` at its first iteration decaying to
-    ``means_final`` at its last (the public code's). ``False`` (before): one decay over both stages, so
-    the co-evolution starts at ~7e-5 on the CPU budget (400 + 200) and moves surfels by < 1 pixel.
-    Hard suite with the current mesh-depth default, 7 objects x 2 seeds (``benchmarks/hard.md``,
-    ``cpu_restart``): it removes the bowl's and the blob's shrink (-16 to -26 %) but swells the chair,
-    chair_box and mug (+15 to +45 %), and the loop's own gain falls from 5.0 % to 3.5 %: off."""
+    means_restart: float = _f(0.0, FRACTION)
+    """Restart the means schedule at the co-evolution: it starts at this fraction of ``means`` (never
+    below where the single decay stands there) and decays to ``means_final`` at its last iteration.
+    ``0`` (the default): one decay over both stages, so the co-evolution starts at ~7e-5 on the CPU
+    budget (400 + 200) and moves surfels by < 1 pixel; ``1``: the public code's full restart. Hard
+    suite with the current mesh-depth default, 7 objects x 2 seeds (``benchmarks/hard.md``,
+    ``cpu_restart``): ``1`` removes the bowl's and the blob's shrink (-16 to -26 %) but swells the
+    chair, chair_box and mug (+15 to +45 %), and the loop's own gain falls from 5.0 % to 3.5 %: off."""
     quats: float = _f(3e-3, RATE)
     """Rotations (unnormalised quaternions)."""
     scales: float = _f(1e-2, RATE)

@@ -193,10 +193,15 @@ class FitRun:
 
     def _update_lr(self) -> None:
         o = self.cfg.optim
-        frac = min(1.0, self.it / max(1, self.total_iterations))
-        if o.means_restart and self.it >= self.warmup_end:  # the co-evolution's own decay
+        if o.means <= 0 or o.means_final <= 0:
+            lr = o.means
+        elif o.means_restart > 0 and self.it >= self.warmup_end:  # the co-evolution's own decay
+            at_end = o.means * (o.means_final / o.means) ** min(1.0, self.warmup_end / max(1, self.total_iterations))
+            start = max(o.means_restart * o.means, at_end)
             frac = min(1.0, (self.it - self.warmup_end) / max(1, self.total_iterations - self.warmup_end))
-        lr = o.means * (o.means_final / o.means) ** frac if o.means > 0 and o.means_final > 0 else o.means
+            lr = start * (o.means_final / start) ** frac
+        else:
+            lr = o.means * (o.means_final / o.means) ** min(1.0, self.it / max(1, self.total_iterations))
         for g in self.opt.param_groups:
             if g["name"] == "means":
                 g["lr"] = lr
