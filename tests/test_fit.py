@@ -150,6 +150,20 @@ def test_means_schedule_restarts_at_the_coevolution_when_asked(tiny, restart):
         assert lr(10) == pytest.approx(0.25 * o.means)
 
 
+def test_means_restart_saved_as_a_boolean_still_loads():
+    """Configurations written when ``optim.means_restart`` was a boolean load as 0 / 1."""
+    from wtopo.fitting.validate_config import validate_config
+
+    for saved, want in ((False, 0.0), (True, 1.0)):
+        cfg = FitConfig.from_dict({"optim": {"means_restart": saved}})
+        assert cfg.optim.means_restart == want and type(cfg.optim.means_restart) is float
+        validate_config(cfg)
+    cfg = FitConfig()
+    cfg.optim.means_restart = True  # set in code, a boolean is still refused by name
+    with pytest.raises(TypeError, match="optim.means_restart"):
+        validate_config(cfg)
+
+
 def test_mesh_terms_wait_for_their_start_fraction(tiny):
     """With ``losses.mesh_start_fraction`` the mesh terms are off before that point of the co-evolution."""
     from wtopo.fitting.loop import FitRun
