@@ -252,3 +252,35 @@ def test_halo_target_and_carved_closure_run_in_a_fit(tiny):
     assert policy and policy[-1]["closure"] == "carve"
     assert not any(e["event"] == "poisson_remesh" for e in res.report["events"])
     assert res.mesh.is_watertight and len(res.mesh.faces) > 100
+
+
+def test_restart_along_normal_damps_in_plane_motion_in_the_fit(tiny, monkeypatch):
+    """In a restarted co-evolution with ``means_restart_along_normal`` the loop scales each means
+    step's in-plane part by the single decay's share of the rate; the warm-up is left alone."""
+    from wtopo.fitting import loop as fit_loop
+    from wtopo.fitting.schedule import damp_in_plane_steps, means_rate
+
+    cfg = _config(10, 10)
+    cfg.optim.means_restart, cfg.optim.means_restart_along_normal = 1.0, True
+    run = fit_loop.FitRun(tiny, cfg, None, progress=False)
+    calls = []
+
+    def recording(means, before, normals, scale):
+        raw = means.detach().clone()
+        damp_in_plane_steps(means, before, normals, scale)
+        calls.append((run.it, before, normals, raw, means.detach().clone(), scale))
+
+    monkeypatch.setattr(fit_loop, "damp_in_plane_steps", recording)
+    run.run()
+    assert calls, "the co-evolution took no shaped step"
+    assert min(c[0] for c in calls) >= run.warmup_end  # never in the warm-up
+    assert len(calls) == run.total_iterations - run.warmup_end  # every co-evolution step
+    moved = 0.0
+    for it, before, normals, raw, shaped, scale in calls:
+        assert scale == pytest.approx(means_rate(cfg.optim, it, run.warmup_end, run.total_iterations)[1])
+        assert torch.allclose(((shaped - before) * normals).sum(-1), ((raw - before) * normals).sum(-1), atol=1e-7)
+        raw_in = (raw - before) - ((raw - before) * normals).sum(-1, keepdim=True) * normals
+        got_in = (shaped - before) - ((shaped - before) * normals).sum(-1, keepdim=True) * normals
+        assert torch.allclose(got_in, scale * raw_in, atol=1e-7)
+        moved = max(moved, float(raw_in.norm(dim=-1).max()))
+    assert calls[0][5] < 0.5 and moved > 0  # a real damping of a real in-plane motion

@@ -108,6 +108,9 @@ class OptimConfig:
     suite with the current mesh-depth default, 7 objects x 2 seeds (``benchmarks/hard.md``,
     ``cpu_restart``): ``1`` removes the bowl's and the blob's shrink (-16 to -26 %) but swells the
     chair, chair_box and mug (+15 to +45 %), and the loop's own gain falls from 5.0 % to 3.5 %: off."""
+    means_restart_along_normal: bool = False
+    """With ``means_restart``: the restarted rate moves a surfel only along its normal; the in-plane
+    part of each step is scaled back to the single decay's rate (:mod:`wtopo.fitting.schedule`)."""
     quats: float = _f(3e-3, RATE)
     """Rotations (unnormalised quaternions)."""
     scales: float = _f(1e-2, RATE)

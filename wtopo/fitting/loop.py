@@ -32,6 +32,7 @@ from .plan import Plan, make_plan, resolve_config
 from .profiling import Timers
 from .progress import StageBar, StopRequest
 from .proxy import ProxyMesh, ProxyResult
+from .schedule import damp_in_plane_steps, means_rate
 from .stages import Renderer, Stage, final_mesh, tsdf_reinit
 from .strategy import DensityStrategy, StepInfo
 from .surfels import Surfels
@@ -191,20 +192,13 @@ class FitRun:
         self.opt = self.surfels.optimizer(_lrs(self.cfg))
         self.opt.load_state_dict(od)
 
-    def _update_lr(self) -> None:
-        o = self.cfg.optim
-        if o.means <= 0 or o.means_final <= 0:
-            lr = o.means
-        elif o.means_restart > 0 and self.it >= self.warmup_end:  # the co-evolution's own decay
-            at_end = o.means * (o.means_final / o.means) ** min(1.0, self.warmup_end / max(1, self.total_iterations))
-            start = max(o.means_restart * o.means, at_end)
-            frac = min(1.0, (self.it - self.warmup_end) / max(1, self.total_iterations - self.warmup_end))
-            lr = start * (o.means_final / start) ** frac
-        else:
-            lr = o.means * (o.means_final / o.means) ** min(1.0, self.it / max(1, self.total_iterations))
+    def _update_lr(self) -> float:
+        """Set the means' rate for this iteration; returns the scale of a step's in-plane part."""
+        lr, in_plane = means_rate(self.cfg.optim, self.it, self.warmup_end, self.total_iterations)
         for g in self.opt.param_groups:
             if g["name"] == "means":
                 g["lr"] = lr
+        return in_plane
 
     # -- one iteration ---------------------------------------------------------------------------------
     def _failure(self, why: str, terms: dict[str, float]) -> None:
@@ -252,13 +246,15 @@ class FitRun:
             self._failure("gradient", {k: float("nan") for k in bad})
             return
         with self.timers("optimizer"):
-            self._update_lr()
+            in_plane = self._update_lr()
+            shaped = self.background is not None or in_plane < 1.0
+            before = self.surfels.means.detach().clone() if shaped else None
+            normals = self.surfels.normals().detach() if in_plane < 1.0 else None
+            self.opt.step()
             if self.background is not None:
-                before = self.surfels.means.detach().clone()
-                self.opt.step()
                 contract_steps(self.surfels.means, before, self.background.step_scale(before))
-            else:
-                self.opt.step()
+            if normals is not None:
+                damp_in_plane_steps(self.surfels.means, before, normals, in_plane)
         if not self.surfels.is_finite():
             self._failure("parameters", {})
             return

@@ -1,0 +1,66 @@
+"""The means' rate schedule and the in-plane damping of their steps (wtopo.fitting.schedule)."""
+
+import pytest
+import torch
+
+from wtopo.fitting import FitConfig
+from wtopo.fitting.schedule import damp_in_plane_steps, means_rate, single_decay
+
+
+def _optim(restart=0.0, along_normal=False):
+    o = FitConfig().optim
+    o.means_restart, o.means_restart_along_normal = restart, along_normal
+    return o
+
+
+def test_single_decay_runs_from_means_to_means_final():
+    o = _optim()
+    assert single_decay(o, 0, 600) == pytest.approx(o.means)
+    assert single_decay(o, 300, 600) == pytest.approx((o.means * o.means_final) ** 0.5)
+    assert single_decay(o, 600, 600) == pytest.approx(o.means_final)
+    assert single_decay(o, 900, 600) == pytest.approx(o.means_final)  # held past the end
+
+
+@pytest.mark.parametrize("along_normal", [False, True])
+def test_means_rate_restarts_and_reports_the_in_plane_scale(along_normal):
+    o = _optim(0.3, along_normal)
+    # the warm-up is the single decay, in-plane untouched
+    assert means_rate(o, 100, 400, 600) == pytest.approx((single_decay(o, 100, 600), 1.0))
+    rate, in_plane = means_rate(o, 400, 400, 600)
+    assert rate == pytest.approx(0.3 * o.means)
+    single = single_decay(o, 400, 600)
+    assert in_plane == pytest.approx(single / rate if along_normal else 1.0)
+    assert 0 < in_plane <= 1
+    rate, in_plane = means_rate(o, 600, 400, 600)
+    assert rate == pytest.approx(o.means_final) and in_plane == pytest.approx(1.0)  # both end at means_final
+
+
+def test_without_a_restart_along_normal_changes_nothing():
+    o = _optim(0.0, True)
+    for it in (0, 399, 400, 599):
+        assert means_rate(o, it, 400, 600) == pytest.approx((single_decay(o, it, 600), 1.0))
+
+
+def test_damp_in_plane_steps_keeps_the_normal_part():
+    torch.manual_seed(0)
+    n = torch.nn.functional.normalize(torch.randn(64, 3, dtype=torch.float64), dim=-1)
+    before = torch.randn(64, 3, dtype=torch.float64)
+    step = torch.randn(64, 3, dtype=torch.float64)
+    means = before + step
+    damp_in_plane_steps(means, before, n, 0.25)
+    got = means - before
+    along = (step * n).sum(-1)
+    assert torch.allclose((got * n).sum(-1), along)  # the normal part is kept
+    in_plane = step - along[:, None] * n
+    assert torch.allclose(got - (got * n).sum(-1, keepdim=True) * n, 0.25 * in_plane)
+    assert in_plane.norm(dim=-1).min() > 1e-3  # the case exercised an in-plane part
+
+
+def test_damp_in_plane_steps_analytic():
+    before = torch.zeros(2, 3)
+    means = torch.tensor([[1.0, 2.0, 3.0], [0.0, 0.0, -1.0]])
+    normals = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    damp_in_plane_steps(means, before, normals, 0.5)
+    assert torch.equal(means, torch.tensor([[0.5, 1.0, 3.0], [0.0, 0.0, -1.0]]))
+    damp_in_plane_steps(means, before, normals, 1.0)  # scale 1: unchanged
+    assert torch.equal(means, torch.tensor([[0.5, 1.0, 3.0], [0.0, 0.0, -1.0]]))
