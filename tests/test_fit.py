@@ -158,6 +158,13 @@ def test_means_restart_saved_as_a_boolean_still_loads():
         cfg = FitConfig.from_dict({"optim": {"means_restart": saved}})
         assert cfg.optim.means_restart == want and type(cfg.optim.means_restart) is float
         validate_config(cfg)
+    from wtopo.cli import _apply_set
+
+    for text, want in (("true", 1.0), ("false", 0.0), ("0.3", 0.3)):  # --set lines of older commands too
+        cfg = FitConfig()
+        _apply_set(cfg, f"optim.means_restart={text}")
+        assert cfg.optim.means_restart == want and type(cfg.optim.means_restart) is float
+        validate_config(cfg)
     cfg = FitConfig()
     cfg.optim.means_restart = True  # set in code, a boolean is still refused by name
     with pytest.raises(TypeError, match="optim.means_restart"):

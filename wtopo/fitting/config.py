@@ -527,13 +527,13 @@ class FitConfig:
                     yield f"{prefix}{key}", value
 
         for path, value in flat(d, ""):
-            if path in _WAS_BOOL and isinstance(value, bool):  # written before the field took a fraction
+            if path in WAS_BOOL and isinstance(value, bool):  # written before the field took a fraction
                 value = float(value)
             set_field(cfg, path, value)
         return cfg
 
 
-_WAS_BOOL = frozenset({"optim.means_restart"})
+WAS_BOOL = frozenset({"optim.means_restart"})
 """Fields that were booleans in earlier versions; their saved ``true`` / ``false`` read as 1 / 0."""
 
 
