@@ -271,6 +271,7 @@ def _worker(rank: int, world: int, port: int, out: str) -> None:
         scene = wc.street_scene(2, orbit_views=4, forward_views=4, resolution=(24, 18), points=500)
         cfg = small_fit_config(4, 0, points=100, grids=(16, 16, 16), max_faces=200, density_every=10, eval_every=0)
         wc.fit_chunked(scene, out, cfg, chunk_config=wc.ChunkConfig(chunks=2), progress=False)
+        dist.barrier()  # no rank tears its gloo pairs down while the other still uses them
     finally:
         dist.destroy_process_group()
 

@@ -36,7 +36,10 @@ def main(argv: list[str] | None = None) -> int:
     if launched and not dist.is_initialized():
         dist.init_process_group("gloo", timeout=_TIMEOUT)
     try:
-        return cli_main(["fit", *args])
+        code = cli_main(["fit", *args])
+        if launched and dist.is_initialized():
+            dist.barrier()  # rank 0 merges after the gather: no rank tears its gloo pairs down before it is done
+        return code
     finally:
         if launched and dist.is_initialized():
             dist.destroy_process_group()
