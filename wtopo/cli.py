@@ -83,16 +83,13 @@ def _parse_value(text: str):
 
 def _apply_set(cfg, item: str) -> None:
     """Apply one ``--set PATH=VALUE`` (dotted FitConfig path, e.g. ``losses.mask=0.5``)."""
-    from .fitting.config import WAS_BOOL, set_field
+    from .fitting.config import set_field
 
     path, sep, text = item.partition("=")
     if not sep or not path:
         raise ValueError(f"--set takes PATH=VALUE (e.g. losses.mask=0.5), got {item!r}")
-    value = _parse_value(text)
-    if path.strip() in WAS_BOOL and isinstance(value, bool):  # an older command line: true / false read as 1 / 0
-        value = float(value)
     try:
-        set_field(cfg, path.strip(), value)
+        set_field(cfg, path.strip(), _parse_value(text))
     except ValueError as e:
         raise ValueError(f"--set: {e}") from None
 

@@ -100,7 +100,7 @@ class OptimConfig:
     """Means, in unit-cube lengths per step; decays to ``means_final``."""
     means_final: float = _f(1.6e-5, RATE)
     """Means learning rate at the last iteration (exponential decay)."""
-    means_restart: float = _f(0.0, FRACTION)
+    means_restart: float = _f(0.0, FRACTION, was_bool=True)
     """Restart the means schedule at the co-evolution: it starts at this fraction of ``means`` (never
     below where the single decay stands there) and decays to ``means_final`` at its last iteration.
     ``0`` (the default): one decay over both stages, so the co-evolution starts at ~7e-5 on the CPU
@@ -527,14 +527,8 @@ class FitConfig:
                     yield f"{prefix}{key}", value
 
         for path, value in flat(d, ""):
-            if path in WAS_BOOL and isinstance(value, bool):  # written before the field took a fraction
-                value = float(value)
             set_field(cfg, path, value)
         return cfg
-
-
-WAS_BOOL = frozenset({"optim.means_restart"})
-"""Fields that were booleans in earlier versions; their saved ``true`` / ``false`` read as 1 / 0."""
 
 
 def stage_iteration(fraction: float, iterations: int) -> int:

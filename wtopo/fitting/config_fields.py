@@ -42,8 +42,11 @@ class Leaf:
     def set(self, value) -> None:
         """Set the field from a Python or JSON value: an enum's string becomes its member (unknown strings
         raise ``ValueError`` naming the path and the members), a list becomes a tuple; nothing else is
-        converted (:func:`~wtopo.fitting.validate_config.validate_config` checks the rest)."""
+        converted but a boolean for a field that was one in earlier versions (``was_bool``: 1 / 0)
+        (:func:`~wtopo.fitting.validate_config.validate_config` checks the rest)."""
         base = self.base
+        if isinstance(value, bool) and self.field.metadata.get("was_bool"):
+            value = float(value)
         if isinstance(base, type) and issubclass(base, enum.Enum) and isinstance(value, str):
             try:
                 value = base(value)

@@ -43,9 +43,11 @@ COUNT = Range(0)  # iterations, intervals where 0 disables, counts
 POSITIVE = Range(1)  # intervals and counts that must be at least 1
 
 
-def _f(default, check):
-    """A field with ``default`` and its check: a :class:`Range`, or a tuple of the accepted ints."""
-    return field(default=default, metadata={"check": check})
+def _f(default, check, *, was_bool: bool = False):
+    """A field with ``default`` and its check: a :class:`Range`, or a tuple of the accepted ints.
+    ``was_bool``: the field was a boolean in earlier versions; a saved or typed ``true`` / ``false``
+    reads as 1 / 0 (:meth:`~wtopo.fitting.config_fields.Leaf.set`)."""
+    return field(default=default, metadata={"check": check, **({"was_bool": True} if was_bool else {})})
 
 
 class NormalFlip(str, enum.Enum):

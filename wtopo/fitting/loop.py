@@ -247,9 +247,8 @@ class FitRun:
             return
         with self.timers("optimizer"):
             in_plane = self._update_lr()
-            shaped = self.background is not None or in_plane < 1.0
-            before = self.surfels.means.detach().clone() if shaped else None
-            normals = self.surfels.normals().detach() if in_plane < 1.0 else None
+            before = self.surfels.means.detach().clone() if self.background is not None or in_plane < 1.0 else None
+            normals = self.surfels.normals() if in_plane < 1.0 else None  # detached
             self.opt.step()
             if self.background is not None:
                 contract_steps(self.surfels.means, before, self.background.step_scale(before))
