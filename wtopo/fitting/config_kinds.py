@@ -47,7 +47,7 @@ def _f(default, check, *, was_bool: bool = False):
     """A field with ``default`` and its check: a :class:`Range`, or a tuple of the accepted ints.
     ``was_bool``: the field was a boolean in earlier versions; a saved or typed ``true`` / ``false``
     reads as 1 / 0 (:meth:`~wtopo.fitting.config_fields.Leaf.set`)."""
-    return field(default=default, metadata={"check": check, **({"was_bool": True} if was_bool else {})})
+    return field(default=default, metadata={"check": check, "was_bool": was_bool})
 
 
 class NormalFlip(str, enum.Enum):
