@@ -233,6 +233,16 @@ def test_mesh_depth_robust_reaches_the_objective(tiny):
     _assert_means_gradient(values[1], run)
 
 
+def test_mesh_depth_behind_reaches_the_objective(tiny):
+    """``losses.mesh_depth_behind`` changes the co-evolution's mesh-depth term on the same state, only
+    downwards and less the larger it is (0 keeps only the surfels in front of the proxy); its gradient
+    is finite and non-zero."""
+    values, run = _mesh_depth_terms(tiny, "mesh_depth_behind", (1.0, 0.5, 0.0))
+    full, half, front = (float(v) for v in values)
+    assert full > half > front > 0
+    _assert_means_gradient(values[1], run)
+
+
 def test_silhouette_options_run_in_a_fit(tiny):
     """The proxy's silhouette offset (mesh.silhouette_gain) and the final calibration both run on a masked
     fit: the offset is recorded at the mesh guidance, the calibration's move is recorded and bounded."""

@@ -123,6 +123,8 @@ BAD = [
     ("losses.mesh_depth_debias", 1, TypeError),
     ("losses.mesh_depth_robust", -1.0, ValueError),
     ("losses.mesh_depth_robust", float("nan"), ValueError),
+    ("losses.mesh_depth_behind", 1.5, ValueError),
+    ("losses.mesh_depth_behind", -0.1, ValueError),
     ("mesh.resolution", 0, ValueError),
     ("mesh.samples_per_surfel", 3, ValueError),
     ("mesh.samples_per_surfel", 5.0, TypeError),

@@ -173,6 +173,34 @@ def test_mesh_depth_loss_robust_gradcheck_and_empty_mask():
                 (ds, dm), eps=GRADCHECK_EPS)
 
 
+def test_mesh_depth_loss_behind_weighs_only_surfels_behind_the_proxy():
+    """``behind`` scales the penalty and the pull of the pixels where the surfel depth exceeds the
+    proxy's (after the debias), leaves the pixels in front untouched, and 1 is the plain term; float64
+    finite differences agree with ``behind`` below 1, debiased or not."""
+    dm = torch.full((1, 2), 2.0, dtype=torch.float64)
+    ds = torch.tensor([[1.8, 2.3]], dtype=torch.float64, requires_grad=True)  # in front, behind
+    mask = torch.ones(1, 2, dtype=torch.bool)
+    plain = L.mesh_depth_loss(ds, dm, mask, eps=1e-4)
+    (g_plain,) = torch.autograd.grad(plain, ds)
+    half = L.mesh_depth_loss(ds, dm, mask, eps=1e-4, behind=0.25)
+    (g_half,) = torch.autograd.grad(half, ds)
+    front, back = abs(math.log(1.8 / 2.0)), abs(math.log(2.3 / 2.0))
+    assert plain.item() == pytest.approx((front + back) / 2, rel=1e-12)
+    assert half.item() == pytest.approx((front + 0.25 * back) / 2, rel=1e-12)
+    assert g_half[0, 0].item() == pytest.approx(g_plain[0, 0].item(), rel=1e-12) and g_plain[0, 0] < 0
+    assert g_half[0, 1].item() == pytest.approx(0.25 * g_plain[0, 1].item(), rel=1e-12) and g_plain[0, 1] > 0
+    same = L.mesh_depth_loss(ds, dm, mask, eps=1e-4, behind=1.0)
+    assert same.item() == plain.item()
+    a = (torch.rand(4, 4, dtype=torch.float64) + 0.5).requires_grad_()
+    b = (torch.rand(4, 4, dtype=torch.float64) + 0.5).requires_grad_()
+    m = torch.rand(4, 4) > 0.3
+    m[0, 0] = True
+    for debias in (False, True):
+        assert torch.autograd.gradcheck(
+            lambda x, y, debias=debias: L.mesh_depth_loss(x, y, m, eps=1e-4, debias=debias, behind=0.3),
+            (a, b), eps=GRADCHECK_EPS)
+
+
 def test_mesh_normal_loss_zero_normals_are_finite():
     """Zero rendered normals (zero alpha) give a finite loss and finite gradients, no NaN."""
     sn = torch.zeros(2, 2, 3, requires_grad=True)

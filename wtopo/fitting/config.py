@@ -305,6 +305,12 @@ class LossConfig:
     ``cpu_robust``): the loop's gain against no loop falls from 5.0 % to 4.3 % at scale 1 (chair_box
     better, the torus and the blob 2-3 % worse) and to 4.3 % at scale 1 with weight 5 (bowl and mug
     worse): the large disagreements it discounts are the ones that help the smooth objects."""
+    mesh_depth_behind: float = _f(1.0, FRACTION)
+    """Weight of the mesh-depth term on pixels where the surfels lie behind the proxy after the
+    debias (:func:`~wtopo.fitting.losses.mesh_depth_loss` ``behind``): there the proxy pulls them
+    towards the camera, which is what swells a thin part the Poisson smoothing thickened and lifts a
+    concavity's floor towards the lid the proxy puts over it; pixels where the surfels lie in front
+    (floaters, bumps) keep the full weight. 1: symmetric."""
     mesh_depth_source: RenderedDepth = RenderedDepth.MEDIAN
     """Surfel depth compared with the mesh depth (``EXPECTED`` averages in semi-transparent layers
     behind the surface and drags the proxy inwards: bunny Chamfer 0.281 %

@@ -179,7 +179,7 @@ def scale_regularizer(scales: torch.Tensor, max_anisotropy: float) -> torch.Tens
 
 def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: torch.Tensor, *,
                     eps: float, form: str = "log_ratio", extent: float = 1.0, debias: bool = False,
-                    robust: float = 0.0) -> torch.Tensor:
+                    robust: float = 0.0, behind: float = 1.0) -> torch.Tensor:
     """Agreement of surfel depth and proxy-mesh depth [H, W] on ``mask`` (pixels both cover).
 
     ``form="log_ratio"``: ``|log d_s - log d_m|``; ``"log1p_abs"``: ``log1p(|d_m - d_s| / extent)``.
@@ -216,6 +216,8 @@ def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: 
         err = s * torch.log1p(diff.abs() / s)
     else:
         err = diff.abs() if form == "log_ratio" else torch.log1p(diff.abs())
+    if behind != 1.0:
+        err = torch.where(diff > 0, behind * err, err)
     return masked_mean(err, mask)
 
 
