@@ -29,8 +29,7 @@ no interior faces. Variants (``--variants``; ``wtopo fit --set`` overrides):
   ``chair_ground`` it is ``no_loop``'s configuration);
 * ``no_loop``: ``coevolution.enabled=false``, the same iterations with no proxy mesh: no mesh-depth
   or mesh-normal term, no mesh-guided normal signs, no geometry-aware prune or densification;
-* ``loop``: ``coevolution.enabled=true``, the mesh loop whatever the plan says (on the CUDA budget the
-  plan leaves it out for the ten-view scenes, so there ``default`` is ``no_loop``'s configuration);
+* ``loop``: ``coevolution.enabled=true``, the mesh loop whatever the plan says;
 * ``raw``: ``final.watertight=false``, no Poisson re-mesh of an open final TSDF mesh. Two final
   clean-ups have no switch and still run: ``cleanup_mesh`` (trimesh ``fill_holes`` of one-triangle
   holes) and ``supported_components`` (drops components that fewer than 3 views see or under 0.1 %

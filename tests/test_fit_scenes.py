@@ -57,29 +57,6 @@ def test_plan_runs_the_mesh_loop_for_objects_only(room):
     assert resolve_config(FitConfig(), make_plan(room.normalized(), FitConfig(), dev)).coevolution.enabled is False
 
 
-def test_plan_leaves_the_loop_out_for_sparse_objects_on_cuda():
-    """On the CUDA budget an object seen by fewer than 20 training views skips the mesh loop, with the
-    reason; 20 training views (held-out views not counted) and any CPU plan keep it; an explicit
-    setting wins. The plan only reads the device's type, so no GPU is needed."""
-    cuda, cpu = torch.device("cuda"), torch.device("cpu")
-    sphere = trimesh.creation.icosphere(subdivisions=2)
-    sparse = scenes.from_mesh(sphere, n_views=10, resolution=24).normalized()
-    p = make_plan(sparse, FitConfig(), cuda)
-    assert p["eval_views"] == 0
-    assert p["mesh_loop"] is False and "10 training views" in p.decisions["mesh_loop"].reason
-    assert make_plan(sparse, FitConfig(), cpu)["mesh_loop"] is True
-    cfg = FitConfig()
-    cfg.coevolution.enabled = True
-    p = make_plan(sparse, cfg, cuda)
-    assert p["mesh_loop"] is True and p.decisions["mesh_loop"].overridden
-    assert resolve_config(FitConfig(), make_plan(sparse, FitConfig(), cuda)).coevolution.enabled is False
-    held = scenes.from_mesh(sphere, n_views=23, resolution=24).normalized()  # 23 - 4 held out = 19 training
-    p = make_plan(held, FitConfig(), cuda)
-    assert p["eval_views"] == 4 and p["mesh_loop"] is False and "19 training views" in p.decisions["mesh_loop"].reason
-    dense = scenes.from_mesh(sphere, n_views=24, resolution=24).normalized()  # 20 training views
-    assert make_plan(dense, FitConfig(), cuda)["mesh_loop"] is True
-
-
 def test_plan_budget_follows_the_device(room):
     """Give CUDA a larger budget than the CPU; honour an explicit image scale."""
     cpu = make_plan(room.normalized(), FitConfig(), torch.device("cpu"))

@@ -74,7 +74,6 @@ def test_profiled_fit_reports_every_stage_within_the_wall_time(tiny, tmp_path, c
     cfg.tsdf.backend = "warp"  # the Warp fusion in a fit, end to end
     cfg.runtime.profile = True
     cfg.runtime.device = device
-    cfg.coevolution.enabled = True  # eight views: the CUDA plan would leave the mesh loop out (sparse capture)
     res = fit(tiny, cfg, out_dir=tmp_path, progress=False)
     prof = res.report["profile"]
     rows = {r["path"]: r for r in prof["rows"]}

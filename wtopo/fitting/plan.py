@@ -28,12 +28,6 @@ _MIN_SH_VIEWS = 20  # fewer views than this cannot constrain view-dependent colo
 _CPU_MAX_SIDE = 256  # longest image side trained on a CPU (keeps the default fit within minutes)
 _GPU_MAX_SIDE = 1024
 _MIN_EVAL_VIEWS = 12
-# Fewer training views than this on the CUDA budget: the mesh loop is left out for an object. On the hard
-# suite's three ten-view objects the CUDA budget's loop raised the mean Chamfer 3 % at 512 px and at 128 px
-# (cup, chair worse on both seeds; torus better), where at the CPU default it lowered it 4 %
-# (benchmarks/hard.md, gpu_sparse2). 20: the plan's other sparse threshold (_MIN_SH_VIEWS); measured
-# only at 10 (loop worse) and 60 training views (loop better).
-_LOOP_MIN_VIEWS_CUDA = 20
 # Budgets per device. CPU: the default fit finishes in minutes on 2 cores (benchmarks/fit.md).
 # CUDA: the method's schedule shortened to minutes on one GPU (3,000 + 1,000 iterations at ~30 ms).
 _ITERATIONS = {"cpu": (400, 200), "cuda": (3000, 1000)}
@@ -298,16 +292,11 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
         backend, why = "warp", "CPU without Open3D: the Warp TSDF kernel"
     plan.set("tsdf_backend", backend, why,
              None if cfg.tsdf.backend == TSDFBackend.AUTO else TSDFBackend(cfg.tsdf.backend).value)
-    n_train = n_views - int(plan["eval_views"])
     if int(plan["coevolution_iterations"]) == 0:
         loop, why = False, "no co-evolution iterations"
     elif is_scene:
         loop, why = False, ("scene: the Poisson proxy would close the open surface the region of interest cuts, "
                             "where no view supports it, and pull the surfels there")
-    elif device.type == "cuda" and n_train < _LOOP_MIN_VIEWS_CUDA:
-        loop, why = False, (f"sparse object capture on the CUDA budget ({n_train} training views < "
-                            f"{_LOOP_MIN_VIEWS_CUDA}): the proxy swells thin parts and lids concavities the few "
-                            "views leave open (hard suite, ten views: mean Chamfer +3 % with the loop)")
     else:
         loop, why = True, "object: proxy mesh rebuilt and supervising the surfels"
     plan.set("mesh_loop", loop, why, cfg.coevolution.enabled)
