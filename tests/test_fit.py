@@ -243,6 +243,16 @@ def test_mesh_depth_behind_reaches_the_objective(tiny):
     _assert_means_gradient(values[1], run)
 
 
+def test_mesh_inset_reaches_the_objective(tiny):
+    """``losses.mesh_inset`` (pixels) changes the co-evolution's mesh-depth term on the same state; an
+    inset wider than any part of the image leaves no pixel to compare (the term is 0), and the gradient
+    of a moderate inset is finite and non-zero."""
+    values, run = _mesh_depth_terms(tiny, "mesh_inset", (0, 1, 50))
+    full, inset, none = (float(v) for v in values)
+    assert full > 0 and inset > 0 and inset != full and none == 0.0
+    _assert_means_gradient(values[1], run)
+
+
 def test_silhouette_options_run_in_a_fit(tiny):
     """The proxy's silhouette offset (mesh.silhouette_gain) and the final calibration both run on a masked
     fit: the offset is recorded at the mesh guidance, the calibration's move is recorded and bounded."""

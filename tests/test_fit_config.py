@@ -125,6 +125,8 @@ BAD = [
     ("losses.mesh_depth_robust", float("nan"), ValueError),
     ("losses.mesh_depth_behind", 1.5, ValueError),
     ("losses.mesh_depth_behind", -0.1, ValueError),
+    ("losses.mesh_inset", -1, ValueError),
+    ("losses.mesh_inset", 1.5, TypeError),
     ("mesh.resolution", 0, ValueError),
     ("mesh.samples_per_surfel", 3, ValueError),
     ("mesh.samples_per_surfel", 5.0, TypeError),

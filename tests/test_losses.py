@@ -201,6 +201,27 @@ def test_mesh_depth_loss_behind_weighs_only_surfels_behind_the_proxy():
             (a, b), eps=GRADCHECK_EPS)
 
 
+def test_erode_removes_parts_narrower_than_its_square():
+    """Erosion by a ``(2 w + 1)^2`` square: a 5 x 7 block keeps its 3 x 5 interior at w = 1 and its 1 x 3
+    core at w = 2; a 3-pixel strip vanishes at w = 2; the image border does not erode; w = 0 is the mask;
+    ``boundary_band`` is the dilation minus this erosion."""
+    m = torch.zeros(12, 14, dtype=torch.bool)
+    m[2:7, 3:10] = True  # 5 x 7 block
+    m[9:12, :] = True  # 3-pixel strip along the bottom edge
+    e1 = L.erode(m, 1)
+    assert e1[3:6, 4:9].all() and int(e1[:8].sum()) == 15
+    assert int(e1[8:].sum()) == 2 * 14 and e1[10:12].all()  # the strip keeps its rows that touch the border
+    e2 = L.erode(m, 2)
+    assert e2[4, 5:8].all() and int(e2[:8].sum()) == 3
+    assert int(e2[8:].sum()) == 14 and e2[11].all()  # only the row on the border survives
+    strip = torch.zeros(10, 10, dtype=torch.bool)
+    strip[4:7, 1:9] = True
+    assert not L.erode(strip, 2).any() and L.erode(strip, 1)[5, 2:8].all()
+    assert torch.equal(L.erode(m, 0), m)
+    band = L.boundary_band(m, 1)
+    assert not (band & e1).any() and band[m & ~e1].all()
+
+
 def test_mesh_normal_loss_zero_normals_are_finite():
     """Zero rendered normals (zero alpha) give a finite loss and finite gradients, no NaN."""
     sn = torch.zeros(2, 2, 3, requires_grad=True)

@@ -311,6 +311,11 @@ class LossConfig:
     towards the camera, which is what swells a thin part the Poisson smoothing thickened and lifts a
     concavity's floor towards the lid the proxy puts over it; pixels where the surfels lie in front
     (floaters, bumps) keep the full weight. 1: symmetric."""
+    mesh_inset: int = _f(0, COUNT)
+    """The mesh terms skip the pixels within this many pixels of the edge of the pixels they compare
+    (the surfels' coverage where the proxy is hit), eroded by a ``(2 inset + 1)^2`` square: a part
+    narrower than ``2 inset + 1`` pixels in a view (a thin leg the coarse proxy thickens) gets no pull
+    from it there, while a broad surface keeps it away from its rim. 0: every compared pixel."""
     mesh_depth_source: RenderedDepth = RenderedDepth.MEDIAN
     """Surfel depth compared with the mesh depth (``EXPECTED`` averages in semi-transparent layers
     behind the surface and drags the proxy inwards: bunny Chamfer 0.281 %
