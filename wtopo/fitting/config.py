@@ -310,12 +310,16 @@ class LossConfig:
     debias (:func:`~wtopo.fitting.losses.mesh_depth_loss` ``behind``): there the proxy pulls them
     towards the camera, which is what swells a thin part the Poisson smoothing thickened and lifts a
     concavity's floor towards the lid the proxy puts over it; pixels where the surfels lie in front
-    (floaters, bumps) keep the full weight. 1: symmetric."""
+    (floaters, bumps) keep the full weight. 1: symmetric (the default). At 0.3 every object of the hard
+    suite got worse (CPU, ``benchmarks/hard.md`` ``cpu_behind03``: mean Chamfer +6.8 %, torus +12 %, bowl
+    +11 %): the loop pays at the CPU by pulling the surface outwards against the fit's shrink."""
     mesh_inset: int = _f(0, COUNT)
     """The mesh terms skip the pixels within this many pixels of the edge of the pixels they compare
     (the surfels' coverage where the proxy is hit), eroded by a ``(2 inset + 1)^2`` square: a part
     narrower than ``2 inset + 1`` pixels in a view (a thin leg the coarse proxy thickens) gets no pull
-    from it there, while a broad surface keeps it away from its rim. 0: every compared pixel."""
+    from it there, while a broad surface keeps it away from its rim. 0: every compared pixel (the
+    default). At 2 (CPU, ``benchmarks/hard.md`` ``cpu_inset2``) chair_box gains 1 % and the torus loses
+    6 %: a smooth object's rims carry the proxy's outward pull."""
     mesh_depth_source: RenderedDepth = RenderedDepth.MEDIAN
     """Surfel depth compared with the mesh depth (``EXPECTED`` averages in semi-transparent layers
     behind the surface and drags the proxy inwards: bunny Chamfer 0.281 %
