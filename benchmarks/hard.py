@@ -387,7 +387,7 @@ def run_one(name: str, variant: str, built, run_dir: str, sets, device: str = "c
         return {"scene": name, "variant": variant, "error": f"{type(e).__name__}: {e}",
                 "time": time.perf_counter() - t}
     elapsed = time.perf_counter() - t
-    status = res.report.get("status", "completed")
+    status = res.report["status"]
     if status != "completed":  # SIGINT / SIGTERM stop a fit after its step: its mesh is no result
         print(f"[{name} {variant}] fit {status} after {res.report.get('iterations', '?')} iterations: "
               "the suite stops, this fit is not recorded", flush=True)

@@ -15,6 +15,7 @@ from ..metrics import ssim
 from ..photometric import photometric_loss
 
 __all__ = [
+    "dilate",
     "erode",
     "masked_mean",
     "l1",
@@ -107,13 +108,20 @@ def halo_target(mask: torch.Tensor, filter_sigma: float) -> torch.Tensor:
     return out.to(torch.float32).to(mask.device)
 
 
+def dilate(mask: torch.Tensor, width: int) -> torch.Tensor:
+    """Pixels [H, W] bool within ``width`` pixels (Chebyshev distance) of ``mask`` [H, W] bool: its
+    dilation by a ``(2 width + 1)^2`` square; ``mask`` itself for ``width <= 0``. Not differentiable."""
+    mask = mask.to(torch.bool)
+    if width <= 0:
+        return mask
+    w = int(width)
+    return F.max_pool2d(mask.to(torch.float32)[None, None], 2 * w + 1, 1, w)[0, 0] > 0
+
+
 def erode(mask: torch.Tensor, width: int) -> torch.Tensor:
     """Pixels [H, W] bool of ``mask`` [H, W] bool whose ``(2 width + 1)^2`` square lies inside it (pixels
-    beyond the image do not count against it); ``mask`` itself for ``width == 0``. Not differentiable."""
-    if width <= 0:
-        return mask.to(torch.bool)
-    m = mask.to(torch.float32)[None, None]
-    return -F.max_pool2d(-m, 2 * int(width) + 1, 1, int(width))[0, 0] > 0
+    beyond the image do not count against it); ``mask`` itself for ``width <= 0``. Not differentiable."""
+    return ~dilate(~mask.to(torch.bool), width)
 
 
 def boundary_band(mask: torch.Tensor, width: int) -> torch.Tensor:
@@ -121,9 +129,7 @@ def boundary_band(mask: torch.Tensor, width: int) -> torch.Tensor:
     bool: the dilation minus the erosion by a ``(2 width + 1)^2`` square. Empty for ``width == 0``."""
     if width <= 0:
         return torch.zeros_like(mask, dtype=torch.bool)
-    m = mask.to(torch.float32)[None, None]
-    dilated = F.max_pool2d(m, 2 * int(width) + 1, 1, int(width))[0, 0] > 0
-    return dilated & ~erode(mask, width)
+    return dilate(mask, width) & ~erode(mask, width)
 
 
 def depth_to_points(depth: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:

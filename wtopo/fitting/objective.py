@@ -180,7 +180,7 @@ class Objective:
                     if supported is not None:  # pixels that see surface no surfel backs carry no mesh term
                         both = both & supported
                     if lc.mesh_inset > 0:  # parts narrower than 2 inset + 1 pixels carry no mesh term
-                        both = erode(both, int(lc.mesh_inset))
+                        both = erode(both, lc.mesh_inset)
                     if lc.mesh_depth > 0:
                         sd = out.median_depth if lc.mesh_depth_source == RenderedDepth.MEDIAN else out.depth
                         form = str(getattr(lc.depth_form, "value", lc.depth_form))

@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 
 from .densify import face_normals
+from .losses import dilate, erode
 
 __all__ = ["SilhouetteOffset", "calibrate_mesh", "silhouette_gap", "vertex_normals", "mask_boundary"]
 
@@ -43,9 +44,7 @@ def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 def mask_boundary(mask: torch.Tensor) -> torch.Tensor:
     """Pixels [H, W] bool of ``mask`` [H, W] bool with a 4- or 8-neighbour outside it (image borders
     count as inside)."""
-    m = mask.float()[None, None]
-    eroded = -F.max_pool2d(-F.pad(m, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
-    return mask & (eroded[0, 0] < 0.5)
+    return mask & ~erode(mask, 1)
 
 
 def _rim_footprint(hit: torch.Tensor, depth: torch.Tensor, fx: float) -> torch.Tensor:
@@ -89,8 +88,7 @@ def silhouette_gap_tiles(hit: torch.Tensor, depth: torch.Tensor, mask: torch.Ten
     gap along the boundary's smooth runs, where a corner the mesh rounds off (a deficit that is no
     shrink) weighs one block."""
     b = mask_boundary(mask)
-    k = 2 * int(band) + 1
-    near = F.max_pool2d(b.float()[None, None], k, stride=1, padding=int(band))[0, 0] > 0.5
+    near = dilate(b, band)
     net = (mask & ~hit & near).float() - (hit & ~mask & near).float()
     t = int(tile)
     sums = F.avg_pool2d(torch.stack([net, b.float()])[None], t, stride=t, ceil_mode=True)[0] * (t * t)
