@@ -104,6 +104,8 @@ VARIANTS = {
     "random_signs": ("mesh.normal_flip=random",),
     "no_geo_density": ("densify.geometry_prune=false", "densify.geometry_densify=false"),
     "one_point": ("mesh.samples_per_surfel=1",),
+    # the loop's guidance alone (normal signs, geometry-aware density), no mesh loss term
+    "no_mesh_terms": ("losses.mesh_depth=0", "losses.mesh_normal=0"),
 }
 RIG = {"views": 32, "resolution": 128}  # training views and pixels per side (``--gpu``: 64 of 512)
 MESH_CACHE: list[str] = []  # ``--mesh-cache``: a folder keeping the signed-distance meshes
