@@ -187,9 +187,9 @@ def test_mesh_terms_wait_for_their_start_fraction(tiny):
     assert after.proxy_built and "mesh_depth" in after.losses
 
 
-def _mesh_depth_terms(scene, field: str, values) -> tuple[list[torch.Tensor], object]:
+def _mesh_depth_terms(scene, field: str, values, **losses) -> tuple[list[torch.Tensor], object]:
     """The co-evolution's mesh-depth term on one fixed state (iteration 12, view 0) for each value of
-    ``losses.<field>``, and the run (to read gradients)."""
+    ``losses.<field>`` (the other ``losses`` fields given set first), and the run (to read gradients)."""
     from wtopo.fitting.loop import FitRun
     from wtopo.fitting.stages import Stage
 
@@ -197,6 +197,8 @@ def _mesh_depth_terms(scene, field: str, values) -> tuple[list[torch.Tensor], ob
     cfg.coevolution.enabled = True
     run = FitRun(scene, cfg, None, progress=False)
     run._start()
+    for k, v in losses.items():
+        setattr(run.cfg.losses, k, v)
     out = []
     for v in values:
         setattr(run.cfg.losses, field, v)
@@ -231,6 +233,17 @@ def test_mesh_depth_robust_reaches_the_objective(tiny):
     plain, tight, loose = (float(v) for v in values)
     assert plain > 0 and tight < loose <= plain * (1 + 1e-6)
     _assert_means_gradient(values[1], run)
+
+
+def test_mesh_depth_robust_behind_reaches_the_objective(tiny):
+    """``losses.mesh_depth_robust_behind`` changes the robust mesh-depth term on the same state: it lies
+    between the two-sided robust term and the plain one (the pixels in front get the plain penalty back);
+    without a robust scale it changes nothing; its gradient is finite and non-zero."""
+    (both, behind), run = _mesh_depth_terms(tiny, "mesh_depth_robust_behind", (False, True), mesh_depth_robust=0.5)
+    (plain, plain_behind), _ = _mesh_depth_terms(tiny, "mesh_depth_robust_behind", (False, True))
+    assert float(plain_behind) == float(plain) > 0
+    assert float(both) < float(behind) < float(plain)
+    _assert_means_gradient(behind, run)
 
 
 def test_mesh_depth_behind_reaches_the_objective(tiny):

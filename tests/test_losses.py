@@ -173,6 +173,39 @@ def test_mesh_depth_loss_robust_gradcheck_and_empty_mask():
                 (ds, dm), eps=GRADCHECK_EPS)
 
 
+def test_mesh_depth_loss_robust_behind_applies_the_cauchy_form_only_behind_the_proxy():
+    """``robust_behind``: a pixel where the surfels lie behind the proxy gets the Cauchy penalty and pull
+    (``s log1p(|x| / s)``, pull ``1 / (1 + |x| / s)``), one in front the plain ``|x|`` and pull 1; without
+    a robust scale the flag changes nothing; float64 finite differences agree for both forms, debiased
+    or not."""
+    dm = torch.full((1, 2), 2.0, dtype=torch.float64)
+    ds = torch.tensor([[1.5, 2.6]], dtype=torch.float64, requires_grad=True)  # in front, behind
+    mask = torch.ones(1, 2, dtype=torch.bool)
+    r = 0.2
+    s = r / 2.0  # the log-ratio form's scale: robust / d_m
+    front, back = abs(math.log(1.5 / 2.0)), abs(math.log(2.6 / 2.0))
+    loss = L.mesh_depth_loss(ds, dm, mask, eps=1e-4, robust=r, robust_behind=True)
+    (g,) = torch.autograd.grad(loss, ds)
+    assert loss.item() == pytest.approx((front + s * math.log1p(back / s)) / 2, rel=1e-12)
+    # d loss / d log d_s per pixel (the mean over two pixels halves it)
+    assert (2 * g[0, 0] * 1.5).item() == pytest.approx(-1.0, rel=1e-12)
+    assert (2 * g[0, 1] * 2.6).item() == pytest.approx(1.0 / (1.0 + back / s), rel=1e-12)
+    two_sided = L.mesh_depth_loss(ds, dm, mask, eps=1e-4, robust=r)
+    plain = L.mesh_depth_loss(ds, dm, mask, eps=1e-4)
+    assert two_sided.item() < loss.item() < plain.item()
+    assert L.mesh_depth_loss(ds, dm, mask, eps=1e-4, robust_behind=True).item() == plain.item()
+    a = (torch.rand(4, 4, dtype=torch.float64) + 0.5).requires_grad_()
+    b = (torch.rand(4, 4, dtype=torch.float64) + 0.5).requires_grad_()
+    m = torch.rand(4, 4) > 0.3
+    m[0, 0] = True
+    for form in ("log_ratio", "log1p_abs"):
+        for debias in (False, True):
+            assert torch.autograd.gradcheck(
+                lambda x, y, form=form, debias=debias: L.mesh_depth_loss(x, y, m, eps=1e-4, form=form, debias=debias,
+                                                                          robust=0.05, robust_behind=True),
+                (a, b), eps=GRADCHECK_EPS)
+
+
 def test_mesh_depth_loss_behind_weighs_only_surfels_behind_the_proxy():
     """``behind`` scales the penalty and the pull of the pixels where the surfel depth exceeds the
     proxy's (after the debias), leaves the pixels in front untouched, and 1 is the plain term; float64

@@ -305,6 +305,15 @@ class LossConfig:
     ``cpu_robust``): the loop's gain against no loop falls from 5.0 % to 4.3 % at scale 1 (chair_box
     better, the torus and the blob 2-3 % worse) and to 4.3 % at scale 1 with weight 5 (bowl and mug
     worse): the large disagreements it discounts are the ones that help the smooth objects."""
+    mesh_depth_robust_behind: bool = False
+    """With ``mesh_depth_robust``: the Cauchy form only where the surfels lie behind the proxy (its pull
+    towards the camera, which swells a thin part the proxy's smoothing thickened); where they lie in front
+    (floaters, bumps) the plain term pulls in full, and disagreements under the scale pull as before
+    (:func:`~wtopo.fitting.losses.mesh_depth_loss` ``robust_behind``). Off: on the ten-view scenes on the
+    CUDA budget (``benchmarks/hard.md`` ``gpu_sparse3``) it left the chair 8-12 % worse than no loop, where
+    the two-sided form at 3 cells brought it within 2 %: the chair's loss is on the other side (surfels in
+    front of a proxy that lost its thin parts), which is also where the floaters the loop should pull in
+    lie."""
     mesh_depth_behind: float = _f(1.0, FRACTION)
     """Weight of the mesh-depth term on pixels where the surfels lie behind the proxy after the
     debias (:func:`~wtopo.fitting.losses.mesh_depth_loss` ``behind``): there the proxy pulls them

@@ -193,7 +193,7 @@ def scale_regularizer(scales: torch.Tensor, max_anisotropy: float) -> torch.Tens
 
 def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: torch.Tensor, *,
                     eps: float, form: str = "log_ratio", extent: float = 1.0, debias: bool = False,
-                    robust: float = 0.0, behind: float = 1.0) -> torch.Tensor:
+                    robust: float = 0.0, robust_behind: bool = False, behind: float = 1.0) -> torch.Tensor:
     """Agreement of surfel depth and proxy-mesh depth [H, W] on ``mask`` (pixels both cover).
 
     ``form="log_ratio"``: ``|log d_s - log d_m|``; ``"log1p_abs"``: ``log1p(|d_m - d_s| / extent)``.
@@ -213,6 +213,11 @@ def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: 
     ``robust``, its pull halved at ``robust`` and falling as ``1 / |diff|`` beyond, so pixels where the
     proxy is far off (a thin part the Poisson smoothing swelled) pull little. ``log1p_abs`` with
     ``robust == extent`` is the plain form. Differentiable in both depths (``s`` included).
+
+    ``robust_behind=True`` keeps the Cauchy form to the pixels where the surfels lie behind the proxy
+    (``diff > 0``: the proxy pulls them towards the camera, as over a thin part it swelled) and gives the
+    pixels in front the plain penalty (floaters and bumps are pulled back in full). Both sides meet
+    continuously at ``diff = 0``.
     """
     ds = torch.where(mask, surfel_depth, torch.ones_like(surfel_depth)).clamp_min(eps)
     dm = torch.where(mask, mesh_depth, torch.ones_like(mesh_depth)).clamp_min(eps)
@@ -225,11 +230,14 @@ def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: 
     if debias:
         # pixels off the mask are left out of the median as NaN; their shifted value is masked out below
         diff = diff - torch.nan_to_num(torch.nanmedian(torch.where(mask, diff, torch.full_like(diff, float("nan")))))
+    plain = diff.abs() if form == "log_ratio" else torch.log1p(diff.abs())
     if robust > 0:
         s = robust / dm if form == "log_ratio" else robust / extent
         err = s * torch.log1p(diff.abs() / s)
+        if robust_behind:
+            err = torch.where(diff > 0, err, plain)
     else:
-        err = diff.abs() if form == "log_ratio" else torch.log1p(diff.abs())
+        err = plain
     if behind != 1.0:
         err = torch.where(diff > 0, behind * err, err)
     return masked_mean(err, mask)

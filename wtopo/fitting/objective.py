@@ -189,6 +189,7 @@ class Objective:
                                                                           debias=lc.mesh_depth_debias,
                                                                           robust=(lc.mesh_depth_robust * proxy.cell
                                                                                   if lc.mesh_depth_robust > 0 else 0.0),
+                                                                          robust_behind=lc.mesh_depth_robust_behind,
                                                                           behind=lc.mesh_depth_behind)
                     if lc.mesh_normal > 0:
                         L["mesh_normal"] = lc.mesh_normal * mesh_normal_loss(out.normal, mr.normal, both)
