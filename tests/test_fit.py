@@ -246,6 +246,33 @@ def test_mesh_depth_robust_behind_reaches_the_objective(tiny):
     _assert_means_gradient(behind, run)
 
 
+def test_mesh_photo_gate_reaches_the_objective(tiny):
+    """``losses.mesh_photo_gate`` builds the gate (and not at 0) and changes the co-evolution's mesh-depth
+    term on the same state by leaving pixels out (on at least one of four views: the tiny scene's early
+    surfels and proxy disagree); the gated term's gradient is finite and non-zero."""
+    from wtopo.fitting.loop import FitRun
+    from wtopo.fitting.stages import Stage
+
+    cfg = _config(10, 8)
+    cfg.coevolution.enabled = True
+    assert FitRun(tiny, cfg, None, progress=False).objective.photo_gate is None
+    cfg.losses.mesh_photo_gate = 0.05
+    run = FitRun(tiny, cfg, None, progress=False)
+    run._start()
+    gate = run.objective.photo_gate
+    assert gate is not None
+    changed, gated = 0, None
+    for vi in range(4):
+        on = run.objective(Stage.COEVOLUTION, 12, vi, run.surfels, run.proxy).losses["mesh_depth"]
+        run.objective.photo_gate = None
+        off = run.objective(Stage.COEVOLUTION, 12, vi, run.surfels, run.proxy).losses["mesh_depth"]
+        run.objective.photo_gate = gate
+        if abs(float(on) - float(off)) > 1e-6:
+            changed, gated = changed + 1, on
+    assert changed >= 1
+    _assert_means_gradient(gated, run)
+
+
 def test_mesh_depth_behind_reaches_the_objective(tiny):
     """``losses.mesh_depth_behind`` changes the co-evolution's mesh-depth term on the same state, only
     downwards and less the larger it is (0 keeps only the surfels in front of the proxy); its gradient

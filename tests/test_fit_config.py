@@ -124,6 +124,7 @@ BAD = [
     ("losses.mesh_depth_robust", -1.0, ValueError),
     ("losses.mesh_depth_robust", float("nan"), ValueError),
     ("losses.mesh_depth_behind", 1.5, ValueError),
+    ("losses.mesh_photo_gate", -0.1, ValueError),
     ("losses.mesh_depth_behind", -0.1, ValueError),
     ("losses.mesh_inset", -1, ValueError),
     ("losses.mesh_inset", 1.5, TypeError),

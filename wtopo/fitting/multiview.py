@@ -99,6 +99,79 @@ class MultiViewNCC:
             w = self._offsets[device] = torch.stack([dy.reshape(-1), dx.reshape(-1)], -1)  # [K, 2] (row, col)
         return w
 
+    def _pick(self, vi: int, seed: int) -> list[int]:
+        """The neighbours of ``vi`` scored at this draw (indices into the training views)."""
+        nb = self.neighbours[vi]
+        pick = torch.randperm(len(nb), generator=torch.Generator().manual_seed(seed))[:_DRAWN_NEIGHBOURS].tolist()
+        return [nb[j] for j in pick]
+
+    def _plane_costs(self, vi: int, py: torch.Tensor, px: torch.Tensor, d: torch.Tensor, n: torch.Tensor,
+                     pick: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Best ``1 - NCC`` over the neighbours ``pick`` of the windows centred on pixels ``(py, px)`` of view
+        ``vi`` (at least ``half`` pixels inside the image) mapped through the planes of depth ``d`` [P] and
+        normal ``n`` [P, 3] (differentiable in both), and which windows count (positive depth, not grazing,
+        textured): ``(cost [P], ok [P] bool)``. A neighbour that does not see a window scores 2."""
+        dev = d.device
+        ref = self._cam(vi, dev)
+        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+        x = ref.origin[py, px] + ref.dirs[py, px] * d[:, None]  # [P, 3]
+        off = self._window(dev)
+        qy, qx = py[:, None] + off[None, :, 0], px[:, None] + off[None, :, 1]  # [P, K]
+        oq, dq = ref.origin[qy, qx], ref.dirs[qy, qx]  # [P, K, 3]
+        den = (dq * n[:, None]).sum(-1)
+        cos = den.detach() / dq.detach().norm(dim=-1)
+        ok = (d.detach() > 0) & (cos.abs().amin(1) > _GRAZING)
+        den = torch.where(den.abs() < 1e-8, torch.full_like(den, 1e-8), den)
+        t = ((x[:, None] - oq) * n[:, None]).sum(-1) / den
+        y = oq + dq * t[..., None]  # window points on the plane [P, K, 3]
+        rv = self._gray_of(vi)[qy, qx]  # [P, K]
+        rc = rv - rv.mean(1, keepdim=True)
+        rvar = (rc * rc).mean(1)
+        ok = ok & (rvar.sqrt() >= _MIN_STD)
+        costs = []
+        for j in pick:
+            src = self._cam(j, dev)
+            u, v, z = src.project(y)
+            inside = ((z > 0) & (u >= 0) & (u <= src.W) & (v >= 0) & (v <= src.H)).all(1)
+            sv = F.grid_sample(self._gray_of(j)[None, None], src.grid(u, v)[None], mode="bilinear",
+                               padding_mode="border", align_corners=False)[0, 0]  # [P, K]
+            sc = sv - sv.mean(1, keepdim=True)
+            ncc = (rc * sc).mean(1) / (rvar * (sc * sc).mean(1) + _NCC_EPS).sqrt()
+            cost = (1.0 - ncc).clamp(0.0, 2.0)
+            costs.append(torch.where(inside, cost, torch.full_like(cost, 2.0)))
+        return torch.stack(costs).amin(0), ok
+
+    @torch.no_grad()
+    def prefers(self, it: int, vi: int, depth_a: torch.Tensor, normal_a: torch.Tensor, depth_b: torch.Tensor,
+                normal_b: torch.Tensor, mask: torch.Tensor, margin: float) -> torch.Tensor:
+        """Pixels of ``mask`` where the photographs prefer plane ``a`` to plane ``b`` by more than ``margin``.
+
+        For every pixel of ``mask`` at least ``half`` pixels inside view ``vi``, the window through each
+        per-pixel plane (depth ``[H, W]`` z-depth and normal ``[H, W, 3]``, internal frame) is scored against
+        the same drawn neighbours (:meth:`_plane_costs`); a pixel is returned where ``a``'s window counts and
+        correlates (best cost under ``_MAX_COST``), ``b``'s window counts, and ``b``'s best cost exceeds
+        ``a``'s by more than ``margin`` (in ``1 - NCC``). Everywhere else (no texture, no neighbour, the
+        border, a plane behind the camera) nothing is said: ``False``. Not differentiable (a gate).
+
+        Returns:
+            bool ``[H, W]`` on ``mask``'s device. One host read (the pixels of ``mask``).
+        """
+        out = torch.zeros_like(mask)
+        ref = self._cam(vi, mask.device)
+        h = self.half
+        if 2 * h >= ref.H or 2 * h >= ref.W or not self.neighbours[vi]:
+            return out
+        inner = torch.zeros_like(mask)
+        inner[h:ref.H - h, h:ref.W - h] = True
+        py, px = (mask & inner).nonzero(as_tuple=True)
+        if py.numel() == 0:
+            return out
+        pick = self._pick(vi, self.seed * 1_000_003 + it)
+        ca, oka = self._plane_costs(vi, py, px, depth_a[py, px], normal_a[py, px], pick)
+        cb, okb = self._plane_costs(vi, py, px, depth_b[py, px], normal_b[py, px], pick)
+        out[py, px] = oka & okb & (ca < _MAX_COST) & (cb - ca > margin)
+        return out
+
     def __call__(self, it: int, vi: int, median_depth: torch.Tensor, normal: torch.Tensor,
                  alpha: torch.Tensor) -> torch.Tensor:
         """The term for training view ``vi`` at iteration ``it`` (a scalar tensor, 0 when nothing counts).
@@ -122,38 +195,9 @@ class MultiViewNCC:
         g.manual_seed(seed)
         py = torch.randint(h, H - h, (self.pixels,), generator=g, device=dev)
         px = torch.randint(h, W - h, (self.pixels,), generator=g, device=dev)
-        nb = self.neighbours[vi]
-        pick = torch.randperm(len(nb), generator=torch.Generator().manual_seed(seed))[:_DRAWN_NEIGHBOURS].tolist()
-        # the plane at each drawn pixel: its rendered point and unit normal
-        d = median_depth[py, px]
-        n = normal[py, px]
-        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-        x = ref.origin[py, px] + ref.dirs[py, px] * d[:, None]  # [P, 3]
-        off = self._window(dev)
-        qy, qx = py[:, None] + off[None, :, 0], px[:, None] + off[None, :, 1]  # [P, K]
-        oq, dq = ref.origin[qy, qx], ref.dirs[qy, qx]  # [P, K, 3]
-        den = (dq * n[:, None]).sum(-1)
-        cos = den.detach() / dq.detach().norm(dim=-1)
-        ok = (alpha.detach()[py, px] >= 0.5) & (d.detach() > 0) & (cos.abs().amin(1) > _GRAZING)
-        den = torch.where(den.abs() < 1e-8, torch.full_like(den, 1e-8), den)
-        t = ((x[:, None] - oq) * n[:, None]).sum(-1) / den
-        y = oq + dq * t[..., None]  # window points on the plane [P, K, 3]
-        rv = self._gray_of(vi)[qy, qx]  # [P, K]
-        rc = rv - rv.mean(1, keepdim=True)
-        rvar = (rc * rc).mean(1)
-        ok = ok & (rvar.sqrt() >= _MIN_STD)
-        costs = []
-        for j in pick:
-            src = self._cam(nb[j], dev)
-            u, v, z = src.project(y)
-            inside = ((z > 0) & (u >= 0) & (u <= src.W) & (v >= 0) & (v <= src.H)).all(1)
-            sv = F.grid_sample(self._gray_of(nb[j])[None, None], src.grid(u, v)[None], mode="bilinear",
-                               padding_mode="border", align_corners=False)[0, 0]  # [P, K]
-            sc = sv - sv.mean(1, keepdim=True)
-            ncc = (rc * sc).mean(1) / (rvar * (sc * sc).mean(1) + _NCC_EPS).sqrt()
-            cost = (1.0 - ncc).clamp(0.0, 2.0)
-            costs.append(torch.where(inside, cost, torch.full_like(cost, 2.0)))
-        best = torch.stack(costs).amin(0)
+        pick = self._pick(vi, seed)
+        best, ok = self._plane_costs(vi, py, px, median_depth[py, px], normal[py, px], pick)
+        ok = ok & (alpha.detach()[py, px] >= 0.5)
         use = ok & (best.detach() < _MAX_COST)
         w = use.to(best.dtype)
         return (best * w).sum() / w.sum().clamp_min(1.0)

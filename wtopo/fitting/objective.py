@@ -83,6 +83,11 @@ class Objective:
         if (lc.multiview or 0.0) > 0 and roi_center is not None and len(train.cameras) > 1:
             self.multiview = MultiViewNCC(train.cameras, train.images, roi_center, pixels=lc.multiview_pixels,
                                           seed=cfg.runtime.seed)
+        # the mesh terms' photo-consistency gate scores windows as the multi-view term does (shared when on)
+        self.photo_gate = None
+        if lc.mesh_photo_gate > 0 and roi_center is not None and len(train.cameras) > 1:
+            self.photo_gate = self.multiview or MultiViewNCC(train.cameras, train.images, roi_center,
+                                                             seed=cfg.runtime.seed)
         self.geometric = None
         if lc.multiview_geometric > 0 and roi_center is not None and len(train.cameras) > 1:
             self.geometric = ForwardBackwardDepth(train.cameras, roi_center, pixels=lc.multiview_pixels,
@@ -181,6 +186,12 @@ class Objective:
                         both = both & supported
                     if lc.mesh_inset > 0:  # parts narrower than 2 inset + 1 pixels carry no mesh term
                         both = erode(both, lc.mesh_inset)
+                    if self.photo_gate is not None and self.photo_gate.has_neighbours(vi):
+                        # pixels where the photographs prefer the surfels' plane to the proxy's carry no mesh term
+                        with T("photo_gate"):
+                            both = both & ~self.photo_gate.prefers(it, vi, out.median_depth.detach(),
+                                                                   out.normal.detach(), mr.depth.detach(),
+                                                                   mr.normal.detach(), both, lc.mesh_photo_gate)
                     if lc.mesh_depth > 0:
                         sd = out.median_depth if lc.mesh_depth_source == RenderedDepth.MEDIAN else out.depth
                         form = str(getattr(lc.depth_form, "value", lc.depth_form))
