@@ -323,12 +323,13 @@ class LossConfig:
     suite got worse (CPU, ``benchmarks/hard.md`` ``cpu_behind03``: mean Chamfer +6.8 %, torus +12 %, bowl
     +11 %): the loop pays at the CPU by pulling the surface outwards against the fit's shrink."""
     mesh_photo_gate: float = _f(0.0, RATE)
-    """The mesh terms leave out the pixels where the photographs prefer the surfels' plane to the proxy's
-    by more than this margin in ``1 - NCC`` (:meth:`~wtopo.fitting.multiview.MultiViewNCC.prefers`: the
-    window around the pixel through each plane, scored against the same two neighbouring photographs):
-    where the proxy lids a concavity the surfels saw, or lost a thin part they hold, it is not pulled
-    towards; where the photographs do not say (no texture, no neighbour, a floater's inconsistent plane)
-    the proxy pulls as before. 0 turns the gate off (the default)."""
+    """The mesh terms leave out the pixels where the surfels' depth and the proxy's differ by more than
+    this many proxy grid cells and the neighbouring photographs prefer the surfels' depth (their window,
+    through each depth with the surfels' normal, correlates better by 0.1 in ``1 - NCC`` with the same two
+    neighbours: :meth:`~wtopo.fitting.multiview.MultiViewNCC.prefers`): a thin part the proxy's
+    smoothing lost, or a concavity it lidded, is not pulled towards the proxy; where the photographs
+    do not say (no texture, no neighbour, a floater's inconsistent depth) the proxy pulls as before.
+    0 turns the gate off (the default)."""
     mesh_inset: int = _f(0, COUNT)
     """The mesh terms skip the pixels within this many pixels of the edge of the pixels they compare
     (the surfels' coverage where the proxy is hit), eroded by a ``(2 inset + 1)^2`` square: a part

@@ -39,6 +39,7 @@ _LOSS_EMA = 0.9  # smoothing of the loss shown on the progress bar
 _DSSIM = 0.2  # weight of D-SSIM in the photometric term (1 - w) L1 + w (1 - SSIM): 3DGS's and 2DGS's value
 _HALO_RING = 0.01  # outside the mask, a halo target above this leaves the pixel out of the photometric term
 _MAX_ANISOTROPY = 10.0  # ratio of the two surfel scales above which the scale regulariser acts (stops needles)
+_PHOTO_GATE_MARGIN = 0.1  # 1 - NCC by which the photographs must prefer the surfels' depth (losses.mesh_photo_gate)
 
 
 @dataclasses.dataclass
@@ -187,11 +188,13 @@ class Objective:
                     if lc.mesh_inset > 0:  # parts narrower than 2 inset + 1 pixels carry no mesh term
                         both = erode(both, lc.mesh_inset)
                     if self.photo_gate is not None and self.photo_gate.has_neighbours(vi):
-                        # pixels where the photographs prefer the surfels' plane to the proxy's carry no mesh term
-                        with T("photo_gate"):
-                            both = both & ~self.photo_gate.prefers(it, vi, out.median_depth.detach(),
-                                                                   out.normal.detach(), mr.depth.detach(),
-                                                                   mr.normal.detach(), both, lc.mesh_photo_gate)
+                        # pixels where the surfels and the proxy disagree by more than mesh_photo_gate proxy
+                        # cells and the photographs prefer the surfels' depth carry no mesh term
+                        with T("photo_gate"), torch.no_grad():
+                            ds, dm = out.median_depth.detach(), mr.depth.detach()
+                            far = both & ((ds - dm).abs() > lc.mesh_photo_gate * proxy.cell)
+                            n = out.normal.detach()  # one normal for both planes: only the depth is compared
+                            both = both & ~self.photo_gate.prefers(it, vi, ds, n, dm, n, far, _PHOTO_GATE_MARGIN)
                     if lc.mesh_depth > 0:
                         sd = out.median_depth if lc.mesh_depth_source == RenderedDepth.MEDIAN else out.depth
                         form = str(getattr(lc.depth_form, "value", lc.depth_form))
