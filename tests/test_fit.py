@@ -195,10 +195,10 @@ def _mesh_depth_terms(scene, field: str, values, **losses) -> tuple[list[torch.T
 
     cfg = _config(10, 8)
     cfg.coevolution.enabled = True
+    for k, v in losses.items():
+        setattr(cfg.losses, k, v)
     run = FitRun(scene, cfg, None, progress=False)
     run._start()
-    for k, v in losses.items():
-        setattr(run.cfg.losses, k, v)
     out = []
     for v in values:
         setattr(run.cfg.losses, field, v)

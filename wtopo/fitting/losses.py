@@ -230,14 +230,11 @@ def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: 
     if debias:
         # pixels off the mask are left out of the median as NaN; their shifted value is masked out below
         diff = diff - torch.nan_to_num(torch.nanmedian(torch.where(mask, diff, torch.full_like(diff, float("nan")))))
-    plain = diff.abs() if form == "log_ratio" else torch.log1p(diff.abs())
+    err = diff.abs() if form == "log_ratio" else torch.log1p(diff.abs())
     if robust > 0:
         s = robust / dm if form == "log_ratio" else robust / extent
-        err = s * torch.log1p(diff.abs() / s)
-        if robust_behind:
-            err = torch.where(diff > 0, err, plain)
-    else:
-        err = plain
+        cauchy = s * torch.log1p(diff.abs() / s)
+        err = torch.where(diff > 0, cauchy, err) if robust_behind else cauchy
     if behind != 1.0:
         err = torch.where(diff > 0, behind * err, err)
     return masked_mean(err, mask)

@@ -105,32 +105,37 @@ class MultiViewNCC:
         pick = torch.randperm(len(nb), generator=torch.Generator().manual_seed(seed))[:_DRAWN_NEIGHBOURS].tolist()
         return [nb[j] for j in pick]
 
-    def _plane_costs(self, vi: int, py: torch.Tensor, px: torch.Tensor, d: torch.Tensor, n: torch.Tensor,
-                     pick: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Best ``1 - NCC`` over the neighbours ``pick`` of the windows centred on pixels ``(py, px)`` of view
-        ``vi`` (at least ``half`` pixels inside the image) mapped through the planes of depth ``d`` [P] and
-        normal ``n`` [P, 3] (differentiable in both), and which windows count (positive depth, not grazing,
-        textured): ``(cost [P], ok [P] bool)``. A neighbour that does not see a window scores 2."""
-        dev = d.device
-        ref = self._cam(vi, dev)
-        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-        x = ref.origin[py, px] + ref.dirs[py, px] * d[:, None]  # [P, 3]
-        off = self._window(dev)
+    def _reference(self, vi: int, py: torch.Tensor, px: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """What the windows centred on pixels ``(py, px)`` of view ``vi`` (at least ``half`` pixels inside the
+        image) need whatever plane goes through them: their pixels' rays ``(origins, directions)`` [P, K, 3],
+        their centred grey levels [P, K] and variance [P], and whether they are textured [P] bool."""
+        ref = self._cam(vi, py.device)
+        off = self._window(py.device)
         qy, qx = py[:, None] + off[None, :, 0], px[:, None] + off[None, :, 1]  # [P, K]
-        oq, dq = ref.origin[qy, qx], ref.dirs[qy, qx]  # [P, K, 3]
-        den = (dq * n[:, None]).sum(-1)
-        cos = den.detach() / dq.detach().norm(dim=-1)
-        ok = (d.detach() > 0) & (cos.abs().amin(1) > _GRAZING)
-        den = torch.where(den.abs() < 1e-8, torch.full_like(den, 1e-8), den)
-        t = ((x[:, None] - oq) * n[:, None]).sum(-1) / den
-        y = oq + dq * t[..., None]  # window points on the plane [P, K, 3]
         rv = self._gray_of(vi)[qy, qx]  # [P, K]
         rc = rv - rv.mean(1, keepdim=True)
         rvar = (rc * rc).mean(1)
-        ok = ok & (rvar.sqrt() >= _MIN_STD)
+        return ref.origin[qy, qx], ref.dirs[qy, qx], rc, rvar, rvar.sqrt() >= _MIN_STD
+
+    def _plane_costs(self, vi: int, py: torch.Tensor, px: torch.Tensor, d: torch.Tensor, n: torch.Tensor,
+                     pick: list[int], windows: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Best ``1 - NCC`` over the neighbours ``pick`` of the windows ``windows`` (:meth:`_reference` of the
+        same pixels ``(py, px)`` of view ``vi``) mapped through the planes of depth ``d`` [P] and normal ``n``
+        [P, 3] (differentiable in both), and which windows count (positive depth, not grazing, textured):
+        ``(cost [P], ok [P] bool)``. A neighbour that does not see a window scores 2."""
+        ref = self._cam(vi, d.device)
+        oq, dq, rc, rvar, textured = windows
+        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+        x = ref.origin[py, px] + ref.dirs[py, px] * d[:, None]  # [P, 3]
+        den = (dq * n[:, None]).sum(-1)
+        cos = den.detach() / dq.detach().norm(dim=-1)
+        ok = (d.detach() > 0) & (cos.abs().amin(1) > _GRAZING) & textured
+        den = torch.where(den.abs() < 1e-8, torch.full_like(den, 1e-8), den)
+        t = ((x[:, None] - oq) * n[:, None]).sum(-1) / den
+        y = oq + dq * t[..., None]  # window points on the plane [P, K, 3]
         costs = []
         for j in pick:
-            src = self._cam(j, dev)
+            src = self._cam(j, d.device)
             u, v, z = src.project(y)
             inside = ((z > 0) & (u >= 0) & (u <= src.W) & (v >= 0) & (v <= src.H)).all(1)
             sv = F.grid_sample(self._gray_of(j)[None, None], src.grid(u, v)[None], mode="bilinear",
@@ -167,8 +172,9 @@ class MultiViewNCC:
         if py.numel() == 0:
             return out
         pick = self._pick(vi, self.seed * 1_000_003 + it)
-        ca, oka = self._plane_costs(vi, py, px, depth_a[py, px], normal_a[py, px], pick)
-        cb, okb = self._plane_costs(vi, py, px, depth_b[py, px], normal_b[py, px], pick)
+        windows = self._reference(vi, py, px)  # shared by both planes
+        ca, oka = self._plane_costs(vi, py, px, depth_a[py, px], normal_a[py, px], pick, windows)
+        cb, okb = self._plane_costs(vi, py, px, depth_b[py, px], normal_b[py, px], pick, windows)
         out[py, px] = oka & okb & (ca < _MAX_COST) & (cb - ca > margin)
         return out
 
@@ -196,7 +202,8 @@ class MultiViewNCC:
         py = torch.randint(h, H - h, (self.pixels,), generator=g, device=dev)
         px = torch.randint(h, W - h, (self.pixels,), generator=g, device=dev)
         pick = self._pick(vi, seed)
-        best, ok = self._plane_costs(vi, py, px, median_depth[py, px], normal[py, px], pick)
+        best, ok = self._plane_costs(vi, py, px, median_depth[py, px], normal[py, px], pick,
+                                     self._reference(vi, py, px))
         ok = ok & (alpha.detach()[py, px] >= 0.5)
         use = ok & (best.detach() < _MAX_COST)
         w = use.to(best.dtype)

@@ -191,9 +191,8 @@ class Objective:
                         # pixels where the surfels and the proxy disagree by more than mesh_photo_gate proxy
                         # cells and the photographs prefer the surfels' depth carry no mesh term
                         with T("photo_gate"), torch.no_grad():
-                            ds, dm = out.median_depth.detach(), mr.depth.detach()
+                            ds, dm, n = out.median_depth, mr.depth, out.normal  # one normal: only depth compared
                             far = both & ((ds - dm).abs() > lc.mesh_photo_gate * proxy.cell)
-                            n = out.normal.detach()  # one normal for both planes: only the depth is compared
                             both = both & ~self.photo_gate.prefers(it, vi, ds, n, dm, n, far, _PHOTO_GATE_MARGIN)
                     if lc.mesh_depth > 0:
                         sd = out.median_depth if lc.mesh_depth_source == RenderedDepth.MEDIAN else out.depth
