@@ -280,3 +280,57 @@ def test_inward_offset_of_concentric_boxes_and_shifted_cube():
     shifted = _box(2.0, center=(0.1, 0.0, 0.0))
     r = metrics.inward_offset(shifted, _box(2.0), n_samples=N_SAMPLES)
     assert abs(r.mean) < 0.01 and 0.1 < r.inside < 0.5  # the x = -0.9 face in, x = 1.1 out, the rest on
+
+
+def _top_cameras(xs=(-0.2, 0.2)):
+    from wtopo.camera import Camera
+
+    return [Camera.look_at((x, 0.0, 5.0), (0, 0, 0), (0, 1, 0), fov_x=math.radians(30.0), width=64, height=64)
+            for x in xs]
+
+
+def test_view_counts_see_only_the_faces_turned_to_the_cameras():
+    """Two cameras high above a unit cube see its top face and nothing else (the sides are behind it)."""
+    cube = _box(1.0)
+    pts, fi = metrics.sample_surface(cube, 20_000, seed=3)
+    top = pts[:, 2] > 0.5 - 1e-9
+    counts = metrics.view_counts(pts, cube, _top_cameras(), tolerance=1e-4)
+    assert top.sum() > 2000  # the case exercised both kinds of sample
+    # below the top edge by more than float32's reach, a side is always behind the top face
+    assert np.all(counts[top] == 2) and np.all(counts[pts[:, 2] < 0.5 - 1e-3] == 0)
+    from wtopo.camera import Camera
+
+    under = Camera.look_at((0, 0, -5.0), (0, 0, 0), (0, 1, 0), fov_x=math.radians(30.0), width=64, height=64)
+    below = metrics.view_counts(pts, cube, _top_cameras((0.0,)) + [under], tolerance=1e-4)
+    assert np.all(below[top] == 1) and np.all(below[pts[:, 2] < -0.5 + 1e-9] == 1)
+    assert np.all(below[np.abs(pts[:, 2]) < 0.5 - 1e-3] == 0)
+
+
+def test_observed_chamfer_leaves_out_the_unseen_truth_and_scores_floaters():
+    """A box that matches the cube's seen top face but runs deeper below: the full Chamfer sees the
+    difference, the observed one does not; a floater above the top face is scored."""
+    cube = _box(1.0)
+    deeper = trimesh.creation.box(extents=(1.0, 1.0, 1.4))
+    deeper.apply_translation((0, 0, -0.2))  # z from -0.9 to 0.5: the same top face
+    full = metrics.chamfer(deeper, cube, n_samples=N_SAMPLES)
+    ob = metrics.observed_chamfer(deeper, cube, _top_cameras(), n_samples=N_SAMPLES)
+    assert full.chamfer_rel > 0.01
+    assert abs(ob.observed - 1 / 6) < FRACTION_TOL  # the top face's share of the cube's area
+    assert 0 < ob.scored < 0.5 and ob.result.chamfer_rel < 1e-3
+    assert ob.views.shape == (N_SAMPLES,)
+    floater = trimesh.util.concatenate([cube, _sphere(0.1, (0, 0, 0.8), sub=3)])
+    fl = metrics.observed_chamfer(floater, cube, _top_cameras(), n_samples=N_SAMPLES)
+    assert fl.result.accuracy > 10 * ob.result.accuracy + 1e-3  # the floater's ~0.2 to the top face counts
+    assert fl.result.completeness < 1e-6
+
+
+def test_observed_chamfer_argument_errors():
+    cube = _box(1.0)
+    with pytest.raises(ValueError, match="min_views"):
+        metrics.observed_chamfer(cube, cube, _top_cameras(), min_views=0)
+    with pytest.raises(ValueError, match="cameras"):
+        metrics.observed_chamfer(cube, cube, [])
+    with pytest.raises(ValueError, match="seen by 3"):
+        metrics.observed_chamfer(cube, cube, _top_cameras(), min_views=3)
+    with pytest.raises(ValueError, match="tolerance"):
+        metrics.view_counts(np.zeros((1, 3)), cube, _top_cameras(), tolerance=0.0)

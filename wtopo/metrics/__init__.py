@@ -22,6 +22,8 @@ Modules (private; import from ``wtopo.metrics``):
 * ``_surface``: mesh input, area sampling (:func:`sample_surface`) and exact closest-point queries;
 * ``_distance``: :func:`chamfer`, :func:`chamfer_vertices`, :func:`f_score`, :func:`normal_consistency`;
 * ``_topology``: :func:`mesh_stats`, :func:`floaters`, :func:`holes`;
+* ``_observed``: :func:`observed_chamfer` (Chamfer on the part of the truth the training views saw),
+  :func:`view_counts`;
 * ``_scene``: :func:`roi_f_score`, :func:`camera_clearance`;
 * ``_alignment``: :func:`align_similarity`, :func:`refine_alignment`;
 * ``_image``: :func:`psnr`, :func:`ssim`.
@@ -39,6 +41,7 @@ from ._distance import (
     normal_consistency,
 )
 from ._image import psnr, ssim
+from ._observed import ObservedChamfer, observed_chamfer, view_counts
 from ._scene import ROIFScore, camera_clearance, roi_f_score
 from ._surface import sample_surface
 from ._topology import Floaters, Holes, floaters, holes, mesh_stats
@@ -56,6 +59,9 @@ __all__ = [
     "floaters",
     "holes",
     "normal_consistency",
+    "ObservedChamfer",
+    "observed_chamfer",
+    "view_counts",
     "psnr",
     "ssim",
     "mesh_stats",

@@ -126,6 +126,14 @@ class _Surface:
         t = self.tri[fi]
         return _closest_on_triangles(q, t[:, 0], t[:, 1], t[:, 2])
 
+    def cast(self, rays: np.ndarray) -> np.ndarray:
+        """Distance [M] float64 along unit rays [M, 6] (origin relative to ``center``, direction) to
+        the first hit of this surface (float32 precision), ``inf`` on a miss."""
+        import open3d as o3d
+
+        r = self._scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))
+        return r["t_hit"].numpy().astype(np.float64)
+
     def closest(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(distance [M] float64, face [M] int64) from query points [M, 3] to this surface."""
         import open3d as o3d
