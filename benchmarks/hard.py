@@ -561,6 +561,13 @@ def write_section(path: str, section: str, label: str) -> None:
         f.write("\n\n".join(body) + "\n")
 
 
+def _build(name: str) -> tuple:
+    """``(scene, the truth to score against, the box its meshes are clipped to or None)`` of a suite scene."""
+    scene, gt = SCENES[name]()
+    box = tuple(np.asarray(b, np.float64) for b in scene.info["roi"]) if "roi" in scene.info else None
+    return scene, gt if gt is not None else scene.gt_mesh, box
+
+
 def rescore(rows: list[dict], run_dir: str, rows_path: str, out: str | None, label: str, cmd: str) -> int:
     """Add the observed Chamfer to the rows that lack it, from each fit's ``mesh.ply`` (a fit whose
     folder is gone keeps its row as it was)."""
@@ -574,9 +581,7 @@ def rescore(rows: list[dict], run_dir: str, rows_path: str, out: str | None, lab
             print(f"[{r['scene']} {r['variant']}] no {path}: left as it was", flush=True)
             continue
         if r["scene"] not in built:
-            scene, gt = SCENES[r["scene"]]()
-            box = tuple(np.asarray(b, np.float64) for b in scene.info["roi"]) if "roi" in scene.info else None
-            built[r["scene"]] = (scene, gt if gt is not None else scene.gt_mesh, box)
+            built[r["scene"]] = _build(r["scene"])
         scene, gt, box = built[r["scene"]]
         mesh = trimesh.load(path, process=False)
         mesh = mesh if box is None else clip_to_box(mesh, *box)
@@ -637,10 +642,7 @@ def main(argv=None) -> int:
         todo = [(v, sd) for sd in (args.seeds or [None]) for v in args.variants if (name, v, sd) not in done]
         if not todo:
             continue
-        built = SCENES[name]()
-        scene, gt = built
-        box = tuple(np.asarray(b, np.float64) for b in scene.info["roi"]) if "roi" in scene.info else None
-        gt = gt if gt is not None else scene.gt_mesh
+        scene, gt, box = _build(name)
         for v, sd in todo:
             sets = args.set if sd is None else [*args.set, f"runtime.seed={sd}"]
             out_dir = run_dir if sd is None else os.path.join(run_dir, f"seed{sd}")

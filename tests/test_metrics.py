@@ -334,3 +334,5 @@ def test_observed_chamfer_argument_errors():
         metrics.observed_chamfer(cube, cube, _top_cameras(), min_views=3)
     with pytest.raises(ValueError, match="tolerance"):
         metrics.view_counts(np.zeros((1, 3)), cube, _top_cameras(), tolerance=0.0)
+    with pytest.raises(ValueError, match="tolerance"):
+        metrics.observed_chamfer(cube, cube, _top_cameras(), tolerance=float("nan"))

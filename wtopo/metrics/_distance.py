@@ -8,14 +8,13 @@ density's bias of a plain point-to-point Chamfer.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from ._surface import _DEFAULT_SAMPLES, _check_samples, _Surface
+from ._surface import _DEFAULT_SAMPLES, _check_samples, _check_tau, _Surface
 
 
 @dataclass
@@ -109,9 +108,7 @@ class FScore:
 def f_score(a, b, tau: float, *, n_samples: int = _DEFAULT_SAMPLES, seed: int = 0) -> FScore:
     """F-score of reconstruction ``a`` against reference ``b`` at distance ``tau`` (same units as
     the meshes; e.g. ``0.005 * diagonal``). Sampling as in :func:`chamfer`."""
-    t = float(tau)
-    if not (math.isfinite(t) and t > 0):
-        raise ValueError(f"tau must be finite and > 0, got {tau!r}")
+    t = _check_tau(tau)
     n = _check_samples(n_samples)
     sa, sb = _Surface("a", a, n, seed), _Surface("b", b, n, seed + 1)
     p = float((sb.closest(sa.points)[0] <= t).mean())

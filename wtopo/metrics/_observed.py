@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ._distance import ChamferResult, _chamfer_result
-from ._surface import _DEFAULT_SAMPLES, _check_samples, _Surface
+from ._surface import _DEFAULT_SAMPLES, _check_positive, _check_samples, _Surface
 
 
 @dataclass
@@ -52,10 +52,12 @@ def view_counts(points: np.ndarray, mesh, cameras, *, tolerance: float) -> np.nd
         cameras: a sequence of :class:`wtopo.Camera`.
         tolerance: > 0, world units.
     """
-    if not (np.isfinite(tolerance) and tolerance > 0):
-        raise ValueError(f"tolerance must be finite and > 0, got {tolerance!r}")
-    s = _Surface("mesh", mesh, 0, 0)
-    p = np.asarray(points, dtype=np.float64)
+    tol = _check_positive(tolerance, "tolerance")
+    return _view_counts(np.asarray(points, dtype=np.float64), _Surface("mesh", mesh, 0, 0), cameras, tol)
+
+
+def _view_counts(p: np.ndarray, s: _Surface, cameras, tolerance: float) -> np.ndarray:
+    """:func:`view_counts` against a built surface ``s`` (its Embree scene reused), ``tolerance`` checked."""
     count = np.zeros(len(p), dtype=np.int64)
     for cam in cameras:
         uv, z = cam.project(p)
@@ -99,9 +101,10 @@ def observed_chamfer(a, b, cameras, *, min_views: int = 2, tolerance: float | No
     if not cameras:
         raise ValueError("cameras must hold at least one camera, got none")
     n = _check_samples(n_samples)
+    tol = None if tolerance is None else _check_positive(tolerance, "tolerance")
     sa, sb = _Surface("a", a, n, seed), _Surface("b", b, n, seed + 1)
-    tol = 1e-3 * sb.bbox_diag if tolerance is None else float(tolerance)
-    views = view_counts(sb.points, (sb.v, sb.f), cameras, tolerance=tol)
+    tol = 1e-3 * sb.bbox_diag if tol is None else tol
+    views = _view_counts(sb.points, sb, cameras, tol)
     obs = views >= int(min_views)
     if not obs.any():
         raise ValueError(f"no sample of the reference is seen by {min_views} of the {len(cameras)} cameras")

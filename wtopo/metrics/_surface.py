@@ -155,8 +155,12 @@ def _n_faces(name: str, mesh) -> int:
     return len(_mesh_arrays(name, mesh)[1])
 
 
-def _check_tau(tau) -> float:
-    t = float(tau)
+def _check_positive(value, name: str) -> float:
+    t = float(value)
     if not (math.isfinite(t) and t > 0):
-        raise ValueError(f"tau must be finite and > 0, got {tau!r}")
+        raise ValueError(f"{name} must be finite and > 0, got {value!r}")
     return t
+
+
+def _check_tau(tau) -> float:
+    return _check_positive(tau, "tau")
