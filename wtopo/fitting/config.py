@@ -426,6 +426,10 @@ class MeshConfig:
     default mesh-depth weight 0.5 it moves nothing (the surfels do not follow); at 0.3 with
     ``losses.mesh_depth=3`` the loop lowers the 7 objects' mean Chamfer by 4.0 % against no loop (the
     default loop: 2.9 %; the blob and the torus gain 24 % and 9 %) but the mug loses 9 %: not a default."""
+    curvature_compensation: bool = False
+    """Move each proxy vertex along its normal by ``(sigma^2 + 1/6) h^2 (H - H_mean)`` (at most half a
+    cell ``h``): the shift by which the smoothed Poisson indicator and its level put curved parts
+    inside and flat parts outside the points (:mod:`wtopo.fitting.curvature`)."""
     support_voxels: float = _f(0.0, RATE)
     """Proxy faces whose centroid lies farther than this many Poisson grid cells, plus twice the
     larger scale of the nearest surfel, from every surfel centre of opacity >= 0.1 are unsupported:

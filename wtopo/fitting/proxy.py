@@ -16,6 +16,7 @@ import torch
 from .._profile import section
 from ..raycast import MeshRaycaster, MeshRender
 from .config import MeshConfig
+from .curvature import curvature_offset
 from .silhouette import SilhouetteOffset, vertex_normals
 from .surfels import Surfels
 
@@ -140,6 +141,9 @@ class ProxyMesh:
         if faces.shape[0] == 0:
             return None
         verts = self._from_box(verts)
+        if c.curvature_compensation:  # undo the smoothing's curvature shift (a discrete offset: same gradient)
+            h = self.size * (1.0 + 2.0 * c.padding) / (int(c.resolution) - 1)
+            verts = verts + curvature_offset(verts, faces, (c.sigma ** 2 + 1.0 / 6.0) * h * h, 0.5 * h).to(verts)
         if self.silhouette is not None:
             verts = verts + self.silhouette.value * vertex_normals(verts, faces)
         return ProxyResult(verts, faces)
