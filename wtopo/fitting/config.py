@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 from ..rasterize import FILTER_SIGMA_RANGE
 from .config_fields import Leaf, leaves, set_field
 from .config_kinds import (
+    _GRID_MIN,
+    _POISSON_MAX,
     COUNT,
     FRACTION,
     OPEN_UNIT,
@@ -35,6 +37,7 @@ from .config_kinds import (
     TSDFBackend,
     _f,
 )
+from .config_loop import LossConfig, MeshConfig
 from .scene_kind import SceneKind
 
 __all__ = [
@@ -64,9 +67,7 @@ __all__ = [
     "set_field",
 ]
 
-_GRID_MIN = 8  # coarser Poisson / TSDF grids cannot resolve any shape
 _TSDF_MAX = 2048  # Open3D's TSDF volume is sparse, the Warp one fused in slabs: 2048 per side stays in memory
-_POISSON_MAX = 1024  # the Poisson grid is dense (FFT): 1024^3 complex nodes already take 8 GiB per buffer
 _SEED_MAX = 2**32 - 1  # NumPy's default_rng and torch.manual_seed (times 1_000_003) both accept this range
 _SH_MAX = 3  # the renderer evaluates SH bands 0..3
 
@@ -257,185 +258,6 @@ class DensifyConfig:
     (:meth:`~wtopo.fitting.proxy.ProxyMesh.near_surfels`); 0 (before): faces that are no surfel's
     nearest face, which counts every face beyond the surfel count as a hole (the proxy has more
     faces than there are surfels, and the 2,000 cap is hit at every refresh)."""
-
-
-@dataclass(kw_only=True)
-class LossConfig:
-    """Loss weights."""
-
-    mask: float | None = _f(None, RATE)
-    """Alpha-vs-mask binary cross-entropy weight; ``None``: plan (0.2 when the scene has masks)."""
-    normal: float = _f(0.05, RATE)
-    """Rendered normal vs depth-derived normal."""
-    normal_start_fraction: float = _f(0.5, FRACTION)
-    """The normal term is on from this fraction of the warm-up (:func:`stage_iteration`; 2DGS starts it
-    late)."""
-    distortion: float = _f(100.0, RATE)
-    """Depth distortion."""
-    distortion_start_fraction: float = _f(0.5, FRACTION)
-    """The distortion term is on from this fraction of the warm-up (:func:`stage_iteration`)."""
-    scale: float = _f(0.01, RATE)
-    """Scale regulariser (anisotropy penalty for 2-scale surfels, shortest-axis for 3)."""
-    mesh_depth: float = _f(3.0, RATE)
-    """Mesh-depth agreement (co-evolution). 3 with ``mesh_depth_debias`` (was 0.5 without): on the
-    hard suite (7 objects x 2 seeds, CPU; ``benchmarks/hard.md``, ``cpu_mesh_depth``) the loop's
-    gain against no loop goes from 2.8 % to 5.0 % of the mean Chamfer, every object better (torus
-    -9 %, blob -9 %, chair_box -0.2 %); at 10 the torus gains 22 % but the chair's thin parts swell
-    and chair_box loses 13 %."""
-    mesh_normal: float = _f(0.05, RATE)
-    """Mesh-normal agreement (co-evolution)."""
-    mesh_start_fraction: float = _f(0.0, FRACTION)
-    """The mesh terms are on from this fraction of the co-evolution (:func:`stage_iteration`); the
-    proxy still guides signs and density from its first iteration. 0: from the first iteration,
-    where their gradient peaks (the method waits 500 of its iterations). 0.25 won on the hard suite's
-    screening subset (mean Chamfer 0.614 -> 0.612 %) and lost on the whole suite (0.516 -> 0.518 %:
-    bowl, mug, blob_flat worse), so it is off (``benchmarks/hard.md``)."""
-    depth_form: DepthLoss = DepthLoss.LOG_RATIO
-    """Form of the mesh-depth term."""
-    mesh_depth_debias: bool = True
-    """The mesh-depth term ignores each view's median offset between the surfels' and the proxy's
-    depth (:func:`~wtopo.fitting.losses.mesh_depth_loss` ``debias``): the proxy passes on its shape
-    (closed holes, no floaters) but not the inward shift its Poisson smoothing gives convex objects.
-    Hard suite mean Chamfer 0.439 -> 0.437 % at weight 0.5, 0.431 -> 0.429 % at weight 3."""
-    mesh_depth_robust: float = _f(0.0, RATE)
-    """Cauchy scale of the mesh-depth term in Poisson grid cells of the proxy
-    (:func:`~wtopo.fitting.losses.mesh_depth_loss` ``robust``): pixels where the surfels and the
-    proxy disagree by more than this pull less and less (a thin part the proxy's smoothing swelled);
-    0: the plain absolute value (the default). Hard suite, 7 objects x 2 seeds (``benchmarks/hard.md``,
-    ``cpu_robust``): the loop's gain against no loop falls from 5.0 % to 4.3 % at scale 1 (chair_box
-    better, the torus and the blob 2-3 % worse) and to 4.3 % at scale 1 with weight 5 (bowl and mug
-    worse): the large disagreements it discounts are the ones that help the smooth objects."""
-    mesh_depth_robust_behind: bool = False
-    """With ``mesh_depth_robust``: the Cauchy form only where the surfels lie behind the proxy (its pull
-    towards the camera, which swells a thin part the proxy's smoothing thickened); where they lie in front
-    (floaters, bumps) the plain term pulls in full, and disagreements under the scale pull as before
-    (:func:`~wtopo.fitting.losses.mesh_depth_loss` ``robust_behind``). Off: on the ten-view scenes on the
-    CUDA budget (``benchmarks/hard.md`` ``gpu_sparse3``) it left the chair 8-12 % worse than no loop, where
-    the two-sided form at 3 cells brought it within 2 %: the chair's loss is on the other side (surfels in
-    front of a proxy that lost its thin parts), which is also where the floaters the loop should pull in
-    lie."""
-    mesh_depth_behind: float = _f(1.0, FRACTION)
-    """Weight of the mesh-depth term on pixels where the surfels lie behind the proxy after the
-    debias (:func:`~wtopo.fitting.losses.mesh_depth_loss` ``behind``): there the proxy pulls them
-    towards the camera, which is what swells a thin part the Poisson smoothing thickened and lifts a
-    concavity's floor towards the lid the proxy puts over it; pixels where the surfels lie in front
-    (floaters, bumps) keep the full weight. 1: symmetric (the default). At 0.3 every object of the hard
-    suite got worse (CPU, ``benchmarks/hard.md`` ``cpu_behind03``: mean Chamfer +6.8 %, torus +12 %, bowl
-    +11 %): the loop pays at the CPU by pulling the surface outwards against the fit's shrink."""
-    mesh_photo_gate: float = _f(0.0, RATE)
-    """The mesh terms leave out the pixels where the surfels' depth and the proxy's differ by more than
-    this many proxy grid cells and the neighbouring photographs prefer the surfels' depth (their window,
-    through each depth with the surfels' normal, correlates better by 0.1 in ``1 - NCC`` with the same two
-    neighbours: :meth:`~wtopo.fitting.multiview.MultiViewNCC.prefers`): a thin part the proxy's
-    smoothing lost, or a concavity it lidded, is not pulled towards the proxy; where the photographs
-    do not say (no texture, no neighbour, a floater's inconsistent depth) the proxy pulls as before.
-    0 turns the gate off (the default). At 3 cells on the CPU hard suite (``benchmarks/hard.md``
-    ``cpu_photogate3``, 9 scenes x 2 seeds) the mean Chamfer is unchanged (-0.02 %): the chairs gain about
-    1 %, the bowl loses about 1 %. On the device (``gpu_photogate2``) the dense objects at 512 px are
-    unchanged (-14.0 % per case against no loop, the loop -13.7 %) and the ten-view chair's loss to the
-    loop is halved but stays over 2 % on one seed, the ten-view cup worse on one seed: off."""
-    mesh_inset: int = _f(0, COUNT)
-    """The mesh terms skip the pixels within this many pixels of the edge of the pixels they compare
-    (the surfels' coverage where the proxy is hit), eroded by a ``(2 inset + 1)^2`` square: a part
-    narrower than ``2 inset + 1`` pixels in a view (a thin leg the coarse proxy thickens) gets no pull
-    from it there, while a broad surface keeps it away from its rim. 0: every compared pixel (the
-    default). At 2 (CPU, ``benchmarks/hard.md`` ``cpu_inset2``) chair_box gains 1 % and the torus loses
-    6 %: a smooth object's rims carry the proxy's outward pull."""
-    mesh_depth_source: RenderedDepth = RenderedDepth.MEDIAN
-    """Surfel depth compared with the mesh depth (``EXPECTED`` averages in semi-transparent layers
-    behind the surface and drags the proxy inwards: bunny Chamfer 0.281 %
-    against 0.262 % with the median, ``benchmarks/fit.md``)."""
-    multiview: float | None = _f(None, RATE)
-    """Multi-view photometric consistency (:mod:`wtopo.fitting.multiview`, PGSR's patch NCC): each
-    training view's rendered plane at sampled pixels is warped into two neighbouring photographs and
-    scored by ``1 - NCC``; 0 turns it off. ``None``: the plan's (0.15 when the photographs have
-    texture, 0 for shading-only captures; ``benchmarks/hard.md``, ``benchmarks/real.md``)."""
-    multiview_start_fraction: float = _f(0.5, FRACTION)
-    """The multi-view term is on from this fraction of the warm-up (:func:`stage_iteration`)."""
-    multiview_geometric: float = _f(0.0, RATE)
-    """Multi-view geometric consistency (:mod:`wtopo.fitting.geometric`, PGSR's forward-backward
-    reprojection): sampled pixels of each training view are carried by its rendered depth into a
-    neighbouring view and back by that view's rendered depth (rendered without gradient); the loss
-    is the round-trip error in pixels (pixels missing by 1 px or more carry none), from
-    ``multiview_start_fraction`` of the warm-up on. 0 turns it off (the default). Its pixels are
-    ``multiview_pixels``; it needs no texture, so the plan's texture rule for ``multiview`` does not
-    apply to it. At PGSR's weight 0.03 it made every object of the hard suite worse (mean Chamfer
-    0.437 -> 0.491 %, blob and mug +28-29 %; ``benchmarks/hard.md``, ``cpu_geometric``)."""
-    multiview_pixels: int = _f(4096, COUNT)
-    """Reference pixels drawn per iteration for the multi-view term (each a 7 x 7 window)."""
-    silhouette_band: int = _f(0, COUNT)
-    """With masks: pixels within this many pixels of the mask boundary are left out of the
-    photometric and mask terms (0 keeps them). A mask and an image rendered one ray per pixel say
-    nothing sub-pixel about where the boundary lies, while splats pay for every fraction of a pixel
-    of halo there. On the bunny (3 seeds, ``benchmarks/fit.md``) a 2-pixel band lowers Chamfer a
-    little (0.262-0.274 % against 0.272-0.277 %) but costs F-score (0.88 against 0.95) and 1.8 dB
-    of PSNR, so it is off by default."""
-    mask_halo: bool = False
-    """With masks: the mask term's target outside the mask is the opacity the renderer's low-pass
-    draws around centres lying exactly on the silhouette (:func:`~wtopo.fitting.losses.halo_target`:
-    0.44 on the first ring of pixels at ``filter_sigma`` 0.35) instead of 0, and those ring pixels
-    are left out of the photometric term, so neither term pulls the centres inside the silhouette to
-    cancel the halo. Hard suite, one seed (``benchmarks/hard.md``, ``cpu_halo``): it halves the smooth
-    objects' shrink (torus 0.185 -> 0.116 %, inward offset +0.187 -> +0.109; blob 0.343 -> 0.226 %) but
-    fattens the thin, boxy chair (0.129 -> 0.139 %, chair_box 0.130 -> 0.150 %), the mug comes out at
-    0.704 % (0.499 %), the 7 objects' mean is unchanged (0.437 -> 0.439 %) and held-out PSNR drops
-    1.5 dB (the halo the target asks for is not in the photographs): off by default."""
-
-
-@dataclass(kw_only=True)
-class MeshConfig:
-    """The differentiable proxy mesh (oriented points -> Poisson -> marching cubes)."""
-
-    resolution: int | None = _f(None, Range(_GRID_MIN, _POISSON_MAX))
-    """Poisson grid resolution (nodes per side); ``None``: the plan's (CPU 64; CUDA from the pixel
-    footprint, 128-256)."""
-    sigma: float = _f(1.0, RATE)
-    """Spectral smoothing of the Poisson solve, in grid cells (0 = none)."""
-    padding: float = _f(0.1, FRACTION)
-    """Poisson domain padding, fraction of the unit cube."""
-    samples_per_surfel: int = _f(5, (1, 5))
-    """Oriented points per surfel: 1 (centre) or 5 (centre + 4 tangent offsets)."""
-    offset: float = _f(0.5, RATE)
-    """Tangent offset of the extra samples, in surfel sigmas."""
-    offset_weight: float = _f(0.5, RATE)
-    """Weight of the extra samples relative to the centre."""
-    normal_flip: NormalFlip = NormalFlip.MESH
-    """Normal sign rule (mesh | view | random)."""
-    sign_distance: float = _f(3.0, RATE)
-    """Mesh-guided signs: a surfel not made on a mesh triangle takes its nearest proxy face's normal
-    side when that face is closer than this many of the surfel's in-plane sigmas (its larger scale),
-    the cameras' side otherwise; surfels made on a triangle (the TSDF scaffold, a spawn) keep its sign
-    (:func:`~wtopo.fitting.densify.align_normal_signs`). Before: every surfel took the face's side
-    within a fixed 0.02 of the scene extent and the cameras' side elsewhere, which flipped 37 % of the
-    hard suite's ``chair_ground`` scaffold surfels and moved its proxy from 1.1 % to 7.8 % of the
-    diagonal off the truth (``benchmarks/hard.md``)."""
-    opacity_threshold: float = _f(0.0, FRACTION)
-    """Surfels below this opacity do not contribute oriented points."""
-    poisson_box: PoissonBox = PoissonBox.UNIT
-    """Domain of the Poisson solve."""
-    surface_prior: float = _f(0.0, RATE)
-    """Weight of a surface prior splatted from the TSDF mesh into the Poisson input (public code: on)."""
-    silhouette_gain: float = _f(0.0, FRACTION)
-    """Scenes with masks: each co-evolution iteration the proxy's ray-cast silhouette in the training
-    view is compared with the view's mask, and this fraction of the distance by which it lies inside
-    (pixels missed minus pixels covered outside, per boundary pixel, times the footprint at the rim)
-    is added to a running offset that moves the proxy's vertices along their normals (at most two
-    Poisson grid cells; :mod:`wtopo.fitting.silhouette`), so the mesh terms pull the surfels out to
-    the masks (their soft rim covers the masks while their centres sit inside). 0 turns it off (the
-    default). Hard suite, one seed (``benchmarks/hard.md``, ``cpu_silhouette``): at gain 0.1 with the
-    default mesh-depth weight 0.5 it moves nothing (the surfels do not follow); at 0.3 with
-    ``losses.mesh_depth=3`` the loop lowers the 7 objects' mean Chamfer by 4.0 % against no loop (the
-    default loop: 2.9 %; the blob and the torus gain 24 % and 9 %) but the mug loses 9 %: not a default."""
-    curvature_compensation: bool = False
-    """Move each proxy vertex along its normal by ``(sigma^2 + 1/6) h^2 (H - H_mean)`` (at most half a
-    cell ``h``): the shift by which the smoothed Poisson indicator and its level put curved parts
-    inside and flat parts outside the points (:mod:`wtopo.fitting.curvature`)."""
-    support_voxels: float = _f(0.0, RATE)
-    """Proxy faces whose centroid lies farther than this many Poisson grid cells, plus twice the
-    larger scale of the nearest surfel, from every surfel centre of opacity >= 0.1 are unsupported:
-    surface the Poisson solve closes over where no surfel is (the far side of a cut-open floor, the
-    inside of an opening). The mesh terms skip the pixels that see them and geometry-aware
-    densification spawns nothing on them. 0: every face is supported."""
 
 
 @dataclass(kw_only=True)

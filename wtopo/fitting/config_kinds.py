@@ -131,3 +131,7 @@ class TSDFBackend(str, enum.Enum):
     """The Warp kernel (:func:`wtopo.tsdf_fusion.fuse_tsdf`) on the fit's device, CPU or CUDA."""
     OPEN3D = "open3d"
     """Open3D's sparse ``ScalableTSDFVolume`` on the CPU."""
+
+
+_GRID_MIN = 8  # coarser Poisson / TSDF grids cannot resolve any shape
+_POISSON_MAX = 1024  # the Poisson grid is dense (FFT): 1024^3 complex nodes already take 8 GiB per buffer
