@@ -104,6 +104,21 @@ def test_compensation_brings_a_box_proxy_closer_to_the_box():
     assert after < 0.75 * before  # measured 0.13 cells
 
 
+def test_degenerate_faces_give_finite_curvature_in_float32():
+    """Marching cubes can emit faces with a repeated vertex or zero area: the per-face 3 x 3 solve must
+    not fail (it did in float32 on the CPU) and must not return NaN."""
+    s = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    v = torch.as_tensor(s.vertices, dtype=torch.float32)
+    f = torch.as_tensor(s.faces, dtype=torch.int32)
+    bad = torch.tensor([[0, 0, 1], [2, 2, 2], [3, 4, 3]], dtype=torch.int32)  # collapsed faces
+    v2 = torch.cat([v, v[:1]])  # and a duplicated vertex used by a zero-area face
+    f2 = torch.cat([f, bad, torch.tensor([[0, v.shape[0], 5]], dtype=torch.int32)])
+    h, h_mean = mean_curvature(v2, f2)
+    assert h.dtype == torch.float32 and bool(torch.isfinite(h).all()) and bool(torch.isfinite(h_mean))
+    np.testing.assert_allclose(h[: v.shape[0]].numpy(), 2.0, rtol=0.15)
+    assert bool(torch.isfinite(curvature_offset(v2, f2, 1e-4, 1e-2)).all())
+
+
 def test_offset_is_clamped_and_arguments_are_checked():
     m = trimesh.creation.torus(major_radius=_R, minor_radius=_r, major_sections=64, minor_sections=32)
     v, f = torch.as_tensor(m.vertices), torch.as_tensor(m.faces, dtype=torch.int32)

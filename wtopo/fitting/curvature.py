@@ -46,7 +46,7 @@ def mean_curvature(verts: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tens
         ``(H [V], H_mean [])`` in 1 / (the vertices' units), dtype of ``verts``; a vertex of no face
         gets 0. Discrete: no gradient.
     """
-    v = verts.detach()
+    v = verts.detach().double()  # the 3 x 3 solves in float64: a float32 ridge vanishes next to a large face
     f = faces.long()
     if f.shape[0] == 0:
         return torch.zeros(v.shape[0], dtype=v.dtype, device=v.device), torch.zeros((), dtype=v.dtype, device=v.device)
@@ -66,16 +66,17 @@ def mean_curvature(verts: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tens
     a = torch.stack(rows, 1)  # [F, 6, 3]: II = [[x0, x1], [x1, x2]] applied to the edges
     b = torch.stack(rhs, 1)  # [F, 6]
     ata = a.transpose(1, 2) @ a
-    ridge = 1e-9 * ata.diagonal(dim1=1, dim2=2).sum(-1) + 1e-30  # a degenerate face solves to ~0, not NaN
+    ridge = 1e-9 * ata.diagonal(dim1=1, dim2=2).sum(-1) + 1e-300  # a degenerate face solves to ~0
     ata = ata + ridge[:, None, None] * torch.eye(3, dtype=v.dtype, device=v.device)
-    x = torch.linalg.solve(ata, (a.transpose(1, 2) @ b[..., None]))[..., 0]
+    x = torch.linalg.solve_ex(ata, a.transpose(1, 2) @ b[..., None])[0][..., 0]
+    x = torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)  # a collapsed face: no curvature, not NaN
     h_face = 0.5 * (x[:, 0] + x[:, 2])
     total = area.sum()
     h_mean = (h_face * area).sum() / total.clamp_min(1e-30)
     idx = f.reshape(-1)
     weight = torch.zeros(v.shape[0], dtype=v.dtype, device=v.device).index_add_(0, idx, area.repeat_interleave(3))
     h_vert = torch.zeros_like(weight).index_add_(0, idx, (h_face * area).repeat_interleave(3))
-    return h_vert / weight.clamp_min(1e-30), h_mean
+    return (h_vert / weight.clamp_min(1e-30)).to(verts.dtype), h_mean.to(verts.dtype)
 
 
 def curvature_offset(verts: torch.Tensor, faces: torch.Tensor, variance: float, limit: float) -> torch.Tensor:
