@@ -46,11 +46,17 @@ def mean_curvature(verts: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tens
         ``(H [V], H_mean [])`` in 1 / (the vertices' units), dtype of ``verts``; a vertex of no face
         gets 0. Discrete: no gradient.
     """
+    h_vert, h_mean, _ = _curvature(verts, faces)
+    return h_vert.to(verts.dtype), h_mean.to(verts.dtype)
+
+
+def _curvature(verts: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`mean_curvature` in float64, with the unit vertex normals [V, 3] it was computed from."""
     v = verts.detach().double()  # the 3 x 3 solves in float64: a float32 ridge vanishes next to a large face
     f = faces.long()
-    if f.shape[0] == 0:
-        return torch.zeros(v.shape[0], dtype=v.dtype, device=v.device), torch.zeros((), dtype=v.dtype, device=v.device)
     vn = vertex_normals(v, faces)
+    if f.shape[0] == 0:
+        return v.new_zeros(v.shape[0]), v.new_zeros(()), vn
     fn, area = face_normals(v, faces)
     e0 = v[f[:, 1]] - v[f[:, 0]]
     u = e0 / e0.norm(dim=-1, keepdim=True).clamp_min(1e-30)
@@ -71,12 +77,11 @@ def mean_curvature(verts: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tens
     x = torch.linalg.solve_ex(ata, a.transpose(1, 2) @ b[..., None])[0][..., 0]
     x = torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)  # a collapsed face: no curvature, not NaN
     h_face = 0.5 * (x[:, 0] + x[:, 2])
-    total = area.sum()
-    h_mean = (h_face * area).sum() / total.clamp_min(1e-30)
+    h_mean = (h_face * area).sum() / area.sum().clamp_min(1e-30)
     idx = f.reshape(-1)
     weight = torch.zeros(v.shape[0], dtype=v.dtype, device=v.device).index_add_(0, idx, area.repeat_interleave(3))
     h_vert = torch.zeros_like(weight).index_add_(0, idx, (h_face * area).repeat_interleave(3))
-    return (h_vert / weight.clamp_min(1e-30)).to(verts.dtype), h_mean.to(verts.dtype)
+    return h_vert / weight.clamp_min(1e-30), h_mean, vn
 
 
 def curvature_offset(verts: torch.Tensor, faces: torch.Tensor, variance: float, limit: float) -> torch.Tensor:
@@ -95,6 +100,6 @@ def curvature_offset(verts: torch.Tensor, faces: torch.Tensor, variance: float, 
     """
     if variance < 0 or limit < 0:
         raise ValueError(f"variance and limit must be >= 0, got variance={variance!r}, limit={limit!r}")
-    h_vert, h_mean = mean_curvature(verts, faces)
+    h_vert, h_mean, normals = _curvature(verts, faces)
     shift = (variance * (h_vert - h_mean)).clamp(-limit, limit)
-    return shift[:, None] * vertex_normals(verts.detach(), faces)
+    return (shift[:, None] * normals).to(verts.dtype)
