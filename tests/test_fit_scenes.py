@@ -61,13 +61,47 @@ def test_plan_budget_follows_the_device(room):
     """Give CUDA a larger budget than the CPU; honour an explicit image scale."""
     cpu = make_plan(room.normalized(), FitConfig(), torch.device("cpu"))
     gpu = make_plan(room.normalized(), FitConfig(), torch.device("cuda"))
-    for k in ("warmup_iterations", "coevolution_iterations", "max_surfels", "proxy_resolution", "reinit_faces"):
+    for k in ("warmup_iterations", "coevolution_iterations", "max_surfels", "proxy_resolution"):
         assert gpu[k] > cpu[k], k
+    assert gpu["reinit_faces"] >= cpu["reinit_faces"]  # the same footprint rule, a larger cap
     assert gpu["reinit_faces"] < gpu["max_surfels"]  # room to densify after the re-initialisation
     cfg = FitConfig()
     cfg.runtime.image_scale = 0.5
     p = make_plan(room.normalized(), cfg, torch.device("cpu"))
     assert p["image_scale"] == 0.5 and p.decisions["image_scale"].overridden
+
+
+def test_reinit_faces_follow_the_pixel_footprint():
+    """Put about one re-initialisation face per 4 squared pixel footprints of the region's box surface on
+    CUDA: 2x the image side gives about 4x the faces between the CPU default's count and the cap; the
+    CPU keeps its count; a user's count wins."""
+    import re
+
+    from wtopo.fitting.plan import _REINIT_DENSITY, _REINIT_FACES, _REINIT_MIN
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+
+    def plan(res, device="cuda", cfg=None):  # the plan only reads the device's kind
+        return make_plan(scenes.from_mesh(mesh, n_views=6, resolution=res).normalized(), cfg or FitConfig(),
+                         torch.device(device))
+
+    faces, box = {}, {}
+    for res in (64, 128):
+        p = plan(res)
+        faces[res] = p["reinit_faces"]
+        box[res] = float(re.search(r"\((\d+) footprint", p.decisions["reinit_faces"].reason).group(1))
+        assert faces[res] == int(np.clip(round(_REINIT_DENSITY * box[res]), _REINIT_MIN, _REINIT_FACES["cuda"]))
+    assert _REINIT_MIN < faces[64] < faces[128] < _REINIT_FACES["cuda"]  # the rule, not a bound, decided both
+    # a footprint 2x smaller; the region of interest is found from the images, a little looser at 64 px
+    assert box[128] / box[64] == pytest.approx(4.0, rel=0.1)
+    assert faces[128] / faces[64] == pytest.approx(box[128] / box[64], rel=0.01)
+    assert plan(24)["reinit_faces"] == _REINIT_MIN  # a small image: the floor
+    assert plan(512)["reinit_faces"] == _REINIT_FACES["cuda"]  # capped
+    assert plan(24, "cpu")["reinit_faces"] == plan(512, "cpu")["reinit_faces"] == _REINIT_FACES["cpu"]
+    cfg = FitConfig()
+    cfg.tsdf.max_faces = 1234
+    p = plan(64, cfg=cfg)
+    assert p["reinit_faces"] == 1234 and p.decisions["reinit_faces"].overridden
 
 
 @pytest.mark.slow

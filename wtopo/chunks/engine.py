@@ -113,7 +113,7 @@ def chunk_fit_config(cfg, device: str, share: float, space: float = 1.0, budget:
     dev = "cuda" if device.startswith("cuda") else "cpu"
     if space < 1.0:
         cap = cfg.runtime.max_surfels or _MAX_SURFELS[dev]
-        faces = cfg.tsdf.max_faces or (_REINIT_FACES if dev == "cpu" else _MAX_SURFELS[dev] // 4)
+        faces = cfg.tsdf.max_faces or _REINIT_FACES[dev]
         c.runtime.max_surfels = max(1, round(space * cap))
         c.tsdf.max_faces = max(1, round(space * faces))
         c.init.num_points = max(1, round(space * cfg.init.num_points))

@@ -155,7 +155,9 @@ class TSDFConfig:
     """Pixels whose rendered opacity is below this are not fused."""
     max_faces: int | None = _f(None, POSITIVE)
     """The re-initialisation mesh is decimated to at most this many faces (one surfel each);
-    ``None``: the plan's (CPU 8,000; CUDA a quarter of the surfel cap)."""
+    ``None``: the plan's, from the pixel footprint: 0.25 faces per squared footprint of the region of
+    interest's box surface (each surfel starts about a footprint across), between 8,000 and the device's
+    cap (CPU 8,000; CUDA a quarter of the surfel cap; ``benchmarks/hard.md``, ``gpu_reinit_rule``)."""
     backend: TSDFBackend = TSDFBackend.AUTO
     """Fusion of the re-initialisation and the final TSDF mesh: ``AUTO`` (the plan's: Warp on CUDA,
     Open3D on the CPU), ``WARP`` or ``OPEN3D``."""

@@ -38,7 +38,18 @@ _ITERATIONS = {"cpu": (400, 200), "cuda": (3000, 1000)}
 _CPU_FIT_PIXELS = 250_000
 _CPU_RENDER_PIXELS = 24_000_000
 _MAX_SURFELS = {"cpu": 40_000, "cuda": 400_000}
-_REINIT_FACES = 8000  # CPU: faces of the TSDF re-initialisation mesh (one surfel each)
+# Faces of the TSDF re-initialisation mesh (one surfel each): _REINIT_DENSITY faces per squared pixel
+# footprint of the region of interest's box surface (about one surfel per 2-4 footprint^2 of an object's
+# surface: a disc about a footprint across), never fewer than the CPU default's _REINIT_MIN and at most
+# the device's cap. CUDA used its cap whatever the image size: at 128 px that puts sub-pixel surfels on
+# the surface and the mesh terms then swell parts a few pixels thick (100,000 faces left the chair 17-20 %
+# worse with the loop than without). With this rule no scene of the hard suite is worse with the loop
+# there (per case -9.6 %); the loop's Chamfer falls 29-37 % on the chairs and rises 19-21 % on the torus,
+# which the dense start served (benchmarks/hard.md, gpu_reinit_rule). The CPU keeps 8,000; at 512 px
+# CUDA keeps its cap.
+_REINIT_DENSITY = 0.25
+_REINIT_MIN = 8000
+_REINIT_FACES = {"cpu": 8000, "cuda": _MAX_SURFELS["cuda"] // 4}  # caps (CUDA: room to densify)
 _PROXY_GRID = {"cpu": (64, 64), "cuda": (128, 256)}  # (min, max) Poisson nodes per side
 _FINAL_GRID = {"cpu": (96, 192), "cuda": (192, 768)}  # (min, max) TSDF voxels along the fusion box
 _PROXY_FOOTPRINTS = 2.0  # proxy grid cell ~ 2 pixel footprints (a finer Poisson grid only adds noise)
@@ -360,11 +371,16 @@ def _budget(plan: Plan, scene, cfg: FitConfig, device: torch.device, layout, ima
     plan.set("warmup_iterations", warm, why, cfg.warmup.iterations)
     plan.set("coevolution_iterations", coevo, why, cfg.coevolution.iterations)
     plan.set("max_surfels", _MAX_SURFELS[dev], f"{dev} budget", cfg.runtime.max_surfels)
-    faces = _REINIT_FACES if dev == "cpu" else _MAX_SURFELS[dev] // 4
-    plan.set("reinit_faces", faces, f"{dev} budget: one surfel per face of the re-initialisation mesh"
-             + ("" if dev == "cpu" else ", a quarter of the surfel cap (room to densify)"), cfg.tsdf.max_faces)
     fp = _footprint(scene, layout, image_scale)
-    side = float(np.max(layout.roi_upper - layout.roi_lower))
+    ext = np.asarray(layout.roi_upper, dtype=np.float64) - np.asarray(layout.roi_lower, dtype=np.float64)
+    side = float(np.max(ext))
+    box = 2.0 * float(ext[0] * ext[1] + ext[1] * ext[2] + ext[2] * ext[0]) / fp ** 2  # in footprint^2
+    cap = _REINIT_FACES[dev]
+    faces = int(np.clip(round(_REINIT_DENSITY * box), min(_REINIT_MIN, cap), cap))
+    plan.set("reinit_faces", faces,
+             f"one surfel per face: {_REINIT_DENSITY:g} per footprint^2 of the region of interest's box surface "
+             f"({box:.0f} footprint^2; surfels about a pixel footprint across), {min(_REINIT_MIN, cap)}-{cap} on {dev}",
+             cfg.tsdf.max_faces)
     lo, hi = _PROXY_GRID[dev]
     proxy = int(np.clip(16 * round(1.0 / (_PROXY_FOOTPRINTS * fp) / 16), lo, hi))  # Poisson spans the unit cube
     plan.set("proxy_resolution", proxy,
