@@ -376,10 +376,13 @@ def _budget(plan: Plan, scene, cfg: FitConfig, device: torch.device, layout, ima
     side = float(np.max(ext))
     box = 2.0 * float(ext[0] * ext[1] + ext[1] * ext[2] + ext[2] * ext[0]) / fp ** 2  # in footprint^2
     cap = _REINIT_FACES[dev]
-    faces = int(np.clip(round(_REINIT_DENSITY * box), min(_REINIT_MIN, cap), cap))
+    lo = min(_REINIT_MIN, cap)
+    rule = int(round(_REINIT_DENSITY * box))
+    faces = int(np.clip(rule, lo, cap))
+    within = f"{cap} on {dev}" if lo == cap else f"within {lo}-{cap} on {dev}"
     plan.set("reinit_faces", faces,
-             f"one surfel per face: {_REINIT_DENSITY:g} per footprint^2 of the region of interest's box surface "
-             f"({box:.0f} footprint^2; surfels about a pixel footprint across), {min(_REINIT_MIN, cap)}-{cap} on {dev}",
+             f"one surfel per face: {_REINIT_DENSITY:g} per squared pixel footprint of the region of interest's box "
+             f"surface ({box:.0f} footprint^2; each surfel about a footprint across) gives {rule}, kept {within}",
              cfg.tsdf.max_faces)
     lo, hi = _PROXY_GRID[dev]
     proxy = int(np.clip(16 * round(1.0 / (_PROXY_FOOTPRINTS * fp) / 16), lo, hi))  # Poisson spans the unit cube
