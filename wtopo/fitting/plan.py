@@ -44,9 +44,9 @@ _MAX_SURFELS = {"cpu": 40_000, "cuda": 400_000}
 # the device's cap. CUDA used its cap whatever the image size: at 128 px that puts sub-pixel surfels on
 # the surface and the mesh terms then swell parts a few pixels thick (100,000 faces left the chair 17-20 %
 # worse with the loop than without). With this rule no scene of the hard suite is worse with the loop
-# there (per case -9.6 %); the loop's Chamfer falls 29-37 % on the chairs and rises 19-21 % on the torus,
-# which the dense start served (benchmarks/hard.md, gpu_reinit_rule). The CPU keeps 8,000; at 512 px
-# CUDA keeps its cap.
+# there (per case -9.6 %); the loop's Chamfer falls 29-37 % on the chairs and rises 13-21 % on the rounded
+# shapes the dense start served (torus, held-out bunny and sphere rig; benchmarks/hard.md gpu_reinit_rule,
+# heldout_reinit_rule). The CPU keeps 8,000; at 512 px CUDA keeps its cap.
 _REINIT_DENSITY = 0.25
 _REINIT_MIN = 8000
 _REINIT_FACES = {"cpu": 8000, "cuda": _MAX_SURFELS["cuda"] // 4}  # caps (CUDA: room to densify)
