@@ -49,7 +49,7 @@ _MAX_SURFELS = {"cpu": 40_000, "cuda": 400_000}
 # heldout_reinit_rule). The CPU keeps 8,000; at 512 px CUDA keeps its cap.
 _REINIT_DENSITY = 0.25
 _REINIT_MIN = 8000
-_REINIT_FACES = {"cpu": 8000, "cuda": _MAX_SURFELS["cuda"] // 4}  # caps (CUDA: room to densify)
+_REINIT_FACES = {"cpu": _REINIT_MIN, "cuda": _MAX_SURFELS["cuda"] // 4}  # caps (CUDA: room to densify)
 _PROXY_GRID = {"cpu": (64, 64), "cuda": (128, 256)}  # (min, max) Poisson nodes per side
 _FINAL_GRID = {"cpu": (96, 192), "cuda": (192, 768)}  # (min, max) TSDF voxels along the fusion box
 _PROXY_FOOTPRINTS = 2.0  # proxy grid cell ~ 2 pixel footprints (a finer Poisson grid only adds noise)
@@ -376,10 +376,10 @@ def _budget(plan: Plan, scene, cfg: FitConfig, device: torch.device, layout, ima
     side = float(np.max(ext))
     box = 2.0 * float(ext[0] * ext[1] + ext[1] * ext[2] + ext[2] * ext[0]) / fp ** 2  # in footprint^2
     cap = _REINIT_FACES[dev]
-    lo = min(_REINIT_MIN, cap)
+    floor = min(_REINIT_MIN, cap)
     rule = int(round(_REINIT_DENSITY * box))
-    faces = int(np.clip(rule, lo, cap))
-    within = f"{cap} on {dev}" if lo == cap else f"within {lo}-{cap} on {dev}"
+    faces = int(np.clip(rule, floor, cap))
+    within = f"{cap} on {dev}" if floor == cap else f"within {floor}-{cap} on {dev}"
     plan.set("reinit_faces", faces,
              f"one surfel per face: {_REINIT_DENSITY:g} per squared pixel footprint of the region of interest's box "
              f"surface ({box:.0f} footprint^2; each surfel about a footprint across) gives {rule}, kept {within}",

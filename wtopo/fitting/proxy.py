@@ -143,7 +143,7 @@ class ProxyMesh:
         verts = self._from_box(verts)
         if c.curvature_compensation:  # undo the smoothing's curvature shift (a discrete offset: same gradient)
             h = self.size * (1.0 + 2.0 * c.padding) / (int(c.resolution) - 1)
-            verts = verts + curvature_offset(verts, faces, (c.sigma ** 2 + 1.0 / 6.0) * h * h, 0.5 * h).to(verts)
+            verts = verts + curvature_offset(verts, faces, (c.sigma ** 2 + 1.0 / 6.0) * h * h, 0.5 * h)
         if self.silhouette is not None:
             verts = verts + self.silhouette.value * vertex_normals(verts, faces)
         return ProxyResult(verts, faces)
