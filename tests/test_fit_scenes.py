@@ -127,7 +127,7 @@ def test_unbounded_scene_has_no_face_near_a_camera_and_reports_psnr(room):
 
 
 def test_cpu_budget_grows_with_the_pixels_to_fit():
-    """Keep 400 + 200 CPU iterations for a masked object; give an unmasked capture of the same views
+    """Keep 800 + 400 CPU iterations for a masked object; give an unmasked capture of the same views
     more (every pixel is to be fitted), proportionally, but never past the CPU's rendered-pixel cap."""
     from wtopo.fitting import plan as P
 
@@ -138,16 +138,17 @@ def test_cpu_budget_grows_with_the_pixels_to_fit():
     bare = wtopo.Scene(obj.cameras, obj.images, train_indices=obj.train_indices, test_indices=obj.test_indices)
     p = make_plan(bare.normalized(), FitConfig(), dev)
     n_train = len(obj.train_indices) if obj.train_indices is not None else len(obj)
-    k = n_train * 128 * 128 / P._CPU_FIT_PIXELS  # below the render cap at 128 px
-    assert k > 1.5 and p["warmup_iterations"] == round(400 * k) and p["coevolution_iterations"] == round(200 * k)
+    warm, coevo = P._ITERATIONS["cpu"]
+    k = min(n_train * 128 * 128 / P._CPU_FIT_PIXELS, P._CPU_RENDER_PIXELS / (warm * 128 * 128))
+    assert k > 1.5 and p["warmup_iterations"] == round(warm * k) and p["coevolution_iterations"] == round(coevo * k)
     assert "training pixels" in p.decisions["warmup_iterations"].reason
     # the same rule outside the plan (chunked fits divide the whole scene's budget), any frame
     assert P.iteration_budget(bare, dev)[:2] == (p["warmup_iterations"], p["coevolution_iterations"])
     cfg = FitConfig()
     cfg.warmup.iterations = 123  # an explicit budget is honoured
     assert make_plan(bare.normalized(), cfg, dev)["warmup_iterations"] == 123
-    # 512 px (trained at 256 on a CPU): 400 views already render past the cap
+    # 512 px (trained at 256 on a CPU): the base warm-up's views already render past the cap
     up = torch.nn.functional.interpolate(obj.images.permute(0, 3, 1, 2), scale_factor=4).permute(0, 2, 3, 1)
     big = wtopo.Scene([c.scaled(4.0) for c in obj.cameras], up, train_indices=obj.train_indices,
                       test_indices=obj.test_indices)
-    assert make_plan(big.normalized(), FitConfig(), dev)["warmup_iterations"] == 400
+    assert make_plan(big.normalized(), FitConfig(), dev)["warmup_iterations"] == warm

@@ -105,7 +105,7 @@ class OptimConfig:
     """Restart the means schedule at the co-evolution: it starts at this fraction of ``means`` (never
     below where the single decay stands there) and decays to ``means_final`` at its last iteration.
     ``0`` (the default): one decay over both stages, so the co-evolution starts at ~7e-5 on the CPU
-    budget (400 + 200) and moves surfels by < 1 pixel; ``1``: the public code's full restart. Hard
+    budget (then 400 + 200) and moves surfels by < 1 pixel; ``1``: the public code's full restart. Hard
     suite with the current mesh-depth default, 7 objects x 2 seeds (``benchmarks/hard.md``,
     ``cpu_restart``): ``1`` removes the bowl's and the blob's shrink (-16 to -26 %) but swells the
     chair, chair_box and mug (+15 to +45 %), and the loop's own gain falls from 5.0 % to 3.5 %.
@@ -399,7 +399,7 @@ def stage_iteration(fraction: float, iterations: int) -> int:
     """The iteration ``fraction`` of the way through a stage of ``iterations`` (nearest; halves round up).
 
     Schedules are fractions of their stage so that one configuration keeps its shape at any budget:
-    with the CPU warm-up of 400 iterations, ``densify.start_fraction = 0.25`` is iteration 100.
+    with the CPU warm-up of 800 iterations, ``densify.start_fraction = 0.25`` is iteration 200.
     """
     return math.floor(fraction * iterations + 0.5)
 
