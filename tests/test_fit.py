@@ -187,6 +187,27 @@ def test_mesh_terms_wait_for_their_start_fraction(tiny):
     assert after.proxy_built and "mesh_depth" in after.losses
 
 
+def test_mesh_terms_stop_at_their_end_fraction(tiny):
+    """With ``losses.mesh_end_fraction`` the mesh terms are off from that point of the co-evolution on,
+    and an end at or before the start is refused before anything runs."""
+    from wtopo.fitting.loop import FitRun
+    from wtopo.fitting.stages import Stage
+    from wtopo.fitting.validate_config import validate_config
+
+    cfg = _config(10, 8)
+    cfg.coevolution.enabled = True
+    cfg.losses.mesh_end_fraction = 0.5  # iteration 10 + 4
+    run = FitRun(tiny, cfg, None, progress=False)
+    run._start()
+    before = run.objective(Stage.COEVOLUTION, 13, 0, run.surfels, run.proxy)
+    after = run.objective(Stage.COEVOLUTION, 14, 0, run.surfels, run.proxy)
+    assert before.proxy_built and "mesh_depth" in before.losses
+    assert not after.proxy_built and "mesh_depth" not in after.losses
+    cfg.losses.mesh_start_fraction = 0.5
+    with pytest.raises(ValueError, match="losses.mesh_end_fraction must be > .*losses.mesh_start_fraction"):
+        validate_config(cfg)
+
+
 def _mesh_depth_terms(scene, field: str, values, **losses) -> tuple[list[torch.Tensor], object]:
     """The co-evolution's mesh-depth term on one fixed state (iteration 12, view 0) for each value of
     ``losses.<field>`` (the other ``losses`` fields given set first), and the run (to read gradients)."""

@@ -54,6 +54,13 @@ class LossConfig:
     where their gradient peaks (the method waits 500 of its iterations). 0.25 won on the hard suite's
     screening subset (mean Chamfer 0.614 -> 0.612 %) and lost on the whole suite (0.516 -> 0.518 %:
     bowl, mug, blob_flat worse), so it is off (``benchmarks/hard.md``)."""
+    mesh_end_fraction: float = _f(1.0, FRACTION)
+    """The mesh terms are off from this fraction of the co-evolution on (:func:`stage_iteration`), so its
+    last part refines the surfels on the photographs alone while the proxy still guides signs and
+    density. 1: on to the end (the default). Must exceed ``mesh_start_fraction``. 0.5 at the CPU budget
+    (800 + 400, 11 cases of the hard suite; ``benchmarks/hard.md``, ``cpu_end05``): every chair case within
+    1 % of no loop (the default loop: up to +4.9 %), but the torus, blob and ten-view torus keep only two
+    thirds of their gain (-4.9 % against no loop on the mean, the default -6.1 %), so it is not the default."""
     depth_form: DepthLoss = DepthLoss.LOG_RATIO
     """Form of the mesh-depth term."""
     mesh_depth_debias: bool = True

@@ -169,7 +169,9 @@ class Objective:
                 L["scale"] = lc.scale * scale_regularizer(s.scales, _MAX_ANISOTROPY)
         terms = Terms(L, out, covered)
         co = self.cfg.coevolution
-        mesh_on = it >= self.warmup_end + stage_iteration(lc.mesh_start_fraction, int(co.iterations or 0))
+        n_co = int(co.iterations or 0)
+        mesh_on = (self.warmup_end + stage_iteration(lc.mesh_start_fraction, n_co) <= it
+                   < self.warmup_end + stage_iteration(lc.mesh_end_fraction, n_co))
         if stage == Stage.COEVOLUTION and co.enabled and mesh_on and (lc.mesh_depth > 0 or lc.mesh_normal > 0):
             with T("proxy"):
                 pm = proxy.build(s)
