@@ -171,18 +171,23 @@ def test_means_restart_saved_as_a_boolean_still_loads():
         validate_config(cfg)
 
 
-def test_mesh_terms_wait_for_their_start_fraction(tiny):
-    """With ``losses.mesh_start_fraction`` the mesh terms are off before that point of the co-evolution."""
+def _mesh_terms_around_iteration_14(scene, **losses):
+    """The co-evolution's objective at iterations 13 and 14 (warm-up 10, co-evolution 8) with ``losses`` set."""
     from wtopo.fitting.loop import FitRun
     from wtopo.fitting.stages import Stage
 
     cfg = _config(10, 8)
     cfg.coevolution.enabled = True
-    cfg.losses.mesh_start_fraction = 0.5  # iteration 10 + 4
-    run = FitRun(tiny, cfg, None, progress=False)
+    for k, v in losses.items():
+        setattr(cfg.losses, k, v)
+    run = FitRun(scene, cfg, None, progress=False)
     run._start()
-    before = run.objective(Stage.COEVOLUTION, 13, 0, run.surfels, run.proxy)
-    after = run.objective(Stage.COEVOLUTION, 14, 0, run.surfels, run.proxy)
+    return [run.objective(Stage.COEVOLUTION, it, 0, run.surfels, run.proxy) for it in (13, 14)]
+
+
+def test_mesh_terms_wait_for_their_start_fraction(tiny):
+    """With ``losses.mesh_start_fraction`` the mesh terms are off before that point of the co-evolution."""
+    before, after = _mesh_terms_around_iteration_14(tiny, mesh_start_fraction=0.5)  # iteration 10 + 4
     assert not before.proxy_built and "mesh_depth" not in before.losses
     assert after.proxy_built and "mesh_depth" in after.losses
 
@@ -190,20 +195,13 @@ def test_mesh_terms_wait_for_their_start_fraction(tiny):
 def test_mesh_terms_stop_at_their_end_fraction(tiny):
     """With ``losses.mesh_end_fraction`` the mesh terms are off from that point of the co-evolution on,
     and an end at or before the start is refused before anything runs."""
-    from wtopo.fitting.loop import FitRun
-    from wtopo.fitting.stages import Stage
     from wtopo.fitting.validate_config import validate_config
 
-    cfg = _config(10, 8)
-    cfg.coevolution.enabled = True
-    cfg.losses.mesh_end_fraction = 0.5  # iteration 10 + 4
-    run = FitRun(tiny, cfg, None, progress=False)
-    run._start()
-    before = run.objective(Stage.COEVOLUTION, 13, 0, run.surfels, run.proxy)
-    after = run.objective(Stage.COEVOLUTION, 14, 0, run.surfels, run.proxy)
+    before, after = _mesh_terms_around_iteration_14(tiny, mesh_end_fraction=0.5)  # iteration 10 + 4
     assert before.proxy_built and "mesh_depth" in before.losses
     assert not after.proxy_built and "mesh_depth" not in after.losses
-    cfg.losses.mesh_start_fraction = 0.5
+    cfg = _config(10, 8)
+    cfg.losses.mesh_start_fraction = cfg.losses.mesh_end_fraction = 0.5
     with pytest.raises(ValueError, match="losses.mesh_end_fraction must be > .*losses.mesh_start_fraction"):
         validate_config(cfg)
 
