@@ -58,9 +58,9 @@ class LossConfig:
     """The mesh terms are off from this fraction of the co-evolution on (:func:`stage_iteration`), so its
     last part refines the surfels on the photographs alone while the proxy still guides signs and
     density. 1: on to the end (the default). Must exceed ``mesh_start_fraction``. 0.5 at the CPU budget
-    (800 + 400, 11 cases of the hard suite; ``benchmarks/hard.md``, ``cpu_end05``): every chair case within
-    1 % of no loop (the default loop: up to +4.9 %), but the torus, blob and ten-view torus keep only two
-    thirds of their gain (-4.9 % against no loop on the mean, the default -6.1 %), so it is not the default."""
+    (800 + 400, 17 cases of the hard suite; ``benchmarks/hard.md``, ``cpu_end05``): every chair case within
+    1 % of no loop (the default loop: up to +4.9 %), but the smooth objects keep only half to two thirds of
+    their gain (-5.4 % against no loop on the mean, the default -7.2 %), so it is not the default."""
     depth_form: DepthLoss = DepthLoss.LOG_RATIO
     """Form of the mesh-depth term."""
     mesh_depth_debias: bool = True
