@@ -72,16 +72,16 @@ COVERAGE_ROWS = (
     (
         "1 surfel parameters",
         "scale 1e-8 / 1e4, needles, quaternion 0 / unnormalised, opacity 0 / 1, N = 0, all culled, duplicates",
-        "`tests/test_rasterize.py` (`tiny_scales_render_through_the_filter`, "
-        "`huge_scales_bounded_intersections`, `intersection_budget_raises`, `quaternion_norm_is_irrelevant`, "
-        "`zero_quaternion_is_identity`, `opacity_one_is_clamped`, `zero_surfels`, `all_culled`, "
-        "`zero_opacity`, `needle_and_duplicates`), `tests/test_oriented_points.py`; fit from surfels at 1e-8:"
-        " `scales_1e-8`",
+        "`tests/test_rasterize_stability.py` (`tiny_scales_render_through_the_filter`, "
+        "`huge_scales_bounded_intersections`, `intersection_budget_raises`, `zero_surfels`, `all_culled`, "
+        "`zero_opacity`, `needle_and_duplicates`), `tests/test_rasterize.py` (`quaternion_norm_is_irrelevant`, "
+        "`zero_quaternion_is_identity`, `opacity_one_is_clamped`), `tests/test_oriented_points.py`; fit from "
+        "surfels at 1e-8: `scales_1e-8`",
     ),
     (
         "2 ray-surfel geometry",
         "parallel / near-parallel rays, edge-on sweep, camera inside, near plane, scene scale, odd sizes",
-        "`tests/test_rasterize.py` (`grazing_*`, `edge_on_sweep_is_continuous`, `camera_inside_surfel`, "
+        "`tests/test_rasterize_stability.py` (`grazing_*`, `edge_on_sweep_is_continuous`, `camera_inside_surfel`, "
         "`straddling_near_plane_skips_pixels`, `scene_scale_invariance`, `odd_image_sizes`); grazing rig "
         "through the fit: `grazing_rig`",
     ),
@@ -135,15 +135,15 @@ COVERAGE_ROWS = (
     (
         "9",
         "repeated backward / reentrancy",
-        "per op: `tests/test_bridge.py`, `test_rasterize.py`, `test_marching_cubes.py`, `test_raycast.py`; "
+        "per op: `tests/test_bridge.py`, `test_rasterize_stability.py`, `test_marching_cubes.py`, `test_raycast.py`; "
         "whole chain: `chain_gradcheck_fp64`, `chain_repeated_backward`, `repeated_backward_frozen_colors`",
     ),
     (
         "9",
         "determinism",
         "`tests/test_scatter_trilinear.py`, "
-        "`tests/test_rasterize.py::test_cpu_worker_count_does_not_change_results`; whole chain and whole fit:"
-        " `chain_determinism`, `fit_determinism`",
+        "`tests/test_rasterize_stability.py::test_cpu_worker_count_does_not_change_results`; "
+        "whole chain and whole fit: `chain_determinism`, `fit_determinism`",
     ),
 )
 """(design/stability.md section, cases, where they are tested); a bare `name` is a case of
