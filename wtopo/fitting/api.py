@@ -82,6 +82,7 @@ def _report(run: FitRun, mesh_world: trimesh.Trimesh, scene) -> dict:
         "device": str(run.device),
         "normalization": {"scale": run.sim.scale, "translation": list(run.sim.translation)},
         "tsdf": run.tsdf_info,
+        "coevolution": run.coevolution_info,
         "config_hash": run.hash,
         "versions": versions(),
         "events": run.events[-50:],

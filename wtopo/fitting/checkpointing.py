@@ -56,7 +56,7 @@ class Checkpointer:
             "proxy": {"box": None if r.proxy.box is None else [np.asarray(b).tolist() for b in r.proxy.box],
                       "prior": r.proxy.prior,
                       "silhouette": None if r.proxy.silhouette is None else float(r.proxy.silhouette.value)},
-            "tsdf_info": r.tsdf_info, "total_failures": r.total_failures,
+            "tsdf_info": r.tsdf_info, "coevolution_info": r.coevolution_info, "total_failures": r.total_failures,
         }
 
     def save(self, *, force: bool = False) -> Path | None:
@@ -108,6 +108,7 @@ class Checkpointer:
         r.timers.total = defaultdict(float, st["timers"])
         r.total_failures = int(st["total_failures"])
         r.tsdf_info = dict(st["tsdf_info"])
+        r.coevolution_info = dict(st.get("coevolution_info", {}))  # absent from checkpoints before the thin-part rule
         set_rng_state(st["rng"])
         r.gen.set_state(st["generator"])
         px = st["proxy"]

@@ -61,6 +61,11 @@ class LossConfig:
     (800 + 400, 17 cases of the hard suite; ``benchmarks/hard.md``, ``cpu_end05``): every chair case within
     1 % of no loop (the default loop: up to +4.9 %), but the smooth objects keep only half to two thirds of
     their gain (-5.4 % against no loop on the mean, the default -7.2 %), so it is not the default."""
+    mesh_thin_limit: float = _f(1.0, FRACTION)
+    """The mesh terms stay off for the whole co-evolution when, at its start, more than this fraction of
+    the proxy's pixels (8 training views) look through a part under ``2 mesh.sigma + 1`` Poisson cells thick
+    (:mod:`~wtopo.fitting.thin_parts`): there the proxy is the splat's blend of a part's two sides. The
+    proxy still guides signs and density. 1: never (the fit still measures and reports the share)."""
     depth_form: DepthLoss = DepthLoss.LOG_RATIO
     """Form of the mesh-depth term."""
     mesh_depth_debias: bool = True

@@ -36,6 +36,7 @@ from .schedule import damp_in_plane_steps, means_rate
 from .stages import Renderer, Stage, final_mesh, tsdf_reinit
 from .strategy import DensityStrategy, StepInfo
 from .surfels import Surfels
+from .thin_parts import thin_parts
 from .timeline import FitTimeline
 
 __all__ = ["FitRun", "FitAborted"]
@@ -131,6 +132,7 @@ class FitRun:
         self.proxy: ProxyMesh = ProxyMesh(cfg.mesh)
         self.proxy_mesh: ProxyResult | None = None
         self.tsdf_info: dict = {}
+        self.coevolution_info: dict = {}  # the thin-part rule's measure and decision (thin_parts)
         self.status = "running"
         self.surfels: Surfels | None = None
         self.opt: torch.optim.Adam | None = None
@@ -328,6 +330,16 @@ class FitRun:
                 self.set_surfels(r.surfels)
         self.tsdf_done = True
 
+    def _thin_parts(self) -> None:
+        """At the co-evolution's start: measure the proxy's thin parts and decide the mesh terms once (a
+        resumed fit keeps the decision its checkpoint holds)."""
+        if "mesh_terms" not in self.coevolution_info:
+            with self.timers("thin_parts"):
+                self.coevolution_info = thin_parts(self.proxy, self.surfels, self.train.cameras, self.cfg)
+            if self.coevolution_info:
+                self.record("thin_parts", **self.coevolution_info)
+        self.objective.mesh_terms = bool(self.coevolution_info.get("mesh_terms", True))
+
     def _final_mesh(self) -> trimesh.Trimesh:
         with self.timers("final"):
             guided = self.cfg.coevolution.enabled and self.it > self.warmup_end
@@ -354,6 +366,7 @@ class FitRun:
                 self._tsdf_reinit()
                 self._evaluate(Stage.TSDF)
             if not self.stop.requested and self.warmup_end < self.total_iterations and self.it >= self.warmup_end:
+                self._thin_parts()
                 self._iterate(Stage.COEVOLUTION, self.warmup_end, self.total_iterations)
             self.status = "interrupted" if self.stop.requested else "completed"
             if self.it > 0:

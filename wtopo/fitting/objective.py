@@ -74,6 +74,10 @@ class Objective:
         roi_center: [3] the region of interest's centre (internal frame): picks the neighbouring views
             of the multi-view terms (``losses.multiview``, ``losses.multiview_geometric``); ``None``
             leaves them out.
+
+    Attributes:
+        mesh_terms: whether the co-evolution's mesh terms run at all (the fit sets it from
+            :func:`~wtopo.fitting.thin_parts.thin_parts` at the co-evolution's start); ``True`` until then.
     """
 
     def __init__(self, cfg: FitConfig, train, *, render: Renderer, mask_weight: float, warmup_end: int, timers,
@@ -98,6 +102,7 @@ class Objective:
         self.mask_weight = float(mask_weight)
         self.warmup_end = warmup_end
         self.timers = timers
+        self.mesh_terms = True
         self._bands: dict[int, torch.Tensor] = {}  # training view -> silhouette band (masks are fixed)
         self._halos: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # view -> (mask target, halo ring)
 
@@ -170,7 +175,7 @@ class Objective:
         terms = Terms(L, out, covered)
         co = self.cfg.coevolution
         n_co = int(co.iterations or 0)
-        mesh_on = (self.warmup_end + stage_iteration(lc.mesh_start_fraction, n_co) <= it
+        mesh_on = self.mesh_terms and (self.warmup_end + stage_iteration(lc.mesh_start_fraction, n_co) <= it
                    < self.warmup_end + stage_iteration(lc.mesh_end_fraction, n_co))
         if stage == Stage.COEVOLUTION and co.enabled and mesh_on and (lc.mesh_depth > 0 or lc.mesh_normal > 0):
             with T("proxy"):

@@ -26,6 +26,7 @@ _BOX_GROWTH = 0.1  # "initial_mesh" Poisson box: the TSDF mesh's box grown by 10
 _SUPPORT_OPACITY = 0.1  # surfels at least this opaque support proxy faces (the opacity of a reset or a spawn)
 _SUPPORT_SCALES = 2.0  # a surfel reaches this many of its (larger) scales from its centre
 _SILHOUETTE_LIMIT_CELLS = 2.0  # the silhouette offset stays within this many Poisson grid cells
+_EXIT_STEP_CELLS = 1e-3  # the exit ray starts this many grid cells past the entry hit
 
 
 def poisson_mesh(points: torch.Tensor, normals: torch.Tensor, weights: torch.Tensor, resolution: int, *,
@@ -180,6 +181,22 @@ class ProxyMesh:
         if sup is None:
             return None
         return render.mask & sup[render.face_id.clamp_min(0).long()]
+
+    def thickness(self, mesh: ProxyResult, camera) -> tuple[MeshRender, torch.Tensor]:
+        """How thick the proxy is where each pixel's ray enters it: ``(render, cells)``, ``render`` as
+        :meth:`render` gives it and ``cells`` [H, W] (dtype of the vertices) the distance along the ray
+        from the entry hit to the next surface, in Poisson grid cells (:attr:`cell`); ``inf`` on misses
+        and where the ray leaves the mesh without a second hit. Discrete (no gradient); two ray casts."""
+        with torch.no_grad():
+            v = mesh.verts.detach()
+            first = self.raycaster.raycast(v, mesh.faces, camera)
+            o, d = camera.pixel_rays(v.device, v.dtype)
+            length = d.norm(dim=-1)
+            t0 = first.depth + _EXIT_STEP_CELLS * self.cell / length  # depth is the ray parameter (d_z = 1)
+            second = self.raycaster.raycast(v, mesh.faces, None, rays=(o + d * t0[..., None], d))
+            along = (second.depth * length + _EXIT_STEP_CELLS * self.cell) / self.cell
+            cells = torch.where(first.mask & second.mask, along, torch.full_like(along, float("inf")))
+        return first, cells
 
     def render(self, mesh: ProxyResult, camera) -> MeshRender:
         """Ray cast the proxy mesh from ``camera`` (BVH refitted or rebuilt as needed)."""
