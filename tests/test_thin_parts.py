@@ -54,16 +54,18 @@ def test_sphere_thickness_is_its_chord_and_misses_are_inf():
     assert float(row[0]) < float(cells[20, 20]) and float(row[-1]) < float(cells[20, 20])
 
 
-def test_rule_turns_the_mesh_terms_off_above_its_limit(tiny):  # noqa: F811
-    """The share is measured once at the co-evolution's start; above ``losses.mesh_thin_limit`` the mesh
-    terms stay off (no proxy built by the objective, no mesh term), at or below it they run; the fit
-    records the decision; no co-evolution or no mesh term: nothing measured."""
+def test_rule_refines_the_grid_then_turns_the_mesh_terms_off(tiny):  # noqa: F811
+    """The share is measured once at the co-evolution's start. At or below ``losses.mesh_thin_limit`` the
+    plan's grid and the mesh terms stay. Above it the grid doubles and is measured again; still above it
+    (or no finer grid allowed), the mesh terms stay off (no proxy built by the objective, no mesh term).
+    The fit records the decision; no co-evolution or no mesh term: nothing measured."""
     from wtopo.fitting.loop import FitRun
     from wtopo.fitting.stages import Stage
+    from wtopo.fitting.thin_parts import MAX_RESOLUTION
 
     runs = {}
     for limit in (0.0, 1.0):
-        cfg = _config(10, 8)
+        cfg = _config(10, 8)  # a 32^3 proxy
         cfg.coevolution.enabled = True
         cfg.losses.mesh_thin_limit = limit
         run = FitRun(tiny, cfg, None, progress=False)
@@ -71,18 +73,44 @@ def test_rule_turns_the_mesh_terms_off_above_its_limit(tiny):  # noqa: F811
         run._thin_parts()
         runs[limit] = run
     off, on = runs[0.0].coevolution_info, runs[1.0].coevolution_info
-    assert off["thin_share"] == on["thin_share"] and 0.0 < off["thin_share"] <= 1.0, "the sphere's rim is thin"
-    assert off["mesh_terms"] is False and on["mesh_terms"] is True
+    assert 0.0 < on["thin_share"] <= 1.0, "a 10-iteration warm-up leaves thin, double-walled parts"
+    assert on["mesh_terms"] is True and on["resolution"] == 32 and "coarse" not in on
+    assert runs[1.0].proxy.cfg.resolution == 32
+    assert off["coarse"] == {"resolution": 32, "thin_share": on["thin_share"]}
+    assert off["resolution"] == 64 and runs[0.0].proxy.cfg.resolution == 64, "the grid doubles first"
+    assert off["thin_share"] > 0.0 and off["mesh_terms"] is False
     assert [e for e in runs[0.0].events if e["event"] == "thin_parts"][0]["mesh_terms"] is False
     t_off = runs[0.0].objective(Stage.COEVOLUTION, 12, 0, runs[0.0].surfels, runs[0.0].proxy)
     t_on = runs[1.0].objective(Stage.COEVOLUTION, 12, 0, runs[1.0].surfels, runs[1.0].proxy)
     assert not t_off.proxy_built and "mesh_depth" not in t_off.losses
     assert t_on.proxy_built and "mesh_depth" in t_on.losses
+    run = runs[1.0]
+    fine = run.proxy.with_resolution(MAX_RESOLUTION)
+    cfg = run.cfg
+    cfg.losses.mesh_thin_limit = 0.0
+    top = thin_parts(fine, run.surfels, run.train.cameras, cfg)  # no finer grid: off at once
+    assert top["resolution"] == MAX_RESOLUTION and "coarse" not in top and top["mesh_terms"] is False
     cfg = _config(10, 8)
     cfg.coevolution.enabled = False
     run = FitRun(tiny, cfg, None, progress=False)
     run._start()
     assert thin_parts(run.proxy, run.surfels, run.train.cameras, run.cfg) == {}
+
+
+def test_refined_grid_resolves_a_thin_slab():
+    """A slab 2.5 cells thick at 64^3 (all of it thin) is 5 cells thick on the doubled grid: the share
+    the rule re-measures there is 0."""
+    from wtopo.fitting.config import FitConfig
+
+    cfg = FitConfig()
+    proxy = ProxyMesh(MeshConfig(resolution=64))
+    slab = trimesh.creation.box(extents=(3.0, 3.0, 2.5 / 64))
+    slab.apply_translation((0.5, 0.5, 0.5))
+    cam = _down_z()
+    limit = 2 * cfg.mesh.sigma + 1
+    _, coarse = proxy.thickness(_result(slab), cam)
+    _, fine = proxy.with_resolution(128).thickness(_result(slab), cam)
+    assert bool((coarse < limit).all()) and not bool((fine < limit).any())
 
 
 def test_resumed_fit_keeps_the_decision(tiny, tmp_path):  # noqa: F811
@@ -96,7 +124,7 @@ def test_resumed_fit_keeps_the_decision(tiny, tmp_path):  # noqa: F811
     cfg.runtime.checkpoint_every = 2
     cfg.runtime.stop_at = 14
     first = fit(tiny, cfg, out_dir=tmp_path, progress=False)
-    assert first.report["coevolution"]["mesh_terms"] is False
+    assert first.report["coevolution"]["mesh_terms"] is False and first.report["coevolution"]["resolution"] == 64
     cfg.runtime.stop_at = None
     cfg.losses.mesh_thin_limit = 0.0
     res = fit(tiny, cfg, out_dir=tmp_path, progress=False)

@@ -62,15 +62,15 @@ class LossConfig:
     1 % of no loop (the default loop: up to +4.9 %), but the smooth objects keep only half to two thirds of
     their gain (-5.4 % against no loop on the mean, the default -7.2 %), so it is not the default."""
     mesh_thin_limit: float = _f(0.15, FRACTION)
-    """The mesh terms stay off for the whole co-evolution when, at its start, more than this fraction of
-    the proxy's pixels (8 training views) look through a part under ``2 mesh.sigma + 1`` Poisson cells
-    thick (:mod:`~wtopo.fitting.thin_parts`): there the proxy is the splat's blend of a part's two sides.
-    The proxy still guides signs and density. 1: never (the fit still measures and reports the share).
-    Measured at the CPU default (64^3 proxy, 128 px; ``benchmarks/hard.md``, ``cpu_thin``): the three
-    chairs 0.28-0.34, every other suite scene 0.07 or less (the mug and the ten-view cup 0.06-0.07, the
-    bowl and the bunny 0.05, the torus 0.03); 0.15 lies between. There it brings the chairs from +2.1 %
-    to +1.0 % against no loop (mean of six cases; worst +4.8 -> +3.0 %) and changes no other scene. On the
-    CUDA budget's finer proxy (128^3 at 128 px) the chairs read 0.05-0.08 and the rule does not fire."""
+    """The thin-part rule (:mod:`~wtopo.fitting.thin_parts`): when, at the co-evolution's start, more than
+    this fraction of the proxy's pixels (8 training views) look through a part under ``2 mesh.sigma + 1``
+    Poisson cells thick (there the proxy is the splat's blend of a part's two sides), the proxy's grid
+    doubles for the co-evolution (up to 256 per side) and is measured again; still over it, the mesh terms
+    stay off for the fit (the proxy still guides signs and density). 1: never (the share is still
+    measured and reported). At the CPU default (64^3 proxy, 128 px; ``benchmarks/hard.md``, ``cpu_thin``)
+    the three chairs read 0.28-0.34, every other suite scene 0.07 or less (the mug and the ten-view cup
+    0.06-0.07, the bowl and the bunny 0.05, the torus 0.03); 0.15 lies between. On the CUDA budget's
+    128^3 proxy the chairs read 0.05-0.08 and the rule does not fire."""
     depth_form: DepthLoss = DepthLoss.LOG_RATIO
     """Form of the mesh-depth term."""
     mesh_depth_debias: bool = True

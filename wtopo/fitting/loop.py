@@ -331,13 +331,16 @@ class FitRun:
         self.tsdf_done = True
 
     def _thin_parts(self) -> None:
-        """At the co-evolution's start: measure the proxy's thin parts and decide the mesh terms once (a
-        resumed fit keeps the decision its checkpoint holds)."""
+        """At the co-evolution's start: measure the proxy's thin parts and decide its grid and the mesh terms
+        once (a resumed fit keeps the decision its checkpoint holds)."""
         if "mesh_terms" not in self.coevolution_info:
             with self.timers("thin_parts"):
                 self.coevolution_info = thin_parts(self.proxy, self.surfels, self.train.cameras, self.cfg)
             if self.coevolution_info:
                 self.record("thin_parts", **self.coevolution_info)
+        res = self.coevolution_info.get("resolution")
+        if res is not None and int(res) != int(self.proxy.cfg.resolution):
+            self.proxy = self.proxy.with_resolution(int(res))
         self.objective.mesh_terms = bool(self.coevolution_info.get("mesh_terms", True))
 
     def _final_mesh(self) -> trimesh.Trimesh:

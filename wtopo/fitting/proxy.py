@@ -8,7 +8,7 @@ surface, so the caller skips the mesh losses for that iteration instead of ray c
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -98,6 +98,14 @@ class ProxyMesh:
                                  "got None: pass the configuration resolved by the plan")
             self.silhouette = SilhouetteOffset(gain=float(cfg.silhouette_gain),
                                                limit=_SILHOUETTE_LIMIT_CELLS * self.cell)
+
+    def with_resolution(self, resolution: int) -> ProxyMesh:
+        """This proxy on a grid of ``resolution`` nodes per side: the same box, prior and settings, and the
+        silhouette offset's current value."""
+        out = ProxyMesh(replace(self.cfg, resolution=int(resolution)), box=self.box, prior=self.prior)
+        if out.silhouette is not None and self.silhouette is not None:
+            out.silhouette.value = self.silhouette.value
+        return out
 
     @property
     def cell(self) -> float:
