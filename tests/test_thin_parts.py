@@ -10,7 +10,7 @@ from test_fit import _config, tiny  # noqa: F401  (the fixture)
 from wtopo import Camera
 from wtopo.fitting.config import MeshConfig
 from wtopo.fitting.proxy import ProxyMesh, ProxyResult
-from wtopo.fitting.thin_parts import thin_parts
+from wtopo.fitting.thin_parts import thin_cells, thin_parts
 
 
 def _down_z(width=24, height=20):
@@ -102,12 +102,12 @@ def test_refined_grid_resolves_a_thin_slab():
     the rule re-measures there is 0."""
     from wtopo.fitting.config import FitConfig
 
-    cfg = FitConfig()
     proxy = ProxyMesh(MeshConfig(resolution=64))
     slab = trimesh.creation.box(extents=(3.0, 3.0, 2.5 / 64))
     slab.apply_translation((0.5, 0.5, 0.5))
     cam = _down_z()
-    limit = 2 * cfg.mesh.sigma + 1
+    limit = thin_cells(FitConfig())
+    assert limit == 3.0  # at the default sigma of 1
     _, coarse = proxy.thickness(_result(slab), cam)
     _, fine = proxy.with_resolution(128).thickness(_result(slab), cam)
     assert bool((coarse < limit).all()) and not bool((fine < limit).any())
