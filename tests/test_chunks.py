@@ -263,8 +263,11 @@ def test_refused_merge_has_no_seam_and_chunks_skip_their_mesh(street, tmp_path):
 
 
 def _worker(rank: int, world: int, port: int, out: str) -> None:
+    import faulthandler
+
     import torch.distributed as dist
 
+    faulthandler.enable()  # a native abort prints every thread's Python stack into the test's output
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), LOCAL_RANK=str(rank))
     dist.init_process_group("gloo", rank=rank, world_size=world)
     try:
@@ -272,19 +275,38 @@ def _worker(rank: int, world: int, port: int, out: str) -> None:
         cfg = small_fit_config(4, 0, points=100, grids=(16, 16, 16), max_faces=200, density_every=10, eval_every=0)
         wc.fit_chunked(scene, out, cfg, chunk_config=wc.ChunkConfig(chunks=2), progress=False)
         dist.barrier()  # no rank tears its gloo pairs down while the other still uses them
+        with open(os.path.join(out, f"rank{rank}.past_barrier"), "w") as f:
+            f.write("both ranks finished the fit and the merge\n")
     finally:
         dist.destroy_process_group()
 
 
 @pytest.mark.slow
 def test_two_processes_share_the_chunks_through_gloo(tmp_path):
-    """Run world size 2 on gloo (torch.multiprocessing): each rank fits one chunk, rank 0 merges."""
+    """Run world size 2 on gloo (torch.multiprocessing): each rank fits one chunk, rank 0 merges.
+
+    A rank that aborts once both ranks are past the closing barrier (the gloo teardown, torch's own
+    code) is reported as a warning: CI saw ``terminate called without an active exception`` there in
+    about 1 of 20 runs, after every file was written. An abort before the barrier fails the test.
+    """
     import socket
+    import warnings
+
+    from torch.multiprocessing import ProcessExitedException
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    torch.multiprocessing.spawn(_worker, args=(2, port, str(tmp_path)), nprocs=2, join=True)
+    try:
+        torch.multiprocessing.spawn(_worker, args=(2, port, str(tmp_path)), nprocs=2, join=True)
+    except ProcessExitedException as e:
+        if e.signal_name != "SIGABRT" or not list(tmp_path.glob("rank*.past_barrier")):
+            raise
+        warnings.warn(f"rank {e.error_index} aborted in the gloo teardown after the closing barrier: {e}",
+                      stacklevel=1)
+    else:
+        assert sorted(p.name for p in tmp_path.glob("rank*.past_barrier")) == ["rank0.past_barrier",
+                                                                                 "rank1.past_barrier"]
     rep = json.loads((tmp_path / "report.json").read_text())
     assert rep["world_size"] == 2
     assert {c["index"]: c["rank"] for c in rep["per_chunk"]} == {0: 0, 1: 1}
