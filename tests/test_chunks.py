@@ -267,7 +267,9 @@ def _worker(rank: int, world: int, port: int, out: str) -> None:
 
     import torch.distributed as dist
 
-    faulthandler.enable()  # a native abort prints every thread's Python stack into the test's output
+    # a native abort writes every thread's Python stack to this file (kept open to the process's end),
+    # which the test reports
+    faulthandler.enable(file=open(os.path.join(out, f"rank{rank}.faults"), "w"))  # noqa: SIM115
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), LOCAL_RANK=str(rank))
     dist.init_process_group("gloo", rank=rank, world_size=world)
     try:
@@ -288,7 +290,7 @@ def test_two_processes_share_the_chunks_through_gloo(tmp_path):
     A rank that aborts once both ranks are past the closing barrier (the gloo teardown, torch's own
     code) is reported as a warning, an abort before it fails the test. CI saw rank 1 end with
     ``terminate called without an active exception`` (SIGABRT) twice, with no stack to say where; the
-    workers now print one (faulthandler).
+    workers now write one (faulthandler) and the test reports it.
     """
     import socket
     import warnings
@@ -301,10 +303,12 @@ def test_two_processes_share_the_chunks_through_gloo(tmp_path):
     try:
         torch.multiprocessing.spawn(_worker, args=(2, port, str(tmp_path)), nprocs=2, join=True)
     except ProcessExitedException as e:
+        stacks = "".join(f"\n{p.name}:\n{p.read_text()}" for p in sorted(tmp_path.glob("rank*.faults"))
+                         if p.read_text().strip())
         if e.signal_name != "SIGABRT" or not list(tmp_path.glob("rank*.past_barrier")):
-            raise
-        warnings.warn(f"rank {e.error_index} aborted in the gloo teardown after the closing barrier: {e}",
-                      stacklevel=1)
+            raise AssertionError(f"a rank died before the closing barrier; its stacks:{stacks}") from e
+        warnings.warn(f"rank {e.error_index} aborted in the gloo teardown after the closing barrier: {e}; "
+                      f"its stacks:{stacks}", stacklevel=1)
     else:
         assert sorted(p.name for p in tmp_path.glob("rank*.past_barrier")) == ["rank0.past_barrier",
                                                                                  "rank1.past_barrier"]
