@@ -306,7 +306,7 @@ def test_two_processes_share_the_chunks_through_gloo(tmp_path):
         stacks = "".join(f"\n{p.name}:\n{p.read_text()}" for p in sorted(tmp_path.glob("rank*.faults"))
                          if p.read_text().strip())
         if e.signal_name != "SIGABRT" or not list(tmp_path.glob("rank*.past_barrier")):
-            raise AssertionError(f"a rank died before the closing barrier; its stacks:{stacks}") from e
+            raise AssertionError(f"{e} (before the closing barrier or not SIGABRT); its stacks:{stacks}") from e
         warnings.warn(f"rank {e.error_index} aborted in the gloo teardown after the closing barrier: {e}; "
                       f"its stacks:{stacks}", stacklevel=1)
     else:
