@@ -113,6 +113,18 @@ def test_refined_grid_resolves_a_thin_slab():
     assert bool((coarse < limit).all()) and not bool((fine < limit).any())
 
 
+def test_refined_proxy_keeps_the_silhouette_offset_within_its_limit():
+    """``with_resolution`` carries the silhouette offset over, clamped to the finer grid's limit of two
+    of its cells (half the coarse grid's)."""
+    coarse = ProxyMesh(MeshConfig(resolution=64, silhouette_gain=0.1))
+    coarse.silhouette.value = torch.tensor(coarse.silhouette.limit)
+    fine = coarse.with_resolution(128)
+    assert fine.cfg.resolution == 128 and fine.silhouette.limit == 0.5 * coarse.silhouette.limit
+    assert float(fine.silhouette.value) == fine.silhouette.limit
+    coarse.silhouette.value = -0.25 * coarse.silhouette.limit  # within both limits: unchanged
+    assert float(coarse.with_resolution(128).silhouette.value) == -0.25 * coarse.silhouette.limit
+
+
 def test_resumed_fit_keeps_the_decision(tiny, tmp_path):  # noqa: F811
     """A fit stopped in the co-evolution resumes with the decision its checkpoint holds (the surfels
     have moved since, so measuring again could decide otherwise), and reports it."""

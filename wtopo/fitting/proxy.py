@@ -101,10 +101,11 @@ class ProxyMesh:
 
     def with_resolution(self, resolution: int) -> ProxyMesh:
         """This proxy on a grid of ``resolution`` nodes per side: the same box, prior and settings, and the
-        silhouette offset's current value."""
+        silhouette offset's current value, clamped to the new grid's limit (two of its cells)."""
         out = ProxyMesh(replace(self.cfg, resolution=int(resolution)), box=self.box, prior=self.prior)
         if out.silhouette is not None and self.silhouette is not None:
-            out.silhouette.value = self.silhouette.value
+            lim, v = out.silhouette.limit, self.silhouette.value
+            out.silhouette.value = v.clamp(-lim, lim) if torch.is_tensor(v) else min(max(float(v), -lim), lim)
         return out
 
     @property

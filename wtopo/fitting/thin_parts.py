@@ -77,8 +77,7 @@ def thin_parts(proxy: ProxyMesh, surfels: Surfels, cameras, cfg: FitConfig) -> d
     info: dict = {"thin_share": share, "resolution": res, "limit": limit}
     if share is not None and share > limit and 2 * res <= MAX_RESOLUTION:
         fine = thin_share(proxy.with_resolution(2 * res), surfels, cameras, cfg)
-        info = {"thin_share": fine, "resolution": 2 * res, "limit": limit,
-                "coarse": {"resolution": res, "thin_share": share}}
+        info.update(thin_share=fine, resolution=2 * res, coarse={"resolution": res, "thin_share": share})
         share = fine
     info["mesh_terms"] = share is None or share <= limit
     return info
