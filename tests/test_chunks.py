@@ -326,7 +326,7 @@ def test_chunk_runs_its_share_of_the_iteration_budget():
     c = chunk_fit_config(_tiny_config(warmup=20), "cpu", 0.5)
     assert (c.warmup.iterations, c.coevolution.iterations, c.runtime.device) == (10, 0, "cpu")
     d = chunk_fit_config(FitConfig(), "cpu", 0.25, 0.5)
-    assert (d.warmup.iterations, d.coevolution.iterations) == (200, 100)  # the CPU budget 800 + 400
+    assert (d.warmup.iterations, d.coevolution.iterations) == (200, 200)  # the CPU budget 800 + 800
     # half the space: half the CPU surfel cap (40k) and re-initialisation faces (8k), half the points
     assert (d.runtime.max_surfels, d.tsdf.max_faces, d.init.num_points) == (20000, 4000, 2500)
     assert d.init.background_points is None  # left to the plan (as many as num_points for a scene)

@@ -267,7 +267,7 @@ def test_cli_reports_a_bad_config_without_a_traceback(monkeypatch, capsys, tmp_p
 
 
 def test_default_schedule_fractions_give_the_cpu_iterations():
-    """Place the default schedule's events at the CPU budget's iterations (warm-up 800, co-evolution 400)."""
+    """Place the default schedule's events at the CPU budget's iterations (warm-up 800, co-evolution 800)."""
     from wtopo.fitting.config import stage_iteration
 
     cfg = FitConfig()
@@ -275,5 +275,5 @@ def test_default_schedule_fractions_give_the_cpu_iterations():
     assert stage_iteration(cfg.densify.opacity_reset_fraction, 800) == 600
     assert stage_iteration(cfg.losses.normal_start_fraction, 800) == 400
     assert stage_iteration(cfg.losses.distortion_start_fraction, 800) == 400
-    assert stage_iteration(cfg.coevolution.correspondence_fraction, 400) == 200
+    assert stage_iteration(cfg.coevolution.correspondence_fraction, 800) == 400
     assert stage_iteration(0.25, 30) == 8  # halves round up: 7.5 -> 8

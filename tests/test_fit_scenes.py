@@ -127,7 +127,7 @@ def test_unbounded_scene_has_no_face_near_a_camera_and_reports_psnr(room):
 
 
 def test_cpu_budget_grows_with_the_pixels_to_fit():
-    """Keep 800 + 400 CPU iterations for a masked object; give an unmasked capture of the same views
+    """Keep 800 + 800 CPU iterations for a masked object; give an unmasked capture of the same views
     more (every pixel is to be fitted), proportionally, but never past the CPU's rendered-pixel cap."""
     from wtopo.fitting import plan as P
 

@@ -29,13 +29,15 @@ _CPU_MAX_SIDE = 256  # longest image side trained on a CPU (keeps the default fi
 _GPU_MAX_SIDE = 1024
 _MIN_EVAL_VIEWS = 12
 # Budgets per device. CPU: the default fit finishes in a few minutes on 2 cores (benchmarks/fit.md).
-# 400 + 200 had not converged: 800 + 400 lowers the hard suite's mean Chamfer 14 % with the loop (bowl
-# -47 %, mug -33 %, ten-view chair -28 %, blob -21 %; 9 scenes x 2 seeds, benchmarks/hard.md
-# cpu_iter2x) and 12 % without, the 12-view sphere rig's 17 %, for twice the time (bunny ~2.5 min).
-# The loop's gain grows (-4.9 -> -7.0 % on the mean) but the chair's no-loop fit gains more than its
-# loop (+4 % with the loop there, against -5 % at 400 + 200). Scenes at the render cap keep theirs.
+# 400 + 200 had not converged: 800 + 400 lowered the hard suite's mean Chamfer 14 % with the loop and 12 %
+# without (benchmarks/hard.md cpu_iter2x). The loop's gain then grows with the co-evolution's length
+# (9 scenes x 2 seeds, loop against no loop at equal iterations: -7.3 % at 800 + 400, -9.9 % at 600 + 600,
+# -11.1 % at 800 + 800, no case over +2 %; hard.md cpu_coevo800): 800 + 800 lowers the loop's mean Chamfer
+# a further 5.7 % (blob -14 %, bowl -14 %, mug -12 %, ten-view torus -19 %; the chair and chair_box +5 to
+# +10 %, with the loop and without) for about 1.4x the loop fit's time (bunny ~3.3 min). Scenes at the
+# render cap keep theirs.
 # CUDA: the method's schedule shortened to minutes on one GPU (3,000 + 1,000 iterations at ~30 ms).
-_ITERATIONS = {"cpu": (800, 400), "cuda": (3000, 1000)}
+_ITERATIONS = {"cpu": (800, 800), "cuda": (3000, 1000)}
 # CPU: the base budget covers this many training pixels to fit (unmasked pixels at the trained image
 # scale: twice the default bunny's 109k); a capture with more (an unmasked scene: every pixel is
 # ground, background or sky) gets proportionally more iterations, as long as the warm-up renders at
@@ -351,7 +353,7 @@ def default_image_scale(height: int, width: int, device: torch.device) -> float:
 
 def iteration_budget(scene, device: torch.device, image_scale: float | None = None) -> tuple[int, int, str]:
     """``(warm-up, co-evolution, reason)``: the plan's iterations for ``scene`` on ``device`` when the
-    configuration leaves them to it. CUDA: ``_ITERATIONS["cuda"]``. CPU: 800 + 400 for up to
+    configuration leaves them to it. CUDA: ``_ITERATIONS["cuda"]``. CPU: 800 + 800 for up to
     ``_CPU_FIT_PIXELS`` training pixels to fit (mask pixels; every pixel without masks), proportionally
     more beyond while the warm-up renders at most ``_CPU_RENDER_PIXELS``. ``image_scale``: the trained
     scale (``None``: :func:`default_image_scale`). Any frame: only the images, masks and split count."""
