@@ -3,8 +3,9 @@
 
 Kernels are generic over float32/float64 (``typing.Any`` arguments). The per-surfel
 :func:`prepare_surfels_kernel` is differentiated by Warp's autodiff (straight-line code); the
-per-pixel compositing kernels have explicit adjoints (:func:`render_backward_kernel`, reverse
-traversal with the saved final transmittance) and compile with ``enable_backward=False``.
+per-pixel compositing kernels have explicit adjoints (:func:`~.rasterize_backward.render_backward_kernel`
+in :mod:`.rasterize_backward`, reverse traversal with the saved final transmittance) and compile with
+``enable_backward=False``.
 
 Kernel arguments are records (``@wp.struct``, one type per float dtype, see
 :func:`~.rasterize_records.float_structs`): ``cam`` a :class:`~.rasterize_records.CameraRecord`
@@ -30,7 +31,7 @@ from .rasterize_records import CameraRecord as CameraRecord
 from .rasterize_records import SurfelRecord as SurfelRecord
 from .rasterize_records import declare_float_overloads
 from .rasterize_records import float_structs as float_structs
-from .rasterize_warp import fetch_batch, lane_id, warp_add_scalar, warp_add_vec, warp_any, warp_bcast, warp_max
+from .rasterize_warp import fetch_batch, lane_id, warp_add_scalar, warp_any, warp_bcast
 from .rotation import quat_axes
 
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped (3DGS/2DGS convention)
@@ -46,11 +47,6 @@ QUAT_MIN_SQ = 1.0e-30  # |q|^2 below this: identity rotation (documented fallbac
 # the tie). Rounding leaves rho3d ~ (|a.U| eps)^2 there: ~1e-13 in float32 for |a.U| ~ 10; the
 # slack changes alpha by at most a relative 5e-10.
 RHO_TIE = 1.0e-9
-# Register cap of the CUDA backward pixel kernel: uncapped, nvcc gives its float32 version 167 registers,
-# one block of 256 threads per SM; at 128 two blocks fit and the kernel ran 1.24x faster (H100, 800x800,
-# 100k and 1M surfels: 5.87 -> 4.70 ms, 11.26 -> 9.08 ms; 96: 5.16 / 10.06, 80: 5.02 / 10.04, 64: 8.80 /
-# 18.86). The forward (128 registers) ran slower capped (96: 1.79 / 3.57 ms against 1.64 / 3.28).
-BWD_MAX_REGS = 128
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -392,227 +388,6 @@ def render_forward_kernel(
     median_idx[py, px] = med_k
 
 
-@wp.kernel(enable_backward=False, cuda_max_registers=BWD_MAX_REGS)
-def render_backward_kernel(
-    offset: int,
-    worker: int,
-    tile_start: wp.array[wp.int32],
-    ids: wp.array[wp.int32],
-    rays: wp.array2d[Any],
-    cam: Any,
-    geo: wp.array[Any],
-    nrm_face: wp.array[Any],
-    color: wp.array[Any],
-    opacity: wp.array[Any],
-    background: wp.array[Any],
-    tile_size: int,
-    tiles_x: int,
-    coop: int,
-    batch: int,
-    t_final: wp.array2d[Any],
-    sums: wp.array2d[Any],
-    last: wp.array2d[wp.int32],
-    median_idx: wp.array2d[wp.int32],
-    g_rgb: wp.array2d[Any],
-    g_alpha: wp.array2d[Any],
-    g_depth: wp.array2d[Any],
-    g_median: wp.array2d[Any],
-    g_normal: wp.array2d[Any],
-    g_dist: wp.array2d[Any],
-    d_uax: wp.array2d[Any],
-    d_vax: wp.array2d[Any],
-    d_nrm: wp.array2d[Any],
-    d_auv: wp.array2d[Any],
-    d_nrm_face: wp.array2d[Any],
-    d_m2: wp.array2d[Any],
-    d_zc: wp.array2d[Any],
-    d_color: wp.array2d[Any],
-    d_opacity: wp.array2d[Any],
-    d_shift: wp.array2d[Any],
-):
-    """Reverse traversal of one pixel: per-surfel gradients into this worker's buffers.
-
-    Every output is a sum over contributions of ``w_i f_i`` (colour, depth, normal, 1, m, m^2)
-    plus ``T_end * background``; the suffix sum ``rg = sum_{j>i} w_j (g . f_j) + T_end g . bg``
-    gives ``dL/dalpha_i = T_i (g . f_i) - rg / (1 - alpha_i)`` with ``T_i`` recovered from the
-    saved final transmittance. Distortion ``= A M2 - M1^2`` (equal to the forward's pairwise sum)
-    and depth ``= D / A`` are differentiated through their aggregates.
-
-    With ``coop`` (CUDA) the 32 pixels of a warp walk their tile's list together, from the warp's
-    largest ``last`` down, each pixel contributing only below its own, and each per-surfel gradient is
-    summed over the warp before one atomic add (:func:`warp_add_vec`); without it (CPU) each pixel
-    walks from its own ``last`` and adds its own terms. Same per-pixel arithmetic either way.
-    """
-    tile, px, py = pixel_tile_coords(wp.tid() + offset, tile_size, tiles_x)
-    # pixels past the image edge (partial tiles) still walk with their warp, contributing nothing
-    inside = px < t_final.shape[1] and py < t_final.shape[0]
-    px = wp.min(px, t_final.shape[1] - 1)
-    py = wp.min(py, t_final.shape[0] - 1)
-    start = tile_start[tile]
-    end = start
-    if inside:
-        end = last[py, px]
-    d = rays[py, px]
-    f_ref = d[0]
-    zero = type(f_ref)(0.0)
-    one = type(f_ref)(1.0)
-    near = cam.clip[0]
-    far = cam.clip[1]
-    pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
-    T = t_final[py, px]
-    acc = one - T
-    s = sums[py, px]
-    gc = g_rgb[py, px]
-    gn = g_normal[py, px]
-    gdist = g_dist[py, px]
-    gdepth = g_depth[py, px]
-    gmed = g_median[py, px]
-    med_k = median_idx[py, px]
-    # aggregate gradients: A = sum w, D = sum w z, M1 = sum w m, M2 = sum w m^2
-    g_d = zero
-    g_a = g_alpha[py, px] + gdist * s[2]
-    if acc > zero:
-        g_d = gdepth / acc
-        g_a = g_a - gdepth * s[0] / (acc * acc)
-    g_m1 = type(f_ref)(-2.0) * gdist * s[1]
-    g_m2 = gdist * acc
-    rg = T * wp.dot(gc, background[0])
-    # camera rotation rows and inverse intrinsics for the screen-shift gradient
-    fx = cam.fx
-    fy = cam.fy
-    sk = cam.skew
-    R = cam.R
-    z3 = wp.vector(zero, zero, zero)
-    z2 = wp.vector(zero, zero)
-    lane = lane_id(coop)
-    kb = warp_max(end, coop) - 1
-    while kb >= start:
-        nb = wp.min(batch, kb - start + 1)
-        mine = fetch_batch(ids, kb, -1, nb, lane, geo, opacity, color, nrm_face)
-        for j in range(nb):
-            k = kb - j
-            i = warp_bcast(mine, j, coop)
-            g = geo[i]
-            hit = False
-            b3 = False
-            c_color = z3
-            c_nf = z3
-            c_op = zero
-            c_shift = z2
-            c_auv = z3
-            c_uax = z3
-            c_vax = z3
-            c_nrm = z3
-            c_m2 = z2
-            c_zc = zero
-            if k < end and not surely_outside(d, g, pix, cam.filter_inv_sq):
-                rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam.filter_inv_sq)
-                if not (rho > g.cutoff):
-                    op = opacity[i]
-                    G = wp.exp(type(f_ref)(-0.5) * rho)
-                    raw = op * G
-                    a = wp.min(type(f_ref)(ALPHA_MAX), raw)
-                    if a >= type(f_ref)(ALPHA_MIN) and z >= near:
-                        hit = True
-                        T = T / (one - a)
-                        w = a * T
-                        col = color[i]
-                        nf = nrm_face[i]
-                        m, dm = ndc_depth(z, near, far)
-                        gf = wp.dot(gc, col) + g_d * z + wp.dot(gn, nf) + g_a + g_m1 * m + g_m2 * m * m
-                        g_alpha_i = T * gf - rg / (one - a)
-                        rg = rg + w * gf
-                        c_color = w * gc
-                        c_nf = w * gn
-                        gz = w * (g_d + (g_m1 + type(f_ref)(2.0) * m * g_m2) * dm)
-                        if k == med_k:
-                            gz = gz + gmed
-                        g_raw = zero
-                        if raw < type(f_ref)(ALPHA_MAX):
-                            g_raw = g_alpha_i
-                        c_op = g_raw * G
-                        g_rho = type(f_ref)(-0.5) * G * op * g_raw
-                        if b3:
-                            gu = type(f_ref)(2.0) * u * g_rho
-                            gv = type(f_ref)(2.0) * v * g_rho
-                            gt = gz + gu * du + gv * dv
-                            inv_dn = one / dn
-                            gdn = gt * g.auv[2] * inv_dn * inv_dn
-                            c_auv = wp.vector(gu, gv, -gt * inv_dn)
-                            c_uax = (gu * t) * d
-                            c_vax = (gv * t) * d
-                            c_nrm = gdn * d
-                            gd = (gu * t) * g.U + (gv * t) * g.V + gdn * g.n
-                            # d' = d - R^T [Kinv2 shift, 0]  =>  dL/dshift = -Kinv2^T (R gd)[:2]
-                            gcx = R[0, 0] * gd[0] + R[0, 1] * gd[1] + R[0, 2] * gd[2]
-                            gcy = R[1, 0] * gd[0] + R[1, 1] * gd[1] + R[1, 2] * gd[2]
-                            c_shift = wp.vector(-gcx / fx, gcx * sk / (fx * fy) - gcy / fy)
-                        else:
-                            diff = pix - g.m2
-                            c_m2 = (type(f_ref)(-2.0) * cam.filter_inv_sq * g_rho) * diff
-                            c_shift = c_m2
-                            c_zc = gz
-            # warp-uniform from here: every lane of the warp takes the same branches
-            if warp_any(hit, coop):
-                warp_add_vec(d_color, worker, i, c_color, hit, coop)
-                warp_add_vec(d_nrm_face, worker, i, c_nf, hit, coop)
-                warp_add_scalar(d_opacity, worker, i, c_op, hit, coop)
-                warp_add_vec(d_shift, worker, i, c_shift, hit, coop)
-                h3 = hit and b3
-                if warp_any(h3, coop):
-                    warp_add_vec(d_auv, worker, i, c_auv, h3, coop)
-                    warp_add_vec(d_uax, worker, i, c_uax, h3, coop)
-                    warp_add_vec(d_vax, worker, i, c_vax, h3, coop)
-                    warp_add_vec(d_nrm, worker, i, c_nrm, h3, coop)
-                h2 = hit and not b3
-                if warp_any(h2, coop):
-                    warp_add_vec(d_m2, worker, i, c_m2, h2, coop)
-                    warp_add_scalar(d_zc, worker, i, c_zc, h2, coop)
-        kb = kb - nb
-
-
-@wp.kernel(enable_backward=False)
-def reduce_gradients_kernel(
-    offset: int,
-    d_uax: wp.array2d[Any],
-    d_vax: wp.array2d[Any],
-    d_nrm: wp.array2d[Any],
-    d_auv: wp.array2d[Any],
-    d_nrm_face: wp.array2d[Any],
-    d_m2: wp.array2d[Any],
-    d_zc: wp.array2d[Any],
-    d_color: wp.array2d[Any],
-    d_opacity: wp.array2d[Any],
-    d_shift: wp.array2d[Any],
-    g_uax: wp.array[Any],
-    g_vax: wp.array[Any],
-    g_nrm: wp.array[Any],
-    g_auv: wp.array[Any],
-    g_nrm_face: wp.array[Any],
-    g_m2: wp.array[Any],
-    g_zc: wp.array[Any],
-    g_color: wp.array[Any],
-    g_opacity: wp.array[Any],
-    g_shift: wp.array[Any],
-):
-    """Sum the per-worker gradient buffers of one surfel into the tape's gradient arrays."""
-    i = wp.tid() + offset
-    for w in range(d_uax.shape[0]):
-        g_uax[i] = g_uax[i] + d_uax[w, i]
-        g_vax[i] = g_vax[i] + d_vax[w, i]
-        g_nrm[i] = g_nrm[i] + d_nrm[w, i]
-        g_auv[i] = g_auv[i] + d_auv[w, i]
-        g_nrm_face[i] = g_nrm_face[i] + d_nrm_face[w, i]
-        g_m2[i] = g_m2[i] + d_m2[w, i]
-        g_zc[i] = g_zc[i] + d_zc[w, i]
-        g_color[i] = g_color[i] + d_color[w, i]
-        if g_opacity.shape[0] > 0:
-            g_opacity[i] = g_opacity[i] + d_opacity[w, i]
-        if g_shift.shape[0] > 0:
-            g_shift[i] = g_shift[i] + d_shift[w, i]
-
-
 # one compile of this module with every overload (see kernels/rasterize_records.py)
-for _kernel in (prepare_surfels_kernel, pack_surfels_kernel, render_forward_kernel, render_backward_kernel,
-                reduce_gradients_kernel):
+for _kernel in (prepare_surfels_kernel, pack_surfels_kernel, render_forward_kernel):
     declare_float_overloads(_kernel)

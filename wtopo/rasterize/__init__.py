@@ -1,8 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
 """Differentiable Gaussian-surfel rasterizer (2D Gaussian splatting) on CPU and CUDA through Warp.
 
-Pipeline of :func:`rasterize_surfels` (kernels in ``kernels/rasterize.py`` and
-``kernels/rasterize_binning.py``):
+Pipeline of :func:`rasterize_surfels` (kernels in ``kernels/rasterize.py``,
+``kernels/rasterize_backward.py`` and ``kernels/rasterize_binning.py``):
 
 1. validation (before any launch);
 2. binning (discrete, outside the tape): per-surfel tile rectangle from the footprint bound,

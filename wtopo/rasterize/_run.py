@@ -14,6 +14,7 @@ from .. import _bridge
 from .._profile import section
 from ..camera import Camera
 from ..kernels import rasterize as _k
+from ..kernels import rasterize_backward as _kbwd
 from ..kernels import rasterize_binning as _kb
 from ._binning import _Bins
 
@@ -124,12 +125,12 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
                             for g, t in zip(targets, grad_types)]
                 else:
                     bufs = [wp.zeros((workers, n), dtype=t, device=wdev) for t in grad_types]
-                _launch_tiles(_k.render_backward_kernel, n_tiles, ts * ts,
+                _launch_tiles(_kbwd.render_backward_kernel, n_tiles, ts * ts,
                               [bins.tile_start, bins.ids, rays_wp, cam_rec, *surf, t_final, sums, last, median_idx,
                                *(o.grad for o in outs)],
                               bufs, device=wdev, workers=workers, tiles_per_chunk=config.tiles_per_chunk)
                 if workers > 1:
-                    _bridge.launch_split(_k.reduce_gradients_kernel, n, bufs, targets, device=wdev)
+                    _bridge.launch_split(_kbwd.reduce_gradients_kernel, n, bufs, targets, device=wdev)
 
         tape = _bridge.active_tape()
         if tape is not None and n > 0:  # N = 0: nothing to differentiate (empty arrays have no grad buffer)
