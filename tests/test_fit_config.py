@@ -95,6 +95,8 @@ BAD = [
     ("tsdf.max_faces", 0, ValueError),
     ("tsdf.max_faces", 2.5, TypeError),
     ("coevolution.iterations", -1, ValueError),
+    ("optim.means_decay_iterations", 0, ValueError),
+    ("optim.means_decay_iterations", 2.5, TypeError),
     ("coevolution.correspondence_fraction", False, TypeError),
     ("coevolution.correspondence_fraction", 1.5, ValueError),
     ("coevolution.enabled", "yes", TypeError),

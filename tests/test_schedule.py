@@ -64,3 +64,14 @@ def test_damp_in_plane_steps_analytic():
     assert torch.equal(means, torch.tensor([[0.5, 1.0, 3.0], [0.0, 0.0, -1.0]]))
     damp_in_plane_steps(means, before, normals, 1.0)  # scale 1: unchanged
     assert torch.equal(means, torch.tensor([[0.5, 1.0, 3.0], [0.0, 0.0, -1.0]]))
+
+
+def test_means_decay_iterations_keeps_a_shorter_schedules_rates():
+    """A decay over ``means_decay_iterations`` gives a lengthened fit the shorter schedule's rates, then holds
+    ``means_final`` (its bad values: tests/test_fit_config.py)."""
+    o = _optim()
+    o.means_decay_iterations = 1200
+    for it in (0, 400, 800, 1199):  # 800 + 800 with the rates of 800 + 400
+        assert means_rate(o, it, 800, 1600) == pytest.approx((single_decay(o, it, 1200), 1.0))
+    assert means_rate(o, 800, 800, 1600)[0] < means_rate(_optim(), 800, 800, 1600)[0]  # 7.4e-5 against 1.6e-4
+    assert means_rate(o, 1400, 800, 1600) == pytest.approx((o.means_final, 1.0))

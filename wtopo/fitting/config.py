@@ -101,6 +101,10 @@ class OptimConfig:
     """Means, in unit-cube lengths per step; decays to ``means_final``."""
     means_final: float = _f(1.6e-5, RATE)
     """Means learning rate at the last iteration (exponential decay)."""
+    means_decay_iterations: int | None = _f(None, POSITIVE)
+    """The single decay reaches ``means_final`` after this many iterations and stays there; ``None`` (the
+    default): over all of the fit's iterations. Keeps a schedule's rates when the co-evolution is
+    lengthened (1,200: the rates of the CPU budget's former 800 + 400 under 800 + 800)."""
     means_restart: float = _f(0.0, FRACTION, was_bool=True)
     """Restart the means schedule at the co-evolution: it starts at this fraction of ``means`` (never
     below where the single decay stands there) and decays to ``means_final`` at its last iteration.
@@ -133,7 +137,8 @@ class WarmupConfig:
     """Stage 2: photometric warm-up without mesh losses."""
 
     iterations: int | None = _f(None, COUNT)
-    """Iterations (one view each); ``None``: the plan's budget for the device (CPU 400, CUDA 3000)."""
+    """Iterations (one view each); ``None``: the plan's budget for the device (CPU 800, CUDA 3000; a CPU
+    budget grows with the pixels to fit, :func:`wtopo.fitting.plan.iteration_budget`)."""
 
 
 @dataclass(kw_only=True)
@@ -168,7 +173,8 @@ class CoevolutionConfig:
     """Stage 4: surfels and proxy mesh co-evolve; the proxy is rebuilt and the mesh losses applied every iteration."""
 
     iterations: int | None = _f(None, COUNT)
-    """Iterations; ``None``: the plan's budget for the device (CPU 200, CUDA 1000)."""
+    """Iterations; ``None``: the plan's budget for the device (CPU 800, CUDA 1000; a CPU budget grows
+    with the pixels to fit, :func:`wtopo.fitting.plan.iteration_budget`)."""
     correspondence_fraction: float = _f(0.5, FRACTION)
     """Refresh nearest-face correspondences (normal signs, geometry-aware density) every this fraction
     of the co-evolution (:func:`stage_iteration`; at least every iteration), from its first iteration."""

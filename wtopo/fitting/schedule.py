@@ -1,6 +1,7 @@
 """The means' learning-rate schedule and the shaping of their steps in the co-evolution.
 
-The means decay exponentially from ``optim.means`` to ``optim.means_final`` over the whole fit, or,
+The means decay exponentially from ``optim.means`` to ``optim.means_final`` over the whole fit (or over
+``optim.means_decay_iterations``, then stay at ``means_final``), or,
 with ``optim.means_restart``, restart at the co-evolution (see :class:`~.config.OptimConfig`).
 With ``optim.means_restart_along_normal`` the restarted rate moves a surfel only along its normal:
 the in-plane part of each step is scaled back to what the single decay would have taken.
@@ -34,7 +35,7 @@ def means_rate(o: OptimConfig, it: int, warmup_end: int, total: int) -> tuple[fl
         the part of each step in the surfel's plane: the single decay's rate over ``rate`` when
         ``means_restart_along_normal`` holds in a restarted co-evolution, else 1.
     """
-    single = single_decay(o, it, total)
+    single = single_decay(o, it, total if o.means_decay_iterations is None else int(o.means_decay_iterations))
     if o.means_restart <= 0 or it < warmup_end or o.means <= 0 or o.means_final <= 0:
         return single, 1.0
     start = max(o.means_restart * o.means, single_decay(o, warmup_end, total))
