@@ -75,3 +75,6 @@ def test_means_decay_iterations_keeps_a_shorter_schedules_rates():
         assert means_rate(o, it, 800, 1600) == pytest.approx((single_decay(o, it, 1200), 1.0))
     assert means_rate(o, 800, 800, 1600)[0] < means_rate(_optim(), 800, 800, 1600)[0]  # 7.4e-5 against 1.6e-4
     assert means_rate(o, 1400, 800, 1600) == pytest.approx((o.means_final, 1.0))
+    # a restart never starts below the decay in use (1,200 iterations here, not the fit's 1,600)
+    o.means_restart = 0.01  # 1.6e-5: under the decay's 7.4e-5 at the co-evolution's start
+    assert means_rate(o, 800, 800, 1600)[0] == pytest.approx(single_decay(o, 800, 1200))

@@ -34,7 +34,7 @@ _MIN_EVAL_VIEWS = 12
 # (9 scenes x 2 seeds, loop against no loop at equal iterations: -7.3 % at 800 + 400, -9.9 % at 600 + 600,
 # -11.1 % at 800 + 800, no case over +2 %; hard.md cpu_coevo800): 800 + 800 lowers the loop's mean Chamfer
 # a further 5.7 % (blob -14 %, bowl -14 %, mug -12 %, ten-view torus -19 %; the chair and chair_box +5 to
-# +10 %, with the loop and without) for about 1.4x the loop fit's time (bunny ~3.3 min). Scenes at the
+# +10 %, with the loop and without) for about 1.4x the loop fit's time (the bunny's fit ~3 min). Scenes at the
 # render cap keep theirs.
 # CUDA: the method's schedule shortened to minutes on one GPU (3,000 + 1,000 iterations at ~30 ms).
 _ITERATIONS = {"cpu": (800, 800), "cuda": (3000, 1000)}

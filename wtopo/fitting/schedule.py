@@ -35,10 +35,11 @@ def means_rate(o: OptimConfig, it: int, warmup_end: int, total: int) -> tuple[fl
         the part of each step in the surfel's plane: the single decay's rate over ``rate`` when
         ``means_restart_along_normal`` holds in a restarted co-evolution, else 1.
     """
-    single = single_decay(o, it, total if o.means_decay_iterations is None else int(o.means_decay_iterations))
+    horizon = total if o.means_decay_iterations is None else int(o.means_decay_iterations)
+    single = single_decay(o, it, horizon)
     if o.means_restart <= 0 or it < warmup_end or o.means <= 0 or o.means_final <= 0:
         return single, 1.0
-    start = max(o.means_restart * o.means, single_decay(o, warmup_end, total))
+    start = max(o.means_restart * o.means, single_decay(o, warmup_end, horizon))
     frac = min(1.0, (it - warmup_end) / max(1, total - warmup_end))
     rate = start * (o.means_final / start) ** frac
     in_plane = min(1.0, single / rate) if o.means_restart_along_normal else 1.0
