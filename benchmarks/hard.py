@@ -73,6 +73,15 @@ the rows already there)::
     PYTHONPATH=. nice -n 5 .venv/bin/python benchmarks/hard.py --scenes torus chair bowl blob_flat mug \
         mug_sparse chair_box --variants default no_loop view_signs random_signs no_geo_density one_point \
         --seeds 0 1 --label cpu_ablation --out benchmarks/hard.md --mesh-cache .hardcache
+
+On a many-core machine ``--jobs N`` fits N cases at once, one process per scene, variant and seed, each
+pinned to its own ``--cores-per-job`` cores (default 2; ``hard_parallel.py``): the same rows, fit folders
+and section as one after another. The device CPU's suites in ``hard.md`` ran one process per case, 8 of
+2 cores on 16 at once, as this does::
+
+    PYTHONPATH=. python3 benchmarks/hard.py --device cpu --jobs 8 --scenes torus chair bowl blob_flat mug \
+        chair_box --variants view_signs random_signs no_geo_density one_point --seeds 0 1 \
+        --label cpu_variants --out benchmarks/hard.md --mesh-cache .hardcache
 """
 
 from __future__ import annotations
@@ -92,6 +101,7 @@ from wtopo import metrics
 from wtopo.fitting import FitConfig, fit
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # its two halves, beside it
+from hard_parallel import Case, case_command, core_slots, run_cases, sort_rows  # noqa: E402
 from hard_report import markdown, write_section  # noqa: E402
 from hard_scenes import MESH_CACHE, RIG, SCENES, clip_to_box  # noqa: E402
 
@@ -271,6 +281,11 @@ def main(argv=None) -> int:
                          "each fit's mesh.ply (no fitting); with --out the section is rewritten")
     ap.add_argument("--resolution", type=int,
                     help="pixels per side of every scene's photographs (default 128, 512 with --gpu)")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="fits at once, one process per scene, variant and seed, each pinned to its own cores "
+                         "(hard_parallel.py); 1: one after another in this process")
+    ap.add_argument("--cores-per-job", type=int, default=2, help="cores each of --jobs' processes may use")
+    ap.add_argument("--rows-file", help=argparse.SUPPRESS)  # --jobs' cases: where a case writes its row
     args = ap.parse_args(argv)
     if args.gpu:
         RIG.update(views=64, resolution=512)
@@ -281,7 +296,12 @@ def main(argv=None) -> int:
 
     run_dir = os.path.join(args.run_dir, args.label)
     os.makedirs(run_dir, exist_ok=True)
-    rows_path = os.path.join(run_dir, "rows.json")
+    rows_path = args.rows_file or os.path.join(run_dir, "rows.json")
+    if args.jobs > 1:
+        try:
+            slots = core_slots(args.jobs, args.cores_per_job)
+        except ValueError as e:
+            ap.error(str(e))
     rows = []
     if (args.resume or args.rescore) and os.path.exists(rows_path):
         with open(rows_path) as f:
@@ -291,6 +311,8 @@ def main(argv=None) -> int:
     cmd = "PYTHONPATH=. .venv/bin/python benchmarks/hard.py " + " ".join(argv if argv is not None else sys.argv[1:])
     if args.rescore:
         return rescore(rows, run_dir, rows_path, args.out, args.label, cmd)
+    if args.jobs > 1:
+        return _run_parallel(args, rows, done, slots, run_dir, rows_path, cmd, load0)
     for name in args.scenes:  # one scene at a time, its variants one after another
         todo = [(v, sd) for sd in (args.seeds or [None]) for v in args.variants if (name, v, sd) not in done]
         if not todo:
@@ -309,6 +331,35 @@ def main(argv=None) -> int:
             if args.out:  # rewritten after every fit: a long run keeps what it measured
                 write_section(args.out, markdown(args.label, cmd, rows, (load0, os.getloadavg()[0])), args.label)
     return 0
+
+
+def _run_parallel(args, rows: list[dict], done: set, slots, run_dir: str, rows_path: str, cmd: str,
+                  load0: float) -> int:
+    """``--jobs``: the cases not in ``done``, ``len(slots)`` processes at once (:mod:`hard_parallel`); the
+    truth meshes are built here first (into ``--mesh-cache``, or ``<run-dir>/<label>/mesh_cache``), so no
+    two cases build one at the same time."""
+    cases = [Case(name, v, sd) for name in args.scenes for sd in (args.seeds or [None]) for v in args.variants
+             if (name, v, sd) not in done]
+    cache = args.mesh_cache or os.path.join(run_dir, "mesh_cache")
+    MESH_CACHE[:] = [cache]
+    for name in dict.fromkeys(c.scene for c in cases):
+        SCENES[name]()
+
+    def command(case: Case, rows_file: str) -> list[str]:
+        return case_command(case, rows_file, script=os.path.abspath(__file__), run_dir=args.run_dir,
+                            label=args.label, device=args.device, sets=args.set, gpu=args.gpu,
+                            resolution=args.resolution, mesh_cache=cache)
+
+    def on_row(row: dict) -> None:
+        rows.append(row)
+        rows[:] = sort_rows(rows, args.scenes, args.variants)
+        with open(rows_path, "w") as f:
+            json.dump(rows, f, indent=1)
+        if args.out:
+            write_section(args.out, markdown(args.label, cmd, rows, (load0, os.getloadavg()[0])), args.label)
+
+    print(f"{len(cases)} cases, {len(slots)} at once on cores {[f'{s[0]}-{s[-1]}' for s in slots]}", flush=True)
+    return run_cases(cases, command, slots, run_dir, on_row)
 
 
 if __name__ == "__main__":
