@@ -78,3 +78,21 @@ def test_means_decay_iterations_keeps_a_shorter_schedules_rates():
     # a restart never starts below the decay in use (1,200 iterations here, not the fit's 1,600)
     o.means_restart = 0.01  # 1.6e-5: under the decay's 7.4e-5 at the co-evolution's start
     assert means_rate(o, 800, 800, 1600)[0] == pytest.approx(single_decay(o, 800, 1200))
+
+
+def test_means_thin_decay_shortens_only_a_thin_co_evolutions_decay():
+    """``means_thin_decay``: where the thin-part rule fired, the co-evolution's rate is a single decay that ends
+    that fraction of the way through it (0.5 of 800 + 800: 800 + 400's rates); the warm-up, a fit where the rule
+    did not fire and the default 0 keep the fit's own decay."""
+    o = _optim()
+    o.means_thin_decay = 0.5
+    for it in (0, 799):  # the warm-up: unchanged
+        assert means_rate(o, it, 800, 1600, thin=True) == means_rate(_optim(), it, 800, 1600)
+    for it in (800, 1000, 1199):
+        assert means_rate(o, it, 800, 1600, thin=True) == pytest.approx((single_decay(o, it, 1200), 1.0))
+        assert means_rate(o, it, 800, 1600, thin=False) == means_rate(_optim(), it, 800, 1600)
+        assert means_rate(_optim(), it, 800, 1600, thin=True) == means_rate(_optim(), it, 800, 1600)
+    assert means_rate(o, 800, 800, 1600, thin=True)[0] < 0.5 * means_rate(o, 800, 800, 1600)[0]
+    assert means_rate(o, 1500, 800, 1600, thin=True) == pytest.approx((o.means_final, 1.0))
+    o.means_decay_iterations = 1000  # a shorter decay already in use stays
+    assert means_rate(o, 1100, 800, 1600, thin=True) == pytest.approx((o.means_final, 1.0))

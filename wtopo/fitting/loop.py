@@ -196,7 +196,8 @@ class FitRun:
 
     def _update_lr(self) -> float:
         """Set the means' rate for this iteration; returns the scale of a step's in-plane part."""
-        lr, in_plane = means_rate(self.cfg.optim, self.it, self.warmup_end, self.total_iterations)
+        lr, in_plane = means_rate(self.cfg.optim, self.it, self.warmup_end, self.total_iterations,
+                                  thin="coarse" in self.coevolution_info)
         for g in self.opt.param_groups:
             if g["name"] == "means":
                 g["lr"] = lr

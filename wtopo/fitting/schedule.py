@@ -1,7 +1,8 @@
 """The means' learning-rate schedule and the shaping of their steps in the co-evolution.
 
 The means decay exponentially from ``optim.means`` to ``optim.means_final`` over the whole fit (or over
-``optim.means_decay_iterations``, then stay at ``means_final``), or,
+``optim.means_decay_iterations``, then stay at ``means_final``; where the thin-part rule fired, a
+co-evolution's decay may end sooner, ``optim.means_thin_decay``), or,
 with ``optim.means_restart``, restart at the co-evolution (see :class:`~.config.OptimConfig`).
 With ``optim.means_restart_along_normal`` the restarted rate moves a surfel only along its normal:
 the in-plane part of each step is scaled back to what the single decay would have taken.
@@ -21,7 +22,7 @@ def single_decay(o: OptimConfig, it: int, total: int) -> float:
     return o.means * (o.means_final / o.means) ** min(1.0, it / max(1, total))
 
 
-def means_rate(o: OptimConfig, it: int, warmup_end: int, total: int) -> tuple[float, float]:
+def means_rate(o: OptimConfig, it: int, warmup_end: int, total: int, thin: bool = False) -> tuple[float, float]:
     """The means' learning rate at iteration ``it`` and the scale of a step's in-plane part.
 
     Args:
@@ -29,6 +30,8 @@ def means_rate(o: OptimConfig, it: int, warmup_end: int, total: int) -> tuple[fl
         it: the iteration (0-based, over both stages).
         warmup_end: the co-evolution's first iteration.
         total: all iterations (warm-up and co-evolution).
+        thin: the thin-part rule refined the co-evolution's proxy; with ``optim.means_thin_decay`` the
+            co-evolution's rate then follows a single decay ending that fraction of the way through it.
 
     Returns:
         ``(rate, in_plane)``: the rate in unit-cube lengths per step, and the factor (in (0, 1]) for
@@ -36,6 +39,8 @@ def means_rate(o: OptimConfig, it: int, warmup_end: int, total: int) -> tuple[fl
         ``means_restart_along_normal`` holds in a restarted co-evolution, else 1.
     """
     horizon = total if o.means_decay_iterations is None else int(o.means_decay_iterations)
+    if thin and o.means_thin_decay > 0 and it >= warmup_end:
+        horizon = min(horizon, warmup_end + max(1, round(o.means_thin_decay * (total - warmup_end))))
     single = single_decay(o, it, horizon)
     if o.means_restart <= 0 or it < warmup_end or o.means <= 0 or o.means_final <= 0:
         return single, 1.0
