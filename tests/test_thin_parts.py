@@ -3,6 +3,7 @@
 rule: its share, its decision, the fit's event and a resumed fit keeping the decision."""
 
 import numpy as np
+import pytest
 import torch
 import trimesh
 from test_fit import _config, tiny  # noqa: F401  (the fixture)
@@ -143,3 +144,26 @@ def test_resumed_fit_keeps_the_decision(tiny, tmp_path):  # noqa: F811
     assert res.report["status"] == "completed" and res.report["coevolution"] == first.report["coevolution"]
     assert sum(e["event"] == "thin_parts" for e in res.report["events"]) == 1, "measured once, before the stop"
 
+
+
+@pytest.mark.slow
+def test_means_thin_decay_acts_only_where_the_rule_refined_the_grid(tiny):  # noqa: F811
+    """``optim.means_thin_decay`` changes a fit whose proxy grid the thin-part rule refined (the surfels move
+    less in the co-evolution) and leaves a fit where the rule did not fire exactly as it was."""
+    from wtopo import fit
+
+    def run(limit, thin_decay):
+        cfg = _config(10, 8)
+        cfg.coevolution.enabled = True
+        cfg.losses.mesh_thin_limit = limit
+        cfg.optim.means_thin_decay = thin_decay
+        res = fit(tiny, cfg, progress=False)
+        return res.surfels.means.detach().clone(), res.report["coevolution"]
+
+    fired, info = run(0.0, 0.0)
+    assert "coarse" in info, "the rule refined the grid"
+    slowed, _ = run(0.0, 0.5)
+    assert not torch.equal(fired, slowed)
+    quiet, info = run(1.0, 0.0)
+    assert "coarse" not in info and info["mesh_terms"] is True
+    assert torch.equal(quiet, run(1.0, 0.5)[0])
