@@ -83,15 +83,15 @@ def test_means_decay_iterations_keeps_a_shorter_schedules_rates():
 def test_means_thin_decay_shortens_only_a_thin_co_evolutions_decay():
     """``means_thin_decay``: where the thin-part rule fired, the co-evolution's rate is a single decay that ends
     that fraction of the way through it (0.5 of 800 + 800: 800 + 400's rates); the warm-up, a fit where the rule
-    did not fire and the default 0 keep the fit's own decay."""
-    o = _optim()
-    o.means_thin_decay = 0.5
+    did not fire and 0 (off) keep the fit's own decay."""
+    o, off = _optim(), _optim()
+    o.means_thin_decay, off.means_thin_decay = 0.5, 0.0
     for it in (0, 799):  # the warm-up: unchanged
-        assert means_rate(o, it, 800, 1600, thin=True) == means_rate(_optim(), it, 800, 1600)
+        assert means_rate(o, it, 800, 1600, thin=True) == means_rate(off, it, 800, 1600)
     for it in (800, 1000, 1199):
         assert means_rate(o, it, 800, 1600, thin=True) == pytest.approx((single_decay(o, it, 1200), 1.0))
-        assert means_rate(o, it, 800, 1600, thin=False) == means_rate(_optim(), it, 800, 1600)
-        assert means_rate(_optim(), it, 800, 1600, thin=True) == means_rate(_optim(), it, 800, 1600)
+        assert means_rate(o, it, 800, 1600, thin=False) == means_rate(off, it, 800, 1600)
+        assert means_rate(off, it, 800, 1600, thin=True) == means_rate(off, it, 800, 1600)
     assert means_rate(o, 800, 800, 1600, thin=True)[0] < 0.5 * means_rate(o, 800, 800, 1600)[0]
     assert means_rate(o, 1500, 800, 1600, thin=True) == pytest.approx((o.means_final, 1.0))
     o.means_decay_iterations = 1000  # a shorter decay already in use stays
