@@ -126,3 +126,70 @@ def test_crop_to_box_keeps_faces_inside():
     out = crop_to_box(s, [-2, -2, 0.0], [2, 2, 2])
     assert 0 < len(out.faces) < len(s.faces)
     assert out.vertices[:, 2].min() >= 0.0
+
+
+def _open_sphere():
+    """An icosphere with a cap cut away: not watertight, so the final policy re-meshes it."""
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    s.apply_translation([0.5, 0.5, 0.5])
+    keep = s.triangles_center[:, 2] < 0.7
+    return trimesh.Trimesh(s.vertices, s.faces[keep], process=True)
+
+
+def _remesh_config():
+    from wtopo.fitting import FitConfig
+
+    cfg = FitConfig()
+    cfg.final.resolution = 48
+    return cfg
+
+
+def test_poisson_remesh_closes_an_open_mesh_and_records_its_device():
+    from wtopo.fitting.stages import poisson_remesh
+
+    events = []
+    src = _open_sphere()
+    assert not src.is_watertight
+    out = poisson_remesh(src, _remesh_config(), record=lambda e, **k: events.append((e, k)))
+    assert out.is_watertight and len(out.faces) > 500
+    off = np.abs(np.linalg.norm(out.vertices - 0.5, axis=1) - 0.3)
+    below = out.vertices[:, 2] < 0.65  # where the open mesh is; above it Poisson closes the cut cap
+    assert below.sum() > 100 and off[below].max() < 0.03 and out.vertices[:, 2].max() > 0.68
+    assert events == [("poisson_remesh", {"watertight": True, "device": "cpu"})]
+
+
+def test_poisson_remesh_falls_back_to_the_cpu_when_its_device_runs_out_of_memory(monkeypatch):
+    """The solve runs on the fit's device; an allocation failure there re-runs it on the CPU with a warning
+    (``meta`` stands in for a GPU: this machine may have none). Other errors, and the CPU's own, propagate."""
+    import torch
+
+    import wtopo.fitting.stages as stages
+
+    real, seen = stages.poisson_mesh, []
+
+    def on_device(points, *a, **k):
+        seen.append(points.device.type)
+        if points.device.type != "cpu":
+            raise torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 3.38 GiB")
+        return real(points, *a, **k)
+
+    monkeypatch.setattr(stages, "poisson_mesh", on_device)
+    events = []
+    with pytest.warns(RuntimeWarning, match="ran out of memory on meta; re-meshing on the CPU"):
+        out = stages.poisson_remesh(_open_sphere(), _remesh_config(), record=lambda e, **k: events.append(k),
+                                    device="meta")
+    assert seen == ["meta", "cpu"] and out.is_watertight and events[-1]["device"] == "cpu"
+
+    def warp_failure(points, *a, **k):
+        raise RuntimeError("Failed to allocate 3623878656 bytes on device 'cuda:0'")
+
+    monkeypatch.setattr(stages, "poisson_mesh", warp_failure)
+    with pytest.raises(RuntimeError, match="Failed to allocate"):  # the CPU's own failure is the user's to see
+        stages.poisson_remesh(_open_sphere(), _remesh_config(), record=lambda e, **k: None, device="cpu")
+
+    def broken(points, *a, **k):
+        raise RuntimeError("a kernel bug, not memory")
+
+    monkeypatch.setattr(stages, "poisson_mesh", broken)
+    with pytest.raises(RuntimeError, match="kernel bug"):
+        stages.poisson_remesh(_open_sphere(), _remesh_config(), record=lambda e, **k: None, device="meta")

@@ -265,7 +265,7 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
                 mesh, info["components"] = supported_components(mesh, cameras, depths)
             info["closure"] = "carve" if carve else "poisson"
             if fc.watertight and not mesh.is_watertight:
-                mesh = poisson_remesh(mesh, cfg, record=record)
+                mesh = poisson_remesh(mesh, cfg, record=record, device=surfels.means.device)
             if fc.silhouette_calibration and masks is not None and len(mesh.faces):
                 with section("silhouette_calibration"):
                     v, cal = calibrate_mesh(torch.as_tensor(mesh.vertices), torch.as_tensor(mesh.faces), cameras, masks)
@@ -278,10 +278,14 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
     return mesh
 
 
-def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record) -> trimesh.Trimesh:
+def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record,
+                   device: torch.device | str = "cpu") -> trimesh.Trimesh:
     """A closed mesh through ``mesh``: Poisson of its area samples (the zero level set is closed).
 
-    Returns ``mesh`` itself when the re-mesh comes out empty; records ``"poisson_remesh"``.
+    The Poisson solve and its marching cubes run on ``device`` (the fit's: at ``final.resolution``, up to
+    768^3 on CUDA, the CPU took minutes on one core where the GPU takes seconds); a device other than the CPU
+    that runs out of memory falls back to the CPU with a warning. Returns ``mesh`` itself when the re-mesh
+    comes out empty; records ``"poisson_remesh"`` (``watertight``, and the ``device`` it ran on).
     """
     pts, fi = trimesh.sample.sample_surface(mesh, _REMESH_SAMPLES, seed=cfg.runtime.seed)
     lo, hi = mesh.bounds
@@ -289,9 +293,32 @@ def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record) -> 
     lower = 0.5 * (lo + hi) - 0.5 * side
     p = torch.as_tensor((pts - lower) / side, dtype=torch.float32)
     n = torch.as_tensor(mesh.face_normals[fi], dtype=torch.float32)
-    w = torch.ones(p.shape[0])
-    verts, faces = poisson_mesh(p, n, w, int(cfg.final.resolution), sigma=1.0, padding=cfg.mesh.padding)
-    out = trimesh.Trimesh(verts.detach().cpu().numpy() * side + lower, faces.cpu().numpy(), process=True)
+    device = torch.device(device)
+
+    def solve(dev: torch.device):
+        with torch.no_grad():
+            v, f = poisson_mesh(p.to(dev), n.to(dev), torch.ones(p.shape[0], device=dev), int(cfg.final.resolution),
+                                sigma=1.0, padding=cfg.mesh.padding)
+            return v.cpu().numpy(), f.cpu().numpy()
+
+    try:
+        verts, faces = solve(device)
+    except RuntimeError as e:  # torch.OutOfMemoryError is one; Warp's allocation failures are others
+        if device.type == "cpu" or not _out_of_memory(e):
+            raise
+        warnings.warn(f"the final Poisson re-mesh at {cfg.final.resolution}^3 ran out of memory on {device}; "
+                      f"re-meshing on the CPU instead ({e})", RuntimeWarning, stacklevel=2)
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+        device = torch.device("cpu")
+        verts, faces = solve(device)
+    out = trimesh.Trimesh(verts * side + lower, faces, process=True)
     out = cleanup_mesh(out, largest_component=cfg.final.largest_component)
-    record("poisson_remesh", watertight=bool(out.is_watertight))
+    record("poisson_remesh", watertight=bool(out.is_watertight), device=str(device))
     return out if len(out.faces) else mesh
+
+
+def _out_of_memory(e: BaseException) -> bool:
+    """Whether ``e`` says a device allocation failed (torch's and Warp's wordings)."""
+    msg = str(e).lower()
+    return isinstance(e, torch.OutOfMemoryError) or "out of memory" in msg or "failed to allocate" in msg

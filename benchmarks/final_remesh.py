@@ -1,0 +1,75 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The final watertight re-mesh (``wtopo.fitting.stages.poisson_remesh``) on the fit's device against the CPU.
+
+A CUDA fit's final mesh is fused at ``final.resolution`` (up to 768^3 at 512-px photographs); when it is not
+closed the fit re-meshes it by Poisson at that resolution. That solve ran on the CPU whatever the fit's device
+(a 10 GB, one-core stage of about 15 minutes in the GPU suite's ten-view cup fits); it now runs on the fit's.
+This script times both in one process on an open mesh (a sphere of radius 0.3 with a cap cut away, 327,680
+faces before the cut) and prints the ratio, the peak GPU memory, and the Chamfer distance between the two meshes.
+
+    PYTHONPATH=. python benchmarks/final_remesh.py [--device cuda:0] [--resolutions 256 384 768]
+        [--cpu-resolutions 256 384]
+
+The CPU runs use every core this process may use (``torch.get_num_threads()``); resolutions left out of
+``--cpu-resolutions`` are timed on the device only.
+"""
+import argparse
+import time
+
+import numpy as np
+import torch
+import trimesh
+
+from wtopo.fitting import FitConfig
+from wtopo.fitting.stages import poisson_remesh
+from wtopo.metrics import chamfer
+
+
+def open_sphere() -> trimesh.Trimesh:
+    s = trimesh.creation.icosphere(subdivisions=7, radius=0.3)
+    s.apply_translation([0.5, 0.5, 0.5])
+    return trimesh.Trimesh(s.vertices, s.faces[s.triangles_center[:, 2] < 0.7], process=True)
+
+
+def run(mesh: trimesh.Trimesh, resolution: int, device: str) -> tuple[trimesh.Trimesh, float, float]:
+    """(mesh, seconds, peak GPU GiB) of one re-mesh; a first call on a device warms its kernels up."""
+    cfg = FitConfig()
+    cfg.final.resolution = resolution
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+    t = time.perf_counter()
+    out = poisson_remesh(mesh, cfg, record=lambda *a, **k: None, device=device)
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    peak = torch.cuda.max_memory_allocated() / 2**30 if device.startswith("cuda") else 0.0
+    return out, time.perf_counter() - t, peak
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--resolutions", type=int, nargs="+", default=[256, 384, 768])
+    ap.add_argument("--cpu-resolutions", type=int, nargs="+", default=[256, 384])
+    args = ap.parse_args()
+    mesh = open_sphere()
+    print(f"open sphere: {len(mesh.faces)} faces, watertight {mesh.is_watertight}; CPU threads "
+          f"{torch.get_num_threads()}; device {args.device}")
+    run(mesh, 64, args.device)  # warm-up (kernel compilation / loading)
+    run(mesh, 64, "cpu")
+    for r in args.resolutions:
+        dev_mesh, t_dev, peak = run(mesh, r, args.device)
+        line = f"{r}^3: {args.device} {t_dev:.2f} s (peak {peak:.2f} GiB, {len(dev_mesh.faces)} faces, " \
+               f"watertight {dev_mesh.is_watertight})"
+        if r in args.cpu_resolutions:
+            cpu_mesh, t_cpu, _ = run(mesh, r, "cpu")
+            c = chamfer(dev_mesh, cpu_mesh)
+            line += f"; cpu {t_cpu:.2f} s: {t_cpu / t_dev:.1f}x; Chamfer between the two {c.chamfer:.2e} " \
+                    f"(voxel {1.1 * 0.6 / r:.2e})"
+        print(line, flush=True)
+    r = np.linalg.norm(dev_mesh.vertices - 0.5, axis=1)
+    print(f"last device mesh: radius {r.min():.4f}-{r.max():.4f} (truth 0.3 below the cut)")
+
+
+if __name__ == "__main__":
+    main()
