@@ -193,3 +193,27 @@ def test_poisson_remesh_falls_back_to_the_cpu_when_its_device_runs_out_of_memory
     monkeypatch.setattr(stages, "poisson_mesh", broken)
     with pytest.raises(RuntimeError, match="kernel bug"):
         stages.poisson_remesh(_open_sphere(), _remesh_config(), record=lambda e, **k: None, device="meta")
+
+
+def test_a_marching_cubes_mesh_stays_closed_when_float32_puts_edge_vertices_on_grid_nodes():
+    """Nodes a hair outside the surface put their crossing edges' vertices within float32 rounding of the
+    node (as 768^3 grids do at random): merged by position they collapse faces into non-manifold edges and
+    the mesh opens; ``cleanup_mesh(weld=False)`` keeps marching cubes' own vertex sharing and stays closed."""
+    import torch
+
+    from wtopo.fitting.tsdf import cleanup_mesh
+    from wtopo.marching_cubes import marching_cubes
+
+    n = 24
+    g = (np.arange(n) + 0.5) / n
+    x, y, z = np.meshgrid(g, g, g, indexing="ij")
+    f = np.sqrt((x - 0.5) ** 2 + (y - 0.5) ** 2 + (z - 0.5) ** 2) - 0.3
+    near = (f > 0) & (f < 0.5 / n)
+    f[near] = 1e-9  # t of their crossing edges ~1e-7 cells: the vertex rounds onto the node
+    v, fa = marching_cubes(torch.as_tensor(f, dtype=torch.float32), 0.0)
+    raw = trimesh.Trimesh(v.numpy().astype(np.float64), fa.numpy(), process=False)
+    assert near.sum() > 100 and raw.is_watertight
+    welded = cleanup_mesh(raw, repair=False)
+    assert not welded.is_watertight, "the case must reproduce the collapse"
+    kept = cleanup_mesh(raw, repair=False, weld=False)
+    assert kept.is_watertight and kept.is_winding_consistent and len(kept.faces) == len(raw.faces)

@@ -283,8 +283,10 @@ def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record,
     """A closed mesh through ``mesh``: Poisson of its area samples (the zero level set is closed).
 
     The Poisson solve and its marching cubes run on ``device`` (the fit's: at ``final.resolution``, up to
-    768^3 on CUDA, the CPU took minutes on one core where the GPU takes seconds); a device other than the CPU
-    that runs out of memory falls back to the CPU with a warning. Returns ``mesh`` itself when the re-mesh
+    768^3 on CUDA, the whole re-mesh took 32.6 s on 2 CPU threads against 10.2 s with an H100,
+    ``benchmarks/final_remesh.py``); a device other than the CPU that runs out of memory falls back to the CPU
+    with a warning. The mesh keeps marching cubes' own vertex sharing (no merge by position: see
+    :func:`~.tsdf.cleanup_mesh`), so it is closed at any grid. Returns ``mesh`` itself when the re-mesh
     comes out empty; records ``"poisson_remesh"`` (``watertight``, and the ``device`` it ran on).
     """
     pts, fi = trimesh.sample.sample_surface(mesh, _REMESH_SAMPLES, seed=cfg.runtime.seed)
@@ -312,8 +314,9 @@ def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record,
             torch.cuda.empty_cache()
         device = torch.device("cpu")
         verts, faces = solve(device)
-    out = trimesh.Trimesh(verts * side + lower, faces, process=True)
-    out = cleanup_mesh(out, largest_component=cfg.final.largest_component)
+    # marching cubes shares each vertex already: no merge by position (see cleanup_mesh's weld)
+    out = trimesh.Trimesh(verts * side + lower, faces, process=False)
+    out = cleanup_mesh(out, largest_component=cfg.final.largest_component, weld=False)
     record("poisson_remesh", watertight=bool(out.is_watertight), device=str(device))
     return out if len(out.faces) else mesh
 

@@ -194,12 +194,22 @@ def _fuse_warp(views: list, bounds: FusionBounds, device, *,
     return m.verts.cpu().numpy(), m.faces.cpu().numpy(), m.colors.cpu().numpy()
 
 
-def cleanup_mesh(mesh: trimesh.Trimesh, *, largest_component: bool = True, repair: bool = True) -> trimesh.Trimesh:
+def cleanup_mesh(mesh: trimesh.Trimesh, *, largest_component: bool = True, repair: bool = True,
+                 weld: bool = True) -> trimesh.Trimesh:
     """Merge vertices, drop degenerate faces, keep the largest component (``largest_component``), and
-    with ``repair`` fill small holes and orient the faces (``False`` for open scene meshes)."""
+    with ``repair`` fill small holes and orient the faces (``False`` for open scene meshes).
+
+    ``weld=False`` keeps the mesh's own vertex sharing (a marching-cubes mesh shares each edge's vertex
+    already): vertices are not merged by position and only faces that repeat a vertex index go. At fine grids
+    (768^3) float32 rounds edge vertices a few 1e-5 cells from a grid node onto it; merging those by position
+    collapsed faces into non-manifold edges and left the Poisson re-mesh of a GPU fit open."""
     mesh = mesh.copy()
-    mesh.merge_vertices()
-    mesh.update_faces(mesh.nondegenerate_faces())
+    if weld:
+        mesh.merge_vertices()
+        mesh.update_faces(mesh.nondegenerate_faces())
+    else:
+        f = mesh.faces
+        mesh.update_faces((f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2]))
     mesh.remove_unreferenced_vertices()
     if largest_component and len(mesh.faces):
         parts = mesh.split(only_watertight=False)
