@@ -187,3 +187,22 @@ def test_raycast_and_closest_faces_equal_on_cuda():
     _close(cg[1], cc[1], RAY_F32_REL, "closest distance")
     _close(cg[2], cc[2], RAY_F32_REL, "closest point")
     assert math.isfinite(float(grads[1].abs().sum()))
+
+
+def test_final_poisson_remesh_on_cuda_matches_the_cpu():
+    """The fit's final watertight re-mesh on the fit's device: the same closed surface as on the CPU (float32
+    Poisson, cuFFT against pocketfft: the vertices agree to float32 rounding of the level set)."""
+    from wtopo.fitting import FitConfig
+    from wtopo.fitting.stages import poisson_remesh
+    from wtopo.metrics import chamfer
+
+    s = trimesh.creation.icosphere(subdivisions=4, radius=0.3)
+    s.apply_translation([0.5, 0.5, 0.5])
+    src = trimesh.Trimesh(s.vertices, s.faces[s.triangles_center[:, 2] < 0.7], process=True)
+    cfg = FitConfig()
+    cfg.final.resolution = 96
+    events = []
+    on_cuda = poisson_remesh(src, cfg, record=lambda e, **k: events.append(k), device=CUDA)
+    on_cpu = poisson_remesh(src, cfg, record=lambda e, **k: None, device="cpu")
+    assert events[-1]["device"] == CUDA and on_cuda.is_watertight and len(on_cuda.faces) > 1000
+    assert chamfer(on_cuda, on_cpu).chamfer < 1e-4 * 0.66  # far below a cell (0.66 * 1.1 / 96 = 7.6e-3)
