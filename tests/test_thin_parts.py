@@ -11,7 +11,7 @@ from test_fit import _config, tiny  # noqa: F401  (the fixture)
 from wtopo import Camera
 from wtopo.fitting.config import MeshConfig
 from wtopo.fitting.proxy import ProxyMesh, ProxyResult
-from wtopo.fitting.thin_parts import thin_cells, thin_parts
+from wtopo.fitting.thin_parts import thin_cells, thin_parts, thin_share
 
 
 def _down_z(width=24, height=20):
@@ -167,3 +167,37 @@ def test_means_thin_decay_acts_only_where_the_rule_refined_the_grid(tiny):  # no
     quiet, info = run(1.0, 0.0)
     assert "coarse" not in info and info["mesh_terms"] is True
     assert torch.equal(quiet, run(1.0, 0.5)[0])
+
+
+def test_a_probe_grid_measures_first_and_a_fine_proxy_keeps_its_grid(tiny):  # noqa: F811
+    """``losses.mesh_thin_probe``: the rule's first measure is on the probe's grid. Fired, with the proxy at
+    twice the probe's nodes or more, the proxy keeps its grid, its own share decides the mesh terms and the
+    fit counts as refined (``coarse`` holds the probe's measure); not fired, the probe's share is reported
+    and nothing changes. A probe equal to the proxy's grid is the rule without a probe."""
+    from wtopo.fitting.loop import FitRun
+
+    cfg = _config(10, 8)  # a 32^3 proxy
+    cfg.coevolution.enabled = True
+    run = FitRun(tiny, cfg, None, progress=False)
+    run._start()
+    cfg = run.cfg
+
+    def rule(probe, limit):
+        cfg.losses.mesh_thin_probe, cfg.losses.mesh_thin_limit = probe, limit
+        return thin_parts(run.proxy, run.surfels, run.train.cameras, cfg)
+
+    at16 = thin_share(run.proxy.with_resolution(16), run.surfels, run.train.cameras, cfg)
+    at32 = thin_share(run.proxy, run.surfels, run.train.cameras, cfg)
+    assert at16 > 0.0 and at32 > 0.0, "a 10-iteration warm-up leaves thin parts on both grids"
+    fired = rule(16, 0.0)
+    assert fired == {"thin_share": at32, "resolution": 32, "limit": 0.0, "mesh_terms": False,
+                     "coarse": {"resolution": 16, "thin_share": at16}}
+    quiet = rule(16, 1.0)
+    assert quiet == {"thin_share": at16, "resolution": 32, "limit": 1.0, "mesh_terms": True, "probe": 16}
+    refined = rule(8, 0.0)  # 2 x 8 < 32: the proxy keeps 32
+    assert refined["resolution"] == 32 and refined["coarse"]["resolution"] == 8
+    assert rule(32, 0.0) == rule(None, 0.0) and rule(32, 0.0)["resolution"] == 64
+    run.coevolution_info = {}
+    cfg.losses.mesh_thin_probe, cfg.losses.mesh_thin_limit = 16, 0.0
+    run._thin_parts()
+    assert run.proxy.cfg.resolution == 32 and "coarse" in run.coevolution_info  # means_thin_decay applies

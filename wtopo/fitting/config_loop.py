@@ -72,6 +72,15 @@ class LossConfig:
     0.06-0.07, the bowl and the bunny 0.05, the torus 0.03); 0.15 lies between. On the doubled 128^3 grid
     the chairs read 0.06-0.08, their mesh terms run, and they go from +2.1 % to -0.7 % against no loop
     (``cpu_thin128``). On the CUDA budget's 128^3 proxy the rule does not fire."""
+    mesh_thin_probe: int | None = _f(None, Range(_GRID_MIN, 256))
+    """Nodes per side of the grid the thin-part rule first measures on; ``None``: the proxy's own (the
+    default, as measured on the suite). A part's thickness in cells depends on the grid, so the CUDA
+    settings' finer proxy (256^3 at 512 px) reads the chairs as thick where the CPU default's 64^3 reads them
+    thin; 64 classifies scenes alike on every device. When the probe fires and the proxy already has at
+    least twice the probe's nodes, the proxy keeps its grid, its own share decides the mesh terms, and the
+    fit counts as refined (``optim.means_thin_decay`` applies); otherwise the grid doubles from the probe's
+    as without it. Not measured on the suite yet (``benchmarks/hard.md``, ``gpu_coevo2000``: the untested
+    remedy for the ten-view chair at 3,000 + 2,000)."""
     depth_form: DepthLoss = DepthLoss.LOG_RATIO
     """Form of the mesh-depth term."""
     mesh_depth_debias: bool = True

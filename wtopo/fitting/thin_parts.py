@@ -55,7 +55,8 @@ def thin_parts(proxy: ProxyMesh, surfels: Surfels, cameras, cfg: FitConfig) -> d
 
     Over ``losses.mesh_thin_limit`` the grid doubles (up to :data:`MAX_RESOLUTION` nodes per side) and the
     share is measured again on it; still over the limit (or no finer grid allowed), the mesh terms stay
-    off for the fit.
+    off for the fit. With ``losses.mesh_thin_probe`` the first measure is on that grid instead of the
+    proxy's; a proxy with at least twice its nodes keeps its grid and is measured again as it is.
 
     Args:
         proxy: the fit's proxy builder (its grid sets the cell).
@@ -66,18 +67,28 @@ def thin_parts(proxy: ProxyMesh, surfels: Surfels, cameras, cfg: FitConfig) -> d
     Returns:
         ``{}`` when the co-evolution runs no mesh terms anyway. Otherwise ``thin_share`` (:func:`thin_share`
         on the grid kept), ``resolution`` (that grid's nodes per side), ``limit``, ``mesh_terms`` (whether
-        they run) and, when the grid was refined, ``coarse``: the plan's grid and its share.
+        they run) and, when the rule fired, ``coarse``: the first measure's grid (the plan's or the probe's)
+        and its share; a probe that did not fire gives its share and its grid as ``probe``.
     """
     lc = cfg.losses
     if not cfg.coevolution.enabled or (lc.mesh_depth <= 0 and lc.mesh_normal <= 0):
         return {}
     limit = float(lc.mesh_thin_limit)
     res = int(proxy.cfg.resolution)
-    share = thin_share(proxy, surfels, cameras, cfg)
+    probe = res if lc.mesh_thin_probe is None else int(lc.mesh_thin_probe)
+    share = thin_share(proxy if probe == res else proxy.with_resolution(probe), surfels, cameras, cfg)
     info: dict = {"thin_share": share, "resolution": res, "limit": limit}
-    if share is not None and share > limit and 2 * res <= MAX_RESOLUTION:
-        fine = thin_share(proxy.with_resolution(2 * res), surfels, cameras, cfg)
-        info.update(thin_share=fine, resolution=2 * res, coarse={"resolution": res, "thin_share": share})
-        share = fine
+    if share is not None and share > limit:
+        coarse = {"resolution": probe, "thin_share": share}
+        if 2 * probe <= res:  # the proxy already resolves the probe's thin parts at twice the cells or more
+            fine = thin_share(proxy, surfels, cameras, cfg)
+            info.update(thin_share=fine, coarse=coarse)
+            share = fine
+        elif 2 * probe <= MAX_RESOLUTION:
+            fine = thin_share(proxy.with_resolution(2 * probe), surfels, cameras, cfg)
+            info.update(thin_share=fine, resolution=2 * probe, coarse=coarse)
+            share = fine
+    elif probe != res:
+        info["probe"] = probe  # the share above is the probe's; the proxy keeps its grid
     info["mesh_terms"] = share is None or share <= limit
     return info
