@@ -192,13 +192,13 @@ def test_raycast_and_closest_faces_equal_on_cuda():
 def test_final_poisson_remesh_on_cuda_matches_the_cpu():
     """The fit's final watertight re-mesh on the fit's device: the same closed surface as on the CPU (float32
     Poisson, cuFFT against pocketfft: the vertices agree to float32 rounding of the level set)."""
+    from test_mesh_policy import _open_sphere
+
     from wtopo.fitting import FitConfig
     from wtopo.fitting.stages import poisson_remesh
     from wtopo.metrics import chamfer
 
-    s = trimesh.creation.icosphere(subdivisions=4, radius=0.3)
-    s.apply_translation([0.5, 0.5, 0.5])
-    src = trimesh.Trimesh(s.vertices, s.faces[s.triangles_center[:, 2] < 0.7], process=True)
+    src = _open_sphere(subdivisions=4)
     cfg = FitConfig()
     cfg.final.resolution = 96
     events = []

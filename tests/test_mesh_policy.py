@@ -128,9 +128,9 @@ def test_crop_to_box_keeps_faces_inside():
     assert out.vertices[:, 2].min() >= 0.0
 
 
-def _open_sphere():
+def _open_sphere(subdivisions=3):
     """An icosphere with a cap cut away: not watertight, so the final policy re-meshes it."""
-    s = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.3)
     s.apply_translation([0.5, 0.5, 0.5])
     keep = s.triangles_center[:, 2] < 0.7
     return trimesh.Trimesh(s.vertices, s.faces[keep], process=True)

@@ -224,6 +224,7 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
     mesh = None
     scene = _is_scene(layout)
     carve = False
+    weld = True  # merge vertices by position in the clean-up; not a marching-cubes mesh's (see cleanup_mesh)
     depths, colors = render_depths(render, surfels, cameras, cfg.tsdf.depth, cfg.tsdf.alpha_threshold)
     if fc.method == FinalMethod.TSDF:
         if scene:
@@ -250,17 +251,18 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
             pm = final.build(surfels)
         if pm is None:
             raise TSDFEmptyError("no final mesh: the TSDF fusion and the proxy mesh are both empty")
-        mesh = trimesh.Trimesh(pm.verts.detach().cpu().numpy(), pm.faces.cpu().numpy(), process=True)
+        mesh = trimesh.Trimesh(pm.verts.detach().cpu().numpy(), pm.faces.cpu().numpy(), process=False)
+        weld = False
     info: dict = {}
     with section("mesh_policy"):
         if scene:
             mesh = crop_to_box(mesh, layout.roi_lower, layout.roi_upper)
             mesh, info["near_camera_faces_removed"] = crop_near_cameras(mesh, layout.camera_centers, layout.near)
-            mesh = cleanup_mesh(mesh, largest_component=fc.largest_component, repair=False)
+            mesh = cleanup_mesh(mesh, largest_component=fc.largest_component, repair=False, weld=weld)
             with section("supported_components"):
                 mesh, info["components"] = supported_components(mesh, cameras, depths)
         else:
-            mesh = cleanup_mesh(mesh, largest_component=fc.largest_component)
+            mesh = cleanup_mesh(mesh, largest_component=fc.largest_component, weld=weld)
             with section("supported_components"):
                 mesh, info["components"] = supported_components(mesh, cameras, depths)
             info["closure"] = "carve" if carve else "poisson"

@@ -79,14 +79,10 @@ def thin_parts(proxy: ProxyMesh, surfels: Surfels, cameras, cfg: FitConfig) -> d
     share = thin_share(proxy if probe == res else proxy.with_resolution(probe), surfels, cameras, cfg)
     info: dict = {"thin_share": share, "resolution": res, "limit": limit}
     if share is not None and share > limit:
-        coarse = {"resolution": probe, "thin_share": share}
-        if 2 * probe <= res:  # the proxy already resolves the probe's thin parts at twice the cells or more
-            fine = thin_share(proxy, surfels, cameras, cfg)
-            info.update(thin_share=fine, coarse=coarse)
-            share = fine
-        elif 2 * probe <= MAX_RESOLUTION:
-            fine = thin_share(proxy.with_resolution(2 * probe), surfels, cameras, cfg)
-            info.update(thin_share=fine, resolution=2 * probe, coarse=coarse)
+        fine_res = max(res, 2 * probe)  # a proxy with twice the probe's nodes or more keeps its grid
+        if fine_res == res or fine_res <= MAX_RESOLUTION:
+            fine = thin_share(proxy if fine_res == res else proxy.with_resolution(fine_res), surfels, cameras, cfg)
+            info.update(thin_share=fine, resolution=fine_res, coarse={"resolution": probe, "thin_share": share})
             share = fine
     elif probe != res:
         info["probe"] = probe  # the share above is the probe's; the proxy keeps its grid
