@@ -36,6 +36,7 @@ from .tsdf import (
     fuse_depths,
     hybrid_keep,
     mesh_to_surfels,
+    repair_mesh,
 )
 
 __all__ = ["Stage", "ROI_EXTENT", "Renderer", "render_depths", "tsdf_reinit", "final_mesh", "poisson_remesh"]
@@ -262,9 +263,11 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
             with section("supported_components"):
                 mesh, info["components"] = supported_components(mesh, cameras, depths)
         else:
-            mesh = cleanup_mesh(mesh, largest_component=fc.largest_component, weld=weld)
+            mesh = cleanup_mesh(mesh, largest_component=fc.largest_component, repair=False, weld=weld)
             with section("supported_components"):
                 mesh, info["components"] = supported_components(mesh, cameras, depths)
+            with section("repair"):  # after the support rule: repairing works component by component
+                mesh = repair_mesh(mesh)
             info["closure"] = "carve" if carve else "poisson"
             if fc.watertight and not mesh.is_watertight:
                 mesh = poisson_remesh(mesh, cfg, record=record, device=surfels.means.device)
