@@ -79,8 +79,9 @@ class LossConfig:
     thin; 64 classifies scenes alike on every device. When the probe fires and the proxy already has at
     least twice the probe's nodes, the proxy keeps its grid, its own share decides the mesh terms, and the
     fit counts as refined (``optim.means_thin_decay`` applies); otherwise the grid doubles from the probe's
-    as without it. Not measured on the suite yet (``benchmarks/hard.md``, ``gpu_coevo2000``: the untested
-    remedy for the ten-view chair at 3,000 + 2,000)."""
+    as without it. Measured at the GPU settings (512 px, ``benchmarks/hard.md``, ``gpu_probe``): 64 fires on
+    the three chair scenes and makes every one worse, +2 to +19 % Chamfer against the default at 3,000 + 1,000
+    and worse than no loop; so it stays off."""
     depth_form: DepthLoss = DepthLoss.LOG_RATIO
     """Form of the mesh-depth term."""
     mesh_depth_debias: bool = True
