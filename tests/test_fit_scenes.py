@@ -57,6 +57,26 @@ def test_plan_runs_the_mesh_loop_for_objects_only(room):
     assert resolve_config(FitConfig(), make_plan(room.normalized(), FitConfig(), dev)).coevolution.enabled is False
 
 
+def test_plan_gives_a_scene_an_open_proxy(room):
+    """A scene's proxy takes a local zero level and is clipped to the region of interest; an object's keeps
+    one level and its whole proxy; explicit settings win and reach the resolved configuration."""
+    dev = torch.device("cpu")
+    p = make_plan(room.normalized(), FitConfig(), dev)
+    assert p["proxy_level_sigma"] > 0 and p["proxy_clip"] is True
+    masked = scenes.from_mesh(trimesh.creation.icosphere(subdivisions=2), n_views=8, resolution=24)
+    q = make_plan(masked.normalized(), FitConfig(), dev)
+    assert q["proxy_level_sigma"] == 0 and q["proxy_clip"] is False
+    cfg = FitConfig()
+    cfg.mesh.level_sigma, cfg.mesh.clip_to_region = 0.0, False
+    p = make_plan(room.normalized(), cfg, dev)
+    assert p["proxy_level_sigma"] == 0 and p.decisions["proxy_level_sigma"].overridden
+    r = resolve_config(cfg, p)
+    assert r.mesh.level_sigma == 0 and r.mesh.clip_to_region is False
+    r = resolve_config(FitConfig(), make_plan(room.normalized(), FitConfig(), dev))
+    assert r.mesh.level_sigma > 0
+    assert r.mesh.clip_to_region is True
+
+
 def test_plan_budget_follows_the_device(room):
     """Give CUDA a larger budget than the CPU; honour an explicit image scale."""
     cpu = make_plan(room.normalized(), FitConfig(), torch.device("cpu"))

@@ -35,15 +35,18 @@ def _radii(field, centre=0.5):
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("resolution", [8, 9, 16])
-def test_forward_and_vjp_match_reference(device, dtype, resolution):
-    """Match the pure-torch reference in chi and in the VJP w.r.t. points, normals, weights."""
+@pytest.mark.parametrize("resolution,level_sigma", [(8, 0.0), (9, 0.0), (16, 0.0), (8, 1.0), (9, 2.0), (16, 0.7)])
+def test_forward_and_vjp_match_reference(device, dtype, resolution, level_sigma):
+    """Match the pure-torch reference in chi and in the VJP w.r.t. points, normals, weights, with one global
+    level and with a local one (``level_sigma``, which then changes the field)."""
     g = torch.Generator().manual_seed(resolution)
     p = torch.rand(40, 3, generator=g, dtype=dtype).to(device).requires_grad_()
     n = torch.randn(40, 3, generator=g, dtype=dtype).to(device).requires_grad_()
     w = torch.rand(40, generator=g, dtype=dtype).to(device).requires_grad_()
-    out = poisson_indicator(p, n, w, resolution, sigma=0.7, padding=0.1).chi
-    ref = poisson_indicator_ref(p, n, w, resolution, sigma=0.7, padding=0.1)
+    out = poisson_indicator(p, n, w, resolution, sigma=0.7, padding=0.1, level_sigma=level_sigma).chi
+    ref = poisson_indicator_ref(p, n, w, resolution, sigma=0.7, padding=0.1, level_sigma=level_sigma)
+    if level_sigma > 0:
+        assert (ref - poisson_indicator_ref(p, n, w, resolution, sigma=0.7, padding=0.1)).abs().max() > 1e-3
     atol = ATOL_F32 if dtype == torch.float32 else ATOL_F64
     torch.testing.assert_close(out, ref, atol=atol, rtol=0)
     up = torch.randn_like(ref)

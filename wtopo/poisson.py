@@ -30,6 +30,9 @@ NORM_FLOOR = 1e-10
 # The level (weighted mean of chi at the points) is 0 when the total weight is below this. 1e-20
 # keeps 1 / total weight, and hence every gradient, finite in float32.
 WEIGHT_FLOOR = 1e-20
+# A local level (``level_sigma > 0``) blends into the global one where the blurred point weight falls
+# under this share of its weighted mean at the points (about 2.5 sigma away from every point).
+LEVEL_BLEND = 0.05
 
 
 def _safe_divide(num: torch.Tensor, den: torch.Tensor, floor: float) -> torch.Tensor:
@@ -97,18 +100,36 @@ class PoissonContext:
             wrd[-1] = 0.0
         op = (wd.view(r, 1, 1).to(device, dtype), wd.view(1, r, 1).to(device, dtype),
               wrd.view(1, 1, -1).to(device, dtype), s.to(device, dtype))
+        self._put(key, op)
+        return op
+
+    def blur(self, resolution: int, sigma: float, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+        """The Gaussian ``exp(-|w|^2 sigma^2 / 2)`` [R, R, R//2+1] on the ``rfftn`` spectrum (``sigma`` in voxels):
+        a periodic Gaussian blur of standard deviation ``sigma`` voxels, its DC term 1 (it keeps sums)."""
+        key = ("blur", resolution, float(sigma), str(device), dtype)
         with self._lock:
-            self._cache[key] = op
+            if key in self._cache:
+                self._cache.move_to_end(key)
+                return self._cache[key]
+        w = 2 * math.pi * torch.fft.fftfreq(resolution, dtype=torch.float64)
+        wr = 2 * math.pi * torch.fft.rfftfreq(resolution, dtype=torch.float64)
+        w2 = w[:, None, None] ** 2 + w[None, :, None] ** 2 + wr[None, None, :] ** 2
+        g = torch.exp(-0.5 * sigma ** 2 * w2).to(device, dtype)
+        self._put(key, g)
+        return g
+
+    def _put(self, key, value) -> None:
+        with self._lock:
+            self._cache[key] = value
             while len(self._cache) > self.max_entries:
                 self._cache.popitem(last=False)
-        return op
 
 
 _DEFAULT_CONTEXT = PoissonContext()
 
 
 def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torch.Tensor, resolution: int, *,
-                      sigma: float = 1.0, padding: float = 0.1,
+                      sigma: float = 1.0, padding: float = 0.1, level_sigma: float = 0.0,
                       context: PoissonContext | None = None) -> PoissonField:
     """Solve for the indicator function of weighted oriented points with an FFT Poisson solve (DPSR).
 
@@ -123,6 +144,15 @@ def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torc
     absolute value (left as is when that is below ``1e-10``, i.e. for a zero field): outward
     normals give chi < 0 inside.
 
+    One level for all points suits a closed surface, where chi takes one value on it. An open sheet
+    (a ground the region of interest cuts) takes another: chi is antisymmetric across it, so the
+    level of a closed part beside it moves the sheet's zero crossing off the sheet and closes it over
+    its unseen side. ``level_sigma > 0`` shifts chi by a *local* level instead: the weight-averaged
+    value of chi at the points under a Gaussian of ``level_sigma`` voxels,
+    ``L(x) = (G * sum w chi(p) delta_p + c L0) / (G * sum w delta_p + c)`` with ``L0`` the global level and
+    ``c`` = :data:`LEVEL_BLEND` times the blurred weight's weighted mean at the points, so ``L`` is the
+    global level farther than about 2.5 ``level_sigma`` from every point.
+
     Args:
         points: positions, shape ``[N, 3]``, float32 or float64, in ``[0, 1]^3`` (anything in the
             padded box ``[-padding, 1 + padding]^3`` is accepted; outside or NaN raises
@@ -134,6 +164,8 @@ def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torc
         sigma: Gaussian smoothing standard deviation in grid voxels, ``>= 0``.
         padding: margin around the unit cube in unit-cube units, ``>= 0``; 0.1 (as SAP) is safe for
             geometry filling the unit cube.
+        level_sigma: standard deviation in voxels of the local level's Gaussian, ``>= 0``; 0 (the
+            default) shifts by one global level. Two more trilinear scatters and FFT pairs.
         context: operator cache (see :class:`PoissonContext`); a shared module-level one by default.
 
     Returns:
@@ -159,6 +191,7 @@ def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torc
     require_int_range("resolution", resolution, 4)
     sigma = require_positive("sigma", sigma, allow_zero=True)
     padding = require_positive("padding", padding, allow_zero=True)
+    level_sigma = require_positive("level_sigma", level_sigma, allow_zero=True)
     if value_checks():  # host syncs: validation only (points are clamped into the grid below either way)
         check_unit_points("points", points, -padding, 1.0 + padding, closed=True)
         check_finite("normals", normals)
@@ -175,14 +208,34 @@ def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torc
     with section("scatter"):
         v = scatter_unchecked(q, weights[:, None] * normals, r)
     vh = torch.fft.rfftn(v.permute(3, 0, 1, 2), dim=(1, 2, 3))
-    wx, wy, wz, s = (context or _DEFAULT_CONTEXT).operator(r, sigma, device, dtype)
+    ctx = context or _DEFAULT_CONTEXT
+    wx, wy, wz, s = ctx.operator(r, sigma, device, dtype)
     # laplacian(chi) = div(V)  <=>  -|w|^2 chi^ = i w . V^  <=>  chi^ = -i (w . V^) / |w|^2
     chi_h = (wx * vh[0] + wy * vh[1] + wz * vh[2]) * s * (-1j)
     chi = torch.fft.irfftn(chi_h, s=(r, r, r), dim=(0, 1, 2))
     at_points = sample_unchecked(chi[..., None], q)[:, 0]
     wsum = weights.sum()
     level = _safe_divide((weights * at_points).sum(), wsum, WEIGHT_FLOOR) * (wsum > WEIGHT_FLOOR)
+    if level_sigma > 0:
+        level = _local_level(q, weights, at_points, level, ctx.blur(r, level_sigma, device, dtype), wsum)
     chi = chi - level
     chi = _safe_divide(chi, chi.abs().mean(), NORM_FLOOR)
     lo, hi = -padding, 1.0 + padding
     return PoissonField(chi, (lo, lo, lo), (hi, hi, hi))
+
+
+def _local_level(q: torch.Tensor, weights: torch.Tensor, at_points: torch.Tensor, level: torch.Tensor,
+                 blur: torch.Tensor, wsum: torch.Tensor) -> torch.Tensor:
+    """The local level field [R, R, R] of :func:`poisson_indicator` (``level_sigma > 0``): the blurred
+    ``w chi(p)`` over the blurred ``w``, blended into the global ``level`` where the blurred weight is small."""
+    r = blur.shape[0]
+    with section("scatter"):
+        src = scatter_unchecked(q, torch.stack([weights * at_points, weights], dim=1), r)
+    sh = torch.fft.rfftn(src.permute(3, 0, 1, 2), dim=(1, 2, 3)) * blur
+    num, den = torch.fft.irfftn(sh, s=(r, r, r), dim=(1, 2, 3))
+    den_at = sample_unchecked(den[..., None], q)[:, 0]
+    c = LEVEL_BLEND * _safe_divide((weights * den_at).sum(), wsum, WEIGHT_FLOOR) * (wsum > WEIGHT_FLOOR)
+    # den + c > 0 wherever any weight is (the blur's float ringing is far below c); an empty set: the
+    # global level (0), never 0 / 0
+    ok = (den + c) > 0
+    return torch.where(ok, (num + c * level) / torch.where(ok, den + c, torch.ones_like(den)), level)

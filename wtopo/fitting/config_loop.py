@@ -222,6 +222,16 @@ class MeshConfig:
     """Move each proxy vertex along its normal by ``(sigma^2 + 1/6) h^2 (H - H_mean)`` (at most half a
     cell ``h``): the shift by which the smoothed Poisson indicator and its level put curved parts
     inside and flat parts outside the points (:mod:`wtopo.fitting.curvature`)."""
+    level_sigma: float | None = _f(None, RATE)
+    """The Poisson proxy's zero level: 0 shifts the indicator by one level, its weighted mean at the points,
+    which suits a closed object; over 0 by a local one, its mean at the points under a Gaussian of this
+    many grid cells (:func:`wtopo.poisson.poisson_indicator`'s ``level_sigma``), so an open sheet (a
+    ground the region of interest cuts) keeps its zero crossing on its points beside a closed part.
+    ``None``: the plan's (scenes 2, objects 0)."""
+    clip_to_region: bool | None = None
+    """Keep only the proxy's faces within a Poisson cell of the region of interest (:class:`ProxyMesh`'s
+    ``clip``): outside it a scene's proxy is the Poisson solve's closing (the periodic image of a ground
+    the region cuts lies over the region). ``None``: the plan's (scenes yes, objects no)."""
     support_voxels: float = _f(0.0, RATE)
     """Proxy faces whose centroid lies farther than this many Poisson grid cells, plus twice the
     larger scale of the nearest surfel, from every surfel centre of opacity >= 0.1 are unsupported:

@@ -129,7 +129,7 @@ class FitRun:
         self.failures = 0
         self.total_failures = 0
         self.loss_log = LossLog()
-        self.proxy: ProxyMesh = ProxyMesh(cfg.mesh)
+        self.proxy: ProxyMesh = ProxyMesh(cfg.mesh, clip=self._proxy_clip())
         self.proxy_mesh: ProxyResult | None = None
         self.tsdf_info: dict = {}
         self.coevolution_info: dict = {}  # the thin-part rule's measure and decision (thin_parts)
@@ -150,6 +150,11 @@ class FitRun:
         self.checkpoints = Checkpointer(self, self.out_dir)
         self.stop = StopRequest(lambda signum: self.record("signal", signal=signum))
         self.timeline: FitTimeline | None = None
+
+    def _proxy_clip(self):
+        """The proxy's clip box: a scene's region of interest when ``mesh.clip_to_region`` (the plan's: scenes)."""
+        lay = self.plan.layout
+        return (lay.roi_lower, lay.roi_upper) if self.cfg.mesh.clip_to_region else None
 
     @property
     def warmup_end(self) -> int:

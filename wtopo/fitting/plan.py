@@ -60,6 +60,7 @@ _REINIT_FACES = {"cpu": _REINIT_MIN, "cuda": _MAX_SURFELS["cuda"] // 4}  # caps 
 _PROXY_GRID = {"cpu": (64, 64), "cuda": (128, 256)}  # (min, max) Poisson nodes per side
 _FINAL_GRID = {"cpu": (96, 192), "cuda": (192, 768)}  # (min, max) TSDF voxels along the fusion box
 _PROXY_FOOTPRINTS = 2.0  # proxy grid cell ~ 2 pixel footprints (a finer Poisson grid only adds noise)
+_SCENE_LEVEL_SIGMA = 2.0  # a scene proxy's local zero level, Poisson cells (poisson_indicator's level_sigma)
 # final TSDF voxel in pixel footprints: fused depth resolves below a pixel; 0.4 is the CPU default's
 # 192 voxels on the 128-px bunny (0.277 % Chamfer, benchmarks/fit.md), kept for every image size
 _FINAL_FOOTPRINTS = 0.4
@@ -318,6 +319,15 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     else:
         loop, why = True, "object: proxy mesh rebuilt and supervising the surfels"
     plan.set("mesh_loop", loop, why, cfg.coevolution.enabled)
+    if is_scene:
+        lvl, why = _SCENE_LEVEL_SIGMA, (f"scene: the proxy's zero level is local ({_SCENE_LEVEL_SIGMA:g} cells), so "
+                                        "a ground the region of interest cuts keeps its crossing beside closed parts")
+    else:
+        lvl, why = 0.0, "object: one closed surface, one level"
+    plan.set("proxy_level_sigma", lvl, why, cfg.mesh.level_sigma)
+    plan.set("proxy_clip", is_scene, "scene: the proxy's faces outside the region of interest are the Poisson "
+             "solve's closing and are dropped" if is_scene else "object: the whole proxy is the object",
+             cfg.mesh.clip_to_region)
     plan.set("gt_metrics", getattr(scene, "gt_mesh", None) is not None and cfg.runtime.eval_metrics,
              "ground-truth mesh given: Chamfer / F-score at evaluations" if getattr(scene, "gt_mesh", None)
              is not None else "no ground-truth mesh")
@@ -419,6 +429,8 @@ def resolve_config(cfg: FitConfig, plan: Plan) -> FitConfig:
     out.tsdf.max_faces = int(plan["reinit_faces"])
     out.runtime.image_scale = float(plan["image_scale"])
     out.mesh.resolution = int(plan["proxy_resolution"])
+    out.mesh.level_sigma = float(plan["proxy_level_sigma"])
+    out.mesh.clip_to_region = bool(plan["proxy_clip"])
     out.final.resolution = int(plan["final_resolution"])
     out.tsdf.backend = TSDFBackend(plan["tsdf_backend"])
     return out

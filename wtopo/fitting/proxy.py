@@ -30,17 +30,19 @@ _EXIT_STEP_CELLS = 1e-3  # the exit ray starts this many grid cells past the ent
 
 
 def poisson_mesh(points: torch.Tensor, normals: torch.Tensor, weights: torch.Tensor, resolution: int, *,
-                 sigma: float, padding: float) -> tuple[torch.Tensor, torch.Tensor]:
+                 sigma: float, padding: float, level_sigma: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """Zero level set of the Poisson indicator of oriented points in ``[0, 1]^3``.
 
     Returns ``(verts [V, 3], faces [F, 3] int32)`` in the points' frame, differentiable w.r.t. the
-    points, normals and weights; ``F = 0`` when the field has no zero crossing.
+    points, normals and weights; ``F = 0`` when the field has no zero crossing. ``level_sigma``: the
+    local level's Gaussian in grid cells (0: one global level), see :func:`wtopo.poisson.poisson_indicator`.
     """
     from ..marching_cubes import marching_cubes
     from ..poisson import poisson_indicator
 
     with section("poisson"):
-        field = poisson_indicator(points, normals, weights, int(resolution), sigma=sigma, padding=padding)
+        field = poisson_indicator(points, normals, weights, int(resolution), sigma=sigma, padding=padding,
+                                  level_sigma=level_sigma)
     with section("marching_cubes"):
         return marching_cubes(field.chi, 0.0, lower=field.lower, upper=field.upper)
 
@@ -72,6 +74,11 @@ class ProxyMesh:
             the unit cube.
         prior: optional ``(points [P, 3], normals [P, 3])`` splatted into the Poisson input with
             weight ``cfg.surface_prior`` (the public TopoSurfel code's surface prior).
+        clip: optional ``(lower [3], upper [3])`` in the internal frame (a scene's region of interest):
+            :meth:`build` drops the faces whose centroid lies farther than one Poisson cell outside it.
+            Outside the region the proxy of an open scene is the Poisson solve's own closing: the
+            periodic image of a ground the region cuts, halfway to its copy across the domain's wrap,
+            lies over the region and would hide it from the cameras.
 
     Attributes:
         silhouette: the running silhouette offset (:mod:`.silhouette`; ``None`` when
@@ -80,8 +87,10 @@ class ProxyMesh:
     """
 
     def __init__(self, cfg: MeshConfig, *, box: tuple[np.ndarray, np.ndarray] | None = None,
-                 prior: tuple[torch.Tensor, torch.Tensor] | None = None):
+                 prior: tuple[torch.Tensor, torch.Tensor] | None = None,
+                 clip: tuple[np.ndarray, np.ndarray] | None = None):
         self.cfg = cfg
+        self.clip = None if clip is None else (np.asarray(clip[0], np.float64), np.asarray(clip[1], np.float64))
         self.raycaster = MeshRaycaster()
         self.box = box
         if box is None:
@@ -102,7 +111,7 @@ class ProxyMesh:
     def with_resolution(self, resolution: int) -> ProxyMesh:
         """This proxy on a grid of ``resolution`` nodes per side: the same box, prior and settings, and the
         silhouette offset's current value, clamped to the new grid's limit (two of its cells)."""
-        out = ProxyMesh(replace(self.cfg, resolution=int(resolution)), box=self.box, prior=self.prior)
+        out = ProxyMesh(replace(self.cfg, resolution=int(resolution)), box=self.box, prior=self.prior, clip=self.clip)
         if out.silhouette is not None and self.silhouette is not None:
             lim, v = out.silhouette.limit, self.silhouette.value
             out.silhouette.value = v.clamp(-lim, lim) if torch.is_tensor(v) else min(max(float(v), -lim), lim)
@@ -126,6 +135,7 @@ class ProxyMesh:
 
         Differentiable w.r.t. the surfel means, rotations, scales and opacities. With a
         :attr:`silhouette` offset the vertices are moved along their (discrete) normals by its value.
+        With a ``clip`` box only the faces within a cell of it are kept (the vertices stay).
         """
         from ..oriented_points import oriented_points
 
@@ -147,16 +157,29 @@ class ProxyMesh:
         pts = torch.where(inside[:, None], pts, torch.full_like(pts, 0.5))
         if not bool((w > 0).any()):  # host sync: one per iteration, decides whether a mesh exists
             return None
-        verts, faces = poisson_mesh(pts, nrm, w, int(c.resolution), sigma=c.sigma, padding=c.padding)
+        verts, faces = poisson_mesh(pts, nrm, w, int(c.resolution), sigma=c.sigma, padding=c.padding,
+                                    level_sigma=float(c.level_sigma or 0.0))
         if faces.shape[0] == 0:
             return None
         verts = self._from_box(verts)
+        if self.clip is not None:
+            faces = self._clipped(verts, faces)
+            if faces.shape[0] == 0:
+                return None
         if c.curvature_compensation:  # undo the smoothing's curvature shift (a discrete offset: same gradient)
             h = self.size * (1.0 + 2.0 * c.padding) / (int(c.resolution) - 1)
             verts = verts + curvature_offset(verts, faces, (c.sigma ** 2 + 1.0 / 6.0) * h * h, 0.5 * h)
         if self.silhouette is not None:
             verts = verts + self.silhouette.value * vertex_normals(verts, faces)
         return ProxyResult(verts, faces)
+
+    def _clipped(self, verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+        """The faces [F', 3] whose centroid lies within one Poisson cell of the ``clip`` box (discrete)."""
+        c = verts.detach()[faces.long()].mean(dim=1)
+        pad = self.cell if self.cfg.resolution is not None else 0.0
+        lo = torch.as_tensor(self.clip[0] - pad, dtype=c.dtype, device=c.device)
+        hi = torch.as_tensor(self.clip[1] + pad, dtype=c.dtype, device=c.device)
+        return faces[((c >= lo) & (c <= hi)).all(dim=1)]
 
     def supported(self, mesh: ProxyResult, surfels: Surfels) -> torch.Tensor | None:
         """Which faces of ``mesh`` lie near a surfel (:meth:`near_surfels` at ``cfg.support_voxels``):

@@ -191,7 +191,8 @@ def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: 
         prior = (torch.as_tensor(pts, dtype=torch.float32, device=device),
                  torch.as_tensor(mesh.face_normals[fi], dtype=torch.float32, device=device))
         box = mesh.bounds if cfg.mesh.poisson_box == PoissonBox.INITIAL_MESH else None
-        proxy = ProxyMesh(cfg.mesh, box=box, prior=prior)
+        clip = (layout.roi_lower, layout.roi_upper) if cfg.mesh.clip_to_region and layout is not None else None
+        proxy = ProxyMesh(cfg.mesh, box=box, prior=prior, clip=clip)
         info["poisson_box"] = None if box is None else np.asarray(box).tolist()
     info.update({"reinit_faces": int(len(mesh.faces)), "reinit_surfels": len(new) - kept, "hybrid_kept": kept})
     record("tsdf_reinit", **info)
@@ -247,7 +248,7 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
             # keeps the scaffold's signs)
             dens.align_normal_signs(surfels, NormalFlip(cfg.mesh.normal_flip))
         final = ProxyMesh(dataclasses.replace(cfg.mesh, resolution=fc.poisson_resolution), box=proxy.box,
-                          prior=proxy.prior)
+                          prior=proxy.prior, clip=proxy.clip)
         with torch.no_grad():
             pm = final.build(surfels)
         if pm is None:
