@@ -84,3 +84,24 @@ def test_local_level_keeps_the_ground_beside_a_closed_part():
             assert math.isfinite(float(g.abs().sum())) and float(g[: 48 * 48].abs().sum()) > 0
     assert counts[2.0] > 2000, counts
     assert counts[0.0] < 0.25 * counts[2.0], counts
+
+
+def test_background_outside_the_region_stays_out_of_the_solve():
+    """Surfels outside the region (two cells and more: a scene's background, never oriented by a mesh) change
+    nothing in the clipped proxy, where the unclipped one moves."""
+    s = _ground_and_ball()
+    g = torch.Generator().manual_seed(5)
+    junk = torch.rand(400, 3, generator=g) * 0.1 + torch.tensor([0.95, 0.5, 0.5])  # past the region's +x side
+    both = Surfels.from_points(torch.cat([s.means.detach(), junk]), torch.full((len(s) + 400, 3), 0.5),
+                               normals=torch.cat([torch.zeros(len(s), 3), torch.randn(400, 3, generator=g)]),
+                               scales=torch.full((len(s) + 400,), 0.008))
+    with torch.no_grad():
+        for k in ("quats", "log_scales", "opacity_logits"):
+            both.params[k][: len(s)] = s.params[k]
+        both.params["opacity_logits"][len(s):] = 3.0
+    cfg = MeshConfig(resolution=64, level_sigma=2.0)
+    assert ProxyMesh(cfg).cell * 2 < 0.95 - ROI[1][0]
+    a, b = ProxyMesh(cfg, clip=ROI).build(s), ProxyMesh(cfg, clip=ROI).build(both)
+    assert torch.equal(a.faces, b.faces) and torch.allclose(a.verts, b.verts, atol=1e-6)
+    fa, fb = ProxyMesh(cfg).build(s), ProxyMesh(cfg).build(both)
+    assert fa.faces.shape != fb.faces.shape or not torch.allclose(fa.verts, fb.verts, atol=1e-4)

@@ -113,7 +113,7 @@ class Checkpointer:
         r.gen.set_state(st["generator"])
         px = st["proxy"]
         r.proxy = ProxyMesh(r.cfg.mesh, box=None if px["box"] is None else tuple(np.asarray(b) for b in px["box"]),
-                            prior=px["prior"])
+                            prior=px["prior"], clip=r._proxy_clip())
         if r.proxy.silhouette is not None and px.get("silhouette"):
             r.proxy.silhouette.value = torch.tensor(float(px["silhouette"]), device=r.device)
         return True

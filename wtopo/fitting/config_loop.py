@@ -229,9 +229,11 @@ class MeshConfig:
     ground the region of interest cuts) keeps its zero crossing on its points beside a closed part.
     ``None``: the plan's (scenes 2, objects 0)."""
     clip_to_region: bool | None = None
-    """Keep only the proxy's faces within a Poisson cell of the region of interest (:class:`ProxyMesh`'s
-    ``clip``): outside it a scene's proxy is the Poisson solve's closing (the periodic image of a ground
-    the region cuts lies over the region). ``None``: the plan's (scenes yes, objects no)."""
+    """Build the proxy from the oriented points within two Poisson cells of the region of interest and keep
+    only its faces within one cell of it (:class:`~wtopo.fitting.proxy.ProxyMesh`'s ``clip``): outside the
+    region a scene's surfels are background no mesh orients, and its proxy is the Poisson solve's closing
+    (the periodic image of a ground the region cuts lies over the region and hides it from the cameras).
+    ``None``: the plan's (scenes yes, objects no)."""
     support_voxels: float = _f(0.0, RATE)
     """Proxy faces whose centroid lies farther than this many Poisson grid cells, plus twice the
     larger scale of the nearest surfel, from every surfel centre of opacity >= 0.1 are unsupported:

@@ -27,6 +27,7 @@ _SUPPORT_OPACITY = 0.1  # surfels at least this opaque support proxy faces (the 
 _SUPPORT_SCALES = 2.0  # a surfel reaches this many of its (larger) scales from its centre
 _SILHOUETTE_LIMIT_CELLS = 2.0  # the silhouette offset stays within this many Poisson grid cells
 _EXIT_STEP_CELLS = 1e-3  # the exit ray starts this many grid cells past the entry hit
+_CLIP_INPUT_CELLS = 2.0  # with a clip box, the Poisson input is the points within this many cells of it
 
 
 def poisson_mesh(points: torch.Tensor, normals: torch.Tensor, weights: torch.Tensor, resolution: int, *,
@@ -75,7 +76,9 @@ class ProxyMesh:
         prior: optional ``(points [P, 3], normals [P, 3])`` splatted into the Poisson input with
             weight ``cfg.surface_prior`` (the public TopoSurfel code's surface prior).
         clip: optional ``(lower [3], upper [3])`` in the internal frame (a scene's region of interest):
-            :meth:`build` drops the faces whose centroid lies farther than one Poisson cell outside it.
+            :meth:`build` takes the oriented points within two Poisson cells of it (a scene's background
+            surfels, never oriented by a mesh, stay out of the solve) and drops the faces whose centroid
+            lies farther than one cell outside it.
             Outside the region the proxy of an open scene is the Poisson solve's own closing: the
             periodic image of a ground the region cuts, halfway to its copy across the domain's wrap,
             lies over the region and would hide it from the cameras.
@@ -151,8 +154,15 @@ class ProxyMesh:
             pts = torch.cat([pts, self._to_box(pp.to(pts))])
             nrm = torch.cat([nrm, pn.to(nrm)])
             w = torch.cat([w, torch.full((pp.shape[0],), float(c.surface_prior), dtype=w.dtype, device=w.device)])
-        # points outside the Poisson domain carry no weight (their gradient is exactly 0)
+        # points outside the Poisson domain (with a clip box: outside it, grown by _CLIP_INPUT_CELLS) carry
+        # no weight (their gradient is exactly 0)
         inside = ((pts >= 0) & (pts <= 1)).all(dim=-1)
+        if self.clip is not None and c.resolution is not None:
+            pad = _CLIP_INPUT_CELLS * self.cell
+            lo, hi = (torch.as_tensor(b, dtype=pts.dtype, device=pts.device)
+                      for b in (self.clip[0] - pad, self.clip[1] + pad))
+            world = self._from_box(pts.detach())
+            inside = inside & ((world >= lo) & (world <= hi)).all(dim=-1)
         w = torch.where(inside, w, torch.zeros_like(w))
         pts = torch.where(inside[:, None], pts, torch.full_like(pts, 0.5))
         if not bool((w > 0).any()):  # host sync: one per iteration, decides whether a mesh exists
