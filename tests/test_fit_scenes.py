@@ -172,3 +172,23 @@ def test_cpu_budget_grows_with_the_pixels_to_fit():
     big = wtopo.Scene([c.scaled(4.0) for c in obj.cameras], up, train_indices=obj.train_indices,
                       test_indices=obj.test_indices)
     assert make_plan(big.normalized(), FitConfig(), dev)["warmup_iterations"] == warm
+
+
+def test_resumed_scene_fit_keeps_the_clipped_proxy(room, tmp_path):
+    """A scene fit with the loop stopped in the co-evolution resumes with its proxy clipped to the region of
+    interest and its local level (the checkpoint rebuilds the proxy from the resolved configuration)."""
+    from wtopo.fitting.loop import FitRun
+
+    cfg = _small(warmup=20, coevolution=10)
+    cfg.coevolution.enabled = True
+    cfg.runtime.checkpoint_every = 2
+    cfg.runtime.stop_at = 24
+    first = FitRun(room, cfg, tmp_path, progress=False)
+    first.run()
+    assert first.proxy.clip is not None and first.proxy.cfg.level_sigma > 0
+    again = FitRun(room, cfg, tmp_path, progress=False)
+    again._start()
+    assert again.it == 24
+    for a, b in zip(again.proxy.clip, (again.plan.layout.roi_lower, again.plan.layout.roi_upper)):
+        np.testing.assert_array_equal(a, b)
+    assert again.proxy.cfg.level_sigma == first.proxy.cfg.level_sigma
