@@ -81,48 +81,49 @@ class PoissonContext:
         derivative has no real-valued Nyquist mode); ``S = G / |w|^2`` with the Gaussian
         ``G = exp(-|w|^2 sigma^2 / 2)`` (``sigma`` in voxels) and ``S = 0`` at the DC term.
         """
-        key = (resolution, float(sigma), str(device), dtype)
-        with self._lock:
-            if key in self._cache:
-                self._cache.move_to_end(key)
-                return self._cache[key]
-        r = resolution
-        w = 2 * math.pi * torch.fft.fftfreq(r, dtype=torch.float64)
-        wr = 2 * math.pi * torch.fft.rfftfreq(r, dtype=torch.float64)
-        w2 = w[:, None, None] ** 2 + w[None, :, None] ** 2 + wr[None, None, :] ** 2
-        gauss = torch.exp(-0.5 * sigma ** 2 * w2)
-        w2[0, 0, 0] = 1.0
-        s = gauss / w2
-        s[0, 0, 0] = 0.0
-        wd, wrd = w.clone(), wr.clone()
-        if r % 2 == 0:
-            wd[r // 2] = 0.0
-            wrd[-1] = 0.0
-        op = (wd.view(r, 1, 1).to(device, dtype), wd.view(1, r, 1).to(device, dtype),
-              wrd.view(1, 1, -1).to(device, dtype), s.to(device, dtype))
-        self._put(key, op)
-        return op
+
+        def build():
+            r = resolution
+            w, wr, w2 = _frequencies(r)
+            gauss = torch.exp(-0.5 * sigma ** 2 * w2)
+            w2[0, 0, 0] = 1.0
+            s = gauss / w2
+            s[0, 0, 0] = 0.0
+            wd, wrd = w.clone(), wr.clone()
+            if r % 2 == 0:
+                wd[r // 2] = 0.0
+                wrd[-1] = 0.0
+            return (wd.view(r, 1, 1).to(device, dtype), wd.view(1, r, 1).to(device, dtype),
+                    wrd.view(1, 1, -1).to(device, dtype), s.to(device, dtype))
+
+        return self._cached((resolution, float(sigma), str(device), dtype), build)
 
     def blur(self, resolution: int, sigma: float, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
         """The Gaussian ``exp(-|w|^2 sigma^2 / 2)`` [R, R, R//2+1] on the ``rfftn`` spectrum (``sigma`` in voxels):
         a periodic Gaussian blur of standard deviation ``sigma`` voxels, its DC term 1 (it keeps sums)."""
-        key = ("blur", resolution, float(sigma), str(device), dtype)
+        return self._cached(("blur", resolution, float(sigma), str(device), dtype),
+                            lambda: torch.exp(-0.5 * sigma ** 2 * _frequencies(resolution)[2]).to(device, dtype))
+
+    def _cached(self, key, build):
+        """The cached value of ``key``, built by ``build()`` (outside the lock) on a miss."""
         with self._lock:
             if key in self._cache:
                 self._cache.move_to_end(key)
                 return self._cache[key]
-        w = 2 * math.pi * torch.fft.fftfreq(resolution, dtype=torch.float64)
-        wr = 2 * math.pi * torch.fft.rfftfreq(resolution, dtype=torch.float64)
-        w2 = w[:, None, None] ** 2 + w[None, :, None] ** 2 + wr[None, None, :] ** 2
-        g = torch.exp(-0.5 * sigma ** 2 * w2).to(device, dtype)
-        self._put(key, g)
-        return g
-
-    def _put(self, key, value) -> None:
+        value = build()
         with self._lock:
             self._cache[key] = value
             while len(self._cache) > self.max_entries:
                 self._cache.popitem(last=False)
+        return value
+
+
+def _frequencies(r: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(w [R], wr [R//2+1], |w|^2 [R, R, R//2+1])``: the angular frequencies (radians per voxel) of ``fftn``
+    and ``rfftn`` spectra and their squared norm, float64 on the CPU."""
+    w = 2 * math.pi * torch.fft.fftfreq(r, dtype=torch.float64)
+    wr = 2 * math.pi * torch.fft.rfftfreq(r, dtype=torch.float64)
+    return w, wr, w[:, None, None] ** 2 + w[None, :, None] ** 2 + wr[None, None, :] ** 2
 
 
 _DEFAULT_CONTEXT = PoissonContext()

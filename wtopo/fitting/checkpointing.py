@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from .checkpoint import CheckpointError, list_checkpoints, load_checkpoint, rng_state, save_checkpoint, set_rng_state
-from .proxy import ProxyMesh
+from .proxy import ProxyMesh, region_clip
 from .surfels import Surfels
 
 if TYPE_CHECKING:
@@ -113,7 +113,7 @@ class Checkpointer:
         r.gen.set_state(st["generator"])
         px = st["proxy"]
         r.proxy = ProxyMesh(r.cfg.mesh, box=None if px["box"] is None else tuple(np.asarray(b) for b in px["box"]),
-                            prior=px["prior"], clip=r._proxy_clip())
+                            prior=px["prior"], clip=region_clip(r.cfg.mesh, r.plan.layout))
         if r.proxy.silhouette is not None and px.get("silhouette"):
             r.proxy.silhouette.value = torch.tensor(float(px["silhouette"]), device=r.device)
         return True

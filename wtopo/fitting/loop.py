@@ -31,7 +31,7 @@ from .objective import LossLog, Objective
 from .plan import Plan, make_plan, resolve_config
 from .profiling import Timers
 from .progress import StageBar, StopRequest
-from .proxy import ProxyMesh, ProxyResult
+from .proxy import ProxyMesh, ProxyResult, region_clip
 from .schedule import damp_in_plane_steps, means_rate
 from .stages import Renderer, Stage, final_mesh, tsdf_reinit
 from .strategy import DensityStrategy, StepInfo
@@ -129,7 +129,7 @@ class FitRun:
         self.failures = 0
         self.total_failures = 0
         self.loss_log = LossLog()
-        self.proxy: ProxyMesh = ProxyMesh(cfg.mesh, clip=self._proxy_clip())
+        self.proxy: ProxyMesh = ProxyMesh(cfg.mesh, clip=region_clip(cfg.mesh, self.plan.layout))
         self.proxy_mesh: ProxyResult | None = None
         self.tsdf_info: dict = {}
         self.coevolution_info: dict = {}  # the thin-part rule's measure and decision (thin_parts)
@@ -150,11 +150,6 @@ class FitRun:
         self.checkpoints = Checkpointer(self, self.out_dir)
         self.stop = StopRequest(lambda signum: self.record("signal", signal=signum))
         self.timeline: FitTimeline | None = None
-
-    def _proxy_clip(self):
-        """The proxy's clip box: a scene's region of interest when ``mesh.clip_to_region`` (the plan's: scenes)."""
-        lay = self.plan.layout
-        return (lay.roi_lower, lay.roi_upper) if self.cfg.mesh.clip_to_region else None
 
     @property
     def warmup_end(self) -> int:

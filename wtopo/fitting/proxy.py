@@ -20,7 +20,7 @@ from .curvature import curvature_offset
 from .silhouette import SilhouetteOffset, vertex_normals
 from .surfels import Surfels
 
-__all__ = ["ProxyMesh", "ProxyResult", "poisson_mesh"]
+__all__ = ["ProxyMesh", "ProxyResult", "poisson_mesh", "region_clip"]
 
 _BOX_GROWTH = 0.1  # "initial_mesh" Poisson box: the TSDF mesh's box grown by 10 % (public code)
 _SUPPORT_OPACITY = 0.1  # surfels at least this opaque support proxy faces (the opacity of a reset or a spawn)
@@ -46,6 +46,12 @@ def poisson_mesh(points: torch.Tensor, normals: torch.Tensor, weights: torch.Ten
                                   level_sigma=level_sigma)
     with section("marching_cubes"):
         return marching_cubes(field.chi, 0.0, lower=field.lower, upper=field.upper)
+
+
+def region_clip(cfg: MeshConfig, layout) -> tuple[np.ndarray, np.ndarray] | None:
+    """The :class:`ProxyMesh` ``clip`` box for ``cfg``: the region of interest ``(roi_lower, roi_upper)`` of
+    ``layout`` (a :class:`~wtopo.fitting.scene_kind.SceneLayout`) when ``cfg.clip_to_region``, else ``None``."""
+    return (layout.roi_lower, layout.roi_upper) if cfg.clip_to_region and layout is not None else None
 
 
 @dataclass
@@ -157,12 +163,9 @@ class ProxyMesh:
         # points outside the Poisson domain (with a clip box: outside it, grown by _CLIP_INPUT_CELLS) carry
         # no weight (their gradient is exactly 0)
         inside = ((pts >= 0) & (pts <= 1)).all(dim=-1)
-        if self.clip is not None and c.resolution is not None:
-            pad = _CLIP_INPUT_CELLS * self.cell
-            lo, hi = (torch.as_tensor(b, dtype=pts.dtype, device=pts.device)
-                      for b in (self.clip[0] - pad, self.clip[1] + pad))
-            world = self._from_box(pts.detach())
-            inside = inside & ((world >= lo) & (world <= hi)).all(dim=-1)
+        if self.clip is not None:
+            lo, hi = self._clip_bounds(_CLIP_INPUT_CELLS, pts, box_frame=True)
+            inside = inside & ((pts >= lo) & (pts <= hi)).all(dim=-1)
         w = torch.where(inside, w, torch.zeros_like(w))
         pts = torch.where(inside[:, None], pts, torch.full_like(pts, 0.5))
         if not bool((w > 0).any()):  # host sync: one per iteration, decides whether a mesh exists
@@ -183,12 +186,20 @@ class ProxyMesh:
             verts = verts + self.silhouette.value * vertex_normals(verts, faces)
         return ProxyResult(verts, faces)
 
+    def _clip_bounds(self, cells: float, like: torch.Tensor, *, box_frame: bool = False):
+        """``(lower [3], upper [3])`` of the ``clip`` box grown by ``cells`` Poisson cells, as tensors like
+        ``like``: in the internal frame, or in the Poisson box's ``[0, 1]^3`` frame with ``box_frame``."""
+        pad = cells * self.cell
+        lo, hi = self.clip[0] - pad, self.clip[1] + pad
+        if box_frame:
+            lo, hi = (lo - self.lower) / self.size, (hi - self.lower) / self.size
+        return (torch.as_tensor(lo, dtype=like.dtype, device=like.device),
+                torch.as_tensor(hi, dtype=like.dtype, device=like.device))
+
     def _clipped(self, verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
         """The faces [F', 3] whose centroid lies within one Poisson cell of the ``clip`` box (discrete)."""
         c = verts.detach()[faces.long()].mean(dim=1)
-        pad = self.cell if self.cfg.resolution is not None else 0.0
-        lo = torch.as_tensor(self.clip[0] - pad, dtype=c.dtype, device=c.device)
-        hi = torch.as_tensor(self.clip[1] + pad, dtype=c.dtype, device=c.device)
+        lo, hi = self._clip_bounds(1.0, c)
         return faces[((c >= lo) & (c <= hi)).all(dim=1)]
 
     def supported(self, mesh: ProxyResult, surfels: Surfels) -> torch.Tensor | None:

@@ -24,7 +24,7 @@ from ..scene import NORMALIZATION_MARGIN
 from . import densify as dens
 from .config import Closure, FinalMethod, FitConfig, NormalFlip, PoissonBox, RenderedDepth
 from .mesh_policy import crop_near_cameras, crop_to_box, supported_components
-from .proxy import ProxyMesh, poisson_mesh
+from .proxy import ProxyMesh, poisson_mesh, region_clip
 from .scene_kind import SceneKind, SceneLayout
 from .silhouette import calibrate_mesh
 from .surfels import Surfels
@@ -191,8 +191,7 @@ def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: 
         prior = (torch.as_tensor(pts, dtype=torch.float32, device=device),
                  torch.as_tensor(mesh.face_normals[fi], dtype=torch.float32, device=device))
         box = mesh.bounds if cfg.mesh.poisson_box == PoissonBox.INITIAL_MESH else None
-        clip = (layout.roi_lower, layout.roi_upper) if cfg.mesh.clip_to_region and layout is not None else None
-        proxy = ProxyMesh(cfg.mesh, box=box, prior=prior, clip=clip)
+        proxy = ProxyMesh(cfg.mesh, box=box, prior=prior, clip=region_clip(cfg.mesh, layout))
         info["poisson_box"] = None if box is None else np.asarray(box).tolist()
     info.update({"reinit_faces": int(len(mesh.faces)), "reinit_surfels": len(new) - kept, "hybrid_kept": kept})
     record("tsdf_reinit", **info)
