@@ -53,7 +53,9 @@ def sdf_mesh(sdf, lower, upper, spacing: float) -> trimesh.Trimesh:
     mesh = _sdf_mesh(sdf, lower, upper, spacing)
     if path:
         os.makedirs(MESH_CACHE[0], exist_ok=True)
-        np.savez(path, vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces))
+        tmp = f"{path}.{os.getpid()}.npz"  # atomic: fits started together read no half-written file
+        np.savez(tmp, vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces))
+        os.replace(tmp, path)
     return mesh
 
 

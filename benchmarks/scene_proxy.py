@@ -53,12 +53,15 @@ def _depth_errors(pairs, pct):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("checkpoint", help="ckpt_<iteration>.pt of a hard-suite chair_ground fit")
+    ap.add_argument("checkpoint", help="ckpt_<iteration>.pt of a hard-suite fit of --scene")
+    ap.add_argument("--scene", default="chair_ground",
+                    help="the suite scene the checkpoint is of; an object (no region) compares the two levels only")
     ap.add_argument("--level-sigma", type=float, default=2.0, help="the local level's Gaussian, cells")
     ap.add_argument("--set", action="append", default=[], help="the fit's own --set options, if any")
     ap.add_argument("--resolution", type=int, help="the proxy's grid (default: the one the fit used)")
     args = ap.parse_args(argv)
-    scene, gt = hard.SCENES["chair_ground"]()
+    scene, gt = hard.SCENES[args.scene]()
+    gt = scene.gt_mesh if gt is None else gt  # an object's truth is its scene's own mesh
     cfg = hard._config("default", args.set)
     with tempfile.TemporaryDirectory() as tmp:  # FitRun resumes from a run directory's checkpoints/
         os.makedirs(os.path.join(tmp, "checkpoints"))
@@ -69,7 +72,11 @@ def main(argv=None) -> int:
             raise SystemExit(f"{args.checkpoint}: not a checkpoint FitRun can resume")
     sim, s = run.sim, run.surfels
     gti = sim.to_internal(gt)
-    lo, hi = (np.asarray(sim.to_internal(np.asarray(b)[None]))[0] for b in scene.info["roi"])
+    roi = scene.info.get("roi")
+    if roi is None:  # an object: the whole truth counts, nothing to clip to
+        lo, hi = np.full(3, -np.inf), np.full(3, np.inf)
+    else:
+        lo, hi = (np.asarray(sim.to_internal(np.asarray(b)[None]))[0] for b in roi)
     diag = float(np.linalg.norm(gti.bounds[1] - gti.bounds[0]))
     pct = 100.0 / diag
     gt_pts, _ = trimesh.sample.sample_surface(gti, _SAMPLES, seed=0)
@@ -90,7 +97,8 @@ def main(argv=None) -> int:
     med, mean, miss = _depth_errors(pairs, pct)
     print(f"| surfels (rendered median depth) | | | {med:.3f} | {mean:.3f} | {miss:.1f} |")
     print("| proxy | faces | acc / compl in the region | median depth error | mean depth error | truth pixels missed |")
-    for level, clip in ((0.0, False), (args.level_sigma, False), (0.0, True), (args.level_sigma, True)):
+    ways = ((0.0, False), (args.level_sigma, False)) + (((0.0, True), (args.level_sigma, True)) if roi else ())
+    for level, clip in ways:
         mc = dataclasses.replace(run.cfg.mesh, level_sigma=level, resolution=res)
         proxy = ProxyMesh(mc, clip=(lo, hi) if clip else None)
         with torch.no_grad():
