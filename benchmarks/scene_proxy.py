@@ -2,8 +2,9 @@
 """The proxy mesh of a scene without masks, four ways on the same surfels (issue 15): one global zero level
 or a local one (``mesh.level_sigma``), clipped to the region of interest or not (``mesh.clip_to_region``).
 
-It loads a checkpoint of a hard-suite fit of ``chair_ground`` (the chair on its floor, no masks; any
-checkpoint: the warm-up's end, or a co-evolution's), builds the four proxies on the grid that fit used, and
+It loads a checkpoint of a hard-suite fit of ``--scene`` (default ``chair_ground``, the chair on its floor, no
+masks; any checkpoint: the warm-up's end, or a co-evolution's), builds the four proxies on the grid that fit
+used (an object, which has no region to clip to, gets the two levels only), and
 scores each against the truth: accuracy and completeness of its part in the region (% of the truth's
 diagonal), and over every training view's ray cast, on the pixels whose true surface lies in the region, the
 median and mean depth error against the truth's depth where the proxy hits (what the mesh-depth term would pull
