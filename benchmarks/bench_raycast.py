@@ -133,6 +133,25 @@ def main():
     agree = (r.mask.cpu().numpy().reshape(-1) == hit_o3d.reshape(-1)).mean()
     print(f"\nhit-mask agreement with open3d: {agree:.6f}")
 
+    # a 1-D list of the same rays in random order (a metric's rays to area samples): raycast_mesh sweeps
+    # it in a coherent order; the packet sweep in the given order is what it did before
+    g = torch.Generator().manual_seed(0)
+    perm = torch.randperm(o.shape[0] * o.shape[1], generator=g).to(dev)
+    lo, ld = o.reshape(-1, 3)[perm].contiguous(), d.reshape(-1, 3)[perm].contiguous()
+    list_o3d = o3d.core.Tensor(torch.cat([lo, ld], -1).cpu().numpy())
+    rc = MeshRaycaster()
+    rc.update(verts, faces)
+    shuffled = lo.shape[0] // 16  # the given order is slow: time a sixteenth of the list for it
+    t = interleaved({"o3d": lambda: scene.cast_rays(list_o3d),
+                     "ordered": lambda: rc.raycast(verts, faces, None, rays=(lo, ld)),
+                     "given": lambda: _list_hits_in_given_order(rc, lo[:shuffled], ld[:shuffled])},
+                    max(3, args.repeats // 3))
+    for label, tt in (("wall", t), ("cpu", dict(CPU_TIMES))):
+        r = tt["o3d"]
+        print(f"ray list of {lo.shape[0]} in random order, {label}: open3d {r:.1f} ms, raycast_mesh (coherent "
+              f"order) {tt['ordered']:.1f} ms ({tt['ordered'] / r:.2f}x), packet sweep in the given order "
+              f"{16 * tt['given']:.1f} ms ({16 * tt['given'] / r:.1f}x, from a sixteenth of the list)")
+
     # 256x256 view of a ~50k-face mesh: forward + backward through depth and normal
     vb, fb = bunny_subdivided()
     vb_t = torch.tensor(vb, dtype=torch.float32, device=dev, requires_grad=True)
@@ -151,6 +170,23 @@ def main():
     print(f"\n256x256, {fb.shape[0]} faces ({out.mask.float().mean():.0%} hits): forward {t['fwd']:.1f} ms, "
           f"forward+backward {t['fb']:.1f} ms wall (BVH refit included); CPU time {CPU_TIMES['fwd']:.1f} ms, "
           f"{CPU_TIMES['fb']:.1f} ms")
+
+
+def _list_hits_in_given_order(rc: MeshRaycaster, o: torch.Tensor, d: torch.Tensor) -> None:
+    """The packet sweep of a 1-D ray list in the order given (runs of four), without the coherent order."""
+    import warp as wp
+
+    from wtopo.kernels import raycast as k
+
+    n = o.shape[0]
+    face_id = torch.empty(n, dtype=torch.int32, device=o.device)
+    bary = torch.zeros((n, 2), dtype=torch.float32, device=o.device)
+    packets = rc._packet_table((n,), o.device)
+    _bridge.launch_split(k.cast_packets_kernel, packets.shape[0],
+                         [rc._mesh.id, wp.from_torch(packets), wp.from_torch(o, dtype=wp.vec3),
+                          wp.from_torch(d, dtype=wp.vec3), wp.from_torch(rc._bounds, dtype=wp.vec3), 1e-6],
+                         [wp.from_torch(face_id, dtype=wp.int32), wp.from_torch(bary, dtype=wp.vec2)],
+                         device=_bridge.warp_device(o.device), min_chunk=256)
 
 
 def _hits_only(rc: MeshRaycaster, cam: Camera) -> None:

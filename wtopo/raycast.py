@@ -77,6 +77,30 @@ def _validate_mesh(verts, faces) -> tuple[torch.Tensor, torch.Tensor]:
     return verts, faces.to(torch.int32).contiguous()
 
 
+def _spread_bits(x: torch.Tensor) -> torch.Tensor:
+    """The low 10 bits of each of ``x`` (int64) spread to every third bit (a 3-D Morton code's lane)."""
+    x = x & 0x3FF
+    x = (x | (x << 16)) & 0x030000FF
+    x = (x | (x << 8)) & 0x0300F00F
+    x = (x | (x << 4)) & 0x030C30C3
+    return (x | (x << 2)) & 0x09249249
+
+
+def _morton3(v: torch.Tensor) -> torch.Tensor:
+    """30-bit Morton codes (int64 [M]) of points [M, 3] quantised over their own bounding box."""
+    lo, hi = v.min(dim=0).values, v.max(dim=0).values
+    q = ((v - lo) / (hi - lo).clamp_min(1e-30) * 1023.0).to(torch.int64).clamp_(0, 1023)
+    return _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << 1) | (_spread_bits(q[:, 2]) << 2)
+
+
+def _coherent_order(o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """A permutation (int64 [M]) of the rays ``o``, ``d`` [M, 3] that puts rays of one origin together
+    and, within it, neighbouring directions next to each other (Morton order of origin, then of
+    direction): the packet sweep groups four consecutive rays of a list, and a packet of unrelated
+    rays sweeps most of the BVH."""
+    return torch.argsort((_morton3(o) << 30) | _morton3(d))
+
+
 def _camera_rays(camera, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
     if isinstance(camera, Camera):
         return camera.pixel_rays(device, dtype)
@@ -286,8 +310,13 @@ class MeshRaycaster:
             )
         face_id = torch.empty((n,), dtype=torch.int32, device=device)  # every ray is written
         bary32 = torch.empty((n, 2), dtype=torch.float32, device=device)
-        o_w = wp.from_torch(o32.reshape(-1, 3).contiguous(), dtype=wp.vec3)
-        d_w = wp.from_torch(d32.reshape(-1, 3).contiguous(), dtype=wp.vec3)
+        o32, d32 = o32.reshape(-1, 3), d32.reshape(-1, 3)
+        order = None
+        if self.conservative and len(shape) == 1 and n > 4:  # a ray list: sweep it in a coherent order
+            order = _coherent_order(o32, d32)
+            o32, d32 = o32[order], d32[order]
+        o_w = wp.from_torch(o32.contiguous(), dtype=wp.vec3)
+        d_w = wp.from_torch(d32.contiguous(), dtype=wp.vec3)
         outs = [wp.from_torch(face_id, dtype=wp.int32), wp.from_torch(bary32, dtype=wp.vec2)]
         with _Launcher(device) as launcher:
             if self.conservative:
@@ -300,6 +329,9 @@ class MeshRaycaster:
             else:
                 _bridge.launch_split(_k.cast_rays_kernel, n, [self._mesh.id, o_w, d_w, _MAX_T], outs,
                                      device=launcher.wdev, min_chunk=1024)
+        if order is not None:  # back to the caller's order
+            face_id = torch.empty_like(face_id).index_copy_(0, order, face_id)
+            bary32 = torch.empty_like(bary32).index_copy_(0, order, bary32)
         depth, normal = _bridge.apply(_SHADE_OPS[verts.dtype], verts, faces.reshape(-1), face_id,
                                       o.reshape(-1, 3), d.reshape(-1, 3))
         return MeshRender(
@@ -312,7 +344,7 @@ class MeshRaycaster:
 
     def _packet_table(self, shape: tuple, device) -> torch.Tensor:
         """Ray indices [P, 4] (int32, -1 = unused) grouping rays in 2x2 image tiles (``shape`` =
-        [..., H, W]) or, for 1-D ray lists, in runs of 4; cached per shape."""
+        [..., H, W]) or, for 1-D ray lists (cast in :func:`_coherent_order`), in runs of 4; cached per shape."""
         key = (shape, str(device))
         if key not in self._packets:
             n = int(np.prod(shape, dtype=np.int64))
