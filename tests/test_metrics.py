@@ -362,4 +362,3 @@ def test_metrics_without_open3d_use_warp_and_agree(monkeypatch):
     np.testing.assert_allclose(warp, embree, atol=1e-9)
     assert (warp_views == 2).sum() > 500 and (warp_views == 0).sum() > 2000  # both kinds of sample seen
     np.testing.assert_array_equal(warp_views, embree_views)
-
