@@ -173,7 +173,23 @@ def main():
 
 
 def _list_hits_in_given_order(rc: MeshRaycaster, o: torch.Tensor, d: torch.Tensor) -> None:
-    """The packet sweep of a 1-D ray list in the order given (runs of four), without the coherent order."""
+    """The packet sweep of a 1-D ray list in runs of four in the order given (no coherent order)."""
+    n = o.shape[0]
+    packets = torch.full((n + (-n) % 4,), -1, dtype=torch.int32, device=o.device)
+    packets[:n] = torch.arange(n, dtype=torch.int32, device=o.device)
+    _sweep(rc, o, d, packets.reshape(-1, 4))
+
+
+def _hits_only(rc: MeshRaycaster, cam: Camera) -> None:
+    """The discrete hit search alone (no depth/normal shading, no autograd)."""
+    o, d = cam.pixel_rays(rc._points.device, torch.float32)
+    _sweep(rc, o.reshape(-1, 3), d.reshape(-1, 3),
+           rc._packet_table(tuple(o.shape[:-1]), o.device) if rc.conservative else None)
+
+
+def _sweep(rc: MeshRaycaster, o: torch.Tensor, d: torch.Tensor, packets: torch.Tensor | None) -> None:
+    """The hit search of rays ``o``, ``d`` [N, 3]: the packet sweep over ``packets`` [P, 4], or
+    ``wp.mesh_query_ray`` per ray when ``packets`` is None."""
     import warp as wp
 
     from wtopo.kernels import raycast as k
@@ -181,36 +197,16 @@ def _list_hits_in_given_order(rc: MeshRaycaster, o: torch.Tensor, d: torch.Tenso
     n = o.shape[0]
     face_id = torch.empty(n, dtype=torch.int32, device=o.device)
     bary = torch.zeros((n, 2), dtype=torch.float32, device=o.device)
-    packets = rc._packet_table((n,), o.device)
-    _bridge.launch_split(k.cast_packets_kernel, packets.shape[0],
-                         [rc._mesh.id, wp.from_torch(packets), wp.from_torch(o, dtype=wp.vec3),
-                          wp.from_torch(d, dtype=wp.vec3), wp.from_torch(rc._bounds, dtype=wp.vec3), 1e-6],
-                         [wp.from_torch(face_id, dtype=wp.int32), wp.from_torch(bary, dtype=wp.vec2)],
-                         device=_bridge.warp_device(o.device), min_chunk=256)
-
-
-def _hits_only(rc: MeshRaycaster, cam: Camera) -> None:
-    """The discrete hit search alone (no depth/normal shading, no autograd)."""
-    import warp as wp
-
-    from wtopo.kernels import raycast as k
-
-    o, d = cam.pixel_rays(rc._points.device, torch.float32)
-    n = o.shape[0] * o.shape[1]
-    face_id = torch.empty(n, dtype=torch.int32, device=o.device)
-    bary = torch.zeros((n, 2), dtype=torch.float32, device=o.device)
-    o_w, d_w = wp.from_torch(o.reshape(-1, 3), dtype=wp.vec3), wp.from_torch(d.reshape(-1, 3), dtype=wp.vec3)
+    o_w, d_w = wp.from_torch(o.contiguous(), dtype=wp.vec3), wp.from_torch(d.contiguous(), dtype=wp.vec3)
     outs = [wp.from_torch(face_id, dtype=wp.int32), wp.from_torch(bary, dtype=wp.vec2)]
     dev = _bridge.warp_device(o.device)
-    if rc.conservative:
-        packets = rc._packet_table(tuple(o.shape[:-1]), o.device)
+    if packets is not None:
         _bridge.launch_split(k.cast_packets_kernel, packets.shape[0],
                              [rc._mesh.id, wp.from_torch(packets), o_w, d_w,
                               wp.from_torch(rc._bounds, dtype=wp.vec3), 1e-6], outs, device=dev, min_chunk=256)
     else:
         _bridge.launch_split(k.cast_rays_kernel, n, [rc._mesh.id, o_w, d_w, 3.0e38], outs, device=dev,
                              min_chunk=1024)
-
 
 if __name__ == "__main__":
     main()

@@ -96,9 +96,17 @@ def _morton3(v: torch.Tensor) -> torch.Tensor:
 def _coherent_order(o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """A permutation (int64 [M]) of the rays ``o``, ``d`` [M, 3] that puts rays of one origin together
     and, within it, neighbouring directions next to each other (Morton order of origin, then of
-    direction): the packet sweep groups four consecutive rays of a list, and a packet of unrelated
-    rays sweeps most of the BVH."""
+    direction): a packet of four unrelated rays would sweep most of the BVH."""
     return torch.argsort((_morton3(o) << 30) | _morton3(d))
+
+
+def _list_packets(o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """Ray indices [P, 4] (int32, -1 = unused) grouping a 1-D ray list ``o``, ``d`` [M, 3] in fours of
+    :func:`_coherent_order` (the sweep writes each ray's hit at its own index, so nothing is put back)."""
+    n = o.shape[0]
+    table = torch.full((n + (-n) % 4,), -1, dtype=torch.int32, device=o.device)
+    table[:n] = _coherent_order(o, d).to(torch.int32)
+    return table.reshape(-1, 4)
 
 
 def _camera_rays(camera, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
@@ -310,17 +318,13 @@ class MeshRaycaster:
             )
         face_id = torch.empty((n,), dtype=torch.int32, device=device)  # every ray is written
         bary32 = torch.empty((n, 2), dtype=torch.float32, device=device)
-        o32, d32 = o32.reshape(-1, 3), d32.reshape(-1, 3)
-        order = None
-        if self.conservative and len(shape) == 1 and n > 4:  # a ray list: sweep it in a coherent order
-            order = _coherent_order(o32, d32)
-            o32, d32 = o32[order], d32[order]
-        o_w = wp.from_torch(o32.contiguous(), dtype=wp.vec3)
-        d_w = wp.from_torch(d32.contiguous(), dtype=wp.vec3)
+        o32, d32 = o32.reshape(-1, 3).contiguous(), d32.reshape(-1, 3).contiguous()
+        o_w = wp.from_torch(o32, dtype=wp.vec3)
+        d_w = wp.from_torch(d32, dtype=wp.vec3)
         outs = [wp.from_torch(face_id, dtype=wp.int32), wp.from_torch(bary32, dtype=wp.vec2)]
         with _Launcher(device) as launcher:
             if self.conservative:
-                packets = self._packet_table(shape, device)
+                packets = self._packet_table(shape, device) if len(shape) >= 2 else _list_packets(o32, d32)
                 _bridge.launch_split(
                     _k.cast_packets_kernel, packets.shape[0],
                     [self._mesh.id, wp.from_torch(packets), o_w, d_w,
@@ -329,9 +333,6 @@ class MeshRaycaster:
             else:
                 _bridge.launch_split(_k.cast_rays_kernel, n, [self._mesh.id, o_w, d_w, _MAX_T], outs,
                                      device=launcher.wdev, min_chunk=1024)
-        if order is not None:  # back to the caller's order
-            face_id = torch.empty_like(face_id).index_copy_(0, order, face_id)
-            bary32 = torch.empty_like(bary32).index_copy_(0, order, bary32)
         depth, normal = _bridge.apply(_SHADE_OPS[verts.dtype], verts, faces.reshape(-1), face_id,
                                       o.reshape(-1, 3), d.reshape(-1, 3))
         return MeshRender(
@@ -343,22 +344,17 @@ class MeshRaycaster:
         )
 
     def _packet_table(self, shape: tuple, device) -> torch.Tensor:
-        """Ray indices [P, 4] (int32, -1 = unused) grouping rays in 2x2 image tiles (``shape`` =
-        [..., H, W]) or, for 1-D ray lists (cast in :func:`_coherent_order`), in runs of 4; cached per shape."""
+        """Ray indices [P, 4] (int32, -1 = unused) grouping the rays of images ``shape`` = [..., H, W]
+        in 2x2 tiles; cached per shape (a 1-D ray list is grouped by :func:`_list_packets`)."""
         key = (shape, str(device))
         if key not in self._packets:
             n = int(np.prod(shape, dtype=np.int64))
             idx = torch.arange(n, dtype=torch.int32, device=device)
-            if len(shape) >= 2:
-                h, w = shape[-2], shape[-1]
-                hp, wp_ = h + h % 2, w + w % 2
-                grid = torch.full((n // (h * w), hp, wp_), -1, dtype=torch.int32, device=device)
-                grid[:, :h, :w] = idx.reshape(-1, h, w)
-                table = grid.reshape(-1, hp // 2, 2, wp_ // 2, 2).permute(0, 1, 3, 2, 4).reshape(-1, 4)
-            else:
-                table = torch.full((n + (-n) % 4,), -1, dtype=torch.int32, device=device)
-                table[:n] = idx
-                table = table.reshape(-1, 4)
+            h, w = shape[-2], shape[-1]
+            hp, wp_ = h + h % 2, w + w % 2
+            grid = torch.full((n // (h * w), hp, wp_), -1, dtype=torch.int32, device=device)
+            grid[:, :h, :w] = idx.reshape(-1, h, w)
+            table = grid.reshape(-1, hp // 2, 2, wp_ // 2, 2).permute(0, 1, 3, 2, 4).reshape(-1, 4)
             self._packets = {key: table.contiguous()}  # keep one: shapes rarely alternate
         return self._packets[key]
 
