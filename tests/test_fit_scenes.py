@@ -93,8 +93,9 @@ def test_plan_budget_follows_the_device(room):
 
 def test_reinit_faces_follow_the_pixel_footprint():
     """Put about one re-initialisation face per 4 squared pixel footprints of the region's box surface on
-    CUDA: 2x the image side gives about 4x the faces between the CPU default's count and the cap; the
-    CPU keeps its count; a user's count wins."""
+    CUDA (a 32-view rig sees the surface from enough views for the full density): 2x the image side gives
+    about 4x the faces between the CPU default's count and the cap; the CPU keeps its count; a user's count
+    wins."""
     import re
 
     from wtopo.fitting.plan import _REINIT_DENSITY, _REINIT_FACES, _REINIT_MIN
@@ -102,19 +103,23 @@ def test_reinit_faces_follow_the_pixel_footprint():
     mesh = trimesh.creation.icosphere(subdivisions=2)
 
     def plan(res, device="cuda", cfg=None):  # the plan only reads the device's kind
-        return make_plan(scenes.from_mesh(mesh, n_views=6, resolution=res).normalized(), cfg or FitConfig(),
+        return make_plan(scenes.from_mesh(mesh, n_views=32, resolution=res).normalized(), cfg or FitConfig(),
                          torch.device(device))
 
     faces, box = {}, {}
-    for res in (64, 128):
+    for res in (128, 256):
         p = plan(res)
         faces[res] = p["reinit_faces"]
         box[res] = float(re.search(r"\((\d+) footprint", p.decisions["reinit_faces"].reason).group(1))
-        assert faces[res] == int(np.clip(round(_REINIT_DENSITY * box[res]), _REINIT_MIN, _REINIT_FACES["cuda"]))
-    assert _REINIT_MIN < faces[64] < faces[128] < _REINIT_FACES["cuda"]  # the rule, not a bound, decided both
-    # a footprint 2x smaller; the region of interest is found from the images, a little looser at 64 px
-    assert box[128] / box[64] == pytest.approx(4.0, rel=0.1)
-    assert faces[128] / faces[64] == pytest.approx(box[128] / box[64], rel=0.01)
+            # a 32-view sphere rig sees each point of the region from 12 views: the full density
+        assert "times 1.00" in p.decisions["reinit_faces"].reason
+        # (the reason prints the box rounded to a footprint^2)
+        assert faces[res] == pytest.approx(np.clip(_REINIT_DENSITY * box[res], _REINIT_MIN, _REINIT_FACES["cuda"]),
+                                           abs=1)
+    assert _REINIT_MIN < faces[128] < faces[256] < _REINIT_FACES["cuda"]  # the rule, not a bound, decided both
+    # a footprint 2x smaller; the region of interest is found from the images, a little looser at 128 px
+    assert box[256] / box[128] == pytest.approx(4.0, rel=0.1)
+    assert faces[256] / faces[128] == pytest.approx(box[256] / box[128], rel=0.01)
     assert plan(24)["reinit_faces"] == _REINIT_MIN  # a small image: the floor
     assert plan(512)["reinit_faces"] == _REINIT_FACES["cuda"]  # capped
     assert plan(24, "cpu")["reinit_faces"] == plan(512, "cpu")["reinit_faces"] == _REINIT_FACES["cpu"]
@@ -122,6 +127,72 @@ def test_reinit_faces_follow_the_pixel_footprint():
     cfg.tsdf.max_faces = 1234
     p = plan(64, cfg=cfg)
     assert p["reinit_faces"] == 1234 and p.decisions["reinit_faces"].overridden
+
+
+def _cameras_around(directions, distance=4.0, resolution=32, fov=0.9):
+    return [wtopo.Camera.look_at(distance * np.asarray(d, np.float64) / np.linalg.norm(d), np.zeros(3),
+                                 (0, 0, 1) if abs(d[2]) < 0.9 * np.linalg.norm(d) else (0, 1, 0), fov_x=fov,
+                                 width=resolution, height=resolution) for d in directions]
+
+
+def _cube_layout():
+    from types import SimpleNamespace  # views_per_point reads only the region's box and centre
+
+    return SimpleNamespace(roi_lower=-np.ones(3), roi_upper=np.ones(3), roi_center=np.zeros(3))
+
+
+def test_views_per_point_counts_the_views_facing_each_direction():
+    """Closed forms: one view sees the directions within ~75.5 degrees of it once (mean 1); two views at the
+    same place, twice; a view looking away or held out counts nothing; six axis views see a direction with
+    |n_i| > 0.25 from each of those axes (counted exactly here)."""
+    from wtopo.fitting.plan import _VIEW_FACING, views_per_point
+
+    lay = _cube_layout()
+    imgs = torch.zeros(2, 32, 32, 3)
+    one = wtopo.Scene(_cameras_around([(1, 0.2, 0.1)]), imgs[:1])
+    assert views_per_point(one, lay) == pytest.approx(1.0)
+    two = wtopo.Scene(_cameras_around([(1, 0.2, 0.1)] * 2), imgs)
+    assert views_per_point(two, lay) == pytest.approx(2.0)
+    split = wtopo.Scene(_cameras_around([(1, 0.2, 0.1)] * 2), imgs, train_indices=[0], test_indices=[1])
+    assert views_per_point(split, lay) == pytest.approx(1.0)
+    away = _cameras_around([(1, 0, 0)])[0]
+    turned = wtopo.Camera.look_at(away.center, 2 * away.center, (0, 0, 1), fov_x=0.9, width=32, height=32)
+    assert views_per_point(wtopo.Scene([turned], imgs[:1]), lay) == 0.0
+    axes = [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)]
+    six = wtopo.Scene(_cameras_around(axes), torch.zeros(6, 32, 32, 3))
+    n = 512
+    k = np.arange(n) + 0.5
+    polar, azim = np.arccos(1 - 2 * k / n), np.pi * (1 + 5 ** 0.5) * k
+    u = np.stack([np.cos(azim) * np.sin(polar), np.sin(azim) * np.sin(polar), np.cos(polar)], axis=1)
+    count = (u > _VIEW_FACING).sum(axis=1) + (-u > _VIEW_FACING).sum(axis=1)
+    assert views_per_point(six, lay, samples=n) == pytest.approx(count[count > 0].mean())
+    assert 1.5 < views_per_point(six, lay) < 2.5  # a direction meets one to three axes
+
+
+def test_reinit_faces_fall_with_the_views_that_see_the_surface():
+    """Ten views of a sphere rig see each point from ~3.8 views against the 32-view rig's 12: the same
+    footprint rule gets views / 11.5 of its faces; 32 and 64 views keep the full density."""
+    import re
+
+    from wtopo.fitting.plan import _REINIT_DENSITY, _REINIT_VIEWS, views_per_point
+    from wtopo.fitting.scene_kind import analyse_layout
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    dev = torch.device("cuda")  # the plan only reads the device's kind
+    out = {}
+    for n in (10, 32, 64):
+        sc = scenes.from_mesh(mesh, n_views=n, resolution=256).normalized()
+        p = make_plan(sc, FitConfig(), dev)
+        box = float(re.search(r"\((\d+) footprint", p.decisions["reinit_faces"].reason).group(1))
+        v = views_per_point(sc, analyse_layout(sc))
+        out[n] = (p["reinit_faces"], box, v)
+    f10, box10, v10 = out[10]
+    assert 3.0 < v10 < 4.5 and out[32][2] >= _REINIT_VIEWS and out[64][2] > 20
+    # between the floor and the cap (the reason prints the box rounded)
+    assert f10 == pytest.approx(_REINIT_DENSITY * box10 * v10 / _REINIT_VIEWS, abs=1)
+    assert f10 < _REINIT_DENSITY * box10 / 2  # the view count, not a bound, cut it
+    for n in (32, 64):
+        assert out[n][0] == pytest.approx(_REINIT_DENSITY * out[n][1], abs=1)  # full density
 
 
 @pytest.mark.slow

@@ -20,7 +20,7 @@ from .config import FitConfig, TSDFBackend
 from .mvs import _gray
 from .scene_kind import SceneKind, analyse_layout
 
-__all__ = ["Decision", "Plan", "make_plan", "resolve_config"]
+__all__ = ["Decision", "Plan", "make_plan", "resolve_config", "views_per_point"]
 
 _TEXTURE_STD = 0.02  # colour std (in [0,1] units) below which the foreground counts as untextured
 _VIEW_CONSISTENCY = 0.04  # mean reprojected colour difference below which the scene counts as diffuse
@@ -56,6 +56,17 @@ _MAX_SURFELS = {"cpu": 40_000, "cuda": 400_000}
 # heldout_reinit_rule). The CPU keeps 8,000; at 512 px CUDA keeps its cap.
 _REINIT_DENSITY = 0.25
 _REINIT_MIN = 8000
+# Fewer faces where fewer views see the surface: a surfel is fitted from the pixels of the views that see it,
+# so the density above, measured on 32-view sphere rigs (which see a point of their region's surface from
+# 11.97-12.02 views: views_per_point), is scaled by min(1, views per point / _REINIT_VIEWS), 11.5 leaving
+# those rigs their full density. 64 views of 512 px keep the cap; ten views (3.7-3.8 per point) get 0.33 of
+# the rule: at 512 px their surfels start about 1.7x wider.
+# With the cap's 100,000 faces the ten-view chair and cup lost 4-6 % to no loop over 5-6 fits; with 30,000
+# the chair gained 7.6 % and the cup was level (benchmarks/hard.md gpu_reinit512, gpu_f30k, gpu_views_rule).
+# The 8,000 floor stays (fewer made the ten-view scenes worse at 128 px, cpu_f2500): the CPU never changes,
+# and on CUDA at 128 px the ten-view scenes go down to it.
+_REINIT_VIEWS = 11.5
+_VIEW_FACING = 0.25  # a view sees a point of the region's surface when it faces it within ~75 degrees
 _REINIT_FACES = {"cpu": _REINIT_MIN, "cuda": _MAX_SURFELS["cuda"] // 4}  # caps (CUDA: room to densify)
 _PROXY_GRID = {"cpu": (64, 64), "cuda": (128, 256)}  # (min, max) Poisson nodes per side
 _FINAL_GRID = {"cpu": (96, 192), "cuda": (192, 768)}  # (min, max) TSDF voxels along the fusion box
@@ -342,6 +353,39 @@ def _footprint(scene, layout, image_scale: float) -> float:
     return float(np.median(fp))
 
 
+def views_per_point(scene, layout, samples: int = 512) -> float:
+    """Mean number of training views that see a point of the region of interest's surface (float).
+
+    The surface is the ellipsoid inscribed in the region's box (``layout.roi_lower`` / ``roi_upper``,
+    internal units), sampled at ``samples`` Fibonacci directions with their outward normals. A view sees
+    such a point when the region's centre projects inside its image in front of it and the direction
+    from the centre to the view is within ``_VIEW_FACING`` (cosine) of the point's normal; occlusion is
+    not tested, and neither is the frame's edge at the point (a loose region from few masks would lose
+    views it does not lose). Directions no view sees (under a hemisphere rig, behind a forward-facing
+    one) are left out of the mean. Only the cameras' poses, intrinsics and the training split are read:
+    any frame, no images. 0.0 when no view sees the region."""
+    k = np.arange(samples, dtype=np.float64) + 0.5
+    polar = np.arccos(1.0 - 2.0 * k / samples)
+    azim = np.pi * (1.0 + 5.0 ** 0.5) * k
+    u = np.stack([np.cos(azim) * np.sin(polar), np.sin(azim) * np.sin(polar), np.cos(polar)], axis=1)
+    half = np.maximum(0.5 * (np.asarray(layout.roi_upper, np.float64) - np.asarray(layout.roi_lower, np.float64)),
+                      1e-12)
+    normals = u / half
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    center = np.asarray(layout.roi_center, np.float64)
+    train = scene.train_indices if scene.train_indices is not None else range(len(scene.cameras))
+    count = np.zeros(samples)
+    for i in train:
+        cam = scene.cameras[int(i)]
+        uv, z = cam.project(center[None])
+        if not (z[0] > 0 and 0 <= uv[0, 0] < cam.width and 0 <= uv[0, 1] < cam.height):
+            continue
+        to_cam = cam.center - center
+        count += normals @ (to_cam / max(float(np.linalg.norm(to_cam)), 1e-300)) > _VIEW_FACING
+    seen = count[count > 0]
+    return float(seen.mean()) if seen.size else 0.0
+
+
 def _fit_pixels(scene, image_scale: float) -> tuple[float, float]:
     """``(pixels to fit, pixels per view)`` at the trained scale: the training views' mask pixels
     (every pixel without masks) and one view's pixels."""
@@ -394,12 +438,15 @@ def _budget(plan: Plan, scene, cfg: FitConfig, device: torch.device, layout, ima
     box = 2.0 * float(ext[0] * ext[1] + ext[1] * ext[2] + ext[2] * ext[0]) / fp ** 2  # in footprint^2
     cap = _REINIT_FACES[dev]
     floor = min(_REINIT_MIN, cap)
-    rule = int(round(_REINIT_DENSITY * box))
+    views = views_per_point(scene, layout)
+    seen = min(1.0, views / _REINIT_VIEWS)
+    rule = int(round(_REINIT_DENSITY * seen * box))
     faces = int(np.clip(rule, floor, cap))
     within = f"{cap} on {dev}" if floor == cap else f"within {floor}-{cap} on {dev}"
     plan.set("reinit_faces", faces,
              f"one surfel per face: {_REINIT_DENSITY:g} per squared pixel footprint of the region of interest's box "
-             f"surface ({box:.0f} footprint^2; each surfel about a footprint across) gives {rule}, kept {within}",
+             f"surface ({box:.0f} footprint^2; each surfel about a footprint across) times {seen:.2f} (its points "
+             f"seen from {views:.1f} views, full density from {_REINIT_VIEWS:g}) gives {rule}, kept {within}",
              cfg.tsdf.max_faces)
     lo, hi = _PROXY_GRID[dev]
     proxy = int(np.clip(16 * round(1.0 / (_PROXY_FOOTPRINTS * fp) / 16), lo, hi))  # Poisson spans the unit cube
