@@ -24,6 +24,7 @@ from ..camera import Camera
 from ..scene import NORMALIZATION_MARGIN
 from .depth_warp import pinhole_warp
 from .surfels import Surfels
+from .winding import orient_faces
 
 __all__ = ["TSDFEmptyError", "FusionBounds", "auto_bounds", "fuse_depths", "mesh_to_surfels", "cleanup_mesh",
            "repair_mesh", "hybrid_keep"]
@@ -221,15 +222,19 @@ def cleanup_mesh(mesh: trimesh.Trimesh, *, largest_component: bool = True, repai
 
 
 def repair_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    """Fill small holes (trimesh ``fill_holes``) of a mesh that is not closed and orient its faces, in place.
+    """Fill small holes (trimesh ``fill_holes``) of a mesh that is not closed and orient its faces
+    (:func:`~.winding.orient_faces`: neighbours agree, each part as most of its faces are; a closed mesh
+    of negative volume is turned), in place.
 
-    Both work component by component (``fix_normals`` splits the mesh into one mesh per component): run it
-    after the components that no view supports are dropped (:func:`~.mesh_policy.supported_components`), not
-    before. A 512-px fit's final TSDF mesh has 20,000-30,000 components, nearly all of them specks, and
-    repairing them all first kept the fit on one CPU core for minutes (``benchmarks/hard.md``)."""
+    Run it after the components that no view supports are dropped (:func:`~.mesh_policy.supported_components`),
+    not before: a 512-px fit's final TSDF mesh has 20,000-30,000 components, nearly all of them specks, and
+    filling their holes first kept the fit on one CPU core for minutes (``benchmarks/hard.md``). The faces
+    were oriented by trimesh's ``fix_normals``, a breadth-first walk in Python: over 15 minutes on a ten-view
+    cup's 512-px mesh (``gpu_views_rule``)."""
     if not mesh.is_watertight:
         trimesh.repair.fill_holes(mesh)
-    trimesh.repair.fix_normals(mesh)
+    mesh.faces = orient_faces(mesh.faces)
+    trimesh.repair.fix_inversion(mesh)  # a closed mesh of negative volume points inwards: turn it
     return mesh
 
 
