@@ -1,0 +1,24 @@
+#!/bin/bash
+# Run a list of fits on the device machine, several per GPU, in the background (the device tool's
+# calls last at most 10 minutes; the machine stays held while calls follow each other).
+#
+#   bash benchmarks/device/queue.sh JOBS PARALLEL
+#
+# JOBS: a file of commands, one fit per line, run from a copy of the tree in /root/repo (made here,
+# with the wtopo.kernels link: benchmarks/gpu.md). Line i runs on GPU i % (number of GPUs), with
+# OMP_NUM_THREADS=3, PYTHONPATH=/tmp/site:. (where Warp and trimesh were installed), its output in
+# /root/stage/log_i.txt. PARALLEL: fits at once over all GPUs (the 32 fits of hard.md gpu_views_rule ran
+# 16 at once on two H200s, 8 per GPU, in about 10 minutes). /root/stage/ALLDONE appears at the end.
+set -euo pipefail
+jobs=$(realpath "$1"); par=${2:-8}
+rm -rf /root/repo && mkdir -p /root/repo /root/stage && cp -r . /root/repo/
+ln -sfn ../kernels /root/repo/wtopo/kernels
+ngpu=$(nvidia-smi -L | wc -l)
+awk -v n="$ngpu" '{printf "CUDA_VISIBLE_DEVICES=%d OMP_NUM_THREADS=3 PYTHONPATH=/tmp/site:. %s > /root/stage/log_%d.txt 2>&1\n", (NR-1)%n, $0, NR-1}' \
+  "$jobs" > /root/stage/queue.txt
+rm -f /root/stage/ALLDONE
+cd /root/repo
+# setsid and all three streams redirected: the device call returns while the queue runs
+setsid nohup bash -c "xargs -d '\\n' -P $par -I{} sh -c {} < /root/stage/queue.txt; touch /root/stage/ALLDONE" \
+  > /root/stage/queue.log 2>&1 < /dev/null &
+echo "$(wc -l < /root/stage/queue.txt) fits queued on $ngpu GPUs, $par at once"
