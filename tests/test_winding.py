@@ -96,34 +96,77 @@ def test_repair_turns_a_closed_inside_out_mesh_and_matches_trimesh():
     assert ours.is_winding_consistent and ours.volume > 0
     assert _oriented_like(ours.faces, theirs.faces).all()
     assert _oriented_like(ours.faces, s.faces).all()
+    # an already consistent mesh of two parts, one inside out (a cavity), is left as it is by both
+    inner = trimesh.creation.icosphere(subdivisions=2, radius=0.4)
+    two = trimesh.Trimesh(np.concatenate([s.vertices, inner.vertices]),
+                          np.concatenate([s.faces, inner.faces[:, ::-1] + len(s.vertices)]), process=False)
+    theirs = two.copy()
+    trimesh.repair.fix_normals(theirs)
+    ours = repair_mesh(two.copy())
+    assert (ours.faces == two.faces).all() and (theirs.faces == two.faces).all()
 
 
-def test_moebius_strip_is_left_as_given_and_non_manifold_edges_constrain_nothing():
-    """A Moebius strip cannot be wound consistently: its faces come back unchanged. A fin on a third face
-    of one edge (non-manifold) leaves the rest to be oriented."""
-    n = 24
-    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    verts = []
-    for a in t:
-        for w in (-0.2, 0.2):
-            r = 1 + w * np.cos(a / 2)
-            verts.append((r * np.cos(a), r * np.sin(a), w * np.sin(a / 2)))
+def _inconsistent_edges(faces: np.ndarray) -> int:
+    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    _, inv, cnt = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    fwd = (directed[:, 0] < directed[:, 1]).astype(float)
+    per = np.bincount(inv, weights=fwd, minlength=len(cnt))
+    return int(np.sum((cnt == 2) & (per != 1)))
+
+
+def _moebius(n: int = 24, offset: int = 0) -> np.ndarray:
+    """A Moebius strip of 2n faces over vertices offset..offset + 2n - 1 (the half twist closes it)."""
     faces = []
     for i in range(n):
         a0, a1 = 2 * i, 2 * i + 1
         j = (i + 1) % n
-        b0, b1 = (2 * j, 2 * j + 1) if j else (1, 0)  # the half twist closes the strip
+        b0, b1 = (2 * j, 2 * j + 1) if j else (1, 0)
         faces += [(a0, b0, a1), (a1, b0, b1)]
-    faces = np.asarray(faces)
-    assert (orient_faces(faces) == faces).all()
+    return np.asarray(faces) + offset
 
+
+def test_moebius_strip_keeps_one_seam_and_a_glitch_does_not_stop_the_repair():
+    """A Moebius strip cannot be wound consistently: it comes back with the one conflicting edge a walk
+    around it must leave, and scrambled, no more. A large sheet with a third of its faces reversed and
+    such a strip joined to it (one non-orientable part) is repaired everywhere but on the strip's seam."""
+    strip = _moebius()
+    assert _inconsistent_edges(strip) == 1
+    rng = np.random.default_rng(4)
+    assert _inconsistent_edges(orient_faces(_reverse(strip, rng.random(len(strip)) < 0.4))) == 1
+
+    m = 30  # a 30 x 30 grid of vertices, two triangles per cell
+    idx = np.arange(m * m).reshape(m, m)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    grid = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    mob = _moebius(offset=m * m)
+    mob[mob == m * m] = idx[0, 0]  # the strip shares its first edge with the grid's corner cell
+    mob[mob == m * m + 1] = idx[0, 1]
+    faces = np.concatenate([grid, mob])
+    scrambled = _reverse(faces, rng.random(len(faces)) < 0.3)
+    assert _inconsistent_edges(scrambled) > 500
+    out = orient_faces(scrambled)
+    assert _inconsistent_edges(out) <= 2  # the twist's seam (where the strip joins, one more at most)
+    assert _inconsistent_edges(out[:len(grid)]) == 0
+
+
+def test_non_manifold_edges_single_and_degenerate_faces():
+    """An edge of three faces constrains nothing: a fin on it keeps its winding either way, and the sphere
+    beside it is oriented; a lone face keeps its winding; a face repeating a vertex neither crashes nor
+    disturbs the rest."""
     s = trimesh.creation.icosphere(subdivisions=2)
     e = s.faces[0, :2]
-    fin = np.array([[e[0], e[1], len(s.vertices)]])
-    faces = np.concatenate([s.faces, fin])
-    mask = np.zeros(len(faces), dtype=bool)
+    mask = np.zeros(len(s.faces) + 1, dtype=bool)
     mask[5:40] = True
-    out = orient_faces(_reverse(faces, mask))
+    for fin in (np.array([[e[0], e[1], len(s.vertices)]]), np.array([[e[1], e[0], len(s.vertices)]])):
+        faces = np.concatenate([fin, s.faces])  # first: an edge's first two faces in order include the fin
+        out = orient_faces(_reverse(faces, mask))
+        assert _oriented_like(out[1:], s.faces).all()
+        assert (out[0] == fin[0]).all()
+    lone = np.array([[2, 0, 1]])
+    assert (orient_faces(lone) == lone).all()
+    degenerate = np.concatenate([s.faces, [[0, 0, 1]]])
+    out = orient_faces(_reverse(degenerate, mask))
     assert _oriented_like(out[:-1], s.faces).all()
 
 

@@ -9,10 +9,12 @@ an edge (exactly two faces: a manifold edge) must traverse it in opposite direct
 either keeps or flips its winding relative to its neighbour. On the double cover of the face graph
 (node ``f`` for face ``f`` as given, node ``f + F`` for it flipped) every such constraint joins two
 nodes; a component of an orientable surface splits into two mirror-image components, and the one
-with the smaller label says which faces to flip. A non-orientable component (a Moebius strip) joins
-``f`` to ``f + F`` and is left as given. Of the two mirror images the one that flips fewer faces is
-kept, so a part keeps the orientation most of its faces have (marching cubes' and the TSDF's meshes are
-wound by their field: outwards, cavities inwards) and only the faces that disagree (trimesh's hole fill,
+with the smaller label says which faces to flip. A non-orientable component (a Moebius strip, or one
+glitch in a large sheet) joins ``f`` to ``f + F``; it is wound along a spanning forest of its adjacency
+instead: consistent across every tree edge, as a breadth-first walk would leave it, so the conflict
+stays on the cycles through the twist. Of the two mirror images the one that flips fewer faces is kept,
+so a part keeps the orientation most of its faces have (marching cubes' and the TSDF's meshes are wound
+by their field: outwards, cavities inwards) and only the faces that disagree (trimesh's hole fill,
 glitches) turn; whether the whole mesh points out is :func:`trimesh.repair.fix_inversion`'s to say.
 """
 
@@ -20,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
+from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
 __all__ = ["orient_faces"]
 
@@ -44,6 +46,16 @@ def _manifold_edge_pairs(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
     return fa, fb, directed[ea, 0] == directed[eb, 0]
 
 
+def _double_cover_labels(n: int, fa: np.ndarray, fb: np.ndarray, same: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Component labels of each face as given and flipped ([F] int each) on the double cover of the face
+    graph with edges ``fa``-``fb``: (a, s) -- (b, s xor same) for s in {0, 1}."""
+    rows = np.concatenate([fa, fa + n])
+    cols = np.concatenate([np.where(same, fb + n, fb), np.where(same, fb, fb + n)])
+    graph = sp.coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(2 * n, 2 * n)).tocsr()
+    _, labels = connected_components(graph, directed=False)
+    return labels[:n], labels[n:]
+
+
 def orient_faces(faces: np.ndarray) -> np.ndarray:
     """Faces rewound so that neighbours agree, each part in the orientation most of its faces have.
 
@@ -53,7 +65,7 @@ def orient_faces(faces: np.ndarray) -> np.ndarray:
     Returns:
         [F, 3] int64 faces: each face as given or reversed. Across every edge shared by exactly two faces
         the two traverse it in opposite directions, unless the part (faces connected through such edges) is
-        not orientable: then it keeps its faces. Of the two consistent windings of a part, the one that
+        not orientable: then across the edges of a spanning forest of it. Of the two windings, the one that
         reverses fewer of its faces (ties: either). Edges of three or more faces constrain nothing. Not
         differentiable.
     """
@@ -66,17 +78,25 @@ def orient_faces(faces: np.ndarray) -> np.ndarray:
     if faces.min() < 0:
         raise ValueError(f"faces must index vertices from 0, got the index {faces.min()}")
     fa, fb, same = _manifold_edge_pairs(faces)
-    # double cover: (a, s) -- (b, s xor same) for s in {0, 1}
-    rows = np.concatenate([fa, fa + n])
-    cols = np.concatenate([np.where(same, fb + n, fb), np.where(same, fb, fb + n)])
-    graph = sp.coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(2 * n, 2 * n)).tocsr()
-    _, labels = connected_components(graph, directed=False)
-    keep, flip = labels[:n], labels[n:]
-    flipped = flip < keep  # one mirror of each part: the faces whose flipped copy it holds (equal: not orientable)
+    keep, flip = _double_cover_labels(n, fa, fb, same)
+    bad = keep == flip
+    if bad.any():  # not orientable: wind those parts along a spanning forest of their adjacency instead
+        tree = bad[fa] & bad[fb]
+        forest = minimum_spanning_tree(sp.coo_matrix((np.ones(int(tree.sum())), (fa[tree], fb[tree])),
+                                                     shape=(n, n)).tocsr())
+        ta, tb = forest.nonzero()
+        key = np.minimum(fa[tree], fb[tree]) * n + np.maximum(fa[tree], fb[tree])
+        order = np.argsort(key, kind="stable")
+        at = order[np.searchsorted(key[order], np.minimum(ta, tb) * n + np.maximum(ta, tb))]
+        tsame = same[tree][at]
+        k2, f2 = _double_cover_labels(n, ta, tb, tsame)
+        keep = np.where(bad, k2 + 2 * n, keep)  # labels apart from the orientable parts'
+        flip = np.where(bad, f2 + 2 * n, flip)
+    flipped = flip < keep  # one mirror of each part: the faces whose flipped copy it holds
     # of the two mirrors, the one that flips fewer faces: the given orientation wherever most of a part agrees
     part = np.unique(np.minimum(keep, flip), return_inverse=True)[1]
     other = np.bincount(part, weights=flipped) > 0.5 * np.bincount(part)
-    flipped ^= other[part] & (flip != keep)
+    flipped ^= other[part] & (flip != keep)  # (a lone face of a forest: keep == flip, as given)
     out = faces.copy()
     out[flipped] = out[flipped][:, ::-1]
     return out
