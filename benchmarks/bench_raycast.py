@@ -22,7 +22,7 @@ import trimesh
 
 import wtopo  # noqa: F401  (mounts wtopo.kernels in a source tree)
 from wtopo import Camera, _bridge
-from wtopo.raycast import MeshRaycaster
+from wtopo.raycast import MeshRaycaster, _fours
 
 
 def bumpy_sphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
@@ -174,10 +174,7 @@ def main():
 
 def _list_hits_in_given_order(rc: MeshRaycaster, o: torch.Tensor, d: torch.Tensor) -> None:
     """The packet sweep of a 1-D ray list in runs of four in the order given (no coherent order)."""
-    n = o.shape[0]
-    packets = torch.full((n + (-n) % 4,), -1, dtype=torch.int32, device=o.device)
-    packets[:n] = torch.arange(n, dtype=torch.int32, device=o.device)
-    _sweep(rc, o, d, packets.reshape(-1, 4))
+    _sweep(rc, o, d, _fours(torch.arange(o.shape[0], device=o.device)))
 
 
 def _hits_only(rc: MeshRaycaster, cam: Camera) -> None:

@@ -100,13 +100,18 @@ def _coherent_order(o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     return torch.argsort((_morton3(o) << 30) | _morton3(d))
 
 
+def _fours(order: torch.Tensor) -> torch.Tensor:
+    """Ray indices [P, 4] (int32, -1 = unused): ``order`` (int [M]) cut into packets of four."""
+    n = order.shape[0]
+    table = torch.full((n + (-n) % 4,), -1, dtype=torch.int32, device=order.device)
+    table[:n] = order.to(torch.int32)
+    return table.reshape(-1, 4)
+
+
 def _list_packets(o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """Ray indices [P, 4] (int32, -1 = unused) grouping a 1-D ray list ``o``, ``d`` [M, 3] in fours of
     :func:`_coherent_order` (the sweep writes each ray's hit at its own index, so nothing is put back)."""
-    n = o.shape[0]
-    table = torch.full((n + (-n) % 4,), -1, dtype=torch.int32, device=o.device)
-    table[:n] = _coherent_order(o, d).to(torch.int32)
-    return table.reshape(-1, 4)
+    return _fours(_coherent_order(o, d))
 
 
 def _camera_rays(camera, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:

@@ -92,11 +92,12 @@ def orient_faces(faces: np.ndarray) -> np.ndarray:
         k2, f2 = _double_cover_labels(n, ta, tb, tsame)
         keep = np.where(bad, k2 + 2 * n, keep)  # labels apart from the orientable parts'
         flip = np.where(bad, f2 + 2 * n, flip)
-    flipped = flip < keep  # one mirror of each part: the faces whose flipped copy it holds
+    # every face's two copies now lie in two mirror components of its part (a tree has no twist): the
+    # smaller-labelled mirror holds the faces whose flipped copy it holds
+    flipped = flip < keep
     # of the two mirrors, the one that flips fewer faces: the given orientation wherever most of a part agrees
     part = np.unique(np.minimum(keep, flip), return_inverse=True)[1]
-    other = np.bincount(part, weights=flipped) > 0.5 * np.bincount(part)
-    flipped ^= other[part] & (flip != keep)  # (a lone face of a forest: keep == flip, as given)
+    flipped ^= (np.bincount(part, weights=flipped) > 0.5 * np.bincount(part))[part]
     out = faces.copy()
     out[flipped] = out[flipped][:, ::-1]
     return out
