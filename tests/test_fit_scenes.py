@@ -195,6 +195,30 @@ def test_reinit_faces_fall_with_the_views_that_see_the_surface():
         assert out[n][0] == pytest.approx(_REINIT_DENSITY * out[n][1], abs=1)  # full density
 
 
+def test_plan_counts_only_the_training_views():
+    """Held-out photographs do not count as training views: 18 training views plus 6 held out get
+    no view-dependent colour (fewer than 20), and so do 22 views of which the fit holds 4 out. The
+    plan's split has the sizes the fit's own split makes."""
+    from wtopo.fitting.loop import _split_views
+    from wtopo.fitting.plan import _MIN_SH_VIEWS, _view_split
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    dev = torch.device("cpu")
+    split = scenes.from_mesh(mesh, n_views=18, resolution=24, n_test=6)
+    held = scenes.from_mesh(mesh, n_views=22, resolution=24)
+    for sc, n_train in ((split, 18), (held, 18)):
+        assert len(sc.cameras) >= _MIN_SH_VIEWS  # all the photographs would pass the rule
+        p = make_plan(sc.normalized(), FitConfig(), dev)
+        assert p["sh_degree"] == 0 and f"{n_train} training views" in p.decisions["sh_degree"].reason
+        train, test, _ = _split_views(sc, p["eval_views"])
+        sizes = (len(train.cameras), len(test.cameras))
+        assert _view_split(sc, FitConfig())[:2] == sizes == (n_train, len(sc.cameras) - n_train)
+    big = scenes.from_mesh(mesh, n_views=26, resolution=24)  # 22 training views: enough
+    assert "training views" not in make_plan(big.normalized(), FitConfig(), dev).decisions["sh_degree"].reason
+    few = scenes.from_mesh(mesh, n_views=8, resolution=24)  # under 12 views nothing is held out
+    assert _view_split(few, FitConfig())[:2] == (8, 0)
+
+
 @pytest.mark.slow
 def test_unbounded_scene_has_no_face_near_a_camera_and_reports_psnr(room):
     """Fit a room without masks: an open mesh away from every camera, held-out PSNR/SSIM without a gt mesh."""

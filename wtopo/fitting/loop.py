@@ -17,7 +17,6 @@ import math
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 import trimesh
 
@@ -28,7 +27,7 @@ from .config import FitConfig, config_hash
 from .evaluate import Evaluator
 from .init import initial_surfels
 from .objective import LossLog, Objective
-from .plan import Plan, make_plan, resolve_config
+from .plan import Plan, make_plan, resolve_config, spaced_views
 from .profiling import Timers
 from .progress import StageBar, StopRequest
 from .proxy import ProxyMesh, ProxyResult, region_clip
@@ -69,8 +68,7 @@ def _split_views(sc, eval_views: int):
         test = [int(i) for i in sc.test_indices]
         train = [int(i) for i in (sc.train_indices if sc.train_indices is not None else range(n)) if i not in test]
     elif eval_views:
-        k = int(eval_views)
-        test = sorted({int(round(x)) for x in np.linspace(0, n - 1, k + 2)[1:-1]})
+        test = spaced_views(n, int(eval_views))
         train = [i for i in range(n) if i not in test]
     else:
         test, train = [], list(range(n))

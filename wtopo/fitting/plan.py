@@ -20,7 +20,7 @@ from .config import FitConfig, TSDFBackend
 from .mvs import _gray
 from .scene_kind import SceneKind, analyse_layout
 
-__all__ = ["Decision", "Plan", "make_plan", "resolve_config", "views_per_point"]
+__all__ = ["Decision", "Plan", "make_plan", "resolve_config", "spaced_views", "views_per_point"]
 
 _TEXTURE_STD = 0.02  # colour std (in [0,1] units) below which the foreground counts as untextured
 _VIEW_CONSISTENCY = 0.04  # mean reprojected colour difference below which the scene counts as diffuse
@@ -200,6 +200,30 @@ def _view_inconsistency(scene, images: np.ndarray, depths: np.ndarray, rng: np.r
     return float(np.mean(diffs)) if diffs else float("nan")
 
 
+def _view_split(scene, cfg: FitConfig) -> tuple[int, int, str]:
+    """``(training views, held-out views, reason)`` as the fit splits ``scene``'s cameras
+    (``loop._split_views``): the scene's own test split, else ``runtime.eval_views`` evenly spaced
+    views held out when there are at least ``_MIN_EVAL_VIEWS``, else none. The plan's view counts are
+    the training views': held-out photographs must not steer the fit."""
+    n = len(scene.cameras)
+    test = getattr(scene, "test_indices", None)
+    if test is not None and len(test):
+        held = {int(i) for i in test}
+        train = getattr(scene, "train_indices", None)
+        n_train = sum(int(i) not in held for i in (range(n) if train is None else train))
+        return n_train, len(test), f"the scene's {len(test)} held-out views"
+    k = int(cfg.runtime.eval_views) if n >= _MIN_EVAL_VIEWS else 0
+    if not k:
+        return n, 0, f"only {n} views: all used for training, PSNR on training views"
+    return n - len(spaced_views(n, k)), k, f"{n} views: {k} held out for PSNR"
+
+
+def spaced_views(n: int, k: int) -> list[int]:
+    """The ``k`` views of ``n`` the fit holds out when the scene has no test split: evenly spaced,
+    neither end (sorted indices; fewer when ``k`` approaches ``n``)."""
+    return sorted({int(round(x)) for x in np.linspace(0, n - 1, k + 2)[1:-1]})
+
+
 def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     """Decide the stage plan for ``scene`` (in the internal frame) under ``cfg`` on ``device``."""
     plan = Plan()
@@ -208,7 +232,7 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     masks = _as_np(getattr(scene, "masks", None))
     depths = _as_np(getattr(scene, "depths", None))
     points = getattr(scene, "points", None)
-    n_views = len(scene.cameras)
+    n_views, n_eval, eval_why = _view_split(scene, cfg)  # n_views: the views the fit trains on
     has_masks = masks is not None
     bg = getattr(scene, "background", None)
 
@@ -262,7 +286,7 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     if tex < _TEXTURE_STD:
         deg, why = 0, f"untextured (foreground colour std {tex:.3f} < {_TEXTURE_STD})"
     elif n_views < _MIN_SH_VIEWS:
-        deg, why = 0, f"{n_views} views (< {_MIN_SH_VIEWS}) cannot constrain view-dependent colour"
+        deg, why = 0, f"{n_views} training views (< {_MIN_SH_VIEWS}) cannot constrain view-dependent colour"
     elif depths is not None:
         inc = _view_inconsistency(scene, images, depths, rng)
         if np.isfinite(inc) and inc < _VIEW_CONSISTENCY:
@@ -303,14 +327,7 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     _budget(plan, scene, cfg, device, layout, float(plan["image_scale"]))
 
     # -- held-out views
-    test = getattr(scene, "test_indices", None)
-    if test is not None and len(test):
-        plan.set("eval_views", len(test), f"the scene's {len(test)} held-out views")
-    else:
-        n_eval = cfg.runtime.eval_views if n_views >= _MIN_EVAL_VIEWS else 0
-        plan.set("eval_views", n_eval,
-                 f"{n_views} views: {n_eval} held out for PSNR" if n_eval else
-                 f"only {n_views} views: all used for training, PSNR on training views")
+    plan.set("eval_views", n_eval, eval_why)
 
     # -- stages
     plan.set("tsdf_reinit", cfg.tsdf.enabled, "configuration" if not cfg.tsdf.enabled else
