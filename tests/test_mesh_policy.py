@@ -263,3 +263,52 @@ def test_an_objects_final_mesh_is_repaired_after_the_unsupported_components_go(m
     assert policy["components"]["components"] == 41 and policy["components"]["kept"] == 1
     assert out.is_watertight and out.is_winding_consistent and out.volume > 0
     np.testing.assert_allclose(out.area, seen.area, rtol=1e-9)
+
+
+def test_an_objects_poisson_remesh_keeps_only_the_components_the_views_support(monkeypatch):
+    """The watertight re-mesh can wrap inner sheets of the fused mesh into closed pockets of their own
+    (a ten-view cup at 768^3 came back in 137-343 components). They go by the same support rule as the
+    fused mesh's components: pockets inside the object, which no rendered depth reaches, are dropped;
+    a small part the views see stays; the mesh stays closed."""
+    import types
+
+    import torch
+
+    import wtopo.fitting.stages as stages
+    from wtopo.fitting import FitConfig
+
+    body = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    knob = trimesh.creation.icosphere(subdivisions=2, radius=0.12)  # a separate part the views see
+    knob.apply_translation([0.0, 0.0, 0.8])
+    cams = _ring_cameras()
+    depths = _depths(trimesh.util.concatenate([body, knob]), cams)
+    pockets = []
+    for c in ([0.1, 0.0, 0.0], [-0.15, 0.1, 0.05], [0.0, -0.2, -0.1]):  # inside the body: no view reaches them
+        p = trimesh.creation.icosphere(subdivisions=1, radius=0.06)
+        p.apply_translation(c)
+        pockets.append(p)
+    remeshed = trimesh.util.concatenate([body, knob, *pockets])
+    opened = trimesh.Trimesh(body.vertices, body.faces[:-4], process=False)  # the fused mesh: not closed
+    assert not opened.is_watertight
+
+    monkeypatch.setattr(stages, "render_depths", lambda *a, **k: (depths, [np.zeros((*d.shape, 3)) for d in depths]))
+    monkeypatch.setattr(stages, "auto_bounds", lambda *a, **k: types.SimpleNamespace(to_dict=lambda: {}))
+    monkeypatch.setattr(stages, "fuse_depths", lambda *a, **k: opened)
+    monkeypatch.setattr(stages, "repair_mesh", lambda m: m)  # left open, so the re-mesh runs
+    calls = []
+
+    def remesh(mesh, cfg, *, record, device="cpu"):
+        calls.append(len(mesh.faces))
+        return remeshed
+
+    monkeypatch.setattr(stages, "poisson_remesh", remesh)
+    events = []
+    surfels = types.SimpleNamespace(means=torch.zeros(1, 3), opacities=torch.ones(1))
+    out = stages.final_mesh(surfels, cams, FitConfig(), render=None, proxy=None, guided=True, tsdf_info={},
+                            record=lambda e, **k: events.append((e, k)))
+    assert calls == [len(opened.faces)]  # the re-mesh ran on the open fused mesh
+    policy = dict(events)["mesh_policy"]
+    assert policy["remesh_components"]["components"] == 5 and policy["remesh_components"]["kept"] == 2
+    assert all(d["views"] < 3 for d in policy["remesh_components"]["dropped"])
+    assert out.is_watertight and len(out.split(only_watertight=False)) == 2
+    np.testing.assert_allclose(out.area, body.area + knob.area, rtol=1e-9)

@@ -271,6 +271,11 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
             info["closure"] = "carve" if carve else "poisson"
             if fc.watertight and not mesh.is_watertight:
                 mesh = poisson_remesh(mesh, cfg, record=record, device=surfels.means.device)
+                # the re-mesh's closed surface can wrap the repaired mesh's inner sheets into pockets of
+                # their own (a ten-view cup at 768^3: 137-343 components, no view sees most of them): the
+                # same support rule as the fused mesh's; dropping closed components keeps the mesh closed
+                with section("supported_components"):
+                    mesh, info["remesh_components"] = supported_components(mesh, cameras, depths)
             if fc.silhouette_calibration and masks is not None and len(mesh.faces):
                 with section("silhouette_calibration"):
                     v, cal = calibrate_mesh(torch.as_tensor(mesh.vertices), torch.as_tensor(mesh.faces), cameras, masks)
