@@ -137,14 +137,17 @@ def _config(variant: str, sets, device: str = "cpu") -> FitConfig:
 
 def _policy(report: dict) -> dict:
     """What the final meshing did, from the fit's events: components dropped by the support rule
-    (count and summed area share of the ten largest dropped) and whether Poisson re-meshed it."""
+    (count and summed area share of the ten largest dropped), whether Poisson re-meshed it, and the
+    re-mesh's own components the same rule dropped."""
     ev = report.get("events", [])
     pol = next((e for e in reversed(ev) if e.get("event") == "mesh_policy"), {})
     comp = pol.get("components", {}) if isinstance(pol.get("components"), dict) else {}
     dropped = comp.get("dropped", [])
+    again = pol.get("remesh_components", {}) if isinstance(pol.get("remesh_components"), dict) else {}
     return {"policy_dropped": int(comp.get("dropped_count", len(dropped))),
             "policy_dropped_share": float(sum(d.get("area_share", 0.0) for d in dropped)),
-            "remeshed": any(e.get("event") == "poisson_remesh" for e in ev)}
+            "remeshed": any(e.get("event") == "poisson_remesh" for e in ev),
+            "remesh_dropped": int(again.get("dropped_count", 0))}
 
 
 def _train_cameras(scene) -> list:
@@ -220,7 +223,8 @@ def run_one(name: str, variant: str, built, run_dir: str, sets, device: str = "c
           f"acc {row['accuracy']:.3f}  compl {row['completeness']:.3f}  floaters {row['floater_frac']:.2f} % "
           f"({row['floater_count']})  holes {row['hole_frac']:.2f} %  PSNR {row['psnr']:.2f}  "
           f"watertight {row['watertight']}  components {row['components']}  genus {row['genus']}  "
-          f"policy dropped {row['policy_dropped']}  remeshed {row['remeshed']}", flush=True)
+          f"policy dropped {row['policy_dropped']}  remeshed {row['remeshed']}"
+          f" (re-mesh pieces dropped {row.get('remesh_dropped', 0)})", flush=True)
     return row
 
 

@@ -31,6 +31,14 @@ def _scene_cell(r: dict) -> str:
     return r["scene"] + (f" (seed {r['seed']})" if "seed" in r else "")
 
 
+def _remeshed(r: dict) -> str:
+    """``yes`` / ``no``, and the re-mesh's components the support rule dropped (rows before that rule have none)."""
+    if not r["remeshed"]:
+        return "no"
+    n = r.get("remesh_dropped", 0)
+    return f"yes, {n} dropped" if n else "yes"
+
+
 def _row_line(r: dict) -> str:
     if "error" in r:
         return f"| {_scene_cell(r)} | {r['variant']} | fit failed after {r['time']:.0f} s: {r['error']} |"
@@ -40,7 +48,7 @@ def _row_line(r: dict) -> str:
             f"({r['floater_count']}) | {r['hole_frac']:.2f} | {'yes' if r['watertight'] else 'no'} | "
             f"{r['components']} | {_f(r['genus'], 'd')} | {_f(r['psnr'], '.2f')} | {_f(r['ssim'], '.3f')} | "
             f"{r['time']:.0f} | {r['policy_dropped']} ({100 * r['policy_dropped_share']:.2f}) | "
-            f"{'yes' if r['remeshed'] else 'no'} | "
+            f"{_remeshed(r)} | "
             f"{_f(r.get('obs_chamfer'), '.3f')} ({_f(r.get('observed'), '.0f')}) |")
 
 
