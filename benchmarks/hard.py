@@ -224,7 +224,7 @@ def run_one(name: str, variant: str, built, run_dir: str, sets, device: str = "c
           f"({row['floater_count']})  holes {row['hole_frac']:.2f} %  PSNR {row['psnr']:.2f}  "
           f"watertight {row['watertight']}  components {row['components']}  genus {row['genus']}  "
           f"policy dropped {row['policy_dropped']}  remeshed {row['remeshed']}"
-          f" (re-mesh pieces dropped {row.get('remesh_dropped', 0)})", flush=True)
+          f" (re-mesh pieces dropped {row['remesh_dropped']})", flush=True)
     return row
 
 

@@ -27,7 +27,7 @@ from .config import FitConfig, config_hash
 from .evaluate import Evaluator
 from .init import initial_surfels
 from .objective import LossLog, Objective
-from .plan import Plan, make_plan, resolve_config, spaced_views
+from .plan import Plan, make_plan, resolve_config, split_views
 from .profiling import Timers
 from .progress import StageBar, StopRequest
 from .proxy import ProxyMesh, ProxyResult, region_clip
@@ -60,20 +60,10 @@ def _lrs(cfg: FitConfig) -> dict[str, float]:
 
 
 def _split_views(sc, eval_views: int):
-    """Training and held-out subsets of ``sc`` and whether the latter is really held out: the scene's own
-    split, else ``eval_views`` evenly spaced views held out, else every fourth training view for
-    evaluation (nothing held out)."""
-    n = len(sc.cameras)
-    if sc.test_indices is not None and len(sc.test_indices):
-        test = [int(i) for i in sc.test_indices]
-        train = [int(i) for i in (sc.train_indices if sc.train_indices is not None else range(n)) if i not in test]
-    elif eval_views:
-        test = spaced_views(n, int(eval_views))
-        train = [i for i in range(n) if i not in test]
-    else:
-        test, train = [], list(range(n))
-    held_out = bool(test)
-    return sc.subset(train), (sc.subset(test) if test else sc.subset(train[:: max(1, len(train) // 4)])), held_out
+    """Training and held-out subsets of ``sc`` (:func:`~.plan.split_views`) and whether the latter is really
+    held out: with nothing held out, every fourth training view is used for evaluation."""
+    train, test = split_views(sc, eval_views)
+    return sc.subset(train), (sc.subset(test) if test else sc.subset(train[:: max(1, len(train) // 4)])), bool(test)
 
 
 class FitRun:

@@ -20,7 +20,7 @@ from .config import FitConfig, TSDFBackend
 from .mvs import _gray
 from .scene_kind import SceneKind, analyse_layout
 
-__all__ = ["Decision", "Plan", "make_plan", "resolve_config", "spaced_views", "views_per_point"]
+__all__ = ["Decision", "Plan", "make_plan", "resolve_config", "split_views", "views_per_point"]
 
 _TEXTURE_STD = 0.02  # colour std (in [0,1] units) below which the foreground counts as untextured
 _VIEW_CONSISTENCY = 0.04  # mean reprojected colour difference below which the scene counts as diffuse
@@ -200,28 +200,32 @@ def _view_inconsistency(scene, images: np.ndarray, depths: np.ndarray, rng: np.r
     return float(np.mean(diffs)) if diffs else float("nan")
 
 
-def _view_split(scene, cfg: FitConfig) -> tuple[int, int, str]:
-    """``(training views, held-out views, reason)`` as the fit splits ``scene``'s cameras
-    (``loop._split_views``): the scene's own test split, else ``runtime.eval_views`` evenly spaced
-    views held out when there are at least ``_MIN_EVAL_VIEWS``, else none. The plan's view counts are
-    the training views': held-out photographs must not steer the fit."""
+def split_views(scene, eval_views: int) -> tuple[list[int], list[int]]:
+    """``(training, held-out)`` camera indices of ``scene`` as the fit splits them: the scene's own test
+    split, else ``eval_views`` evenly spaced views held out (neither end; fewer when ``eval_views``
+    approaches the view count), else none held out."""
+    n = len(scene.cameras)
+    test_idx = getattr(scene, "test_indices", None)
+    if test_idx is not None and len(test_idx):
+        test = [int(i) for i in test_idx]
+        train_idx = getattr(scene, "train_indices", None)
+        return [int(i) for i in (range(n) if train_idx is None else train_idx) if int(i) not in test], test
+    if eval_views:
+        test = sorted({int(round(x)) for x in np.linspace(0, n - 1, int(eval_views) + 2)[1:-1]})
+        return [i for i in range(n) if i not in test], test
+    return list(range(n)), []
+
+
+def _eval_views(scene, cfg: FitConfig) -> tuple[int, str]:
+    """``(held-out views, reason)``: the scene's test split, else ``runtime.eval_views`` when there are at
+    least ``_MIN_EVAL_VIEWS`` views, else none."""
     n = len(scene.cameras)
     test = getattr(scene, "test_indices", None)
     if test is not None and len(test):
-        held = {int(i) for i in test}
-        train = getattr(scene, "train_indices", None)
-        n_train = sum(int(i) not in held for i in (range(n) if train is None else train))
-        return n_train, len(test), f"the scene's {len(test)} held-out views"
+        return len(test), f"the scene's {len(test)} held-out views"
     k = int(cfg.runtime.eval_views) if n >= _MIN_EVAL_VIEWS else 0
-    if not k:
-        return n, 0, f"only {n} views: all used for training, PSNR on training views"
-    return n - len(spaced_views(n, k)), k, f"{n} views: {k} held out for PSNR"
-
-
-def spaced_views(n: int, k: int) -> list[int]:
-    """The ``k`` views of ``n`` the fit holds out when the scene has no test split: evenly spaced,
-    neither end (sorted indices; fewer when ``k`` approaches ``n``)."""
-    return sorted({int(round(x)) for x in np.linspace(0, n - 1, k + 2)[1:-1]})
+    return k, (f"{n} views: {k} held out for PSNR" if k else
+               f"only {n} views: all used for training, PSNR on training views")
 
 
 def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
@@ -232,7 +236,8 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     masks = _as_np(getattr(scene, "masks", None))
     depths = _as_np(getattr(scene, "depths", None))
     points = getattr(scene, "points", None)
-    n_views, n_eval, eval_why = _view_split(scene, cfg)  # n_views: the views the fit trains on
+    n_eval, eval_why = _eval_views(scene, cfg)
+    n_views = len(split_views(scene, n_eval)[0])  # the views the fit trains on: held-out ones must not steer it
     has_masks = masks is not None
     bg = getattr(scene, "background", None)
 
