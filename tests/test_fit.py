@@ -292,6 +292,40 @@ def test_mesh_photo_gate_reaches_the_objective(tiny):
     _assert_means_gradient(gated, run)
 
 
+def test_mesh_view_support_reaches_the_objective(tiny):
+    """``losses.mesh_view_support`` builds the support (not at 0) and changes the co-evolution's mesh-depth
+    term on the same state by leaving pixels out: at 2 on some view, and at more views than the scene has
+    on every view (no pixel left: the term is 0); the kept maps of views not rendered yet come from the
+    renderer; the gated term's gradient is finite and non-zero."""
+    from wtopo.fitting.loop import FitRun
+    from wtopo.fitting.stages import Stage
+
+    cfg = _config(10, 8)
+    cfg.coevolution.enabled = True
+    assert FitRun(tiny, cfg, None, progress=False).objective.view_support is None
+    cfg.losses.mesh_view_support = 2
+    run = FitRun(tiny, cfg, None, progress=False)
+    run._start()
+    vs = run.objective.view_support
+    assert vs is not None
+    changed, gated = 0, None
+    for vi in range(4):
+        on = run.objective(Stage.COEVOLUTION, 12, vi, run.surfels, run.proxy).losses["mesh_depth"]
+        run.objective.view_support = None
+        off = run.objective(Stage.COEVOLUTION, 12, vi, run.surfels, run.proxy).losses["mesh_depth"]
+        run.objective.view_support = vs
+        if abs(float(on) - float(off)) > 1e-6 and float(on) > 0:
+            changed, gated = changed + 1, on
+    n = len(run.train.cameras)
+    assert len(vs._maps) == n  # every view rendered once for the count, or kept from its own step
+    counts = vs.take_counts()
+    assert counts["compared"] > 0 and 0 < counts["unsupported"] < counts["compared"]
+    assert changed >= 1
+    _assert_means_gradient(gated, run)
+    vs.min_views = n + 1
+    assert float(run.objective(Stage.COEVOLUTION, 12, 0, run.surfels, run.proxy).losses["mesh_depth"]) == 0.0
+
+
 def test_mesh_depth_behind_reaches_the_objective(tiny):
     """``losses.mesh_depth_behind`` changes the co-evolution's mesh-depth term on the same state, only
     downwards and less the larger it is (0 keeps only the surfels in front of the proxy); its gradient

@@ -132,6 +132,8 @@ BAD = [
     ("losses.mesh_photo_gate", -0.1, ValueError),
     ("losses.mesh_depth_behind", -0.1, ValueError),
     ("losses.mesh_inset", -1, ValueError),
+    ("losses.mesh_view_support", -1, ValueError),
+    ("losses.mesh_view_support", 2.5, TypeError),
     ("losses.mesh_inset", 1.5, TypeError),
     ("mesh.resolution", 0, ValueError),
     ("mesh.samples_per_surfel", 3, ValueError),

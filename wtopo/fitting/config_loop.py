@@ -126,6 +126,14 @@ class LossConfig:
     1 %, the bowl loses about 1 %. On the device (``gpu_photogate2``) the dense objects at 512 px are
     unchanged (-14.0 % per case against no loop, the loop -13.7 %) and the ten-view chair's loss to the
     loop is halved but stays over 2 % on one seed, the ten-view cup worse on one seed: off."""
+    mesh_view_support: int = _f(0, COUNT)
+    """The mesh terms leave out the pixels whose surfel point (the rendered median depth along the pixel's
+    ray) fewer than this many training views see, the pixel's own view included
+    (:mod:`~wtopo.fitting.view_support`: another view sees the point when it projects onto a pixel of that
+    view rendered opaque at the same depth within ``2`` proxy cells). One photograph does not fix a
+    surface's depth and the proxy's guess there (the lid the Poisson surface puts over a cup's unseen
+    inside) is no better, so such pixels are not pulled towards it. 0 or 1: every compared pixel (the
+    default)."""
     mesh_inset: int = _f(0, COUNT)
     """The mesh terms skip the pixels within this many pixels of the edge of the pixels they compare
     (the surfels' coverage where the proxy is hit), eroded by a ``(2 inset + 1)^2`` square: a part

@@ -345,6 +345,8 @@ class FitRun:
                    "stage_times": {k: round(v, 3) for k, v in self.timers.total.items()},
                    "losses": self.loss_log.take(), "surfels": len(self.surfels),
                    "proxy_faces": 0 if self.proxy_mesh is None else self.proxy_mesh.num_faces}
+            if self.objective.view_support is not None:  # the mesh terms' pixels left out since the last one
+                rec["mesh_view_support"] = self.objective.view_support.take_counts()
             rec.update(self.evaluator(self.surfels, mesh=mesh, proxy=self.proxy_mesh))
         self.history.append(rec)
         return rec

@@ -29,6 +29,7 @@ from .multiview import MultiViewNCC
 from .proxy import ProxyMesh, ProxyResult
 from .stages import ROI_EXTENT, Renderer, Stage
 from .surfels import Surfels
+from .view_support import ViewSupport
 
 __all__ = ["Objective", "Terms", "LossLog"]
 
@@ -40,6 +41,7 @@ _DSSIM = 0.2  # weight of D-SSIM in the photometric term (1 - w) L1 + w (1 - SSI
 _HALO_RING = 0.01  # outside the mask, a halo target above this leaves the pixel out of the photometric term
 _MAX_ANISOTROPY = 10.0  # ratio of the two surfel scales above which the scale regulariser acts (stops needles)
 _PHOTO_GATE_MARGIN = 0.1  # 1 - NCC by which the photographs must prefer the surfels' depth (losses.mesh_photo_gate)
+_SUPPORT_CELLS = 2.0  # proxy cells of depth within which another view sees the surfels' point (mesh_view_support)
 
 
 @dataclasses.dataclass
@@ -97,6 +99,9 @@ class Objective:
         if lc.multiview_geometric > 0 and roi_center is not None and len(train.cameras) > 1:
             self.geometric = ForwardBackwardDepth(train.cameras, roi_center, pixels=lc.multiview_pixels,
                                                   seed=cfg.runtime.seed)
+        self.view_support = None  # the mesh terms' two-view support (losses.mesh_view_support)
+        if lc.mesh_view_support >= 2 and roi_center is not None and len(train.cameras) > 1:
+            self.view_support = ViewSupport(train.cameras, min_views=lc.mesh_view_support, center=roi_center)
         self.train = train
         self.render = render
         self.mask_weight = float(mask_weight)
@@ -126,6 +131,12 @@ class Objective:
             t = halo_target(m, self.cfg.filter_sigma)
             h = self._halos[vi] = (t, (t > _HALO_RING) & ~m)
         return h
+
+    def _depth_alpha(self, surfels: Surfels, vi: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Training view ``vi``'s rendered median z-depth and opacity [H, W], without gradient."""
+        with torch.no_grad():
+            o = self.render(surfels, self.train.cameras[vi])
+        return o.median_depth, o.alpha
 
     def __call__(self, stage: Stage, it: int, vi: int, surfels: Surfels, proxy: ProxyMesh, *,
                  defer_count: bool = False) -> Terms:
@@ -192,6 +203,12 @@ class Objective:
                     supported = proxy.supported_pixels(pm, mr, s)
                     if supported is not None:  # pixels that see surface no surfel backs carry no mesh term
                         both = both & supported
+                    vs = self.view_support
+                    if vs is not None:  # pixels whose surfel point too few views see carry no mesh term
+                        with T("view_support"), torch.no_grad():
+                            vs.remember(vi, out.median_depth, out.alpha)
+                            both = both & vs.supported(vi, out.median_depth, both, _SUPPORT_CELLS * proxy.cell,
+                                                       render=lambda u: self._depth_alpha(s, u))
                     if lc.mesh_inset > 0:  # parts narrower than 2 inset + 1 pixels carry no mesh term
                         both = erode(both, lc.mesh_inset)
                     if self.photo_gate is not None and self.photo_gate.has_neighbours(vi):
