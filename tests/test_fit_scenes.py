@@ -220,6 +220,38 @@ def test_plan_counts_only_the_training_views():
     assert p["eval_views"] == 0 and split_views(few, p["eval_views"]) == (list(range(8)), [])
 
 
+def test_plan_image_statistics_read_only_the_training_photographs():
+    """The plan's texture statistics never read a held-out photograph: a flat grey capture whose held-out
+    photographs alone carry texture is planned as untextured (no multi-view term, no view-dependent colour),
+    exactly as the same capture with flat held-out photographs; with the texture in the training
+    photographs instead, the plan sees it."""
+    import dataclasses
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    dev = torch.device("cpu")
+    sc = scenes.from_mesh(mesh, n_views=16, resolution=24, n_test=4)
+    sc = dataclasses.replace(sc, images=torch.full_like(sc.images, 0.5))  # flat grey photographs
+    test = [int(i) for i in sc.test_indices]
+    g = torch.Generator().manual_seed(0)
+    noise = torch.rand(sc.images.shape, generator=g, dtype=sc.images.dtype)
+    held = torch.zeros(len(sc.cameras), dtype=torch.bool)
+    held[test] = True
+    keep = sc.masks[..., None] if sc.masks is not None else torch.ones_like(noise[..., :1], dtype=torch.bool)
+
+    def textured(where):
+        img = torch.where(where[:, None, None, None] & keep, noise, sc.images)
+        return dataclasses.replace(sc, images=img)
+
+    flat = make_plan(sc.normalized(), FitConfig(), dev)
+    held_tex = make_plan(textured(held).normalized(), FitConfig(), dev)
+    train_tex = make_plan(textured(~held).normalized(), FitConfig(), dev)
+    assert flat["multiview"] == 0.0 and "shading only" in flat.decisions["multiview"].reason
+    assert flat["sh_degree"] == 0 and "untextured" in flat.decisions["sh_degree"].reason
+    for name in ("multiview", "sh_degree"):
+        assert held_tex[name] == flat[name] and held_tex.decisions[name].reason == flat.decisions[name].reason
+    assert train_tex["multiview"] > 0 and "untextured" not in train_tex.decisions["sh_degree"].reason
+
+
 @pytest.mark.slow
 def test_unbounded_scene_has_no_face_near_a_camera_and_reports_psnr(room):
     """Fit a room without masks: an open mesh away from every camera, held-out PSNR/SSIM without a gt mesh."""

@@ -232,12 +232,15 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     """Decide the stage plan for ``scene`` (in the internal frame) under ``cfg`` on ``device``."""
     plan = Plan()
     rng = np.random.default_rng(cfg.runtime.seed)
-    images = _as_np(scene.images)
-    masks = _as_np(getattr(scene, "masks", None))
-    depths = _as_np(getattr(scene, "depths", None))
-    points = getattr(scene, "points", None)
     n_eval, eval_why = _eval_views(scene, cfg)
-    n_views = len(split_views(scene, n_eval)[0])  # the views the fit trains on: held-out ones must not steer it
+    train_idx = split_views(scene, n_eval)[0]
+    n_views = len(train_idx)
+    # the photographs the fit trains on: held-out ones must not steer it (the image statistics below)
+    seen = scene.subset(train_idx) if n_views < len(scene.cameras) else scene
+    images = _as_np(seen.images)
+    masks = _as_np(getattr(seen, "masks", None))
+    depths = _as_np(getattr(seen, "depths", None))
+    points = getattr(scene, "points", None)
     has_masks = masks is not None
     bg = getattr(scene, "background", None)
 
@@ -293,7 +296,7 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     elif n_views < _MIN_SH_VIEWS:
         deg, why = 0, f"{n_views} training views (< {_MIN_SH_VIEWS}) cannot constrain view-dependent colour"
     elif depths is not None:
-        inc = _view_inconsistency(scene, images, depths, rng)
+        inc = _view_inconsistency(seen, images, depths, rng)
         if np.isfinite(inc) and inc < _VIEW_CONSISTENCY:
             deg, why = 0, f"diffuse: reprojected colours differ by {inc:.3f} (< {_VIEW_CONSISTENCY}) between views"
         else:
