@@ -1,0 +1,105 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The loop against no loop from a device batch: every ``rows.json`` of ``benchmarks/hard.py`` and every
+row of ``benchmarks/heldout.py`` under the given folders (an unpacked ``results.tgz`` of
+``benchmarks/device/wait.sh``), repeated fits of one scene, variant and seed averaged first, then the
+seeds; per scene the change against no loop (whole truth and the part two training views see), and the
+suite's figures as the issue states its target: the mean Chamfer over the scenes and its change, the
+change averaged over the scenes, and the worst scene.
+
+    python3 benchmarks/device/collect.py DIR [DIR ...] [--loop default] [--base no_loop] [--scenes S ...]
+
+A ``hard.py`` row's variant is its ``variant`` (``default``, ``no_loop``, ...); a held-out row's is its
+``mode`` mapped to the same names (``default``, ``noloop`` -> ``no_loop``), and its rows count only when
+written without ``--set`` (the ``sets`` field), so a candidate's rows never mix with the default's. Rows
+whose labels say they were fitted with a setting (a ``hard.py`` row has no record of ``--set``) must be
+kept in their own folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+from collections import defaultdict
+
+import numpy as np
+
+_MODES = {"default": "default", "noloop": "no_loop"}
+
+
+def _read(path: str):
+    with open(path) as f:
+        return json.load(f)
+
+
+def load_rows(dirs: list[str]) -> list[dict]:
+    """Every suite and held-out row under ``dirs`` (held-out rows fitted with ``--set`` are skipped)."""
+    rows = []
+    for d in dirs:
+        for f in sorted(glob.glob(os.path.join(d, "**", "rows.json"), recursive=True)):
+            rows += [r for r in _read(f) if "error" not in r]
+        for f in sorted(glob.glob(os.path.join(d, "**", "h_*.json"), recursive=True)):
+            r = _read(f)
+            if "mode" in r and not r.get("sets") and r["mode"] in _MODES:
+                rows.append({**r, "variant": _MODES[r["mode"]], "scene": f"{r['scene']}_v{r['views']}"})
+    return rows
+
+
+def pooled(rows: list[dict], key: str) -> dict[tuple[str, str], dict[int, float]]:
+    """``(scene, variant) -> {seed: mean of key over that seed's fits}``."""
+    acc: dict[tuple[str, str, int], list[float]] = defaultdict(list)
+    for r in rows:
+        if r.get(key) is not None:
+            acc[(r["scene"], r["variant"], int(r.get("seed", 0)))].append(float(r[key]))
+    out: dict[tuple[str, str], dict[int, float]] = defaultdict(dict)
+    for (sc, v, sd), xs in acc.items():
+        out[(sc, v)][sd] = float(np.mean(xs))
+    return out
+
+
+def table(rows: list[dict], loop: str = "default", base: str = "no_loop", scenes: list[str] | None = None) -> str:
+    """The markdown table and the suite's summary lines."""
+    ch, ob = pooled(rows, "chamfer"), pooled(rows, "obs_chamfer")
+    fits = defaultdict(int)
+    for r in rows:
+        fits[(r["scene"], r["variant"])] += 1
+    names = scenes or sorted({sc for sc, v in ch if v == loop and (sc, base) in ch})
+    lines = [f"| scene | seeds | fits {loop} / {base} | {loop} | {base} | change | observed change |",
+             "|---|---|---|---|---|---|---|"]
+    a_all, b_all, per = [], [], {}
+    for sc in names:
+        la, ba = ch.get((sc, loop), {}), ch.get((sc, base), {})
+        seeds = sorted(set(la) & set(ba))
+        if not seeds:
+            continue
+        a, b = np.mean([la[s] for s in seeds]), np.mean([ba[s] for s in seeds])
+        lo, bo = ob.get((sc, loop), {}), ob.get((sc, base), {})
+        so = [s for s in seeds if s in lo and s in bo]
+        obs = (100 * (np.mean([lo[s] for s in so]) / np.mean([bo[s] for s in so]) - 1)) if so else float("nan")
+        per[sc] = 100 * (a / b - 1)
+        a_all.append(a)
+        b_all.append(b)
+        lines.append(f"| {sc} | {len(seeds)} | {fits[(sc, loop)]} / {fits[(sc, base)]} | {a:.4f} | {b:.4f} | "
+                     f"{per[sc]:+.1f} % | {obs:+.1f} % |")
+    if per:
+        worst = max(per, key=per.get)
+        mean_a, mean_b = np.mean(a_all), np.mean(b_all)
+        lines += ["", f"Mean Chamfer over {len(per)} scenes: {mean_a:.4f} against {mean_b:.4f} % "
+                  f"({100 * (mean_a / mean_b - 1):+.1f} %); per scene {np.mean(list(per.values())):+.1f} %; "
+                  f"worst scene {worst} {per[worst]:+.1f} %."]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("dirs", nargs="+", help="folders holding the batch's rows.json / h_*.json")
+    ap.add_argument("--loop", default="default", help="the variant measured (default: the plan's loop)")
+    ap.add_argument("--base", default="no_loop", help="the variant it is measured against")
+    ap.add_argument("--scenes", nargs="*", help="scenes to list, in this order (default: every paired scene)")
+    args = ap.parse_args(argv)
+    print(table(load_rows(args.dirs), args.loop, args.base, args.scenes))
+
+
+if __name__ == "__main__":
+    main()

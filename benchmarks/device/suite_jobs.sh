@@ -1,0 +1,33 @@
+#!/bin/bash
+# Print the job list of the hard suite at the GPU settings, loop and no loop, one fit per line, for
+# benchmarks/device/queue.sh (the same code for both variants, so the loop's change needs no earlier rows):
+#
+#   bash benchmarks/device/suite_jobs.sh "0 1" [LABEL] [--set KEY=VALUE ...] > jobs.txt
+#
+# SEEDS: a quoted list. LABEL (default "s") prefixes every run folder under /root/stage; with --set the
+# loop's fits carry the setting (no loop's do not: it has no mesh terms to change), so collect a
+# candidate's folders apart from the default's (benchmarks/device/collect.py). The ten-view scenes come
+# first (the slowest to settle: two fits each are worth more there), then the six dense objects; with the
+# held-out scenes of benchmarks/heldout.py at ten views of 512 px when HELDOUT=1 is set.
+set -euo pipefail
+seeds=${1:-"0 1"}; label=${2:-s}; shift $(( $# >= 2 ? 2 : $# )); sets="$*"
+n=0
+for scene in mug_sparse chair_sparse torus_sparse torus chair chair_box bowl blob_flat mug; do
+  for seed in $seeds; do
+    for variant in default no_loop; do
+      extra=""; [ "$variant" = default ] && extra="$sets"
+      echo "python3 benchmarks/hard.py --gpu --device cuda:0 --mesh-cache /root/stage/hc$n --run-dir /root/stage --label ${label}_${variant}_${scene}_${seed} --scenes $scene --variants $variant --seeds $seed $extra"
+      n=$((n + 1))
+    done
+  done
+done
+if [ "${HELDOUT:-0}" = 1 ]; then
+  for scene in vase pretzel table stool shelf; do
+    for seed in $seeds; do
+      for mode in default noloop; do
+        extra=""; [ "$mode" = default ] && extra="$sets"
+        echo "python3 benchmarks/heldout.py --scene $scene $seed $mode /root/stage/h_${label}_${scene}_${mode}_${seed}.json --views 10 --resolution 512 --device cuda:0 $extra"
+      done
+    done
+  done
+fi
