@@ -314,7 +314,7 @@ def test_mesh_view_support_reaches_the_objective(tiny):
         run.objective.view_support = None
         off = run.objective(Stage.COEVOLUTION, 12, vi, run.surfels, run.proxy).losses["mesh_depth"]
         run.objective.view_support = vs
-        if abs(float(on) - float(off)) > 1e-6 and float(on) > 0:
+        if abs(float(on.detach()) - float(off.detach())) > 1e-6 and float(on.detach()) > 0:
             changed, gated = changed + 1, on
     n = len(run.train.cameras)
     assert len(vs._maps) == n  # every view rendered once for the count, or kept from its own step

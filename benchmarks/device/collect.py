@@ -6,13 +6,15 @@ seeds; per scene the change against no loop (whole truth and the part two traini
 suite's figures as the issue states its target: the mean Chamfer over the scenes and its change, the
 change averaged over the scenes, and the worst scene.
 
-    python3 benchmarks/device/collect.py DIR [DIR ...] [--loop default] [--base no_loop] [--scenes S ...]
+    python3 benchmarks/device/collect.py DIR [DIR ...] [--match LABEL] [--loop default] [--base no_loop] \
+        [--scenes S ...]
 
 A ``hard.py`` row's variant is its ``variant`` (``default``, ``no_loop``, ...); a held-out row's is its
-``mode`` mapped to the same names (``default``, ``noloop`` -> ``no_loop``), and its rows count only when
-written without ``--set`` (the ``sets`` field), so a candidate's rows never mix with the default's. Rows
-whose labels say they were fitted with a setting (a ``hard.py`` row has no record of ``--set``) must be
-kept in their own folder.
+``mode`` mapped to the same names (``default``, ``noloop`` -> ``no_loop``) and its scene is named with its
+views and resolution (``vase_v10_r512``). A row carries no sure record of the settings it was fitted with
+(``hard.py`` rows none at all), so a candidate measured beside the default in one batch is told apart by
+its label: ``--match LABEL`` keeps only the files whose path contains ``LABEL``
+(``benchmarks/device/suite_jobs.sh`` puts the label in every run folder and held-out file name).
 """
 
 from __future__ import annotations
@@ -33,16 +35,18 @@ def _read(path: str):
         return json.load(f)
 
 
-def load_rows(dirs: list[str]) -> list[dict]:
-    """Every suite and held-out row under ``dirs`` (held-out rows fitted with ``--set`` are skipped)."""
+def load_rows(dirs: list[str], match: str = "") -> list[dict]:
+    """Every suite and held-out row under ``dirs`` whose file path contains ``match``."""
     rows = []
     for d in dirs:
         for f in sorted(glob.glob(os.path.join(d, "**", "rows.json"), recursive=True)):
-            rows += [r for r in _read(f) if "error" not in r]
+            if match in f:
+                rows += [r for r in _read(f) if "error" not in r]
         for f in sorted(glob.glob(os.path.join(d, "**", "h_*.json"), recursive=True)):
             r = _read(f)
-            if "mode" in r and not r.get("sets") and r["mode"] in _MODES:
-                rows.append({**r, "variant": _MODES[r["mode"]], "scene": f"{r['scene']}_v{r['views']}"})
+            if match in f and "error" not in r and r.get("mode") in _MODES:
+                rows.append({**r, "variant": _MODES[r["mode"]],
+                             "scene": f"{r['scene']}_v{r['views']}_r{r['resolution']}"})
     return rows
 
 
@@ -61,9 +65,10 @@ def pooled(rows: list[dict], key: str) -> dict[tuple[str, str], dict[int, float]
 def table(rows: list[dict], loop: str = "default", base: str = "no_loop", scenes: list[str] | None = None) -> str:
     """The markdown table and the suite's summary lines."""
     ch, ob = pooled(rows, "chamfer"), pooled(rows, "obs_chamfer")
-    fits = defaultdict(int)
+    fits = defaultdict(int)  # fits with a Chamfer, per scene and variant
     for r in rows:
-        fits[(r["scene"], r["variant"])] += 1
+        if r.get("chamfer") is not None:
+            fits[(r["scene"], r["variant"])] += 1
     names = scenes or sorted({sc for sc, v in ch if v == loop and (sc, base) in ch})
     lines = [f"| scene | seeds | fits {loop} / {base} | {loop} | {base} | change | observed change |",
              "|---|---|---|---|---|---|---|"]
@@ -72,6 +77,7 @@ def table(rows: list[dict], loop: str = "default", base: str = "no_loop", scenes
         la, ba = ch.get((sc, loop), {}), ch.get((sc, base), {})
         seeds = sorted(set(la) & set(ba))
         if not seeds:
+            lines.append(f"| {sc} | 0 | {fits[(sc, loop)]} / {fits[(sc, base)]} | - | - | no pair | - |")
             continue
         a, b = np.mean([la[s] for s in seeds]), np.mean([ba[s] for s in seeds])
         lo, bo = ob.get((sc, loop), {}), ob.get((sc, base), {})
@@ -85,7 +91,7 @@ def table(rows: list[dict], loop: str = "default", base: str = "no_loop", scenes
     if per:
         worst = max(per, key=per.get)
         mean_a, mean_b = np.mean(a_all), np.mean(b_all)
-        lines += ["", f"Mean Chamfer over {len(per)} scenes: {mean_a:.4f} against {mean_b:.4f} % "
+        lines += ["", f"Mean Chamfer over {len(per)} paired scenes: {mean_a:.4f} % against {mean_b:.4f} % "
                   f"({100 * (mean_a / mean_b - 1):+.1f} %); per scene {np.mean(list(per.values())):+.1f} %; "
                   f"worst scene {worst} {per[worst]:+.1f} %."]
     return "\n".join(lines)
@@ -94,11 +100,12 @@ def table(rows: list[dict], loop: str = "default", base: str = "no_loop", scenes
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("dirs", nargs="+", help="folders holding the batch's rows.json / h_*.json")
+    ap.add_argument("--match", default="", help="only files whose path contains this (a batch's label)")
     ap.add_argument("--loop", default="default", help="the variant measured (default: the plan's loop)")
     ap.add_argument("--base", default="no_loop", help="the variant it is measured against")
     ap.add_argument("--scenes", nargs="*", help="scenes to list, in this order (default: every paired scene)")
     args = ap.parse_args(argv)
-    print(table(load_rows(args.dirs), args.loop, args.base, args.scenes))
+    print(table(load_rows(args.dirs, args.match), args.loop, args.base, args.scenes))
 
 
 if __name__ == "__main__":

@@ -2,15 +2,18 @@
 # Print the job list of the hard suite at the GPU settings, loop and no loop, one fit per line, for
 # benchmarks/device/queue.sh (the same code for both variants, so the loop's change needs no earlier rows):
 #
-#   bash benchmarks/device/suite_jobs.sh "0 1" [LABEL] [--set KEY=VALUE ...] > jobs.txt
+#   bash benchmarks/device/suite_jobs.sh "0 1" [LABEL [--set KEY=VALUE ...]] > jobs.txt
 #
-# SEEDS: a quoted list. LABEL (default "s") prefixes every run folder under /root/stage; with --set the
-# loop's fits carry the setting (no loop's do not: it has no mesh terms to change), so collect a
-# candidate's folders apart from the default's (benchmarks/device/collect.py). The ten-view scenes come
+# SEEDS: a quoted list. LABEL (default "s"; required before --set) prefixes every run folder and
+# held-out file under /root/stage; with --set the loop's fits carry the setting (no loop's do not: it has
+# no mesh terms to change), so collect a candidate by its label (benchmarks/device/collect.py --match
+# LABEL_). Values must not contain spaces. The ten-view scenes come
 # first (the slowest to settle: two fits each are worth more there), then the six dense objects; with the
 # held-out scenes of benchmarks/heldout.py at ten views of 512 px when HELDOUT=1 is set.
 set -euo pipefail
-seeds=${1:-"0 1"}; label=${2:-s}; shift $(( $# >= 2 ? 2 : $# )); sets="$*"
+seeds=${1:-"0 1"}; label=${2:-s}
+case "$label" in -*) echo "suite_jobs.sh: LABEL must come before --set, got '$label'" >&2; exit 2;; esac
+shift $(( $# >= 2 ? 2 : $# )); sets="$*"
 n=0
 for scene in mug_sparse chair_sparse torus_sparse torus chair chair_box bowl blob_flat mug; do
   for seed in $seeds; do

@@ -235,8 +235,9 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     n_eval, eval_why = _eval_views(scene, cfg)
     train_idx = split_views(scene, n_eval)[0]
     n_views = len(train_idx)
-    # the photographs the fit trains on: held-out ones must not steer it (the image statistics below)
-    seen = scene.subset(train_idx) if n_views < len(scene.cameras) else scene
+    # the image statistics below read the photographs the fit trains on, never the held-out ones (the
+    # normalisation and the region of interest still come from every view: analyse_layout)
+    seen = scene.subset(train_idx) if 0 < n_views < len(scene.cameras) else scene
     images = _as_np(seen.images)
     masks = _as_np(getattr(seen, "masks", None))
     depths = _as_np(getattr(seen, "depths", None))

@@ -14,9 +14,11 @@ of its camera, onto a pixel ``q`` rendered opaque (opacity >= 0.5) whose own ren
 with ``X``'s depth in ``u`` within a tolerance (``X`` is neither hidden behind ``u``'s surface nor
 floating in front of it). The pixel's support is ``1 +`` the number of other views that see ``X``.
 
-The other views' depth maps are the last ones the fit rendered of them (at most one pass over the
-views old); a view not rendered yet is rendered once, without gradient, when first needed (the
-co-evolution's start, or after a resume). Nothing here is differentiable: the result is a mask.
+The other views' depth maps are the last ones the fit rendered of them (the views come in a new order
+every pass, so a map is up to two passes old); a view not rendered yet is rendered once, without
+gradient, when first needed (the co-evolution's start, or after a resume). A map with non-finite
+depths (a step the fit rolled back) sees nothing until its view is rendered again. Nothing here is
+differentiable: the result is a mask.
 """
 
 from __future__ import annotations
@@ -136,7 +138,7 @@ class ViewSupport:
 
     def take_counts(self) -> dict:
         """``{"compared": pixels, "unsupported": pixels, "share": unsupported / compared}`` since the last
-        call; clears them."""
+        call (a step the fit renders again after a binning overflow is counted twice); clears them."""
         c, u = self.compared, self.unsupported
         self.compared = self.unsupported = 0
         return {"compared": c, "unsupported": u, "share": round(u / c, 4) if c else 0.0}
