@@ -72,6 +72,22 @@ def test_occluded_and_off_surface_points_are_not_seen():
     assert loose[8:, 4:].all()
 
 
+def test_per_pixel_tolerance():
+    """A tolerance map [H, W] applies pixel by pixel: the other view's surface 5 cm behind the point is seen
+    from the rows given 0.1 and not from those given 0.01; a scalar tensor acts as the number."""
+    a, b = _down(0.0), _down(0.0)
+    vs = ViewSupport([a, b], min_views=2, center=np.zeros(3))
+    db, ab = _plane_maps(b)
+    vs.remember(1, db + 0.05, ab)
+    depth, _ = _plane_maps(a)
+    mask = torch.ones(a.height, a.width, dtype=torch.bool)
+    tol = torch.full((a.height, a.width), 0.01)
+    tol[:10] = 0.1
+    got = vs.supported(0, depth, mask, tol)
+    assert got[:10].all() and not got[10:].any()
+    assert torch.equal(vs.supported(0, depth, mask, torch.tensor(0.1)), mask)
+
+
 def test_min_views_mask_and_missing_views():
     """Three views of the plane: min_views 3 needs both others; pixels off the mask come back False; a view
     with no kept maps is rendered through the callback once and kept, and without a callback it does not count."""
