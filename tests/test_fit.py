@@ -265,12 +265,29 @@ def test_mesh_depth_robust_behind_reaches_the_objective(tiny):
     _assert_means_gradient(behind, run)
 
 
+def _gated_views(run, gate: str) -> tuple[int, torch.Tensor | None]:
+    """On four views of one state (iteration 12), the co-evolution's mesh-depth term with the objective's
+    ``gate`` attribute in place and with it off: how many views it changed (to a non-zero term) and the
+    last changed term (in the graph)."""
+    from wtopo.fitting.stages import Stage
+
+    obj, g = run.objective, getattr(run.objective, gate)
+    changed, gated = 0, None
+    for vi in range(4):
+        on = obj(Stage.COEVOLUTION, 12, vi, run.surfels, run.proxy).losses["mesh_depth"]
+        setattr(obj, gate, None)
+        off = obj(Stage.COEVOLUTION, 12, vi, run.surfels, run.proxy).losses["mesh_depth"]
+        setattr(obj, gate, g)
+        if abs(float(on.detach()) - float(off.detach())) > 1e-6 and float(on.detach()) > 0:
+            changed, gated = changed + 1, on
+    return changed, gated
+
+
 def test_mesh_photo_gate_reaches_the_objective(tiny):
     """``losses.mesh_photo_gate`` builds the gate (and not at 0) and changes the co-evolution's mesh-depth
     term on the same state by leaving pixels out (on at least one of four views: the tiny scene's early
     surfels and proxy disagree); the gated term's gradient is finite and non-zero."""
     from wtopo.fitting.loop import FitRun
-    from wtopo.fitting.stages import Stage
 
     cfg = _config(10, 8)
     cfg.coevolution.enabled = True
@@ -278,16 +295,8 @@ def test_mesh_photo_gate_reaches_the_objective(tiny):
     cfg.losses.mesh_photo_gate = 0.05  # proxy cells: the tiny early state disagrees by more
     run = FitRun(tiny, cfg, None, progress=False)
     run._start()
-    gate = run.objective.photo_gate
-    assert gate is not None
-    changed, gated = 0, None
-    for vi in range(4):
-        on = run.objective(Stage.COEVOLUTION, 12, vi, run.surfels, run.proxy).losses["mesh_depth"]
-        run.objective.photo_gate = None
-        off = run.objective(Stage.COEVOLUTION, 12, vi, run.surfels, run.proxy).losses["mesh_depth"]
-        run.objective.photo_gate = gate
-        if abs(float(on) - float(off)) > 1e-6:
-            changed, gated = changed + 1, on
+    assert run.objective.photo_gate is not None
+    changed, gated = _gated_views(run, "photo_gate")
     assert changed >= 1
     _assert_means_gradient(gated, run)
 
@@ -308,14 +317,7 @@ def test_mesh_view_support_reaches_the_objective(tiny):
     run._start()
     vs = run.objective.view_support
     assert vs is not None
-    changed, gated = 0, None
-    for vi in range(4):
-        on = run.objective(Stage.COEVOLUTION, 12, vi, run.surfels, run.proxy).losses["mesh_depth"]
-        run.objective.view_support = None
-        off = run.objective(Stage.COEVOLUTION, 12, vi, run.surfels, run.proxy).losses["mesh_depth"]
-        run.objective.view_support = vs
-        if abs(float(on.detach()) - float(off.detach())) > 1e-6 and float(on.detach()) > 0:
-            changed, gated = changed + 1, on
+    changed, gated = _gated_views(run, "view_support")
     n = len(run.train.cameras)
     assert len(vs._maps) == n  # every view rendered once for the count, or kept from its own step
     counts = vs.take_counts()

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 
 from ..camera import Camera
-from .mvs import _TorchCam, select_neighbours
+from .mvs import _TorchCam, _TorchCams, select_neighbours
 
 __all__ = ["ForwardBackwardDepth"]
 
@@ -61,7 +61,7 @@ class ForwardBackwardDepth:
         self.pixels = int(pixels)
         self.max_error = float(max_error)
         self.seed = int(seed)
-        self._tcams: dict[tuple, _TorchCam] = {}
+        self._tcams = _TorchCams(cameras)
         self._generators: dict[torch.device, torch.Generator] = {}
 
     def has_neighbours(self, vi: int) -> bool:
@@ -79,9 +79,8 @@ class ForwardBackwardDepth:
 
     def _cam(self, i: int, device: torch.device, dtype: torch.dtype) -> _TorchCam:
         """Camera ``i`` on ``device`` in ``dtype`` (the depth's: float64 for gradient checks)."""
-        c = self._tcams.get((i, device, dtype))
-        if c is None:
-            c = self._tcams[(i, device, dtype)] = _TorchCam(self.cameras[i], device, dtype)
+        c = self._tcams(i, device, dtype)
+        if not hasattr(c, "rays"):
             c.rays = torch.cat([c.origin, c.dirs], -1).permute(2, 0, 1)[None]  # [1, 6, H, W] to sample at q
         return c
 

@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from ..camera import Camera
-from .mvs import _gray, _TorchCam, select_neighbours
+from .mvs import _gray, _TorchCams, select_neighbours
 
 __all__ = ["MultiViewNCC"]
 
@@ -70,7 +70,7 @@ class MultiViewNCC:
         self.pixels = int(pixels)
         self.half = patch // 2
         self.seed = int(seed)
-        self._tcams: dict[int, _TorchCam] = {}
+        self._cam = _TorchCams(cameras)
         self._grays: dict[int, torch.Tensor] = {}
         self._offsets: dict[torch.device, torch.Tensor] = {}
         self._generators: dict[torch.device, torch.Generator] = {}
@@ -78,12 +78,6 @@ class MultiViewNCC:
     def has_neighbours(self, vi: int) -> bool:
         """View ``vi`` has a neighbour to compare with."""
         return len(self.neighbours[vi]) > 0
-
-    def _cam(self, i: int, device: torch.device) -> _TorchCam:
-        c = self._tcams.get(i)
-        if c is None:
-            c = self._tcams[i] = _TorchCam(self.cameras[i], device)
-        return c
 
     def _gray_of(self, i: int) -> torch.Tensor:
         g = self._grays.get(i)

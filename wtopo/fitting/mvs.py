@@ -33,6 +33,7 @@ Everything is torch (CPU or CUDA, the fit's device); nothing here is differentia
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -145,6 +146,20 @@ class _TorchCam:
     def grid(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         """Pixel coordinates -> ``grid_sample`` coordinates (align_corners=False)."""
         return torch.stack([u / self.W * 2 - 1, v / self.H * 2 - 1], dim=-1)
+
+
+class _TorchCams:
+    """``cameras`` as :class:`_TorchCam`, each made once per device and dtype: ``cams(i, device, dtype)``."""
+
+    def __init__(self, cameras: Sequence[Camera]):
+        self.cameras = cameras
+        self._made: dict[tuple, _TorchCam] = {}
+
+    def __call__(self, i: int, device: torch.device, dtype: torch.dtype = torch.float32) -> _TorchCam:
+        c = self._made.get((i, device, dtype))
+        if c is None:
+            c = self._made[(i, device, dtype)] = _TorchCam(self.cameras[i], device, dtype)
+        return c
 
 
 def _box_sum(x: torch.Tensor, dim: int) -> torch.Tensor:

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from ..camera import Camera
-from .mvs import _TorchCam
+from .mvs import _TorchCams
 
 __all__ = ["ViewSupport"]
 
@@ -64,9 +64,9 @@ class ViewSupport:
         # other views, the most similar viewing direction first
         self.order = [[int(j) for j in np.argsort(-cos[i], kind="stable") if j != i] for i in range(len(cameras))]
         self._maps: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
-        self._tcams: dict[tuple, _TorchCam] = {}
+        self._cam = _TorchCams(self.cameras)
         self.compared = 0  # pixels asked about since the last :meth:`take_counts`
-        self.unsupported = 0  # of them, those fewer than min_views views see
+        self._unsupported: torch.Tensor | None = None  # of them, those fewer than min_views views see (on the device)
 
     def remember(self, vi: int, depth: torch.Tensor, alpha: torch.Tensor) -> None:
         """Keep view ``vi``'s rendered z-depth and opacity [H, W] (detached) as its current maps."""
@@ -75,12 +75,6 @@ class ViewSupport:
     def forget(self) -> None:
         """Drop every kept map (the surfels were replaced)."""
         self._maps.clear()
-
-    def _cam(self, i: int, device: torch.device, dtype: torch.dtype) -> _TorchCam:
-        c = self._tcams.get((i, device, dtype))
-        if c is None:
-            c = self._tcams[(i, device, dtype)] = _TorchCam(self.cameras[i], device, dtype)
-        return c
 
     def supported(self, vi: int, depth: torch.Tensor, mask: torch.Tensor,
                   tolerance: float | torch.Tensor, render: Callable[[int], tuple[torch.Tensor, torch.Tensor]]
@@ -132,13 +126,14 @@ class ViewSupport:
             if pending.numel() == 0:
                 break
         ok = count >= need
-        self.unsupported += int(n - int(ok.sum()))
+        short = (~ok).sum()  # kept on the device: read by take_counts only
+        self._unsupported = short if self._unsupported is None else self._unsupported + short
         out[py, px] = ok
         return out
 
     def take_counts(self) -> dict:
         """``{"compared": pixels, "unsupported": pixels, "share": unsupported / compared}`` since the last
         call (a step the fit renders again after a binning overflow is counted twice); clears them."""
-        c, u = self.compared, self.unsupported
-        self.compared = self.unsupported = 0
+        c, u = self.compared, 0 if self._unsupported is None else int(self._unsupported)
+        self.compared, self._unsupported = 0, None
         return {"compared": c, "unsupported": u, "share": round(u / c, 4) if c else 0.0}
