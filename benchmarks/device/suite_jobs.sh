@@ -9,13 +9,14 @@
 # no mesh terms to change), so collect a candidate by its label (benchmarks/device/collect.py --match
 # LABEL_). Values must not contain spaces. The ten-view scenes come
 # first (the slowest to settle: two fits each are worth more there), then the six dense objects; with the
-# held-out scenes of benchmarks/heldout.py at ten views of 512 px when HELDOUT=1 is set.
+# held-out scenes of benchmarks/heldout.py at ten views of 512 px when HELDOUT=1 is set. SCENES (a quoted list)
+# fits only those suite scenes (SCENES="mug_sparse" bash ... "4 5 6" c: more seeds of the ten-view cup).
 set -euo pipefail
 seeds=${1:-"0 1"}; label=${2:-s}
 case "$label" in -*) echo "suite_jobs.sh: LABEL must come before --set, got '$label'" >&2; exit 2;; esac
 shift $(( $# >= 2 ? 2 : $# )); sets="$*"
 n=0
-for scene in mug_sparse chair_sparse torus_sparse torus chair chair_box bowl blob_flat mug; do
+for scene in ${SCENES:-mug_sparse chair_sparse torus_sparse torus chair chair_box bowl blob_flat mug}; do
   for seed in $seeds; do
     for variant in default no_loop; do
       extra=""; [ "$variant" = default ] && extra="$sets"
