@@ -348,6 +348,72 @@ def test_mesh_inset_reaches_the_objective(tiny):
     _assert_means_gradient(values[1], run)
 
 
+def test_a_step_computed_again_counts_once(tiny):
+    """The fit computes a step again after a binning overflow (CUDA's deferred count): what the first call
+    folded into running state (the proxy's silhouette offset, the view support's counts) is put back by
+    :meth:`Objective.retry_point`'s undo, so the step counts once; without it the offset moves twice."""
+    from wtopo.fitting.loop import FitRun
+    from wtopo.fitting.stages import Stage
+
+    cfg = _config(10, 8)
+    cfg.coevolution.enabled = True
+    cfg.mesh.silhouette_gain, cfg.losses.mesh_view_support = 0.5, 2
+    run = FitRun(tiny, cfg, None, progress=False)
+    run._start()
+    sil, vs = run.proxy.silhouette, run.objective.view_support
+    assert sil is not None and vs is not None
+
+    def step():
+        terms = run.objective(Stage.COEVOLUTION, 12, 0, run.surfels, run.proxy)
+        assert terms.proxy_built and "mesh_depth" in terms.losses
+        return float(sil.value), vs.compared
+
+    start = float(sil.value)
+    undo = run.objective.retry_point(run.proxy)
+    once = step()
+    assert once[0] != start and once[1] > 0, "the step should move the offset and compare pixels"
+    undo()
+    assert float(sil.value) == start and vs.compared == 0
+    assert step() == once  # computed again after the undo: the same state as one call
+    twice = step()  # a third call without undo folds the view in once more (on a proxy moved by the first)
+    assert twice[0] != once[0] and twice[1] > once[1]
+
+
+def test_the_loop_undoes_a_step_it_computes_again(tiny, monkeypatch):
+    """The fit's step, told by the render that the deferred binning overflowed (as CUDA's does when its
+    sort buffers were too small), computes the view again with the exact count and leaves the proxy's
+    silhouette offset where one call leaves it."""
+    from wtopo.fitting.loop import FitRun
+    from wtopo.fitting.stages import Stage
+
+    cfg = _config(10, 8)
+    cfg.coevolution.enabled = True
+    cfg.mesh.silhouette_gain = 0.5
+    run = FitRun(tiny, cfg, None, progress=False)
+    run._start()
+    run.it = run.warmup_end + 2
+    sil, real = run.proxy.silhouette, run.objective
+    calls = []
+
+    def overflowing(*args, defer_count=False, **kw):
+        calls.append(defer_count)
+        t = real(*args, defer_count=defer_count, **kw)
+        t.render.overflow = torch.tensor(defer_count)  # the deferred call overflows, the exact one does not
+        return t
+
+    start = float(sil.value)
+    one = real.retry_point(run.proxy)
+    real(Stage.COEVOLUTION, run.it, run._view(run.it), run.surfels, run.proxy)
+    expected = float(sil.value)
+    one()
+    assert expected != start
+    monkeypatch.setattr(run, "objective", overflowing)
+    monkeypatch.setattr(overflowing, "retry_point", real.retry_point, raising=False)
+    run._step(Stage.COEVOLUTION)
+    assert calls == [True, False], "the step should have been computed again after the overflow"
+    assert float(sil.value) == expected
+
+
 def test_silhouette_options_run_in_a_fit(tiny):
     """The proxy's silhouette offset (mesh.silhouette_gain) and the final calibration both run on a masked
     fit: the offset is recorded at the mesh guidance, the calibration's move is recorded and bounded."""

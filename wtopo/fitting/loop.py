@@ -208,8 +208,12 @@ class FitRun:
         vi = self._view(self.it)
         mask = None if self.train.masks is None else self.train.masks[vi]
         # the binning sizes its buffers from earlier views (no read of this view's pair count); an
-        # overflow, read below with the losses, renders the view again with the exact count
+        # overflow, read below with the losses, renders the view again with the exact count (what the
+        # first call folded into running state is undone first: the step counts once)
+        undo = self.objective.retry_point(self.proxy)
         for defer in (True, False):
+            if not defer:
+                undo()
             t = self.objective(stage, self.it, vi, self.surfels, self.proxy, defer_count=defer)
             info = StepInfo(stage, t.render, t.covered, mask, self.train.cameras[vi])
             extra = [self.strategy.coverage_counts(info)]

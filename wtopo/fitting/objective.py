@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections import defaultdict
+from collections.abc import Callable
 
 import torch
 
@@ -137,6 +138,24 @@ class Objective:
         with torch.no_grad():
             o = self.render(surfels, self.train.cameras[vi])
         return o.median_depth, o.alpha
+
+    def retry_point(self, proxy: ProxyMesh) -> Callable[[], None]:
+        """What a call changes besides its result, captured now: the returned function puts it back, so
+        the same step computed again (the fit's render after a binning overflow) counts once. That is
+        ``proxy``'s silhouette offset (a running estimate a call folds one view into) and the view
+        support's counts; the multi-view terms draw their pixels from a seed per iteration already."""
+        sil = proxy.silhouette
+        offset = None if sil is None else sil.value
+        vs = self.view_support
+        counts = None if vs is None else vs.counts_state()
+
+        def undo() -> None:
+            if sil is not None:
+                sil.value = offset
+            if vs is not None:
+                vs.restore_counts(counts)
+
+        return undo
 
     def __call__(self, stage: Stage, it: int, vi: int, surfels: Surfels, proxy: ProxyMesh, *,
                  defer_count: bool = False) -> Terms:

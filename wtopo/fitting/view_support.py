@@ -131,9 +131,17 @@ class ViewSupport:
         out[py, px] = ok
         return out
 
+    def counts_state(self) -> tuple:
+        """The counts as they stand, for :meth:`restore_counts` (a step computed again counts once)."""
+        return self.compared, self._unsupported
+
+    def restore_counts(self, state: tuple) -> None:
+        """Put back the counts :meth:`counts_state` returned."""
+        self.compared, self._unsupported = state
+
     def take_counts(self) -> dict:
         """``{"compared": pixels, "unsupported": pixels, "share": unsupported / compared}`` since the last
-        call (a step the fit renders again after a binning overflow is counted twice); clears them."""
+        call; clears them."""
         c, u = self.compared, 0 if self._unsupported is None else int(self._unsupported)
         self.compared, self._unsupported = 0, None
         return {"compared": c, "unsupported": u, "share": round(u / c, 4) if c else 0.0}

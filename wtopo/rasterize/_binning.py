@@ -60,9 +60,13 @@ class _PairCapacity:
         if len(self.pending) >= _PENDING_MAX:
             return
         host = torch.empty((), dtype=torch.int64, pin_memory=True)
-        host.copy_(total, non_blocking=True)
+        # the copy runs on the current stream of the count's device; the event must follow that stream, not
+        # the current device's (a fit on cuda:1 with cuda:0 current would otherwise read the count early)
+        stream = torch.cuda.current_stream(total.device)
+        with torch.cuda.stream(stream):
+            host.copy_(total, non_blocking=True)
         event = torch.cuda.Event()
-        event.record()
+        event.record(stream)
         self.pending.append((event, host, limit))
 
     def poll(self) -> None:
