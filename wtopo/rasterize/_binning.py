@@ -60,13 +60,11 @@ class _PairCapacity:
         if len(self.pending) >= _PENDING_MAX:
             return
         host = torch.empty((), dtype=torch.int64, pin_memory=True)
-        # the copy runs on the current stream of the count's device; the event must follow that stream, not
-        # the current device's (a fit on cuda:1 with cuda:0 current would otherwise read the count early)
-        stream = torch.cuda.current_stream(total.device)
-        with torch.cuda.stream(stream):
-            host.copy_(total, non_blocking=True)
+        host.copy_(total, non_blocking=True)  # on the current stream of the count's device
+        # the event follows that stream, not the current device's (a fit on cuda:1 with cuda:0 current would
+        # otherwise see the event done and read the count before it lands)
         event = torch.cuda.Event()
-        event.record(stream)
+        event.record(torch.cuda.current_stream(total.device))
         self.pending.append((event, host, limit))
 
     def poll(self) -> None:
