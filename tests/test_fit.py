@@ -171,17 +171,26 @@ def test_means_restart_saved_as_a_boolean_still_loads():
         validate_config(cfg)
 
 
-def _mesh_terms_around_iteration_14(scene, **losses):
-    """The co-evolution's objective at iterations 13 and 14 (warm-up 10, co-evolution 8) with ``losses`` set."""
+def _coevolution_run(scene, losses: dict | None = None, mesh: dict | None = None):
+    """A started fit (warm-up 10, co-evolution 8, the loop on) with the given ``losses`` and ``mesh`` fields
+    set, to call its objective and step on a fixed state."""
     from wtopo.fitting.loop import FitRun
-    from wtopo.fitting.stages import Stage
 
     cfg = _config(10, 8)
     cfg.coevolution.enabled = True
-    for k, v in losses.items():
-        setattr(cfg.losses, k, v)
+    for section, fields in (("losses", losses), ("mesh", mesh)):
+        for k, v in (fields or {}).items():
+            setattr(getattr(cfg, section), k, v)
     run = FitRun(scene, cfg, None, progress=False)
     run._start()
+    return run
+
+
+def _mesh_terms_around_iteration_14(scene, **losses):
+    """The co-evolution's objective at iterations 13 and 14 (warm-up 10, co-evolution 8) with ``losses`` set."""
+    from wtopo.fitting.stages import Stage
+
+    run = _coevolution_run(scene, losses)
     return [run.objective(Stage.COEVOLUTION, it, 0, run.surfels, run.proxy) for it in (13, 14)]
 
 
@@ -209,15 +218,9 @@ def test_mesh_terms_stop_at_their_end_fraction(tiny):
 def _mesh_depth_terms(scene, field: str, values, **losses) -> tuple[list[torch.Tensor], object]:
     """The co-evolution's mesh-depth term on one fixed state (iteration 12, view 0) for each value of
     ``losses.<field>`` (the other ``losses`` fields given set first), and the run (to read gradients)."""
-    from wtopo.fitting.loop import FitRun
     from wtopo.fitting.stages import Stage
 
-    cfg = _config(10, 8)
-    cfg.coevolution.enabled = True
-    for k, v in losses.items():
-        setattr(cfg.losses, k, v)
-    run = FitRun(scene, cfg, None, progress=False)
-    run._start()
+    run = _coevolution_run(scene, losses)
     out = []
     for v in values:
         setattr(run.cfg.losses, field, v)
@@ -352,14 +355,10 @@ def test_a_step_computed_again_counts_once(tiny):
     """The fit computes a step again after a binning overflow (CUDA's deferred count): what the first call
     folded into running state (the proxy's silhouette offset, the view support's counts) is put back by
     :meth:`Objective.retry_point`'s undo, so the step counts once; without it the offset moves twice."""
-    from wtopo.fitting.loop import FitRun
     from wtopo.fitting.stages import Stage
 
-    cfg = _config(10, 8)
-    cfg.coevolution.enabled = True
-    cfg.mesh.silhouette_gain, cfg.losses.mesh_view_support = 0.2, 2  # three folds stay inside the offset's clamp
-    run = FitRun(tiny, cfg, None, progress=False)
-    run._start()
+    # a gain of 0.2: three folds stay inside the offset's clamp
+    run = _coevolution_run(tiny, {"mesh_view_support": 2}, {"silhouette_gain": 0.2})
     sil, vs = run.proxy.silhouette, run.objective.view_support
     assert sil is not None and vs is not None
 
@@ -383,14 +382,9 @@ def test_the_loop_undoes_a_step_it_computes_again(tiny, monkeypatch):
     """The fit's step, told by the render that the deferred binning overflowed (as CUDA's does when its
     sort buffers were too small), computes the view again with the exact count and leaves the proxy's
     silhouette offset where one call leaves it."""
-    from wtopo.fitting.loop import FitRun
     from wtopo.fitting.stages import Stage
 
-    cfg = _config(10, 8)
-    cfg.coevolution.enabled = True
-    cfg.mesh.silhouette_gain, cfg.losses.mesh_view_support = 0.2, 2
-    run = FitRun(tiny, cfg, None, progress=False)
-    run._start()
+    run = _coevolution_run(tiny, {"mesh_view_support": 2}, {"silhouette_gain": 0.2})
     run.it = run.warmup_end + 2
     sil, real = run.proxy.silhouette, run.objective
     vs = real.view_support

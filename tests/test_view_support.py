@@ -108,8 +108,6 @@ def test_min_views_mask_and_missing_views():
     assert calls == [2]
     assert torch.equal(got, mask)
     assert torch.equal(vs.supported(0, depth, mask, 1e-3, render=render), mask) and calls == [2]
-    vs.forget()
-    assert not vs.supported(0, depth, mask, 1e-3).any()
     empty = torch.zeros_like(mask)
     assert not vs.supported(0, depth, empty, 1e-3).any()
 

@@ -72,10 +72,6 @@ class ViewSupport:
         """Keep view ``vi``'s rendered z-depth and opacity [H, W] (detached) as its current maps."""
         self._maps[int(vi)] = (depth.detach(), alpha.detach())
 
-    def forget(self) -> None:
-        """Drop every kept map (the surfels were replaced)."""
-        self._maps.clear()
-
     def supported(self, vi: int, depth: torch.Tensor, mask: torch.Tensor,
                   tolerance: float | torch.Tensor, render: Callable[[int], tuple[torch.Tensor, torch.Tensor]]
                   | None = None) -> torch.Tensor:
