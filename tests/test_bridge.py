@@ -78,3 +78,33 @@ def test_launch_split_covers_every_item(n):
         out.zero_()
         _bridge.launch_split(_offset_kernel, n, [x], [out], device="cpu", min_chunk=1000)
         np.testing.assert_array_equal(out.numpy(), 2 * np.arange(n, dtype=np.float32))
+
+
+def test_sort_probe_sorts_on_every_device(device):
+    """The probe ``recover_after_oom`` relies on is a real, checked sort (it passes where Warp's sort works)."""
+    assert _bridge._sort_works(_bridge.warp_device(device))
+
+
+def test_recover_after_oom_retries_a_failed_sort_and_then_gives_up(monkeypatch):
+    """Warp 1.19's first CUDA radix sort after a failed device allocation returns its keys unsorted
+    (measured on an H200, benchmarks/gpu.md): the recovery re-checks until a sort works, raises when none
+    does, and does nothing on the CPU (a CUDA device is stood in for: this machine may have none)."""
+    from types import SimpleNamespace
+
+    results, calls = [], []
+
+    def probe(wdev):
+        calls.append(wdev)
+        return results.pop(0)
+
+    monkeypatch.setattr(_bridge, "_sort_works", probe)
+    _bridge.recover_after_oom("cpu")
+    assert calls == []
+    monkeypatch.setattr(_bridge, "warp_device", lambda d: SimpleNamespace(is_cuda=True, name=str(d)))
+    results[:] = [False, True]
+    _bridge.recover_after_oom("cuda:0")
+    assert len(calls) == 2 and results == []
+    results[:] = [False] * _bridge._RECOVER_TRIES
+    with pytest.raises(RuntimeError, match="still fails after a failed allocation"):
+        _bridge.recover_after_oom("cuda:0")
+    assert len(calls) == 2 + _bridge._RECOVER_TRIES

@@ -174,11 +174,14 @@ def test_poisson_remesh_falls_back_to_the_cpu_when_its_device_runs_out_of_memory
         return real(points, *a, **k)
 
     monkeypatch.setattr(stages, "poisson_mesh", on_device)
+    recovered = []  # Warp's sort on the failed device is put back in order (wtopo._bridge.recover_after_oom)
+    monkeypatch.setattr(stages._bridge, "recover_after_oom", recovered.append)
     events = []
     with pytest.warns(RuntimeWarning, match="ran out of memory on meta; re-meshing on the CPU"):
         out = stages.poisson_remesh(_open_sphere(), _remesh_config(), record=lambda e, **k: events.append(k),
                                     device="meta")
     assert seen == ["meta", "cpu"] and out.is_watertight and events[-1]["device"] == "cpu"
+    assert recovered == []  # only a CUDA device's failure needs it (meta is not one)
 
     def warp_failure(points, *a, **k):
         raise RuntimeError("Failed to allocate 3623878656 bytes on device 'cuda:0'")

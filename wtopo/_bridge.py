@@ -47,6 +47,7 @@ __all__ = [
     "float_dtype",
     "vec_dtype",
     "torch_stream",
+    "recover_after_oom",
 ]
 
 _init_lock = threading.Lock()
@@ -88,6 +89,38 @@ def warp_device(device: torch.device | str) -> wp.context.Device:
     if wdev.is_cuda and wdev.ordinal not in _pools_kept:
         _keep_pool(wdev)
     return wdev
+
+
+def _sort_works(wdev) -> bool:
+    """Whether Warp's radix sort sorts two pairs on ``wdev`` (one host sync)."""
+    keys = wp.array(np.array([1, 0, 0, 0], dtype=np.int32), dtype=wp.int32, device=wdev)
+    values = wp.array(np.array([0, 1, 0, 0], dtype=np.int32), dtype=wp.int32, device=wdev)
+    wp.utils.radix_sort_pairs(keys, values, 2)
+    return keys.numpy()[:2].tolist() == [0, 1] and values.numpy()[:2].tolist() == [1, 0]
+
+
+_RECOVER_TRIES = 3
+
+
+def recover_after_oom(device: torch.device | str) -> None:
+    """Put Warp's radix sort on ``device`` back in order after a Warp allocation there failed.
+
+    With Warp 1.19, the first radix sort on a CUDA device after ``wp_alloc_device_async`` ran out of
+    memory fails inside CUB (``invalid device ordinal`` while sizing its buffer) and returns its keys
+    unsorted, saying so only on stderr; the next sort works (measured on an H200:
+    ``benchmarks/gpu.md``). Every surfel render sorts, so a fit that goes on after such a failure (the
+    final re-mesh's fallback to the CPU) would composite one image out of depth order. A checked sort
+    of two pairs takes that failure instead; raises ``RuntimeError`` when the sort still fails after
+    three tries. A no-op on the CPU.
+    """
+    wdev = warp_device(device)
+    if not wdev.is_cuda:
+        return
+    for _ in range(_RECOVER_TRIES):
+        if _sort_works(wdev):
+            return
+    raise RuntimeError(f"Warp's radix sort on {wdev} still fails after a failed allocation there "
+                       f"({_RECOVER_TRIES} checked tries); restart the process")
 
 
 _VEC = {

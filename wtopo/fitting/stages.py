@@ -19,6 +19,7 @@ import numpy as np
 import torch
 import trimesh
 
+from .. import _bridge
 from .._profile import section
 from ..scene import NORMALIZATION_MARGIN
 from . import densify as dens
@@ -322,6 +323,7 @@ def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record,
                       f"re-meshing on the CPU instead ({e})", RuntimeWarning, stacklevel=2)
         if device.type == "cuda":
             torch.cuda.empty_cache()
+            _bridge.recover_after_oom(device)  # the next render's sort would otherwise fail (Warp 1.19)
         device = torch.device("cpu")
         verts, faces = solve(device)
     # marching cubes shares each vertex already: no merge by position (see cleanup_mesh's weld)
