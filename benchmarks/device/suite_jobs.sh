@@ -10,7 +10,10 @@
 # LABEL_). Values must not contain spaces. The ten-view scenes come
 # first (the slowest to settle: two fits each are worth more there), then the six dense objects; with the
 # held-out scenes of benchmarks/heldout.py at ten views of 512 px when HELDOUT=1 is set. SCENES (a quoted list)
-# fits only those suite scenes (SCENES="mug_sparse" bash ... "4 5 6" c: more seeds of the ten-view cup).
+# fits only those suite scenes (SCENES="mug_sparse" bash ... "4 5 6" c: more seeds of the ten-view cup). VARIANTS
+# (a quoted list of benchmarks/hard.py's variants, default "default no_loop") fits those beside each other: with
+# VARIANTS="default no_loop no_geo_density no_mesh_terms" the loop is taken apart (--set applies to every variant
+# but no_loop).
 set -euo pipefail
 seeds=${1:-"0 1"}; label=${2:-s}
 case "$label" in -*) echo "suite_jobs.sh: LABEL must come before --set, got '$label'" >&2; exit 2;; esac
@@ -18,8 +21,8 @@ shift $(( $# >= 2 ? 2 : $# )); sets="$*"
 n=0
 for scene in ${SCENES:-mug_sparse chair_sparse torus_sparse torus chair chair_box bowl blob_flat mug}; do
   for seed in $seeds; do
-    for variant in default no_loop; do
-      extra=""; [ "$variant" = default ] && extra="$sets"
+    for variant in ${VARIANTS:-default no_loop}; do
+      extra=""; [ "$variant" != no_loop ] && extra="$sets"
       echo "python3 benchmarks/hard.py --gpu --device cuda:0 --mesh-cache /root/stage/hc$n --run-dir /root/stage --label ${label}_${variant}_${scene}_${seed} --scenes $scene --variants $variant --seeds $seed $extra"
       n=$((n + 1))
     done
