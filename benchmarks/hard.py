@@ -50,6 +50,13 @@ scene (the issue's rule: the loop must lower the mean by 10 % and raise no scene
 10 views) and ``--device cuda:0`` fits there; ``--mesh-cache DIR`` keeps the signed-distance truth
 meshes, so a machine without scikit-image reads the ones built here.
 
+``--paired`` fits, per scene and seed, the first variant's warm-up once (stopped at its end, before the
+TSDF re-initialisation, in ``<scene>_warmup``) and starts every variant from it (``runtime.start_from``;
+every variant here changes only what acts after the warm-up). On the CPU a fit is bit-reproducible, so
+the pairs are the same as without it (and cost one warm-up less); on CUDA two warm-ups of one seed differ
+by the order of float atomics, and on the ten-view cup that spread, not the loop, is most of a pair's
+difference (``hard.md`` ``gpu_cup_seeds``).
+
 Per row: Chamfer, accuracy (mean reconstruction -> truth distance) and completeness (mean truth ->
 reconstruction), all in % of the ground truth's bounding-box diagonal (of the region of interest
 for ``chair_ground``); F-score at tau = 0.5 % of that diagonal; inward offset
@@ -228,6 +235,25 @@ def run_one(name: str, variant: str, built, run_dir: str, sets, device: str = "c
     return row
 
 
+def warm_up(name: str, variant: str, scene, run_dir: str, sets, device: str = "cpu") -> str:
+    """Fit ``variant``'s warm-up alone, stopped at its end (before the TSDF re-initialisation), into
+    ``<run_dir>/<name>_warmup``: the folder the variants of a ``--paired`` suite start from."""
+    from wtopo.fitting.loop import FitRun
+
+    cfg = _config(variant, sets, device)
+    end = FitRun(scene, cfg, None, progress=False).warmup_end  # the plan's warm-up length
+    cfg.runtime.stop_at = end
+    out = os.path.join(run_dir, f"{name}_warmup")
+    if os.path.isdir(out):
+        shutil.rmtree(out)
+    t = time.perf_counter()
+    res = fit(scene, cfg, out_dir=out, progress=False)
+    if res.report["status"] != "interrupted" or res.report["iterations"] != end:
+        raise FitInterrupted(f"{name} warm-up: {res.report['status']} after {res.report['iterations']} iterations")
+    print(f"[{name} warm-up] {time.perf_counter() - t:.0f} s, {end} iterations", flush=True)
+    return out
+
+
 def _build(name: str) -> tuple:
     """``(scene, the truth to score against, the box its meshes are clipped to or None)`` of a suite scene."""
     scene, gt = SCENES[name]()
@@ -289,8 +315,15 @@ def main(argv=None) -> int:
                     help="fits at once, one process per scene, variant and seed, each pinned to its own cores "
                          "(hard_parallel.py); 1: one after another in this process")
     ap.add_argument("--cores-per-job", type=int, default=2, help="cores each of --jobs' processes may use")
+    ap.add_argument("--paired", action="store_true",
+                    help="per scene and seed, fit the first variant's warm-up once (stopped at its end, in "
+                         "<scene>_warmup) and start every variant from it (runtime.start_from): the variants "
+                         "differ only by what they change, not by the device's run-to-run spread in the warm-up")
     ap.add_argument("--rows-file", help=argparse.SUPPRESS)  # --jobs' cases: where a case writes its row
     args = ap.parse_args(argv)
+    if args.paired and args.jobs > 1:
+        ap.error("--paired runs a scene's variants one after another from one warm-up: use --jobs 1 (one process "
+                 "per scene and seed, as benchmarks/device/suite_jobs.sh with PAIRED=1 writes them)")
     if args.gpu:
         RIG.update(views=64, resolution=512)
     if args.resolution:
@@ -322,10 +355,15 @@ def main(argv=None) -> int:
         if not todo:
             continue
         scene, gt, box = _build(name)
+        warm: dict = {}  # seed -> the warm-up folder the variants start from (--paired)
         for v, sd in todo:
             sets = args.set if sd is None else [*args.set, f"runtime.seed={sd}"]
             out_dir = run_dir if sd is None else os.path.join(run_dir, f"seed{sd}")
             try:
+                if args.paired:
+                    if sd not in warm:
+                        warm[sd] = warm_up(name, args.variants[0], scene, out_dir, sets, args.device)
+                    sets = [*sets, f"runtime.start_from={warm[sd]}"]
                 row = run_one(name, v, (scene, gt, box), out_dir, sets, args.device)
             except FitInterrupted:
                 return 130

@@ -84,6 +84,67 @@ def test_resume_after_interruption_matches_uninterrupted(tiny, tmp_path):
         torch.testing.assert_close(resumed.surfels.params[k], v, atol=RESUME_TOL, rtol=RESUME_TOL)
 
 
+def test_a_branch_from_a_shared_warmup_equals_its_own_fit(tiny, tmp_path):
+    """``runtime.start_from``: the loop's warm-up, stopped at its end, continued without the loop gives the
+    surfels of a fit without the loop from scratch (on the CPU bit for bit: the warm-up is the same), and
+    says where it started; a configuration whose warm-up differs, a checkpoint past the warm-up and a folder
+    without checkpoints are refused, naming the cause."""
+    def config(loop: bool):
+        cfg = _config(10, 8)
+        cfg.coevolution.enabled = loop
+        return cfg
+
+    alone = fit(tiny, config(False), out_dir=tmp_path / "alone", progress=False)
+    src = config(True)
+    src.runtime.stop_at = 10
+    warm = fit(tiny, src, out_dir=tmp_path / "warm", progress=False)
+    assert warm.report["status"] == "interrupted" and warm.report["iterations"] == 10
+    cfg = config(False)
+    cfg.runtime.start_from = str(tmp_path / "warm")
+    branch = fit(tiny, cfg, out_dir=tmp_path / "branch", progress=False)
+    assert branch.report["status"] == "completed" and branch.report["iterations"] == 18
+    started = [e for e in branch.report["events"] if e["event"] == "started_from"]
+    assert len(started) == 1 and started[0]["iteration"] == 10 and "warm" in started[0]["from"]
+    assert len(branch.surfels) == len(alone.surfels) > 0
+    for k, v in alone.surfels.params.items():
+        torch.testing.assert_close(branch.surfels.params[k], v, atol=0, rtol=0)
+
+    other = config(False)
+    other.optim.means *= 2  # the warm-up reads it
+    other.runtime.seed = 1
+    other.runtime.start_from = str(tmp_path / "warm")
+    with pytest.raises(ValueError, match=r"differs from this one.s in optim.means, runtime.seed"):
+        fit(tiny, other, out_dir=tmp_path / "other", progress=False)
+    late = config(False)
+    late.runtime.start_from = str(tmp_path / "alone")  # a finished fit: its checkpoint is past the warm-up
+    with pytest.raises(ValueError, match="a branch starts within the warm-up"):
+        fit(tiny, late, out_dir=tmp_path / "late", progress=False)
+    none = config(False)
+    none.runtime.start_from = str(tmp_path / "nowhere")
+    with pytest.raises(ValueError, match="runtime.start_from = .*no usable checkpoint"):
+        fit(tiny, none, out_dir=tmp_path / "none", progress=False)
+
+
+def test_the_suites_variants_change_only_what_acts_after_the_warmup():
+    """benchmarks/hard.py's variants may branch from the default's warm-up (``--paired``)."""
+    import importlib.util
+    import pathlib
+
+    from wtopo.fitting.checkpointing import warmup_differences
+
+    path = pathlib.Path(__file__).parents[1] / "benchmarks" / "hard.py"
+    spec = importlib.util.spec_from_file_location("hard_bench", path)
+    hard = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hard)
+    base = hard._config("default", ["runtime.seed=3"]).to_dict()
+    assert len(hard.VARIANTS) >= 8
+    for v in hard.VARIANTS:
+        assert warmup_differences(base, hard._config(v, ["runtime.seed=3"]).to_dict()) == [], v
+    assert warmup_differences(base, hard._config("default", ["runtime.seed=4"]).to_dict()) == ["runtime.seed"]
+    assert warmup_differences(base, hard._config("default", ["runtime.seed=3", "warmup.iterations=7"]).to_dict()) == [
+        "warmup.iterations"]
+
+
 def test_injected_nan_is_survived_and_persistent_nan_aborts(tiny, tmp_path, monkeypatch):
     """Skip two NaN steps and finish; abort with a checkpoint when every step is NaN."""
     real = fit_objective.photometric

@@ -13,7 +13,10 @@
 # fits only those suite scenes (SCENES="mug_sparse" bash ... "4 5 6" c: more seeds of the ten-view cup). VARIANTS
 # (a quoted list of benchmarks/hard.py's variants, default "default no_loop") fits those beside each other: with
 # VARIANTS="default no_loop no_geo_density no_mesh_terms" the loop is taken apart (--set applies to every variant
-# but no_loop).
+# but no_loop). PAIRED=1 writes one line per scene and seed that fits the warm-up once and every variant from
+# it (hard.py --paired: the variants then differ only by what they change, not by the device's run-to-run
+# spread, which on the ten-view cup is most of a fit's error: hard.md gpu_cup_seeds); its --set applies to
+# every variant, and its fits run one after another (a ten-view line takes about 3,000 + 2 x 1,000 iterations).
 set -euo pipefail
 seeds=${1:-"0 1"}; label=${2:-s}
 case "$label" in -*) echo "suite_jobs.sh: LABEL must come before --set, got '$label'" >&2; exit 2;; esac
@@ -21,6 +24,11 @@ shift $(( $# >= 2 ? 2 : $# )); sets="$*"
 n=0
 for scene in ${SCENES:-mug_sparse chair_sparse torus_sparse torus chair chair_box bowl blob_flat mug}; do
   for seed in $seeds; do
+    if [ "${PAIRED:-0}" = 1 ]; then
+      echo "python3 benchmarks/hard.py --gpu --device cuda:0 --mesh-cache /root/stage/hc$n --run-dir /root/stage --label ${label}_paired_${scene}_${seed} --scenes $scene --variants ${VARIANTS:-default no_loop} --seeds $seed --paired $sets"
+      n=$((n + 1))
+      continue
+    fi
     for variant in ${VARIANTS:-default no_loop}; do
       extra=""; [ "$variant" != no_loop ] && extra="$sets"
       echo "python3 benchmarks/hard.py --gpu --device cuda:0 --mesh-cache /root/stage/hc$n --run-dir /root/stage --label ${label}_${variant}_${scene}_${seed} --scenes $scene --variants $variant --seeds $seed $extra"

@@ -24,7 +24,35 @@ from .surfels import Surfels
 if TYPE_CHECKING:
     from .loop import FitRun
 
-__all__ = ["Checkpointer"]
+__all__ = ["Checkpointer", "AFTER_WARMUP", "RUNTIME_COMPARED", "warmup_differences"]
+
+AFTER_WARMUP = ("coevolution.enabled", "final.", "mesh.", "losses.mesh_", "densify.geometry_")
+"""Configuration fields (dotted paths, or prefixes ending in ``.`` or ``_``) that act only after the warm-up:
+two fits that differ only in these share their warm-up, so one may start from the other's
+(``runtime.start_from``). Of ``runtime`` only :data:`RUNTIME_COMPARED` is compared; ``coevolution.iterations``
+is (the rates decay over both stages)."""
+RUNTIME_COMPARED = ("runtime.seed", "runtime.image_scale", "runtime.max_surfels")
+"""The runtime fields that change a warm-up (the rest set devices, cadences and output)."""
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def warmup_differences(a: dict, b: dict) -> list[str]:
+    """The dotted fields two configurations (``FitConfig.to_dict()``) differ in that the warm-up reads
+    (everything but :data:`AFTER_WARMUP` and the runtime fields other than :data:`RUNTIME_COMPARED`), sorted."""
+    fa, fb = _flat(a), _flat(b)
+    keep = [k for k in set(fa) | set(fb)
+            if (k in RUNTIME_COMPARED or not k.startswith("runtime."))
+            and not any(k == p or (p[-1] in "._" and k.startswith(p)) for p in AFTER_WARMUP)]
+    return sorted(k for k in keep if fa.get(k, "<absent>") != fb.get(k, "<absent>"))
 
 
 class Checkpointer:
@@ -88,19 +116,52 @@ class Checkpointer:
         """
         d = self.directory
         if d is None or not list_checkpoints(d):
-            return False
+            return self._branch() if self.run.cfg.runtime.start_from else False
         r = self.run
         try:
             st = load_checkpoint(d, config_hash=r.hash)
         except CheckpointError as e:
             raise ValueError(f"{self.out_dir} holds checkpoints this configuration cannot resume ({e}); "
                              "use another out_dir or the configuration of that run") from None
+        self._apply(st)
+        r.record("resumed", **{"from": st["path"]})
+        return True
+
+    def _branch(self) -> bool:
+        """Start from the newest checkpoint of the run ``runtime.start_from`` names (see its docstring).
+
+        Raises:
+            ValueError: no usable checkpoint there, one past the warm-up, or a configuration whose warm-up
+                differs from this fit's (the fields are named).
+        """
+        r = self.run
+        src = Path(r.cfg.runtime.start_from)
+        folder = src / "checkpoints" if (src / "checkpoints").is_dir() else src
+        try:
+            st = load_checkpoint(folder)
+        except CheckpointError as e:
+            raise ValueError(f"runtime.start_from = {str(src)!r}: {e}") from None
+        if int(st["iteration"]) > r.warmup_end or st["tsdf_done"]:
+            raise ValueError(f"runtime.start_from = {str(src)!r}: its checkpoint is at iteration {st['iteration']}"
+                             f"{' after the TSDF re-initialisation' if st['tsdf_done'] else ''}; a branch starts "
+                             f"within the warm-up (iterations 0-{r.warmup_end}): make it with runtime.stop_at = "
+                             f"{r.warmup_end}")
+        diff = warmup_differences(st["config"], r.cfg.to_dict())
+        if diff:
+            raise ValueError(f"runtime.start_from = {str(src)!r}: that run's warm-up differs from this one's in "
+                             f"{', '.join(diff)} (a branch may change only what acts after the warm-up)")
+        self._apply(st)
+        r.record("started_from", **{"from": st["path"], "config_hash": st["config_hash"]})
+        return True
+
+    def _apply(self, st: dict) -> None:
+        """Load a checkpoint's state into the run."""
+        r = self.run
         r.set_surfels(Surfels.from_state_dict(st["surfels"], r.device), st["optimizer"])
         r.it = int(st["iteration"])
         r.tsdf_done = bool(st["tsdf_done"])
         r.history = list(st["history"])
         r.events = list(st["events"])
-        r.record("resumed", **{"from": st["path"]})
         r.strategy.gap = float(st["gap"])
         r.loss_log.sums = defaultdict(float, st["loss_sums"])
         r.loss_log.count = int(st["loss_count"])
@@ -116,4 +177,3 @@ class Checkpointer:
                             prior=px["prior"], clip=region_clip(r.cfg.mesh, r.plan.layout))
         if r.proxy.silhouette is not None and px.get("silhouette"):
             r.proxy.silhouette.value = torch.tensor(float(px["silhouette"]), device=r.device)
-        return True

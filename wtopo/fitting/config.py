@@ -319,6 +319,14 @@ class RuntimeConfig:
     stop_at: int | None = _f(None, COUNT)
     """Stop as if interrupted once this global iteration is reached (time-boxed runs, tests); the
     run resumes from its checkpoint with ``stop_at`` cleared."""
+    start_from: str | None = field(default=None, metadata={"pattern": r".+"})
+    """A run directory (or its ``checkpoints`` folder) of another fit to branch from: with no checkpoint
+    of its own yet, the fit starts from that run's newest checkpoint instead of from scratch, so several
+    configurations share one warm-up and differ only by what they change (a paired ablation; on CUDA two
+    warm-ups of one seed differ by the order of float atomics). The checkpoint must lie within the warm-up
+    (before the TSDF re-initialisation), and the two resolved configurations may differ only in what acts
+    after it: :data:`~wtopo.fitting.checkpointing.AFTER_WARMUP`. Make the source with ``stop_at`` at the
+    warm-up's end."""
 
 
 @dataclass(kw_only=True)
