@@ -109,10 +109,12 @@ class Checkpointer:
             self.save()
 
     def resume(self) -> bool:
-        """Load the newest valid checkpoint of this configuration into the run; ``False`` when there is none.
+        """Load the newest valid checkpoint of this configuration into the run, or, when the run directory
+        holds none, branch from ``runtime.start_from`` (:meth:`_branch`); ``False`` when neither applies.
 
         Raises:
-            ValueError: the run directory holds checkpoints this configuration cannot resume.
+            ValueError: the run directory holds checkpoints this configuration cannot resume, or the branch's
+                source cannot be started from.
         """
         d = self.directory
         if d is None or not list_checkpoints(d):
