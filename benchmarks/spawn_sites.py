@@ -46,7 +46,7 @@ def main(argv=None) -> None:
     cfg = hard._config("default", [f"runtime.seed={args.seed}"])
     cfg.runtime.start_from = args.warmup
     shutil.rmtree(args.out, ignore_errors=True)
-    cfg.runtime.stop_at = int(load_checkpoint(args.warmup + "/checkpoints")["iteration"]) + 1
+    cfg.runtime.stop_at = int(load_checkpoint(os.path.join(args.warmup, "checkpoints"))["iteration"]) + 1
     fit(scene, cfg, out_dir=args.out, progress=False)
     st = load_checkpoint(os.path.join(args.out, "checkpoints"))
     guidance = [e for e in st["events"] if e["event"] == "mesh_guidance"]
@@ -60,8 +60,9 @@ def main(argv=None) -> None:
     d, j = cKDTree(samples).query(pts)
     d = 100 * d / diag
     outside = np.einsum("ij,ij->i", pts - samples[j], gt.face_normals[fi][j]) > 0
-    new = np.zeros(len(pts), bool)
-    new[len(pts) - spawned:] = spawned > 0
+    new = np.zeros(len(pts), bool)  # spawns are appended: the last ``spawned`` surfels
+    if spawned:
+        new[-spawned:] = True
     for name, m in (("the others", ~new), ("spawned", new)):
         if not m.any():
             continue

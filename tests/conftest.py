@@ -6,14 +6,16 @@ import os
 import pytest
 import torch
 
+CUDA_DEVICE = os.environ.get("WTOPO_TEST_CUDA", "cuda:0")
+"""The CUDA device the tests use: on a machine with two GPUs, ``WTOPO_TEST_CUDA=cuda:1`` runs them on a
+device that is not torch's current one (streams and events must follow the tensors' device)."""
+
 
 def _devices():
-    """CPU, and the CUDA device ``WTOPO_TEST_CUDA`` names (default ``cuda:0``) when there is one: on a
-    machine with two GPUs, ``WTOPO_TEST_CUDA=cuda:1`` runs the CUDA tests on a device that is not torch's
-    current one (streams and events must follow the tensors' device, not the current one)."""
+    """CPU, and :data:`CUDA_DEVICE` when CUDA is there."""
     devs = ["cpu"]
     if torch.cuda.is_available():
-        devs.append(os.environ.get("WTOPO_TEST_CUDA", "cuda:0"))
+        devs.append(CUDA_DEVICE)
     return devs
 
 

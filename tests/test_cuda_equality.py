@@ -1,24 +1,24 @@
 # SPDX-License-Identifier: Apache-2.0
 """Every op gives the same forward values and input gradients on CUDA as on CPU (float64 unless stated).
 
-Skipped without CUDA. Inputs are built on the CPU, copied to ``cuda:0`` (or the device ``WTOPO_TEST_CUDA``
-names: ``tests/conftest.py``), and each op is run forward
+Skipped without CUDA. Inputs are built on the CPU, copied to ``conftest.CUDA_DEVICE`` (``cuda:0``
+unless ``WTOPO_TEST_CUDA`` names another), and each op is run forward
 and backward (a fixed random upstream gradient) on both devices.
 """
 
 import math
-import os
 
 import numpy as np
 import pytest
 import torch
 import trimesh
+from conftest import CUDA_DEVICE as CUDA
 
 import wtopo
 from wtopo import ops
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-CUDA = os.environ.get("WTOPO_TEST_CUDA", "cuda:0")
+
 # float64, same arithmetic: CUDA differs by FMA contraction and by the order of float atomics
 # (scatter, gradient accumulation); observed <= 1e-13 relative to each tensor's largest entry (H200)
 F64_REL = 1e-10
