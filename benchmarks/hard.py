@@ -50,6 +50,10 @@ scene (the issue's rule: the loop must lower the mean by 10 % and raise no scene
 10 views) and ``--device cuda:0`` fits there; ``--mesh-cache DIR`` keeps the signed-distance truth
 meshes, so a machine without scikit-image reads the ones built here.
 
+``--warmup-only`` fits only that warm-up, per scene and seed, into ``<run-dir>/<label>/seed<S>/<scene>_warmup``
+and writes nothing else; ``--set runtime.start_from=<that folder>`` then branches one variant from it in another
+process (``benchmarks/device/suite_jobs.sh`` with ``SPLIT=1``: the branches of one warm-up run side by side).
+
 ``--paired`` fits, per scene and seed, the first variant's warm-up once (stopped at its end, before the
 TSDF re-initialisation, in ``<scene>_warmup``) and starts every variant from it (``runtime.start_from``;
 every variant here changes only what acts after the warm-up). On the CPU a fit is bit-reproducible, so
@@ -128,6 +132,14 @@ VARIANTS = {
     "one_point": ("mesh.samples_per_surfel=1",),
     # the loop's guidance alone (normal signs, geometry-aware density), no mesh loss term
     "no_mesh_terms": ("losses.mesh_depth=0", "losses.mesh_normal=0"),
+    # geometry-aware density's two halves apart
+    "no_geo_prune": ("densify.geometry_prune=false",),
+    "no_geo_spawn": ("densify.geometry_densify=false",),
+    # options measured once without pairing (hard.md gpu_sparse3, gpu_reinit512, gpu_view_support, gpu_support2)
+    "robust_behind3": ("losses.mesh_depth_robust=3", "losses.mesh_depth_robust_behind=true"),
+    "proxy128": ("mesh.resolution=128",),
+    "view_support2": ("losses.mesh_view_support=2",),
+    "support2": ("mesh.support_voxels=2",),
 }
 
 
@@ -319,8 +331,13 @@ def main(argv=None) -> int:
                     help="per scene and seed, fit the first variant's warm-up once (stopped at its end, in "
                          "<scene>_warmup) and start every variant from it (runtime.start_from): the variants "
                          "differ only by what they change, not by the device's run-to-run spread in the warm-up")
+    ap.add_argument("--warmup-only", action="store_true",
+                    help="per scene and seed, fit only the first variant's warm-up (stopped at its end) into "
+                         "<run-dir>/<label>/seed<S>/<scene>_warmup (for --set runtime.start_from=... elsewhere)")
     ap.add_argument("--rows-file", help=argparse.SUPPRESS)  # --jobs' cases: where a case writes its row
     args = ap.parse_args(argv)
+    if args.warmup_only and (args.paired or args.jobs > 1):
+        ap.error("--warmup-only fits warm-ups one after another in this process: leave out --paired and --jobs")
     if args.paired and args.jobs > 1:
         ap.error("--paired runs a scene's variants one after another from one warm-up: use --jobs 1 (one process "
                  "per scene and seed, as benchmarks/device/suite_jobs.sh with PAIRED=1 writes them)")
@@ -348,6 +365,17 @@ def main(argv=None) -> int:
     cmd = "PYTHONPATH=. .venv/bin/python benchmarks/hard.py " + " ".join(argv if argv is not None else sys.argv[1:])
     if args.rescore:
         return rescore(rows, run_dir, rows_path, args.out, args.label, cmd)
+    if args.warmup_only:
+        for name in args.scenes:
+            scene = _build(name)[0]
+            for sd in args.seeds or [None]:
+                sets = args.set if sd is None else [*args.set, f"runtime.seed={sd}"]
+                out_dir = run_dir if sd is None else os.path.join(run_dir, f"seed{sd}")
+                try:
+                    warm_up(name, args.variants[0], scene, out_dir, sets, args.device)
+                except FitInterrupted:
+                    return 130
+        return 0
     if args.jobs > 1:
         return _run_parallel(args, rows, done, slots, run_dir, rows_path, cmd, load0)
     for name in args.scenes:  # one scene at a time, its variants one after another

@@ -14,7 +14,9 @@ jobs=$(realpath "$1"); par=${2:-8}
 rm -rf /root/repo && mkdir -p /root/repo /root/stage && cp -r . /root/repo/
 ln -sfn ../kernels /root/repo/wtopo/kernels
 ngpu=$(nvidia-smi -L | wc -l)
-awk -v n="$ngpu" '{printf "CUDA_VISIBLE_DEVICES=%d OMP_NUM_THREADS=3 PYTHONPATH=/tmp/site:. %s > /root/stage/log_%d.txt 2>&1\n", (NR-1)%n, $0, NR-1}' \
+# each line in a subshell with the variables exported: a line may be a compound command (SPLIT=1's branches
+# wait for their warm-up in a loop), and all of its output goes to its log
+awk -v n="$ngpu" '{printf "export CUDA_VISIBLE_DEVICES=%d OMP_NUM_THREADS=3 PYTHONPATH=/tmp/site:.; ( %s ) > /root/stage/log_%d.txt 2>&1\n", (NR-1)%n, $0, NR-1}' \
   "$jobs" > /root/stage/queue.txt
 rm -f /root/stage/ALLDONE
 cd /root/repo

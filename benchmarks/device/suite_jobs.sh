@@ -17,13 +17,28 @@
 # it (hard.py --paired: the variants then differ only by what they change, not by the device's run-to-run
 # spread, which on the ten-view cup is most of a fit's error: hard.md gpu_cup_seeds); its --set applies to
 # every variant, and its fits run one after another (a ten-view line takes about 3,000 + 2 x 1,000 iterations).
+# SPLIT=1 pairs the variants too, but runs them side by side: one line per scene and seed fits the warm-up
+# (hard.py --warmup-only, then touches /root/stage/LABEL_warm_SCENE_SEED.done), and one line per variant waits
+# for that file and branches from the warm-up (--set runtime.start_from=...); its --set applies to every variant.
+# Give queue.sh a PARALLEL of at least the number of lines, or a waiting branch holds a slot its warm-up needs.
 set -euo pipefail
 seeds=${1:-"0 1"}; label=${2:-s}
 case "$label" in -*) echo "suite_jobs.sh: LABEL must come before --set, got '$label'" >&2; exit 2;; esac
 shift $(( $# >= 2 ? 2 : $# )); sets="$*"
 n=0
+branches=()  # SPLIT=1: the variants' lines, after every warm-up's
 for scene in ${SCENES:-mug_sparse chair_sparse torus_sparse torus chair chair_box bowl blob_flat mug}; do
   for seed in $seeds; do
+    if [ "${SPLIT:-0}" = 1 ]; then
+      w=/root/stage/${label}_warm_${scene}_${seed}
+      echo "python3 benchmarks/hard.py --gpu --device cuda:0 --mesh-cache /root/stage/hc$n --run-dir /root/stage --label ${label}_warm_${scene}_${seed} --scenes $scene --variants default --seeds $seed --warmup-only $sets; touch $w.done"
+      n=$((n + 1))
+      for variant in ${VARIANTS:-default no_loop}; do
+        branches+=("while [ ! -f $w.done ]; do sleep 10; done; python3 benchmarks/hard.py --gpu --device cuda:0 --mesh-cache /root/stage/hc$n --run-dir /root/stage --label ${label}_${variant}_${scene}_${seed} --scenes $scene --variants $variant --seeds $seed --set runtime.start_from=$w/seed$seed/${scene}_warmup $sets")
+        n=$((n + 1))
+      done
+      continue
+    fi
     if [ "${PAIRED:-0}" = 1 ]; then
       echo "python3 benchmarks/hard.py --gpu --device cuda:0 --mesh-cache /root/stage/hc$n --run-dir /root/stage --label ${label}_paired_${scene}_${seed} --scenes $scene --variants ${VARIANTS:-default no_loop} --seeds $seed --paired $sets"
       n=$((n + 1))
@@ -36,6 +51,7 @@ for scene in ${SCENES:-mug_sparse chair_sparse torus_sparse torus chair chair_bo
     done
   done
 done
+for line in "${branches[@]}"; do echo "$line"; done
 if [ "${HELDOUT:-0}" = 1 ]; then
   for scene in vase pretzel table stool shelf; do
     for seed in $seeds; do
