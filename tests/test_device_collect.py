@@ -19,15 +19,20 @@ def collect():
     return mod
 
 
-def _batch(root: pathlib.Path, fits) -> None:
-    """hard.py's layout: <label>/rows.json and <label>/seed<S>/<scene>_<variant>/report.json per fit."""
+def _batch(root: pathlib.Path, fits, starts=None, extra=None) -> None:
+    """hard.py's layout: <label>/rows.json and <label>/seed<S>/<scene>_<variant>/report.json per fit;
+    ``starts[i]``: the warm-up fit i branched from (its report's ``started_from`` event), ``extra[i]``: more
+    measures of its row."""
     for i, (variant, seed, faces, chamfer) in enumerate(fits):
         label = root / f"b{i}"
         fit = label / f"seed{seed}" / f"cup_{variant}"
         fit.mkdir(parents=True)
         events = [{"event": "densify"}] if faces is None else [{"event": "tsdf_reinit", "reinit_faces": faces}]
+        if starts is not None and starts[i] is not None:
+            events.insert(0, {"event": "started_from", "from": starts[i]})
         (fit / "report.json").write_text(json.dumps({"events": events}))
-        row = {"scene": "cup", "variant": variant, "seed": seed, "chamfer": chamfer, "obs_chamfer": chamfer / 2}
+        row = {"scene": "cup", "variant": variant, "seed": seed, "chamfer": chamfer, "obs_chamfer": chamfer / 2,
+               **(extra[i] if extra else {})}
         (label / "rows.json").write_text(json.dumps([row]))
 
 
@@ -57,3 +62,26 @@ def test_too_few_fits_are_not_adjusted(collect, tmp_path):
     """Three fits, or one variant only, give no adjusted row rather than a fit of noise."""
     _batch(tmp_path, [("default", 0, 160_000, 1.0), ("no_loop", 0, 170_000, 1.1), ("default", 1, 180_000, 1.2)])
     assert collect.adjusted(collect.load_rows([str(tmp_path)])) == {}
+
+
+def test_pairs_compare_only_fits_from_one_warm_up(collect, tmp_path):
+    """Each warm-up's loop fit is 10 % above its no-loop fit on the Chamfer and 20 % below on the floaters,
+    whatever the warm-up's own level: the pairs read exactly that, with no spread. A fit from a warm-up with no
+    partner (w3), and one that started from none, pair with nothing."""
+    fits, starts, extra = [], [], []
+    for w, level in (("w0", 1.0), ("w1", 1.4), ("w2", 0.7)):
+        for variant, f in (("default", 1.1), ("no_loop", 1.0)):
+            fits.append((variant, int(w[1]), 100_000, level * f))
+            starts.append(f"/stage/{w}/ckpt.pt")
+            extra.append({"floater_frac": 30.0 * (0.8 if variant == "default" else 1.0)})
+    fits += [("default", 3, 100_000, 9.0), ("no_loop", 4, 100_000, 0.1)]
+    starts += ["/stage/w3/ckpt.pt", None]
+    extra += [{}, {}]
+    _batch(tmp_path, fits, starts, extra)
+    rows = collect.load_rows([str(tmp_path)])
+    res = collect.paired(rows)["cup"]
+    assert res["pairs"] == 3 and sorted(res["seeds"]) == [0, 1, 2]
+    assert res["chamfer"][0] == pytest.approx(10.0) and res["chamfer"][1] == pytest.approx(0.0, abs=1e-9)
+    assert res["floater_frac"][0] == pytest.approx(-20.0) and res["obs_chamfer"][0] == pytest.approx(10.0)
+    assert "accuracy" not in res  # no row carries it
+    assert "| cup | 3 | +10.0 +- 0.0 % |" in collect.paired_table(rows)

@@ -9,6 +9,11 @@ change averaged over the scenes, and the worst scene.
     python3 benchmarks/device/collect.py DIR [DIR ...] [--match LABEL] [--loop default] [--base no_loop] \
         [--scenes S ...] [--adjust]
 
+``--pairs`` adds, per scene, the change within pairs of fits that branched from one warm-up (their reports'
+``started_from``), averaged over the pairs with its standard error, for the Chamfer, accuracy, completeness,
+observed Chamfer, floaters and F-score: the measurement a paired batch (``hard.py --paired``,
+``suite_jobs.sh`` ``SPLIT=1``) is made for.
+
 ``--adjust`` adds, per scene, the loop's effect at equal TSDF re-initialisation: a least-squares fit of
 every fit's Chamfer on its re-initialisation's face count (the ``tsdf_reinit`` event of the fit's
 ``report.json``) and whether it is the measured variant. On the GPU two fits of one seed do not share their
@@ -42,27 +47,31 @@ def _read(path: str):
         return json.load(f)
 
 
-def _reinit_faces(rows_file: str, row: dict) -> int | None:
-    """The face count of the TSDF re-initialisation of the fit behind a ``hard.py`` row (its
-    ``report.json`` beside ``rows_file``: ``[seed<S>/]<scene>_<variant>/``), or ``None``."""
+def _report_facts(rows_file: str, row: dict) -> dict:
+    """From the ``report.json`` of the fit behind a ``hard.py`` row (beside ``rows_file``:
+    ``[seed<S>/]<scene>_<variant>/``): ``reinit_faces``, the face count of its TSDF re-initialisation, and
+    ``started_from``, the warm-up checkpoint it branched from (``runtime.start_from``); ``None`` where absent."""
     sub = f"seed{row['seed']}" if row.get("seed") is not None else ""
     path = os.path.join(os.path.dirname(rows_file), sub, f"{row['scene']}_{row['variant']}", "report.json")
+    facts: dict = {"reinit_faces": None, "started_from": None}
     if not os.path.exists(path):
-        return None
+        return facts
     for e in _read(path).get("events", []):
         if e.get("event") == "tsdf_reinit":
-            return e.get("reinit_faces")
-    return None
+            facts["reinit_faces"] = e.get("reinit_faces")
+        elif e.get("event") == "started_from":
+            facts["started_from"] = e.get("from")
+    return facts
 
 
 def load_rows(dirs: list[str], match: str = "") -> list[dict]:
     """Every suite and held-out row under ``dirs`` whose file path contains ``match`` (a suite row with its
-    fit's ``reinit_faces`` when its report is there)."""
+    fit's ``reinit_faces`` and ``started_from`` when its report is there)."""
     rows = []
     for d in dirs:
         for f in sorted(glob.glob(os.path.join(d, "**", "rows.json"), recursive=True)):
             if match in f:
-                rows += [{**r, "reinit_faces": _reinit_faces(f, r)} for r in _read(f) if "error" not in r]
+                rows += [{**r, **_report_facts(f, r)} for r in _read(f) if "error" not in r]
         for f in sorted(glob.glob(os.path.join(d, "**", "h_*.json"), recursive=True)):
             r = _read(f)
             if match in f and "error" not in r and r.get("mode") in _MODES:
@@ -156,6 +165,57 @@ def adjusted_table(rows: list[dict], loop: str = "default", base: str = "no_loop
     return "\n".join(lines)
 
 
+PAIR_KEYS = (("chamfer", "Chamfer"), ("accuracy", "accuracy"), ("completeness", "completeness"),
+             ("obs_chamfer", "observed Chamfer"), ("floater_frac", "floaters"), ("f_score", "F"))
+"""The measures :func:`paired` compares, with their column titles."""
+
+
+def paired(rows: list[dict], loop: str = "default", base: str = "no_loop") -> dict:
+    """Per scene, ``loop`` against ``base`` over the pairs of fits that branched from one warm-up (rows with
+    the same ``started_from``: ``hard.py --paired`` or ``suite_jobs.sh SPLIT=1``): ``scene -> {"pairs": n,
+    "seeds": [...], key: (mean change %, standard error %) for each of PAIR_KEYS, "chamfer_each": [...]}``,
+    each change ``100 (loop / base - 1)`` within a pair. Several fits of one variant from one warm-up are
+    averaged first; a pair needs both variants; the standard error needs two pairs (``nan`` below)."""
+    groups: dict = defaultdict(lambda: defaultdict(list))
+    for r in rows:
+        if r.get("started_from") and r.get("variant") in (loop, base):
+            groups[(r["scene"], r["started_from"])][r["variant"]].append(r)
+    by: dict = defaultdict(list)
+    for (sc, _), g in sorted(groups.items()):
+        if g[loop] and g[base]:
+            by[sc].append(g)
+    out = {}
+    for sc, pairs in by.items():
+        res: dict = {"pairs": len(pairs), "seeds": [int(p[loop][0].get("seed") or 0) for p in pairs]}
+        for key, _ in PAIR_KEYS:
+            d = []
+            for p in pairs:
+                a = [float(r[key]) for r in p[loop] if r.get(key) is not None]
+                b = [float(r[key]) for r in p[base] if r.get(key) is not None]
+                if a and b and np.mean(b) != 0:
+                    d.append(100 * (np.mean(a) / np.mean(b) - 1))
+            if d:
+                se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
+                res[key] = (float(np.mean(d)), se)
+            if key == "chamfer":
+                res["chamfer_each"] = d
+        out[sc] = res
+    return out
+
+
+def paired_table(rows: list[dict], loop: str = "default", base: str = "no_loop") -> str:
+    """The markdown lines of :func:`paired`."""
+    pr = paired(rows, loop, base)
+    lines = ["", f"Pairs from one warm-up ({loop} against {base}; mean change +- standard error over the pairs):", "",
+             "| scene | pairs | " + " | ".join(t for _, t in PAIR_KEYS) + " | Chamfer change per pair |",
+             "|---|---|" + "---|" * len(PAIR_KEYS) + "---|"]
+    for sc, res in pr.items():
+        cells = [f"{res[k][0]:+.1f} +- {res[k][1]:.1f} %" if k in res else "-" for k, _ in PAIR_KEYS]
+        each = " ".join(f"{x:+.1f}" for x in res.get("chamfer_each", []))
+        lines.append(f"| {sc} | {res['pairs']} | " + " | ".join(cells) + f" | {each} |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("dirs", nargs="+", help="folders holding the batch's rows.json / h_*.json")
@@ -164,11 +224,15 @@ def main(argv=None) -> None:
     ap.add_argument("--base", default="no_loop", help="the variant it is measured against")
     ap.add_argument("--scenes", nargs="*", help="scenes to list, in this order (default: every paired scene)")
     ap.add_argument("--adjust", action="store_true", help="add the effect at equal TSDF re-initialisation")
+    ap.add_argument("--pairs", action="store_true",
+                    help="add the change within pairs of fits that branched from one warm-up, with its standard error")
     args = ap.parse_args(argv)
     rows = load_rows(args.dirs, args.match)
     print(table(rows, args.loop, args.base, args.scenes))
     if args.adjust:
         print(adjusted_table(rows, args.loop, args.base))
+    if args.pairs:
+        print(paired_table(rows, args.loop, args.base))
 
 
 if __name__ == "__main__":
