@@ -13,11 +13,16 @@ whatever the mesh holds there: for each mesh this prints
 * the share of the mesh's area inside the cavity (strictly within it: r < 0.40, 0.10 < z < 0.98) and how
   much of that is off the truth.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/cup_cavity.py RUN/seed0/mug_sparse_default/mesh.ply ...
+First it prints how many of the scene's training views see the cavity's truth (``wtopo.metrics.view_counts``,
+the suite's observed-region rule: two views fix a point). ``--section PNG`` draws each mesh's cut through the
+cup's axis (the plane y = 0) over the truth's outline.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/cup_cavity.py [--section cut.png] RUN/seed0/mug_sparse_default/mesh.ply ...
 """
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 
@@ -60,10 +65,52 @@ def measure(mesh: trimesh.Trimesh, truth_points: np.ndarray, diag: float) -> dic
             "mesh_in_cavity_off_truth": float((to_truth[inside] > TAU).mean()) if inside.any() else 0.0}
 
 
-def main(paths: list[str]) -> None:
+def cavity_views(truth: trimesh.Trimesh, truth_points: np.ndarray, diag: float) -> dict:
+    """How many training views of the suite's ten-view cup see its cavity's truth: ``{k: share}`` for k = 0,
+    1, 2 and more (the share of the cavity's samples seen by exactly k views, the last by k or more)."""
+    from hard_scenes import SCENES
+
+    from wtopo.metrics import view_counts
+
+    scene = SCENES["mug_sparse"]()[0]
+    idx = scene.train_indices if scene.train_indices is not None else range(len(scene.cameras))
+    cav = truth_points[_cavity_truth(truth_points)]
+    n = view_counts(cav, truth, [scene.cameras[i] for i in idx], tolerance=1e-3 * diag)
+    return {0: float((n == 0).mean()), 1: float((n == 1).mean()), 2: float((n >= 2).mean())}
+
+
+def section(paths: list[str], out: str) -> None:
+    """Each mesh's cut through the plane y = 0 (area samples within 0.015 of it) over the truth's outline."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(paths), figsize=(5 * len(paths), 4.6), squeeze=False)
+    for ax, path in zip(axes[0], paths):
+        p, _ = trimesh.sample.sample_surface(trimesh.load(path, process=False), 400_000, seed=0)
+        cut = np.abs(p[:, 1]) < 0.015
+        ax.scatter(p[cut, 0], p[cut, 2], s=0.3)
+        ax.plot([-0.5, -0.5, 0.5, 0.5], [1, 0, 0, 1], "r-", lw=0.6)
+        ax.plot([-CAVITY_R, -CAVITY_R, CAVITY_R, CAVITY_R], [1, CAVITY_Z[0], CAVITY_Z[0], 1], "r-", lw=0.6)
+        ax.set_title(os.path.join(*os.path.normpath(path).split(os.sep)[-3:-1]), fontsize=9)
+        ax.set_aspect("equal")
+    fig.tight_layout()
+    fig.savefig(out, dpi=80)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("meshes", nargs="+", help="fitted meshes of the ten-view cup (mesh.ply)")
+    ap.add_argument("--section", help="PNG of each mesh's cut through the cup's axis")
+    args = ap.parse_args(argv)
+    paths = args.meshes
     truth = mug_mesh()
     diag = float(np.linalg.norm(truth.bounds[1] - truth.bounds[0]))
     pt, _ = trimesh.sample.sample_surface(truth, SAMPLES, seed=0)
+    seen = cavity_views(truth, pt, diag)
+    print(f"The cavity's truth ({100 * _cavity_truth(pt).mean():.0f} % of the truth's area) seen by no training "
+          f"view: {100 * seen[0]:.0f} %, by one: {100 * seen[1]:.0f} %, by two or more: {100 * seen[2]:.0f} %")
     print("| mesh | completeness | accuracy | cavity completeness (served off the truth) | lower cavity "
           "(served off the truth) | mesh area in the cavity (off the truth) |")
     print("|---|---|---|---|---|---|")
@@ -74,9 +121,9 @@ def main(paths: list[str]) -> None:
               f"({100 * m['cavity_served_off_truth']:.0f} %) | {m['low_completeness']:.3f} "
               f"({100 * m['low_served_off_truth']:.0f} %) | {100 * m['mesh_in_cavity']:.1f} % "
               f"({100 * m['mesh_in_cavity_off_truth']:.0f} %) |", flush=True)
+    if args.section:
+        section(paths, args.section)
 
 
 if __name__ == "__main__":
-    if len(sys.argv) < 2:
-        sys.exit(__doc__)
-    main(sys.argv[1:])
+    main()
