@@ -79,21 +79,22 @@ def cavity_views(truth: trimesh.Trimesh, truth_points: np.ndarray, diag: float) 
     return {0: float((n == 0).mean()), 1: float((n == 1).mean()), 2: float((n >= 2).mean())}
 
 
-def section(paths: list[str], out: str) -> None:
-    """Each mesh's cut through the plane y = 0 (area samples within 0.015 of it) over the truth's outline."""
+def section(meshes: list[tuple[str, trimesh.Trimesh]], out: str) -> None:
+    """Each mesh's cut through the plane y = 0 (area samples within 0.015 of it) over the truth's outline;
+    ``meshes``: (title, mesh) pairs."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(paths), figsize=(5 * len(paths), 4.6), squeeze=False)
-    for ax, path in zip(axes[0], paths):
-        p, _ = trimesh.sample.sample_surface(trimesh.load(path, process=False), 400_000, seed=0)
+    fig, axes = plt.subplots(1, len(meshes), figsize=(5 * len(meshes), 4.6), squeeze=False)
+    for ax, (name, mesh) in zip(axes[0], meshes):
+        p, _ = trimesh.sample.sample_surface(mesh, 400_000, seed=0)
         cut = np.abs(p[:, 1]) < 0.015
         ax.scatter(p[cut, 0], p[cut, 2], s=0.3)
         ax.plot([-0.5, -0.5, 0.5, 0.5], [1, 0, 0, 1], "r-", lw=0.6)
         ax.plot([-CAVITY_R, -CAVITY_R, CAVITY_R, CAVITY_R], [1, CAVITY_Z[0], CAVITY_Z[0], 1], "r-", lw=0.6)
-        ax.set_title(os.path.join(*os.path.normpath(path).split(os.sep)[-3:-1]), fontsize=9)
+        ax.set_title(name, fontsize=9)
         ax.set_aspect("equal")
     fig.tight_layout()
     fig.savefig(out, dpi=80)
@@ -114,15 +115,16 @@ def main(argv=None) -> None:
     print("| mesh | completeness | accuracy | cavity completeness (served off the truth) | lower cavity "
           "(served off the truth) | mesh area in the cavity (off the truth) |")
     print("|---|---|---|---|---|---|")
-    for path in paths:
-        m = measure(trimesh.load(path, process=False), pt, diag)
-        name = os.path.join(*os.path.normpath(path).split(os.sep)[-3:-1])
+    # each mesh named by its run folder and fit folder (seed0/mug_sparse_default)
+    meshes = [(os.path.join(*os.path.normpath(p).split(os.sep)[-3:-1]), trimesh.load(p, process=False)) for p in paths]
+    for name, mesh in meshes:
+        m = measure(mesh, pt, diag)
         print(f"| {name} | {m['completeness']:.3f} | {m['accuracy']:.3f} | {m['cavity_completeness']:.3f} "
               f"({100 * m['cavity_served_off_truth']:.0f} %) | {m['low_completeness']:.3f} "
               f"({100 * m['low_served_off_truth']:.0f} %) | {100 * m['mesh_in_cavity']:.1f} % "
               f"({100 * m['mesh_in_cavity_off_truth']:.0f} %) |", flush=True)
     if args.section:
-        section(paths, args.section)
+        section(meshes, args.section)
 
 
 if __name__ == "__main__":

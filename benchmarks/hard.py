@@ -250,10 +250,12 @@ def run_one(name: str, variant: str, built, run_dir: str, sets, device: str = "c
 def warm_up(name: str, variant: str, scene, run_dir: str, sets, device: str = "cpu") -> str:
     """Fit ``variant``'s warm-up alone, stopped at its end (before the TSDF re-initialisation), into
     ``<run_dir>/<name>_warmup``: the folder the variants of a ``--paired`` suite start from."""
-    from wtopo.fitting.loop import FitRun
+    import torch
+
+    from wtopo.fitting.plan import make_plan, resolve_config
 
     cfg = _config(variant, sets, device)
-    end = FitRun(scene, cfg, None, progress=False).warmup_end  # the plan's warm-up length
+    end = int(resolve_config(cfg, make_plan(scene.normalized(), cfg, torch.device(device))).warmup.iterations)
     cfg.runtime.stop_at = end
     out = os.path.join(run_dir, f"{name}_warmup")
     if os.path.isdir(out):
@@ -264,6 +266,13 @@ def warm_up(name: str, variant: str, scene, run_dir: str, sets, device: str = "c
         raise FitInterrupted(f"{name} warm-up: {res.report['status']} after {res.report['iterations']} iterations")
     print(f"[{name} warm-up] {time.perf_counter() - t:.0f} s, {end} iterations", flush=True)
     return out
+
+
+def _seeded(sets: list[str], run_dir: str, seed: int | None) -> tuple[list[str], str]:
+    """A fit's ``--set`` list and output folder for ``seed`` (``None``: the unlabelled row, the plan's seed)."""
+    if seed is None:
+        return sets, run_dir
+    return [*sets, f"runtime.seed={seed}"], os.path.join(run_dir, f"seed{seed}")
 
 
 def _build(name: str) -> tuple:
@@ -369,8 +378,7 @@ def main(argv=None) -> int:
         for name in args.scenes:
             scene = _build(name)[0]
             for sd in args.seeds or [None]:
-                sets = args.set if sd is None else [*args.set, f"runtime.seed={sd}"]
-                out_dir = run_dir if sd is None else os.path.join(run_dir, f"seed{sd}")
+                sets, out_dir = _seeded(args.set, run_dir, sd)
                 try:
                     warm_up(name, args.variants[0], scene, out_dir, sets, args.device)
                 except FitInterrupted:
@@ -385,8 +393,7 @@ def main(argv=None) -> int:
         scene, gt, box = _build(name)
         warm: dict = {}  # seed -> the warm-up folder the variants start from (--paired)
         for v, sd in todo:
-            sets = args.set if sd is None else [*args.set, f"runtime.seed={sd}"]
-            out_dir = run_dir if sd is None else os.path.join(run_dir, f"seed{sd}")
+            sets, out_dir = _seeded(args.set, run_dir, sd)
             try:
                 if args.paired:
                     if sd not in warm:

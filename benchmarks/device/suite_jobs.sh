@@ -25,28 +25,29 @@ set -euo pipefail
 seeds=${1:-"0 1"}; label=${2:-s}
 case "$label" in -*) echo "suite_jobs.sh: LABEL must come before --set, got '$label'" >&2; exit 2;; esac
 shift $(( $# >= 2 ? 2 : $# )); sets="$*"
+hard="python3 benchmarks/hard.py --gpu --device cuda:0 --run-dir /root/stage"  # every suite line's start
 n=0
 branches=()  # SPLIT=1: the variants' lines, after every warm-up's
 for scene in ${SCENES:-mug_sparse chair_sparse torus_sparse torus chair chair_box bowl blob_flat mug}; do
   for seed in $seeds; do
     if [ "${SPLIT:-0}" = 1 ]; then
       w=/root/stage/${label}_warm_${scene}_${seed}
-      echo "python3 benchmarks/hard.py --gpu --device cuda:0 --mesh-cache /root/stage/hc$n --run-dir /root/stage --label ${label}_warm_${scene}_${seed} --scenes $scene --variants default --seeds $seed --warmup-only $sets; touch $w.done"
+      echo "$hard --mesh-cache /root/stage/hc$n --label ${label}_warm_${scene}_${seed} --scenes $scene --variants default --seeds $seed --warmup-only $sets; touch $w.done"
       n=$((n + 1))
       for variant in ${VARIANTS:-default no_loop}; do
-        branches+=("while [ ! -f $w.done ]; do sleep 10; done; python3 benchmarks/hard.py --gpu --device cuda:0 --mesh-cache /root/stage/hc$n --run-dir /root/stage --label ${label}_${variant}_${scene}_${seed} --scenes $scene --variants $variant --seeds $seed --set runtime.start_from=$w/seed$seed/${scene}_warmup $sets")
+        branches+=("while [ ! -f $w.done ]; do sleep 10; done; $hard --mesh-cache /root/stage/hc$n --label ${label}_${variant}_${scene}_${seed} --scenes $scene --variants $variant --seeds $seed --set runtime.start_from=$w/seed$seed/${scene}_warmup $sets")
         n=$((n + 1))
       done
       continue
     fi
     if [ "${PAIRED:-0}" = 1 ]; then
-      echo "python3 benchmarks/hard.py --gpu --device cuda:0 --mesh-cache /root/stage/hc$n --run-dir /root/stage --label ${label}_paired_${scene}_${seed} --scenes $scene --variants ${VARIANTS:-default no_loop} --seeds $seed --paired $sets"
+      echo "$hard --mesh-cache /root/stage/hc$n --label ${label}_paired_${scene}_${seed} --scenes $scene --variants ${VARIANTS:-default no_loop} --seeds $seed --paired $sets"
       n=$((n + 1))
       continue
     fi
     for variant in ${VARIANTS:-default no_loop}; do
       extra=""; [ "$variant" != no_loop ] && extra="$sets"
-      echo "python3 benchmarks/hard.py --gpu --device cuda:0 --mesh-cache /root/stage/hc$n --run-dir /root/stage --label ${label}_${variant}_${scene}_${seed} --scenes $scene --variants $variant --seeds $seed $extra"
+      echo "$hard --mesh-cache /root/stage/hc$n --label ${label}_${variant}_${scene}_${seed} --scenes $scene --variants $variant --seeds $seed $extra"
       n=$((n + 1))
     done
   done
