@@ -20,7 +20,11 @@ and two that are not thin:
         [--views 32] [--resolution 128] [--device cpu] [--set KEY=VALUE ...]
 
 ``on``: ``optim.means_thin_decay=0.5``; ``off``: 0 (the fit's own decay); ``noloop``: no mesh loop;
-``default``: the plan's configuration, nothing set. ``--views 10 --resolution 512 --device cuda:0`` is the
+``default``: the plan's configuration, nothing set; or any variant of ``benchmarks/hard.py`` by its name
+(``coevo2k``, ``coevo2k_no_loop``, ...). ``--warmup-only`` fits the default's warm-up alone; modes then branch
+from it with ``--set runtime.start_from=runs/abl/<scene>_s<seed>[_v<views>_r<resolution>]_warmup`` (a paired
+comparison: ``benchmarks/device/suite_jobs.sh`` with ``SPLIT=1 HELDOUT=1``), and the row names the warm-up it
+started from (``started_from``). ``--views 10 --resolution 512 --device cuda:0`` is the
 suite's ten-view captures at the GPU settings (the cameras' seed differs from the 32-view rig's). The fit goes
 to ``runs/abl/<scene>_<mode>_s<seed>`` (``_v<views>_r<resolution>`` added for another rig); the truth mesh
 is kept in ``.hardcache``."""
@@ -104,12 +108,17 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", default="table", choices=sorted(SCENES))
     ap.add_argument("seed", type=int)
-    ap.add_argument("mode", choices=sorted(MODES))
+    ap.add_argument("mode", choices=sorted(set(MODES) | set(hard.VARIANTS)),
+                    help="a mode above, or any variant of benchmarks/hard.py (no_loop, coevo2k, ...)")
     ap.add_argument("out", help="JSON file for the row")
     ap.add_argument("--views", type=int, default=32, help="training views (32: the CPU default's rig)")
     ap.add_argument("--resolution", type=int, default=128, help="pixels per side")
     ap.add_argument("--device", default="cpu", help="fit device (cpu, cuda:0)")
     ap.add_argument("--set", action="append", default=[], help="a config override KEY=VALUE (repeatable)")
+    ap.add_argument("--warmup-only", action="store_true",
+                    help="fit only the default's warm-up, into runs/abl/<scene>_s<seed>[_v.._r..]_warmup (OUT is "
+                         "then touched when it is done); a mode then branches from it with --set "
+                         "runtime.start_from=that folder")
     args = ap.parse_args(argv)
     hs.MESH_CACHE[:] = [".hardcache"]
     sdf, lower, upper = SCENES[args.scene]
@@ -118,14 +127,22 @@ def main(argv=None) -> None:
     scene = scenes.from_mesh(gt, n_views=args.views, resolution=args.resolution, rig="sphere", texture="coffee",
                              background="black", seed=7 if args.views == 32 else SPARSE_CAMERA_SEED, up=(0, 0, 1),
                              n_test=hs.N_TEST, name=args.scene)
-    cfg = hard._config("default", [f"runtime.seed={args.seed}", *args.set, *MODES[args.mode]], args.device)
-    name = f"{args.scene}_{args.mode}_s{args.seed}" + ("" if rig else f"_v{args.views}_r{args.resolution}")
+    suffix = "" if rig else f"_v{args.views}_r{args.resolution}"
+    sets = [f"runtime.seed={args.seed}", *args.set]
+    if args.warmup_only:
+        hard.warm_up(f"{args.scene}_s{args.seed}{suffix}", "default", scene, "runs/abl", sets, args.device)
+        open(args.out, "w").close()
+        return
+    variant, extra = ("default", MODES[args.mode]) if args.mode in MODES else (args.mode, [])
+    cfg = hard._config(variant, [*sets, *extra], args.device)
+    name = f"{args.scene}_{args.mode}_s{args.seed}{suffix}"
     t = time.perf_counter()
     res = fit(scene, cfg, out_dir=f"runs/abl/{name}", progress=False)
+    started = [e.get("from") for e in res.report.get("events", []) if e.get("event") == "started_from"]
     row = {"scene": args.scene, "mode": args.mode, "seed": args.seed, "views": args.views,
            "resolution": args.resolution, "device": args.device, "sets": args.set, "time": time.perf_counter() - t,
            **hard.measure(res.mesh, gt, cameras=hard._train_cameras(scene)), "psnr": res.report.get("psnr"),
-           "coevolution": res.report.get("coevolution")}
+           "coevolution": res.report.get("coevolution"), "started_from": started[0] if started else None}
     with open(args.out, "w") as f:
         json.dump(row, f, indent=1, default=str)
     print(f"{args.scene} {args.mode} s{args.seed}: Chamfer {row['chamfer']:.3f} F {row['f_score']:.3f} "

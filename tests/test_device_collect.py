@@ -85,3 +85,24 @@ def test_pairs_compare_only_fits_from_one_warm_up(collect, tmp_path):
     assert res["floater_frac"][0] == pytest.approx(-20.0) and res["obs_chamfer"][0] == pytest.approx(10.0)
     assert "accuracy" not in res  # no row carries it
     assert "| cup | 3 | +10.0 +- 0.0 % |" in collect.paired_table(rows)
+
+
+def test_held_out_rows_pair_by_their_warm_up_and_keep_a_variants_name(collect, tmp_path):
+    """heldout.py's rows: ``noloop`` reads as ``no_loop``, a mode named after a hard.py variant keeps its name,
+    the scene carries its rig, and rows that branched from one warm-up (their own ``started_from``) pair."""
+    def row(mode, seed, chamfer, start):
+        r = {"scene": "vase", "mode": mode, "seed": seed, "views": 10, "resolution": 512, "chamfer": chamfer,
+             "obs_chamfer": chamfer / 2, "started_from": start}
+        (tmp_path / f"h_x_vase_{mode}_{seed}.json").write_text(json.dumps(r))
+
+    for seed, level in ((0, 1.0), (1, 2.0)):
+        w = f"runs/abl/vase_s{seed}_v10_r512_warmup/checkpoints/ckpt.pt"
+        row("coevo2k", seed, 0.9 * level, w)
+        row("coevo2k_no_loop", seed, 1.0 * level, w)
+        row("noloop", seed, 1.2 * level, w)
+    rows = collect.load_rows([str(tmp_path)])
+    assert {r["variant"] for r in rows} == {"coevo2k", "coevo2k_no_loop", "no_loop"}
+    assert {r["scene"] for r in rows} == {"vase_v10_r512"}
+    res = collect.paired(rows, loop="coevo2k", base="coevo2k_no_loop")["vase_v10_r512"]
+    assert res["pairs"] == 2 and res["chamfer"][0] == pytest.approx(-10.0) and res["chamfer"][1] < 1e-9
+    assert collect.paired(rows, loop="coevo2k_no_loop")["vase_v10_r512"]["chamfer"][0] == pytest.approx(100 / 1.2 - 100)

@@ -125,6 +125,43 @@ def test_a_branch_from_a_shared_warmup_equals_its_own_fit(tiny, tmp_path):
         fit(tiny, none, out_dir=tmp_path / "none", progress=False)
 
 
+def test_a_longer_coevolution_with_the_warmups_decay_horizon_branches_from_it(tiny, tmp_path):
+    """A co-evolution longer than the source's, with the source's means' decay horizon
+    (``optim.means_decay_iterations``), shares its warm-up: the branch equals the same configuration fitted
+    from scratch (bit for bit on the CPU); without that horizon the warm-up's rates differ and the branch is
+    refused, naming the field."""
+    from wtopo.fitting.checkpointing import warmup_differences
+
+    def config(coevo: int, horizon: int | None):
+        cfg = _config(10, coevo)
+        cfg.coevolution.enabled = False
+        cfg.optim.means_decay_iterations = horizon
+        return cfg
+
+    src = config(8, None)
+    src.runtime.stop_at = 10
+    fit(tiny, src, out_dir=tmp_path / "warm", progress=False)
+    longer = config(14, 18)  # 10 + 8: the source's horizon
+    assert warmup_differences(src.to_dict(), longer.to_dict()) == []
+    alone = fit(tiny, longer, out_dir=tmp_path / "alone", progress=False)
+    longer.runtime.start_from = str(tmp_path / "warm")
+    branch = fit(tiny, longer, out_dir=tmp_path / "branch", progress=False)
+    assert branch.report["status"] == "completed" and branch.report["iterations"] == 24
+    assert [e["iteration"] for e in branch.report["events"] if e["event"] == "started_from"] == [10]
+    assert len(branch.surfels) == len(alone.surfels) > 0
+    for k, v in alone.surfels.params.items():
+        torch.testing.assert_close(branch.surfels.params[k], v, atol=0, rtol=0)
+    plain = config(14, None)  # its rates decay over 24 iterations, the warm-up's included
+    assert warmup_differences(src.to_dict(), plain.to_dict()) == ["coevolution.iterations"]
+    plain.runtime.start_from = str(tmp_path / "warm")
+    with pytest.raises(ValueError, match=r"in coevolution.iterations \(.*optim.means_decay_iterations = 18,"):
+        fit(tiny, plain, out_dir=tmp_path / "plain", progress=False)
+    assert warmup_differences(src.to_dict(), config(8, 30).to_dict()) == ["optim.means_decay_iterations"]
+    unset = config(8, None)
+    unset.coevolution.iterations = None  # left to the plan: no horizon to compare, so the field counts
+    assert warmup_differences(src.to_dict(), unset.to_dict()) == ["coevolution.iterations"]
+
+
 def test_the_suites_variants_change_only_what_acts_after_the_warmup():
     """benchmarks/hard.py's variants may branch from the default's warm-up (``--paired``)."""
     import importlib.util
@@ -136,10 +173,12 @@ def test_the_suites_variants_change_only_what_acts_after_the_warmup():
     spec = importlib.util.spec_from_file_location("hard_bench", path)
     hard = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(hard)
-    base = hard._config("default", ["runtime.seed=3"]).to_dict()
+    gpu = ["runtime.seed=3", "warmup.iterations=3000", "coevolution.iterations=1000"]  # the CUDA plan's
+    base = hard._config("default", gpu).to_dict()
     assert len(hard.VARIANTS) >= 8
     for v in hard.VARIANTS:
-        assert warmup_differences(base, hard._config(v, ["runtime.seed=3"]).to_dict()) == [], v
+        assert warmup_differences(base, hard._config(v, gpu).to_dict()) == [], v
+    base = hard._config("default", ["runtime.seed=3"]).to_dict()
     assert warmup_differences(base, hard._config("default", ["runtime.seed=4"]).to_dict()) == ["runtime.seed"]
     assert warmup_differences(base, hard._config("default", ["runtime.seed=3", "warmup.iterations=7"]).to_dict()) == [
         "warmup.iterations"]

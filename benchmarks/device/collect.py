@@ -22,11 +22,13 @@ warm-up, and on the ten-view cup the re-initialisation sets most of a fit's erro
 at the source).
 
 A ``hard.py`` row's variant is its ``variant`` (``default``, ``no_loop``, ...); a held-out row's is its
-``mode`` mapped to the same names (``default``, ``noloop`` -> ``no_loop``) and its scene is named with its
-views and resolution (``vase_v10_r512``). A row carries no sure record of the settings it was fitted with
-(``hard.py`` rows none at all), so a candidate measured beside the default in one batch is told apart by
-its label: ``--match LABEL`` keeps only the files whose path contains ``LABEL``
-(``benchmarks/device/suite_jobs.sh`` puts the label in every run folder and held-out file name).
+``mode`` mapped to the same names (``noloop`` -> ``no_loop``; a mode named after a ``hard.py`` variant is that
+variant) and its scene is named with its views and resolution (``vase_v10_r512``); a held-out row that branched
+from a warm-up (``heldout.py``, ``SPLIT=1 HELDOUT=1``) carries its ``started_from`` and pairs as a suite row
+does. A row carries no sure record of the settings it was fitted with (``hard.py`` rows none at all), so a
+candidate measured beside the default in one batch is told apart by its label: ``--match LABEL`` keeps only
+the files whose path contains ``LABEL`` (``benchmarks/device/suite_jobs.sh`` puts the label in every run folder
+and held-out file name).
 """
 
 from __future__ import annotations
@@ -74,8 +76,8 @@ def load_rows(dirs: list[str], match: str = "") -> list[dict]:
                 rows += [{**r, **_report_facts(f, r)} for r in _read(f) if "error" not in r]
         for f in sorted(glob.glob(os.path.join(d, "**", "h_*.json"), recursive=True)):
             r = _read(f)
-            if match in f and "error" not in r and r.get("mode") in _MODES:
-                rows.append({**r, "variant": _MODES[r["mode"]],
+            if match in f and "error" not in r and r.get("mode"):
+                rows.append({**r, "variant": _MODES.get(r["mode"], r["mode"]),
                              "scene": f"{r['scene']}_v{r['views']}_r{r['resolution']}"})
     return rows
 

@@ -21,6 +21,9 @@
 # (hard.py --warmup-only, then touches /root/stage/LABEL_warm_SCENE_SEED.done), and one line per variant waits
 # for that file and branches from the warm-up (--set runtime.start_from=...); its --set applies to every variant.
 # Give queue.sh a PARALLEL of at least the number of lines, or a waiting branch holds a slot its warm-up needs.
+# With HELDOUT=1 too, the held-out scenes are split the same way (benchmarks/heldout.py --warmup-only, then one
+# line per variant from it), after the suite's lines. VARIANTS="default no_loop coevo2k coevo2k_no_loop" measures
+# the loop at the GPU settings' co-evolution and at twice it, all four from one warm-up per scene and seed.
 set -euo pipefail
 seeds=${1:-"0 1"}; label=${2:-s}
 case "$label" in -*) echo "suite_jobs.sh: LABEL must come before --set, got '$label'" >&2; exit 2;; esac
@@ -54,8 +57,17 @@ for scene in ${SCENES:-mug_sparse chair_sparse torus_sparse torus chair chair_bo
 done
 for line in "${branches[@]}"; do echo "$line"; done
 if [ "${HELDOUT:-0}" = 1 ]; then
+  held="python3 benchmarks/heldout.py --views 10 --resolution 512 --device cuda:0"
   for scene in vase pretzel table stool shelf; do
     for seed in $seeds; do
+      if [ "${SPLIT:-0}" = 1 ]; then  # the warm-up, then every variant from it, as the suite's SPLIT lines
+        w=/root/stage/hw_${label}_${scene}_${seed}.done
+        echo "$held --scene $scene $seed default $w --warmup-only $sets; touch $w"
+        for variant in ${VARIANTS:-default no_loop}; do
+          echo "while [ ! -f $w ]; do sleep 10; done; $held --scene $scene $seed $variant /root/stage/h_${label}_${scene}_${variant}_${seed}.json --set runtime.start_from=runs/abl/${scene}_s${seed}_v10_r512_warmup $sets"
+        done
+        continue
+      fi
       for mode in default noloop; do
         extra=""; [ "$mode" = default ] && extra="$sets"
         echo "python3 benchmarks/heldout.py --scene $scene $seed $mode /root/stage/h_${label}_${scene}_${mode}_${seed}.json --views 10 --resolution 512 --device cuda:0 $extra"

@@ -24,15 +24,21 @@ from .surfels import Surfels
 if TYPE_CHECKING:
     from .loop import FitRun
 
-__all__ = ["Checkpointer", "AFTER_WARMUP", "RUNTIME_COMPARED", "warmup_differences"]
+__all__ = ["Checkpointer", "AFTER_WARMUP", "DECAY_HORIZON", "RUNTIME_COMPARED", "warmup_differences"]
 
 AFTER_WARMUP = ("coevolution.enabled", "final.", "mesh.", "losses.mesh_", "densify.geometry_")
 """Configuration fields (dotted paths, or prefixes ending in ``.`` or ``_``) that act only after the warm-up:
 two fits that differ only in these share their warm-up, so one may start from the other's
-(``runtime.start_from``). Of ``runtime`` only :data:`RUNTIME_COMPARED` is compared; ``coevolution.iterations``
-is (the rates decay over both stages)."""
+(``runtime.start_from``). Of ``runtime`` only :data:`RUNTIME_COMPARED` is compared. ``coevolution.iterations``
+and ``optim.means_decay_iterations`` reach the warm-up only through the means' decay horizon
+(:data:`DECAY_HORIZON`), which is compared in their place when both configurations give it."""
 RUNTIME_COMPARED = ("runtime.seed", "runtime.image_scale", "runtime.max_surfels")
 """The runtime fields that change a warm-up (the rest set devices, cadences and output)."""
+DECAY_HORIZON = ("coevolution.iterations", "optim.means_decay_iterations")
+"""The fields that set the iteration at which the means' single decay reaches ``optim.means_final``
+(:func:`wtopo.fitting.schedule.means_rate`): ``optim.means_decay_iterations``, or else the warm-up's and the
+co-evolution's iterations together. A fit with a longer co-evolution and the decay horizon of a shorter one
+shares that one's warm-up."""
 
 
 def _flat(d: dict, prefix: str = "") -> dict:
@@ -45,14 +51,31 @@ def _flat(d: dict, prefix: str = "") -> dict:
     return out
 
 
+def _decay_horizon(f: dict) -> int | None:
+    """The means' decay horizon of a flattened configuration; ``None`` while the plan has yet to set it."""
+    if f.get("optim.means_decay_iterations") is not None:
+        return int(f["optim.means_decay_iterations"])
+    warm, coevo = f.get("warmup.iterations"), f.get("coevolution.iterations")
+    return None if warm is None or coevo is None else int(warm) + int(coevo)
+
+
 def warmup_differences(a: dict, b: dict) -> list[str]:
     """The dotted fields two configurations (``FitConfig.to_dict()``) differ in that the warm-up reads
-    (everything but :data:`AFTER_WARMUP` and the runtime fields other than :data:`RUNTIME_COMPARED`), sorted."""
+    (everything but :data:`AFTER_WARMUP` and the runtime fields other than :data:`RUNTIME_COMPARED`), sorted.
+
+    The fields of :data:`DECAY_HORIZON` that differ are named only when the means' decay horizon differs, or
+    when either configuration leaves it to the plan (``coevolution.iterations`` unset)."""
     fa, fb = _flat(a), _flat(b)
     keep = [k for k in set(fa) | set(fb)
             if (k in RUNTIME_COMPARED or not k.startswith("runtime."))
-            and not any(k == p or (p[-1] in "._" and k.startswith(p)) for p in AFTER_WARMUP)]
-    return sorted(k for k in keep if fa.get(k, "<absent>") != fb.get(k, "<absent>"))
+            and not any(k == p or (p[-1] in "._" and k.startswith(p)) for p in AFTER_WARMUP)
+            and k not in DECAY_HORIZON]
+    out = {k for k in keep if fa.get(k, "<absent>") != fb.get(k, "<absent>")}
+    ha, hb = _decay_horizon(fa), _decay_horizon(fb)
+    named = [k for k in DECAY_HORIZON if fa.get(k, "<absent>") != fb.get(k, "<absent>")]
+    if ha is None or hb is None or ha != hb:
+        out.update(named)
+    return sorted(out)
 
 
 class Checkpointer:
@@ -150,8 +173,11 @@ class Checkpointer:
                              f"{r.warmup_end}")
         diff = warmup_differences(st["config"], r.cfg.to_dict())
         if diff:
+            horizon = _decay_horizon(_flat(st["config"]))
+            hint = (f"; its co-evolution's length may change with optim.means_decay_iterations = {horizon}, that "
+                    f"run's means' decay horizon" if horizon is not None and set(diff) <= set(DECAY_HORIZON) else "")
             raise ValueError(f"runtime.start_from = {str(src)!r}: that run's warm-up differs from this one's in "
-                             f"{', '.join(diff)} (a branch may change only what acts after the warm-up)")
+                             f"{', '.join(diff)} (a branch may change only what acts after the warm-up{hint})")
         self._apply(st)
         r.record("started_from", **{"from": st["path"], "config_hash": st["config_hash"]})
         return True

@@ -325,8 +325,9 @@ class RuntimeConfig:
     configurations share one warm-up and differ only by what they change (a paired ablation; on CUDA two
     warm-ups of one seed differ by the order of float atomics). The checkpoint must lie within the warm-up
     (before the TSDF re-initialisation), and the two resolved configurations may differ only in what acts
-    after it: :data:`~wtopo.fitting.checkpointing.AFTER_WARMUP`. Make the source with ``stop_at`` at the
-    warm-up's end."""
+    after it: :data:`~wtopo.fitting.checkpointing.AFTER_WARMUP`, and the co-evolution's length where
+    ``optim.means_decay_iterations`` keeps the source's means' decay horizon
+    (:data:`~wtopo.fitting.checkpointing.DECAY_HORIZON`). Make the source with ``stop_at`` at the warm-up's end."""
 
 
 @dataclass(kw_only=True)
