@@ -22,10 +22,10 @@ and two that are not thin:
 ``on``: ``optim.means_thin_decay=0.5``; ``off``: 0 (the fit's own decay); ``noloop``: no mesh loop;
 ``default``: the plan's configuration, nothing set; or any variant of ``benchmarks/hard.py`` by its name
 (``coevo2k``, ``coevo2k_no_loop``, ...). ``--warmup-only`` fits the default's warm-up alone; modes then branch
-from it with ``--set runtime.start_from=runs/abl/<scene>_s<seed>[_v<views>_r<resolution>]_warmup`` (a paired
+from it with ``--set runtime.start_from=runs/abl/<scene>_s<seed>[_v<views>_r<resolution>][_<tag>]_warmup`` (a paired
 comparison: ``benchmarks/device/suite_jobs.sh`` with ``SPLIT=1 HELDOUT=1``), and the row names the warm-up it
-started from (``started_from``); ``--tag T`` keeps two rows of one mode with different ``--set`` values in folders
-of their own. ``--views 10 --resolution 512 --device cuda:0`` is the
+started from (``started_from``); ``--tag T`` keeps fits of one mode with different ``--set`` values, and their
+warm-ups, in folders of their own. ``--views 10 --resolution 512 --device cuda:0`` is the
 suite's ten-view captures at the GPU settings (the cameras' seed differs from the 32-view rig's). The fit goes
 to ``runs/abl/<scene>_<mode>_s<seed>`` (``_v<views>_r<resolution>`` added for another rig); the truth mesh
 is kept in ``.hardcache``."""
@@ -116,8 +116,8 @@ def main(argv=None) -> None:
     ap.add_argument("--resolution", type=int, default=128, help="pixels per side")
     ap.add_argument("--device", default="cpu", help="fit device (cpu, cuda:0)")
     ap.add_argument("--set", action="append", default=[], help="a config override KEY=VALUE (repeatable)")
-    ap.add_argument("--tag", default="", help="appended to the fit's folder and kept in the row: rows of one mode "
-                                              "with different --set values then keep apart")
+    ap.add_argument("--tag", default="", help="appended to the fit's (and the warm-up's) folder and kept in the row: "
+                                              "rows of one mode with different --set values then keep apart")
     ap.add_argument("--warmup-only", action="store_true",
                     help="fit only the default's warm-up, into runs/abl/<scene>_s<seed>[_v.._r..]_warmup (OUT is "
                          "then touched when it is done); a mode then branches from it with --set "
@@ -130,7 +130,7 @@ def main(argv=None) -> None:
     scene = scenes.from_mesh(gt, n_views=args.views, resolution=args.resolution, rig="sphere", texture="coffee",
                              background="black", seed=7 if args.views == 32 else SPARSE_CAMERA_SEED, up=(0, 0, 1),
                              n_test=hs.N_TEST, name=args.scene)
-    suffix = "" if rig else f"_v{args.views}_r{args.resolution}"
+    suffix = ("" if rig else f"_v{args.views}_r{args.resolution}") + (f"_{args.tag}" if args.tag else "")
     sets = [f"runtime.seed={args.seed}", *args.set]
     if args.warmup_only:
         hard.warm_up(f"{args.scene}_s{args.seed}{suffix}", "default", scene, "runs/abl", sets, args.device)
@@ -138,7 +138,7 @@ def main(argv=None) -> None:
         return
     variant, extra = ("default", MODES[args.mode]) if args.mode in MODES else (args.mode, [])
     cfg = hard._config(variant, [*sets, *extra], args.device)
-    name = f"{args.scene}_{args.mode}_s{args.seed}{suffix}" + (f"_{args.tag}" if args.tag else "")
+    name = f"{args.scene}_{args.mode}_s{args.seed}{suffix}"
     t = time.perf_counter()
     res = fit(scene, cfg, out_dir=f"runs/abl/{name}", progress=False)
     started = [e.get("from") for e in res.report.get("events", []) if e.get("event") == "started_from"]

@@ -62,9 +62,9 @@ if [ "${HELDOUT:-0}" = 1 ]; then
     for seed in $seeds; do
       if [ "${SPLIT:-0}" = 1 ]; then  # the warm-up, then every variant from it, as the suite's SPLIT lines
         w=/root/stage/hw_${label}_${scene}_${seed}.done
-        echo "$held --scene $scene $seed default $w --warmup-only $sets; touch $w"
+        echo "$held --scene $scene $seed default $w --tag $label --warmup-only $sets; touch $w"
         for variant in ${VARIANTS:-default no_loop}; do
-          echo "while [ ! -f $w ]; do sleep 10; done; $held --scene $scene $seed $variant /root/stage/h_${label}_${scene}_${variant}_${seed}.json --set runtime.start_from=runs/abl/${scene}_s${seed}_v10_r512_warmup $sets"
+          echo "while [ ! -f $w ]; do sleep 10; done; $held --scene $scene $seed $variant /root/stage/h_${label}_${scene}_${variant}_${seed}.json --tag $label --set runtime.start_from=runs/abl/${scene}_s${seed}_v10_r512_${label}_warmup $sets"
         done
         continue
       fi
