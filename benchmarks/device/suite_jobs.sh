@@ -10,7 +10,7 @@
 # LABEL_). Values must not contain spaces. The ten-view scenes come
 # first (the slowest to settle: two fits each are worth more there), then the six dense objects; with the
 # held-out scenes of benchmarks/heldout.py at ten views of 512 px when HELDOUT=1 is set. SCENES (a quoted list)
-# fits only those suite scenes (SCENES="mug_sparse" bash ... "4 5 6" c: more seeds of the ten-view cup). VARIANTS
+# fits only those suite scenes (SCENES="" none: HELDOUT=1 SCENES="" the held-out scenes alone) (SCENES="mug_sparse" bash ... "4 5 6" c: more seeds of the ten-view cup). VARIANTS
 # (a quoted list of benchmarks/hard.py's variants, default "default no_loop") fits those beside each other: with
 # VARIANTS="default no_loop no_geo_density no_mesh_terms" the loop is taken apart (--set applies to every variant
 # but no_loop). PAIRED=1 writes one line per scene and seed that fits the warm-up once and every variant from
@@ -31,7 +31,7 @@ shift $(( $# >= 2 ? 2 : $# )); sets="$*"
 hard="python3 benchmarks/hard.py --gpu --device cuda:0 --run-dir /root/stage"  # every suite line's start
 n=0
 branches=()  # SPLIT=1: the variants' lines, after every warm-up's
-for scene in ${SCENES:-mug_sparse chair_sparse torus_sparse torus chair chair_box bowl blob_flat mug}; do
+for scene in ${SCENES-mug_sparse chair_sparse torus_sparse torus chair chair_box bowl blob_flat mug}; do
   for seed in $seeds; do
     if [ "${SPLIT:-0}" = 1 ]; then
       w=/root/stage/${label}_warm_${scene}_${seed}
