@@ -10,8 +10,9 @@
 # LABEL_). Values must not contain spaces. The ten-view scenes come
 # first (the slowest to settle: two fits each are worth more there), then the six dense objects; with the
 # held-out scenes of benchmarks/heldout.py at ten views of 512 px when HELDOUT=1 is set. SCENES (a quoted list)
-# fits only those suite scenes (SCENES="" none: HELDOUT=1 SCENES="" the held-out scenes alone) (SCENES="mug_sparse" bash ... "4 5 6" c: more seeds of the ten-view cup). VARIANTS
-# (a quoted list of benchmarks/hard.py's variants, default "default no_loop") fits those beside each other: with
+# fits only those suite scenes (SCENES="mug_sparse" bash ... "4 5 6" c: more seeds of the ten-view cup; SCENES=""
+# none, so HELDOUT=1 SCENES="" writes the held-out scenes alone). VARIANTS (a quoted list of benchmarks/hard.py's
+# variants, default "default no_loop") fits those beside each other: with
 # VARIANTS="default no_loop no_geo_density no_mesh_terms" the loop is taken apart (--set applies to every variant
 # but no_loop). PAIRED=1 writes one line per scene and seed that fits the warm-up once and every variant from
 # it (hard.py --paired: the variants then differ only by what they change, not by the device's run-to-run
