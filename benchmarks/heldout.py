@@ -119,8 +119,8 @@ def main(argv=None) -> None:
     ap.add_argument("--tag", default="", help="appended to the fit's (and the warm-up's) folder and kept in the row: "
                                               "rows of one mode with different --set values then keep apart")
     ap.add_argument("--warmup-only", action="store_true",
-                    help="fit only the default's warm-up, into runs/abl/<scene>_s<seed>[_v.._r..][_<tag>]_warmup (OUT is "
-                         "then touched when it is done); a mode then branches from it with --set "
+                    help="fit only the default's warm-up, into runs/abl/<scene>_s<seed>[_v.._r..][_<tag>]_warmup "
+                         "(OUT is then touched when it is done); a mode then branches from it with --set "
                          "runtime.start_from=that folder")
     args = ap.parse_args(argv)
     hs.MESH_CACHE[:] = [".hardcache"]
