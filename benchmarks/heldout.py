@@ -21,7 +21,7 @@ and two that are not thin:
 
 ``on``: ``optim.means_thin_decay=0.5``; ``off``: 0 (the fit's own decay); ``noloop``: no mesh loop;
 ``default``: the plan's configuration, nothing set; or any variant of ``benchmarks/hard.py`` by its name
-(``coevo2k``, ``coevo2k_no_loop``, ...). ``--warmup-only`` fits the default's warm-up alone; modes then branch
+(``coevo1k``, ``coevo1k_no_loop``, ...). ``--warmup-only`` fits the default's warm-up alone; modes then branch
 from it with ``--set runtime.start_from=runs/abl/<scene>_s<seed>[_v<views>_r<resolution>][_<tag>]_warmup`` (a paired
 comparison: ``benchmarks/device/suite_jobs.sh`` with ``SPLIT=1 HELDOUT=1``), and the row names the warm-up it
 started from (``started_from``); ``--tag T`` keeps fits of one mode with different ``--set`` values, and their
@@ -110,7 +110,7 @@ def main(argv=None) -> None:
     ap.add_argument("--scene", default="table", choices=sorted(SCENES))
     ap.add_argument("seed", type=int)
     ap.add_argument("mode", choices=sorted(set(MODES) | set(hard.VARIANTS)),
-                    help="a mode above, or any variant of benchmarks/hard.py (no_loop, coevo2k, ...)")
+                    help="a mode above, or any variant of benchmarks/hard.py (no_loop, coevo1k, ...)")
     ap.add_argument("out", help="JSON file for the row")
     ap.add_argument("--views", type=int, default=32, help="training views (32: the CPU default's rig)")
     ap.add_argument("--resolution", type=int, default=128, help="pixels per side")

@@ -97,12 +97,12 @@ def test_held_out_rows_pair_by_their_warm_up_and_keep_a_variants_name(collect, t
 
     for seed, level in ((0, 1.0), (1, 2.0)):
         w = f"runs/abl/vase_s{seed}_v10_r512_warmup/checkpoints/ckpt.pt"
-        row("coevo2k", seed, 0.9 * level, w)
-        row("coevo2k_no_loop", seed, 1.0 * level, w)
+        row("coevo1k", seed, 0.9 * level, w)
+        row("coevo1k_no_loop", seed, 1.0 * level, w)
         row("noloop", seed, 1.2 * level, w)
     rows = collect.load_rows([str(tmp_path)])
-    assert {r["variant"] for r in rows} == {"coevo2k", "coevo2k_no_loop", "no_loop"}
+    assert {r["variant"] for r in rows} == {"coevo1k", "coevo1k_no_loop", "no_loop"}
     assert {r["scene"] for r in rows} == {"vase_v10_r512"}
-    res = collect.paired(rows, loop="coevo2k", base="coevo2k_no_loop")["vase_v10_r512"]
+    res = collect.paired(rows, loop="coevo1k", base="coevo1k_no_loop")["vase_v10_r512"]
     assert res["pairs"] == 2 and res["chamfer"][0] == pytest.approx(-10.0) and res["chamfer"][1] < 1e-9
-    assert collect.paired(rows, loop="coevo2k_no_loop")["vase_v10_r512"]["chamfer"][0] == pytest.approx(100 / 1.2 - 100)
+    assert collect.paired(rows, loop="coevo1k_no_loop")["vase_v10_r512"]["chamfer"][0] == pytest.approx(100 / 1.2 - 100)

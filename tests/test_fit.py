@@ -173,7 +173,8 @@ def test_the_suites_variants_change_only_what_acts_after_the_warmup():
     spec = importlib.util.spec_from_file_location("hard_bench", path)
     hard = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(hard)
-    gpu = ["runtime.seed=3", "warmup.iterations=3000", "coevolution.iterations=1000"]  # the CUDA plan's
+    gpu = ["runtime.seed=3", "warmup.iterations=3000", "coevolution.iterations=2000",
+           "optim.means_decay_iterations=4000"]  # the CUDA plan's
     base = hard._config("default", gpu).to_dict()
     assert len(hard.VARIANTS) >= 8
     for v in hard.VARIANTS:

@@ -91,6 +91,38 @@ def test_plan_budget_follows_the_device(room):
     assert p["image_scale"] == 0.5 and p.decisions["image_scale"].overridden
 
 
+def test_cuda_plan_holds_the_means_rate_at_its_floor_for_the_co_evolutions_second_half(room):
+    """CUDA: the means' decay ends halfway through the co-evolution (3,000 + 2,000: at 4,000, the horizon of the
+    former 3,000 + 1,000, whose warm-ups it shares); the CPU decays over the whole fit; a user's horizon wins,
+    and a user's co-evolution length moves the plan's horizon with it."""
+    from wtopo.fitting import plan as P
+    from wtopo.fitting.checkpointing import warmup_differences
+
+    scene = room.normalized()
+    gpu = make_plan(scene, FitConfig(), torch.device("cuda"))
+    warm, coevo = P._ITERATIONS["cuda"]
+    assert gpu["means_decay_iterations"] == warm + round(P._MEANS_DECAY_COEVO["cuda"] * coevo) < warm + coevo
+    assert resolve_config(FitConfig(), gpu).optim.means_decay_iterations == gpu["means_decay_iterations"]
+    cpu = make_plan(scene, FitConfig(), torch.device("cpu"))
+    assert cpu["means_decay_iterations"] is None
+    assert resolve_config(FitConfig(), cpu).optim.means_decay_iterations is None
+    cfg = FitConfig()
+    cfg.optim.means_decay_iterations = 1234
+    p = make_plan(scene, cfg, torch.device("cuda"))
+    assert p["means_decay_iterations"] == 1234 and p.decisions["means_decay_iterations"].overridden
+    cfg = FitConfig()
+    cfg.coevolution.iterations = 600
+    assert make_plan(scene, cfg, torch.device("cuda"))["means_decay_iterations"] == warm + 300
+    # the former CUDA default (3,000 + 1,000, decayed over all of it) fitted the same warm-up
+    new = resolve_config(FitConfig(), gpu)
+    old = resolve_config(FitConfig(), gpu)
+    old.coevolution.iterations, old.optim.means_decay_iterations = 1000, None
+    assert (warm, coevo) == (3000, 2000) and warmup_differences(old.to_dict(), new.to_dict()) == []
+    old.coevolution.iterations = 1500  # another horizon: another warm-up
+    assert warmup_differences(old.to_dict(), new.to_dict()) == ["coevolution.iterations",
+                                                               "optim.means_decay_iterations"]
+
+
 def test_reinit_faces_follow_the_pixel_footprint():
     """Put about one re-initialisation face per 4 squared pixel footprints of the region's box surface on
     CUDA (a 32-view rig sees the surface from enough views for the full density): 2x the image side gives

@@ -23,8 +23,8 @@
 # for that file and branches from the warm-up (--set runtime.start_from=...); its --set applies to every variant.
 # Give queue.sh a PARALLEL of at least the number of lines, or a waiting branch holds a slot its warm-up needs.
 # With HELDOUT=1 too, the held-out scenes are split the same way (benchmarks/heldout.py --warmup-only, then one
-# line per variant from it), after the suite's lines. VARIANTS="default no_loop coevo2k coevo2k_no_loop" measures
-# the loop at the GPU settings' co-evolution and at twice it, all four from one warm-up per scene and seed.
+# line per variant from it), after the suite's lines. VARIANTS="default no_loop coevo1k coevo1k_no_loop" measures
+# the loop at the GPU settings' co-evolution and at half it, all four from one warm-up per scene and seed.
 set -euo pipefail
 seeds=${1:-"0 1"}; label=${2:-s}
 case "$label" in -*) echo "suite_jobs.sh: LABEL must come before --set, got '$label'" >&2; exit 2;; esac
