@@ -46,8 +46,8 @@ _ITERATIONS = {"cpu": (800, 800), "cuda": (3000, 2000)}
 # the mean, -8.7 % per scene; five held-out ten-view scenes -2.4 % / -4.4 %, every one better; the ten-view
 # cup level, +0.1 %) for about 1.2x a fit's time, and the loop's margin over no loop on the suite's mean grows
 # from -5.7 % to -7.6 %. Decaying over all 5,000 instead (gpu_coevo2k) served the dense objects more but left
-# the thin held-out scenes 8-27 % worse. The CPU keeps its single decay over the whole fit (a flat tail there
-# lost the loop's gain: cpu_decay1200). None: over the whole fit.
+# the thin held-out scenes 8-27 % worse. The CPU keeps its single decay over the whole fit (at 800 + 800 a flat
+# tail from 1,200 served the chairs and cost the bowl and the mug 4-9 %: cpu_decay1200). None: over the whole fit.
 _MEANS_DECAY_COEVO = {"cpu": None, "cuda": 0.5}
 # CPU: the base budget covers this many training pixels to fit (unmasked pixels at the trained image
 # scale: twice the default bunny's 109k); a capture with more (an unmasked scene: every pixel is
