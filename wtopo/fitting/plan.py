@@ -470,15 +470,13 @@ def _budget(plan: Plan, scene, cfg: FitConfig, device: torch.device, layout, ima
     warm, coevo, why = iteration_budget(scene, device, image_scale)
     plan.set("warmup_iterations", warm, why, cfg.warmup.iterations)
     plan.set("coevolution_iterations", coevo, why, cfg.coevolution.iterations)
-    share = _MEANS_DECAY_COEVO[dev]
-    if share is None:
-        plan.set("means_decay_iterations", None, f"{dev} budget: the means' rate decays over the whole fit",
-                 cfg.optim.means_decay_iterations)
-    else:
-        warm_it, coevo_it = int(plan["warmup_iterations"]), int(plan["coevolution_iterations"])
-        plan.set("means_decay_iterations", warm_it + int(round(share * coevo_it)),
-                 f"{dev} budget: the means' rate reaches its floor {share:g} of the way through the co-evolution "
-                 f"and keeps it for the rest", cfg.optim.means_decay_iterations)
+    share = _MEANS_DECAY_COEVO[dev]  # of the co-evolution the plan settled on (a configured length moves it)
+    warm_it, coevo_it = int(plan["warmup_iterations"]), int(plan["coevolution_iterations"])
+    horizon = None if share is None else warm_it + round(share * coevo_it)
+    plan.set("means_decay_iterations", horizon,
+             f"{dev} budget: the means' rate decays over the whole fit" if share is None else
+             f"{dev} budget: the means' rate reaches its floor {share:g} of the way through the co-evolution and "
+             f"keeps it for the rest", cfg.optim.means_decay_iterations)
     plan.set("max_surfels", _MAX_SURFELS[dev], f"{dev} budget", cfg.runtime.max_surfels)
     fp = _footprint(scene, layout, image_scale)
     ext = np.asarray(layout.roi_upper, dtype=np.float64) - np.asarray(layout.roi_lower, dtype=np.float64)
