@@ -45,6 +45,10 @@ no interior faces. Variants (``--variants``; ``wtopo fit --set`` overrides):
   the means' decay over all 4,000), which share the CUDA default's warm-up (its decay horizon is 4,000 too), so
   they branch from it beside ``default`` and ``no_loop`` (on the CPU default, 800 + 800, their warm-up differs
   and a branch is refused).
+* ``restart``, ``restart_no_loop`` and ``restart_rule``: the co-evolution's means restarted at 1e-4
+  (``optim.means_restart=0.0625``), the rate `gpu_coevo2k`'s decay over 5,000 had at the warm-up's end, from the
+  CUDA default's warm-up; ``restart_rule`` adds the thin-part probe at 64^3 (``losses.mesh_thin_probe=64``), so
+  where it fires the restart is off and the co-evolution keeps the default's flat tail.
 
 ``--seeds 0 1`` fits every scene and variant once per seed (``runtime.seed``: initial surfels and
 view order; the scenes stay the same) and adds a table of each variant against ``no_loop`` on the
@@ -150,6 +154,12 @@ VARIANTS = {
     "coevo1k": ("coevolution.iterations=1000", "optim.means_decay_iterations=4000"),
     "coevo1k_no_loop": ("coevolution.enabled=false", "coevolution.iterations=1000",
                         "optim.means_decay_iterations=4000"),
+    # the co-evolution's means restarted at 1e-4 (where gpu_coevo2k's decay over 5,000 stood at the warm-up's end,
+    # from the default's warm-up, so the co-evolution runs gpu_coevo2k's rates); with the thin-part probe at 64^3,
+    # where it fires the restart is off (the default's flat tail): hard.md gpu_restart
+    "restart": ("optim.means_restart=0.0625",),
+    "restart_no_loop": ("coevolution.enabled=false", "optim.means_restart=0.0625"),
+    "restart_rule": ("optim.means_restart=0.0625", "losses.mesh_thin_probe=64"),
 }
 
 

@@ -96,3 +96,18 @@ def test_means_thin_decay_shortens_only_a_thin_co_evolutions_decay():
     assert means_rate(o, 1500, 800, 1600, thin=True) == pytest.approx((o.means_final, 1.0))
     o.means_decay_iterations = 1000  # a shorter decay already in use stays
     assert means_rate(o, 1100, 800, 1600, thin=True) == pytest.approx((o.means_final, 1.0))
+
+
+def test_a_thin_co_evolution_keeps_its_decay_where_the_rest_restart():
+    """``means_restart`` raises the co-evolution's rate only where the thin-part rule did not end its decay sooner
+    (thin parts thin out under a higher rate): the CUDA budget's horizon of 4,000 in 3,000 + 2,000, restarted at
+    1e-4; a thin fit keeps the single decay, and with ``means_thin_decay`` off the restart applies to it too."""
+    o = _optim()
+    o.means_decay_iterations, o.means_restart = 4000, 0.0625
+    assert means_rate(o, 3000, 3000, 5000)[0] == pytest.approx(1e-4)  # 0.0625 x 1.6e-3, over the decay's 5.1e-5
+    assert means_rate(o, 4000, 3000, 5000)[0] == pytest.approx((1e-4 * o.means_final) ** 0.5)
+    assert means_rate(o, 4999, 3000, 5000)[0] == pytest.approx(o.means_final, rel=1e-3)
+    for it in (2999, 3000, 3500, 4000, 4999):
+        assert means_rate(o, it, 3000, 5000, thin=True) == pytest.approx((single_decay(o, it, 4000), 1.0))
+    o.means_thin_decay = 0.0
+    assert means_rate(o, 3500, 3000, 5000, thin=True) == means_rate(o, 3500, 3000, 5000)

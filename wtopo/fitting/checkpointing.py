@@ -26,7 +26,8 @@ if TYPE_CHECKING:
 
 __all__ = ["Checkpointer", "AFTER_WARMUP", "DECAY_HORIZON", "RUNTIME_COMPARED", "warmup_differences"]
 
-AFTER_WARMUP = ("coevolution.enabled", "final.", "mesh.", "losses.mesh_", "densify.geometry_")
+AFTER_WARMUP = ("coevolution.enabled", "final.", "mesh.", "losses.mesh_", "densify.geometry_", "optim.means_restart",
+                "optim.means_restart_along_normal", "optim.means_thin_decay")
 """Configuration fields (dotted paths, or prefixes ending in ``.`` or ``_``) that act only after the warm-up:
 two fits that differ only in these share their warm-up, so one may start from the other's
 (``runtime.start_from``). Of ``runtime`` only :data:`RUNTIME_COMPARED` is compared. ``coevolution.iterations``

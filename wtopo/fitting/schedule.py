@@ -3,7 +3,8 @@
 The means decay exponentially from ``optim.means`` to ``optim.means_final`` over the whole fit (or over
 ``optim.means_decay_iterations``, then stay at ``means_final``; where the thin-part rule fired, a
 co-evolution's decay may end sooner, ``optim.means_thin_decay``), or,
-with ``optim.means_restart``, restart at the co-evolution (see :class:`~.config.OptimConfig`).
+with ``optim.means_restart``, restart at the co-evolution where the thin-part rule did not end the decay
+sooner (see :class:`~.config.OptimConfig`).
 With ``optim.means_restart_along_normal`` the restarted rate moves a surfel only along its normal:
 the in-plane part of each step is scaled back to what the single decay would have taken.
 """
@@ -31,7 +32,8 @@ def means_rate(o: OptimConfig, it: int, warmup_end: int, total: int, thin: bool 
         warmup_end: the co-evolution's first iteration.
         total: all iterations (warm-up and co-evolution).
         thin: the thin-part rule refined the co-evolution's proxy; with ``optim.means_thin_decay`` the
-            co-evolution's rate then follows a single decay ending that fraction of the way through it.
+            co-evolution's rate then follows a single decay ending that fraction of the way through it, and
+            ``optim.means_restart`` does not apply.
 
     Returns:
         ``(rate, in_plane)``: the rate in unit-cube lengths per step, and the factor (in (0, 1]) for
@@ -42,7 +44,8 @@ def means_rate(o: OptimConfig, it: int, warmup_end: int, total: int, thin: bool 
     if thin and o.means_thin_decay > 0 and it >= warmup_end:
         horizon = min(horizon, warmup_end + max(1, round(o.means_thin_decay * (total - warmup_end))))
     single = single_decay(o, it, horizon)
-    if o.means_restart <= 0 or it < warmup_end or o.means <= 0 or o.means_final <= 0:
+    thin_end = thin and o.means_thin_decay > 0  # thin parts thin out under a higher rate: no restart
+    if o.means_restart <= 0 or it < warmup_end or thin_end or o.means <= 0 or o.means_final <= 0:
         return single, 1.0
     start = max(o.means_restart * o.means, single_decay(o, warmup_end, horizon))
     frac = min(1.0, (it - warmup_end) / max(1, total - warmup_end))
