@@ -45,10 +45,11 @@ no interior faces. Variants (``--variants``; ``wtopo fit --set`` overrides):
   the means' decay over all 4,000), which share the CUDA default's warm-up (its decay horizon is 4,000 too), so
   they branch from it beside ``default`` and ``no_loop`` (on the CPU default, 800 + 800, their warm-up differs
   and a branch is refused).
-* ``restart``, ``restart_no_loop`` and ``restart_rule``: the co-evolution's means restarted at 1e-4
-  (``optim.means_restart=0.0625``), the rate `gpu_coevo2k`'s decay over 5,000 had at the warm-up's end, from the
-  CUDA default's warm-up; ``restart_rule`` adds the thin-part probe at 64^3 (``losses.mesh_thin_probe=64``), so
-  where it fires the restart is off and the co-evolution keeps the default's flat tail.
+* ``restart`` / ``restart_no_loop`` and ``no_restart`` / ``no_restart_no_loop``: the co-evolution's means
+  restarted at 1e-4 (``optim.means_restart=0.0625``, the CUDA plan's since ``gpu_restart``; the CPU's plan has
+  none), or not (the CUDA default of ``gpu_flat_tail``); all share the default's warm-up. ``thin_probe64``: the
+  thin-part probe at 64^3 (``losses.mesh_thin_probe=64``); where it fires a restart is off (``gpu_restart``
+  measured it with the restart as ``restart_rule``).
 
 ``--seeds 0 1`` fits every scene and variant once per seed (``runtime.seed``: initial surfels and
 view order; the scenes stay the same) and adds a table of each variant against ``no_loop`` on the
@@ -154,12 +155,15 @@ VARIANTS = {
     "coevo1k": ("coevolution.iterations=1000", "optim.means_decay_iterations=4000"),
     "coevo1k_no_loop": ("coevolution.enabled=false", "coevolution.iterations=1000",
                         "optim.means_decay_iterations=4000"),
-    # the co-evolution's means restarted at 1e-4 (where gpu_coevo2k's decay over 5,000 stood at the warm-up's end,
-    # from the default's warm-up, so the co-evolution runs gpu_coevo2k's rates); with the thin-part probe at 64^3,
-    # where it fires the restart is off (the default's flat tail): hard.md gpu_restart
+    # the co-evolution's means restarted at 1e-4 (the CUDA plan's since hard.md gpu_restart, which measured these
+    # three as restart, restart_no_loop and restart_rule), and without it (the CUDA default of gpu_flat_tail: the
+    # means' rate flat at its floor over the co-evolution's second half); with the thin-part probe at 64^3, where it
+    # fires the restart is off
     "restart": ("optim.means_restart=0.0625",),
     "restart_no_loop": ("coevolution.enabled=false", "optim.means_restart=0.0625"),
-    "restart_rule": ("optim.means_restart=0.0625", "losses.mesh_thin_probe=64"),
+    "no_restart": ("optim.means_restart=0",),
+    "no_restart_no_loop": ("coevolution.enabled=false", "optim.means_restart=0"),
+    "thin_probe64": ("losses.mesh_thin_probe=64",),
 }
 
 

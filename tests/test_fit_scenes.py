@@ -123,6 +123,31 @@ def test_cuda_plan_holds_the_means_rate_at_its_floor_for_the_co_evolutions_secon
                                                                "optim.means_decay_iterations"]
 
 
+def test_cuda_plan_restarts_the_co_evolutions_means_and_the_cpu_does_not(room):
+    """CUDA: the co-evolution's means restart at 1e-4 (0.0625 of ``optim.means``) and decay to their floor at the
+    fit's end; the CPU keeps the single decay; a user's value wins; the restart acts after the warm-up, so a fit
+    without it branches from the default's warm-up."""
+    from wtopo.fitting import plan as P
+    from wtopo.fitting.checkpointing import warmup_differences
+    from wtopo.fitting.schedule import means_rate
+
+    scene = room.normalized()
+    gpu = make_plan(scene, FitConfig(), torch.device("cuda"))
+    assert gpu["means_restart"] == P._MEANS_RESTART["cuda"] == 0.0625
+    o = resolve_config(FitConfig(), gpu).optim
+    assert o.means_restart == 0.0625
+    warm, coevo = P._ITERATIONS["cuda"]
+    assert means_rate(o, warm, warm, warm + coevo)[0] == pytest.approx(1e-4)
+    assert means_rate(o, warm - 1, warm, warm + coevo)[0] < 6e-5  # the warm-up keeps its decay
+    cpu = make_plan(scene, FitConfig(), torch.device("cpu"))
+    assert cpu["means_restart"] == 0.0 and resolve_config(FitConfig(), cpu).optim.means_restart == 0.0
+    cfg = FitConfig()
+    cfg.optim.means_restart = 0.0
+    p = make_plan(scene, cfg, torch.device("cuda"))
+    assert p["means_restart"] == 0.0 and p.decisions["means_restart"].overridden
+    assert warmup_differences(resolve_config(cfg, p).to_dict(), resolve_config(FitConfig(), gpu).to_dict()) == []
+
+
 def test_reinit_faces_follow_the_pixel_footprint():
     """Put about one re-initialisation face per 4 squared pixel footprints of the region's box surface on
     CUDA (a 32-view rig sees the surface from enough views for the full density): 2x the image side gives

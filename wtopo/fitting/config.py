@@ -114,11 +114,14 @@ class OptimConfig:
     out under the longer co-evolution's higher rate (``benchmarks/hard.md``, ``cpu_coevo800``); at 0.5
     (``cpu_thin_decay``) the chairs' loop Chamfer falls 2-6 % (chair_box, chair, ten-view chair) and a
     held-out table's 10-12 %; the rule fires on no other suite scene, the bunny or the sphere rig."""
-    means_restart: float = _f(0.0, FRACTION, was_bool=True)
+    means_restart: float | None = _f(None, FRACTION, was_bool=True)
     """Restart the means schedule at the co-evolution: it starts at this fraction of ``means`` (never
-    below where the single decay stands there) and decays to ``means_final`` at its last iteration.
-    ``0`` (the default): one decay over both stages, so the co-evolution starts at ~7e-5 on the CPU
-    budget (then 400 + 200) and moves surfels by < 1 pixel; ``1``: the public code's full restart. Hard
+    below where the single decay stands there) and decays to ``means_final`` at its last iteration (not
+    where the thin-part rule ended the co-evolution's decay sooner, ``means_thin_decay``). ``None``: the
+    plan's (:mod:`wtopo.fitting.plan`): 0.0625 on CUDA (1e-4; at 512 px the loop's fits -3.7 % on the hard
+    suite's mean, ``benchmarks/hard.md`` ``gpu_restart``), 0 on the CPU. ``0``: one decay over both stages,
+    so the co-evolution starts at ~7e-5 on the CPU budget (then 400 + 200) and moves surfels by < 1 pixel;
+    ``1``: the public code's full restart. On the CPU, hard
     suite with the current mesh-depth default, 7 objects x 2 seeds (``benchmarks/hard.md``,
     ``cpu_restart``): ``1`` removes the bowl's and the blob's shrink (-16 to -26 %) but swells the
     chair, chair_box and mug (+15 to +45 %), and the loop's own gain falls from 5.0 % to 3.5 %.

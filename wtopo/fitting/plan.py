@@ -37,7 +37,8 @@ _MIN_EVAL_VIEWS = 12
 # +10 %, with the loop and without) for about 1.4x the loop fit's time (the bunny's fit ~3 min). Scenes at the
 # render cap keep theirs.
 # CUDA: the method's schedule shortened to minutes on one GPU (3,000 + 2,000 iterations at ~30 ms), the means'
-# rate at its floor from halfway through the co-evolution (_MEANS_DECAY_COEVO, below).
+# warm-up decay ending halfway through the co-evolution (_MEANS_DECAY_COEVO, below) and the co-evolution's
+# means restarted (_MEANS_RESTART).
 _ITERATIONS = {"cpu": (800, 800), "cuda": (3000, 2000)}
 # The share of the co-evolution over which the means' single decay still runs on CUDA (the plan sets
 # optim.means_decay_iterations = warm-up + this share of the co-evolution); the rest keeps the floor rate
@@ -49,6 +50,16 @@ _ITERATIONS = {"cpu": (800, 800), "cuda": (3000, 2000)}
 # the thin held-out scenes 8-27 % worse. The CPU keeps its single decay over the whole fit (at 800 + 800 a flat
 # tail from 1,200 served the chairs and cost the bowl and the mug 4-9 %: cpu_decay1200). None: over the whole fit.
 _MEANS_DECAY_COEVO = {"cpu": None, "cuda": 0.5}
+# The co-evolution's means restart (optim.means_restart: a fraction of optim.means; 0: no restart). CUDA:
+# 0.0625, 1e-4, the rate gpu_coevo2k's decay over all 5,000 had at the warm-up's end (the default's decay
+# stands at 5.1e-5 there), decaying to means_final at the fit's last iteration. At 512 px, from one warm-up
+# per scene and seed (hard.md gpu_restart): the loop's fits -3.7 % on the suite's mean, -6.1 % per scene
+# (bowl -20.5 %, ten-view torus -16.1 %, blob -12.0 %; torus +5.2 %, chair_box +3.5 %), the four held-out
+# ten-view scenes with both fits mixed (table -2.2 %, vase -0.9 %, shelf +2.6 %, stool +6.2 %); the loop's
+# margin over no loop on the suite's mean -11.9 % (the flat tail alone, same batch: -9.9 %). At 128 px (the CUDA
+# plan on the CPU, cpu_cuda128_restart): bowl -2.3 %, ten-view torus -8.8 %, both chairs within 1 %. The CPU
+# budget keeps none: at 800 + 400 a restart of 0.3 swelled the chairs 15-24 % (hard.md cpu_restart03).
+_MEANS_RESTART = {"cpu": 0.0, "cuda": 0.0625}
 # CPU: the base budget covers this many training pixels to fit (unmasked pixels at the trained image
 # scale: twice the default bunny's 109k); a capture with more (an unmasked scene: every pixel is
 # ground, background or sky) gets proportionally more iterations, as long as the warm-up renders at
@@ -477,6 +488,11 @@ def _budget(plan: Plan, scene, cfg: FitConfig, device: torch.device, layout, ima
              f"{dev} budget: the means' rate decays over the whole fit" if share is None else
              f"{dev} budget: the means' rate reaches its floor {share:g} of the way through the co-evolution and "
              f"keeps it for the rest", cfg.optim.means_decay_iterations)
+    restart = _MEANS_RESTART[dev]
+    plan.set("means_restart", restart,
+             f"{dev} budget: the co-evolution's means restart at {restart:g} of optim.means and decay to their floor "
+             f"at the fit's end" if restart > 0 else f"{dev} budget: the co-evolution's means keep the single decay",
+             cfg.optim.means_restart)
     plan.set("max_surfels", _MAX_SURFELS[dev], f"{dev} budget", cfg.runtime.max_surfels)
     fp = _footprint(scene, layout, image_scale)
     ext = np.asarray(layout.roi_upper, dtype=np.float64) - np.asarray(layout.roi_lower, dtype=np.float64)
@@ -518,6 +534,7 @@ def resolve_config(cfg: FitConfig, plan: Plan) -> FitConfig:
     out.coevolution.iterations = int(plan["coevolution_iterations"])
     horizon = plan["means_decay_iterations"]
     out.optim.means_decay_iterations = None if horizon is None else int(horizon)
+    out.optim.means_restart = float(plan["means_restart"])
     out.coevolution.enabled = bool(plan["mesh_loop"])
     out.losses.multiview = float(plan["multiview"])
     out.runtime.max_surfels = int(plan["max_surfels"])

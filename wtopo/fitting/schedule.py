@@ -45,9 +45,10 @@ def means_rate(o: OptimConfig, it: int, warmup_end: int, total: int, thin: bool 
         horizon = min(horizon, warmup_end + max(1, round(o.means_thin_decay * (total - warmup_end))))
     single = single_decay(o, it, horizon)
     thin_end = thin and o.means_thin_decay > 0  # thin parts thin out under a higher rate: no restart
-    if o.means_restart <= 0 or it < warmup_end or thin_end or o.means <= 0 or o.means_final <= 0:
+    restart = o.means_restart or 0.0  # None (left to the plan, unresolved): none
+    if restart <= 0 or it < warmup_end or thin_end or o.means <= 0 or o.means_final <= 0:
         return single, 1.0
-    start = max(o.means_restart * o.means, single_decay(o, warmup_end, horizon))
+    start = max(restart * o.means, single_decay(o, warmup_end, horizon))
     frac = min(1.0, (it - warmup_end) / max(1, total - warmup_end))
     rate = start * (o.means_final / start) ** frac
     in_plane = min(1.0, single / rate) if o.means_restart_along_normal else 1.0
