@@ -5,7 +5,7 @@
 #   bash benchmarks/device/queue.sh JOBS PARALLEL
 #
 # JOBS: a file of commands, one fit per line, run from a copy of the tree in /root/repo (made here,
-# with the wtopo.kernels link: benchmarks/gpu.md). Line i runs on GPU (i + floor(i / n)) % n of n GPUs, with
+# with the wtopo.kernels link: benchmarks/gpu.md); the lines that wait for a warm-up run last (below). Line i runs on GPU (i + floor(i / n)) % n of n GPUs, with
 # OMP_NUM_THREADS=3, PYTHONPATH=/tmp/site:. (where Warp and trimesh were installed), its output in
 # /root/stage/log_i.txt. PARALLEL: fits at once over all GPUs (the 32 fits of hard.md gpu_views_rule ran
 # 16 at once on two H200s, 8 per GPU, in about 10 minutes). /root/stage/ALLDONE appears at the end.
@@ -18,8 +18,14 @@ ngpu=$(nvidia-smi -L | wc -l)
 # wait for their warm-up in a loop), and all of its output goes to its log
 # line i goes to GPU (i + floor(i / n)) % n: consecutive lines still fill every GPU, and a list whose variants
 # repeat every n lines (4 variants per warm-up on 4 GPUs) no longer puts every fit of one variant on one GPU
-awk -v n="$ngpu" '{i = NR - 1; printf "export CUDA_VISIBLE_DEVICES=%d OMP_NUM_THREADS=3 PYTHONPATH=/tmp/site:.; ( %s ) > /root/stage/log_%d.txt 2>&1\n", (i + int(i / n)) % n, $0, i}' \
-  "$jobs" > /root/stage/queue.txt
+# the lines that wait for a warm-up (SPLIT=1's branches) go after every other line, so with PARALLEL under the
+# number of lines no waiting branch holds a slot its warm-up needs (lists of several suite_jobs.sh calls
+# interleave them); and each line gets its own truth-mesh cache, /root/stage/hc<line> (every suite_jobs.sh call
+# numbers its caches from 0, and two fits building one cache at once race)
+{ grep -v '^while \[ ! -f' "$jobs" || true; grep '^while \[ ! -f' "$jobs" || true; } |
+  awk '{gsub(/\/root\/stage\/hc[0-9]+/, "/root/stage/hc" NR); print}' |
+  awk -v n="$ngpu" '{i = NR - 1; printf "export CUDA_VISIBLE_DEVICES=%d OMP_NUM_THREADS=3 PYTHONPATH=/tmp/site:.; ( %s ) > /root/stage/log_%d.txt 2>&1\n", (i + int(i / n)) % n, $0, i}' \
+  > /root/stage/queue.txt
 rm -f /root/stage/ALLDONE
 cd /root/repo
 # setsid and all three streams redirected: the device call returns while the queue runs

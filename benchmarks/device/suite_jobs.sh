@@ -21,7 +21,8 @@
 # SPLIT=1 pairs the variants too, but runs them side by side: one line per scene and seed fits the warm-up
 # (hard.py --warmup-only, then touches /root/stage/LABEL_warm_SCENE_SEED.done), and one line per variant waits
 # for that file and branches from the warm-up (--set runtime.start_from=...); its --set applies to every variant.
-# Give queue.sh a PARALLEL of at least the number of lines, or a waiting branch holds a slot its warm-up needs.
+# queue.sh runs the waiting lines after all others and gives every line its own truth cache, so the output of
+# several calls may be concatenated; give it a PARALLEL of more than the number of warm-ups.
 # With HELDOUT=1 too, the held-out scenes are split the same way (benchmarks/heldout.py --warmup-only, then one
 # line per variant from it), after the suite's lines. VARIANTS="default no_loop coevo1k coevo1k_no_loop" measures
 # the loop at the GPU settings' co-evolution and at half it, all four from one warm-up per scene and seed.
