@@ -47,9 +47,10 @@ no interior faces. Variants (``--variants``; ``wtopo fit --set`` overrides):
   and a branch is refused).
 * ``restart`` / ``restart_no_loop`` and ``no_restart`` / ``no_restart_no_loop``: the co-evolution's means
   restarted at 1e-4 (``optim.means_restart=0.0625``, the CUDA plan's since ``gpu_restart``; the CPU's plan has
-  none), or not (the CUDA default of ``gpu_flat_tail``); all share the default's warm-up. ``thin_probe64``: the
-  thin-part probe at 64^3 (``losses.mesh_thin_probe=64``); where it fires a restart is off (``gpu_restart``
-  measured it with the restart as ``restart_rule``).
+  none, and at 800 + 800 this one changes nothing: the single decay stands at 1.6e-4 there), or not (the CUDA
+  default of ``gpu_flat_tail``); all share the default's warm-up. ``thin_probe64``: the thin-part probe at 64^3
+  (``losses.mesh_thin_probe=64``); where it fires a restart is off (``gpu_restart`` measured it with the restart
+  as ``restart_rule``).
 
 ``--seeds 0 1`` fits every scene and variant once per seed (``runtime.seed``: initial surfels and
 view order; the scenes stay the same) and adds a table of each variant against ``no_loop`` on the
