@@ -5,8 +5,8 @@
 #   bash benchmarks/device/queue.sh JOBS PARALLEL
 #
 # JOBS: a file of commands, one fit per line, run from a copy of the tree in /root/repo (made here,
-# with the wtopo.kernels link: benchmarks/gpu.md); the lines that wait for a warm-up run last (below). Line i runs on GPU (i + floor(i / n)) % n of n GPUs, with
-# OMP_NUM_THREADS=3, PYTHONPATH=/tmp/site:. (where Warp and trimesh were installed), its output in
+# with the wtopo.kernels link: benchmarks/gpu.md); the lines that wait for a warm-up run last (below). Line i
+# runs on GPU (i + floor(i / n)) % n of n GPUs, with OMP_NUM_THREADS=3, PYTHONPATH=/tmp/site:. (where Warp and trimesh were installed), its output in
 # /root/stage/log_i.txt. PARALLEL: fits at once over all GPUs (the 32 fits of hard.md gpu_views_rule ran
 # 16 at once on two H200s, 8 per GPU, in about 10 minutes). /root/stage/ALLDONE appears at the end.
 set -euo pipefail

@@ -41,10 +41,10 @@ def means_rate(o: OptimConfig, it: int, warmup_end: int, total: int, thin: bool 
         ``means_restart_along_normal`` holds in a restarted co-evolution, else 1.
     """
     horizon = total if o.means_decay_iterations is None else int(o.means_decay_iterations)
-    if thin and o.means_thin_decay > 0 and it >= warmup_end:
+    thin_end = thin and o.means_thin_decay > 0  # thin parts thin out under a higher rate: no restart either
+    if thin_end and it >= warmup_end:
         horizon = min(horizon, warmup_end + max(1, round(o.means_thin_decay * (total - warmup_end))))
     single = single_decay(o, it, horizon)
-    thin_end = thin and o.means_thin_decay > 0  # thin parts thin out under a higher rate: no restart
     restart = o.means_restart or 0.0  # None (left to the plan, unresolved): none
     if restart <= 0 or it < warmup_end or thin_end or o.means <= 0 or o.means_final <= 0:
         return single, 1.0
