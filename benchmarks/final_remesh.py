@@ -7,15 +7,19 @@ it now runs on the fit's. The re-mesh also keeps marching cubes' vertex sharing 
 merged by position, its 768^3 meshes came out open.
 This script times both in one process on an open mesh (a sphere of radius 0.3 with a cap cut away, 327,680
 faces before the cut) and prints the ratio, the peak GPU memory, and the Chamfer distance between the two meshes.
+With ``--fallback`` it also re-meshes with the device's memory filled up to ``--leave-gib`` free, so that the
+solve runs out of memory there and falls back to the CPU as a fit's does (many fits on one GPU), and prints
+where it ran and the Chamfer distance to the device's mesh.
 
     PYTHONPATH=. python benchmarks/final_remesh.py [--device cuda:0] [--resolutions 256 384 768]
-        [--cpu-resolutions 256 384]
+        [--cpu-resolutions 256 384] [--fallback [--leave-gib 3]]
 
 The CPU runs use every core this process may use (``torch.get_num_threads()``); resolutions left out of
 ``--cpu-resolutions`` are timed on the device only.
 """
 import argparse
 import time
+import warnings
 
 import numpy as np
 import torch
@@ -32,15 +36,17 @@ def open_sphere() -> trimesh.Trimesh:
     return trimesh.Trimesh(s.vertices, s.faces[s.triangles_center[:, 2] < 0.7], process=True)
 
 
-def run(mesh: trimesh.Trimesh, resolution: int, device: str) -> tuple[trimesh.Trimesh, float, float]:
-    """(mesh, seconds, peak GPU GiB) of one re-mesh; a first call on a device warms its kernels up."""
+def run(mesh: trimesh.Trimesh, resolution: int, device: str,
+        events: dict | None = None) -> tuple[trimesh.Trimesh, float, float]:
+    """(mesh, seconds, peak GPU GiB) of one re-mesh; a first call on a device warms its kernels up.
+    ``events``: filled with what the re-mesh recorded (``device``: where it ran)."""
     cfg = FitConfig()
     cfg.final.resolution = resolution
     if device.startswith("cuda"):
         torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats()
     t = time.perf_counter()
-    out = poisson_remesh(mesh, cfg, record=lambda *a, **k: None, device=device)
+    out = poisson_remesh(mesh, cfg, record=lambda _name, **k: (events or {}).update(k), device=device)
     if device.startswith("cuda"):
         torch.cuda.synchronize()
     peak = torch.cuda.max_memory_allocated() / 2**30 if device.startswith("cuda") else 0.0
@@ -52,6 +58,9 @@ def main() -> None:
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--resolutions", type=int, nargs="+", default=[256, 384, 768])
     ap.add_argument("--cpu-resolutions", type=int, nargs="+", default=[256, 384])
+    ap.add_argument("--fallback", action="store_true",
+                    help="also re-mesh with the device's memory filled, to measure the CPU fallback")
+    ap.add_argument("--leave-gib", type=float, default=3.0, help="device memory left free for --fallback")
     args = ap.parse_args()
     mesh = open_sphere()
     print(f"open sphere: {len(mesh.faces)} faces, watertight {mesh.is_watertight}; CPU threads "
@@ -68,6 +77,18 @@ def main() -> None:
             line += f"; cpu {t_cpu:.2f} s: {t_cpu / t_dev:.1f}x; Chamfer between the two {c.chamfer:.2e} " \
                     f"(voxel {1.1 * 0.6 / r:.2e})"
         print(line, flush=True)
+        if args.fallback and args.device.startswith("cuda"):
+            free, _ = torch.cuda.mem_get_info(args.device)
+            hog = torch.empty(max(int(free - args.leave_gib * 2**30), 0), dtype=torch.uint8, device=args.device)
+            events: dict = {}
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # the fallback's own warning, expected
+                fb_mesh, t_fb, _ = run(mesh, r, args.device, events)
+            del hog
+            torch.cuda.empty_cache()
+            c = chamfer(dev_mesh, fb_mesh)
+            print(f"  with {args.leave_gib:g} GiB free: ran on {events.get('device')}, {t_fb:.2f} s, "
+                  f"{len(fb_mesh.faces)} faces; Chamfer to the device's mesh {c.chamfer:.2e}", flush=True)
     r = np.linalg.norm(dev_mesh.vertices - 0.5, axis=1)
     print(f"last device mesh: radius {r.min():.4f}-{r.max():.4f} (truth 0.3 below the cut)")
 
