@@ -106,3 +106,19 @@ def test_held_out_rows_pair_by_their_warm_up_and_keep_a_variants_name(collect, t
     res = collect.paired(rows, loop="coevo1k", base="coevo1k_no_loop")["vase_v10_r512"]
     assert res["pairs"] == 2 and res["chamfer"][0] == pytest.approx(-10.0) and res["chamfer"][1] < 1e-9
     assert collect.paired(rows, loop="coevo1k_no_loop")["vase_v10_r512"]["chamfer"][0] == pytest.approx(100 / 1.2 - 100)
+
+
+def test_the_suite_summary_reads_the_whole_truth_and_the_observed_region(collect, tmp_path):
+    """Two scenes, one seed each: the summary lines give the mean Chamfer's change, the per-scene mean and the
+    worst scene on the whole truth, and the same on the observed region, which can rank the scenes otherwise."""
+    rows = []
+    for sc, loop, base, loop_o, base_o in (("cup", 1.1, 1.0, 0.45, 0.5), ("torus", 0.08, 0.1, 0.08, 0.1)):
+        rows += [{"scene": sc, "variant": "default", "seed": 0, "chamfer": loop, "obs_chamfer": loop_o},
+                 {"scene": sc, "variant": "no_loop", "seed": 0, "chamfer": base, "obs_chamfer": base_o}]
+    (tmp_path / "rows.json").write_text(json.dumps(rows))
+    text = collect.table(collect.load_rows([str(tmp_path)]))
+    whole = 100 * (np.mean([1.1, 0.08]) / np.mean([1.0, 0.1]) - 1)
+    observed = 100 * (np.mean([0.45, 0.08]) / np.mean([0.5, 0.1]) - 1)
+    assert f"({whole:+.1f} %); per scene {np.mean([10.0, -20.0]):+.1f} %; worst scene cup +10.0 %." in text
+    assert (f"On the observed region, over 2 scenes: {np.mean([0.45, 0.08]):.4f} % against 0.3000 % "
+            f"({observed:+.1f} %); per scene {np.mean([-10.0, -20.0]):+.1f} %; worst scene cup -10.0 %.") in text
