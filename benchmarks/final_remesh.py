@@ -15,9 +15,11 @@ where it ran and the Chamfer distance to the device's mesh.
         [--cpu-resolutions 256 384] [--fallback [--leave-gib 3]]
 
 The CPU runs use every core this process may use (``torch.get_num_threads()``); resolutions left out of
-``--cpu-resolutions`` are timed on the device only.
+``--cpu-resolutions`` are timed on the device only. The last line is the process's peak resident host memory
+(``--device cpu --resolutions 768 --cpu-resolutions``: what a CPU re-mesh at 768^3, or a fit's fallback to it, needs).
 """
 import argparse
+import resource
 import time
 import warnings
 
@@ -57,7 +59,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--resolutions", type=int, nargs="+", default=[256, 384, 768])
-    ap.add_argument("--cpu-resolutions", type=int, nargs="+", default=[256, 384])
+    ap.add_argument("--cpu-resolutions", type=int, nargs="*", default=[256, 384])
     ap.add_argument("--fallback", action="store_true",
                     help="also re-mesh with the device's memory filled, to measure the CPU fallback")
     ap.add_argument("--leave-gib", type=float, default=3.0, help="device memory left free for --fallback")
@@ -91,6 +93,9 @@ def main() -> None:
                   f"{len(fb_mesh.faces)} faces; Chamfer to the device's mesh {c.chamfer:.2e}", flush=True)
     r = np.linalg.norm(dev_mesh.vertices - 0.5, axis=1)
     print(f"last device mesh: radius {r.min():.4f}-{r.max():.4f} (truth 0.3 below the cut)")
+    # the CPU solve's host memory decides whether a fallback survives on a small machine
+    peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # kB on Linux
+    print(f"host peak resident memory of this process: {peak_gb:.2f} GB")
 
 
 if __name__ == "__main__":

@@ -82,19 +82,19 @@ class PoissonContext:
         ``G = exp(-|w|^2 sigma^2 / 2)`` (``sigma`` in voxels) and ``S = 0`` at the DC term.
         """
 
+        def inverse_laplacian(w2: torch.Tensor) -> torch.Tensor:
+            s = torch.exp(-0.5 * sigma ** 2 * w2) / torch.where(w2 > 0, w2, torch.ones_like(w2))
+            return torch.where(w2 > 0, s, torch.zeros_like(s))  # the DC term (w2 = 0 there alone)
+
         def build():
             r = resolution
-            w, wr, w2 = _frequencies(r)
-            gauss = torch.exp(-0.5 * sigma ** 2 * w2)
-            w2[0, 0, 0] = 1.0
-            s = gauss / w2
-            s[0, 0, 0] = 0.0
+            w, wr = _frequencies(r)
             wd, wrd = w.clone(), wr.clone()
             if r % 2 == 0:
                 wd[r // 2] = 0.0
                 wrd[-1] = 0.0
             return (wd.view(r, 1, 1).to(device, dtype), wd.view(1, r, 1).to(device, dtype),
-                    wrd.view(1, 1, -1).to(device, dtype), s.to(device, dtype))
+                    wrd.view(1, 1, -1).to(device, dtype), _spectrum(r, inverse_laplacian, device, dtype))
 
         return self._cached((resolution, float(sigma), str(device), dtype), build)
 
@@ -102,7 +102,7 @@ class PoissonContext:
         """The Gaussian ``exp(-|w|^2 sigma^2 / 2)`` [R, R, R//2+1] on the ``rfftn`` spectrum (``sigma`` in voxels):
         a periodic Gaussian blur of standard deviation ``sigma`` voxels, its DC term 1 (it keeps sums)."""
         return self._cached(("blur", resolution, float(sigma), str(device), dtype),
-                            lambda: torch.exp(-0.5 * sigma ** 2 * _frequencies(resolution)[2]).to(device, dtype))
+                            lambda: _spectrum(resolution, lambda w2: torch.exp(-0.5 * sigma ** 2 * w2), device, dtype))
 
     def _cached(self, key, build):
         """The cached value of ``key``, built by ``build()`` (outside the lock) on a miss."""
@@ -118,12 +118,24 @@ class PoissonContext:
         return value
 
 
-def _frequencies(r: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(w [R], wr [R//2+1], |w|^2 [R, R, R//2+1])``: the angular frequencies (radians per voxel) of ``fftn``
-    and ``rfftn`` spectra and their squared norm, float64 on the CPU."""
+def _frequencies(r: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(w [R], wr [R//2+1])``: the angular frequencies (radians per voxel) of ``fftn`` and ``rfftn``
+    spectra, float64 on the CPU."""
     w = 2 * math.pi * torch.fft.fftfreq(r, dtype=torch.float64)
     wr = 2 * math.pi * torch.fft.rfftfreq(r, dtype=torch.float64)
-    return w, wr, w[:, None, None] ** 2 + w[None, :, None] ** 2 + wr[None, None, :] ** 2
+    return w, wr
+
+
+def _spectrum(r: int, fn, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """``fn(|w|^2)`` [R, R, R//2+1] on ``device`` in ``dtype`` for an ``rfftn`` spectrum: ``fn`` maps float64
+    squared angular frequencies elementwise, evaluated one ``[R, R//2+1]`` slab at a time, so the float64
+    work costs a slab, not three grids (at 768^3 those were 5.4 GB beside the solve's own)."""
+    w, wr = _frequencies(r)
+    yz = w[:, None] ** 2
+    out = torch.empty((r, r, wr.numel()), dtype=dtype)
+    for i in range(r):
+        out[i] = fn(w[i] ** 2 + yz + wr[None, :] ** 2).to(dtype)
+    return out.to(device)
 
 
 _DEFAULT_CONTEXT = PoissonContext()
@@ -209,11 +221,19 @@ def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torc
     with section("scatter"):
         v = scatter_unchecked(q, weights[:, None] * normals, r)
     vh = torch.fft.rfftn(v.permute(3, 0, 1, 2), dim=(1, 2, 3))
+    del v  # the transform's backward does not keep its input: at 768^3 the grid is 5.4 GB
     ctx = context or _DEFAULT_CONTEXT
     wx, wy, wz, s = ctx.operator(r, sigma, device, dtype)
-    # laplacian(chi) = div(V)  <=>  -|w|^2 chi^ = i w . V^  <=>  chi^ = -i (w . V^) / |w|^2
-    chi_h = (wx * vh[0] + wy * vh[1] + wz * vh[2]) * s * (-1j)
+    # laplacian(chi) = div(V)  <=>  -|w|^2 chi^ = i w . V^  <=>  chi^ = -i (w . V^) / |w|^2, summed in place
+    # (the same operations in the same order; the products' backward keeps the operators, not their outputs)
+    chi_h = wx * vh[0]
+    chi_h += wy * vh[1]
+    chi_h += wz * vh[2]
+    del vh
+    chi_h *= s
+    chi_h *= -1j
     chi = torch.fft.irfftn(chi_h, s=(r, r, r), dim=(0, 1, 2))
+    del chi_h
     at_points = sample_unchecked(chi[..., None], q)[:, 0]
     wsum = weights.sum()
     level = _safe_divide((weights * at_points).sum(), wsum, WEIGHT_FLOOR) * (wsum > WEIGHT_FLOOR)
