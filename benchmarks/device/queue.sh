@@ -31,6 +31,8 @@ rm -f /root/stage/ALLDONE /root/stage/rc_* /root/stage/retried.txt
 # hard.md gpu_cup_restart two loop branches died in the final re-mesh's CPU fallback, twelve fits on a GPU.
 # Once every line has run, those lines run once more, RETRY_PARALLEL (default 2) at once, their first log
 # kept as log_i.first.txt; retried.txt lists them (line numbers from 0) and wait.sh reports them
+# (a SPLIT=1 warm-up line ends with its touch, so a killed warm-up exits 0 and is not run again; its
+# branches then fail in hard.py, which records them)
 retry=${RETRY_PARALLEL:-2}
 cat > /root/stage/retry.sh <<'RETRY'
 cd /root/repo
