@@ -218,18 +218,33 @@ def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torc
     period = (1.0 + 2.0 * padding) * r / (r - 1)
     # Grid coordinates in [0, (R-1)/R]: never in the wrap cell, so the scatter drops nothing.
     q = ((points + padding) / period).clamp(0.0, (r - 1) / r)
-    with section("scatter"):
-        v = scatter_unchecked(q, weights[:, None] * normals, r)
-    vh = torch.fft.rfftn(v.permute(3, 0, 1, 2), dim=(1, 2, 3))
-    del v  # the transform's backward does not keep its input: at 768^3 the grid is 5.4 GB
     ctx = context or _DEFAULT_CONTEXT
     wx, wy, wz, s = ctx.operator(r, sigma, device, dtype)
+    values = weights[:, None] * normals
     # laplacian(chi) = div(V)  <=>  -|w|^2 chi^ = i w . V^  <=>  chi^ = -i (w . V^) / |w|^2, summed in place
     # (the same operations in the same order; the products' backward keeps the operators, not their outputs)
-    chi_h = wx * vh[0]
-    chi_h += wy * vh[1]
-    chi_h += wz * vh[2]
-    del vh
+    if torch.is_grad_enabled() and (points.requires_grad or normals.requires_grad or weights.requires_grad):
+        with section("scatter"):
+            v = scatter_unchecked(q, values, r)
+        vh = torch.fft.rfftn(v.permute(3, 0, 1, 2), dim=(1, 2, 3))
+        del v  # the transform's backward does not keep its input: at 768^3 the grid is 5.4 GB
+        chi_h = wx * vh[0]
+        chi_h += wy * vh[1]
+        chi_h += wz * vh[2]
+        del vh
+    else:  # nothing to differentiate (the final re-mesh): one component at a time, a third of the memory
+        chi_h = None
+        for c, wc in enumerate((wx, wy, wz)):
+            with section("scatter"):
+                vc = scatter_unchecked(q, values[:, c:c + 1].contiguous(), r)[..., 0]
+            term = torch.fft.rfftn(vc)
+            del vc
+            term *= wc
+            if chi_h is None:
+                chi_h = term
+            else:
+                chi_h += term
+            del term
     chi_h *= s
     chi_h *= -1j
     chi = torch.fft.irfftn(chi_h, s=(r, r, r), dim=(0, 1, 2))
