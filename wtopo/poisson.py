@@ -131,10 +131,10 @@ def _spectrum(r: int, fn, device: torch.device, dtype: torch.dtype) -> torch.Ten
     squared angular frequencies elementwise, evaluated one ``[R, R//2+1]`` slab at a time, so the float64
     work costs a slab, not three grids (at 768^3 those were 5.4 GB beside the solve's own)."""
     w, wr = _frequencies(r)
-    yz = w[:, None] ** 2
+    y2, z2 = w[:, None] ** 2, wr[None, :] ** 2
     out = torch.empty((r, r, wr.numel()), dtype=dtype)
     for i in range(r):
-        out[i] = fn(w[i] ** 2 + yz + wr[None, :] ** 2).to(dtype)
+        out[i] = fn(w[i] ** 2 + y2 + z2).to(dtype)
     return out.to(device)
 
 
@@ -240,10 +240,7 @@ def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torc
             term = torch.fft.rfftn(vc)
             del vc
             term *= wc
-            if chi_h is None:
-                chi_h = term
-            else:
-                chi_h += term
+            chi_h = term if chi_h is None else chi_h.add_(term)
             del term
     chi_h *= s
     chi_h *= -1j

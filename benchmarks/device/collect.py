@@ -105,40 +105,36 @@ def table(rows: list[dict], loop: str = "default", base: str = "no_loop", scenes
     names = scenes or sorted({sc for sc, v in ch if v == loop and (sc, base) in ch})
     lines = [f"| scene | seeds | fits {loop} / {base} | {loop} | {base} | change | observed change |",
              "|---|---|---|---|---|---|---|"]
-    a_all, b_all, per = [], [], {}
-    oa_all, ob_all, per_o = [], [], {}  # the same on the observed region (scenes whose pairs all carry it)
+    whole, observed = {}, {}  # scene -> (loop's mean, base's mean); observed: scenes whose pairs all carry it
     for sc in names:
         la, ba = ch.get((sc, loop), {}), ch.get((sc, base), {})
         seeds = sorted(set(la) & set(ba))
         if not seeds:
             lines.append(f"| {sc} | 0 | {fits[(sc, loop)]} / {fits[(sc, base)]} | - | - | no pair | - |")
             continue
-        a, b = np.mean([la[s] for s in seeds]), np.mean([ba[s] for s in seeds])
+        a, b = whole[sc] = np.mean([la[s] for s in seeds]), np.mean([ba[s] for s in seeds])
         lo, bo = ob.get((sc, loop), {}), ob.get((sc, base), {})
         so = [s for s in seeds if s in lo and s in bo]
-        obs = (100 * (np.mean([lo[s] for s in so]) / np.mean([bo[s] for s in so]) - 1)) if so else float("nan")
+        oa, obm = (np.mean([lo[s] for s in so]), np.mean([bo[s] for s in so])) if so else (np.nan, np.nan)
         if len(so) == len(seeds):
-            oa_all.append(np.mean([lo[s] for s in so]))
-            ob_all.append(np.mean([bo[s] for s in so]))
-            per_o[sc] = obs
-        per[sc] = 100 * (a / b - 1)
-        a_all.append(a)
-        b_all.append(b)
+            observed[sc] = (oa, obm)
         lines.append(f"| {sc} | {len(seeds)} | {fits[(sc, loop)]} / {fits[(sc, base)]} | {a:.4f} | {b:.4f} | "
-                     f"{per[sc]:+.1f} % | {obs:+.1f} % |")
-    if per:
-        worst = max(per, key=per.get)
-        mean_a, mean_b = np.mean(a_all), np.mean(b_all)
-        lines += ["", f"Mean Chamfer over {len(per)} paired scenes: {mean_a:.4f} % against {mean_b:.4f} % "
-                  f"({100 * (mean_a / mean_b - 1):+.1f} %); per scene {np.mean(list(per.values())):+.1f} %; "
-                  f"worst scene {worst} {per[worst]:+.1f} %."]
-    if per_o:  # the issue's rules scored as DTU scores: only the part of the truth two training views see
-        worst_o = max(per_o, key=per_o.get)
-        mo_a, mo_b = np.mean(oa_all), np.mean(ob_all)
-        lines += [f"On the observed region, over {len(per_o)} scenes: {mo_a:.4f} % against {mo_b:.4f} % "
-                  f"({100 * (mo_a / mo_b - 1):+.1f} %); per scene {np.mean(list(per_o.values())):+.1f} %; "
-                  f"worst scene {worst_o} {per_o[worst_o]:+.1f} %."]
+                     f"{100 * (a / b - 1):+.1f} % | {100 * (oa / obm - 1):+.1f} % |")
+    if whole:
+        lines += ["", _suite_line(f"Mean Chamfer over {len(whole)} paired scenes", whole)]
+    if observed:  # the issue's rules scored as DTU scores: only the part of the truth two training views see
+        lines.append(_suite_line(f"On the observed region, over {len(observed)} scenes", observed))
     return "\n".join(lines)
+
+
+def _suite_line(head: str, means: dict[str, tuple[float, float]]) -> str:
+    """The suite's summary of ``scene -> (loop's mean, base's mean)``: the mean over the scenes and its change,
+    the change averaged over the scenes, and the worst scene."""
+    per = {sc: 100 * (a / b - 1) for sc, (a, b) in means.items()}
+    worst = max(per, key=per.get)
+    mean_a, mean_b = np.mean([a for a, _ in means.values()]), np.mean([b for _, b in means.values()])
+    return (f"{head}: {mean_a:.4f} % against {mean_b:.4f} % ({100 * (mean_a / mean_b - 1):+.1f} %); per scene "
+            f"{np.mean(list(per.values())):+.1f} %; worst scene {worst} {per[worst]:+.1f} %.")
 
 
 def adjusted(rows: list[dict], loop: str = "default", base: str = "no_loop", key: str = "chamfer") -> dict:
