@@ -122,3 +122,25 @@ def test_the_suite_summary_reads_the_whole_truth_and_the_observed_region(collect
     assert f"({whole:+.1f} %); per scene {np.mean([10.0, -20.0]):+.1f} %; worst scene cup +10.0 %." in text
     assert (f"On the observed region, over 2 scenes: {np.mean([0.45, 0.08]):.4f} % against 0.3000 % "
             f"({observed:+.1f} %); per scene {np.mean([-10.0, -20.0]):+.1f} %; worst scene cup -10.0 %.") in text
+
+
+def _suite_jobs(env: dict) -> list[str]:
+    import os
+    import subprocess
+
+    script = pathlib.Path(__file__).parents[1] / "benchmarks" / "device" / "suite_jobs.sh"
+    out = subprocess.run(["bash", str(script), "0 1", "t"], env={**os.environ, "SPLIT": "1", **env},
+                         capture_output=True, text=True, check=True).stdout
+    return out.splitlines()
+
+
+def test_suite_jobs_orders_the_branches_by_variant_on_request():
+    """BY_VARIANT=1 (benchmarks/device/suite_jobs.sh): the same lines, the warm-ups first, then every scene's
+    and seed's first variant before any second one, so a lease that ends early still leaves whole pairs."""
+    env = {"SCENES": "torus chair", "VARIANTS": "default no_loop view_signs"}
+    plain, by = _suite_jobs(env), _suite_jobs({**env, "BY_VARIANT": "1"})
+    assert sorted(plain) == sorted(by) and len(by) == 4 + 12  # four warm-ups, twelve branches
+    assert all("--warmup-only" in line for line in by[:4])
+    variants = [line.split("--variants ")[1].split()[0] for line in by[4:]]
+    assert variants == ["default"] * 4 + ["no_loop"] * 4 + ["view_signs"] * 4
+    assert [line.split("--variants ")[1].split()[0] for line in plain[4:7]] == ["default", "no_loop", "view_signs"]

@@ -21,6 +21,8 @@
 # SPLIT=1 pairs the variants too, but runs them side by side: one line per scene and seed fits the warm-up
 # (hard.py --warmup-only, then touches /root/stage/LABEL_warm_SCENE_SEED.done), and one line per variant waits
 # for that file and branches from the warm-up (--set runtime.start_from=...); its --set applies to every variant.
+# BY_VARIANT=1 orders those branch lines by variant (every scene's first variant, then every scene's second, ...), so a
+# lease that ends before the queue does still leaves whole pairs when the first two variants are the pair.
 # queue.sh runs the waiting lines after all others and gives every line its own truth cache, so the output of
 # several calls may be concatenated; give it a PARALLEL of more than the number of warm-ups.
 # With HELDOUT=1 too, the held-out scenes are split the same way (benchmarks/heldout.py --warmup-only, then one
@@ -57,7 +59,13 @@ for scene in ${SCENES-mug_sparse chair_sparse torus_sparse torus chair chair_box
     done
   done
 done
-for line in "${branches[@]}"; do echo "$line"; done
+if [ "${BY_VARIANT:-0}" = 1 ]; then  # every scene's first variant, then every scene's second, ...
+  for variant in ${VARIANTS:-default no_loop}; do
+    for line in "${branches[@]}"; do case "$line" in *" --variants $variant "*) echo "$line";; esac; done
+  done
+else
+  for line in "${branches[@]}"; do echo "$line"; done
+fi
 if [ "${HELDOUT:-0}" = 1 ]; then
   held="python3 benchmarks/heldout.py --views 10 --resolution 512 --device cuda:0"
   for scene in vase pretzel table stool shelf; do
