@@ -3,7 +3,9 @@
 
 import importlib.util
 import json
+import os
 import pathlib
+import subprocess
 
 import numpy as np
 import pytest
@@ -125,9 +127,6 @@ def test_the_suite_summary_reads_the_whole_truth_and_the_observed_region(collect
 
 
 def _suite_jobs(env: dict) -> list[str]:
-    import os
-    import subprocess
-
     script = pathlib.Path(__file__).parents[1] / "benchmarks" / "device" / "suite_jobs.sh"
     out = subprocess.run(["bash", str(script), "0 1", "t"], env={**os.environ, "SPLIT": "1", **env},
                          capture_output=True, text=True, check=True).stdout
