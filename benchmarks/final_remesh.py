@@ -48,7 +48,8 @@ def run(mesh: trimesh.Trimesh, resolution: int, device: str,
         torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats()
     t = time.perf_counter()
-    out = poisson_remesh(mesh, cfg, record=lambda _name, **k: (events or {}).update(k), device=device)
+    sink = events if events is not None else {}  # an empty dict is the caller's: fill that one
+    out = poisson_remesh(mesh, cfg, record=lambda _name, **k: sink.update(k), device=device)
     if device.startswith("cuda"):
         torch.cuda.synchronize()
     peak = torch.cuda.max_memory_allocated() / 2**30 if device.startswith("cuda") else 0.0
@@ -80,6 +81,9 @@ def main() -> None:
                     f"(voxel {1.1 * 0.6 / r:.2e})"
         print(line, flush=True)
         if args.fallback and args.device.startswith("cuda"):
+            # the caching allocator's blocks from the runs above are not free to the driver but are to the
+            # re-mesh: hand them back first, or the re-mesh reuses them and never runs out
+            torch.cuda.empty_cache()
             free, _ = torch.cuda.mem_get_info(args.device)
             hog = torch.empty(max(int(free - args.leave_gib * 2**30), 0), dtype=torch.uint8, device=args.device)
             events: dict = {}
