@@ -143,3 +143,13 @@ def test_suite_jobs_orders_the_branches_by_variant_on_request():
     variants = [line.split("--variants ")[1].split()[0] for line in by[4:]]
     assert variants == ["default"] * 4 + ["no_loop"] * 4 + ["view_signs"] * 4
     assert [line.split("--variants ")[1].split()[0] for line in plain[4:7]] == ["default", "no_loop", "view_signs"]
+
+
+def test_suite_jobs_orders_the_held_out_branches_by_variant_too():
+    """With HELDOUT=1 the held-out scenes' branch lines follow the same order: their warm-ups, then every held-out
+    scene's and seed's first variant before any second one."""
+    by = _suite_jobs({"SCENES": "", "HELDOUT": "1", "BY_VARIANT": "1", "VARIANTS": "no_geo_density default"})
+    assert len(by) == 10 + 20 and all("--warmup-only" in line for line in by[:10])  # five scenes x two seeds
+    variants = [line.split(" /root/stage/h_")[0].split()[-1] for line in by[10:]]
+    assert variants == ["no_geo_density"] * 10 + ["default"] * 10
+    assert all(line.startswith("while [ ! -f /root/stage/hw_t_") for line in by[10:])

@@ -22,7 +22,8 @@
 # (hard.py --warmup-only, then touches /root/stage/LABEL_warm_SCENE_SEED.done), and one line per variant waits
 # for that file and branches from the warm-up (--set runtime.start_from=...); its --set applies to every variant.
 # BY_VARIANT=1 orders those branch lines by variant (every scene's first variant, then every scene's second, ...), so a
-# lease that ends before the queue does still leaves whole pairs when the first two variants are the pair.
+# lease that ends before the queue does still leaves whole pairs when the first two variants are the pair (the
+# held-out scenes' branch lines too, after the suite's).
 # queue.sh runs the waiting lines after all others and gives every line its own truth cache, so the output of
 # several calls may be concatenated; give it a PARALLEL of more than the number of warm-ups.
 # With HELDOUT=1 too, the held-out scenes are split the same way (benchmarks/heldout.py --warmup-only, then one
@@ -34,7 +35,18 @@ case "$label" in -*) echo "suite_jobs.sh: LABEL must come before --set, got '$la
 shift $(( $# >= 2 ? 2 : $# )); sets="$*"
 hard="python3 benchmarks/hard.py --gpu --device cuda:0 --run-dir /root/stage"  # every suite line's start
 n=0
-branches=()  # SPLIT=1: the variants' lines, after every warm-up's
+branches=(); branch_variants=()  # SPLIT=1: the variants' lines, after every warm-up's, and each line's variant
+emit_branches() {  # print the collected branch lines (by variant with BY_VARIANT=1) and forget them
+  local variant i
+  if [ "${BY_VARIANT:-0}" = 1 ]; then  # every scene's first variant, then every scene's second, ...
+    for variant in ${VARIANTS:-default no_loop}; do
+      for i in "${!branches[@]}"; do [ "${branch_variants[$i]}" = "$variant" ] && echo "${branches[$i]}"; done
+    done
+  else
+    for i in "${!branches[@]}"; do echo "${branches[$i]}"; done
+  fi
+  branches=(); branch_variants=()
+}
 for scene in ${SCENES-mug_sparse chair_sparse torus_sparse torus chair chair_box bowl blob_flat mug}; do
   for seed in $seeds; do
     if [ "${SPLIT:-0}" = 1 ]; then
@@ -43,6 +55,7 @@ for scene in ${SCENES-mug_sparse chair_sparse torus_sparse torus chair chair_box
       n=$((n + 1))
       for variant in ${VARIANTS:-default no_loop}; do
         branches+=("while [ ! -f $w.done ]; do sleep 10; done; $hard --mesh-cache /root/stage/hc$n --label ${label}_${variant}_${scene}_${seed} --scenes $scene --variants $variant --seeds $seed --set runtime.start_from=$w/seed$seed/${scene}_warmup $sets")
+        branch_variants+=("$variant")
         n=$((n + 1))
       done
       continue
@@ -59,13 +72,7 @@ for scene in ${SCENES-mug_sparse chair_sparse torus_sparse torus chair chair_box
     done
   done
 done
-if [ "${BY_VARIANT:-0}" = 1 ]; then  # every scene's first variant, then every scene's second, ...
-  for variant in ${VARIANTS:-default no_loop}; do
-    for line in "${branches[@]}"; do case "$line" in *" --variants $variant "*) echo "$line";; esac; done
-  done
-else
-  for line in "${branches[@]}"; do echo "$line"; done
-fi
+emit_branches
 if [ "${HELDOUT:-0}" = 1 ]; then
   held="python3 benchmarks/heldout.py --views 10 --resolution 512 --device cuda:0"
   for scene in vase pretzel table stool shelf; do
@@ -74,7 +81,8 @@ if [ "${HELDOUT:-0}" = 1 ]; then
         w=/root/stage/hw_${label}_${scene}_${seed}.done
         echo "$held --scene $scene $seed default $w --tag $label --warmup-only $sets; touch $w"
         for variant in ${VARIANTS:-default no_loop}; do
-          echo "while [ ! -f $w ]; do sleep 10; done; $held --scene $scene $seed $variant /root/stage/h_${label}_${scene}_${variant}_${seed}.json --tag $label --set runtime.start_from=runs/abl/${scene}_s${seed}_v10_r512_${label}_warmup $sets"
+          branches+=("while [ ! -f $w ]; do sleep 10; done; $held --scene $scene $seed $variant /root/stage/h_${label}_${scene}_${variant}_${seed}.json --tag $label --set runtime.start_from=runs/abl/${scene}_s${seed}_v10_r512_${label}_warmup $sets")
+          branch_variants+=("$variant")
         done
         continue
       fi
@@ -85,3 +93,4 @@ if [ "${HELDOUT:-0}" = 1 ]; then
     done
   done
 fi
+emit_branches  # the held-out scenes' branch lines, after their warm-ups
