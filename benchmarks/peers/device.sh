@@ -1,0 +1,103 @@
+#!/usr/bin/env bash
+# The peers benchmark on a GPU machine, in steps (each returns quickly; the fits run in the background):
+#
+#   STAGE=/tmp/peers bash benchmarks/peers/device.sh install     # site-packages: Warp, Open3D, wheels, wtopo
+#   STAGE=/tmp/peers bash benchmarks/peers/device.sh build       # 2DGS's CUDA extensions, gsplat's JIT build
+#   STAGE=/tmp/peers bash benchmarks/peers/device.sh launch EXCH_DIR... -- SYSTEM...   # start every (scene, system)
+#   STAGE=/tmp/peers bash benchmarks/peers/device.sh wait SECONDS  # until every job ends or SECONDS pass
+#   STAGE=/tmp/peers bash benchmarks/peers/device.sh score OUT_DIR # rows.json, table.md, pictures
+#
+# SYSTEM: wtopo, wtopo_noloop, gsplat, 2dgs. $STAGE holds: big.part* (split xz tar of the unpacked Warp and
+# Open3D wheels) and/or whl/*.whl (trimesh, plyfile, gsplat), peers/2dgs (a 2d-gaussian-splatting checkout with
+# its submodules: diff-surfel-rasterization with third_party/glm, simple-knn) and exch/NAME (export.py's folders).
+set -uo pipefail
+HERE="$(cd "$(dirname "$0")" && pwd)"
+REPO="$(cd "$HERE/../.." && pwd)"
+STAGE=${STAGE:-/tmp/peers}
+SITE=$STAGE/site
+export PYTHONPATH=$SITE:$HERE/shims${PYTHONPATH:+:$PYTHONPATH}
+export TORCH_EXTENSIONS_DIR=$STAGE/torch_ext TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-16}
+export PYTHONUNBUFFERED=1
+PY=${PYTHON:-python3}
+cmd=$1; shift
+
+case $cmd in
+install)
+  # site-packages: $STAGE/big.tar.xz.part* (an xz tar of unpacked wheels: Warp, Open3D), $STAGE/whl/*.whl, wtopo
+  mkdir -p "$SITE" "$STAGE/logs"
+  if ls "$STAGE"/big.part* >/dev/null 2>&1 && [ ! -d "$SITE/warp" ]; then
+    cat "$STAGE"/big.part* | xz -d -T0 | tar -x -C "$SITE" || exit 1
+  fi
+  if [ -d "$STAGE/whl" ]; then
+    $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$SITE" "$STAGE"/whl/*.whl
+  fi
+  $PY -m pip install -q --no-index --no-deps --no-build-isolation --no-cache-dir --upgrade --target "$SITE" "$REPO" \
+    > "$STAGE/logs/wtopo_install.log" 2>&1 || { cat "$STAGE/logs/wtopo_install.log"; exit 1; }
+  $PY -c "import warp, open3d, trimesh, wtopo, plyfile; print('imports ok: warp', warp.__version__, 'open3d', open3d.__version__)"
+  ;;
+build)
+  # 2DGS's CUDA extensions into $SITE, gsplat's JIT build into $TORCH_EXTENSIONS_DIR (needs gsplat in $SITE)
+  mkdir -p "$SITE" "$STAGE/logs"
+  for ext in diff-surfel-rasterization simple-knn; do
+    (cd "$STAGE/peers/2dgs/submodules/$ext" && $PY -m pip install --no-index --no-deps --no-build-isolation \
+       --no-cache-dir --target "$SITE" . > "$STAGE/logs/build_$ext.log" 2>&1; echo "build $ext: rc $?") &
+  done
+  ($PY -c "
+import torch, gsplat
+from gsplat import rasterization_2dgs
+m = torch.zeros(1, 3, device='cuda'); m[:, 2] = 2
+q = torch.tensor([[1., 0, 0, 0]], device='cuda'); s = torch.full((1, 3), .1, device='cuda')
+o = torch.ones(1, device='cuda'); c = torch.ones(1, 3, device='cuda')
+K = torch.tensor([[[50., 0, 32], [0, 50, 32], [0, 0, 1]]], device='cuda')
+out = rasterization_2dgs(m, q, s, o, c, torch.eye(4, device='cuda')[None], K, 64, 64)
+print('gsplat', gsplat.__version__, 'ok', float(out[1].sum()))
+" > "$STAGE/logs/build_gsplat.log" 2>&1; echo "build gsplat: rc $?") &
+  wait
+  tail -n 3 "$STAGE"/logs/build_*.log
+  $PY -c "import diff_surfel_rasterization, simple_knn._C; print('2DGS extensions import')"
+  ;;
+launch)
+  ex=(); while [ $# -gt 0 ] && [ "$1" != "--" ]; do ex+=("$1"); shift; done; shift
+  mkdir -p "$STAGE/res" "$STAGE/logs"
+  for e in "${ex[@]}"; do
+    name=$(basename "$e")
+    for s in "$@"; do
+      out=$STAGE/res/$name/$s
+      case $s in
+        wtopo) c=("$PY" "$HERE/run_wtopo.py" "$e" "$out") ;;
+        wtopo_noloop) c=("$PY" "$HERE/run_wtopo.py" "$e" "$out" --no-loop) ;;
+        gsplat) c=("$PY" "$HERE/run_gsplat.py" "$e" "$out") ;;
+        2dgs) c=("$PY" "$HERE/run_2dgs.py" "$e" "$out" --checkout "$STAGE/peers/2dgs") ;;
+        *) echo "unknown system $s"; exit 2 ;;
+      esac
+      rm -rf "$out"; mkdir -p "$out"
+      setsid nohup bash -c "$(printf '%q ' "${c[@]}") > $out.log 2>&1; echo \$? > $out.rc" >/dev/null 2>&1 &
+      echo "launched $name/$s"
+    done
+  done
+  ;;
+wait)
+  end=$(( $(date +%s) + ${1:-540} ))
+  while [ "$(date +%s)" -lt $end ]; do
+    left=0
+    for log in "$STAGE"/res/*/*.log; do [ -f "${log%.log}.rc" ] || left=$((left + 1)); done
+    [ $left -eq 0 ] && break
+    sleep 10
+  done
+  for log in "$STAGE"/res/*/*.log; do
+    echo "== $log rc=$(cat "${log%.log}.rc" 2>/dev/null || echo running)"; tail -c 600 "$log"; echo
+  done
+  nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv
+  ;;
+score)
+  out=$1; mkdir -p "$out"
+  for d in "$STAGE"/res/*/; do
+    name=$(basename "$d")
+    ex=$(ls -d "$STAGE"/exch/"$name" 2>/dev/null || true)
+    [ -n "$ex" ] || { echo "no exchange folder for $name"; continue; }
+    $PY "$HERE/score.py" "$ex" "$d"/*/ --out "$out/rows.json" --pictures "$out" || echo "score $name failed"
+  done
+  $PY "$HERE/table.py" "$out/rows.json" > "$out/table.md"; cat "$out/table.md"
+  ;;
+*) echo "unknown step $cmd"; exit 2 ;;
+esac

@@ -1,0 +1,83 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The official 2DGS (``hbb1/2d-gaussian-splatting``) on an exchange folder (the peers benchmark).
+
+Runs the checkout's own ``train.py`` and ``render.py`` with its DTU recipe (``--depth_ratio 1.0
+--lambda_dist 1000``, 30,000 iterations; mesh: ``--num_cluster 1 --voxel_size 0.004 --sdf_trunc 0.016
+--depth_trunc 3.0``, the post-processed ``fuse_post.ply``) on the exchange folder's COLMAP model at its
+full resolution, then renders the held-out views with the checkout's renderer (``_2dgs_views.py``).
+The checkout's CUDA extensions (``diff_surfel_rasterization``, ``simple_knn``) must be importable.
+
+    python benchmarks/peers/run_2dgs.py EXCH OUT --checkout PATH [--iterations 30000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+from _result import write_result  # noqa: E402
+from exchange import load  # noqa: E402
+
+
+def _read_json(path: str):
+    with open(path) as f:
+        return json.load(f)
+
+
+def _run(cmd: list[str], cwd: str, log) -> None:
+    log.write("$ " + " ".join(cmd) + "\n")
+    log.flush()
+    subprocess.run(cmd, cwd=cwd, stdout=log, stderr=subprocess.STDOUT, check=True)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("exchange")
+    ap.add_argument("out")
+    ap.add_argument("--checkout", required=True, help="path of a 2d-gaussian-splatting checkout")
+    ap.add_argument("--iterations", type=int, default=30_000)
+    a = ap.parse_args(argv)
+
+    import trimesh
+
+    load(a.exchange)
+    src = os.path.abspath(os.path.join(a.exchange, "colmap"))
+    model = os.path.abspath(os.path.join(a.out, "model"))
+    shutil.rmtree(model, ignore_errors=True)
+    os.makedirs(a.out, exist_ok=True)
+    py = sys.executable
+    with open(os.path.join(a.out, "log.txt"), "w") as log:
+        t0 = time.perf_counter()
+        peak = os.path.join(a.out, "peak_train.json")
+        _run([py, os.path.join(HERE, "_peak.py"), peak, "train.py", "-s", src, "-m", model, "--quiet",
+              "--test_iterations", "-1", "--depth_ratio", "1.0",
+              "-r", "1", "--lambda_dist", "1000", "--iterations", str(a.iterations),
+              "--save_iterations", str(a.iterations)], a.checkout, log)
+        t_train = time.perf_counter() - t0
+        _run([py, "render.py", "-s", src, "-m", model, "--quiet", "--skip_train", "--skip_test", "--iteration",
+              str(a.iterations), "--depth_ratio", "1.0", "--num_cluster", "1", "--voxel_size", "0.004",
+              "--sdf_trunc", "0.016", "--depth_trunc", "3.0"], a.checkout, log)
+        wall = time.perf_counter() - t0
+        views = os.path.join(a.out, "views.npz")
+        _run([py, os.path.join(HERE, "_2dgs_views.py"), model, str(a.iterations), os.path.abspath(a.exchange), views],
+             a.checkout, log)
+    peak = os.path.join(a.out, "peak_train.json")
+    mesh = trimesh.load(os.path.join(model, "train", f"ours_{a.iterations}", "fuse_post.ply"), process=False)
+    v = np.load(views)
+    run = {"wall_s": wall, "train_s": t_train, "iterations": a.iterations, "surfels": int(v["n"]),
+           "peak_gpu_bytes": max(int(v["peak"]), _read_json(peak)["peak_gpu_bytes"]),
+           "recipe": "2DGS DTU: --depth_ratio 1.0 --lambda_dist 1000; TSDF 0.004/0.016/3.0, 1 cluster"}
+    write_result(a.out, system="2DGS", mesh=mesh, renders=v["rgb"].astype(np.float32), run=run)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,145 @@
+# SPDX-License-Identifier: Apache-2.0
+"""gsplat's ``rasterization_2dgs`` with the 2DGS recipe on an exchange folder (the peers benchmark).
+
+The recipe of gsplat's ``examples/simple_trainer_2dgs.py`` with its 2DGS losses on: 30,000 steps,
+L1 + 0.2 D-SSIM, normal consistency (0.05 from step 7,000), depth distortion (0.01 from step 3,000),
+SH degree 3 (one more every 1,000 steps), initial points from the exchange folder, gsplat's
+``DefaultStrategy`` on the 2DGS gradient; then 2DGS's TSDF mesh (median depth, voxel 0.004,
+truncation 0.016, depth cut 3.0, largest cluster).
+
+    python benchmarks/peers/run_gsplat.py EXCH OUT [--iterations 30000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _result import Clock, write_result  # noqa: E402
+from _tsdf import tsdf_mesh  # noqa: E402
+from exchange import load  # noqa: E402
+
+C0 = 0.28209479177387814
+
+
+def _ssim(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """SSIM of [1, 3, H, W] images, 11-px Gaussian window (sigma 1.5), zero-padded as in 3DGS's loss."""
+    g = torch.exp(-((torch.arange(11, device=x.device) - 5.0) ** 2) / (2 * 1.5 ** 2))
+    g = (g / g.sum())
+    w = (g[:, None] * g[None, :]).expand(3, 1, 11, 11).contiguous()
+
+    def blur(t):
+        return F.conv2d(t, w, padding=5, groups=3)
+    mx, my = blur(x), blur(y)
+    sxx, syy, sxy = blur(x * x) - mx * mx, blur(y * y) - my * my, blur(x * y) - mx * my
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    return (((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))).mean()
+
+
+def _knn_scale(points: torch.Tensor) -> torch.Tensor:
+    """Mean distance to the 3 nearest neighbours, per point (chunked)."""
+    out = []
+    for chunk in points.split(4096):
+        d = torch.cdist(chunk, points)
+        out.append(d.topk(4, largest=False).values[:, 1:].pow(2).mean(-1).sqrt())
+    return torch.cat(out).clamp_min(1e-7)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("exchange")
+    ap.add_argument("out")
+    ap.add_argument("--iterations", type=int, default=30_000)
+    ap.add_argument("--seed", type=int, default=0)
+    a = ap.parse_args(argv)
+
+    from gsplat import rasterization_2dgs
+    from gsplat.strategy import DefaultStrategy
+
+    dev = torch.device("cuda")
+    torch.manual_seed(a.seed)
+    ex = load(a.exchange)
+    clock = Clock()
+    images = torch.stack([torch.from_numpy(ex.image(i)) for i in ex.train]).to(dev)
+    Ks = torch.tensor(ex.K[ex.train], dtype=torch.float32, device=dev)
+    # gsplat's pixel centres are at +0.5 like ours: the K carries over unchanged
+    viewmats = torch.tensor(ex.w2c[ex.train], dtype=torch.float32, device=dev)
+    centres = torch.linalg.inv(viewmats)[:, :3, 3]
+    scene_scale = float((centres - centres.mean(0)).norm(dim=-1).max()) * 1.1
+    bg = torch.tensor(ex.meta["background"] or [0.0, 0.0, 0.0], dtype=torch.float32, device=dev)
+    W, H = ex.width, ex.height
+
+    pts, col = ex.points()
+    pts = torch.tensor(pts, dtype=torch.float32, device=dev)
+    col = torch.tensor(col, dtype=torch.float32, device=dev)
+    n = len(pts)
+    sh = torch.zeros(n, 16, 3, device=dev)
+    sh[:, 0] = (col - 0.5) / C0
+    params = {
+        "means": (pts, 1.6e-4 * scene_scale),
+        "scales": (torch.log(_knn_scale(pts))[:, None].repeat(1, 3), 5e-3),
+        "quats": (torch.rand(n, 4, device=dev), 1e-3),
+        "opacities": (torch.logit(torch.full((n,), 0.1, device=dev)), 5e-2),
+        "sh0": (sh[:, :1].contiguous(), 2.5e-3),
+        "shN": (sh[:, 1:].contiguous(), 2.5e-3 / 20),
+    }
+    splats = torch.nn.ParameterDict({k: torch.nn.Parameter(v) for k, (v, _) in params.items()})
+    opts = {k: torch.optim.Adam([{"params": splats[k], "lr": lr, "name": k}], eps=1e-15)
+            for k, (_, lr) in params.items()}
+    sched = torch.optim.lr_scheduler.ExponentialLR(opts["means"], gamma=0.01 ** (1.0 / a.iterations))
+    strategy = DefaultStrategy(key_for_gradient="gradient_2dgs", verbose=False)
+    strategy.check_sanity(splats, opts)
+    state = strategy.initialize_state()
+
+    def render(sel_view, K, sh_degree, mode="RGB+D"):
+        return rasterization_2dgs(
+            means=splats["means"], quats=splats["quats"], scales=torch.exp(splats["scales"]),
+            opacities=torch.sigmoid(splats["opacities"]), colors=torch.cat([splats["sh0"], splats["shN"]], 1),
+            viewmats=sel_view, Ks=K, width=W, height=H, sh_degree=sh_degree, near_plane=0.2, far_plane=200.0,
+            render_mode=mode, distloss=True, backgrounds=bg[None].expand(len(sel_view), 3))
+
+    for step in range(a.iterations):
+        i = int(torch.randint(len(ex.train), (1,)))
+        deg = min(step // 1000, 3)
+        colors, alphas, normals, normals_d, distort, median, info = render(viewmats[i:i + 1], Ks[i:i + 1], deg)
+        rgb = colors[..., :3]
+        strategy.step_pre_backward(splats, opts, state, step, info)
+        gt = images[i:i + 1]
+        loss = 0.8 * (rgb - gt).abs().mean() + 0.2 * (1 - _ssim(rgb.permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2)))
+        if step > 7000:
+            nd = (normals_d * alphas.detach())
+            loss = loss + 0.05 * (1 - (normals * nd).sum(-1)).mean()
+        if step > 3000:
+            loss = loss + 0.01 * distort.mean()
+        loss.backward()
+        strategy.step_post_backward(splats, opts, state, step, info, packed=False)
+        for o in opts.values():
+            o.step()
+            o.zero_grad(set_to_none=True)
+        sched.step()
+
+    with torch.no_grad():
+        frames = []
+        for j, i in enumerate(ex.train):
+            colors, alphas, *_, median, _ = render(viewmats[j:j + 1], Ks[j:j + 1], 3)
+            d = median[0, ..., 0].clone()
+            d[alphas[0, ..., 0] < 0.5] = 0
+            frames.append((colors[0, ..., :3].cpu().numpy(), d.cpu().numpy(), ex.K[i], ex.w2c[i]))
+        mesh = tsdf_mesh(frames)
+        run = clock.stop()
+        vt = torch.tensor(ex.w2c[ex.test], dtype=torch.float32, device=dev)
+        kt = torch.tensor(ex.K[ex.test], dtype=torch.float32, device=dev)
+        renders = [render(vt[j:j + 1], kt[j:j + 1], 3)[0][0, ..., :3].clamp(0, 1).cpu().numpy() for j in range(len(vt))]
+    run.update({"iterations": a.iterations, "surfels": int(len(splats["means"])),
+                "recipe": "gsplat simple_trainer_2dgs (normal 0.05 > 7k, dist 0.01 > 3k), DefaultStrategy, 2DGS TSDF"})
+    write_result(a.out, system="gsplat 2DGS", mesh=mesh, renders=np.stack(renders), run=run)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,159 @@
+# SPDX-License-Identifier: Apache-2.0
+"""One scorer for every system of the peers benchmark.
+
+For each result folder (``mesh.ply``, ``renders.npz``, ``run.json``) of one exchange folder:
+
+* against the ground-truth mesh (when the scene has one): Chamfer, accuracy, completeness (each as
+  a percentage of the ground truth's bounding-box diagonal) and F-score at 0.5 % of it;
+* held-out PSNR and SSIM: inside the masks for masked captures (the IDR / NeuS convention; SSIM of
+  both images composited on black), the whole image otherwise;
+* the mesh's silhouette IoU against the held-out masks (masked captures);
+* wall time from images to mesh, peak GPU memory, face count and whether the mesh is watertight.
+
+    python benchmarks/peers/score.py EXCH RESULT [RESULT ...] --out rows.json [--pictures DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from exchange import load  # noqa: E402
+
+F_TAU = 0.005  # F-score threshold, fraction of the ground truth's diagonal
+
+
+def _read_json(path: str):
+    with open(path) as f:
+        return json.load(f)
+
+
+def image_scores(renders: np.ndarray, ex) -> dict:
+    """Mean held-out PSNR [dB] and SSIM of ``renders`` [T, H, W, 3] against the exchange folder's test views."""
+    from wtopo import metrics
+
+    p, s = [], []
+    for r, i in zip(renders, ex.test):
+        pred = torch.from_numpy(np.asarray(r, dtype=np.float32))
+        gt = torch.from_numpy(ex.image(i))
+        m = ex.mask(i)
+        if m is not None:
+            mt = torch.from_numpy(m)
+            p.append(float(metrics.psnr(pred, gt, mask=mt)))
+            s.append(float(metrics.ssim(pred * mt[..., None], gt * mt[..., None])))
+        else:
+            p.append(float(metrics.psnr(pred, gt)))
+            s.append(float(metrics.ssim(pred, gt)))
+    return {"psnr": float(np.mean(p)), "ssim": float(np.mean(s)), "psnr_on": "masks" if ex.masked else "image"}
+
+
+def silhouette_iou(mesh, ex) -> float | None:
+    """Mean IoU of the mesh's ray-cast silhouette and the held-out masks (``None`` without masks)."""
+    if not ex.masked or len(mesh.faces) == 0:
+        return None
+    from wtopo import ops
+
+    v = torch.tensor(np.asarray(mesh.vertices), dtype=torch.float32)
+    f = torch.tensor(np.asarray(mesh.faces), dtype=torch.int32)
+    ious = []
+    for i in ex.test:
+        hit = ops.raycast_mesh(v, f, ex.camera(i)).mask.cpu().numpy().astype(bool)
+        m = ex.mask(i)
+        ious.append(float((hit & m).sum() / max((hit | m).sum(), 1)))
+    return float(np.mean(ious))
+
+
+def geometry_scores(mesh, gt) -> dict:
+    from wtopo import metrics
+
+    diag = float(np.linalg.norm(gt.bounds[1] - gt.bounds[0]))
+    ch = metrics.chamfer(mesh, gt, n_samples=200_000, seed=0)
+    fs = metrics.f_score(mesh, gt, F_TAU * diag, n_samples=200_000, seed=0)
+    return {"chamfer_pct": 100 * ch.chamfer_rel, "accuracy_pct": 100 * ch.accuracy_rel,
+            "completeness_pct": 100 * ch.completeness_rel, "f_score": fs.f_score}
+
+
+def score(exchange: str, result: str) -> dict:
+    import trimesh
+
+    ex = load(exchange)
+    with open(os.path.join(result, "run.json")) as f:
+        run = json.load(f)
+    mesh = trimesh.load(os.path.join(result, "mesh.ply"), process=False)
+    row = {"scene": ex.meta["name"], "system": run["system"], "wall_s": run.get("wall_s"),
+           "peak_gpu_gib": run["peak_gpu_bytes"] / 2 ** 30 if run.get("peak_gpu_bytes") else None,
+           "iterations": run.get("iterations"), "faces": int(len(mesh.faces)),
+           "watertight": bool(mesh.is_watertight) if len(mesh.faces) else False}
+    row.update(image_scores(np.load(os.path.join(result, "renders.npz"))["rgb"], ex))
+    row["silhouette_iou"] = silhouette_iou(mesh, ex)
+    gt = ex.gt()
+    if gt is not None and len(mesh.faces):
+        row.update(geometry_scores(mesh, gt))
+    return row
+
+
+def pictures(exchange: str, results: list[str], out: str, views: int = 2) -> str:
+    """Every system's mesh, normal-shaded, from the first ``views`` held-out views, beside the photo."""
+    import trimesh
+    from PIL import Image, ImageDraw
+
+    from wtopo import ops
+
+    ex = load(exchange)
+    cols = []
+    for i in ex.test[:views]:
+        tiles = [(ex.image(i), "photo")]
+        for r in results:
+            mesh = trimesh.load(os.path.join(r, "mesh.ply"), process=False)
+            name = _read_json(os.path.join(r, "run.json"))["system"]
+            img = np.ones((ex.height, ex.width, 3), np.float32)
+            if len(mesh.faces):
+                v = torch.tensor(np.asarray(mesh.vertices), dtype=torch.float32)
+                f = torch.tensor(np.asarray(mesh.faces), dtype=torch.int32)
+                rr = ops.raycast_mesh(v, f, ex.camera(i))
+                n = rr.normal.cpu().numpy() @ ex.w2c[i][:3, :3].T  # camera frame
+                shade = np.clip(-n[..., 2:3], 0, 1) * 0.8 + 0.2
+                img = np.where(rr.mask.cpu().numpy()[..., None], shade * np.array([0.9, 0.85, 0.75]), 1.0)
+            tiles.append((img, name))
+        row = []
+        for t, label in tiles:
+            im = Image.fromarray((np.clip(t, 0, 1) * 255).astype(np.uint8))
+            ImageDraw.Draw(im).text((4, 4), label, fill=(255, 0, 0))
+            row.append(np.asarray(im))
+        cols.append(np.concatenate(row, axis=1))
+    os.makedirs(out, exist_ok=True)
+    path = os.path.join(out, f"{ex.meta['name']}.png")
+    Image.fromarray(np.concatenate(cols, axis=0)).save(path)
+    return path
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("exchange")
+    ap.add_argument("results", nargs="+")
+    ap.add_argument("--out", required=True, help="rows are appended to this JSON list")
+    ap.add_argument("--pictures", default=None)
+    a = ap.parse_args(argv)
+    rows = _read_json(a.out) if os.path.exists(a.out) else []
+    for r in a.results:
+        if not os.path.exists(os.path.join(r, "run.json")):
+            print(f"skip {r}: no run.json", file=sys.stderr)
+            continue
+        row = score(a.exchange, r)
+        print(json.dumps(row))
+        rows.append(row)
+    with open(a.out, "w") as f:
+        json.dump(rows, f, indent=1)
+    if a.pictures:
+        ok = [r for r in a.results if os.path.exists(os.path.join(r, "run.json"))]
+        print(pictures(a.exchange, ok, a.pictures))
+
+
+if __name__ == "__main__":
+    main()
