@@ -18,6 +18,8 @@ SITE=$STAGE/site
 export PYTHONPATH=$SITE:$HERE/shims${PYTHONPATH:+:$PYTHONPATH}
 export TORCH_EXTENSIONS_DIR=$STAGE/torch_ext TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-16}
 export PYTHONUNBUFFERED=1
+# Open3D links libGL.so.1: machines without it get the glvnd libraries from $STAGE/gl/*.deb (install unpacks them)
+[ -d "$STAGE/gl/root" ] && export LD_LIBRARY_PATH=$STAGE/gl/root/usr/lib/x86_64-linux-gnu${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
 PY=${PYTHON:-python3}
 cmd=$1; shift
 
@@ -30,6 +32,10 @@ install)
   fi
   if [ -d "$STAGE/whl" ]; then
     $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$SITE" "$STAGE"/whl/*.whl
+  fi
+  if ls "$STAGE"/gl/*.deb >/dev/null 2>&1; then
+    for f in "$STAGE"/gl/*.deb; do dpkg -x "$f" "$STAGE/gl/root"; done
+    export LD_LIBRARY_PATH=$STAGE/gl/root/usr/lib/x86_64-linux-gnu${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
   fi
   $PY -m pip install -q --no-index --no-deps --no-build-isolation --no-cache-dir --upgrade --target "$SITE" "$REPO" \
     > "$STAGE/logs/wtopo_install.log" 2>&1 || { cat "$STAGE/logs/wtopo_install.log"; exit 1; }
@@ -70,7 +76,7 @@ launch)
         2dgs) c=("$PY" "$HERE/run_2dgs.py" "$e" "$out" --checkout "$STAGE/peers/2dgs") ;;
         *) echo "unknown system $s"; exit 2 ;;
       esac
-      rm -rf "$out"; mkdir -p "$out"
+      rm -rf "$out" "$out.rc"; mkdir -p "$out"
       setsid nohup bash -c "$(printf '%q ' "${c[@]}") > $out.log 2>&1; echo \$? > $out.rc" >/dev/null 2>&1 &
       echo "launched $name/$s"
     done

@@ -87,7 +87,8 @@ def _initial_points(scene, n_random: int, seed: int) -> tuple[np.ndarray, np.nda
         from wtopo.fitting.mvs import plane_sweep_points
         train = scene.split("train")
         near = 0.05 * float(np.linalg.norm(hi - lo))
-        mvs = plane_sweep_points(train.cameras, train.images, lo, hi, near=near)
+        dev = "cuda" if torch.cuda.is_available() else "cpu"
+        mvs = plane_sweep_points(train.cameras, train.images.to(dev), lo, hi, near=near, device=dev)
         if len(mvs.points) >= 1000:
             pts = np.asarray(mvs.points, dtype=np.float64)
             col = np.asarray(mvs.colors, dtype=np.float64)

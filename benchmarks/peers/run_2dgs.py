@@ -19,6 +19,7 @@ import shutil
 import subprocess
 import sys
 import time
+import zlib
 
 import numpy as np
 
@@ -45,6 +46,9 @@ def main(argv=None) -> None:
     ap.add_argument("out")
     ap.add_argument("--checkout", required=True, help="path of a 2d-gaussian-splatting checkout")
     ap.add_argument("--iterations", type=int, default=30_000)
+    ap.add_argument("--port", type=int, default=None, help="2DGS's viewer port (default: one per output folder)")
+    ap.add_argument("--mesh-only", type=int, default=None, metavar="ITERATION",
+                    help="skip training: mesh and render the checkpoint of this iteration of an earlier run")
     a = ap.parse_args(argv)
 
     import trimesh
@@ -52,31 +56,37 @@ def main(argv=None) -> None:
     load(a.exchange)
     src = os.path.abspath(os.path.join(a.exchange, "colmap"))
     model = os.path.abspath(os.path.join(a.out, "model"))
-    shutil.rmtree(model, ignore_errors=True)
+    it = a.mesh_only or a.iterations
+    if a.mesh_only is None:
+        shutil.rmtree(model, ignore_errors=True)
     os.makedirs(a.out, exist_ok=True)
+    port = a.port or 6009 + zlib.crc32(os.path.abspath(a.out).encode()) % 20000
     py = sys.executable
-    with open(os.path.join(a.out, "log.txt"), "w") as log:
+    peak = os.path.join(a.out, "peak_train.json")
+    with open(os.path.join(a.out, "log.txt"), "a") as log:
         t0 = time.perf_counter()
-        peak = os.path.join(a.out, "peak_train.json")
-        _run([py, os.path.join(HERE, "_peak.py"), peak, "train.py", "-s", src, "-m", model, "--quiet",
-              "--test_iterations", "-1", "--depth_ratio", "1.0",
-              "-r", "1", "--lambda_dist", "1000", "--iterations", str(a.iterations),
-              "--save_iterations", str(a.iterations)], a.checkout, log)
+        if a.mesh_only is None:
+            _run([py, os.path.join(HERE, "_peak.py"), peak, "train.py", "-s", src, "-m", model, "--quiet",
+                  "--test_iterations", "-1", "--depth_ratio", "1.0", "-r", "1", "--lambda_dist", "1000",
+                  "--iterations", str(a.iterations), "--port", str(port),
+                  "--save_iterations", *sorted({str(min(7000, a.iterations)), str(a.iterations)})], a.checkout, log)
         t_train = time.perf_counter() - t0
         _run([py, "render.py", "-s", src, "-m", model, "--quiet", "--skip_train", "--skip_test", "--iteration",
-              str(a.iterations), "--depth_ratio", "1.0", "--num_cluster", "1", "--voxel_size", "0.004",
+              str(it), "--depth_ratio", "1.0", "--num_cluster", "1", "--voxel_size", "0.004",
               "--sdf_trunc", "0.016", "--depth_trunc", "3.0"], a.checkout, log)
         wall = time.perf_counter() - t0
         views = os.path.join(a.out, "views.npz")
-        _run([py, os.path.join(HERE, "_2dgs_views.py"), model, str(a.iterations), os.path.abspath(a.exchange), views],
+        _run([py, os.path.join(HERE, "_2dgs_views.py"), model, str(it), os.path.abspath(a.exchange), views],
              a.checkout, log)
     peak = os.path.join(a.out, "peak_train.json")
-    mesh = trimesh.load(os.path.join(model, "train", f"ours_{a.iterations}", "fuse_post.ply"), process=False)
+    mesh = trimesh.load(os.path.join(model, "train", f"ours_{it}", "fuse_post.ply"), process=False)
     v = np.load(views)
-    run = {"wall_s": wall, "train_s": t_train, "iterations": a.iterations, "surfels": int(v["n"]),
-           "peak_gpu_bytes": max(int(v["peak"]), _read_json(peak)["peak_gpu_bytes"]),
+    if a.mesh_only is not None:
+        wall = t_train = None  # an earlier run's training time is not known here
+    run = {"wall_s": wall, "train_s": t_train, "iterations": it, "surfels": int(v["n"]),
+           "peak_gpu_bytes": max(int(v["peak"]), _read_json(peak)["peak_gpu_bytes"] if os.path.exists(peak) else 0),
            "recipe": "2DGS DTU: --depth_ratio 1.0 --lambda_dist 1000; TSDF 0.004/0.016/3.0, 1 cluster"}
-    write_result(a.out, system="2DGS", mesh=mesh, renders=v["rgb"].astype(np.float32), run=run)
+    write_result(a.out, system="2DGS" if it == 30_000 else f"2DGS ({it:,} it.)", mesh=mesh, renders=v["rgb"].astype(np.float32), run=run)
 
 
 if __name__ == "__main__":
