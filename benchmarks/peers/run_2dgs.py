@@ -84,9 +84,12 @@ def main(argv=None) -> None:
     if a.mesh_only is not None:
         wall = t_train = None  # an earlier run's training time is not known here
     run = {"wall_s": wall, "train_s": t_train, "iterations": it, "surfels": int(v["n"]),
-           "peak_gpu_bytes": max(int(v["peak"]), _read_json(peak)["peak_gpu_bytes"] if os.path.exists(peak) else 0),
+           # the training process's peak; unknown when only an earlier run's checkpoint was meshed
+           "peak_gpu_bytes": (max(int(v["peak"]), _read_json(peak)["peak_gpu_bytes"])
+                              if a.mesh_only is None and os.path.exists(peak) else None),
            "recipe": "2DGS DTU: --depth_ratio 1.0 --lambda_dist 1000; TSDF 0.004/0.016/3.0, 1 cluster"}
-    write_result(a.out, system="2DGS" if it == 30_000 else f"2DGS ({it:,} it.)", mesh=mesh, renders=v["rgb"].astype(np.float32), run=run)
+    system = "2DGS" if it == 30_000 else f"2DGS ({it:,} it.)"
+    write_result(a.out, system=system, mesh=mesh, renders=v["rgb"].astype(np.float32), run=run)
 
 
 if __name__ == "__main__":
