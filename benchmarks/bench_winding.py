@@ -7,7 +7,7 @@ cup's fit on one core for over 15 minutes (``hard.md`` ``gpu_views_rule``). The 
 the same process, on the same icosphere with a share of its faces reversed; both results are checked
 (consistent winding, the sphere's orientation back).
 
-Command: ``PYTHONPATH=. .venv/bin/python benchmarks/bench_winding.py [--subdivisions 5 6 7] [--fraction 0.3]``
+Command: ``.venv/bin/python benchmarks/bench_winding.py [--subdivisions 5 6 7] [--fraction 0.3]``
 """
 
 from __future__ import annotations
