@@ -21,8 +21,8 @@ mesh); ``view_flips`` (normal signs from view directions only); ``random_flips``
 
 Command (writes benchmarks/fit.md)::
 
-    PYTHONPATH=. python benchmarks/bench_fit.py --out benchmarks/fit.md
-    PYTHONPATH=. python benchmarks/bench_fit.py --variants full --seeds 0 1   # subset
+    .venv/bin/python benchmarks/bench_fit.py --out benchmarks/fit.md
+    .venv/bin/python benchmarks/bench_fit.py --variants full --seeds 0 1   # subset
     python benchmarks/bench_fit.py --variants full no_mesh_loop --views 64 --image-size 512 \
         --mesh-resolution 256 --device cuda:0 --out gpu_fit.md              # GPU settings
 """

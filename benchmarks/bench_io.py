@@ -5,7 +5,7 @@ The peer is the raw float32 payload of the same samples (what a naive dump of ev
 sample costs), measured in the same process; the ratio shows what skipping unchanged samples and
 usdc encoding buy or cost.
 
-Command: ``PYTHONPATH=. /work/venv/bin/python benchmarks/bench_io.py``
+Command: ``.venv/bin/python benchmarks/bench_io.py``
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ the best and median wall times and their ratios against ``skimage.measure.marchi
 (forward + backward on a tape).  Peak memory is measured in a fresh child process per resolution
 as the rise of the peak resident set size over a run of wtopo forward + backward.
 
-Run: ``PYTHONPATH=. python benchmarks/bench_marching_cubes.py [--sizes 64 128 256]
+Run: ``.venv/bin/python benchmarks/bench_marching_cubes.py [--sizes 64 128 256]
 [--repeats 15] [--no-warp] [--device cuda:0]``.
 """
 

@@ -14,7 +14,7 @@ host wall times without device syncs: exact on CPU (Warp's CPU launches are sync
 stage is charged for the kernels it waits on, and the backward runs on autograd's device thread,
 which sections do not collect.
 
-Run: ``PYTHONPATH=. python benchmarks/bench_rasterize.py [--sizes 10000 100000] [--res 256]``
+Run: ``.venv/bin/python benchmarks/bench_rasterize.py [--sizes 10000 100000] [--res 256]``
 """
 
 from __future__ import annotations
@@ -22,15 +22,13 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import sys
 import time
 from collections import defaultdict
 
 import torch
+from _from_tests import load  # beside this script
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
-
-from reference.rasterize import rasterize_reference  # noqa: E402
+rasterize_reference = load("reference/rasterize.py").rasterize_reference
 
 import wtopo  # noqa: E402
 from wtopo import rasterize as R  # noqa: E402

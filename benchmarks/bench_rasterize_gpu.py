@@ -23,7 +23,7 @@ kernels, minutes on a machine without a kernel cache):
 
 Run from the repository root (needs torch with CUDA, warp-lang, numpy; gsplat optional):
 
-    PYTHONPATH=. python benchmarks/bench_rasterize_gpu.py --device cuda:0 --out /tmp/bench_gpu
+    .venv/bin/python benchmarks/bench_rasterize_gpu.py --device cuda:0 --out /tmp/bench_gpu
 
 Prints tables and writes ``<out>/bench_rasterize_gpu.json``.
 """
@@ -41,9 +41,6 @@ import traceback
 
 import torch
 import warp as wp
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
 from bench_rasterize import scene as cpu_scene  # noqa: E402
 
 import wtopo  # noqa: E402

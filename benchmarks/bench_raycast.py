@@ -8,7 +8,7 @@ Measures, on the CPU (or ``--device cuda:0``):
   * BVH build and refit times per ``bvh_constructor`` / ``bvh_leaf_size``;
   * ray casting + backward for one 256x256 view of a ~50k-face mesh.
 
-Run: ``cd /work/main && PYTHONPATH=. /work/venv/bin/python benchmarks/bench_raycast.py``
+Run: ``.venv/bin/python benchmarks/bench_raycast.py``
 """
 
 from __future__ import annotations

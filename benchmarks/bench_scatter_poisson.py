@@ -14,7 +14,7 @@ Hardware: any CPU (the project's machines: 2 cores); CUDA is used with ``--devic
 
 Command::
 
-    PYTHONPATH=. python benchmarks/bench_scatter_poisson.py [--device cpu] [--repeats 5]
+    .venv/bin/python benchmarks/bench_scatter_poisson.py [--device cpu] [--repeats 5]
 """
 
 from __future__ import annotations
@@ -29,10 +29,10 @@ import threading
 import time
 
 import torch
+from _from_tests import load  # beside this script
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
-
-from reference.scatter_trilinear import scatter_trilinear_ref, trilinear_corners  # noqa: E402
+_ref = load("reference/scatter_trilinear.py")
+scatter_trilinear_ref, trilinear_corners = _ref.scatter_trilinear_ref, _ref.trilinear_corners
 
 from wtopo import _bridge  # noqa: E402
 from wtopo.ops import poisson_indicator, scatter_trilinear  # noqa: E402

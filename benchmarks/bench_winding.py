@@ -3,11 +3,11 @@
 
 The final mesh's repair orients its faces (``wtopo.fitting.tsdf.repair_mesh``). It used trimesh's
 ``fix_normals``, a breadth-first walk over the face adjacency in Python, which kept a 512-px ten-view
-cup's fit on one core for over 15 minutes (``hard.md`` ``gpu_views_rule``). The peer is that call, in
+cup's fit on one core for over 15 minutes. The peer is that call, in
 the same process, on the same icosphere with a share of its faces reversed; both results are checked
 (consistent winding, the sphere's orientation back).
 
-Command: ``PYTHONPATH=. .venv/bin/python benchmarks/bench_winding.py [--subdivisions 5 6 7] [--fraction 0.3]``
+Command: ``.venv/bin/python benchmarks/bench_winding.py [--subdivisions 5 6 7] [--fraction 0.3]``
 """
 
 from __future__ import annotations

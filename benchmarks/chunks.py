@@ -41,7 +41,7 @@ Open3D optional)::
 
 CPU smoke (small scene, short fits; the figure says nothing about GPUs)::
 
-    PYTHONPATH=. python benchmarks/chunks.py --smoke --device cpu --run-dir /tmp/chunks --label cpu_smoke
+    .venv/bin/python benchmarks/chunks.py --smoke --device cpu --run-dir /tmp/chunks --label cpu_smoke
 """
 
 from __future__ import annotations
@@ -56,8 +56,6 @@ import time
 
 import numpy as np
 import torch
-
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # run from a checkout
 
 from wtopo.chunks import ChunkConfig, dist_info, fit_chunked, street_scene  # noqa: E402
 from wtopo.chunks.engine import cuda_peak  # noqa: E402

@@ -25,8 +25,8 @@ and runs the base on ``bunny_room`` (about 20-25 minutes on a busy 2-core CPU); 
 the complete grid on both scenes. Results are appended to the CSV as each run ends, and
 ``--resume`` skips runs already in it, so the sweep can run in the background and be polled::
 
-    nohup /work/venv/bin/python benchmarks/error_vs_runtime.py --resume > /tmp/evr.log 2>&1 &
-    /work/venv/bin/python benchmarks/error_vs_runtime.py --full --csv benchmarks/error_vs_runtime_full.csv
+    nohup .venv/bin/python benchmarks/error_vs_runtime.py --resume > /tmp/evr.log 2>&1 &
+    .venv/bin/python benchmarks/error_vs_runtime.py --full --csv benchmarks/error_vs_runtime_full.csv
 
 :func:`pareto_plot` (used by ``wtopo report`` as well) draws error against time from the CSV
 with each scene's Pareto front.

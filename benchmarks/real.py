@@ -39,12 +39,12 @@ saved fits here (same ``--run-dir`` / ``--label``), including the DTU picture.
 
 Commands (the results go into a ``## <label>`` section of ``--out``, other sections are kept)::
 
-    PYTHONPATH=. .venv/bin/python benchmarks/real.py --label before --out benchmarks/real.md
-    PYTHONPATH=. .venv/bin/python benchmarks/real.py --scenes orbit --device cuda:0 --label gpu
-    PYTHONPATH=. .venv/bin/python benchmarks/real.py --dtu --scenes --label dtu_cpu
+    .venv/bin/python benchmarks/real.py --label before --out benchmarks/real.md
+    .venv/bin/python benchmarks/real.py --scenes orbit --device cuda:0 --label gpu
+    .venv/bin/python benchmarks/real.py --dtu --scenes --label dtu_cpu
     # on the GPU machine, then here:
     python3 benchmarks/real.py --device cuda:0 --dtu .dtu --fit-only --run-dir $OUT --label gpu
-    PYTHONPATH=. .venv/bin/python benchmarks/real.py --dtu --measure --run-dir <fetched> --label gpu
+    .venv/bin/python benchmarks/real.py --dtu --measure --run-dir <fetched> --label gpu
 """
 
 from __future__ import annotations
@@ -344,7 +344,7 @@ def main(argv=None) -> int:
         kw["resolution"] = tuple(args.image_size)
     load0 = os.getloadavg()[0]
     run_dir = os.path.join(args.run_dir, args.label)
-    cmd = "PYTHONPATH=. .venv/bin/python benchmarks/real.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    cmd = ".venv/bin/python benchmarks/real.py " + " ".join(argv if argv is not None else sys.argv[1:])
     jobs = [lambda k=k: run_synthetic(k, cfg, run_dir, kw) for k in args.scenes]
     if args.dtu:
         jobs.append(lambda: run_dtu(args.dtu, cfg, run_dir))

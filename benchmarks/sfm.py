@@ -30,8 +30,8 @@ recovered focal length against the true one.
 
 Commands (figures in benchmarks/sfm.md)::
 
-    PYTHONPATH=. nice -n 10 .venv/bin/python benchmarks/sfm.py --threads 2 --skip-dtu
-    PYTHONPATH=. nice -n 10 .venv/bin/python benchmarks/sfm.py --threads 2 --skip-synthetic --dtu-fit \
+    nice -n 10 .venv/bin/python benchmarks/sfm.py --threads 2 --skip-dtu
+    nice -n 10 .venv/bin/python benchmarks/sfm.py --threads 2 --skip-synthetic --dtu-fit \
         --dtu-set warmup.iterations=150 --dtu-set coevolution.iterations=50 --dtu-set runtime.image_scale=0.5
 """
 
@@ -42,7 +42,6 @@ import contextlib
 import dataclasses
 import json
 import os
-import sys
 import tempfile
 import time
 
@@ -51,9 +50,9 @@ import torch
 import trimesh
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.join(ROOT, "tests"))  # the test-sized fit configuration
+from _from_tests import load  # noqa: E402  (beside this script)
 
-from fit_configs import small_fit_config  # noqa: E402
+small_fit_config = load("fit_configs.py").small_fit_config  # the test-sized fit configuration
 
 from wtopo import Camera, Scene, load_scene, ops, scenes  # noqa: E402
 from wtopo.fitting import FitConfig, fit  # noqa: E402

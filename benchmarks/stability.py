@@ -27,9 +27,9 @@ from pathlib import Path
 import torch
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent / "tests"))
+from _from_tests import load  # noqa: E402  (beside this script)
 
-from test_stability import CASES  # noqa: E402  (the case builders and their expected outcomes)
+CASES = load("test_stability.py").CASES  # the case builders and their expected outcomes
 
 __all__ = ["Outcome", "run_case", "markdown_table", "coverage_table", "main"]
 

@@ -13,11 +13,11 @@ Warp's time split (block test, integration, marching cubes) and, on CUDA, Warp's
 
 Run (CPU, 2 cores, Open3D on the CPU too)::
 
-    PYTHONPATH=. .venv/bin/python benchmarks/tsdf.py
+    .venv/bin/python benchmarks/tsdf.py
 
 on a GPU (Open3D stays on the CPU; ``--no-open3d`` where it is not installed)::
 
-    PYTHONPATH=. python benchmarks/tsdf.py --device cuda:0 --grids 192 384 768
+    .venv/bin/python benchmarks/tsdf.py --device cuda:0 --grids 192 384 768
 """
 
 from __future__ import annotations

@@ -87,7 +87,7 @@ def test_sort_probe_sorts_on_every_device(device):
 
 def test_recover_after_oom_retries_a_failed_sort_and_then_gives_up(monkeypatch):
     """Warp 1.19's first CUDA radix sort after a failed device allocation returns its keys unsorted
-    (measured on an H200, benchmarks/gpu.md): the recovery re-checks until a sort works, raises when none
+    (measured on an H200, lab/gpu.md): the recovery re-checks until a sort works, raises when none
     does, and does nothing on the CPU (a CUDA device is stood in for: this machine may have none)."""
     from types import SimpleNamespace
 

@@ -162,29 +162,6 @@ def test_a_longer_coevolution_with_the_warmups_decay_horizon_branches_from_it(ti
     assert warmup_differences(src.to_dict(), unset.to_dict()) == ["coevolution.iterations"]
 
 
-def test_the_suites_variants_change_only_what_acts_after_the_warmup():
-    """benchmarks/hard.py's variants may branch from the default's warm-up (``--paired``)."""
-    import importlib.util
-    import pathlib
-
-    from wtopo.fitting.checkpointing import warmup_differences
-
-    path = pathlib.Path(__file__).parents[1] / "benchmarks" / "hard.py"
-    spec = importlib.util.spec_from_file_location("hard_bench", path)
-    hard = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(hard)
-    gpu = ["runtime.seed=3", "warmup.iterations=3000", "coevolution.iterations=2000",
-           "optim.means_decay_iterations=4000"]  # the CUDA plan's
-    base = hard._config("default", gpu).to_dict()
-    assert len(hard.VARIANTS) >= 8
-    for v in hard.VARIANTS:
-        assert warmup_differences(base, hard._config(v, gpu).to_dict()) == [], v
-    base = hard._config("default", ["runtime.seed=3"]).to_dict()
-    assert warmup_differences(base, hard._config("default", ["runtime.seed=4"]).to_dict()) == ["runtime.seed"]
-    assert warmup_differences(base, hard._config("default", ["runtime.seed=3", "warmup.iterations=7"]).to_dict()) == [
-        "warmup.iterations"]
-
-
 def test_injected_nan_is_survived_and_persistent_nan_aborts(tiny, tmp_path, monkeypatch):
     """Skip two NaN steps and finish; abort with a checkpoint when every step is NaN."""
     real = fit_objective.photometric

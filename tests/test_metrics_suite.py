@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
 """Floaters and holes (wtopo.metrics.floaters / holes) on analytic cases, and the flat albedo of
-wtopo.scenes.from_mesh that the hard-scene suite (benchmarks/hard.py) renders its untextured object with."""
+wtopo.scenes.from_mesh that the hard-scene suite (lab/hard.py) renders its untextured object with."""
 
 import math
 

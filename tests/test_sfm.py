@@ -35,7 +35,7 @@ MIN_REGISTERED = 0.9  # of the views; 64 of 64 were measured
 # The fits: test-sized (150 + 50 iterations) on 32 px images of every other registered view (32
 # views), two seeds each, means compared. Measured in the true frame (below), Chamfer % of the
 # diagonal, true / recovered: 32 px, seeds 0, 1: 1.115 / 1.037, 0.988 / 0.994 (ratio of means 0.97);
-# 64 px (benchmarks/sfm.md, 4 x 60-190 s of fits: too slow here), seeds 0, 1: 0.752, 0.813 / 0.871,
+# 64 px (lab/sfm.md, 4 x 60-190 s of fits: too slow here), seeds 0, 1: 0.752, 0.813 / 0.871,
 # 0.925 (ratio 1.15, camera alignment only), 1.07 after the Tanks-and-Temples ICP refinement
 # (metrics.refine_alignment), and 0.95 with the recovered poses but the true intrinsics: at 64 px
 # the recovered intrinsics (focal 0.35 % long, k = 0.013) make the gap, not the poses.

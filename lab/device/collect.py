@@ -1,13 +1,13 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The loop against no loop from a device batch: every ``rows.json`` of ``benchmarks/hard.py`` and every
-row of ``benchmarks/heldout.py`` under the given folders (an unpacked ``results.tgz`` of
-``benchmarks/device/wait.sh``), repeated fits of one scene, variant and seed averaged first, then the
+"""The loop against no loop from a device batch: every ``rows.json`` of ``lab/hard.py`` and every
+row of ``lab/heldout.py`` under the given folders (an unpacked ``results.tgz`` of
+``lab/device/wait.sh``), repeated fits of one scene, variant and seed averaged first, then the
 seeds; per scene the change against no loop (whole truth and the part two training views see), and the
 suite's figures as the issue states its target: the mean Chamfer over the scenes and its change, the
 change averaged over the scenes, and the worst scene; the same on the observed region (the part of the truth two
 training views see, as DTU scores), where every pair carries it.
 
-    python3 benchmarks/device/collect.py DIR [DIR ...] [--match LABEL] [--loop default] [--base no_loop] \
+    python3 lab/device/collect.py DIR [DIR ...] [--match LABEL] [--loop default] [--base no_loop] \
         [--scenes S ...] [--adjust]
 
 ``--pairs`` adds, per scene, the change within pairs of fits that branched from one warm-up (their reports'
@@ -28,7 +28,7 @@ variant) and its scene is named with its views and resolution (``vase_v10_r512``
 from a warm-up (``heldout.py``, ``SPLIT=1 HELDOUT=1``) carries its ``started_from`` and pairs as a suite row
 does. A row carries no sure record of the settings it was fitted with (``hard.py`` rows none at all), so a
 candidate measured beside the default in one batch is told apart by its label: ``--match LABEL`` keeps only
-the files whose path contains ``LABEL`` (``benchmarks/device/suite_jobs.sh`` puts the label in every run folder
+the files whose path contains ``LABEL`` (``lab/device/suite_jobs.sh`` puts the label in every run folder
 and held-out file name).
 """
 

@@ -1,17 +1,17 @@
 #!/bin/bash
 # Print the job list of the hard suite at the GPU settings, loop and no loop, one fit per line, for
-# benchmarks/device/queue.sh (the same code for both variants, so the loop's change needs no earlier rows):
+# lab/device/queue.sh (the same code for both variants, so the loop's change needs no earlier rows):
 #
-#   bash benchmarks/device/suite_jobs.sh "0 1" [LABEL [--set KEY=VALUE ...]] > jobs.txt
+#   bash lab/device/suite_jobs.sh "0 1" [LABEL [--set KEY=VALUE ...]] > jobs.txt
 #
 # SEEDS: a quoted list. LABEL (default "s"; required before --set) prefixes every run folder and
 # held-out file under /root/stage; with --set the loop's fits carry the setting (no loop's do not: it has
-# no mesh terms to change), so collect a candidate by its label (benchmarks/device/collect.py --match
+# no mesh terms to change), so collect a candidate by its label (lab/device/collect.py --match
 # LABEL_). Values must not contain spaces. The ten-view scenes come
 # first (the slowest to settle: two fits each are worth more there), then the six dense objects; with the
-# held-out scenes of benchmarks/heldout.py at ten views of 512 px when HELDOUT=1 is set. SCENES (a quoted list)
+# held-out scenes of lab/heldout.py at ten views of 512 px when HELDOUT=1 is set. SCENES (a quoted list)
 # fits only those suite scenes (SCENES="mug_sparse" bash ... "4 5 6" c: more seeds of the ten-view cup; SCENES=""
-# none, so HELDOUT=1 SCENES="" writes the held-out scenes alone). VARIANTS (a quoted list of benchmarks/hard.py's
+# none, so HELDOUT=1 SCENES="" writes the held-out scenes alone). VARIANTS (a quoted list of lab/hard.py's
 # variants, default "default no_loop") fits those beside each other: with
 # VARIANTS="default no_loop no_geo_density no_mesh_terms" the loop is taken apart (--set applies to every variant
 # but no_loop). PAIRED=1 writes one line per scene and seed that fits the warm-up once and every variant from
@@ -26,14 +26,14 @@
 # held-out scenes' branch lines too, after the suite's).
 # queue.sh runs the waiting lines after all others and gives every line its own truth cache, so the output of
 # several calls may be concatenated; give it a PARALLEL of more than the number of warm-ups.
-# With HELDOUT=1 too, the held-out scenes are split the same way (benchmarks/heldout.py --warmup-only, then one
+# With HELDOUT=1 too, the held-out scenes are split the same way (lab/heldout.py --warmup-only, then one
 # line per variant from it), after the suite's lines. VARIANTS="default no_loop coevo1k coevo1k_no_loop" measures
 # the loop at the GPU settings' co-evolution and at half it, all four from one warm-up per scene and seed.
 set -euo pipefail
 seeds=${1:-"0 1"}; label=${2:-s}
 case "$label" in -*) echo "suite_jobs.sh: LABEL must come before --set, got '$label'" >&2; exit 2;; esac
 shift $(( $# >= 2 ? 2 : $# )); sets="$*"
-hard="python3 benchmarks/hard.py --gpu --device cuda:0 --run-dir /root/stage"  # every suite line's start
+hard="python3 lab/hard.py --gpu --device cuda:0 --run-dir /root/stage"  # every suite line's start
 n=0
 branches=(); branch_variants=()  # SPLIT=1: the variants' lines, after every warm-up's, and each line's variant
 emit_branches() {  # print the collected branch lines (by variant with BY_VARIANT=1) and forget them
@@ -74,7 +74,7 @@ for scene in ${SCENES-mug_sparse chair_sparse torus_sparse torus chair chair_box
 done
 emit_branches
 if [ "${HELDOUT:-0}" = 1 ]; then
-  held="python3 benchmarks/heldout.py --views 10 --resolution 512 --device cuda:0"
+  held="python3 lab/heldout.py --views 10 --resolution 512 --device cuda:0"
   for scene in vase pretzel table stool shelf; do
     for seed in $seeds; do
       if [ "${SPLIT:-0}" = 1 ]; then  # the warm-up, then every variant from it, as the suite's SPLIT lines
@@ -88,7 +88,7 @@ if [ "${HELDOUT:-0}" = 1 ]; then
       fi
       for mode in default noloop; do
         extra=""; [ "$mode" = default ] && extra="$sets"
-        echo "python3 benchmarks/heldout.py --scene $scene $seed $mode /root/stage/h_${label}_${scene}_${mode}_${seed}.json --views 10 --resolution 512 --device cuda:0 $extra"
+        echo "python3 lab/heldout.py --scene $scene $seed $mode /root/stage/h_${label}_${scene}_${mode}_${seed}.json --views 10 --resolution 512 --device cuda:0 $extra"
       done
     done
   done

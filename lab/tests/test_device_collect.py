@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""benchmarks/device/collect.py: the loop against no loop from a device batch's rows and reports."""
+"""lab/device/collect.py: the loop against no loop from a device batch's rows and reports."""
 
 import importlib.util
 import json
@@ -10,7 +10,7 @@ import subprocess
 import numpy as np
 import pytest
 
-_PATH = pathlib.Path(__file__).parents[1] / "benchmarks" / "device" / "collect.py"
+_PATH = pathlib.Path(__file__).parents[2] / "lab" / "device" / "collect.py"
 
 
 @pytest.fixture(scope="module")
@@ -127,14 +127,14 @@ def test_the_suite_summary_reads_the_whole_truth_and_the_observed_region(collect
 
 
 def _suite_jobs(env: dict) -> list[str]:
-    script = pathlib.Path(__file__).parents[1] / "benchmarks" / "device" / "suite_jobs.sh"
+    script = pathlib.Path(__file__).parents[2] / "lab" / "device" / "suite_jobs.sh"
     out = subprocess.run(["bash", str(script), "0 1", "t"], env={**os.environ, "SPLIT": "1", **env},
                          capture_output=True, text=True, check=True).stdout
     return out.splitlines()
 
 
 def test_suite_jobs_orders_the_branches_by_variant_on_request():
-    """BY_VARIANT=1 (benchmarks/device/suite_jobs.sh): the same lines, the warm-ups first, then every scene's
+    """BY_VARIANT=1 (lab/device/suite_jobs.sh): the same lines, the warm-ups first, then every scene's
     and seed's first variant before any second one, so a lease that ends early still leaves whole pairs."""
     env = {"SCENES": "torus chair", "VARIANTS": "default no_loop view_signs"}
     plain, by = _suite_jobs(env), _suite_jobs({**env, "BY_VARIANT": "1"})

@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """Held-out scenes for the hard suite's rules, fitted and scored as the suite's.
 
-Never used to tune anything (``benchmarks/hard.md``: ``cpu_thin_decay``, ``cpu_thin_heldout``,
+Never used to tune anything (``lab/hard.md``: ``cpu_thin_decay``, ``cpu_thin_heldout``,
 ``gpu_sparse_heldout``). Thin parts:
 
 - ``table``: top 1.0 x 0.64 x 0.06, four legs 0.05 square, two stretchers 0.04 (two loops);
@@ -16,14 +16,14 @@ and two that are not thin:
   top: a deep concavity that few views see into (as the suite's cup, without its handle);
 - ``pretzel``: two tori (major radius 0.3, minor 0.1) fused side by side, genus 2.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/heldout.py [--scene NAME] SEED on|off|noloop|default OUT \
+    PYTHONPATH=. .venv/bin/python lab/heldout.py [--scene NAME] SEED on|off|noloop|default OUT \
         [--views 32] [--resolution 128] [--device cpu] [--set KEY=VALUE ...]
 
 ``on``: ``optim.means_thin_decay=0.5``; ``off``: 0 (the fit's own decay); ``noloop``: no mesh loop;
-``default``: the plan's configuration, nothing set; or any variant of ``benchmarks/hard.py`` by its name
+``default``: the plan's configuration, nothing set; or any variant of ``lab/hard.py`` by its name
 (``coevo1k``, ``coevo1k_no_loop``, ...). ``--warmup-only`` fits the default's warm-up alone; modes then branch
 from it with ``--set runtime.start_from=runs/abl/<scene>_s<seed>[_v<views>_r<resolution>][_<tag>]_warmup`` (a paired
-comparison: ``benchmarks/device/suite_jobs.sh`` with ``SPLIT=1 HELDOUT=1``), and the row names the warm-up it
+comparison: ``lab/device/suite_jobs.sh`` with ``SPLIT=1 HELDOUT=1``), and the row names the warm-up it
 started from (``started_from``); ``--tag T`` keeps fits of one mode with different ``--set`` values, and their
 warm-ups, in folders of their own. ``--views 10 --resolution 512 --device cuda:0`` is the
 suite's ten-view captures at the GPU settings (the cameras' seed differs from the 32-view rig's). The fit goes
@@ -40,7 +40,6 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import hard  # noqa: E402
 import hard_scenes as hs  # noqa: E402
-
 from wtopo import scenes  # noqa: E402
 from wtopo.fitting import fit  # noqa: E402
 
@@ -110,7 +109,7 @@ def main(argv=None) -> None:
     ap.add_argument("--scene", default="table", choices=sorted(SCENES))
     ap.add_argument("seed", type=int)
     ap.add_argument("mode", choices=sorted(set(MODES) | set(hard.VARIANTS)),
-                    help="a mode above, or any variant of benchmarks/hard.py (no_loop, coevo1k, ...)")
+                    help="a mode above, or any variant of lab/hard.py (no_loop, coevo1k, ...)")
     ap.add_argument("out", help="JSON file for the row")
     ap.add_argument("--views", type=int, default=32, help="training views (32: the CPU default's rig)")
     ap.add_argument("--resolution", type=int, default=128, help="pixels per side")

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The hard suite's scenes (``benchmarks/hard.py``): truth meshes built from signed distance functions
+"""The hard suite's scenes (``lab/hard.py``): truth meshes built from signed distance functions
 and trimesh primitives with fixed seeds, and the scenes rendered from them."""
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ First it prints how many of the scene's training views see the cavity's truth (`
 the suite's observed-region rule: two views fix a point). ``--section PNG`` draws each mesh's cut through the
 cup's axis (the plane y = 0) over the truth's outline.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/cup_cavity.py [--section cut.png] RUN/seed0/mug_sparse_default/mesh.ply ...
+    PYTHONPATH=. .venv/bin/python lab/cup_cavity.py [--section cut.png] RUN/seed0/mug_sparse_default/mesh.ply ...
 """
 
 from __future__ import annotations
@@ -69,7 +69,6 @@ def cavity_views(truth: trimesh.Trimesh, truth_points: np.ndarray, diag: float) 
     """How many training views of the suite's ten-view cup see its cavity's truth: ``{k: share}`` for k = 0,
     1, 2 and more (the share of the cavity's samples seen by exactly k views, the last by k or more)."""
     from hard_scenes import SCENES
-
     from wtopo.metrics import view_counts
 
     scene = SCENES["mug_sparse"]()[0]

@@ -1,5 +1,5 @@
 #!/bin/bash
-# Wait up to SECONDS (default 540) for benchmarks/device/queue.sh's fits, then pack what they wrote
+# Wait up to SECONDS (default 540) for lab/device/queue.sh's fits, then pack what they wrote
 # (report.json, plan.json, rows.json, history.json, the held-out rows and the logs; no meshes) into
 # $OUT/results.tgz: one file, so the device tool's limit on the number of returned files is never met.
 end=$((SECONDS + ${1:-540}))

@@ -11,7 +11,7 @@ With ``--fallback`` it also re-meshes with the device's memory filled up to ``--
 solve runs out of memory there and falls back to the CPU as a fit's does (many fits on one GPU), and prints
 where it ran and the Chamfer distance to the device's mesh.
 
-    PYTHONPATH=. python benchmarks/final_remesh.py [--device cuda:0] [--resolutions 256 384 768]
+    PYTHONPATH=. python lab/final_remesh.py [--device cuda:0] [--resolutions 256 384 768]
         [--cpu-resolutions 256 384] [--fallback [--leave-gib 3]]
 
 The CPU runs use every core this process may use (``torch.get_num_threads()``); resolutions left out of

@@ -14,7 +14,7 @@ way, as the bar the proxy must clear.
 Command (a checkpoint of any suite run of the scene, kept with ``--set runtime.keep_checkpoints=50``; pass the
 fit's own ``--set`` options so its configuration resumes)::
 
-    PYTHONPATH=. .venv/bin/python benchmarks/scene_proxy.py RUN/chair_ground_default/checkpoints/ckpt_00001681.pt
+    PYTHONPATH=. .venv/bin/python lab/scene_proxy.py RUN/chair_ground_default/checkpoints/ckpt_00001681.pt
 """
 
 from __future__ import annotations
@@ -33,7 +33,6 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import hard  # noqa: E402
-
 from wtopo.fitting.loop import FitRun  # noqa: E402
 from wtopo.fitting.proxy import ProxyMesh  # noqa: E402
 

@@ -1,14 +1,13 @@
-"""The hard-scene suite's parallel runner (``benchmarks/hard_parallel.py``, ``hard.py --jobs``)."""
+"""The hard-scene suite's parallel runner (``lab/hard_parallel.py``, ``hard.py --jobs``)."""
 
 import json
 import os
 import sys
 import textwrap
 
+import lab.hard as hard
 import pytest
-
-import benchmarks.hard as hard
-from benchmarks.hard_parallel import Case, case_command, core_slots, run_cases, sort_rows
+from lab.hard_parallel import Case, case_command, core_slots, run_cases, sort_rows
 
 needs_affinity = pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="Linux core affinity")
 

@@ -7,7 +7,7 @@ compares the surfels spawned there (the last ``spawned`` of the checkpoint: spaw
 others: distance to the truth's surface in % of its diagonal, the share farther than 0.5 % (the suite's
 tau), the part of those on the outside of the solid, and the median opacity.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/spawn_sites.py --scene mug_sparse --seed 0 \
+    PYTHONPATH=. .venv/bin/python lab/spawn_sites.py --scene mug_sparse --seed 0 \
         --warmup runs/abl/cpu_paired_cup_s0/seed0/mug_sparse_warmup --out /tmp/spawn_s0
 """
 
@@ -26,7 +26,6 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import hard  # noqa: E402
 from hard_scenes import MESH_CACHE  # noqa: E402
-
 from wtopo.fitting import fit  # noqa: E402
 from wtopo.fitting.checkpoint import load_checkpoint  # noqa: E402
 

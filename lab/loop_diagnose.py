@@ -16,12 +16,12 @@ bounding-box diagonal (the region of interest's truth for ``chair_ground``):
 * ``bad_px``: % of the pixels the mesh-depth term uses where the proxy's depth is farther than tau
   from the truth's depth while the surfels' is not (the term pulls good surfels to a wrong proxy).
 
-and ``helpful_px`` the reverse. The final mesh is scored as ``benchmarks/hard.py`` scores it.
+and ``helpful_px`` the reverse. The final mesh is scored as ``lab/hard.py`` scores it.
 
 Command (``--resume-from`` starts at a suite run's warm-up checkpoint, so the variants share the warm-up;
 ``--set coevolution.enabled=true`` forces the loop on for a scene, where the plan leaves it out)::
 
-    PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 10 python benchmarks/loop_diagnose.py --scene chair_ground \
+    PYTHONPATH=. OMP_NUM_THREADS=1 nice -n 10 python lab/loop_diagnose.py --scene chair_ground \
         --every 20 --out /tmp/diag_loop.json --set coevolution.enabled=true \
         [--resume-from /tmp/wtopo_hard/<label>/chair_ground_default/checkpoints/ckpt_00000400.pt]
 """
@@ -40,7 +40,6 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import hard  # noqa: E402
-
 from wtopo.fitting.loop import FitRun  # noqa: E402
 from wtopo.fitting.stages import Stage  # noqa: E402
 

@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The hard suite's report (``benchmarks/hard.py``): the rows, the ablation against ``no_loop`` and the
-per-variant means as a ``## label`` section of ``benchmarks/hard.md``."""
+"""The hard suite's report (``lab/hard.py``): the rows, the ablation against ``no_loop`` and the
+per-variant means as a ``## label`` section of ``lab/hard.md``."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import platform
 
 import numpy as np
 import torch
+
 from hard_scenes import DESCRIPTIONS
 
 
@@ -113,7 +114,7 @@ def variant_means(rows: list[dict]) -> dict[str, dict]:
 
 
 def markdown(label: str, command: str, rows: list[dict], loads: tuple[float, float]) -> str:
-    """The ``## label`` section of benchmarks/hard.md."""
+    """The ``## label`` section of lab/hard.md."""
     lines = [f"## {label}", "", f"Command: `{command}`", "",
              f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load average "
              f"{loads[0]:.1f} at start and {loads[1]:.1f} at end (shared cores: times are noisy); "
@@ -147,7 +148,7 @@ def markdown(label: str, command: str, rows: list[dict], loads: tuple[float, flo
 
 def write_section(path: str, section: str, label: str) -> None:
     """Put ``section`` in ``path`` in place of its ``## label`` section (appended when new)."""
-    text = "# Hard-scene suite (issue 15)\n\nSee `benchmarks/hard.py` for the scenes, variants and measures.\n"
+    text = "# Hard-scene suite (issue 15)\n\nSee `lab/hard.py` for the scenes, variants and measures.\n"
     if os.path.exists(path):
         with open(path) as f:
             text = f.read()

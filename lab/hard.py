@@ -62,7 +62,7 @@ meshes, so a machine without scikit-image reads the ones built here.
 
 ``--warmup-only`` fits only that warm-up, per scene and seed, into ``<run-dir>/<label>/seed<S>/<scene>_warmup``
 and writes nothing else; ``--set runtime.start_from=<that folder>`` then branches one variant from it in another
-process (``benchmarks/device/suite_jobs.sh`` with ``SPLIT=1``: the branches of one warm-up run side by side).
+process (``lab/device/suite_jobs.sh`` with ``SPLIT=1``: the branches of one warm-up run side by side).
 
 ``--paired`` fits, per scene and seed, the first variant's warm-up once (stopped at its end, before the
 TSDF re-initialisation, in ``<scene>_warmup``) and starts every variant from it (``runtime.start_from``;
@@ -89,20 +89,20 @@ Command (a ``## <label>`` section of ``--out``, written by ``hard_report.py``, w
 per-variant means; the rows are also kept in ``<run-dir>/<label>/rows.json``, and ``--resume`` skips
 the rows already there)::
 
-    PYTHONPATH=. nice -n 10 .venv/bin/python benchmarks/hard.py --label cpu_default --out benchmarks/hard.md
-    PYTHONPATH=. .venv/bin/python benchmarks/hard.py --scenes torus --variants default no_loop --label quick
-    PYTHONPATH=. nice -n 5 .venv/bin/python benchmarks/hard.py --scenes torus chair bowl blob_flat mug \
+    PYTHONPATH=. nice -n 10 .venv/bin/python lab/hard.py --label cpu_default --out lab/hard.md
+    PYTHONPATH=. .venv/bin/python lab/hard.py --scenes torus --variants default no_loop --label quick
+    PYTHONPATH=. nice -n 5 .venv/bin/python lab/hard.py --scenes torus chair bowl blob_flat mug \
         mug_sparse chair_box --variants default no_loop view_signs random_signs no_geo_density one_point \
-        --seeds 0 1 --label cpu_ablation --out benchmarks/hard.md --mesh-cache .hardcache
+        --seeds 0 1 --label cpu_ablation --out lab/hard.md --mesh-cache .hardcache
 
 On a many-core machine ``--jobs N`` fits N cases at once, one process per scene, variant and seed, each
 pinned to its own ``--cores-per-job`` cores (default 2; ``hard_parallel.py``): the same rows, fit folders
 and section as one after another. The device CPU's suites in ``hard.md`` ran one process per case, 8 of
 2 cores on 16 at once, as this does::
 
-    PYTHONPATH=. python3 benchmarks/hard.py --device cpu --jobs 8 --scenes torus chair bowl blob_flat mug \
+    PYTHONPATH=. python3 lab/hard.py --device cpu --jobs 8 --scenes torus chair bowl blob_flat mug \
         chair_box --variants view_signs random_signs no_geo_density one_point --seeds 0 1 \
-        --label cpu_variants --out benchmarks/hard.md --mesh-cache .hardcache
+        --label cpu_variants --out lab/hard.md --mesh-cache .hardcache
 """
 
 from __future__ import annotations
@@ -344,7 +344,7 @@ def main(argv=None) -> int:
     ap.add_argument("--run-dir", default=os.path.join("/tmp", "wtopo_hard"),
                     help="fit output folders (<run-dir>/<label>/<scene>_<variant>, replaced)")
     ap.add_argument("--label", default="run", help="section title in --out")
-    ap.add_argument("--out", help="markdown file to write the section to (e.g. benchmarks/hard.md)")
+    ap.add_argument("--out", help="markdown file to write the section to (e.g. lab/hard.md)")
     ap.add_argument("--resume", action="store_true", help="keep the rows of <run-dir>/<label>/rows.json, run the rest")
     ap.add_argument("--seeds", nargs="+", type=int,
                     help="fit seeds (runtime.seed), each a row of its own; without it one unlabelled row per variant")
@@ -374,7 +374,7 @@ def main(argv=None) -> int:
         ap.error("--warmup-only fits warm-ups one after another in this process: leave out --paired and --jobs")
     if args.paired and args.jobs > 1:
         ap.error("--paired runs a scene's variants one after another from one warm-up: use --jobs 1 (one process "
-                 "per scene and seed, as benchmarks/device/suite_jobs.sh with PAIRED=1 writes them)")
+                 "per scene and seed, as lab/device/suite_jobs.sh with PAIRED=1 writes them)")
     if args.gpu:
         RIG.update(views=64, resolution=512)
     if args.resolution:
@@ -396,7 +396,7 @@ def main(argv=None) -> int:
             rows = json.load(f)
     done = {(r["scene"], r["variant"], r.get("seed")) for r in rows}
     load0 = os.getloadavg()[0]
-    cmd = "PYTHONPATH=. .venv/bin/python benchmarks/hard.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    cmd = "PYTHONPATH=. .venv/bin/python lab/hard.py " + " ".join(argv if argv is not None else sys.argv[1:])
     if args.rescore:
         return rescore(rows, run_dir, rows_path, args.out, args.label, cmd)
     if args.warmup_only:

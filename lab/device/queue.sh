@@ -2,10 +2,10 @@
 # Run a list of fits on the device machine, several per GPU, in the background (the device tool's
 # calls last at most 10 minutes; the machine stays held while calls follow each other).
 #
-#   bash benchmarks/device/queue.sh JOBS PARALLEL
+#   bash lab/device/queue.sh JOBS PARALLEL
 #
 # JOBS: a file of commands, one fit per line, run from a copy of the tree in /root/repo (made here,
-# with the wtopo.kernels link: benchmarks/gpu.md); the lines that wait for a warm-up run last (below). Line i
+# with the wtopo.kernels link: lab/gpu.md); the lines that wait for a warm-up run last (below). Line i
 # runs on GPU (i + floor(i / n)) % n of n GPUs, with OMP_NUM_THREADS=3, PYTHONPATH=/tmp/site:. (where Warp and trimesh were installed), its output in
 # /root/stage/log_i.txt, its exit status in /root/stage/rc_i (a killed line runs once more at the end: below). PARALLEL: fits at once over all GPUs (the 32 fits of hard.md gpu_views_rule ran
 # 16 at once on two H200s, 8 per GPU, in about 10 minutes). /root/stage/ALLDONE appears at the end.
@@ -27,7 +27,7 @@ ngpu=$(nvidia-smi -L | wc -l)
   awk -v n="$ngpu" '{i = NR - 1; printf "export CUDA_VISIBLE_DEVICES=%d OMP_NUM_THREADS=3 PYTHONPATH=/tmp/site:.; ( %s ) > /root/stage/log_%d.txt 2>&1; echo $? > /root/stage/rc_%d\n", (i + int(i / n)) % n, $0, i, i}' \
   > /root/stage/queue.txt
 rm -f /root/stage/ALLDONE /root/stage/rc_* /root/stage/retried.txt
-# a line that exits non-zero was killed (benchmarks/hard.py records a fit that raises and goes on): in
+# a line that exits non-zero was killed (lab/hard.py records a fit that raises and goes on): in
 # hard.md gpu_cup_restart two loop branches died in the final re-mesh's CPU fallback, twelve fits on a GPU.
 # Once every line has run, those lines run once more, RETRY_PARALLEL (default 2) at once, their first log
 # kept as log_i.first.txt; retried.txt lists them (line numbers from 0) and wait.sh reports them
