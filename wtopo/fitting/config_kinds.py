@@ -9,7 +9,7 @@ import enum
 from dataclasses import dataclass, field
 
 __all__ = ["Range", "RATE", "FRACTION", "OPEN_UNIT", "COUNT", "POSITIVE", "NormalFlip", "DepthLoss", "InitSource",
-           "RenderedDepth", "FinalMethod", "Closure", "PoissonBox", "TSDFBackend"]
+           "PoissonBox", "TSDFBackend"]
 
 
 @dataclass(frozen=True)
@@ -83,34 +83,6 @@ class InitSource(str, enum.Enum):
     as oriented points."""
     CAMERAS = "cameras"
     """Random points in the cameras' common volume."""
-
-
-class RenderedDepth(str, enum.Enum):
-    """Which rendered surfel depth a stage uses."""
-
-    MEDIAN = "median"
-    """Where the transmittance crosses 0.5: the visible surface."""
-    EXPECTED = "expected"
-    """Alpha-weighted mean over the ray (averages in semi-transparent layers behind the surface)."""
-
-
-class FinalMethod(str, enum.Enum):
-    """How the returned mesh is built (:class:`FinalConfig`)."""
-
-    TSDF = "tsdf"
-    """TSDF fusion of the rendered surfel depth of every training view."""
-    PROXY = "proxy"
-    """The Poisson proxy mesh of the final surfels (closed by construction)."""
-
-
-class Closure(str, enum.Enum):
-    """How an object's final mesh is closed where the views left it open (:class:`FinalConfig`)."""
-
-    CARVE = "carve"
-    """Space carving in the TSDF fusion (:func:`wtopo.tsdf_fusion.fuse_tsdf` with ``close``): unobserved
-    space that no view's ray crossed empty counts as inside; the observed surface is kept as fused."""
-    POISSON = "poisson"
-    """Re-mesh the whole open TSDF mesh by Poisson of its area samples (smooths it everywhere)."""
 
 
 class PoissonBox(str, enum.Enum):
