@@ -8,7 +8,7 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass, field
 
-__all__ = ["Range", "RATE", "FRACTION", "OPEN_UNIT", "COUNT", "POSITIVE", "NormalFlip", "DepthLoss", "InitSource",
+__all__ = ["Range", "RATE", "FRACTION", "COUNT", "POSITIVE", "NormalFlip", "DepthLoss", "InitSource",
            "PoissonBox", "TSDFBackend"]
 
 
@@ -38,7 +38,6 @@ class Range:
 
 RATE = Range(0.0)  # a learning rate or loss weight: finite and >= 0
 FRACTION = Range(0.0, 1.0)  # a fraction, opacity threshold or weight in [0, 1]
-OPEN_UNIT = Range(0.0, 1.0, lo_open=True, hi_open=True)  # an opacity that goes through a logit
 COUNT = Range(0)  # iterations, intervals where 0 disables, counts
 POSITIVE = Range(1)  # intervals and counts that must be at least 1
 

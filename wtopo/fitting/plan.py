@@ -31,37 +31,17 @@ _MIN_SH_VIEWS = 20  # fewer views than this cannot constrain view-dependent colo
 _CPU_MAX_SIDE = 256  # longest image side trained on a CPU (keeps the default fit within minutes)
 _GPU_MAX_SIDE = 1024
 _MIN_EVAL_VIEWS = 12
-# Budgets per device. CPU: the default fit finishes in a few minutes on 2 cores (benchmarks/fit.md).
-# 400 + 200 had not converged: 800 + 400 lowered the hard suite's mean Chamfer 14 % with the loop and 12 %
-# without (benchmarks/hard.md cpu_iter2x). The loop's gain then grows with the co-evolution's length
-# (9 scenes x 2 seeds, loop against no loop at equal iterations: -7.3 % at 800 + 400, -9.9 % at 600 + 600,
-# -11.1 % at 800 + 800, no case over +2 %; hard.md cpu_coevo800): 800 + 800 lowers the loop's mean Chamfer
-# a further 5.7 % (blob -14 %, bowl -14 %, mug -12 %, ten-view torus -19 %; the chair and chair_box +5 to
-# +10 %, with the loop and without) for about 1.4x the loop fit's time (the bunny's fit ~3 min). Scenes at the
-# render cap keep theirs.
-# CUDA: the method's schedule shortened to minutes on one GPU (3,000 + 2,000 iterations at ~30 ms), the means'
-# warm-up decay ending halfway through the co-evolution (_MEANS_DECAY_COEVO, below) and the co-evolution's
-# means restarted (_MEANS_RESTART).
+# Per-device budgets and rules below: the measurements behind each value are in design/decisions.md.
+# CPU: 800 + 800 iterations finish the default fit in a few minutes on 2 cores (800 + 400 had not converged;
+# the loop's gain against no loop grows with the co-evolution: -7.3 % mean Chamfer at 800 + 400, -11.1 % at
+# 800 + 800). CUDA: the method's schedule shortened to minutes on one GPU (~30 ms per iteration).
 _ITERATIONS = {"cpu": (800, 800), "cuda": (3000, 2000)}
-# The share of the co-evolution over which the means' single decay still runs on CUDA (the plan sets
-# optim.means_decay_iterations = warm-up + this share of the co-evolution); the rest keeps the floor rate
-# (means_final). At 512 px, 3,000 + 2,000 with this flat tail against 3,000 + 1,000, both from one warm-up per
-# scene and seed (hard.md gpu_flat_tail): the loop's fits are better on 13 of 14 scenes (the suite -3.5 % on
-# the mean, -8.7 % per scene; five held-out ten-view scenes -2.4 % / -4.4 %, every one better; the ten-view
-# cup level, +0.1 %) for about 1.2x a fit's time, and the loop's margin over no loop on the suite's mean grows
-# from -5.7 % to -7.6 %. Decaying over all 5,000 instead (gpu_coevo2k) served the dense objects more but left
-# the thin held-out scenes 8-27 % worse. The CPU keeps its single decay over the whole fit (at 800 + 800 a flat
-# tail from 1,200 served the chairs and cost the bowl and the mug 4-9 %: cpu_decay1200). None: over the whole fit.
+# The share of the co-evolution over which the means' single decay still runs (the plan sets
+# optim.means_decay_iterations = warm-up + this share of the co-evolution); the rest keeps means_final.
+# CUDA 0.5: the loop's fits better on 13 of 14 suite scenes than at 3,000 + 1,000. None (CPU): the whole fit.
 _MEANS_DECAY_COEVO = {"cpu": None, "cuda": 0.5}
-# The co-evolution's means restart (optim.means_restart: a fraction of optim.means; 0: no restart). CUDA:
-# 0.0625, 1e-4, the rate gpu_coevo2k's decay over all 5,000 had at the warm-up's end (the default's decay
-# stands at 5.1e-5 there), decaying to means_final at the fit's last iteration. At 512 px, from one warm-up
-# per scene and seed (hard.md gpu_restart): the loop's fits -3.7 % on the suite's mean, -6.1 % per scene
-# (bowl -20.5 %, ten-view torus -16.1 %, blob -12.0 %; torus +5.2 %, chair_box +3.5 %), the four held-out
-# ten-view scenes with both fits mixed (table -2.2 %, vase -0.9 %, shelf +2.6 %, stool +6.2 %); the loop's
-# margin over no loop on the suite's mean -11.9 % (the flat tail alone, same batch: -9.9 %). At 128 px (the CUDA
-# plan on the CPU, cpu_cuda128_restart): bowl -2.3 %, ten-view torus -8.8 %, both chairs within 1 %. The CPU
-# budget keeps none: at 800 + 400 a restart of 0.3 swelled the chairs 15-24 % (hard.md cpu_restart03).
+# The co-evolution's means restart (optim.means_restart, a fraction of optim.means). CUDA 0.0625 (1e-4): the
+# loop's fits -3.7 % on the suite's mean at 512 px. The CPU keeps none: 0.3 swelled the chairs 15-24 %.
 _MEANS_RESTART = {"cpu": 0.0, "cuda": 0.0625}
 # CPU: the base budget covers this many training pixels to fit (unmasked pixels at the trained image
 # scale: twice the default bunny's 109k); a capture with more (an unmasked scene: every pixel is
@@ -71,26 +51,14 @@ _CPU_FIT_PIXELS = 250_000
 _CPU_RENDER_PIXELS = 24_000_000
 _MAX_SURFELS = {"cpu": 40_000, "cuda": 400_000}
 # Faces of the TSDF re-initialisation mesh (one surfel each): _REINIT_DENSITY faces per squared pixel
-# footprint of the region of interest's box surface (about one surfel per 2-4 footprint^2 of an object's
-# surface: a disc about a footprint across), never fewer than the CPU default's _REINIT_MIN and at most
-# the device's cap. CUDA used its cap whatever the image size: at 128 px that puts sub-pixel surfels on
-# the surface and the mesh terms then swell parts a few pixels thick (100,000 faces left the chair 17-20 %
-# worse with the loop than without). With this rule no scene of the hard suite is worse with the loop
-# there (per case -9.6 %); the loop's Chamfer falls 29-37 % on the chairs and rises 13-21 % on the rounded
-# shapes the dense start served (torus, held-out bunny and sphere rig; benchmarks/hard.md gpu_reinit_rule,
-# heldout_reinit_rule). The CPU keeps 8,000; at 512 px CUDA keeps its cap.
+# footprint of the region of interest's box surface (each surfel starts about a footprint across), between
+# _REINIT_MIN and the device's cap. A fixed cap put sub-pixel surfels on the surface at 128 px, and the mesh
+# terms then swelled parts a few pixels thick (the chair 17-20 % worse with the loop than without).
 _REINIT_DENSITY = 0.25
 _REINIT_MIN = 8000
-# Fewer faces where fewer views see the surface: a surfel is fitted from the pixels of the views that see it,
-# so the density above, measured on 32-view sphere rigs (which see a point of their region's surface from
-# 11.97-12.02 views: views_per_point), is scaled by min(1, views per point / _REINIT_VIEWS), 11.5 leaving
-# those rigs their full density. 64 views of 512 px keep the cap; ten views (3.7-3.8 per point) get 0.33 of
-# the rule: at 512 px their surfels start about 1.7x wider.
-# With the cap's 100,000 faces the ten-view chair and cup lost 4-6 % to no loop over 5-6 fits; with this rule
-# 2.3 % each (no loop gains from the sparser start too), the ten-view torus gains 10.8 % and five held-out
-# ten-view scenes 12.8 % per case, 9.9 % at the cap (benchmarks/hard.md gpu_reinit512, gpu_f30k, gpu_views_rule).
-# The 8,000 floor stays (fewer made the ten-view scenes worse at 128 px, cpu_f2500): the CPU never changes,
-# and on CUDA at 128 px the ten-view scenes go down to it.
+# Fewer faces where fewer views see the surface: the density above (measured on 32-view sphere rigs, which
+# see a point of their region's surface from ~12 views: views_per_point) is scaled by
+# min(1, views per point / _REINIT_VIEWS); ten views (3.7-3.8 per point) get 0.33 of it.
 _REINIT_VIEWS = 11.5
 _VIEW_FACING = 0.25  # a view sees a point of the region's surface when it faces it within ~75 degrees
 _REINIT_FACES = {"cpu": _REINIT_MIN, "cuda": _MAX_SURFELS["cuda"] // 4}  # caps (CUDA: room to densify)
@@ -99,12 +67,11 @@ _FINAL_GRID = {"cpu": (96, 192), "cuda": (192, 768)}  # (min, max) TSDF voxels a
 _PROXY_FOOTPRINTS = 2.0  # proxy grid cell ~ 2 pixel footprints (a finer Poisson grid only adds noise)
 _SCENE_LEVEL_SIGMA = 2.0  # a scene proxy's local zero level, Poisson cells (poisson_indicator's level_sigma)
 # final TSDF voxel in pixel footprints: fused depth resolves below a pixel; 0.4 is the CPU default's
-# 192 voxels on the 128-px bunny (0.277 % Chamfer, benchmarks/fit.md), kept for every image size
+# 192 voxels on the 128-px bunny, kept for every image size
 _FINAL_FOOTPRINTS = 0.4
 _MASK_WEIGHT = 0.2  # alpha-vs-mask BCE weight: 0.5 pulls the surface in, 0 leaves short fits semi-transparent
-# (benchmarks/fit.md)
 
-_MULTIVIEW_WEIGHT = 0.15  # PGSR's multi-view NCC weight (benchmarks/hard.md, benchmarks/real.md)
+_MULTIVIEW_WEIGHT = 0.15  # PGSR's multi-view NCC weight
 # median 7x7 grey std below which the multi-view term is left out (measured: the flat-albedo blob 0.009,
 # every textured scene of the suite and the rigs >= 0.043)
 _MULTIVIEW_TEXTURE = 0.02

@@ -281,8 +281,8 @@ def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record,
     """A closed mesh through ``mesh``: Poisson of its area samples (the zero level set is closed).
 
     The Poisson solve and its marching cubes run on ``device`` (the fit's: at ``final.resolution``, up to
-    768^3 on CUDA, the whole re-mesh took 32.6 s on 2 CPU threads against 10.2 s with an H100,
-    ``benchmarks/final_remesh.py``); a device other than the CPU that runs out of memory falls back to the CPU
+    768^3 on CUDA, the whole re-mesh took 32.6 s on 2 CPU threads against 10.2 s with an H100); a device
+    other than the CPU that runs out of memory falls back to the CPU
     with a warning. The mesh keeps marching cubes' own vertex sharing (no merge by position: see
     :func:`~.tsdf.cleanup_mesh`), so it is closed at any grid. Returns ``mesh`` itself when the re-mesh
     comes out empty; records ``"poisson_remesh"`` (``watertight``, and the ``device`` it ran on).
