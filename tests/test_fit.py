@@ -206,6 +206,7 @@ def test_the_suites_variants_change_only_what_acts_after_the_warmup():
     import pathlib
 
     from wtopo.fitting.checkpointing import warmup_differences
+    from wtopo.fitting.config import REMOVED
 
     path = pathlib.Path(__file__).parents[1] / "benchmarks" / "hard.py"
     spec = importlib.util.spec_from_file_location("hard_bench", path)
@@ -215,7 +216,9 @@ def test_the_suites_variants_change_only_what_acts_after_the_warmup():
            "optim.means_decay_iterations=4000"]  # the CUDA plan's
     base = hard._config("default", gpu).to_dict()
     assert len(hard.VARIANTS) >= 8
-    for v in hard.VARIANTS:
+    for v, sets in hard.VARIANTS.items():
+        if any(item.split("=")[0] in REMOVED for item in sets):
+            continue  # a variant of a knob measured and removed: it no longer runs
         assert warmup_differences(base, hard._config(v, gpu).to_dict()) == [], v
     base = hard._config("default", ["runtime.seed=3"]).to_dict()
     assert warmup_differences(base, hard._config("default", ["runtime.seed=4"]).to_dict()) == ["runtime.seed"]

@@ -38,10 +38,8 @@ _GEOMETRY_DENSIFY_MAX = 2000  # surfels spawned per geometry-aware step at most:
 # before the TSDF re-initialisation left an 80-iteration fit at 15 % Chamfer, 0.78 % without it)
 _RESET_RECOVERY = 100
 DENSIFY_START = 0.25  # density control starts this fraction of the way through the warm-up (stage_iteration)
-DENSIFY_STOP = 0.8  # clone/split and opacity resets stop after this fraction of the warm-up (3DGS: 15k of 30k,
-# later here: the fit is hundreds, not 30k, iterations)
-PRUNE_OPACITY = 0.05  # surfels less opaque than this are pruned at every density step (3DGS's 0.005, raised: the
-# fit has fewer iterations to drive a useless surfel's opacity down)
+DENSIFY_STOP = 0.8  # clone/split and opacity resets stop after this fraction of the warm-up (3DGS: half)
+PRUNE_OPACITY = 0.05  # surfels less opaque than this are pruned at every density step (3DGS: 0.005)
 _CORRESPONDENCE_FRACTION = 0.5  # mesh guidance refreshes every this fraction of the co-evolution
 _SIGN_DISTANCE = 3.0  # mesh-guided signs: a proxy face nearer than this many in-plane sigmas of a surfel decides it
 _GEOMETRY_PRUNE_DISTANCE = 0.02  # geometry-aware prune: "far from the proxy", fraction of the scene extent
