@@ -9,12 +9,12 @@ def test_fit_flags_override_the_config():
     args = cli.build_parser().parse_args([
         "fit", "bunny", "--out", "x", "--iterations", "31", "--device", "cpu", "--seed", "7",
         "--max-surfels", "123", "--usd-every", "0", "--normal-flip", "view", "--samples-per-surfel", "1",
-        "--proxy-resolution", "48", "--poisson-resolution", "96", "--downscale", "4", "--no-mesh-loop"])
+        "--proxy-resolution", "48", "--downscale", "4", "--no-mesh-loop"])
     cfg = cli._config(args)
     assert (cfg.warmup.iterations, cfg.coevolution.iterations) == (15, 16)
     assert (cfg.runtime.device, cfg.runtime.seed, cfg.runtime.max_surfels, cfg.runtime.usd_every) == ("cpu", 7, 123, 0)
     assert (cfg.mesh.normal_flip, cfg.mesh.samples_per_surfel, cfg.mesh.resolution) == ("view", 1, 48)
-    assert cfg.final.poisson_resolution == 96 and cfg.runtime.image_scale == 0.25
+    assert cfg.runtime.image_scale == 0.25
     assert cfg.coevolution.enabled is False
     later = cli._config(cli.build_parser().parse_args(["fit", "bunny", "--out", "x", "--warmup", "5"]))
     assert later.warmup.iterations == 5 and later.coevolution.enabled is None  # the plan decides
@@ -35,7 +35,7 @@ def test_each_flag_in_the_table_sets_only_its_field():
         return out
 
     base = leaves(FitConfig())
-    assert len(cli._OVERRIDES) >= 10
+    assert len(cli._OVERRIDES) >= 9
     for arg, section, name in cli._OVERRIDES:
         value = {"device": "cpu", "normal_flip": "random"}.get(arg, 5 if arg != "samples_per_surfel" else 1)
         flag = "--" + arg.replace("_", "-")
@@ -68,11 +68,11 @@ def test_set_reaches_any_field_and_config_file_round_trips(tmp_path):
     from wtopo.fitting.config import NormalFlip
 
     args = cli.build_parser().parse_args([
-        "fit", "bunny", "--out", "x", "--set", "losses.mask=0.5", "--set", "final.method=proxy",
+        "fit", "bunny", "--out", "x", "--set", "losses.mask=0.5", "--set", "mesh.sigma=0.5",
         "--set", "mesh.normal_flip=view", "--set", "background=[1, 1, 1]", "--set", "densify.enabled=false",
         "--set", "filter_sigma=0.5"])
     cfg = cli._config(args)
-    assert cfg.losses.mask == 0.5 and cfg.final.method == "proxy" and cfg.mesh.normal_flip is NormalFlip.VIEW
+    assert cfg.losses.mask == 0.5 and cfg.mesh.sigma == 0.5 and cfg.mesh.normal_flip is NormalFlip.VIEW
     assert cfg.background == (1, 1, 1) and cfg.densify.enabled is False and cfg.filter_sigma == 0.5
     saved = FitConfig()
     saved.warmup.iterations = 7

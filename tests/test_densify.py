@@ -6,7 +6,7 @@ import math
 import torch
 
 from wtopo.fitting import densify as D
-from wtopo.fitting.config import DensifyConfig, NormalFlip
+from wtopo.fitting.config import NormalFlip
 from wtopo.fitting.surfels import Surfels, normals_to_quats, quat_to_matrix
 
 ROT_TOL = 1e-5  # float32 rotation round trip
@@ -57,8 +57,8 @@ def test_clone_and_split_follow_gradients_and_shrink_split_surfels():
     s.buffers["grad_accum"][:] = 0.0
     s.buffers["grad_accum"][[0, 5]] = 1.0
     s.buffers["grad_count"][:] = 1.0
-    cfg = DensifyConfig(grad_threshold=0.5, percent_dense=0.05)
-    c, sp = D.clone_and_split(s, cfg, extent=1.0, max_surfels=100, generator=torch.Generator().manual_seed(0))
+    c, sp = D.clone_and_split(s, extent=1.0, max_surfels=100, generator=torch.Generator().manual_seed(0),
+                              grad_threshold=0.5, percent_dense=0.05)
     assert (c, sp) == (1, 1) and len(s) == 12
     torch.testing.assert_close(s.scales[-2:], torch.full((2, 2), 0.2 / 1.6))
     assert s.buffers["grad_accum"].abs().sum() == 0
@@ -72,7 +72,7 @@ def test_densification_respects_the_cap():
     s.buffers["grad_accum"][:] = 1.0
     s.buffers["grad_count"][:] = 1.0
     for _ in range(3):
-        D.clone_and_split(s, DensifyConfig(grad_threshold=0.0, max_growth=1.0), extent=1.0, max_surfels=45)
+        D.clone_and_split(s, extent=1.0, max_surfels=45, grad_threshold=0.0, max_growth=1.0)
         assert len(s) <= 45
     assert len(s) == 45
 
@@ -203,14 +203,15 @@ def test_normals_to_quats_roundtrip():
     assert bool((cos > 1 - 1e-4).all())
 
 
-def _strategy(background):
+def _strategy(background, monkeypatch):
+    from wtopo.fitting import densify
     from wtopo.fitting.config import FitConfig
     from wtopo.fitting.stages import Stage
     from wtopo.fitting.strategy import DensityStrategy
 
     events = []
     cfg = FitConfig()
-    cfg.densify.grad_threshold = 0.5
+    monkeypatch.setattr(densify, "GRAD_THRESHOLD", 0.5)
     cfg.runtime.max_surfels = 100
     st = DensityStrategy(cfg, densify=True, warmup_end=400, generator=torch.Generator().manual_seed(0),
                          record=lambda name, **kw: events.append(name), timers=lambda name: _NullTimer(),
@@ -227,7 +228,7 @@ class _NullTimer:
         return False
 
 
-def test_a_scene_densifies_by_gradient_although_its_background_leaves_no_gap():
+def test_a_scene_densifies_by_gradient_although_its_background_leaves_no_gap(monkeypatch):
     """Objects wait for a coverage gap; a scene (background covers every pixel) clones by gradient."""
     import types
 
@@ -241,93 +242,7 @@ def test_a_scene_densifies_by_gradient_although_its_background_leaves_no_gap():
         s, _ = _surfels(n=10)
         s.buffers["grad_accum"][:3] = 1.0
         s.buffers["grad_count"][:] = 1.0
-        st, events, warmup = _strategy(background)
+        st, events, warmup = _strategy(background, monkeypatch)
         st.step_end(warmup, 200, s)
         assert (len(s) > 10) == grows, (background, len(s))
         assert ("densify" in events) == grows and ("densify_skipped" in events) != grows
-
-def test_geometry_densify_skips_faces_outside_the_candidates():
-    """An uncovered face left out of ``candidates`` (unsupported) gets no surfel."""
-    s, _ = _surfels(n=20)
-    v, f = _square()
-    n0 = len(s)
-    added = D.geometry_densify(s, v, f, torch.zeros(n0, dtype=torch.int32), max_new=10, max_surfels=100,
-                               candidates=torch.tensor([True, False]))
-    assert added == 0 and len(s) == n0
-
-
-def _patch_surfels(n=400, seed=0):
-    """Opaque surfels on the square [0.3, 0.7]^2 of the plane z = 0.5, facing +z: an open surface."""
-    g = torch.Generator().manual_seed(seed)
-    xy = 0.3 + 0.4 * torch.rand(n, 2, generator=g)
-    p = torch.cat([xy, torch.full((n, 1), 0.5)], dim=1)
-    nrm = torch.tensor([[0.0, 0.0, 1.0]]).expand(n, 3)
-    return Surfels.from_points(p, torch.rand(n, 3, generator=g), scales=torch.full((n,), 0.01), normals=nrm,
-                               opacity=0.9)
-
-
-def test_proxy_support_marks_the_poisson_closure_unsupported():
-    """Faces on an open patch of surfels are supported, the closure Poisson adds far from it is not."""
-    from wtopo.fitting.config import MeshConfig
-    from wtopo.fitting.proxy import ProxyMesh
-
-    s = _patch_surfels()
-    proxy = ProxyMesh(MeshConfig(resolution=32, support_voxels=2.0))
-    pm = proxy.build(s)
-    sup = proxy.supported(pm, s)
-    assert sup.dtype == torch.bool and sup.shape == (pm.num_faces,)
-    c = pm.verts.detach()[pm.faces.long()].mean(dim=1)
-    on_patch = ((c[:, 2] - 0.5).abs() < 0.02) & ((c[:, :2] - 0.5).abs() < 0.17).all(dim=1)
-    d = torch.cdist(c, s.means.detach()).min(dim=1).values
-    far = d > 0.15  # the support distance is 2 cells of 1/32 + 2 scales of 0.01 = 0.083
-    assert bool(on_patch.any()) and bool(far.any()), "the Poisson surface should close the patch far from it"
-    assert bool(sup[on_patch].all()) and not bool(sup[far].any())
-    assert ProxyMesh(MeshConfig(resolution=32)).supported(pm, s) is None  # support_voxels = 0: all supported
-
-
-def test_geometry_densify_by_distance_spawns_only_on_the_uncovered_closure():
-    """Counted by distance, faces on a dense patch need no surfel; only faces far from every surfel spawn one."""
-    from wtopo.fitting.config import MeshConfig
-    from wtopo.fitting.proxy import ProxyMesh
-
-    s = _patch_surfels()
-    proxy = ProxyMesh(MeshConfig(resolution=32))
-    pm = proxy.build(s)
-    near = proxy.near_surfels(pm, s, 2.0)
-    fid, _, _ = proxy.closest(pm, s.means)
-    nearest = torch.zeros(pm.num_faces, dtype=torch.bool)
-    nearest[fid[fid >= 0].long()] = True
-    c = pm.verts.detach()[pm.faces.long()].mean(dim=1)
-    on_patch = ((c[:, 2] - 0.5).abs() < 0.02) & ((c[:, :2] - 0.5).abs() < 0.17).all(dim=1)
-    # the artefact: patch faces that are nobody's nearest face count as holes by the old rule
-    assert bool((on_patch & ~nearest).any()) and bool(near[on_patch].all())
-    n0 = len(s)
-    added = D.geometry_densify(s, pm.verts, pm.faces, fid, max_new=10_000, max_surfels=100_000, covered=near)
-    assert added == int((~near).sum()) and added > 0
-    assert bool((torch.cdist(s.means.detach()[n0:], s.means.detach()[:n0]).min(dim=1).values > 0.06).all())
-
-
-def test_proxy_supported_pixels_see_the_patch_not_the_closure():
-    """A pixel that sees the patch of surfels is supported; one that sees the Poisson closure far from it is not."""
-    import numpy as np
-
-    from wtopo import Camera
-    from wtopo.fitting.config import MeshConfig
-    from wtopo.fitting.proxy import ProxyMesh
-
-    s = _patch_surfels()
-    proxy = ProxyMesh(MeshConfig(resolution=32, support_voxels=2.0))
-    pm = proxy.build(s)
-    c = pm.verts.detach()[pm.faces.long()].mean(dim=1)
-    far = c[torch.cdist(c, s.means.detach()).min(dim=1).values.argmax()].double().numpy()
-    out = far - np.array([0.5, 0.5, 0.5])
-    out /= np.linalg.norm(out)
-    # centre pixel of each 25 px view: the patch's centre from above, the farthest face from outside
-    for eye, target, want in (([0.5, 0.5, 1.5], [0.5, 0.5, 0.5], True), (far + 1.0 * out, far, False)):
-        up = [0, 1, 0] if abs(out[1]) < 0.9 else [1, 0, 0]
-        cam = Camera.look_at(eye, target, up, fov_x=0.2, width=25, height=25)
-        mr = proxy.render(pm, cam)
-        px = proxy.supported_pixels(pm, mr, s)
-        assert px.shape == mr.mask.shape and not bool((px & ~mr.mask).any())  # misses are never supported
-        assert bool(mr.mask[12, 12]) and bool(px[12, 12]) == want
-    assert ProxyMesh(MeshConfig(resolution=32)).supported_pixels(pm, mr, s) is None

@@ -10,7 +10,7 @@ import pytest
 import wtopo
 from wtopo import Camera, cli
 from wtopo.fitting import DepthLoss, FitConfig, NormalFlip
-from wtopo.fitting.config import FinalMethod, InitSource, Range, RenderedDepth, leaves
+from wtopo.fitting.config import REMOVED, InitSource, Range, RemovedFieldError, leaves
 from wtopo.fitting.loop import FitRun
 from wtopo.fitting.scene_kind import SceneKind
 from wtopo.fitting.validate_config import check_leaf, validate_config
@@ -62,21 +62,47 @@ def test_from_dict_names_unknown_paths_and_converts_enums():
         FitConfig.from_dict({"nope": 1})
     with pytest.raises(ValueError, match="is a group"):
         FitConfig.from_dict({"losses": 1})
-    with pytest.raises(ValueError, match=re.escape("final.method must be one of ['tsdf', 'proxy'], got 'mc'")):
-        FitConfig.from_dict({"final": {"method": "mc"}})
-    cfg = FitConfig.from_dict({"kind": "scene", "final": {"method": "proxy"}, "tsdf": {"depth": "expected"},
-                               "init": {"source": "points"}, "background": [0, 0, 1]})
-    assert cfg.kind is SceneKind.SCENE and cfg.final.method is FinalMethod.PROXY
-    assert cfg.tsdf.depth is RenderedDepth.EXPECTED and cfg.init.source is InitSource.POINTS
-    assert cfg.background == (0, 0, 1)
+    with pytest.raises(ValueError, match=re.escape("mesh.normal_flip must be one of ['mesh', 'view', 'random'], "
+                                                   "got 'mc'")):
+        FitConfig.from_dict({"mesh": {"normal_flip": "mc"}})
+    cfg = FitConfig.from_dict({"kind": "scene", "mesh": {"normal_flip": "view"}, "init": {"source": "points"},
+                               "background": [0, 0, 1]})
+    assert cfg.kind is SceneKind.SCENE and cfg.mesh.normal_flip is NormalFlip.VIEW
+    assert cfg.init.source is InitSource.POINTS and cfg.background == (0, 0, 1)
+
+
+def test_fit_config_has_at_most_60_leaf_fields():
+    """Keep the configuration small: measured-and-rejected ideas and internal constants are not fields."""
+    assert len(list(leaves(FitConfig()))) <= 60
+    assert not {leaf.path for leaf in leaves(FitConfig())} & set(REMOVED)
+
+
+def test_a_removed_field_is_named_by_set_and_by_a_saved_config():
+    """Raise RemovedFieldError naming the field (and every one of a saved config) with the value the fit now
+    behaves as; a removed field is never silently ignored."""
+    from wtopo.fitting.config import set_field
+
+    with pytest.raises(RemovedFieldError, match=r"losses\.mask_halo \(measured and not kept; the fit behaves as "
+                                                r"with False\)") as info:
+        set_field(FitConfig(), "losses.mask_halo", True)
+    assert info.value.paths == ["losses.mask_halo"] and isinstance(info.value, ValueError)
+    with pytest.raises(RemovedFieldError, match=r"tsdf\.truncation_voxels \(now a fixed constant; the fit behaves "
+                                                r"as with 4\.0\)"):
+        set_field(FitConfig(), "tsdf.truncation_voxels", 3.0)
+    saved = FitConfig().to_dict()
+    saved["losses"].update(mask_halo=False, mesh_inset=0)
+    saved["final"]["method"] = "tsdf"
+    with pytest.raises(RemovedFieldError, match="older version") as info:
+        FitConfig.from_dict(saved)
+    assert sorted(info.value.paths) == ["final.method", "losses.mask_halo", "losses.mesh_inset"]
+    with pytest.raises(RemovedFieldError, match=r"mesh\.silhouette_gain"):
+        cli._apply_set(FitConfig(), "mesh.silhouette_gain=0.3")
 
 
 BAD = [
     # (dotted path, value, error type)
     ("init.source", "mesh", ValueError),
     ("init.num_points", 0, ValueError),
-    ("init.opacity", 1.0, ValueError),
-    ("init.opacity", 0.0, ValueError),
     ("optim.means", float("nan"), ValueError),
     ("optim.quats", -1e-3, ValueError),
     ("optim.sh_dc", float("inf"), ValueError),
@@ -89,56 +115,27 @@ BAD = [
     ("tsdf.enabled", 1, TypeError),
     ("tsdf.resolution", 0, ValueError),
     ("tsdf.resolution", 4096, ValueError),
-    ("tsdf.truncation_voxels", 0.0, ValueError),
-    ("tsdf.depth", "mean", ValueError),
-    ("tsdf.alpha_threshold", -0.1, ValueError),
     ("tsdf.max_faces", 0, ValueError),
     ("tsdf.max_faces", 2.5, TypeError),
     ("coevolution.iterations", -1, ValueError),
     ("optim.means_decay_iterations", 0, ValueError),
     ("optim.means_decay_iterations", 2.5, TypeError),
-    ("coevolution.correspondence_fraction", False, TypeError),
-    ("coevolution.correspondence_fraction", 1.5, ValueError),
     ("coevolution.enabled", "yes", TypeError),
-    ("final.method", "marching_cubes", ValueError),
-    ("final.method", None, TypeError),
     ("final.resolution", 7, ValueError),
-    ("final.poisson_resolution", 2048, ValueError),
     ("final.watertight", None, TypeError),
     ("densify.enabled", "auto", TypeError),
     ("densify.interval", 0, ValueError),
-    ("densify.stop_fraction", 0.0, ValueError),
-    ("densify.stop_fraction", 1.5, ValueError),
-    ("densify.max_growth", -0.5, ValueError),
-    ("densify.prune_opacity", 1.1, ValueError),
     ("densify.opacity_reset_fraction", -0.75, ValueError),
-    ("densify.start_fraction", 2.0, ValueError),
-    ("losses.normal_start_fraction", -0.5, ValueError),
-    ("losses.distortion_start_fraction", float("inf"), ValueError),
     ("losses.mask", float("nan"), ValueError),
     ("losses.mask", -0.5, ValueError),
-    ("losses.silhouette_band", -1, ValueError),
     ("losses.depth_form", "log", ValueError),
     ("losses.depth_form", NormalFlip.MESH, ValueError),
     ("losses.depth_form", 1, TypeError),
     ("losses.mesh_depth_debias", "yes", TypeError),
-    ("losses.mesh_thin_probe", 4, ValueError),
-    ("losses.mesh_thin_probe", 512, ValueError),
-    ("losses.mesh_thin_probe", 64.5, TypeError),
     ("losses.mesh_depth_debias", 1, TypeError),
-    ("losses.mesh_depth_robust", -1.0, ValueError),
-    ("losses.mesh_depth_robust", float("nan"), ValueError),
-    ("losses.mesh_depth_behind", 1.5, ValueError),
-    ("losses.mesh_photo_gate", -0.1, ValueError),
-    ("losses.mesh_depth_behind", -0.1, ValueError),
-    ("losses.mesh_inset", -1, ValueError),
-    ("losses.mesh_view_support", -1, ValueError),
-    ("losses.mesh_view_support", 2.5, TypeError),
-    ("losses.mesh_inset", 1.5, TypeError),
     ("mesh.resolution", 0, ValueError),
     ("mesh.samples_per_surfel", 3, ValueError),
     ("mesh.samples_per_surfel", 5.0, TypeError),
-    ("mesh.padding", -0.1, ValueError),
     ("mesh.normal_flip", "MESH", ValueError),
     ("mesh.normal_flip", DepthLoss.LOG_RATIO, ValueError),
     ("mesh.poisson_box", "cube", ValueError),
@@ -148,9 +145,6 @@ BAD = [
     ("runtime.device", 0, TypeError),
     ("runtime.seed", -1, ValueError),
     ("runtime.seed", 1.0, TypeError),
-    ("runtime.keep_checkpoints", 0, ValueError),
-    ("runtime.checkpoint_seconds", float("nan"), ValueError),
-    ("runtime.max_consecutive_failures", 0, ValueError),
     ("runtime.image_scale", 2.0, ValueError),
     ("runtime.image_scale", 0.0, ValueError),
     ("runtime.stop_at", -5, ValueError),
@@ -204,8 +198,6 @@ def test_background_component_is_named_by_index():
     ("losses.mask", 0.0),
     ("sh_degree", 0),
     ("background", [1.0, 1.0, 1.0]),
-    ("runtime.keep_checkpoints", 1),  # the loop raises it to 2
-    ("tsdf.alpha_threshold", 1.5),  # above every alpha: the design/stability.md empty-TSDF case
     ("runtime.stop_at", 20),
 ])
 def test_good_values_are_accepted(path, value):
@@ -275,12 +267,13 @@ def test_cli_reports_a_bad_config_without_a_traceback(monkeypatch, capsys, tmp_p
 
 def test_default_schedule_fractions_give_the_cpu_iterations():
     """Place the default schedule's events at the CPU budget's iterations (warm-up 800, co-evolution 800)."""
+    from wtopo.fitting import objective, strategy
     from wtopo.fitting.config import stage_iteration
 
     cfg = FitConfig()
-    assert stage_iteration(cfg.densify.start_fraction, 800) == 200
+    assert stage_iteration(strategy.DENSIFY_START, 800) == 200
     assert stage_iteration(cfg.densify.opacity_reset_fraction, 800) == 600
-    assert stage_iteration(cfg.losses.normal_start_fraction, 800) == 400
-    assert stage_iteration(cfg.losses.distortion_start_fraction, 800) == 400
-    assert stage_iteration(cfg.coevolution.correspondence_fraction, 800) == 400
+    assert stage_iteration(objective._NORMAL_START, 800) == 400
+    assert stage_iteration(objective._DISTORTION_START, 800) == 400
+    assert stage_iteration(strategy._CORRESPONDENCE_FRACTION, 800) == 400
     assert stage_iteration(0.25, 30) == 8  # halves round up: 7.5 -> 8

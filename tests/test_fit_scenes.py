@@ -32,12 +32,12 @@ def test_plan_tells_objects_from_scenes(room):
     """Decide 'scene' without masks and 'object' with masks; honour an explicit kind."""
     dev = torch.device("cpu")
     p = make_plan(room.normalized(), FitConfig(), dev)
-    assert p["scene_kind"] == "scene" and p["mesh_policy"] == "open_roi" and p["background_points"] > 0
-    assert "360" in p.decisions["scene_kind"].reason
-    assert p["densify"] and "gradient" in p.decisions["densify"].reason  # no coverage gap to wait for
+    assert p.scene_kind == "scene" and p.mesh_policy == "open_roi" and p.background_points > 0
+    assert "360" in p.reasons["scene_kind"]
+    assert p.densify and "gradient" in p.reasons["densify"]  # no coverage gap to wait for
     masked = scenes.from_mesh(trimesh.creation.icosphere(subdivisions=2), n_views=8, resolution=24)
     q = make_plan(masked.normalized(), FitConfig(), dev)
-    assert q["scene_kind"] == "object" and q["mesh_policy"] == "watertight" and q["background_points"] == 0
+    assert q.scene_kind == "object" and q.mesh_policy == "watertight" and q.background_points == 0
     cfg = FitConfig()
     cfg.kind = "object"
     assert make_plan(room.normalized(), cfg, dev)["scene_kind"] == "object"
@@ -47,13 +47,13 @@ def test_plan_runs_the_mesh_loop_for_objects_only(room):
     """Leave the proxy-mesh loop out for a scene, run it for an object, honour an explicit setting."""
     dev = torch.device("cpu")
     p = make_plan(room.normalized(), FitConfig(), dev)
-    assert p["mesh_loop"] is False and "scene" in p.decisions["mesh_loop"].reason
+    assert p.mesh_loop is False and "scene" in p.reasons["mesh_loop"]
     masked = scenes.from_mesh(trimesh.creation.icosphere(subdivisions=2), n_views=8, resolution=24)
     assert make_plan(masked.normalized(), FitConfig(), dev)["mesh_loop"] is True
     cfg = FitConfig()
     cfg.coevolution.enabled = True
     p = make_plan(room.normalized(), cfg, dev)
-    assert p["mesh_loop"] is True and p.decisions["mesh_loop"].overridden
+    assert p.mesh_loop is True and "mesh_loop" in p.overrides
     assert resolve_config(FitConfig(), make_plan(room.normalized(), FitConfig(), dev)).coevolution.enabled is False
 
 
@@ -62,14 +62,14 @@ def test_plan_gives_a_scene_an_open_proxy(room):
     one level and its whole proxy; explicit settings win and reach the resolved configuration."""
     dev = torch.device("cpu")
     p = make_plan(room.normalized(), FitConfig(), dev)
-    assert p["proxy_level_sigma"] > 0 and p["proxy_clip"] is True
+    assert p.proxy_level_sigma > 0 and p.proxy_clip is True
     masked = scenes.from_mesh(trimesh.creation.icosphere(subdivisions=2), n_views=8, resolution=24)
     q = make_plan(masked.normalized(), FitConfig(), dev)
-    assert q["proxy_level_sigma"] == 0 and q["proxy_clip"] is False
+    assert q.proxy_level_sigma == 0 and q.proxy_clip is False
     cfg = FitConfig()
     cfg.mesh.level_sigma, cfg.mesh.clip_to_region = 0.0, False
     p = make_plan(room.normalized(), cfg, dev)
-    assert p["proxy_level_sigma"] == 0 and p.decisions["proxy_level_sigma"].overridden
+    assert p.proxy_level_sigma == 0 and "proxy_level_sigma" in p.overrides
     r = resolve_config(cfg, p)
     assert r.mesh.level_sigma == 0 and r.mesh.clip_to_region is False
     r = resolve_config(FitConfig(), make_plan(room.normalized(), FitConfig(), dev))
@@ -82,13 +82,13 @@ def test_plan_budget_follows_the_device(room):
     cpu = make_plan(room.normalized(), FitConfig(), torch.device("cpu"))
     gpu = make_plan(room.normalized(), FitConfig(), torch.device("cuda"))
     for k in ("warmup_iterations", "coevolution_iterations", "max_surfels", "proxy_resolution"):
-        assert gpu[k] > cpu[k], k
-    assert gpu["reinit_faces"] >= cpu["reinit_faces"]  # the same footprint rule, a larger cap
-    assert gpu["reinit_faces"] < gpu["max_surfels"]  # room to densify after the re-initialisation
+        assert getattr(gpu, k) > getattr(cpu, k), k
+    assert gpu.reinit_faces >= cpu.reinit_faces  # the same footprint rule, a larger cap
+    assert gpu.reinit_faces < gpu.max_surfels  # room to densify after the re-initialisation
     cfg = FitConfig()
     cfg.runtime.image_scale = 0.5
     p = make_plan(room.normalized(), cfg, torch.device("cpu"))
-    assert p["image_scale"] == 0.5 and p.decisions["image_scale"].overridden
+    assert p.image_scale == 0.5 and "image_scale" in p.overrides
 
 
 def test_cuda_plan_holds_the_means_rate_at_its_floor_for_the_co_evolutions_second_half(room):
@@ -101,15 +101,15 @@ def test_cuda_plan_holds_the_means_rate_at_its_floor_for_the_co_evolutions_secon
     scene = room.normalized()
     gpu = make_plan(scene, FitConfig(), torch.device("cuda"))
     warm, coevo = P._ITERATIONS["cuda"]
-    assert gpu["means_decay_iterations"] == warm + round(P._MEANS_DECAY_COEVO["cuda"] * coevo) < warm + coevo
-    assert resolve_config(FitConfig(), gpu).optim.means_decay_iterations == gpu["means_decay_iterations"]
+    assert gpu.means_decay_iterations == warm + round(P._MEANS_DECAY_COEVO["cuda"] * coevo) < warm + coevo
+    assert resolve_config(FitConfig(), gpu).optim.means_decay_iterations == gpu.means_decay_iterations
     cpu = make_plan(scene, FitConfig(), torch.device("cpu"))
-    assert cpu["means_decay_iterations"] is None
+    assert cpu.means_decay_iterations is None
     assert resolve_config(FitConfig(), cpu).optim.means_decay_iterations is None
     cfg = FitConfig()
     cfg.optim.means_decay_iterations = 1234
     p = make_plan(scene, cfg, torch.device("cuda"))
-    assert p["means_decay_iterations"] == 1234 and p.decisions["means_decay_iterations"].overridden
+    assert p.means_decay_iterations == 1234 and "means_decay_iterations" in p.overrides
     cfg = FitConfig()
     cfg.coevolution.iterations = 600
     assert make_plan(scene, cfg, torch.device("cuda"))["means_decay_iterations"] == warm + 300
@@ -133,18 +133,18 @@ def test_cuda_plan_restarts_the_co_evolutions_means_and_the_cpu_does_not(room):
 
     scene = room.normalized()
     gpu = make_plan(scene, FitConfig(), torch.device("cuda"))
-    assert gpu["means_restart"] == P._MEANS_RESTART["cuda"] == 0.0625
+    assert gpu.means_restart == P._MEANS_RESTART["cuda"] == 0.0625
     o = resolve_config(FitConfig(), gpu).optim
     assert o.means_restart == 0.0625
     warm, coevo = P._ITERATIONS["cuda"]
     assert means_rate(o, warm, warm, warm + coevo)[0] == pytest.approx(1e-4)
     assert means_rate(o, warm - 1, warm, warm + coevo)[0] < 6e-5  # the warm-up keeps its decay
     cpu = make_plan(scene, FitConfig(), torch.device("cpu"))
-    assert cpu["means_restart"] == 0.0 and resolve_config(FitConfig(), cpu).optim.means_restart == 0.0
+    assert cpu.means_restart == 0.0 and resolve_config(FitConfig(), cpu).optim.means_restart == 0.0
     cfg = FitConfig()
     cfg.optim.means_restart = 0.0
     p = make_plan(scene, cfg, torch.device("cuda"))
-    assert p["means_restart"] == 0.0 and p.decisions["means_restart"].overridden
+    assert p.means_restart == 0.0 and "means_restart" in p.overrides
     assert warmup_differences(resolve_config(cfg, p).to_dict(), resolve_config(FitConfig(), gpu).to_dict()) == []
 
 
@@ -166,10 +166,10 @@ def test_reinit_faces_follow_the_pixel_footprint():
     faces, box = {}, {}
     for res in (128, 256):
         p = plan(res)
-        faces[res] = p["reinit_faces"]
-        box[res] = float(re.search(r"\((\d+) footprint", p.decisions["reinit_faces"].reason).group(1))
+        faces[res] = p.reinit_faces
+        box[res] = float(re.search(r"\((\d+) footprint", p.reasons["reinit_faces"]).group(1))
             # a 32-view sphere rig sees each point of the region from 12 views: the full density
-        assert "times 1.00" in p.decisions["reinit_faces"].reason
+        assert "times 1.00" in p.reasons["reinit_faces"]
         # (the reason prints the box rounded to a footprint^2)
         assert faces[res] == pytest.approx(np.clip(_REINIT_DENSITY * box[res], _REINIT_MIN, _REINIT_FACES["cuda"]),
                                            abs=1)
@@ -183,7 +183,7 @@ def test_reinit_faces_follow_the_pixel_footprint():
     cfg = FitConfig()
     cfg.tsdf.max_faces = 1234
     p = plan(64, cfg=cfg)
-    assert p["reinit_faces"] == 1234 and p.decisions["reinit_faces"].overridden
+    assert p.reinit_faces == 1234 and "reinit_faces" in p.overrides
 
 
 def _cameras_around(directions, distance=4.0, resolution=32, fov=0.9):
@@ -240,9 +240,9 @@ def test_reinit_faces_fall_with_the_views_that_see_the_surface():
     for n in (10, 32, 64):
         sc = scenes.from_mesh(mesh, n_views=n, resolution=256).normalized()
         p = make_plan(sc, FitConfig(), dev)
-        box = float(re.search(r"\((\d+) footprint", p.decisions["reinit_faces"].reason).group(1))
+        box = float(re.search(r"\((\d+) footprint", p.reasons["reinit_faces"]).group(1))
         v = views_per_point(sc, analyse_layout(sc))
-        out[n] = (p["reinit_faces"], box, v)
+        out[n] = (p.reinit_faces, box, v)
     f10, box10, v10 = out[10]
     assert 3.0 < v10 < 4.5 and out[32][2] >= _REINIT_VIEWS and out[64][2] > 20
     # between the floor and the cap (the reason prints the box rounded)
@@ -266,15 +266,15 @@ def test_plan_counts_only_the_training_views():
     for sc, n_train in ((split, 18), (held, 18)):
         assert len(sc.cameras) >= _MIN_SH_VIEWS  # all the photographs would pass the rule
         p = make_plan(sc.normalized(), FitConfig(), dev)
-        assert p["sh_degree"] == 0 and f"{n_train} training views" in p.decisions["sh_degree"].reason
-        train, test, _ = _split_views(sc, p["eval_views"])
+        assert p.sh_degree == 0 and f"{n_train} training views" in p.reasons["sh_degree"]
+        train, test, _ = _split_views(sc, p.eval_views)
         sizes = (len(train.cameras), len(test.cameras))
         assert sizes == (n_train, len(sc.cameras) - n_train)
     big = scenes.from_mesh(mesh, n_views=26, resolution=24)  # 22 training views: enough
-    assert "training views" not in make_plan(big.normalized(), FitConfig(), dev).decisions["sh_degree"].reason
+    assert "training views" not in make_plan(big.normalized(), FitConfig(), dev).reasons["sh_degree"]
     few = scenes.from_mesh(mesh, n_views=8, resolution=24)  # under 12 views nothing is held out
     p = make_plan(few.normalized(), FitConfig(), dev)
-    assert p["eval_views"] == 0 and split_views(few, p["eval_views"]) == (list(range(8)), [])
+    assert p.eval_views == 0 and split_views(few, p.eval_views) == (list(range(8)), [])
 
 
 def test_plan_image_statistics_read_only_the_training_photographs():
@@ -302,11 +302,11 @@ def test_plan_image_statistics_read_only_the_training_photographs():
     flat = make_plan(sc.normalized(), FitConfig(), dev)
     held_tex = make_plan(textured(held).normalized(), FitConfig(), dev)
     train_tex = make_plan(textured(~held).normalized(), FitConfig(), dev)
-    assert flat["multiview"] == 0.0 and "shading only" in flat.decisions["multiview"].reason
-    assert flat["sh_degree"] == 0 and "untextured" in flat.decisions["sh_degree"].reason
+    assert flat.multiview == 0.0 and "shading only" in flat.reasons["multiview"]
+    assert flat.sh_degree == 0 and "untextured" in flat.reasons["sh_degree"]
     for name in ("multiview", "sh_degree"):
-        assert held_tex[name] == flat[name] and held_tex.decisions[name].reason == flat.decisions[name].reason
-    assert train_tex["multiview"] > 0 and "untextured" not in train_tex.decisions["sh_degree"].reason
+        assert getattr(held_tex, name) == getattr(flat, name) and held_tex.reasons[name] == flat.reasons[name]
+    assert train_tex.multiview > 0 and "untextured" not in train_tex.reasons["sh_degree"]
 
 
 @pytest.mark.slow
@@ -345,10 +345,10 @@ def test_cpu_budget_grows_with_the_pixels_to_fit():
     n_train = len(obj.train_indices) if obj.train_indices is not None else len(obj)
     warm, coevo = P._ITERATIONS["cpu"]
     k = min(n_train * 128 * 128 / P._CPU_FIT_PIXELS, P._CPU_RENDER_PIXELS / (warm * 128 * 128))
-    assert k > 1.5 and p["warmup_iterations"] == round(warm * k) and p["coevolution_iterations"] == round(coevo * k)
-    assert "training pixels" in p.decisions["warmup_iterations"].reason
+    assert k > 1.5 and p.warmup_iterations == round(warm * k) and p.coevolution_iterations == round(coevo * k)
+    assert "training pixels" in p.reasons["warmup_iterations"]
     # the same rule outside the plan (chunked fits divide the whole scene's budget), any frame
-    assert P.iteration_budget(bare, dev)[:2] == (p["warmup_iterations"], p["coevolution_iterations"])
+    assert P.iteration_budget(bare, dev)[:2] == (p.warmup_iterations, p.coevolution_iterations)
     cfg = FitConfig()
     cfg.warmup.iterations = 123  # an explicit budget is honoured
     assert make_plan(bare.normalized(), cfg, dev)["warmup_iterations"] == 123

@@ -116,8 +116,8 @@ def test_bad_arguments_are_named(plane):
 
 
 def test_a_fit_with_the_term_records_it():
-    """The term joins the fit from its start fraction, finite, with a gradient on the surfels."""
-    mv, res = fit_with_loss_term("multiview", multiview=0.15, multiview_start_fraction=0.3)
+    """The term joins the fit from mid warm-up, finite, with a gradient on the surfels."""
+    mv, res = fit_with_loss_term("multiview", multiview=0.15)
     assert mv, "the multi-view term never ran"
     assert all(np.isfinite(v) and v > 0 for v in mv)
     assert len(res.mesh.faces) > 0
@@ -136,14 +136,14 @@ def test_plan_turns_the_term_on_for_texture_and_off_for_shading_only():
     # window grows as the image shrinks, so the rule is calibrated at the suite's 128 px)
     flat = scenes.from_mesh(ball, n_views=8, resolution=96, texture="flat", seed=0)
     p = make_plan(textured.normalized(), FitConfig(), dev)
-    assert p["multiview"] == 0.15 and "textured" in p.decisions["multiview"].reason
+    assert p.multiview == 0.15 and "textured" in p.reasons["multiview"]
     assert resolve_config(FitConfig(), p).losses.multiview == 0.15
     q = make_plan(flat.normalized(), FitConfig(), dev)
-    assert q["multiview"] == 0.0 and "shading only" in q.decisions["multiview"].reason
+    assert q.multiview == 0.0 and "shading only" in q.reasons["multiview"]
     cfg = FitConfig()
     cfg.losses.multiview = 0.3
     r = make_plan(flat.normalized(), cfg, dev)
-    assert r["multiview"] == 0.3 and r.decisions["multiview"].overridden
+    assert r.multiview == 0.3 and "multiview" in r.overrides
 
 
 def test_prefers_the_true_plane_to_a_wrong_one_and_says_nothing_without_texture(plane):

@@ -66,11 +66,13 @@ def test_only_a_profiled_cuda_fit_synchronises(tiny, device):
 @pytest.mark.slow
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
     not torch.cuda.is_available(), reason="needs CUDA"))])
-def test_profiled_fit_reports_every_stage_within_the_wall_time(tiny, tmp_path, capsys, device):
+def test_profiled_fit_reports_every_stage_within_the_wall_time(tiny, tmp_path, capsys, device, monkeypatch):
     """Print and store the stage table of a tiny fit: every stage, calls, sums within the wall time."""
+    from wtopo.fitting import strategy
+
     cfg = small_fit_config(24, 8, points=300, grids=(32, 40, 32), max_faces=800, density_every=8, eval_every=16,
                            checkpoint_every=16)
-    cfg.densify.start_fraction = 0.0
+    monkeypatch.setattr(strategy, "DENSIFY_START", 0.0)
     cfg.tsdf.backend = "warp"  # the Warp fusion in a fit, end to end
     cfg.runtime.profile = True
     cfg.runtime.device = device

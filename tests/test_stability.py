@@ -56,7 +56,6 @@ def tiny_config(warmup: int = 12, coevolution: int = 6):
     cfg = small_fit_config(warmup, coevolution, points=300, grids=(40, 40, 24), max_faces=800,
                            density_every=max(1, warmup // 3), eval_every=0)
     cfg.runtime.device = "cpu"
-    cfg.runtime.checkpoint_seconds = 0.0
     return cfg
 
 
@@ -171,18 +170,25 @@ def case_tiny_scales() -> str:
 def case_huge_lr() -> str:
     """Every learning rate 1000x the default: the fit stays finite and still makes a mesh."""
     cfg = tiny_config()
-    for f in ("means", "means_final", "quats", "scales", "opacities", "sh_dc", "sh_rest"):
+    from unittest import mock
+
+    from wtopo.fitting import loop
+
+    for f in ("means", "means_final", "quats", "scales", "opacities", "sh_dc"):
         setattr(cfg.optim, f, 1000.0 * getattr(cfg.optim, f))
-    return _check_fit(_fit(sphere_scene(), cfg))
+    with mock.patch.object(loop, "_SH_REST_LR", 1000.0 * loop._SH_REST_LR):
+        return _check_fit(_fit(sphere_scene(), cfg))
 
 
 def case_prune_everything() -> str:
     """Pruning thresholds every surfel falls under still leave surfels and a mesh."""
+    from unittest import mock
+
+    from wtopo.fitting import strategy
+
     cfg = tiny_config()
-    cfg.densify.prune_opacity = 1.0
-    cfg.densify.geometry_prune_opacity = 1.0
-    cfg.densify.geometry_prune_distance = 0.0
-    res = _fit(sphere_scene(), cfg)
+    with mock.patch.multiple(strategy, PRUNE_OPACITY=1.0, _GEOMETRY_PRUNE_OPACITY=1.0, _GEOMETRY_PRUNE_DISTANCE=0.0):
+        res = _fit(sphere_scene(), cfg)
     assert len(res.surfels) > 0, "every surfel was pruned"
     return _check_fit(res)
 
@@ -190,9 +196,12 @@ def case_prune_everything() -> str:
 def case_tsdf_empty() -> str:
     """No pixel passes the TSDF opacity threshold: the fit keeps the warm-up surfels and returns the proxy
     mesh, and warns about both fallbacks."""
+    from unittest import mock
+
+    from wtopo.fitting import stages
+
     cfg = tiny_config()
-    cfg.tsdf.alpha_threshold = 1.5
-    with warnings.catch_warnings(record=True) as caught:
+    with warnings.catch_warnings(record=True) as caught, mock.patch.object(stages, "ALPHA_THRESHOLD", 1.5):
         warnings.simplefilter("always")
         detail = _check_fit(_fit(sphere_scene(), cfg))
     msgs = sorted({str(w.message).split(":")[0] for w in caught if issubclass(w.category, RuntimeWarning)})

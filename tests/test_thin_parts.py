@@ -11,7 +11,7 @@ from test_fit import _config, tiny  # noqa: F401  (the fixture)
 from wtopo import Camera
 from wtopo.fitting.config import MeshConfig
 from wtopo.fitting.proxy import ProxyMesh, ProxyResult
-from wtopo.fitting.thin_parts import thin_cells, thin_parts, thin_share
+from wtopo.fitting.thin_parts import thin_cells, thin_parts
 
 
 def _down_z(width=24, height=20):
@@ -114,18 +114,6 @@ def test_refined_grid_resolves_a_thin_slab():
     assert bool((coarse < limit).all()) and not bool((fine < limit).any())
 
 
-def test_refined_proxy_keeps_the_silhouette_offset_within_its_limit():
-    """``with_resolution`` carries the silhouette offset over, clamped to the finer grid's limit of two
-    of its cells (half the coarse grid's)."""
-    coarse = ProxyMesh(MeshConfig(resolution=64, silhouette_gain=0.1))
-    coarse.silhouette.value = torch.tensor(coarse.silhouette.limit)
-    fine = coarse.with_resolution(128)
-    assert fine.cfg.resolution == 128 and fine.silhouette.limit == 0.5 * coarse.silhouette.limit
-    assert float(fine.silhouette.value) == fine.silhouette.limit
-    coarse.silhouette.value = -0.25 * coarse.silhouette.limit  # within both limits: unchanged
-    assert float(coarse.with_resolution(128).silhouette.value) == -0.25 * coarse.silhouette.limit
-
-
 def test_resumed_fit_keeps_the_decision(tiny, tmp_path):  # noqa: F811
     """A fit stopped in the co-evolution resumes with the decision its checkpoint holds (the surfels
     have moved since, so measuring again could decide otherwise), and reports it."""
@@ -145,18 +133,19 @@ def test_resumed_fit_keeps_the_decision(tiny, tmp_path):  # noqa: F811
     assert sum(e["event"] == "thin_parts" for e in res.report["events"]) == 1, "measured once, before the stop"
 
 
-
 @pytest.mark.slow
-def test_means_thin_decay_acts_only_where_the_rule_refined_the_grid(tiny):  # noqa: F811
-    """``optim.means_thin_decay`` changes a fit whose proxy grid the thin-part rule refined (the surfels move
-    less in the co-evolution) and leaves a fit where the rule did not fire exactly as it was."""
+def test_the_thin_decay_acts_only_where_the_rule_refined_the_grid(tiny, monkeypatch):  # noqa: F811
+    """The thin decay (:data:`wtopo.fitting.schedule.THIN_DECAY`) changes a fit whose proxy grid the thin-part
+    rule refined (the surfels move less in the co-evolution) and leaves a fit where the rule did not fire
+    exactly as it was."""
     from wtopo import fit
+    from wtopo.fitting import loop, schedule
 
     def run(limit, thin_decay):
         cfg = _config(10, 8)
         cfg.coevolution.enabled = True
         cfg.losses.mesh_thin_limit = limit
-        cfg.optim.means_thin_decay = thin_decay
+        monkeypatch.setattr(loop, "means_rate", lambda *a, **k: schedule.means_rate(*a, **k, thin_decay=thin_decay))
         res = fit(tiny, cfg, progress=False)
         return res.surfels.means.detach().clone(), res.report["coevolution"]
 
@@ -168,36 +157,3 @@ def test_means_thin_decay_acts_only_where_the_rule_refined_the_grid(tiny):  # no
     assert "coarse" not in info and info["mesh_terms"] is True
     assert torch.equal(quiet, run(1.0, 0.5)[0])
 
-
-def test_a_probe_grid_measures_first_and_a_fine_proxy_keeps_its_grid(tiny):  # noqa: F811
-    """``losses.mesh_thin_probe``: the rule's first measure is on the probe's grid. Fired, with the proxy at
-    twice the probe's nodes or more, the proxy keeps its grid, its own share decides the mesh terms and the
-    fit counts as refined (``coarse`` holds the probe's measure); not fired, the probe's share is reported
-    and nothing changes. A probe equal to the proxy's grid is the rule without a probe."""
-    from wtopo.fitting.loop import FitRun
-
-    cfg = _config(10, 8)  # a 32^3 proxy
-    cfg.coevolution.enabled = True
-    run = FitRun(tiny, cfg, None, progress=False)
-    run._start()
-    cfg = run.cfg
-
-    def rule(probe, limit):
-        cfg.losses.mesh_thin_probe, cfg.losses.mesh_thin_limit = probe, limit
-        return thin_parts(run.proxy, run.surfels, run.train.cameras, cfg)
-
-    at16 = thin_share(run.proxy.with_resolution(16), run.surfels, run.train.cameras, cfg)
-    at32 = thin_share(run.proxy, run.surfels, run.train.cameras, cfg)
-    assert at16 > 0.0 and at32 > 0.0, "a 10-iteration warm-up leaves thin parts on both grids"
-    fired = rule(16, 0.0)
-    assert fired == {"thin_share": at32, "resolution": 32, "limit": 0.0, "mesh_terms": False,
-                     "coarse": {"resolution": 16, "thin_share": at16}}
-    quiet = rule(16, 1.0)
-    assert quiet == {"thin_share": at16, "resolution": 32, "limit": 1.0, "mesh_terms": True, "probe": 16}
-    refined = rule(8, 0.0)  # 2 x 8 < 32: the proxy keeps 32
-    assert refined["resolution"] == 32 and refined["coarse"]["resolution"] == 8
-    assert rule(32, 0.0) == rule(None, 0.0) and rule(32, 0.0)["resolution"] == 64
-    run.coevolution_info = {}
-    cfg.losses.mesh_thin_probe, cfg.losses.mesh_thin_limit = 16, 0.0
-    run._thin_parts()
-    assert run.proxy.cfg.resolution == 32 and "coarse" in run.coevolution_info  # means_thin_decay applies

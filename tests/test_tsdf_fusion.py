@@ -312,13 +312,13 @@ def test_plan_picks_the_backend_by_device(monkeypatch):
     cpu = make_plan(sc, FitConfig(), torch.device("cpu"))
     gpu = make_plan(sc, FitConfig(), torch.device("cuda"))
     on_cpu = "open3d" if importlib.util.find_spec("open3d") is not None else "warp"
-    assert cpu["tsdf_backend"] == on_cpu and "CPU" in cpu.decisions["tsdf_backend"].reason
-    assert gpu["tsdf_backend"] == "warp" and "CUDA" in gpu.decisions["tsdf_backend"].reason
+    assert cpu.tsdf_backend == on_cpu and "CPU" in cpu.reasons["tsdf_backend"]
+    assert gpu.tsdf_backend == "warp" and "CUDA" in gpu.reasons["tsdf_backend"]
     assert resolve_config(FitConfig(), gpu).tsdf.backend is TSDFBackend.WARP
     cfg = FitConfig()
     cfg.tsdf.backend = "warp"
     p = make_plan(sc, cfg, torch.device("cpu"))
-    assert p["tsdf_backend"] == "warp" and p.decisions["tsdf_backend"].overridden
+    assert p.tsdf_backend == "warp" and "tsdf_backend" in p.overrides
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "open3d" else real(name, *a))
     assert make_plan(sc, FitConfig(), torch.device("cpu"))["tsdf_backend"] == "warp"

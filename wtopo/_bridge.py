@@ -107,8 +107,8 @@ def recover_after_oom(device: torch.device | str) -> None:
 
     With Warp 1.19, the first radix sort on a CUDA device after ``wp_alloc_device_async`` ran out of
     memory fails inside CUB (``invalid device ordinal`` while sizing its buffer) and returns its keys
-    unsorted, saying so only on stderr; the next sort works (measured on an H200:
-    ``benchmarks/gpu.md``). Every surfel render sorts, so a fit that goes on after such a failure (the
+    unsorted, saying so only on stderr; the next sort works (measured on an H200). Every surfel render sorts,
+    so a fit that goes on after such a failure (the
     final re-mesh's fallback to the CPU) would composite one image out of depth order. A checked sort
     of two pairs takes that failure instead; raises ``RuntimeError`` when the sort still fails after
     three tries. A no-op on the CPU.

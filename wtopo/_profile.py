@@ -1,9 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
 """Named wall-clock sections with self time: the project's one profiler.
 
-Collected by the per-stage times of :func:`wtopo.fit` and by the benchmarks
-(``benchmarks/bench_rasterize.py`` reads the rasterizer's ``rasterize_binning``, ``rasterize_sort``,
-``rasterize_forward`` and ``rasterize_backward`` sections).
+Collected by the per-stage times of :func:`wtopo.fit` and by benchmark scripts (the rasterizer's
+``rasterize_binning``, ``rasterize_sort``, ``rasterize_forward`` and ``rasterize_backward`` sections).
 
 ``section(name)`` costs one context-variable lookup when nothing collects. Inside a collecting
 section (one opened with ``add=``, as the fit's timers do), every nested section reports its

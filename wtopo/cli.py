@@ -7,7 +7,7 @@ Examples::
     wtopo fit bunny --out runs/bunny
     wtopo fit path/to/dataset --out runs/x --iterations 2000 --device cuda
     wtopo fit path/to/photos --out runs/p    # images only: camera poses by structure from motion
-    wtopo fit bunny --out runs/b --set losses.mask=0.5 --set final.method=proxy
+    wtopo fit bunny --out runs/b --set losses.mask=0.5 --set mesh.sigma=0.5
     wtopo report runs/bunny
     wtopo export runs/bunny runs/bunny/final.obj
 """
@@ -67,7 +67,6 @@ _OVERRIDES = (
     ("normal_flip", "mesh", "normal_flip"),
     ("samples_per_surfel", "mesh", "samples_per_surfel"),
     ("proxy_resolution", "mesh", "resolution"),
-    ("poisson_resolution", "final", "poisson_resolution"),
 )
 
 
@@ -83,13 +82,15 @@ def _parse_value(text: str):
 
 def _apply_set(cfg, item: str) -> None:
     """Apply one ``--set PATH=VALUE`` (dotted FitConfig path, e.g. ``losses.mask=0.5``)."""
-    from .fitting.config import set_field
+    from .fitting.config import RemovedFieldError, set_field
 
     path, sep, text = item.partition("=")
     if not sep or not path:
         raise ValueError(f"--set takes PATH=VALUE (e.g. losses.mask=0.5), got {item!r}")
     try:
         set_field(cfg, path.strip(), _parse_value(text))
+    except RemovedFieldError:
+        raise  # names the field already, and keeps its type
     except ValueError as e:
         raise ValueError(f"--set: {e}") from None
 
@@ -220,16 +221,13 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--samples-per-surfel", type=int, choices=[1, 5])
     f.add_argument("--proxy-resolution", type=int, metavar="N",
                    help="grid nodes per side of the co-evolving proxy mesh's Poisson solve (mesh.resolution)")
-    f.add_argument("--poisson-resolution", type=int, metavar="N",
-                   help="grid nodes per side of the final Poisson mesh, built with --set final.method=proxy or "
-                        "when the TSDF fusion is empty (final.poisson_resolution)")
     f.add_argument("--preset", choices=["default", "toposurfel-public"], default="default",
                    help="toposurfel-public: the public TopoSurfel code's settings where supported")
     f.add_argument("--config", metavar="FILE.json",
                    help="start from a FitConfig saved as JSON (a run's config.json or FitConfig.to_dict())")
     f.add_argument("--set", action="append", metavar="PATH=VALUE",
                    help="set any FitConfig field by its dotted path, after the other flags (repeatable), "
-                        "e.g. --set losses.mask=0.5 --set final.method=proxy")
+                        "e.g. --set losses.mask=0.5 --set mesh.sigma=0.5")
     f.add_argument("--profile", action="store_true",
                    help="print the time per stage at the end (runtime.profile; report.json 'profile'); on CUDA "
                         "each stage then synchronises the device")

@@ -152,7 +152,7 @@ def fit_surfels(scene, config, *, out_dir, progress: bool = True):
 
     run = _NoFinalMesh(scene, config, out_dir, progress)
     mesh = run.run()
-    result = FitResult(mesh=mesh, surfels=run.surfels, plan=run.plan.to_dict(), history=run.history)
+    result = FitResult(mesh=mesh, surfels=run.surfels, plan=run.plan, history=run.history)
     result.report = _report(run, mesh, scene)
     _write_outputs(Path(out_dir), result, run)
     return result

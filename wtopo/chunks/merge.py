@@ -205,14 +205,13 @@ def refuse_resolution(plan: ChunkPlan, resolutions: dict) -> int:
     return int(min(MAX_REFUSE_RESOLUTION, max(max(resolutions.values()), math.ceil(need - 1e-9))))
 
 
-def _core_renderer(base, plan: ChunkPlan, sim, views: dict, which):
+def _core_renderer(base, plan: ChunkPlan, sim, views: dict):
     """A :class:`wtopo.fitting.stages.Renderer` that renders as ``base`` does and then sets alpha to 0 on
-    the pixels whose surface (the ``which`` rendered z-depth, back-projected) lies in the core of a
+    the pixels whose surface (the rendered median z-depth, back-projected) lies in the core of a
     chunk the view did not fit. ``views``: ``{id(camera): bool tensor [chunks]}``, the chunks each
     (internal-frame) camera was given; other cameras render unchanged."""
     import torch
 
-    from ..fitting.config import RenderedDepth
     from ..fitting.stages import Renderer
 
     # the region of interest in the internal frame (the similarity only scales and shifts), on the device once
@@ -225,7 +224,7 @@ def _core_renderer(base, plan: ChunkPlan, sim, views: dict, which):
             allowed = views.get(id(camera))
             if allowed is None:
                 return out
-            z = out.median_depth if which == RenderedDepth.MEDIAN else out.depth
+            z = out.median_depth
             o, d = camera.pixel_rays(z.device)
             owner = grid_owner(o + d * z[..., None], lo, hi, plan.grid)
             return dataclasses.replace(out, alpha=torch.where(allowed[owner], out.alpha, torch.zeros_like(out.alpha)))
@@ -305,7 +304,7 @@ def refuse_mesh(scene, surfels, config, *, resolution: int, device: str = "cpu",
     fplan = make_plan(internal, user, dev)
     cfg = resolve_config(user, fplan)
     train = range(len(internal)) if internal.train_indices is None else internal.train_indices
-    scale = float(fplan["image_scale"])
+    scale = float(cfg.runtime.image_scale)
     cams = [internal.cameras[int(i)] for i in train]
     cams = [c.scaled(scale) for c in cams] if scale < 1.0 else cams
     t = lambda a: torch.as_tensor(np.asarray(a, np.float32), device=dev)  # noqa: E731
@@ -313,7 +312,7 @@ def refuse_mesh(scene, surfels, config, *, resolution: int, device: str = "cpu",
     s = Surfels(means=t(sim.to_internal(np.asarray(means, np.float64))), quats=t(quats),
                 log_scales=torch.log(t(np.asarray(scales, np.float64) * sim.scale).clamp_min(1e-12)),
                 opacity_logits=torch.logit(t(opacities), eps=1e-6), sh_dc=t(sh[:, :1]), sh_rest=t(sh[:, 1:]))
-    render = Renderer(torch.tensor(fplan["background"], dtype=torch.float32, device=dev),
+    render = Renderer(torch.tensor(cfg.background, dtype=torch.float32, device=dev),
                       RasterConfig(filter_sigma=cfg.filter_sigma))
     layout = fplan.layout
     if plan is not None:
@@ -323,7 +322,7 @@ def refuse_mesh(scene, surfels, config, *, resolution: int, device: str = "cpu",
                 given.setdefault(int(i), set()).add(ch.index)
         mask = lambda i: torch.as_tensor([k in given.get(int(i), ()) for k in range(len(plan.chunks))],  # noqa: E731
                                          device=dev)
-        render = _core_renderer(render, plan, sim, {id(c): mask(i) for i, c in zip(train, cams)}, cfg.tsdf.depth)
+        render = _core_renderer(render, plan, sim, {id(c): mask(i) for i, c in zip(train, cams)})
         # the near-camera distance the chunks meshed with, not the whole scene's (chunk_near)
         layout = dataclasses.replace(layout, near=min(layout.near, sim.scale * chunk_near(scene, plan)))
     events, tsdf_info = [], {}
@@ -336,7 +335,7 @@ def refuse_mesh(scene, surfels, config, *, resolution: int, device: str = "cpu",
     prof = timers.profile(time.perf_counter() - t0)
     bounds = tsdf_info.get("final_bounds")
     info = {"method": "refuse", "resolution": int(resolution), "views": len(cams), "surfels": int(len(means)),
-            "views_per_chunk_core": plan is not None, "scene_kind": fplan["scene_kind"],
+            "views_per_chunk_core": plan is not None, "scene_kind": cfg.kind.value,
             "near": float(sim.length_to_world(layout.near)),
             "tsdf_backend": str(cfg.tsdf.backend.value),
             "voxel": None if bounds is None else float(sim.length_to_world(bounds["voxel"])),

@@ -35,12 +35,10 @@ Modules:
 
 from .api import FitResult, fit
 from .config import (
-    Closure,
     CoevolutionConfig,
     DensifyConfig,
     DepthLoss,
     FinalConfig,
-    FinalMethod,
     FitConfig,
     InitConfig,
     InitSource,
@@ -49,7 +47,7 @@ from .config import (
     NormalFlip,
     OptimConfig,
     PoissonBox,
-    RenderedDepth,
+    RemovedFieldError,
     RuntimeConfig,
     TSDFBackend,
     TSDFConfig,
@@ -63,7 +61,7 @@ from .surfels import Surfels
 __all__ = [
     "fit", "FitResult", "FitConfig", "FitAborted", "Plan", "Surfels", "InitConfig", "OptimConfig", "WarmupConfig",
     "TSDFConfig", "CoevolutionConfig", "FinalConfig", "DensifyConfig", "LossConfig", "MeshConfig",
-    "RuntimeConfig", "NormalFlip", "DepthLoss", "InitSource", "RenderedDepth", "FinalMethod", "Closure", "PoissonBox",
-    "TSDFBackend", "SceneKind",
+    "RuntimeConfig", "NormalFlip", "DepthLoss", "InitSource", "PoissonBox", "TSDFBackend",
+    "SceneKind", "RemovedFieldError",
 ]
 

@@ -17,6 +17,7 @@ from .checkpoint import versions
 from .config import FitConfig
 from .evaluate import geometry_metrics
 from .loop import FitRun
+from .plan import Plan
 from .profiling import format_profile
 from .surfels import Surfels
 from .validate_config import validate_config
@@ -32,7 +33,8 @@ class FitResult:
         mesh: the final mesh, in the scene's (the caller's) frame.
         surfels: the fitted surfels, in the internal frame (``report["normalization"]`` maps them back;
             ``surfels.ply`` in ``out_dir`` holds them in the caller's frame).
-        plan: the stage plan, ``{name: {"value", "reason", "overridden"}}``.
+        plan: the stage plan (:class:`~wtopo.fitting.plan.Plan`): ``print(result.plan)`` says which stages
+            ran and why; ``plan.json`` in ``out_dir`` is its :meth:`~wtopo.fitting.plan.Plan.to_dict`.
         history: one record per evaluation (iteration, stage, elapsed, stage_times, losses,
             surfels, proxy_faces, held-out psnr / ssim and, with a ground-truth mesh, chamfer / f_score).
         report: summary (status, times, counts, final metrics, mesh statistics, versions; with
@@ -41,7 +43,7 @@ class FitResult:
 
     mesh: trimesh.Trimesh
     surfels: Surfels
-    plan: dict
+    plan: Plan
     history: list[dict]
     report: dict = field(default_factory=dict)
 
@@ -87,7 +89,7 @@ def _report(run: FitRun, mesh_world: trimesh.Trimesh, scene) -> dict:
         "versions": versions(),
         "events": run.events[-50:],
     }
-    rep["scene_kind"] = run.plan["scene_kind"]
+    rep["scene_kind"] = run.cfg.kind.value
     if run.cfg.runtime.profile:
         rep["profile"] = run.timers.profile(time.perf_counter() - run.t_start)
     for k in ("psnr", "ssim", "image_metrics_on", "chamfer", "f_score", "accuracy", "completeness"):
@@ -120,7 +122,7 @@ def _write_outputs(out: Path, result: FitResult, run: FitRun) -> None:
                       s.quats.detach().cpu().numpy(), sim.length_to_world(s.scales.detach().cpu().double().numpy()),
                       s.opacities.detach().cpu().numpy(), s.sh.detach().cpu().numpy())
     _atomic_json(out / "history.json", result.history)
-    _atomic_json(out / "plan.json", result.plan)
+    _atomic_json(out / "plan.json", result.plan.to_dict())
     _atomic_json(out / "report.json", result.report)
     _atomic_json(out / "config.json", run.cfg.to_dict())
 
@@ -174,7 +176,7 @@ def fit(scene, config: FitConfig | None = None, *, out_dir: str | os.PathLike | 
     run = FitRun(scene, cfg, out_dir, progress)
     mesh_int = run.run()
     mesh = run.sim.to_world(mesh_int)
-    result = FitResult(mesh=mesh, surfels=run.surfels, plan=run.plan.to_dict(), history=run.history)
+    result = FitResult(mesh=mesh, surfels=run.surfels, plan=run.plan, history=run.history)
     result.report = _report(run, mesh, scene)
     if out_dir is not None:
         _write_outputs(Path(out_dir), result, run)

@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from .checkpoint import CheckpointError, list_checkpoints, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from .proxy import ProxyMesh, region_clip
@@ -26,8 +25,10 @@ if TYPE_CHECKING:
 
 __all__ = ["Checkpointer", "AFTER_WARMUP", "DECAY_HORIZON", "RUNTIME_COMPARED", "warmup_differences"]
 
-AFTER_WARMUP = ("coevolution.enabled", "final.", "mesh.", "losses.mesh_", "densify.geometry_", "optim.means_restart",
-                "optim.means_restart_along_normal", "optim.means_thin_decay")
+KEEP_CHECKPOINTS = 2  # checkpoints kept on disk: the newest, and one to fall back on if it is corrupt
+CHECKPOINT_SECONDS = 120.0  # also checkpoint when this much wall-clock time passed since the last one
+
+AFTER_WARMUP = ("coevolution.enabled", "final.", "mesh.", "losses.mesh_", "densify.geometry_", "optim.means_restart")
 """Configuration fields (dotted paths, or prefixes ending in ``.`` or ``_``) that act only after the warm-up:
 two fits that differ only in these share their warm-up, so one may start from the other's
 (``runtime.start_from``). Of ``runtime`` only :data:`RUNTIME_COMPARED` is compared. ``coevolution.iterations``
@@ -106,8 +107,7 @@ class Checkpointer:
             "generator": r.gen.get_state(), "config_hash": r.hash, "config": r.cfg.to_dict(),
             "normalization": {"scale": r.sim.scale, "translation": list(r.sim.translation)},
             "proxy": {"box": None if r.proxy.box is None else [np.asarray(b).tolist() for b in r.proxy.box],
-                      "prior": r.proxy.prior,
-                      "silhouette": None if r.proxy.silhouette is None else float(r.proxy.silhouette.value)},
+                      "prior": r.proxy.prior},
             "tsdf_info": r.tsdf_info, "coevolution_info": r.coevolution_info, "total_failures": r.total_failures,
         }
 
@@ -120,15 +120,15 @@ class Checkpointer:
         if not force:
             r.snapshot()
         with r.timers("checkpoint"):
-            path = save_checkpoint(self.directory, r.it, self.state(), keep=max(2, r.cfg.runtime.keep_checkpoints))
+            path = save_checkpoint(self.directory, r.it, self.state(), keep=KEEP_CHECKPOINTS)
         self._last_time = time.perf_counter()
         return path
 
     def maybe_save(self) -> None:
-        """Checkpoint when ``runtime.checkpoint_every`` iterations or ``checkpoint_seconds`` have passed."""
+        """Checkpoint when ``runtime.checkpoint_every`` iterations or :data:`CHECKPOINT_SECONDS` have passed."""
         rt, it = self.run.cfg.runtime, self.run.it
         due = (rt.checkpoint_every and it % rt.checkpoint_every == 0) or (
-            rt.checkpoint_seconds and time.perf_counter() - self._last_time > rt.checkpoint_seconds)
+            CHECKPOINT_SECONDS and time.perf_counter() - self._last_time > CHECKPOINT_SECONDS)
         if due:
             self.save()
 
@@ -204,5 +204,3 @@ class Checkpointer:
         px = st["proxy"]
         r.proxy = ProxyMesh(r.cfg.mesh, box=None if px["box"] is None else tuple(np.asarray(b) for b in px["box"]),
                             prior=px["prior"], clip=region_clip(r.cfg.mesh, r.plan.layout))
-        if r.proxy.silhouette is not None and px.get("silhouette"):
-            r.proxy.silhouette.value = torch.tensor(float(px["silhouette"]), device=r.device)

@@ -8,8 +8,8 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass, field
 
-__all__ = ["Range", "RATE", "FRACTION", "OPEN_UNIT", "COUNT", "POSITIVE", "NormalFlip", "DepthLoss", "InitSource",
-           "RenderedDepth", "FinalMethod", "Closure", "PoissonBox", "TSDFBackend"]
+__all__ = ["Range", "RATE", "FRACTION", "COUNT", "POSITIVE", "NormalFlip", "DepthLoss", "InitSource",
+           "PoissonBox", "TSDFBackend"]
 
 
 @dataclass(frozen=True)
@@ -38,7 +38,6 @@ class Range:
 
 RATE = Range(0.0)  # a learning rate or loss weight: finite and >= 0
 FRACTION = Range(0.0, 1.0)  # a fraction, opacity threshold or weight in [0, 1]
-OPEN_UNIT = Range(0.0, 1.0, lo_open=True, hi_open=True)  # an opacity that goes through a logit
 COUNT = Range(0)  # iterations, intervals where 0 disables, counts
 POSITIVE = Range(1)  # intervals and counts that must be at least 1
 
@@ -83,34 +82,6 @@ class InitSource(str, enum.Enum):
     as oriented points."""
     CAMERAS = "cameras"
     """Random points in the cameras' common volume."""
-
-
-class RenderedDepth(str, enum.Enum):
-    """Which rendered surfel depth a stage uses."""
-
-    MEDIAN = "median"
-    """Where the transmittance crosses 0.5: the visible surface."""
-    EXPECTED = "expected"
-    """Alpha-weighted mean over the ray (averages in semi-transparent layers behind the surface)."""
-
-
-class FinalMethod(str, enum.Enum):
-    """How the returned mesh is built (:class:`FinalConfig`)."""
-
-    TSDF = "tsdf"
-    """TSDF fusion of the rendered surfel depth of every training view."""
-    PROXY = "proxy"
-    """The Poisson proxy mesh of the final surfels (closed by construction)."""
-
-
-class Closure(str, enum.Enum):
-    """How an object's final mesh is closed where the views left it open (:class:`FinalConfig`)."""
-
-    CARVE = "carve"
-    """Space carving in the TSDF fusion (:func:`wtopo.tsdf_fusion.fuse_tsdf` with ``close``): unobserved
-    space that no view's ray crossed empty counts as inside; the observed surface is kept as fused."""
-    POISSON = "poisson"
-    """Re-mesh the whole open TSDF mesh by Poisson of its area samples (smooths it everywhere)."""
 
 
 class PoissonBox(str, enum.Enum):

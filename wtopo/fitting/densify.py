@@ -19,7 +19,7 @@ import math
 
 import torch
 
-from .config import DensifyConfig, NormalFlip
+from .config import NormalFlip
 from .surfels import Surfels, normals_to_quats
 
 __all__ = [
@@ -37,6 +37,12 @@ __all__ = [
 
 MIN_SURFELS = 16
 """Prunes never leave fewer surfels than this (a zero-size backward is never entered)."""
+GRAD_THRESHOLD = 5e-4
+"""Mean screen-space gradient norm (NDC units) above which a surfel is cloned or split (3DGS: 2e-4)."""
+PERCENT_DENSE = 0.01
+"""Surfels larger than this fraction of the scene extent are split, smaller ones cloned (3DGS's value)."""
+MAX_GROWTH = 0.5
+"""One clone/split step adds at most this fraction of the current count (largest gradients first)."""
 
 
 def accumulate_gradients(surfels: Surfels, means2d_grad: torch.Tensor, visible: torch.Tensor,
@@ -87,17 +93,22 @@ def prune_by_opacity(surfels: Surfels, threshold: float, *, max_scale: float | N
     return removed
 
 
-def clone_and_split(surfels: Surfels, cfg: DensifyConfig, extent: float, max_surfels: int,
-                    generator: torch.Generator | None = None) -> tuple[int, int]:
-    """3DGS densification: surfels with a mean screen-space gradient above the threshold are cloned
+def clone_and_split(surfels: Surfels, extent: float, max_surfels: int, generator: torch.Generator | None = None, *,
+                    grad_threshold: float | None = None, percent_dense: float | None = None,
+                    max_growth: float | None = None) -> tuple[int, int]:
+    """3DGS densification: surfels with a mean screen-space gradient above ``grad_threshold`` are cloned
     (small) or split (large, scale > ``percent_dense * extent``). The count never exceeds
-    ``max_surfels`` and grows by at most ``cfg.max_growth`` per call: the largest gradients go first.
-    Resets the accumulators. Returns (cloned, split)."""
+    ``max_surfels`` and grows by at most ``max_growth`` per call: the largest gradients go first.
+    ``None``: :data:`GRAD_THRESHOLD`, :data:`PERCENT_DENSE`, :data:`MAX_GROWTH`. Resets the accumulators.
+    Returns (cloned, split)."""
+    grad_threshold = GRAD_THRESHOLD if grad_threshold is None else grad_threshold
+    percent_dense = PERCENT_DENSE if percent_dense is None else percent_dense
+    max_growth = MAX_GROWTH if max_growth is None else max_growth
     b = surfels.buffers
     mean_grad = b["grad_accum"] / b["grad_count"].clamp_min(1.0)
-    big = surfels.scales.detach().max(dim=-1).values > cfg.percent_dense * extent
-    cand = mean_grad >= cfg.grad_threshold
-    room = max(0, min(max_surfels - len(surfels), int(cfg.max_growth * len(surfels))))
+    big = surfels.scales.detach().max(dim=-1).values > percent_dense * extent
+    cand = mean_grad >= grad_threshold
+    room = max(0, min(max_surfels - len(surfels), int(max_growth * len(surfels))))
     if int(cand.sum()) > room:
         score = torch.where(cand, mean_grad, torch.full_like(mean_grad, -1.0))
         sel = torch.zeros_like(cand)
@@ -149,12 +160,8 @@ def geometry_prune(surfels: Surfels, distance: torch.Tensor, *, max_distance: fl
 
 def geometry_densify(surfels: Surfels, verts: torch.Tensor, faces: torch.Tensor, nearest_face: torch.Tensor, *,
                      max_new: int, max_surfels: int, opacity: float = 0.1,
-                     generator: torch.Generator | None = None, candidates: torch.Tensor | None = None,
-                     covered: torch.Tensor | None = None) -> int:
-    """Spawn one surfel on each proxy face that is no surfel's nearest face (among ``candidates``,
-    bool [F], when given: e.g. the faces :meth:`~wtopo.fitting.proxy.ProxyMesh.supported` keeps).
-    ``covered`` (bool [F]), when given, replaces the nearest-face rule: the faces that need no surfel
-    (e.g. :meth:`~wtopo.fitting.proxy.ProxyMesh.near_surfels`).
+                     generator: torch.Generator | None = None) -> int:
+    """Spawn one surfel on each proxy face that is no surfel's nearest face.
 
     The new surfel sits at the face centroid, its normal is the face normal, its scale comes from
     the face area and its colour from the surfel nearest to the centroid. At most ``max_new``
@@ -163,14 +170,9 @@ def geometry_densify(surfels: Surfels, verts: torch.Tensor, faces: torch.Tensor,
     nf = faces.shape[0]
     if nf == 0 or len(surfels) == 0:
         return 0
-    if covered is None:
-        covered = torch.zeros(nf, dtype=torch.bool, device=faces.device)
-        ok = nearest_face >= 0
-        covered[nearest_face[ok].long()] = True
-    else:
-        covered = covered.clone()
-    if candidates is not None:
-        covered |= ~candidates
+    covered = torch.zeros(nf, dtype=torch.bool, device=faces.device)
+    ok = nearest_face >= 0
+    covered[nearest_face[ok].long()] = True
     idx = torch.nonzero(~covered).flatten()
     budget = min(max_new, max(0, max_surfels - len(surfels)))
     if idx.numel() == 0 or budget == 0:

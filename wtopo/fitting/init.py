@@ -19,7 +19,11 @@ from .._region import carve
 from .config import InitConfig, InitSource
 from .surfels import Surfels
 
-__all__ = ["initial_surfels", "common_volume_points", "projected_colors", "spread_subset", "MIN_MVS_POINTS"]
+__all__ = ["initial_surfels", "common_volume_points", "projected_colors", "spread_subset", "MIN_MVS_POINTS",
+           "INIT_OPACITY"]
+
+INIT_OPACITY = 0.3
+"""Opacity of every initial surfel (scene points, stereo, random and background ones), in (0, 1)."""
 
 _CPU_STEREO_VIEWS = 24  # views a CPU fit sweeps (evenly spaced): the points are thinned to num_points anyway
 MIN_MVS_POINTS = 100  # fewer confirmed stereo points than this: the capture is too untextured, use CAMERAS
@@ -164,4 +168,4 @@ def initial_surfels(scene, cfg: InitConfig, source: InitSource | str, *, sh_degr
                                scales=torch.as_tensor(scale, dtype=torch.float32, device=device),
                                normals=None if normals is None else torch.as_tensor(normals, dtype=torch.float32,
                                                                                      device=device),
-                               opacity=cfg.opacity, sh_degree=sh_degree, generator=generator)
+                               opacity=INIT_OPACITY, sh_degree=sh_degree, generator=generator)

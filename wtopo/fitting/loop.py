@@ -25,13 +25,13 @@ from .background import BackgroundState, background_surfels, contract_steps, pru
 from .checkpointing import Checkpointer
 from .config import FitConfig, config_hash
 from .evaluate import Evaluator
-from .init import initial_surfels
+from .init import INIT_OPACITY, initial_surfels
 from .objective import LossLog, Objective
 from .plan import Plan, make_plan, resolve_config, split_views
 from .profiling import Timers
 from .progress import StageBar, StopRequest
 from .proxy import ProxyMesh, ProxyResult, region_clip
-from .schedule import damp_in_plane_steps, means_rate
+from .schedule import means_rate
 from .stages import Renderer, Stage, final_mesh, tsdf_reinit
 from .strategy import DensityStrategy, StepInfo
 from .surfels import Surfels
@@ -41,6 +41,8 @@ from .timeline import FitTimeline
 __all__ = ["FitRun", "FitAborted"]
 
 _SNAPSHOT_EVERY = 25  # iterations between in-memory "last good" snapshots
+MAX_CONSECUTIVE_FAILURES = 20  # non-finite steps in a row after which the fit aborts (with a checkpoint)
+_SH_REST_LR = 5e-4  # learning rate of the higher SH bands: 1/20 of the DC rate, as 3DGS
 
 
 class FitAborted(RuntimeError):
@@ -56,7 +58,7 @@ def _resolve_device(name: str) -> torch.device:
 def _lrs(cfg: FitConfig) -> dict[str, float]:
     o = cfg.optim
     return {"means": o.means, "quats": o.quats, "log_scales": o.scales, "opacity_logits": o.opacities,
-            "sh_dc": o.sh_dc, "sh_rest": o.sh_rest}
+            "sh_dc": o.sh_dc, "sh_rest": _SH_REST_LR}
 
 
 def _split_views(sc, eval_views: int):
@@ -100,15 +102,15 @@ class FitRun:
         self.plan: Plan = make_plan(internal, cfg, self.device)
         user_cfg, cfg = cfg, resolve_config(cfg, self.plan)  # fields left to the plan (None) filled in
         self.cfg = cfg
-        scale = float(self.plan["image_scale"])
+        scale = float(cfg.runtime.image_scale)
         if scale < 1.0:
             internal = internal.downscaled(1.0 / scale)
-        self.train, self.test, held_out = _split_views(internal, self.plan["eval_views"])
+        self.train, self.test, held_out = _split_views(internal, self.plan.eval_views)
         self.hash = config_hash(user_cfg)
         self.gen = torch.Generator().manual_seed(cfg.runtime.seed)
         from ..rasterize import RasterConfig
 
-        bg = torch.tensor(self.plan["background"], dtype=torch.float32, device=self.device)
+        bg = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         self.render = Renderer(bg, RasterConfig(filter_sigma=cfg.filter_sigma))
         self.it = 0
         self.tsdf_done = False
@@ -125,15 +127,15 @@ class FitRun:
         self.surfels: Surfels | None = None
         self.opt: torch.optim.Adam | None = None
         self.last_good: tuple[dict, dict] | None = None  # (surfel, optimiser) state dicts of the last good step
-        self.objective = Objective(cfg, self.train, render=self.render, mask_weight=float(self.plan["mask_loss"]),
+        self.objective = Objective(cfg, self.train, render=self.render, mask_weight=float(cfg.losses.mask),
                                    warmup_end=self.warmup_end, timers=self.timers,
                                    roi_center=self.plan.layout.roi_center)
         # scenes keep a background: contracted steps outside the region, nothing on the lenses
-        self.background = BackgroundState(self.plan.layout, self.device) if self.plan["background_rule"] else None
-        self.strategy = DensityStrategy(cfg, densify=bool(self.plan["densify"]), warmup_end=self.warmup_end,
+        self.background = BackgroundState(self.plan.layout, self.device) if self.plan.background_rule else None
+        self.strategy = DensityStrategy(cfg, densify=bool(cfg.densify.enabled), warmup_end=self.warmup_end,
                                         generator=self.gen, record=self.record, timers=self.timers,
                                         background=self.background)
-        self.evaluator = Evaluator(self.test, internal.gt_mesh, render=self.render, enabled=self.plan["gt_metrics"],
+        self.evaluator = Evaluator(self.test, internal.gt_mesh, render=self.render, enabled=self.plan.gt_metrics,
                                    seed=cfg.runtime.seed, images=cfg.runtime.eval_metrics, held_out=held_out)
         self.checkpoints = Checkpointer(self, self.out_dir)
         self.stop = StopRequest(lambda signum: self.record("signal", signal=signum))
@@ -182,14 +184,13 @@ class FitRun:
         self.opt = self.surfels.optimizer(_lrs(self.cfg))
         self.opt.load_state_dict(od)
 
-    def _update_lr(self) -> float:
-        """Set the means' rate for this iteration; returns the scale of a step's in-plane part."""
-        lr, in_plane = means_rate(self.cfg.optim, self.it, self.warmup_end, self.total_iterations,
-                                  thin="coarse" in self.coevolution_info)
+    def _update_lr(self) -> None:
+        """Set the means' rate for this iteration."""
+        lr = means_rate(self.cfg.optim, self.it, self.warmup_end, self.total_iterations,
+                        thin="coarse" in self.coevolution_info)
         for g in self.opt.param_groups:
             if g["name"] == "means":
                 g["lr"] = lr
-        return in_plane
 
     # -- one iteration ---------------------------------------------------------------------------------
     def _failure(self, why: str, terms: dict[str, float]) -> None:
@@ -198,7 +199,7 @@ class FitRun:
         self.record("non_finite", why=why, terms=terms)
         self.opt.zero_grad(set_to_none=True)
         self._restore()
-        if self.failures >= self.cfg.runtime.max_consecutive_failures:
+        if self.failures >= MAX_CONSECUTIVE_FAILURES:
             self.status = "aborted"
             path = self.checkpoints.save(force=True)
             raise FitAborted(f"{self.failures} consecutive non-finite steps at iteration {self.it} ({why}); "
@@ -208,12 +209,8 @@ class FitRun:
         vi = self._view(self.it)
         mask = None if self.train.masks is None else self.train.masks[vi]
         # the binning sizes its buffers from earlier views (no read of this view's pair count); an
-        # overflow, read below with the losses, renders the view again with the exact count (what the
-        # first call folded into running state is undone first: the step counts once)
-        undo = self.objective.retry_point(self.proxy)
+        # overflow, read below with the losses, renders the view again with the exact count
         for defer in (True, False):
-            if not defer:
-                undo()
             t = self.objective(stage, self.it, vi, self.surfels, self.proxy, defer_count=defer)
             info = StepInfo(stage, t.render, t.covered, mask, self.train.cameras[vi])
             extra = [self.strategy.coverage_counts(info)]
@@ -241,14 +238,11 @@ class FitRun:
             self._failure("gradient", {k: float("nan") for k in bad})
             return
         with self.timers("optimizer"):
-            in_plane = self._update_lr()
-            before = self.surfels.means.detach().clone() if self.background is not None or in_plane < 1.0 else None
-            normals = self.surfels.normals() if in_plane < 1.0 else None  # detached
+            self._update_lr()
+            before = self.surfels.means.detach().clone() if self.background is not None else None
             self.opt.step()
             if self.background is not None:
                 contract_steps(self.surfels.means, before, self.background.step_scale(before))
-            if normals is not None:
-                damp_in_plane_steps(self.surfels.means, before, normals, in_plane)
         if not self.surfels.is_finite():
             self._failure("parameters", {})
             return
@@ -293,13 +287,13 @@ class FitRun:
         resumed = self.checkpoints.resume()
         if not resumed:
             with self.timers("init"):
-                s = initial_surfels(self.train, self.cfg.init, self.plan["init_source"],
-                                    sh_degree=int(self.plan["sh_degree"]), device=self.device, generator=self.gen,
+                s = initial_surfels(self.train, self.cfg.init, self.cfg.init.source,
+                                    sh_degree=int(self.cfg.sh_degree), device=self.device, generator=self.gen,
                                     layout=self.plan.layout)
-            n_bg = int(self.plan["background_points"])
+            n_bg = int(self.cfg.init.background_points)
             if n_bg > 0:
                 bg = background_surfels(self.train, self.plan.layout, n_bg, sh_degree=s.sh_degree,
-                                        opacity=self.cfg.init.opacity, device=self.device, generator=self.gen)
+                                        opacity=INIT_OPACITY, device=self.device, generator=self.gen)
                 s.append(*bg.take(slice(None)))
                 if self.background is not None:  # nothing starts on a lens
                     prune_near_cameras(s, self.background)
@@ -314,7 +308,7 @@ class FitRun:
     def _tsdf_reinit(self) -> None:
         with self.timers("tsdf"):
             r = tsdf_reinit(self.surfels, self.train.cameras, self.cfg, render=self.render,
-                            background_rule=bool(self.plan["background_rule"]), record=self.record,
+                            background_rule=self.plan.background_rule, record=self.record,
                             layout=self.plan.layout)
             self.tsdf_info = r.info
             if r.proxy is not None:
@@ -340,8 +334,7 @@ class FitRun:
         with self.timers("final"):
             guided = self.cfg.coevolution.enabled and self.it > self.warmup_end
             return final_mesh(self.surfels, self.train.cameras, self.cfg, render=self.render, proxy=self.proxy,
-                              guided=guided, tsdf_info=self.tsdf_info, record=self.record, layout=self.plan.layout,
-                              masks=self.train.masks)
+                              guided=guided, tsdf_info=self.tsdf_info, record=self.record, layout=self.plan.layout)
 
     def _evaluate(self, stage: Stage, mesh: trimesh.Trimesh | None = None) -> dict:
         with self.timers("evaluate"):
@@ -349,8 +342,6 @@ class FitRun:
                    "stage_times": {k: round(v, 3) for k, v in self.timers.total.items()},
                    "losses": self.loss_log.take(), "surfels": len(self.surfels),
                    "proxy_faces": 0 if self.proxy_mesh is None else self.proxy_mesh.num_faces}
-            if self.objective.view_support is not None:  # the mesh terms' pixels left out since the last one
-                rec["mesh_view_support"] = self.objective.view_support.take_counts()
             rec.update(self.evaluator(self.surfels, mesh=mesh, proxy=self.proxy_mesh))
         self.history.append(rec)
         return rec
@@ -360,7 +351,7 @@ class FitRun:
         with self.stop.installed():
             self._start()
             self._iterate(Stage.WARMUP, 0, self.warmup_end)
-            if not self.stop.requested and not self.tsdf_done and self.plan["tsdf_reinit"]:
+            if not self.stop.requested and not self.tsdf_done and self.cfg.tsdf.enabled:
                 self._tsdf_reinit()
                 self._evaluate(Stage.TSDF)
             if not self.stop.requested and self.warmup_end < self.total_iterations and self.it >= self.warmup_end:

@@ -15,14 +15,10 @@ from ..metrics import ssim
 from ..photometric import photometric_loss
 
 __all__ = [
-    "dilate",
-    "erode",
     "masked_mean",
     "l1",
     "photometric",
     "mask_loss",
-    "halo_target",
-    "boundary_band",
     "depth_to_points",
     "depth_normals",
     "normal_consistency",
@@ -74,62 +70,9 @@ def photometric(pred: torch.Tensor, target: torch.Tensor, dssim: float) -> torch
 
 def mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Binary cross-entropy between rendered opacity [H, W] and an object mask [H, W]: bool, or a
-    float target opacity in [0, 1] (:func:`halo_target`)."""
+    float target opacity in [0, 1]."""
     a = alpha.clamp(1e-6, 1 - 1e-6)  # BCE is infinite at exactly 0 / 1
     return F.binary_cross_entropy(a, mask.to(alpha.dtype))
-
-
-def halo_target(mask: torch.Tensor, filter_sigma: float) -> torch.Tensor:
-    """The opacity [H, W] (dtype float32, on ``mask``'s device) that splats whose centres lie exactly on
-    the object's silhouette render, from a binary mask [H, W] bool sampled one ray per pixel.
-
-    Inside the mask it is 1. Outside, the renderer's screen-space low-pass (a Gaussian of
-    ``filter_sigma`` pixels around every projected centre) still covers the pixel: at a distance ``d``
-    from the silhouette a line of opaque centres renders ``exp(-d^2 / (2 filter_sigma^2))``. The
-    silhouette lies somewhere between the pixel's nearest inside pixel centre (Euclidean distance
-    ``e``) and ``e - 1`` pixels from it, so the target is that opacity averaged over
-    ``d`` uniform in ``[max(e - 1, 0), e]``: 0.44 on the first ring at ``filter_sigma = 0.35``, 0.10
-    diagonally, below 0.003 from the second ring on; 0 everywhere for an empty mask. A binary target
-    there instead makes the fit pull the centres about ``filter_sigma sqrt(2 ln 2)`` inside the
-    silhouette to cancel the halo. Discrete (no gradient); computed on the CPU (SciPy's distance transform).
-    """
-    import math
-
-    from scipy.ndimage import distance_transform_edt
-
-    m = mask.detach().cpu().numpy().astype(bool)
-    if not m.any():  # no object in this view: nothing to halo (the transform has no inside pixel to measure to)
-        return torch.zeros(mask.shape, dtype=torch.float32, device=mask.device)
-    e = torch.as_tensor(distance_transform_edt(~m), dtype=torch.float64)  # 0 inside, >= 1 outside
-    lo, hi = (e - 1).clamp_min(0), e
-    k = 1.0 / (math.sqrt(2.0) * float(filter_sigma))
-    mean = (torch.erf(hi * k) - torch.erf(lo * k)) / (hi - lo).clamp_min(1e-12) * (math.sqrt(math.pi) / (2 * k))
-    out = torch.where(torch.as_tensor(m), torch.ones_like(e), mean)
-    return out.to(torch.float32).to(mask.device)
-
-
-def dilate(mask: torch.Tensor, width: int) -> torch.Tensor:
-    """Pixels [H, W] bool within ``width`` pixels (Chebyshev distance) of ``mask`` [H, W] bool: its
-    dilation by a ``(2 width + 1)^2`` square; ``mask`` itself for ``width <= 0``. Not differentiable."""
-    mask = mask.to(torch.bool)
-    if width <= 0:
-        return mask
-    w = int(width)
-    return F.max_pool2d(mask.to(torch.float32)[None, None], 2 * w + 1, 1, w)[0, 0] > 0
-
-
-def erode(mask: torch.Tensor, width: int) -> torch.Tensor:
-    """Pixels [H, W] bool of ``mask`` [H, W] bool whose ``(2 width + 1)^2`` square lies inside it (pixels
-    beyond the image do not count against it); ``mask`` itself for ``width <= 0``. Not differentiable."""
-    return ~dilate(~mask.to(torch.bool), width)
-
-
-def boundary_band(mask: torch.Tensor, width: int) -> torch.Tensor:
-    """Pixels [H, W] bool within ``width`` pixels (Chebyshev distance) of the boundary of ``mask`` [H, W]
-    bool: the dilation minus the erosion by a ``(2 width + 1)^2`` square. Empty for ``width == 0``."""
-    if width <= 0:
-        return torch.zeros_like(mask, dtype=torch.bool)
-    return dilate(mask, width) & ~erode(mask, width)
 
 
 def depth_to_points(depth: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
@@ -192,8 +135,7 @@ def scale_regularizer(scales: torch.Tensor, max_anisotropy: float) -> torch.Tens
 
 
 def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: torch.Tensor, *,
-                    eps: float, form: str = "log_ratio", extent: float = 1.0, debias: bool = False,
-                    robust: float = 0.0, robust_behind: bool = False, behind: float = 1.0) -> torch.Tensor:
+                    eps: float, form: str = "log_ratio", extent: float = 1.0, debias: bool = False) -> torch.Tensor:
     """Agreement of surfel depth and proxy-mesh depth [H, W] on ``mask`` (pixels both cover).
 
     ``form="log_ratio"``: ``|log d_s - log d_m|``; ``"log1p_abs"``: ``log1p(|d_m - d_s| / extent)``.
@@ -206,18 +148,6 @@ def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: 
     loss, and moving every pixel by the same amount gets no gradient; only the difference of their
     shapes does. The median is part of the loss (its gradient reaches the median pixel) and is taken
     without a host read (``nanmedian`` over the masked pixels; 0 when there are none).
-
-    ``robust > 0`` (scene units) makes the penalty Cauchy-like, ``s * log1p(|diff| / s)`` with ``s``
-    the depth ``robust`` in the form's units (``robust / d_m`` per pixel for the log ratio,
-    ``robust / extent`` for ``log1p_abs``): about ``|diff|`` where the surfaces agree within
-    ``robust``, its pull halved at ``robust`` and falling as ``1 / |diff|`` beyond, so pixels where the
-    proxy is far off (a thin part the Poisson smoothing swelled) pull little. ``log1p_abs`` with
-    ``robust == extent`` is the plain form. Differentiable in both depths (``s`` included).
-
-    ``robust_behind=True`` keeps the Cauchy form to the pixels where the surfels lie behind the proxy
-    (``diff > 0``: the proxy pulls them towards the camera, as over a thin part it swelled) and gives the
-    pixels in front the plain penalty (floaters and bumps are pulled back in full). Both sides meet
-    continuously at ``diff = 0``.
     """
     ds = torch.where(mask, surfel_depth, torch.ones_like(surfel_depth)).clamp_min(eps)
     dm = torch.where(mask, mesh_depth, torch.ones_like(mesh_depth)).clamp_min(eps)
@@ -231,12 +161,6 @@ def mesh_depth_loss(surfel_depth: torch.Tensor, mesh_depth: torch.Tensor, mask: 
         # pixels off the mask are left out of the median as NaN; their shifted value is masked out below
         diff = diff - torch.nan_to_num(torch.nanmedian(torch.where(mask, diff, torch.full_like(diff, float("nan")))))
     err = diff.abs() if form == "log_ratio" else torch.log1p(diff.abs())
-    if robust > 0:
-        s = robust / dm if form == "log_ratio" else robust / extent
-        cauchy = s * torch.log1p(diff.abs() / s)
-        err = torch.where(diff > 0, cauchy, err) if robust_behind else cauchy
-    if behind != 1.0:
-        err = torch.where(diff > 0, behind * err, err)
     return masked_mean(err, mask)
 
 

@@ -9,18 +9,21 @@ choice and the plan says so. It is printed at the start of :func:`wtopo.fit` and
 
 from __future__ import annotations
 
+import enum
 import importlib.util
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from types import MappingProxyType
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .config import FitConfig, TSDFBackend
+from .config import FitConfig, InitSource, TSDFBackend
 from .mvs import _gray
-from .scene_kind import SceneKind, analyse_layout
+from .scene_kind import SceneKind, SceneLayout, analyse_layout
 
-__all__ = ["Decision", "Plan", "make_plan", "resolve_config", "split_views", "views_per_point"]
+__all__ = ["Plan", "make_plan", "resolve_config", "split_views", "views_per_point"]
 
 _TEXTURE_STD = 0.02  # colour std (in [0,1] units) below which the foreground counts as untextured
 _VIEW_CONSISTENCY = 0.04  # mean reprojected colour difference below which the scene counts as diffuse
@@ -28,37 +31,17 @@ _MIN_SH_VIEWS = 20  # fewer views than this cannot constrain view-dependent colo
 _CPU_MAX_SIDE = 256  # longest image side trained on a CPU (keeps the default fit within minutes)
 _GPU_MAX_SIDE = 1024
 _MIN_EVAL_VIEWS = 12
-# Budgets per device. CPU: the default fit finishes in a few minutes on 2 cores (benchmarks/fit.md).
-# 400 + 200 had not converged: 800 + 400 lowered the hard suite's mean Chamfer 14 % with the loop and 12 %
-# without (benchmarks/hard.md cpu_iter2x). The loop's gain then grows with the co-evolution's length
-# (9 scenes x 2 seeds, loop against no loop at equal iterations: -7.3 % at 800 + 400, -9.9 % at 600 + 600,
-# -11.1 % at 800 + 800, no case over +2 %; hard.md cpu_coevo800): 800 + 800 lowers the loop's mean Chamfer
-# a further 5.7 % (blob -14 %, bowl -14 %, mug -12 %, ten-view torus -19 %; the chair and chair_box +5 to
-# +10 %, with the loop and without) for about 1.4x the loop fit's time (the bunny's fit ~3 min). Scenes at the
-# render cap keep theirs.
-# CUDA: the method's schedule shortened to minutes on one GPU (3,000 + 2,000 iterations at ~30 ms), the means'
-# warm-up decay ending halfway through the co-evolution (_MEANS_DECAY_COEVO, below) and the co-evolution's
-# means restarted (_MEANS_RESTART).
+# Per-device budgets and rules below: the measurements behind each value are in design/decisions.md.
+# CPU: 800 + 800 iterations finish the default fit in a few minutes on 2 cores (800 + 400 had not converged;
+# the loop's gain against no loop grows with the co-evolution: -7.3 % mean Chamfer at 800 + 400, -11.1 % at
+# 800 + 800). CUDA: the method's schedule shortened to minutes on one GPU (~30 ms per iteration).
 _ITERATIONS = {"cpu": (800, 800), "cuda": (3000, 2000)}
-# The share of the co-evolution over which the means' single decay still runs on CUDA (the plan sets
-# optim.means_decay_iterations = warm-up + this share of the co-evolution); the rest keeps the floor rate
-# (means_final). At 512 px, 3,000 + 2,000 with this flat tail against 3,000 + 1,000, both from one warm-up per
-# scene and seed (hard.md gpu_flat_tail): the loop's fits are better on 13 of 14 scenes (the suite -3.5 % on
-# the mean, -8.7 % per scene; five held-out ten-view scenes -2.4 % / -4.4 %, every one better; the ten-view
-# cup level, +0.1 %) for about 1.2x a fit's time, and the loop's margin over no loop on the suite's mean grows
-# from -5.7 % to -7.6 %. Decaying over all 5,000 instead (gpu_coevo2k) served the dense objects more but left
-# the thin held-out scenes 8-27 % worse. The CPU keeps its single decay over the whole fit (at 800 + 800 a flat
-# tail from 1,200 served the chairs and cost the bowl and the mug 4-9 %: cpu_decay1200). None: over the whole fit.
+# The share of the co-evolution over which the means' single decay still runs (the plan sets
+# optim.means_decay_iterations = warm-up + this share of the co-evolution); the rest keeps means_final.
+# CUDA 0.5: the loop's fits better on 13 of 14 suite scenes than at 3,000 + 1,000. None (CPU): the whole fit.
 _MEANS_DECAY_COEVO = {"cpu": None, "cuda": 0.5}
-# The co-evolution's means restart (optim.means_restart: a fraction of optim.means; 0: no restart). CUDA:
-# 0.0625, 1e-4, the rate gpu_coevo2k's decay over all 5,000 had at the warm-up's end (the default's decay
-# stands at 5.1e-5 there), decaying to means_final at the fit's last iteration. At 512 px, from one warm-up
-# per scene and seed (hard.md gpu_restart): the loop's fits -3.7 % on the suite's mean, -6.1 % per scene
-# (bowl -20.5 %, ten-view torus -16.1 %, blob -12.0 %; torus +5.2 %, chair_box +3.5 %), the four held-out
-# ten-view scenes with both fits mixed (table -2.2 %, vase -0.9 %, shelf +2.6 %, stool +6.2 %); the loop's
-# margin over no loop on the suite's mean -11.9 % (the flat tail alone, same batch: -9.9 %). At 128 px (the CUDA
-# plan on the CPU, cpu_cuda128_restart): bowl -2.3 %, ten-view torus -8.8 %, both chairs within 1 %. The CPU
-# budget keeps none: at 800 + 400 a restart of 0.3 swelled the chairs 15-24 % (hard.md cpu_restart03).
+# The co-evolution's means restart (optim.means_restart, a fraction of optim.means). CUDA 0.0625 (1e-4): the
+# loop's fits -3.7 % on the suite's mean at 512 px. The CPU keeps none: 0.3 swelled the chairs 15-24 %.
 _MEANS_RESTART = {"cpu": 0.0, "cuda": 0.0625}
 # CPU: the base budget covers this many training pixels to fit (unmasked pixels at the trained image
 # scale: twice the default bunny's 109k); a capture with more (an unmasked scene: every pixel is
@@ -68,26 +51,14 @@ _CPU_FIT_PIXELS = 250_000
 _CPU_RENDER_PIXELS = 24_000_000
 _MAX_SURFELS = {"cpu": 40_000, "cuda": 400_000}
 # Faces of the TSDF re-initialisation mesh (one surfel each): _REINIT_DENSITY faces per squared pixel
-# footprint of the region of interest's box surface (about one surfel per 2-4 footprint^2 of an object's
-# surface: a disc about a footprint across), never fewer than the CPU default's _REINIT_MIN and at most
-# the device's cap. CUDA used its cap whatever the image size: at 128 px that puts sub-pixel surfels on
-# the surface and the mesh terms then swell parts a few pixels thick (100,000 faces left the chair 17-20 %
-# worse with the loop than without). With this rule no scene of the hard suite is worse with the loop
-# there (per case -9.6 %); the loop's Chamfer falls 29-37 % on the chairs and rises 13-21 % on the rounded
-# shapes the dense start served (torus, held-out bunny and sphere rig; benchmarks/hard.md gpu_reinit_rule,
-# heldout_reinit_rule). The CPU keeps 8,000; at 512 px CUDA keeps its cap.
+# footprint of the region of interest's box surface (each surfel starts about a footprint across), between
+# _REINIT_MIN and the device's cap. A fixed cap put sub-pixel surfels on the surface at 128 px, and the mesh
+# terms then swelled parts a few pixels thick (the chair 17-20 % worse with the loop than without).
 _REINIT_DENSITY = 0.25
 _REINIT_MIN = 8000
-# Fewer faces where fewer views see the surface: a surfel is fitted from the pixels of the views that see it,
-# so the density above, measured on 32-view sphere rigs (which see a point of their region's surface from
-# 11.97-12.02 views: views_per_point), is scaled by min(1, views per point / _REINIT_VIEWS), 11.5 leaving
-# those rigs their full density. 64 views of 512 px keep the cap; ten views (3.7-3.8 per point) get 0.33 of
-# the rule: at 512 px their surfels start about 1.7x wider.
-# With the cap's 100,000 faces the ten-view chair and cup lost 4-6 % to no loop over 5-6 fits; with this rule
-# 2.3 % each (no loop gains from the sparser start too), the ten-view torus gains 10.8 % and five held-out
-# ten-view scenes 12.8 % per case, 9.9 % at the cap (benchmarks/hard.md gpu_reinit512, gpu_f30k, gpu_views_rule).
-# The 8,000 floor stays (fewer made the ten-view scenes worse at 128 px, cpu_f2500): the CPU never changes,
-# and on CUDA at 128 px the ten-view scenes go down to it.
+# Fewer faces where fewer views see the surface: the density above (measured on 32-view sphere rigs, which
+# see a point of their region's surface from ~12 views: views_per_point) is scaled by
+# min(1, views per point / _REINIT_VIEWS); ten views (3.7-3.8 per point) get 0.33 of it.
 _REINIT_VIEWS = 11.5
 _VIEW_FACING = 0.25  # a view sees a point of the region's surface when it faces it within ~75 degrees
 _REINIT_FACES = {"cpu": _REINIT_MIN, "cuda": _MAX_SURFELS["cuda"] // 4}  # caps (CUDA: room to densify)
@@ -96,61 +67,167 @@ _FINAL_GRID = {"cpu": (96, 192), "cuda": (192, 768)}  # (min, max) TSDF voxels a
 _PROXY_FOOTPRINTS = 2.0  # proxy grid cell ~ 2 pixel footprints (a finer Poisson grid only adds noise)
 _SCENE_LEVEL_SIGMA = 2.0  # a scene proxy's local zero level, Poisson cells (poisson_indicator's level_sigma)
 # final TSDF voxel in pixel footprints: fused depth resolves below a pixel; 0.4 is the CPU default's
-# 192 voxels on the 128-px bunny (0.277 % Chamfer, benchmarks/fit.md), kept for every image size
+# 192 voxels on the 128-px bunny, kept for every image size
 _FINAL_FOOTPRINTS = 0.4
 _MASK_WEIGHT = 0.2  # alpha-vs-mask BCE weight: 0.5 pulls the surface in, 0 leaves short fits semi-transparent
-# (benchmarks/fit.md)
 
-_MULTIVIEW_WEIGHT = 0.15  # PGSR's multi-view NCC weight (benchmarks/hard.md, benchmarks/real.md)
+_MULTIVIEW_WEIGHT = 0.15  # PGSR's multi-view NCC weight
 # median 7x7 grey std below which the multi-view term is left out (measured: the flat-albedo blob 0.009,
 # every textured scene of the suite and the rigs >= 0.043)
 _MULTIVIEW_TEXTURE = 0.02
 
 
-@dataclass
-class Decision:
-    """One plan decision: the value, why, and whether the configuration overrode it."""
-
-    value: object
-    reason: str
-    overridden: bool = False
-
-    def to_dict(self) -> dict:
-        """JSON-ready ``{"value", "reason", "overridden"}`` (tuples become lists)."""
-        v = self.value
-        if isinstance(v, tuple):
-            v = list(v)
-        return {"value": v, "reason": self.reason, "overridden": self.overridden}
-
-
-@dataclass
+@dataclass(frozen=True)
 class Plan:
-    """Ordered decisions (name -> :class:`Decision`)."""
+    """The stage plan of one fit: every decision that the scene, the device and the configuration settle,
+    typed, each with its reason (:attr:`reasons`).
 
-    decisions: dict[str, Decision] = field(default_factory=dict)
-    layout: object = None
+    A decision whose configuration field was set is that value (:attr:`overrides` names it); one left to the
+    plan (``None``) is the plan's. :func:`resolve_config` copies every decision that has a configuration field
+    into the resolved configuration, which the fit then reads; the fit reads from the plan only what has no
+    field: :attr:`device`, :attr:`layout` (region of interest), :attr:`background_rule`, :attr:`eval_views`,
+    :attr:`gt_metrics`. ``str(plan)`` says which stages run and why; :meth:`to_dict` is ``plan.json``.
+    Lengths are in the internal frame (the scene normalised into the unit cube).
+    """
+
+    device: str
+    """The device the fit runs on (``"cpu"``, ``"cuda:0"``)."""
+    scene_kind: SceneKind
+    """Object (closed mesh) or scene (background kept, open mesh); ``FitConfig.kind``."""
+    region_of_interest: tuple[tuple[float, float, float], tuple[float, float, float]]
+    """``(lower, upper)`` corners of the region of interest (internal frame, rounded to 1e-4)."""
+    mesh_policy: str
+    """``"watertight"`` (objects) or ``"open_roi"`` (scenes): what the final mesh keeps."""
+    init_source: InitSource
+    """Where the initial surfels come from; ``init.source``."""
+    mask_loss: float
+    """Alpha-vs-mask weight; ``losses.mask``."""
+    background_rule: bool
+    """Scenes: background surfels far from the TSDF mesh survive the re-initialisation."""
+    background_points: int
+    """Background surfels on shells beyond the cameras; ``init.background_points``."""
+    background: tuple[float, float, float]
+    """RGB background colour in [0, 1]; ``FitConfig.background``."""
+    sh_degree: int
+    """SH degree of the colours; ``FitConfig.sh_degree``."""
+    multiview: float
+    """Multi-view NCC weight; ``losses.multiview``."""
+    densify: bool
+    """Screen-space clone/split in the warm-up; ``densify.enabled``."""
+    image_scale: float
+    """Factor the training images are resized by; ``runtime.image_scale``."""
+    warmup_iterations: int
+    """Warm-up iterations; ``warmup.iterations``."""
+    coevolution_iterations: int
+    """Co-evolution iterations; ``coevolution.iterations``."""
+    means_decay_iterations: int | None
+    """Iterations of the means' decay (``None``: the whole fit); ``optim.means_decay_iterations``."""
+    means_restart: float
+    """The co-evolution's means restart, fraction of ``optim.means``; ``optim.means_restart``."""
+    max_surfels: int
+    """Surfel cap; ``runtime.max_surfels``."""
+    reinit_faces: int
+    """Faces (one surfel each) of the TSDF re-initialisation mesh; ``tsdf.max_faces``."""
+    proxy_resolution: int
+    """Poisson nodes per side of the proxy mesh; ``mesh.resolution``."""
+    final_resolution: int
+    """TSDF voxels along the final fusion box; ``final.resolution``."""
+    eval_views: int
+    """Views held out for PSNR (the scene's test split, else ``runtime.eval_views`` with 12 views or more)."""
+    tsdf_reinit: bool
+    """The TSDF re-initialisation runs; ``tsdf.enabled``."""
+    tsdf_backend: TSDFBackend
+    """Which TSDF fusion runs; ``tsdf.backend``."""
+    mesh_loop: bool
+    """The proxy-mesh loop runs in the co-evolution; ``coevolution.enabled``."""
+    proxy_level_sigma: float
+    """The proxy's zero level (0: global; > 0: local, in Poisson cells); ``mesh.level_sigma``."""
+    proxy_clip: bool
+    """The proxy is clipped to the region of interest; ``mesh.clip_to_region``."""
+    gt_metrics: bool
+    """Chamfer / F-score at evaluations (a ground-truth mesh is given and ``runtime.eval_metrics``)."""
+    reasons: Mapping[str, str] = field(default_factory=dict, repr=False)
+    """Why, per decision name (the field names above)."""
+    overrides: frozenset[str] = frozenset()
+    """The decisions the configuration set instead of the plan."""
+    layout: SceneLayout | None = field(default=None, repr=False, compare=False)
     """The :class:`~wtopo.fitting.scene_kind.SceneLayout` behind the scene-kind decisions."""
 
-    def __getitem__(self, name: str):
-        return self.decisions[name].value
-
-    def set(self, name: str, value, reason: str, override=None) -> None:
-        """Record a decision; a non-``None`` ``override`` replaces ``value``."""
-        if override is not None:
-            self.decisions[name] = Decision(override, f"set in the configuration (plan: {value!r}, {reason})", True)
-        else:
-            self.decisions[name] = Decision(value, reason)
+    @classmethod
+    def decision_names(cls) -> tuple[str, ...]:
+        """The decisions in plan order (the keys of :meth:`to_dict`)."""
+        return tuple(f.name for f in fields(cls) if f.name not in _NOT_DECISIONS)
 
     def to_dict(self) -> dict:
-        """JSON-ready decisions, name -> :meth:`Decision.to_dict`, in decision order."""
-        return {k: d.to_dict() for k, d in self.decisions.items()}
+        """JSON-ready ``{name: {"value", "reason", "overridden"}}`` in decision order (``plan.json``)."""
+        return {k: {"value": _json_value(getattr(self, k)), "reason": self.reasons.get(k, ""),
+                    "overridden": k in self.overrides} for k in self.decision_names()}
 
     def __str__(self) -> str:
-        width = max((len(k) for k in self.decisions), default=0)
-        lines = ["wtopo fit plan:"]
-        for k, d in self.decisions.items():
-            lines.append(f"  {k:<{width}}  {d.value!r:<14} {d.reason}")
+        names = self.decision_names()
+        width = max(len(k) for k in names)
+        kind = SceneKind(self.scene_kind).value
+        loop = "with the proxy-mesh loop" if self.mesh_loop else "photometric only (no proxy-mesh loop)"
+        co = (f"{self.coevolution_iterations} iterations, {loop}: {self.reasons.get('mesh_loop', '')}"
+              if self.coevolution_iterations else "skipped: no co-evolution iterations")
+        stages = [
+            ("initial surfels", f"{InitSource(self.init_source).value}: {self.reasons.get('init_source', '')}"),
+            ("warm-up", f"{self.warmup_iterations} iterations ({self.reasons.get('warmup_iterations', '')}); "
+                        f"clone/split {'on' if self.densify else 'off'}"),
+            ("TSDF re-init", f"{'runs' if self.tsdf_reinit else 'skipped'}: {self.reasons.get('tsdf_reinit', '')}"),
+            ("co-evolution", co),
+            ("final mesh", f"TSDF fusion at {self.final_resolution} voxels, {self.mesh_policy}"),
+        ]
+        lines = [f"wtopo fit plan ({kind} on {self.device}):", "  stages:"]
+        lines += [f"    {i}. {name:<15} {what}" for i, (name, what) in enumerate(stages, 1)]
+        lines.append("  decisions:")
+        for k in names:
+            mark = " (set)" if k in self.overrides else ""
+            lines.append(f"    {k:<{width}}  {_json_value(getattr(self, k))!r:<14} {self.reasons.get(k, '')}{mark}")
         return "\n".join(lines)
+
+
+_NOT_DECISIONS = ("reasons", "overrides", "layout")
+
+
+def _json_value(v):
+    """A decision's value as JSON holds it: enums as their values, tuples as lists."""
+    if isinstance(v, enum.Enum):
+        return v.value
+    if isinstance(v, tuple):
+        return [_json_value(x) for x in v]
+    return v
+
+
+class _Decisions:
+    """The plan while :func:`make_plan` decides it: values and reasons by name, in decision order."""
+
+    def __init__(self):
+        self.values: dict[str, object] = {}
+        self.reasons: dict[str, str] = {}
+        self.overrides: set[str] = set()
+        self.layout = None
+
+    def __getitem__(self, name: str):
+        return self.values[name]
+
+    def set(self, name: str, value, reason: str, override=None) -> None:
+        """Record a decision; a non-``None`` ``override`` (the configuration's value) replaces ``value``."""
+        if override is not None:
+            self.values[name] = override
+            self.reasons[name] = f"set in the configuration (plan: {_json_value(value)!r}, {reason})"
+            self.overrides.add(name)
+        else:
+            self.values[name] = value
+            self.reasons[name] = reason
+
+    def build(self) -> Plan:
+        v = self.values
+        typed = dict(v, scene_kind=SceneKind(v["scene_kind"]), init_source=InitSource(v["init_source"]),
+                     tsdf_backend=TSDFBackend(v["tsdf_backend"]), background=tuple(float(c) for c in v["background"]),
+                     region_of_interest=tuple(tuple(float(x) for x in c) for c in v["region_of_interest"]))
+        return Plan(**typed, reasons=MappingProxyType(dict(self.reasons)), overrides=frozenset(self.overrides),
+                    layout=self.layout)
 
 
 def _as_np(x):
@@ -252,7 +329,7 @@ def _eval_views(scene, cfg: FitConfig) -> tuple[int, str]:
 
 def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     """Decide the stage plan for ``scene`` (in the internal frame) under ``cfg`` on ``device``."""
-    plan = Plan()
+    plan = _Decisions()
     rng = np.random.default_rng(cfg.runtime.seed)
     n_eval, eval_why = _eval_views(scene, cfg)
     train_idx = split_views(scene, n_eval)[0]
@@ -391,7 +468,7 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     plan.set("gt_metrics", getattr(scene, "gt_mesh", None) is not None and cfg.runtime.eval_metrics,
              "ground-truth mesh given: Chamfer / F-score at evaluations" if getattr(scene, "gt_mesh", None)
              is not None else "no ground-truth mesh")
-    return plan
+    return plan.build()
 
 
 def _footprint(scene, layout, image_scale: float) -> float:
@@ -475,7 +552,7 @@ def iteration_budget(scene, device: torch.device, image_scale: float | None = No
             f"at most {_CPU_RENDER_PIXELS / 1e6:.0f}M rendered pixels in the warm-up")
 
 
-def _budget(plan: Plan, scene, cfg: FitConfig, device: torch.device, layout, image_scale: float) -> None:
+def _budget(plan: _Decisions, scene, cfg: FitConfig, device: torch.device, layout, image_scale: float) -> None:
     """Iterations, surfel cap and grids from the device, the region's size and the pixel footprint."""
     dev = "cuda" if device.type == "cuda" else "cpu"
     warm, coevo, why = iteration_budget(scene, device, image_scale)
@@ -524,25 +601,35 @@ def _budget(plan: Plan, scene, cfg: FitConfig, device: torch.device, layout, ima
 
 
 def resolve_config(cfg: FitConfig, plan: Plan) -> FitConfig:
-    """A copy of ``cfg`` with every field left to the plan (``None``) filled in from ``plan``."""
+    """A copy of ``cfg`` with every decision of ``plan`` that has a configuration field written into it.
+
+    A field the configuration set holds its value already (the plan took it over); a field left to the plan
+    (``None``, ``AUTO``) gets the plan's. The fit reads the result and never the plan for these.
+    """
     import copy
 
     out = copy.deepcopy(cfg)
-    out.kind = SceneKind(plan["scene_kind"])
-    out.init.background_points = int(plan["background_points"])
-    out.warmup.iterations = int(plan["warmup_iterations"])
-    out.coevolution.iterations = int(plan["coevolution_iterations"])
-    horizon = plan["means_decay_iterations"]
+    out.kind = SceneKind(plan.scene_kind)
+    out.init.source = InitSource(plan.init_source)
+    out.init.background_points = int(plan.background_points)
+    out.losses.mask = float(plan.mask_loss)
+    out.background = tuple(float(c) for c in plan.background)
+    out.sh_degree = int(plan.sh_degree)
+    out.losses.multiview = float(plan.multiview)
+    out.densify.enabled = bool(plan.densify)
+    out.runtime.image_scale = float(plan.image_scale)
+    out.warmup.iterations = int(plan.warmup_iterations)
+    out.coevolution.iterations = int(plan.coevolution_iterations)
+    horizon = plan.means_decay_iterations
     out.optim.means_decay_iterations = None if horizon is None else int(horizon)
-    out.optim.means_restart = float(plan["means_restart"])
-    out.coevolution.enabled = bool(plan["mesh_loop"])
-    out.losses.multiview = float(plan["multiview"])
-    out.runtime.max_surfels = int(plan["max_surfels"])
-    out.tsdf.max_faces = int(plan["reinit_faces"])
-    out.runtime.image_scale = float(plan["image_scale"])
-    out.mesh.resolution = int(plan["proxy_resolution"])
-    out.mesh.level_sigma = float(plan["proxy_level_sigma"])
-    out.mesh.clip_to_region = bool(plan["proxy_clip"])
-    out.final.resolution = int(plan["final_resolution"])
-    out.tsdf.backend = TSDFBackend(plan["tsdf_backend"])
+    out.optim.means_restart = float(plan.means_restart)
+    out.runtime.max_surfels = int(plan.max_surfels)
+    out.tsdf.max_faces = int(plan.reinit_faces)
+    out.mesh.resolution = int(plan.proxy_resolution)
+    out.final.resolution = int(plan.final_resolution)
+    out.tsdf.enabled = bool(plan.tsdf_reinit)
+    out.tsdf.backend = TSDFBackend(plan.tsdf_backend)
+    out.coevolution.enabled = bool(plan.mesh_loop)
+    out.mesh.level_sigma = float(plan.proxy_level_sigma)
+    out.mesh.clip_to_region = bool(plan.proxy_clip)
     return out

@@ -27,7 +27,6 @@ __all__ = ["Timers", "format_profile"]
 
 LABELS = {
     "render": "render forward",
-    "render_neighbour": "neighbour render (geometric term)",
     "init": "initial surfels (stereo)",
     "rasterize_binning": "binning",
     "rasterize_sort": "depth sort",

@@ -16,16 +16,16 @@ import torch
 from .._profile import section
 from ..raycast import MeshRaycaster, MeshRender
 from .config import MeshConfig
-from .curvature import curvature_offset
-from .silhouette import SilhouetteOffset, vertex_normals
 from .surfels import Surfels
 
-__all__ = ["ProxyMesh", "ProxyResult", "poisson_mesh", "region_clip"]
+__all__ = ["ProxyMesh", "ProxyResult", "poisson_mesh", "region_clip", "PADDING"]
+
+PADDING = 0.1
+"""Poisson domain padding, fraction of the unit cube on each side (keeps the surface off the periodic wrap)."""
+_OFFSET = 0.5  # tangent offset of a surfel's 4 extra oriented points, in surfel sigmas
+_OFFSET_WEIGHT = 0.5  # weight of the extra points relative to the centre
 
 _BOX_GROWTH = 0.1  # "initial_mesh" Poisson box: the TSDF mesh's box grown by 10 % (public code)
-_SUPPORT_OPACITY = 0.1  # surfels at least this opaque support proxy faces (the opacity of a reset or a spawn)
-_SUPPORT_SCALES = 2.0  # a surfel reaches this many of its (larger) scales from its centre
-_SILHOUETTE_LIMIT_CELLS = 2.0  # the silhouette offset stays within this many Poisson grid cells
 _EXIT_STEP_CELLS = 1e-3  # the exit ray starts this many grid cells past the entry hit
 _CLIP_INPUT_CELLS = 2.0  # with a clip box, the Poisson input is the points within this many cells of it
 
@@ -88,11 +88,6 @@ class ProxyMesh:
             Outside the region the proxy of an open scene is the Poisson solve's own closing: the
             periodic image of a ground the region cuts, halfway to its copy across the domain's wrap,
             lies over the region and would hide it from the cameras.
-
-    Attributes:
-        silhouette: the running silhouette offset (:mod:`.silhouette`; ``None`` when
-            ``cfg.silhouette_gain`` is 0): :meth:`build` moves the vertices along their normals by its
-            value. The fit updates it from each view's ray cast when the scene has masks.
     """
 
     def __init__(self, cfg: MeshConfig, *, box: tuple[np.ndarray, np.ndarray] | None = None,
@@ -109,22 +104,10 @@ class ProxyMesh:
             side = float(np.max(hi - lo)) * (1 + 2 * _BOX_GROWTH)
             self.lower, self.size = 0.5 * (lo + hi) - 0.5 * side, side
         self.prior = prior
-        self.silhouette = None
-        if float(cfg.silhouette_gain) > 0:
-            if cfg.resolution is None:
-                raise ValueError("mesh.silhouette_gain > 0 needs mesh.resolution set (its limit is two grid cells), "
-                                 "got None: pass the configuration resolved by the plan")
-            self.silhouette = SilhouetteOffset(gain=float(cfg.silhouette_gain),
-                                               limit=_SILHOUETTE_LIMIT_CELLS * self.cell)
 
     def with_resolution(self, resolution: int) -> ProxyMesh:
-        """This proxy on a grid of ``resolution`` nodes per side: the same box, prior and settings, and the
-        silhouette offset's current value, clamped to the new grid's limit (two of its cells)."""
-        out = ProxyMesh(replace(self.cfg, resolution=int(resolution)), box=self.box, prior=self.prior, clip=self.clip)
-        if out.silhouette is not None and self.silhouette is not None:
-            lim, v = out.silhouette.limit, self.silhouette.value
-            out.silhouette.value = v.clamp(-lim, lim) if torch.is_tensor(v) else min(max(float(v), -lim), lim)
-        return out
+        """This proxy on a grid of ``resolution`` nodes per side: the same box, prior and settings."""
+        return ProxyMesh(replace(self.cfg, resolution=int(resolution)), box=self.box, prior=self.prior, clip=self.clip)
 
     @property
     def cell(self) -> float:
@@ -142,18 +125,17 @@ class ProxyMesh:
     def build(self, surfels: Surfels) -> ProxyResult | None:
         """The proxy mesh of the current surfels (``None`` when it has no faces).
 
-        Differentiable w.r.t. the surfel means, rotations, scales and opacities. With a
-        :attr:`silhouette` offset the vertices are moved along their (discrete) normals by its value.
-        With a ``clip`` box only the faces within a cell of it are kept (the vertices stay).
+        Differentiable w.r.t. the surfel means, rotations, scales and opacities. With a ``clip`` box only
+        the faces within a cell of it are kept (the vertices stay).
         """
         from ..oriented_points import oriented_points
 
         c = self.cfg
         with section("oriented_points"):
             op = oriented_points(surfels.means, surfels.quats, surfels.scales, surfels.opacities,
-                                 samples=int(c.samples_per_surfel), offset=c.offset,
-                                 opacity_threshold=c.opacity_threshold, center_weight=1.0,
-                                 offset_weight=c.offset_weight, normal_sign=surfels.buffers["normal_sign"])
+                                 samples=int(c.samples_per_surfel), offset=_OFFSET, opacity_threshold=0.0,
+                                 center_weight=1.0, offset_weight=_OFFSET_WEIGHT,
+                                 normal_sign=surfels.buffers["normal_sign"])
         pts, nrm, w = self._to_box(op.points), op.normals, op.weights
         if self.prior is not None and c.surface_prior > 0:
             pp, pn = self.prior
@@ -170,7 +152,7 @@ class ProxyMesh:
         pts = torch.where(inside[:, None], pts, torch.full_like(pts, 0.5))
         if not bool((w > 0).any()):  # host sync: one per iteration, decides whether a mesh exists
             return None
-        verts, faces = poisson_mesh(pts, nrm, w, int(c.resolution), sigma=c.sigma, padding=c.padding,
+        verts, faces = poisson_mesh(pts, nrm, w, int(c.resolution), sigma=c.sigma, padding=PADDING,
                                     level_sigma=float(c.level_sigma or 0.0))
         if faces.shape[0] == 0:
             return None
@@ -179,11 +161,6 @@ class ProxyMesh:
             faces = self._clipped(verts, faces)
             if faces.shape[0] == 0:
                 return None
-        if c.curvature_compensation:  # undo the smoothing's curvature shift (a discrete offset: same gradient)
-            h = self.size * (1.0 + 2.0 * c.padding) / (int(c.resolution) - 1)
-            verts = verts + curvature_offset(verts, faces, (c.sigma ** 2 + 1.0 / 6.0) * h * h, 0.5 * h)
-        if self.silhouette is not None:
-            verts = verts + self.silhouette.value * vertex_normals(verts, faces)
         return ProxyResult(verts, faces)
 
     def _clip_bounds(self, cells: float, like: torch.Tensor, *, box_frame: bool = False):
@@ -201,39 +178,6 @@ class ProxyMesh:
         c = verts.detach()[faces.long()].mean(dim=1)
         lo, hi = self._clip_bounds(1.0, c)
         return faces[((c >= lo) & (c <= hi)).all(dim=1)]
-
-    def supported(self, mesh: ProxyResult, surfels: Surfels) -> torch.Tensor | None:
-        """Which faces of ``mesh`` lie near a surfel (:meth:`near_surfels` at ``cfg.support_voxels``):
-        bool [F] on the mesh's device, or ``None`` when ``cfg.support_voxels`` is 0 (every face supported)."""
-        k = float(self.cfg.support_voxels)
-        return self.near_surfels(mesh, surfels, k) if k > 0 else None
-
-    def near_surfels(self, mesh: ProxyResult, surfels: Surfels, voxels: float) -> torch.Tensor:
-        """Faces of ``mesh`` whose centroid is within ``voxels`` grid cells (of this proxy's Poisson
-        domain) plus :data:`_SUPPORT_SCALES` times the larger scale of the nearest surfel centre among
-        the surfels of opacity >= :data:`_SUPPORT_OPACITY`: bool [F] on the mesh's device. Discrete; a
-        host round trip (KD-tree on the CPU).
-        """
-        from scipy.spatial import cKDTree
-
-        f = mesh.faces.long()
-        centroid = mesh.verts.detach()[f].mean(dim=1)
-        opaque = surfels.opacities.detach().reshape(-1) >= _SUPPORT_OPACITY
-        if not bool(opaque.any()):  # host sync: nothing opaque supports anything
-            return torch.zeros(f.shape[0], dtype=torch.bool, device=f.device)
-        means = surfels.means.detach()[opaque].cpu().numpy()
-        reach = surfels.scales.detach()[opaque].amax(dim=1).cpu().numpy() * _SUPPORT_SCALES
-        dist, idx = cKDTree(means).query(centroid.cpu().numpy())
-        ok = dist <= voxels * self.cell + reach[idx]
-        return torch.as_tensor(ok, device=f.device)
-
-    def supported_pixels(self, mesh: ProxyResult, render: MeshRender, surfels: Surfels) -> torch.Tensor | None:
-        """Pixels [H, W] bool of ``render`` (this proxy's :meth:`render` of ``mesh``) whose hit face is
-        :meth:`supported`; ``None`` when every face is (``cfg.support_voxels`` 0). Misses are ``False``."""
-        sup = self.supported(mesh, surfels)
-        if sup is None:
-            return None
-        return render.mask & sup[render.face_id.clamp_min(0).long()]
 
     def thickness(self, mesh: ProxyResult, camera) -> tuple[MeshRender, torch.Tensor]:
         """How thick the proxy is where each pixel's ray enters it: ``(render, cells)``, ``render`` as

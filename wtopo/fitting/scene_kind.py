@@ -35,7 +35,7 @@ __all__ = ["SceneKind", "Capture", "SceneLayout", "analyse_layout", "near_distan
 # an orbit or a hemisphere around an object: < 0.5).
 _FORWARD_COHERENCE = 0.8
 # A camera counts as "near" a mesh face (a hull around the cameras) inside this fraction of the
-# scene extent (issue 13's criterion); the meshing policy removes faces closer than this.
+# scene extent; the meshing policy removes faces closer than this.
 NEAR_FRACTION = 0.05
 
 

@@ -23,11 +23,10 @@ from .. import _bridge
 from .._profile import section
 from ..scene import NORMALIZATION_MARGIN
 from . import densify as dens
-from .config import Closure, FinalMethod, FitConfig, NormalFlip, PoissonBox, RenderedDepth
+from .config import FitConfig, NormalFlip, PoissonBox
 from .mesh_policy import crop_near_cameras, crop_to_box, supported_components
-from .proxy import ProxyMesh, poisson_mesh, region_clip
+from .proxy import PADDING, ProxyMesh, poisson_mesh, region_clip
 from .scene_kind import SceneKind, SceneLayout
-from .silhouette import calibrate_mesh
 from .surfels import Surfels
 from .tsdf import (
     FusionBounds,
@@ -50,6 +49,9 @@ _REINIT_MAX_VIEWS = 64  # the re-initialisation fuses at most this many (evenly 
 _HYBRID_DISTANCE = 0.02  # hybrid rule: surfels farther than this (extent fraction) from the TSDF mesh keep their
 # warm-up parameters
 _REINIT_OPACITY = 0.8  # TSDF re-initialised surfels start nearly opaque: they sit on the fused surface
+TRUNCATION_VOXELS = 4.0  # TSDF truncation distance in voxels: a few voxels either side of the fused surface
+ALPHA_THRESHOLD = 0.5  # pixels rendered less opaque than this are not fused (the median depth exists from 0.5 on)
+_PROXY_FINAL_RESOLUTION = 128  # Poisson nodes per side of the proxy mesh returned when the final TSDF is empty
 _PRIOR_SAMPLES = 20000  # surface samples of the re-initialisation mesh kept as the proxy's surface prior
 _REMESH_SAMPLES = 200_000  # surface samples for the watertight Poisson re-mesh of the final mesh
 _REMESH_BOX = 1.1  # the re-mesh grid spans the mesh's longest side plus 10 %: the closed surface stays inside
@@ -105,16 +107,14 @@ class Renderer:
                                   background=self.background, config=self.config, defer_count=defer)
 
 
-def render_depths(render: Renderer, surfels: Surfels, cameras: Sequence, which: RenderedDepth,
-                  alpha_threshold: float) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Depth maps [H, W] (``which`` rendered depth) and colours [H, W, 3] per camera, as NumPy;
-    depth is zero where the rendered opacity is below ``alpha_threshold``."""
+def render_depths(render: Renderer, surfels: Surfels, cameras: Sequence) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Median depth maps [H, W] and colours [H, W, 3] per camera, as NumPy; depth is zero where the
+    rendered opacity is below :data:`ALPHA_THRESHOLD`."""
     depths, colors = [], []
     with torch.no_grad(), section("render_depths"):
         for cam in cameras:
             out = render(surfels, cam)
-            d = out.median_depth if which == RenderedDepth.MEDIAN else out.depth
-            d = torch.where(out.alpha >= alpha_threshold, d, torch.zeros_like(d))
+            d = torch.where(out.alpha >= ALPHA_THRESHOLD, out.median_depth, torch.zeros_like(out.median_depth))
             depths.append(d.detach().cpu().numpy())
             colors.append(out.rgb.detach().clamp(0, 1).cpu().numpy())
     return depths, colors
@@ -160,12 +160,12 @@ def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: 
     """
     tc, device = cfg.tsdf, surfels.means.device
     cams = cameras[:: max(1, math.ceil(len(cameras) / _REINIT_MAX_VIEWS))]
-    depths, colors = render_depths(render, surfels, cams, tc.depth, tc.alpha_threshold)
+    depths, colors = render_depths(render, surfels, cams)
     s = surfels
     if _is_scene(layout):
-        bounds = roi_bounds(layout, tc.resolution, tc.truncation_voxels)
+        bounds = roi_bounds(layout, tc.resolution, TRUNCATION_VOXELS)
     else:
-        bounds = auto_bounds(s.means, s.opacities, resolution=tc.resolution, truncation_voxels=tc.truncation_voxels)
+        bounds = auto_bounds(s.means, s.opacities, resolution=tc.resolution, truncation_voxels=TRUNCATION_VOXELS)
     info = {"reinit_bounds": bounds.to_dict()}
     try:
         mesh = fuse_depths(cams, depths, colors, bounds, backend=tc.backend, device=device)
@@ -200,9 +200,8 @@ def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: 
 
 
 def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: Renderer, proxy: ProxyMesh,
-               guided: bool, tsdf_info: dict, record: Record, layout: SceneLayout | None = None,
-               masks=None) -> trimesh.Trimesh:
-    """The returned mesh in the internal frame: TSDF of rendered depth, or the Poisson proxy.
+               guided: bool, tsdf_info: dict, record: Record, layout: SceneLayout | None = None) -> trimesh.Trimesh:
+    """The returned mesh in the internal frame: TSDF of rendered depth, or the Poisson proxy when that is empty.
 
     Args:
         surfels: the fitted surfels.
@@ -216,8 +215,6 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
         layout: scene kind and region of interest; a scene's mesh is its region of interest's
             surface, open, with no face within ``layout.near`` of a camera centre
             (:mod:`.mesh_policy`). Objects are closed. Both keep the components the views support.
-        masks: the training views' [H, W] bool masks or ``None``; with ``final.silhouette_calibration``
-            an object's mesh is moved onto them (:func:`~.silhouette.calibrate_mesh`).
 
     Raises:
         TSDFEmptyError: the TSDF fusion and the proxy mesh are both empty.
@@ -225,29 +222,25 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
     fc = cfg.final
     mesh = None
     scene = _is_scene(layout)
-    carve = False
     weld = True  # merge vertices by position in the clean-up; not a marching-cubes mesh's (see cleanup_mesh)
-    depths, colors = render_depths(render, surfels, cameras, cfg.tsdf.depth, cfg.tsdf.alpha_threshold)
-    if fc.method == FinalMethod.TSDF:
-        if scene:
-            bounds = roi_bounds(layout, fc.resolution, cfg.tsdf.truncation_voxels)
-        else:
-            bounds = auto_bounds(surfels.means, surfels.opacities, resolution=fc.resolution,
-                                 truncation_voxels=cfg.tsdf.truncation_voxels)
-        tsdf_info["final_bounds"] = bounds.to_dict()
-        carve = not scene and fc.watertight and Closure(fc.closure) == Closure.CARVE
-        try:
-            mesh = fuse_depths(cameras, depths, colors, bounds, backend=cfg.tsdf.backend,
-                               device=surfels.means.device, close=carve)
-        except TSDFEmptyError as e:
-            warnings.warn(f"final TSDF empty, returning the proxy mesh: {e}", RuntimeWarning, stacklevel=3)
-            record("final_tsdf_empty", why=str(e))
+    depths, colors = render_depths(render, surfels, cameras)
+    if scene:
+        bounds = roi_bounds(layout, fc.resolution, TRUNCATION_VOXELS)
+    else:
+        bounds = auto_bounds(surfels.means, surfels.opacities, resolution=fc.resolution,
+                             truncation_voxels=TRUNCATION_VOXELS)
+    tsdf_info["final_bounds"] = bounds.to_dict()
+    try:
+        mesh = fuse_depths(cameras, depths, colors, bounds, backend=cfg.tsdf.backend, device=surfels.means.device)
+    except TSDFEmptyError as e:
+        warnings.warn(f"final TSDF empty, returning the proxy mesh: {e}", RuntimeWarning, stacklevel=3)
+        record("final_tsdf_empty", why=str(e))
     if mesh is None:
         if NormalFlip(cfg.mesh.normal_flip) != NormalFlip.RANDOM and not guided:
             # no mesh guidance ran: orient the normals by the cameras that saw each surfel (mesh mode
             # keeps the scaffold's signs)
             dens.align_normal_signs(surfels, NormalFlip(cfg.mesh.normal_flip))
-        final = ProxyMesh(dataclasses.replace(cfg.mesh, resolution=fc.poisson_resolution), box=proxy.box,
+        final = ProxyMesh(dataclasses.replace(cfg.mesh, resolution=_PROXY_FINAL_RESOLUTION), box=proxy.box,
                           prior=proxy.prior, clip=proxy.clip)
         with torch.no_grad():
             pm = final.build(surfels)
@@ -260,16 +253,15 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
         if scene:
             mesh = crop_to_box(mesh, layout.roi_lower, layout.roi_upper)
             mesh, info["near_camera_faces_removed"] = crop_near_cameras(mesh, layout.camera_centers, layout.near)
-            mesh = cleanup_mesh(mesh, largest_component=fc.largest_component, repair=False, weld=weld)
+            mesh = cleanup_mesh(mesh, largest_component=False, repair=False, weld=weld)
             with section("supported_components"):
                 mesh, info["components"] = supported_components(mesh, cameras, depths)
         else:
-            mesh = cleanup_mesh(mesh, largest_component=fc.largest_component, repair=False, weld=weld)
+            mesh = cleanup_mesh(mesh, largest_component=False, repair=False, weld=weld)
             with section("supported_components"):
                 mesh, info["components"] = supported_components(mesh, cameras, depths)
             with section("repair"):  # after the support rule: repairing works component by component
                 mesh = repair_mesh(mesh)
-            info["closure"] = "carve" if carve else "poisson"
             if fc.watertight and not mesh.is_watertight:
                 mesh = poisson_remesh(mesh, cfg, record=record, device=surfels.means.device)
                 # the re-mesh's closed surface can wrap the repaired mesh's inner sheets into pockets of
@@ -277,11 +269,6 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
                 # same support rule as the fused mesh's; dropping closed components keeps the mesh closed
                 with section("supported_components"):
                     mesh, info["remesh_components"] = supported_components(mesh, cameras, depths)
-            if fc.silhouette_calibration and masks is not None and len(mesh.faces):
-                with section("silhouette_calibration"):
-                    v, cal = calibrate_mesh(torch.as_tensor(mesh.vertices), torch.as_tensor(mesh.faces), cameras, masks)
-                mesh = trimesh.Trimesh(v.numpy(), mesh.faces, process=False)
-                record("silhouette_calibration", **cal)
     record("mesh_policy", policy="open_roi" if scene else "watertight", **info)
     if len(mesh.faces) == 0:
         raise TSDFEmptyError("the final mesh is empty after the meshing policy (nothing in the region of interest "
@@ -294,8 +281,8 @@ def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record,
     """A closed mesh through ``mesh``: Poisson of its area samples (the zero level set is closed).
 
     The Poisson solve and its marching cubes run on ``device`` (the fit's: at ``final.resolution``, up to
-    768^3 on CUDA, the whole re-mesh took 32.6 s on 2 CPU threads against 10.2 s with an H100,
-    ``benchmarks/final_remesh.py``); a device other than the CPU that runs out of memory falls back to the CPU
+    768^3 on CUDA, the whole re-mesh took 32.6 s on 2 CPU threads against 10.2 s with an H100); a device
+    other than the CPU that runs out of memory falls back to the CPU
     with a warning. The mesh keeps marching cubes' own vertex sharing (no merge by position: see
     :func:`~.tsdf.cleanup_mesh`), so it is closed at any grid. Returns ``mesh`` itself when the re-mesh
     comes out empty; records ``"poisson_remesh"`` (``watertight``, and the ``device`` it ran on).
@@ -311,7 +298,7 @@ def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record,
     def solve(dev: torch.device):
         with torch.no_grad():
             v, f = poisson_mesh(p.to(dev), n.to(dev), torch.ones(p.shape[0], device=dev), int(cfg.final.resolution),
-                                sigma=1.0, padding=cfg.mesh.padding)
+                                sigma=1.0, padding=PADDING)
             return v.cpu().numpy(), f.cpu().numpy()
 
     try:
@@ -328,7 +315,7 @@ def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record,
         verts, faces = solve(device)
     # marching cubes shares each vertex already: no merge by position (see cleanup_mesh's weld)
     out = trimesh.Trimesh(verts * side + lower, faces, process=False)
-    out = cleanup_mesh(out, largest_component=cfg.final.largest_component, weld=False)
+    out = cleanup_mesh(out, largest_component=False, weld=False)
     record("poisson_remesh", watertight=bool(out.is_watertight), device=str(device))
     return out if len(out.faces) else mesh
 

@@ -37,6 +37,13 @@ _GEOMETRY_DENSIFY_MAX = 2000  # surfels spawned per geometry-aware step at most:
 # warm-up iterations an opacity reset needs after it; later resets are skipped (a reset 20 iterations
 # before the TSDF re-initialisation left an 80-iteration fit at 15 % Chamfer, 0.78 % without it)
 _RESET_RECOVERY = 100
+DENSIFY_START = 0.25  # density control starts this fraction of the way through the warm-up (stage_iteration)
+DENSIFY_STOP = 0.8  # clone/split and opacity resets stop after this fraction of the warm-up (3DGS: half)
+PRUNE_OPACITY = 0.05  # surfels less opaque than this are pruned at every density step (3DGS: 0.005)
+_CORRESPONDENCE_FRACTION = 0.5  # mesh guidance refreshes every this fraction of the co-evolution
+_SIGN_DISTANCE = 3.0  # mesh-guided signs: a proxy face nearer than this many in-plane sigmas of a surfel decides it
+_GEOMETRY_PRUNE_DISTANCE = 0.02  # geometry-aware prune: "far from the proxy", fraction of the scene extent
+_GEOMETRY_PRUNE_OPACITY = 0.3  # geometry-aware prune: "low opacity"
 
 
 @dataclasses.dataclass
@@ -94,10 +101,10 @@ class DensityStrategy:
 
     # -- hooks ----------------------------------------------------------------------------------------
     def step_pre_forward(self, stage: Stage, it: int, surfels: Surfels, proxy: ProxyMesh) -> bool:
-        """Mesh guidance every ``coevolution.correspondence_fraction`` of the co-evolution, before
-        the step (the signs are set before the first proxy build). Returns whether it ran."""
+        """Mesh guidance every :data:`_CORRESPONDENCE_FRACTION` of the co-evolution, before the step (the
+        signs are set before the first proxy build). Returns whether it ran."""
         co = self.cfg.coevolution
-        every = max(1, stage_iteration(co.correspondence_fraction, co.iterations))
+        every = max(1, stage_iteration(_CORRESPONDENCE_FRACTION, co.iterations))
         if stage == Stage.WARMUP or (it - self.warmup_end) % every != 0:
             return False
         with self.timers("guidance"):
@@ -143,7 +150,7 @@ class DensityStrategy:
     def is_density_step(self, stage: Stage, it: int) -> bool:
         """Whether :meth:`step_end` runs density control at iteration ``it``."""
         dc = self.cfg.densify
-        start = stage_iteration(dc.start_fraction, self.warmup_end)
+        start = stage_iteration(DENSIFY_START, self.warmup_end)
         return stage == Stage.WARMUP and it >= start and it % max(1, dc.interval) == 0
 
     def step_end(self, stage: Stage, it: int, surfels: Surfels) -> bool:
@@ -154,17 +161,17 @@ class DensityStrategy:
             return False
         changed = False
         with self.timers("densify"):
-            if self.densify and it < dc.stop_fraction * W:
+            if self.densify and it < DENSIFY_STOP * W:
                 # scenes: the background covers every pixel, so no gap opens; the gradient decides
                 if self.background is not None or self.gap > _GAP_THRESHOLD:
-                    c, sp = dens.clone_and_split(surfels, dc, ROI_EXTENT, self.cfg.runtime.max_surfels, self.gen)
+                    c, sp = dens.clone_and_split(surfels, ROI_EXTENT, self.cfg.runtime.max_surfels, self.gen)
                     self.record("densify", cloned=c, split=sp, gap=self.gap)
                     changed = True
                 else:
                     self.record("densify_skipped", gap=self.gap)
                     surfels.buffers["grad_accum"].zero_()
                     surfels.buffers["grad_count"].zero_()
-            removed = dens.prune_by_opacity(surfels, dc.prune_opacity)
+            removed = dens.prune_by_opacity(surfels, PRUNE_OPACITY)
             changed |= removed > 0
             if self.background is not None:
                 near = prune_near_cameras(surfels, self.background)
@@ -172,7 +179,7 @@ class DensityStrategy:
                     self.record("near_camera_prune", removed=near)
                 changed |= near > 0
             reset_every = max(1, stage_iteration(dc.opacity_reset_fraction, W)) if dc.opacity_reset_fraction else 0
-            if reset_every and it % reset_every == 0 and it < dc.stop_fraction * W:
+            if reset_every and it % reset_every == 0 and it < DENSIFY_STOP * W:
                 if W - it >= _RESET_RECOVERY:
                     dens.reset_opacity(surfels, _OPACITY_RESET_VALUE)
                     self.record("opacity_reset", value=_OPACITY_RESET_VALUE)
@@ -186,8 +193,6 @@ class DensityStrategy:
         """Normal signs, geometry-aware prune and densification against a proxy of the current surfels."""
         co, dc, mc = self.cfg.coevolution, self.cfg.densify, self.cfg.mesh
         info = {}
-        if proxy.silhouette is not None:  # host read at a refresh only
-            info["silhouette_offset"] = float(proxy.silhouette.value)
         pm = None
         if co.enabled:
             with torch.no_grad():
@@ -202,16 +207,14 @@ class DensityStrategy:
         fn, _ = dens.face_normals(verts, faces)
         mn = torch.where((fid >= 0)[:, None], fn[fid.clamp_min(0).long()], torch.zeros_like(s.means.detach()))
         info["signs"] = dens.align_normal_signs(s, NormalFlip(mc.normal_flip), mesh_normal=mn, distance=dist,
-                                                distance_scales=mc.sign_distance, generator=self.gen)
+                                                distance_scales=_SIGN_DISTANCE, generator=self.gen)
         if dc.geometry_densify:
-            near = proxy.near_surfels(pm, s, dc.geometry_densify_voxels) if dc.geometry_densify_voxels > 0 else None
             info["spawned"] = dens.geometry_densify(s, verts, faces, fid, max_new=_GEOMETRY_DENSIFY_MAX,
-                                                    max_surfels=self.cfg.runtime.max_surfels, generator=self.gen,
-                                                    candidates=proxy.supported(pm, s), covered=near)
+                                                    max_surfels=self.cfg.runtime.max_surfels, generator=self.gen)
             dist = torch.cat([dist, torch.zeros(len(s) - dist.shape[0], dtype=dist.dtype, device=dist.device)])
         if dc.geometry_prune:
             if self.background is not None:  # background surfels are far from the proxy by design
                 dist = torch.where(self.background.outside_roi(s.means), torch.zeros_like(dist), dist)
-            info["pruned"] = dens.geometry_prune(s, dist, max_distance=dc.geometry_prune_distance * ROI_EXTENT,
-                                                 max_opacity=dc.geometry_prune_opacity)
+            info["pruned"] = dens.geometry_prune(s, dist, max_distance=_GEOMETRY_PRUNE_DISTANCE * ROI_EXTENT,
+                                                 max_opacity=_GEOMETRY_PRUNE_OPACITY)
         self.record("mesh_guidance", **info)

@@ -55,8 +55,7 @@ def thin_parts(proxy: ProxyMesh, surfels: Surfels, cameras, cfg: FitConfig) -> d
 
     Over ``losses.mesh_thin_limit`` the grid doubles (up to :data:`MAX_RESOLUTION` nodes per side) and the
     share is measured again on it; still over the limit (or no finer grid allowed), the mesh terms stay
-    off for the fit. With ``losses.mesh_thin_probe`` the first measure is on that grid instead of the
-    proxy's; a proxy with at least twice its nodes keeps its grid and is measured again as it is.
+    off for the fit.
 
     Args:
         proxy: the fit's proxy builder (its grid sets the cell).
@@ -67,24 +66,18 @@ def thin_parts(proxy: ProxyMesh, surfels: Surfels, cameras, cfg: FitConfig) -> d
     Returns:
         ``{}`` when the co-evolution runs no mesh terms anyway. Otherwise ``thin_share`` (:func:`thin_share`
         on the grid kept), ``resolution`` (that grid's nodes per side), ``limit``, ``mesh_terms`` (whether
-        they run) and, when the rule fired, ``coarse``: the first measure's grid (the plan's or the probe's)
-        and its share; a probe that did not fire gives its share and its grid as ``probe``.
+        they run) and, when the rule fired, ``coarse``: the first measure's grid and its share.
     """
     lc = cfg.losses
     if not cfg.coevolution.enabled or (lc.mesh_depth <= 0 and lc.mesh_normal <= 0):
         return {}
     limit = float(lc.mesh_thin_limit)
     res = int(proxy.cfg.resolution)
-    probe = res if lc.mesh_thin_probe is None else int(lc.mesh_thin_probe)
-    share = thin_share(proxy if probe == res else proxy.with_resolution(probe), surfels, cameras, cfg)
+    share = thin_share(proxy, surfels, cameras, cfg)
     info: dict = {"thin_share": share, "resolution": res, "limit": limit}
-    if share is not None and share > limit:
-        fine_res = max(res, 2 * probe)  # a proxy with twice the probe's nodes or more keeps its grid
-        if fine_res == res or fine_res <= MAX_RESOLUTION:
-            fine = thin_share(proxy if fine_res == res else proxy.with_resolution(fine_res), surfels, cameras, cfg)
-            info.update(thin_share=fine, resolution=fine_res, coarse={"resolution": probe, "thin_share": share})
-            share = fine
-    elif probe != res:
-        info["probe"] = probe  # the share above is the probe's; the proxy keeps its grid
+    if share is not None and share > limit and 2 * res <= MAX_RESOLUTION:
+        fine = thin_share(proxy.with_resolution(2 * res), surfels, cameras, cfg)
+        info.update(thin_share=fine, resolution=2 * res, coarse={"resolution": res, "thin_share": share})
+        share = fine
     info["mesh_terms"] = share is None or share <= limit
     return info

@@ -228,9 +228,8 @@ def repair_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
 
     Run it after the components that no view supports are dropped (:func:`~.mesh_policy.supported_components`),
     not before: a 512-px fit's final TSDF mesh has 20,000-30,000 components, nearly all of them specks, and
-    filling their holes first kept the fit on one CPU core for minutes (``benchmarks/hard.md``). The faces
-    were oriented by trimesh's ``fix_normals``, a breadth-first walk in Python: over 15 minutes on a ten-view
-    cup's 512-px mesh (``gpu_views_rule``)."""
+    filling their holes first kept the fit on one CPU core for minutes. The faces were oriented by trimesh's
+    ``fix_normals``, a breadth-first walk in Python: over 15 minutes on a ten-view cup's 512-px mesh."""
     if not mesh.is_watertight:
         trimesh.repair.fill_holes(mesh)
     mesh.faces = orient_faces(mesh.faces)

@@ -122,8 +122,3 @@ def validate_config(cfg) -> None:
     if o.means > 0 and o.means_final > 0 and o.means_final > o.means:
         raise ValueError(f"{_PREFIX}.optim.means_final must be <= {_PREFIX}.optim.means (the learning rate "
                          f"decays), got means_final={o.means_final!r} > means={o.means!r}")
-    lc = cfg.losses
-    if lc.mesh_end_fraction <= lc.mesh_start_fraction:
-        raise ValueError(f"{_PREFIX}.losses.mesh_end_fraction must be > {_PREFIX}.losses.mesh_start_fraction (the mesh "
-                         f"terms' window), got mesh_end_fraction={lc.mesh_end_fraction!r} <= "
-                         f"mesh_start_fraction={lc.mesh_start_fraction!r}")

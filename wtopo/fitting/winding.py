@@ -3,7 +3,7 @@
 
 trimesh's ``fix_normals`` walks the face adjacency breadth first in Python, one face pair at a time (a
 few tens of microseconds each): on a 512-px fit's final TSDF mesh that is not already consistently
-wound it kept a fit on one CPU core for over 15 minutes (``benchmarks/hard.md`` ``gpu_views_rule``).
+wound it kept a fit on one CPU core for over 15 minutes.
 Here the same problem is one sort of the edges and one connected-components call: two faces that share
 an edge (exactly two faces: a manifold edge) must traverse it in opposite directions, so each face
 either keeps or flips its winding relative to its neighbour. On the double cover of the face graph

@@ -37,7 +37,7 @@ Conventions:
       skipped.  When a float array changes after skipped samples and keeps its length, the held
       value is written once more at the last skipped time so linear interpolation does not blend
       across the skipped interval.
-    * Size (measured in ``benchmarks/io.md``): the instancer costs about 48 bytes per surfel per
+    * Size (measured): the instancer costs about 48 bytes per surfel per
       sample, the splats about ``28 + 12 K`` more (``K`` SH coefficients kept, 1 by default:
       ``splat_sh_degree=0``); the mesh about 26 bytes per vertex (usdc compresses the face
       indices), only when it changes.  Above ``max_surfels`` surfels (50 000 by default, so at most

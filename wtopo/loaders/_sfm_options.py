@@ -74,7 +74,7 @@ class SfMOptions:
     COLMAP's own adjustments minimise squared errors, which a few wrong matches (repetitive texture:
     bricks, gravel) bias: on the 64-view synthetic capture of ``tests/test_sfm.py`` this pass took
     the camera-centre error from 0.32 % to 0.11 % of the camera extent and the focal length from
-    0.6 % to 0.3 % off, at the same mean reprojection error (``benchmarks/sfm.md``)."""
+    0.6 % to 0.3 % off, at the same mean reprojection error."""
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad field and its value."""

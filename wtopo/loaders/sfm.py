@@ -232,7 +232,7 @@ def load_photos(path, *, out_dir=None, options: SfMOptions | None = None, reuse:
             downscale them. The fit renders distorted cameras exactly, but fits less well from them:
             on the 64-view synthetic capture at 64 px the recovered ``SIMPLE_RADIAL`` camera (k =
             0.013 where the truth has none) made the fit's Chamfer 15 % worse than the true
-            cameras', the same cameras without the distortion 1 % (``benchmarks/sfm.md``).
+            cameras', the same cameras without the distortion 1 %.
         **kwargs: :func:`~wtopo.loaders.load_colmap` options (``background``, ``downscale``).
 
     Raises:

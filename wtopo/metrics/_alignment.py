@@ -101,7 +101,7 @@ def align_similarity(source, target) -> SimilarityAlignment:
 
 
 _REFINE_START = 0.02  # first correspondence cut-off, fraction of the target's diagonal: a camera
-# alignment leaves ~0.1-0.5 % (benchmarks/sfm.md), so 2 % keeps every true pair and drops far floaters
+# alignment leaves ~0.1-0.5 % (measured on synthetic captures), so 2 % keeps every true pair and drops far floaters
 _REFINE_STOP = 0.005  # last cut-off (F-score's 0.5 %): pairs farther than this do not steer the end
 _REFINE_SHRINK = 0.8  # cut-off factor per iteration: 2 % -> 0.5 % in 7 iterations
 
@@ -113,7 +113,7 @@ def refine_alignment(source, target, *, initial: SimilarityAlignment | None = No
     The Tanks and Temples protocol (Knapitsch et al. 2017) aligns a reconstruction made from
     estimated cameras to the ground truth by the camera centres, then refines that similarity by
     ICP against the ground-truth surface, because the camera alignment carries the structure from
-    motion's own error (on the synthetic capture of ``benchmarks/sfm.md`` the centres' similarity is
+    motion's own error (on a 64-view synthetic capture the centres' similarity is
     0.4 % off in scale, a focal-length / distance trade the centres cannot see). Here each
     iteration pairs area samples of the mapped source with their closest points on the target
     *and* samples of the target with their closest points on the mapped source (so a surface that

@@ -26,7 +26,7 @@ class RasterConfig:
 
     tile_size: int = 8
     """Tile edge in pixels (8, 16 or 32); each tile composites its own depth-sorted list. 8 measured
-    1.4-1.7x faster than 16 on CPU (fewer surfels tested per pixel; benchmarks/rasterize.md)."""
+    1.4-1.7x faster than 16 on CPU (fewer surfels tested per pixel)."""
     max_intersections: int = 1 << 26
     """Budget of (tile, surfel) pairs; more raises ``ValueError`` before the sort (memory: 24 bytes each)."""
     near_fraction: float = 0.05
@@ -40,7 +40,7 @@ class RasterConfig:
     """Standard deviation of the screen-space low-pass filter [pixels]: ``rho2d = |pixel - centre|^2
     / filter_sigma^2``. The default is 2DGS's (``rho2d = 2 |pixel - centre|^2``). A narrower filter
     makes sub-pixel and edge-on surfels smaller dots: less silhouette halo and less pull of the
-    front-most surfel on depth (``wtopo.fit`` uses 0.35; ``benchmarks/fit.md``), at the price of
+    front-most surfel on depth (``wtopo.fit`` uses 0.35), at the price of
     aliasing where surfels are sparser than pixels."""
 
 

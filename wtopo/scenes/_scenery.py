@@ -25,10 +25,10 @@ _TEXTURE_TILES = 1.5  # texture repeats per object diameter in the triplanar map
 
 
 # -- the unbounded environment (``background="environment"``); lengths in object radii -------------
-_ENV_GROUND_HALF = 40.0  # ground half-size: 30-50x the object radius (issue 13), far past any camera
+_ENV_GROUND_HALF = 40.0  # ground half-size: 30-50x the object radius (unbounded-scene tests), far past any camera
 _ENV_GROUND_CELLS = 64  # ground quads per side (1.25 radii each): a region-of-interest crop of the
 #                         ground then rejects few area samples in the evaluation
-_ENV_HILL_FEET = (12.0, 20.0)  # inner and outer foot radius of the ring of hills (10-20 radii, issue 13)
+_ENV_HILL_FEET = (12.0, 20.0)  # inner and outer foot radius of the ring of hills (10-20 radii)
 _ENV_HILL_HEIGHT = (1.5, 4.0)  # ridge height range: tops 5-15 degrees above the horizon from the rigs
 _ENV_HILL_SEGMENTS = 128  # segments around the ring (2.8 degrees each: smooth at 160 px)
 _ENV_HILL_PROFILE = ((0.0, 0.0), (0.25, 0.6), (0.5, 1.0), (0.75, 0.6), (1.0, 0.0))  # (radial, height) fractions
