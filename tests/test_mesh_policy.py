@@ -6,7 +6,7 @@ import pytest
 import trimesh
 
 from wtopo import Camera
-from wtopo.fitting.mesh_policy import crop_near_cameras, crop_to_box, supported_components
+from wtopo.geometry.mesh_policy import crop_near_cameras, crop_to_box, supported_components
 from wtopo.metrics import camera_clearance
 
 
@@ -53,7 +53,7 @@ def test_two_objects_are_both_kept_and_an_unseen_floater_goes():
 
 def _support_views_exhaustive(mesh, cams, depths):
     """Reference: every view tested on every vertex of every component (the rule without early exit)."""
-    from wtopo.fitting import mesh_policy as mp
+    from wtopo.geometry import mesh_policy as mp
 
     label = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
     vlabel = np.full(len(mesh.vertices), -1)
@@ -70,7 +70,7 @@ def _support_views_exhaustive(mesh, cams, depths):
 def test_support_stops_testing_decided_components_without_changing_the_result():
     """Keep and drop exactly the components the exhaustive rule does, with the same counts for the dropped
     ones, on a scene with a seen pair, a floater and a component only two views support."""
-    from wtopo.fitting import mesh_policy as mp
+    from wtopo.geometry import mesh_policy as mp
 
     torus = trimesh.creation.torus(0.6, 0.2)
     torus.apply_translation([-0.7, 0, 0])

@@ -13,7 +13,7 @@ from lenses import barrel_twin
 from wtopo import scenes
 from wtopo.fitting.config import FitConfig, InitConfig, InitSource
 from wtopo.fitting.init import initial_surfels, spread_subset
-from wtopo.fitting.mvs import plane_sweep_points, select_neighbours
+from wtopo.geometry.mvs import plane_sweep_points, select_neighbours
 
 
 def _plane_scene(n_views=10):

@@ -16,8 +16,8 @@ import torch
 import trimesh
 
 from wtopo import Camera
-from wtopo.fitting.depth_warp import pinhole_warp
 from wtopo.fitting.tsdf import FusionBounds, fuse_depths
+from wtopo.geometry.depth_warp import pinhole_warp
 from wtopo.metrics import chamfer
 from wtopo.ops import raycast_mesh
 from wtopo.scenes import rig_cameras

@@ -15,13 +15,16 @@ from __future__ import annotations
 
 import math
 import time
+from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
 import torch
 import trimesh
 
 from .._validate import trusted_values
 from .background import BackgroundState, background_surfels, contract_steps, prune_near_cameras
+from .checkpoint import rng_state, set_rng_state
 from .checkpointing import Checkpointer
 from .config import FitConfig, config_hash
 from .evaluate import Evaluator
@@ -181,6 +184,50 @@ class FitRun:
         self.surfels = Surfels.from_state_dict(sd, self.device)
         self.opt = self.surfels.optimizer(_lrs(self.cfg))
         self.opt.load_state_dict(od)
+
+    # -- checkpoints (written and read by the Checkpointer) ------------------------------------------
+    def checkpoint_state(self) -> dict:
+        """The stored dictionary: the last good surfels and optimiser, loop state, RNGs, config. Its keys stay
+        stable so that checkpoints of earlier runs resume."""
+        good = self.last_good
+        return {
+            "surfels": good[0] if good is not None else self.surfels.state_dict(),
+            "optimizer": good[1] if good is not None else self.opt.state_dict(),
+            "iteration": self.it, "tsdf_done": self.tsdf_done, "history": self.history, "events": self.events,
+            "gap": self.strategy.gap, "loss_sums": dict(self.loss_log.sums), "loss_count": self.loss_log.count,
+            "elapsed": self.elapsed(), "timers": dict(self.timers.total), "rng": rng_state(),
+            "generator": self.gen.get_state(), "config_hash": self.hash, "config": self.cfg.to_dict(),
+            "normalization": {"scale": self.sim.scale, "translation": list(self.sim.translation)},
+            "proxy": {"box": None if self.proxy.box is None else [np.asarray(b).tolist() for b in self.proxy.box],
+                      "prior": self.proxy.prior,
+                      "silhouette": None if self.proxy.silhouette is None else float(self.proxy.silhouette.value)},
+            "tsdf_info": self.tsdf_info, "coevolution_info": self.coevolution_info,
+            "total_failures": self.total_failures,
+        }
+
+    def restore_checkpoint(self, st: dict) -> None:
+        """Load a stored dictionary (:meth:`checkpoint_state`) into this fit."""
+        self.set_surfels(Surfels.from_state_dict(st["surfels"], self.device), st["optimizer"])
+        self.it = int(st["iteration"])
+        self.tsdf_done = bool(st["tsdf_done"])
+        self.history = list(st["history"])
+        self.events = list(st["events"])
+        self.strategy.gap = float(st["gap"])
+        self.loss_log.sums = defaultdict(float, st["loss_sums"])
+        self.loss_log.count = int(st["loss_count"])
+        self.elapsed_before = float(st["elapsed"])
+        self.timers.total = defaultdict(float, st["timers"])
+        self.total_failures = int(st["total_failures"])
+        self.tsdf_info = dict(st["tsdf_info"])
+        self.coevolution_info = dict(st.get("coevolution_info", {}))  # absent before the thin-part rule
+        set_rng_state(st["rng"])
+        self.gen.set_state(st["generator"])
+        px = st["proxy"]
+        box = None if px["box"] is None else tuple(np.asarray(b) for b in px["box"])
+        clip = region_clip(self.cfg.mesh, self.plan.layout)
+        self.proxy = ProxyMesh(self.cfg.mesh, box=box, prior=px["prior"], clip=clip)
+        if self.proxy.silhouette is not None and px.get("silhouette"):
+            self.proxy.silhouette.value = torch.tensor(float(px["silhouette"]), device=self.device)
 
     def _update_lr(self) -> float:
         """Set the means' rate for this iteration; returns the scale of a step's in-plane part."""

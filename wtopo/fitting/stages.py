@@ -21,10 +21,10 @@ import trimesh
 
 from .. import _bridge
 from .._profile import section
+from ..geometry.mesh_policy import crop_near_cameras, crop_to_box, supported_components
 from ..scene import NORMALIZATION_MARGIN
 from . import densify as dens
 from .config import Closure, FinalMethod, FitConfig, NormalFlip, PoissonBox, RenderedDepth
-from .mesh_policy import crop_near_cameras, crop_to_box, supported_components
 from .proxy import ProxyMesh, poisson_mesh, region_clip
 from .scene_kind import SceneKind, SceneLayout
 from .silhouette import calibrate_mesh

@@ -21,10 +21,10 @@ import trimesh
 
 from .._profile import section
 from ..camera import Camera
+from ..geometry.depth_warp import pinhole_warp
+from ..geometry.winding import orient_faces
 from ..scene import NORMALIZATION_MARGIN
-from .depth_warp import pinhole_warp
 from .surfels import Surfels
-from .winding import orient_faces
 
 __all__ = ["TSDFEmptyError", "FusionBounds", "auto_bounds", "fuse_depths", "mesh_to_surfels", "cleanup_mesh",
            "repair_mesh", "hybrid_keep"]
