@@ -145,7 +145,7 @@ def _remesh_config():
 
 
 def test_poisson_remesh_closes_an_open_mesh_and_records_its_device():
-    from wtopo.fitting.stages import poisson_remesh
+    from wtopo.fitting._final_mesh import poisson_remesh
 
     events = []
     src = _open_sphere()
@@ -163,7 +163,7 @@ def test_poisson_remesh_falls_back_to_the_cpu_when_its_device_runs_out_of_memory
     (``meta`` stands in for a GPU: this machine may have none). Other errors, and the CPU's own, propagate."""
     import torch
 
-    import wtopo.fitting.stages as stages
+    import wtopo.fitting._final_mesh as stages
 
     real, seen = stages.poisson_mesh, []
 
@@ -230,7 +230,7 @@ def test_an_objects_final_mesh_is_repaired_after_the_unsupported_components_go(m
 
     import torch
 
-    import wtopo.fitting.stages as stages
+    import wtopo.fitting._final_mesh as stages
     from wtopo.fitting import FitConfig
 
     seen = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
@@ -277,7 +277,7 @@ def test_an_objects_poisson_remesh_keeps_only_the_components_the_views_support(m
 
     import torch
 
-    import wtopo.fitting.stages as stages
+    import wtopo.fitting._final_mesh as stages
     from wtopo.fitting import FitConfig
 
     body = trimesh.creation.icosphere(subdivisions=3, radius=0.5)

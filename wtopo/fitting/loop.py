@@ -4,7 +4,7 @@
 :class:`FitRun` owns the state of one fit (surfels, optimiser, iteration, history, events) and
 drives the stages; its collaborators each do one thing: :class:`~.objective.Objective` (the loss
 terms of an iteration), :class:`~.strategy.DensityStrategy` (density control and mesh guidance),
-:mod:`.stages` (TSDF re-initialisation, final mesh), :class:`~.evaluate.Evaluator`,
+:func:`~._reinit.tsdf_reinit` and :func:`~._final_mesh.final_mesh` (the discrete stages), :class:`~.evaluate.Evaluator`,
 :class:`~.checkpointing.Checkpointer` (checkpoints on an iteration and a wall-clock cadence,
 resume), :class:`~.timeline.FitTimeline` (USD) and :mod:`.progress` (bars, SIGINT / SIGTERM).
 The non-finite guard lives here: a step with a non-finite loss, gradient or parameter is skipped
@@ -23,6 +23,8 @@ import torch
 import trimesh
 
 from .._validate import trusted_values
+from ._final_mesh import final_mesh
+from ._reinit import tsdf_reinit
 from .background import BackgroundState, background_surfels, contract_steps, prune_near_cameras
 from .checkpoint import rng_state, set_rng_state
 from .checkpointing import Checkpointer
@@ -35,7 +37,7 @@ from .profiling import Timers
 from .progress import StageBar, StopRequest
 from .proxy import ProxyMesh, ProxyResult, region_clip
 from .schedule import damp_in_plane_steps, means_rate
-from .stages import Renderer, Stage, final_mesh, tsdf_reinit
+from .stages import Renderer, Stage
 from .strategy import DensityStrategy, StepInfo
 from .surfels import Surfels
 from .thin_parts import thin_parts
