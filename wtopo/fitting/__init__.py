@@ -10,13 +10,13 @@ pieces of the final meshing (:class:`Renderer`, :func:`final_mesh`, :class:`Prox
 
 Modules:
 
-* ``api``: :func:`fit`, posed images in, a watertight mesh in the caller's frame out; :func:`fit_surfels`;
+* ``_api``: :func:`fit`, posed images in, a watertight mesh in the caller's frame out; :func:`fit_surfels`;
 * ``config``: :class:`FitConfig`, a keyword-only dataclass of nested stage configs;
 * ``validate_config``: checks a configuration before the fit does any work;
 * ``plan``: the stage plan, which parts of the fit a scene needs, each with its reason;
 * ``_defaults``: the plan's base budgets on a kind of device (:func:`plan_defaults`);
 * ``scene_kind``: what kind of capture a scene is and where its region of interest lies;
-* ``init``: stage 1, the initial surfels from the scene's points or the cameras' common volume;
+* ``_init_surfels``: stage 1, the initial surfels from the scene's points or the cameras' common volume;
 * ``surfels``: the surfel parameter container (parameters, Adam groups, prune / clone / split);
 * ``background``: surfels for the background of unmasked captures, kept at distance;
 * ``loop``: the fit loop, :class:`~.loop.FitRun` driving warm-up, TSDF re-initialisation,
@@ -24,7 +24,7 @@ Modules:
 * ``stages``: the stage names, the renderer every stage renders through and its depth maps;
 * ``_reinit``: the TSDF re-initialisation stage;
 * ``_final_mesh``: the final mesh (fusion, meshing policy, watertight re-mesh);
-* ``strategy``: density control as one strategy object with per-iteration hooks;
+* ``_strategy``: density control as one strategy object with per-iteration hooks;
 * ``objective``: which loss terms apply in an iteration, with which weight, on which pixels;
 * ``losses``: the loss terms, pure torch and finite for any rendered input;
 * ``densify``: screen-space clone / split, opacity prune and reset, and the mesh-guided steps;
@@ -34,17 +34,17 @@ Modules:
 * ``evaluate``: history records (losses, timings; Chamfer / F-score / PSNR given a ground truth);
 * ``checkpoint``: atomic, validated, resumable checkpoint files;
 * ``checkpointing``: when checkpoints of a running fit are written and how a fit resumes;
-* ``timeline``: the USD timeline of a fit (cameras, surfels, proxy mesh, final mesh);
+* ``_timeline``: the USD timeline of a fit (cameras, surfels, proxy mesh, final mesh);
 * ``profiling``: the fit's section timers and the ``runtime.profile`` time table per stage;
-* ``progress``: what a running fit shows (tqdm bars) and how it is stopped (SIGINT / SIGTERM).
+* ``_progress``: what a running fit shows (tqdm bars) and how it is stopped (SIGINT / SIGTERM).
 
 The geometry the fit shares with the rest of the package (stereo, lens warp, winding, meshing policy,
 region of interest) is :mod:`wtopo.geometry`.
 """
 
+from ._api import FitResult, fit, fit_surfels
 from ._defaults import PlanDefaults, plan_defaults
 from ._final_mesh import final_mesh
-from .api import FitResult, fit, fit_surfels
 from .config import (
     Closure,
     CoevolutionConfig,

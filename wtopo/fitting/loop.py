@@ -3,10 +3,10 @@
 
 :class:`FitRun` owns the state of one fit (surfels, optimiser, iteration, history, events) and
 drives the stages; its collaborators each do one thing: :class:`~.objective.Objective` (the loss
-terms of an iteration), :class:`~.strategy.DensityStrategy` (density control and mesh guidance),
+terms of an iteration), :class:`~._strategy.DensityStrategy` (density control and mesh guidance),
 :func:`~._reinit.tsdf_reinit` and :func:`~._final_mesh.final_mesh` (the discrete stages), :class:`~.evaluate.Evaluator`,
 :class:`~.checkpointing.Checkpointer` (checkpoints on an iteration and a wall-clock cadence,
-resume), :class:`~.timeline.FitTimeline` (USD) and :mod:`.progress` (bars, SIGINT / SIGTERM).
+resume), :class:`~._timeline.FitTimeline` (USD) and :mod:`._progress` (bars, SIGINT / SIGTERM).
 The non-finite guard lives here: a step with a non-finite loss, gradient or parameter is skipped
 and the last good state restored; too many in a row abort with a checkpoint.
 """
@@ -24,24 +24,24 @@ import trimesh
 
 from .._validate import trusted_values
 from ._final_mesh import final_mesh
+from ._init_surfels import initial_surfels
+from ._progress import StageBar, StopRequest
 from ._reinit import tsdf_reinit
+from ._strategy import DensityStrategy, StepInfo
+from ._timeline import FitTimeline
 from .background import BackgroundState, background_surfels, contract_steps, prune_near_cameras
 from .checkpoint import rng_state, set_rng_state
 from .checkpointing import Checkpointer
 from .config import FitConfig, config_hash
 from .evaluate import Evaluator
-from .init import initial_surfels
 from .objective import LossLog, Objective
 from .plan import Plan, make_plan, resolve_config, split_views
 from .profiling import Timers
-from .progress import StageBar, StopRequest
 from .proxy import ProxyMesh, ProxyResult, region_clip
 from .schedule import damp_in_plane_steps, means_rate
 from .stages import Renderer, Stage
-from .strategy import DensityStrategy, StepInfo
 from .surfels import Surfels
 from .thin_parts import thin_parts
-from .timeline import FitTimeline
 
 __all__ = ["FitRun", "FitAborted"]
 
