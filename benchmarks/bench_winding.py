@@ -18,7 +18,7 @@ import time
 import numpy as np
 import trimesh
 
-from wtopo.fitting.winding import orient_faces
+from wtopo.geometry.winding import orient_faces
 
 
 def main(argv=None) -> None:

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The final watertight re-mesh (``wtopo.fitting.stages.poisson_remesh``) on the fit's device against the CPU.
+"""The final watertight re-mesh (``wtopo.fitting._final_mesh.poisson_remesh``) on the fit's device against the CPU.
 
 A CUDA fit's final mesh is fused at ``final.resolution`` (up to 768^3 at 512-px photographs); when it is not
 closed the fit re-meshes it by Poisson at that resolution. That solve ran on the CPU whatever the fit's device;
@@ -28,7 +28,7 @@ import torch
 import trimesh
 
 from wtopo.fitting import FitConfig
-from wtopo.fitting.stages import poisson_remesh
+from wtopo.fitting._final_mesh import poisson_remesh
 from wtopo.metrics import chamfer
 
 

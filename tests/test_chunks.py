@@ -365,7 +365,7 @@ def test_a_failing_chunk_is_reported_by_name(tmp_path, monkeypatch):
         raise ValueError("no surfels left")
 
     monkeypatch.setattr(wtopo.fitting, "fit", boom)
-    monkeypatch.setattr(wc.engine, "fit_surfels", boom)  # the default merge re-fuses: chunks skip their mesh
+    monkeypatch.setattr(wtopo.fitting, "fit_surfels", boom)  # the default merge re-fuses: chunks skip their mesh
     with pytest.raises(RuntimeError, match=r"chunk 0 \(rank 0\): ValueError: no surfels left"):
         wc.fit_chunked(_camera_scene(), tmp_path, _tiny_config(), chunk_config=wc.ChunkConfig(chunks=3),
                        progress=False)
@@ -383,7 +383,7 @@ def test_an_interrupted_chunk_is_not_taken_as_done(tmp_path, monkeypatch):
         return types.SimpleNamespace(mesh=trimesh.creation.box(), report={"status": "interrupted"})
 
     monkeypatch.setattr(wtopo.fitting, "fit", interrupted)
-    monkeypatch.setattr(wc.engine, "fit_surfels", interrupted)
+    monkeypatch.setattr(wtopo.fitting, "fit_surfels", interrupted)
     with pytest.raises(RuntimeError, match="status 'interrupted'; a rerun resumes it"):
         wc.fit_chunked(_camera_scene(), tmp_path, _tiny_config(), chunk_config=wc.ChunkConfig(chunks=3),
                        progress=False)

@@ -197,7 +197,7 @@ def test_final_poisson_remesh_on_cuda_matches_the_cpu():
     from test_mesh_policy import _open_sphere
 
     from wtopo.fitting import FitConfig
-    from wtopo.fitting.stages import poisson_remesh
+    from wtopo.fitting._final_mesh import poisson_remesh
     from wtopo.metrics import chamfer
 
     src = _open_sphere(subdivisions=4)

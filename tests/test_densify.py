@@ -205,9 +205,9 @@ def test_normals_to_quats_roundtrip():
 
 def _strategy(background, monkeypatch):
     from wtopo.fitting import densify
+    from wtopo.fitting._strategy import DensityStrategy
     from wtopo.fitting.config import FitConfig
     from wtopo.fitting.stages import Stage
-    from wtopo.fitting.strategy import DensityStrategy
 
     events = []
     cfg = FitConfig()

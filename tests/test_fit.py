@@ -226,7 +226,7 @@ def test_injected_nan_is_survived_and_persistent_nan_aborts(tiny, tmp_path, monk
 
 def test_late_opacity_reset_is_skipped(tiny, monkeypatch):
     """A reset with fewer than 100 warm-up iterations left is skipped and recorded; an early one runs."""
-    from wtopo.fitting import strategy
+    from wtopo.fitting import _strategy as strategy
 
     cfg = _config(130, 0)
     cfg.tsdf.enabled = False

@@ -267,7 +267,8 @@ def test_cli_reports_a_bad_config_without_a_traceback(monkeypatch, capsys, tmp_p
 
 def test_default_schedule_fractions_give_the_cpu_iterations():
     """Place the default schedule's events at the CPU budget's iterations (warm-up 800, co-evolution 800)."""
-    from wtopo.fitting import objective, strategy
+    from wtopo.fitting import _strategy as strategy
+    from wtopo.fitting import objective
     from wtopo.fitting.config import stage_iteration
 
     cfg = FitConfig()

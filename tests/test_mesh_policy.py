@@ -6,7 +6,7 @@ import pytest
 import trimesh
 
 from wtopo import Camera
-from wtopo.fitting.mesh_policy import crop_near_cameras, crop_to_box, supported_components
+from wtopo.geometry.mesh_policy import crop_near_cameras, crop_to_box, supported_components
 from wtopo.metrics import camera_clearance
 
 
@@ -53,7 +53,7 @@ def test_two_objects_are_both_kept_and_an_unseen_floater_goes():
 
 def _support_views_exhaustive(mesh, cams, depths):
     """Reference: every view tested on every vertex of every component (the rule without early exit)."""
-    from wtopo.fitting import mesh_policy as mp
+    from wtopo.geometry import mesh_policy as mp
 
     label = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
     vlabel = np.full(len(mesh.vertices), -1)
@@ -70,7 +70,7 @@ def _support_views_exhaustive(mesh, cams, depths):
 def test_support_stops_testing_decided_components_without_changing_the_result():
     """Keep and drop exactly the components the exhaustive rule does, with the same counts for the dropped
     ones, on a scene with a seen pair, a floater and a component only two views support."""
-    from wtopo.fitting import mesh_policy as mp
+    from wtopo.geometry import mesh_policy as mp
 
     torus = trimesh.creation.torus(0.6, 0.2)
     torus.apply_translation([-0.7, 0, 0])
@@ -145,7 +145,7 @@ def _remesh_config():
 
 
 def test_poisson_remesh_closes_an_open_mesh_and_records_its_device():
-    from wtopo.fitting.stages import poisson_remesh
+    from wtopo.fitting._final_mesh import poisson_remesh
 
     events = []
     src = _open_sphere()
@@ -163,7 +163,7 @@ def test_poisson_remesh_falls_back_to_the_cpu_when_its_device_runs_out_of_memory
     (``meta`` stands in for a GPU: this machine may have none). Other errors, and the CPU's own, propagate."""
     import torch
 
-    import wtopo.fitting.stages as stages
+    import wtopo.fitting._final_mesh as stages
 
     real, seen = stages.poisson_mesh, []
 
@@ -230,7 +230,7 @@ def test_an_objects_final_mesh_is_repaired_after_the_unsupported_components_go(m
 
     import torch
 
-    import wtopo.fitting.stages as stages
+    import wtopo.fitting._final_mesh as stages
     from wtopo.fitting import FitConfig
 
     seen = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
@@ -277,7 +277,7 @@ def test_an_objects_poisson_remesh_keeps_only_the_components_the_views_support(m
 
     import torch
 
-    import wtopo.fitting.stages as stages
+    import wtopo.fitting._final_mesh as stages
     from wtopo.fitting import FitConfig
 
     body = trimesh.creation.icosphere(subdivisions=3, radius=0.5)

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Plane-sweep stereo initialisation (:mod:`wtopo.fitting.mvs`): analytic plane and sphere, a
+"""Plane-sweep stereo initialisation (:mod:`wtopo.geometry.mvs`): analytic plane and sphere, a
 distorted rig against its undistorted twin, untextured images, neighbour choice and the plan."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import trimesh
 from lenses import barrel_twin
 
 from wtopo import scenes
+from wtopo.fitting._init_surfels import initial_surfels, spread_subset
 from wtopo.fitting.config import FitConfig, InitConfig, InitSource
-from wtopo.fitting.init import initial_surfels, spread_subset
-from wtopo.fitting.mvs import plane_sweep_points, select_neighbours
+from wtopo.geometry.mvs import plane_sweep_points, select_neighbours
 
 
 def _plane_scene(n_views=10):

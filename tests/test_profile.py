@@ -68,7 +68,7 @@ def test_only_a_profiled_cuda_fit_synchronises(tiny, device):
     not torch.cuda.is_available(), reason="needs CUDA"))])
 def test_profiled_fit_reports_every_stage_within_the_wall_time(tiny, tmp_path, capsys, device, monkeypatch):
     """Print and store the stage table of a tiny fit: every stage, calls, sums within the wall time."""
-    from wtopo.fitting import strategy
+    from wtopo.fitting import _strategy as strategy
 
     cfg = small_fit_config(24, 8, points=300, grids=(32, 40, 32), max_faces=800, density_every=8, eval_every=16,
                            checkpoint_every=16)

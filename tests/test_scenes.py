@@ -213,7 +213,7 @@ def test_forward_rig_region_sits_at_the_depth_the_pictures_show():
     depth stereo measures in the middle of the pictures (the object), not at the rig-geometry guess,
     and holds the object's nearest point; a capture without texture falls back to the guess."""
     from wtopo import Scene
-    from wtopo._region import visual_hull_box
+    from wtopo.geometry.region import visual_hull_box
 
     ball = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
     s = scenes.from_mesh(ball, n_views=9, resolution=(64, 48), rig="forward", background="black", n_test=0)

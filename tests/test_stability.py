@@ -184,7 +184,7 @@ def case_prune_everything() -> str:
     """Pruning thresholds every surfel falls under still leave surfels and a mesh."""
     from unittest import mock
 
-    from wtopo.fitting import strategy
+    from wtopo.fitting import _strategy as strategy
 
     cfg = tiny_config()
     with mock.patch.multiple(strategy, PRUNE_OPACITY=1.0, _GEOMETRY_PRUNE_OPACITY=1.0, _GEOMETRY_PRUNE_DISTANCE=0.0):

@@ -2,7 +2,7 @@
 """TSDF fusion through the camera's own lens: distortion, skew and principal point.
 
 ``fuse_depths`` resamples a distorted or skewed view onto an ideal pinhole camera
-(:mod:`wtopo.fitting.depth_warp`) before Open3D integrates it. These tests fuse a distorted
+(:mod:`wtopo.geometry.depth_warp`) before Open3D integrates it. These tests fuse a distorted
 scene and its undistorted twin against the ground truth, fuse an analytic tilted plane, and
 rerun the old behaviour (the pinhole intrinsic on distorted depth) to show it fails the same
 tolerances.
@@ -16,8 +16,8 @@ import torch
 import trimesh
 
 from wtopo import Camera
-from wtopo.fitting.depth_warp import pinhole_warp
 from wtopo.fitting.tsdf import FusionBounds, fuse_depths
+from wtopo.geometry.depth_warp import pinhole_warp
 from wtopo.metrics import chamfer
 from wtopo.ops import raycast_mesh
 from wtopo.scenes import rig_cameras

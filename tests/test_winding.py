@@ -6,7 +6,7 @@ import pytest
 import trimesh
 
 from wtopo.fitting.tsdf import repair_mesh
-from wtopo.fitting.winding import orient_faces
+from wtopo.geometry.winding import orient_faces
 
 
 def _reverse(faces: np.ndarray, mask: np.ndarray) -> np.ndarray:

@@ -3,6 +3,7 @@
 
 Examples::
 
+    wtopo --version
     wtopo scenes
     wtopo fit bunny --out runs/bunny
     wtopo fit path/to/dataset --out runs/x --iterations 2000 --device cuda
@@ -131,8 +132,7 @@ def _config(args):
 
 
 def _cmd_fit(args) -> int:
-    from .fitting import fit
-    from .fitting.validate_config import validate_config
+    from .fitting import fit, validate_config
 
     cfg = _config(args)  # before the scene is loaded: a bad flag is reported at once
     validate_config(cfg)
@@ -196,7 +196,10 @@ def _cmd_export(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``wtopo`` command."""
+    from . import __version__
+
     p = _Parser(prog="wtopo", description="Posed photographs to a watertight mesh.")
+    p.add_argument("--version", action="version", version=f"wtopo {__version__}")
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--traceback", action="store_true",
                         help="show the traceback of an error instead of the one-line message")

@@ -15,9 +15,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from ._region import points_box, visual_hull_box
 from ._validate import all_finite
 from .camera import Camera
+from .geometry.region import points_box, visual_hull_box
 
 __all__ = ["Scene", "Similarity", "NORMALIZATION_MARGIN"]
 
@@ -474,6 +474,6 @@ class Scene:
         ``transforms_test.json``, RGBA PNGs; alpha = mask) plus ``gt_mesh.ply`` when present, so
         :func:`wtopo.load_scene` reads it back. Non-centred or anisotropic intrinsics are written
         as per-frame ``fl_x, fl_y, cx, cy`` beside ``camera_angle_x``."""
-        from .loaders.blender import write_blender
+        from .loaders._blender_write import write_blender
 
         write_blender(self, path)

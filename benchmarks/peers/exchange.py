@@ -84,7 +84,7 @@ def _initial_points(scene, n_random: int, seed: int) -> tuple[np.ndarray, np.nda
         return pts, col, "scene"
     lo, hi = (np.asarray(b, dtype=np.float64) for b in scene.region_of_interest())
     if scene.background is None:  # a real capture: what SfM/MVS would give, from the images alone
-        from wtopo.fitting.mvs import plane_sweep_points
+        from wtopo.geometry.mvs import plane_sweep_points
         train = scene.split("train")
         near = 0.05 * float(np.linalg.norm(hi - lo))
         dev = "cuda" if torch.cuda.is_available() else "cpu"

@@ -5,7 +5,7 @@ does with many fits on one GPU), and does ``wtopo._bridge.recover_after_oom`` pu
     PYTHONPATH=/tmp/site:. python3 lab/device/warp_oom_sort.py     (on the device: lab/gpu.md)
 
 Fills the GPU so that a 768^3 Poisson solve (the final re-mesh's) cannot allocate its field, re-solves on
-the CPU as :func:`wtopo.fitting.stages.poisson_remesh` does, then checks a million-pair sort twice; then the
+the CPU as :func:`wtopo.fitting._final_mesh.poisson_remesh` does, then checks a million-pair sort twice; then the
 same with the recovery in between. Measured with Warp 1.19.0 on an H200 (lab/gpu.md).
 """
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from wtopo.fitting.depth_warp import pinhole_warp
+from wtopo.geometry.depth_warp import pinhole_warp
 from wtopo.kernels.tsdf_fusion import MIN_ABS_TSDF
 
 __all__ = ["tsdf_reference"]

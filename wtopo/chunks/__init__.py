@@ -16,11 +16,11 @@ Command line::
 
 from __future__ import annotations
 
-from .engine import ChunkedResult, chunk_scene, dist_info, fit_chunked, fit_surfels, rank_chunks
+from .engine import ChunkedResult, chunk_scene, dist_info, fit_chunked, rank_chunks
 from .merge import merge_meshes, merge_surfels, refuse_mesh, refuse_resolution, weld_boundaries
 from .partition import Chunk, ChunkConfig, ChunkPlan, assign_cameras, chunk_grid, core_owner, plan_chunks
 from .synthetic import street_scene
 
 __all__ = ["fit_chunked", "ChunkedResult", "ChunkConfig", "ChunkPlan", "Chunk", "plan_chunks", "chunk_grid",
            "assign_cameras", "core_owner", "chunk_scene", "rank_chunks", "dist_info", "merge_meshes",
-           "merge_surfels", "weld_boundaries", "refuse_mesh", "refuse_resolution", "fit_surfels", "street_scene"]
+           "merge_surfels", "weld_boundaries", "refuse_mesh", "refuse_resolution", "street_scene"]

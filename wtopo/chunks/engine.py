@@ -29,8 +29,7 @@ from ..io._common import atomic_write
 from .merge import boundary_edges_near, merge_meshes, merge_surfels, refuse_mesh, refuse_resolution
 from .partition import ChunkConfig, ChunkPlan, plan_chunks
 
-__all__ = ["fit_chunked", "ChunkedResult", "chunk_scene", "chunk_fit_config", "rank_chunks", "dist_info", "cuda_peak",
-           "fit_surfels"]
+__all__ = ["fit_chunked", "ChunkedResult", "chunk_scene", "chunk_fit_config", "rank_chunks", "dist_info", "cuda_peak"]
 
 
 @dataclass
@@ -102,24 +101,24 @@ def chunk_fit_config(cfg, device: str, share: float, space: float = 1.0, budget:
     budget and whose point budgets (initial points, surfel cap, re-initialisation faces, background
     points when set) are ``space`` of theirs (the configured values, or the plan's for the device
     when left to it). ``budget``: the whole scene's planned ``(warm-up, co-evolution)`` iterations
-    (:func:`wtopo.fitting.plan.iteration_budget`) for those the configuration leaves to the plan;
+    (:func:`wtopo.fitting.iteration_budget`) for those the configuration leaves to the plan;
     ``None``: the device's base budget."""
     import copy
 
-    from ..fitting.plan import _ITERATIONS, _MAX_SURFELS, _REINIT_FACES
+    from ..fitting import plan_defaults
 
     c = copy.deepcopy(cfg)
     c.runtime.device = device
-    dev = "cuda" if device.startswith("cuda") else "cpu"
+    base = plan_defaults(device)
     if space < 1.0:
-        cap = cfg.runtime.max_surfels or _MAX_SURFELS[dev]
-        faces = cfg.tsdf.max_faces or _REINIT_FACES[dev]
+        cap = cfg.runtime.max_surfels or base.max_surfels
+        faces = cfg.tsdf.max_faces or base.reinit_faces
         c.runtime.max_surfels = max(1, round(space * cap))
         c.tsdf.max_faces = max(1, round(space * faces))
         c.init.num_points = max(1, round(space * cfg.init.num_points))
         if cfg.init.background_points:
             c.init.background_points = max(1, round(space * cfg.init.background_points))
-    warm, coevo = _ITERATIONS[dev] if budget is None else budget
+    warm, coevo = base.iterations if budget is None else budget
     warm = warm if cfg.warmup.iterations is None else cfg.warmup.iterations
     coevo = coevo if cfg.coevolution.iterations is None else cfg.coevolution.iterations
     c.warmup.iterations = max(1, round(share * warm)) if warm else 0
@@ -127,43 +126,11 @@ def chunk_fit_config(cfg, device: str, share: float, space: float = 1.0, budget:
     return c
 
 
-def fit_surfels(scene, config, *, out_dir, progress: bool = True):
-    """:func:`wtopo.fit` without its final mesh: the surfels are the result (a chunk whose mesh the
-    merge re-fuses from the merged surfels, ``ChunkConfig.merge = "refuse"``).
-
-    Every stage but the final meshing runs as in :func:`wtopo.fit` (resumable from the same
-    checkpoints); ``result.mesh`` is empty and ``out_dir`` gets the same files (``mesh.ply`` empty).
-
-    Args:
-        scene: a :class:`wtopo.Scene` (world frame).
-        config: a validated :class:`wtopo.FitConfig`.
-        out_dir: run directory (required: the merge reads ``surfels.ply`` and ``config.json`` there).
-        progress: print the plan and show progress bars.
-
-    Returns:
-        :class:`wtopo.fitting.api.FitResult` with an empty ``mesh``.
-    """
-    from ..fitting.api import FitResult, _report, _write_outputs
-    from ..fitting.loop import FitRun
-
-    class _NoFinalMesh(FitRun):
-        def _final_mesh(self) -> trimesh.Trimesh:  # the merge meshes the merged surfels instead
-            return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), process=False)
-
-    run = _NoFinalMesh(scene, config, out_dir, progress)
-    mesh = run.run()
-    result = FitResult(mesh=mesh, surfels=run.surfels, plan=run.plan, history=run.history)
-    result.report = _report(run, mesh, scene)
-    _write_outputs(Path(out_dir), result, run)
-    return result
-
-
 def _fit_one(scene, plan: ChunkPlan, index: int, cfg, ccfg: ChunkConfig, out: Path, device: str, rank: int,
              progress: bool) -> dict:
     import torch
 
-    from ..fitting import fit
-    from ..fitting.plan import iteration_budget
+    from ..fitting import fit, fit_surfels, iteration_budget
 
     final, partial = out / "chunks" / str(index), out / "chunks" / f"{index}.partial"
     if (final / "chunk.json").exists():
@@ -298,8 +265,7 @@ def fit_chunked(scene, out_dir: str | os.PathLike, config=None, *, chunk_config:
         ValueError: ``out_dir`` is None; a bad configuration; no chunk has enough views.
         RuntimeError: a chunk's fit failed (on every rank; the message names the chunk and the error).
     """
-    from ..fitting import FitConfig
-    from ..fitting.validate_config import validate_config
+    from ..fitting import FitConfig, validate_config
     from ..scene import Scene
 
     if not isinstance(scene, Scene):

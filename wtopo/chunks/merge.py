@@ -6,7 +6,7 @@ space, so nothing is kept twice or lost between two chunks): surfels by centre
 (:func:`merge_surfels`), faces by centroid (:func:`keep_core_faces`).
 
 ``ChunkConfig.merge = "refuse"`` (:func:`refuse_mesh`): the merged surfels are the one surface, and
-the fit's own final meshing (:func:`wtopo.fitting.stages.final_mesh`: TSDF fusion of their rendered
+the fit's own final meshing (:func:`wtopo.fitting.final_mesh`: TSDF fusion of their rendered
 depth in every training view, then the scene's meshing policy) runs once over the whole region of
 interest, in the whole scene's internal frame and at the finest voxel size the chunks' own final
 meshes used. One fusion grid spans every cut, so there is no seam to close: marching cubes of one
@@ -206,13 +206,13 @@ def refuse_resolution(plan: ChunkPlan, resolutions: dict) -> int:
 
 
 def _core_renderer(base, plan: ChunkPlan, sim, views: dict):
-    """A :class:`wtopo.fitting.stages.Renderer` that renders as ``base`` does and then sets alpha to 0 on
+    """A :class:`wtopo.fitting.Renderer` that renders as ``base`` does and then sets alpha to 0 on
     the pixels whose surface (the rendered median z-depth, back-projected) lies in the core of a
     chunk the view did not fit. ``views``: ``{id(camera): bool tensor [chunks]}``, the chunks each
     (internal-frame) camera was given; other cameras render unchanged."""
     import torch
 
-    from ..fitting.stages import Renderer
+    from ..fitting import Renderer
 
     # the region of interest in the internal frame (the similarity only scales and shifts), on the device once
     lo, hi = (torch.as_tensor(sim.to_internal(b), dtype=torch.float32, device=base.background.device)
@@ -237,9 +237,9 @@ def chunk_near(scene, plan: ChunkPlan) -> float:
     "no face within the near distance of a camera" (:mod:`wtopo.fitting.scene_kind`) scales with the
     extent of the scene it is given, and the whole scene's extent would remove real surface (the
     ground under a camera) that every chunk kept. Each chunk's is
-    :func:`~wtopo.fitting.scene_kind.near_distance` of its cameras around its box (what its fit's
+    :func:`wtopo.fitting.near_distance` of its cameras around its box (what its fit's
     layout computes in the internal frame, here in world units)."""
-    from ..fitting.scene_kind import near_distance
+    from ..fitting import near_distance
 
     near = math.inf
     for ch in plan.chunks:
@@ -255,9 +255,9 @@ def refuse_mesh(scene, surfels, config, *, resolution: int, device: str = "cpu",
     """The fit's own final mesh of ``surfels`` over the whole of ``scene``: the merge without seams.
 
     The scene is normalised and planned as :func:`wtopo.fit` does it (:meth:`wtopo.Scene.normalization`,
-    :func:`wtopo.fitting.plan.make_plan`: scene kind, region of interest, background, image scale,
+    :func:`wtopo.fitting.make_plan`: scene kind, region of interest, background, image scale,
     TSDF backend), the surfels are mapped into that internal frame, and
-    :func:`wtopo.fitting.stages.final_mesh` renders their depth in every training view of the scene
+    :func:`wtopo.fitting.final_mesh` renders their depth in every training view of the scene
     (one view at a time, on ``device``), fuses it into one TSDF over the region of interest at
     ``resolution`` voxels along its longest side, and applies the meshing policy (crop to the
     region, nothing near a camera, components the views support). Nothing is fitted.
@@ -288,11 +288,7 @@ def refuse_mesh(scene, surfels, config, *, resolution: int, device: str = "cpu",
 
     import torch
 
-    from ..fitting.plan import make_plan, resolve_config
-    from ..fitting.profiling import Timers
-    from ..fitting.proxy import ProxyMesh
-    from ..fitting.stages import Renderer, final_mesh
-    from ..fitting.surfels import Surfels
+    from ..fitting import ProxyMesh, Renderer, Surfels, Timers, final_mesh, make_plan, resolve_config
     from ..rasterize import RasterConfig
 
     means, quats, scales, opacities, sh = surfels

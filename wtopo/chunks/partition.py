@@ -321,12 +321,12 @@ def _memory_available(cfg: ChunkConfig, device) -> tuple[int, str]:
 def _memory_chunks(n_train: int, pixels: int, fcfg, device, mem: int) -> tuple[int, float, float]:
     """Fewest chunks whose estimated fit footprint fits ``mem``: the per-view tensors divide among
     the chunks, the dense grids and the surfel cap do not. Returns ``(count, views GiB, fixed GiB)``."""
-    from ..fitting.plan import _FINAL_GRID, _MAX_SURFELS, _PROXY_GRID
+    from ..fitting import plan_defaults
 
-    dev = "cuda" if str(device).startswith("cuda") or (device == "auto" and _cuda()) else "cpu"
-    proxy = fcfg.mesh.resolution or _PROXY_GRID[dev][1]
-    final = fcfg.final.resolution or _FINAL_GRID[dev][1]
-    surfels = fcfg.runtime.max_surfels or _MAX_SURFELS[dev]
+    base = plan_defaults("cuda" if str(device).startswith("cuda") or (device == "auto" and _cuda()) else "cpu")
+    proxy = fcfg.mesh.resolution or base.proxy_grid
+    final = fcfg.final.resolution or base.final_grid
+    surfels = fcfg.runtime.max_surfels or base.max_surfels
     views = n_train * pixels * _BYTES_PER_PIXEL
     fixed = _GRID_ARRAYS * 4 * proxy ** 3 + 2 * 4 * final ** 3 + surfels * _BYTES_PER_SURFEL
     if fixed >= mem:

@@ -1,29 +1,24 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Checkpoints of a running fit: what the loop state is, when it is written, and resuming from it.
+"""Checkpoints of a running fit: when they are written, and resuming or branching from them.
 
 The files themselves (atomic writes, validation, fallback to the previous checkpoint) are
-:mod:`wtopo.fitting.checkpoint`; :class:`Checkpointer` decides the cadence and maps a
-:class:`~wtopo.fitting.loop.FitRun` to and from the stored dictionary, whose keys stay stable so
-checkpoints of earlier runs resume.
+:mod:`wtopo.fitting.checkpoint`. :class:`Checkpointer` decides the cadence and talks to the fit through
+:class:`CheckpointedRun`, a few members the fit loop (:class:`~wtopo.fitting.loop.FitRun`) provides: the
+stored dictionary itself (:meth:`CheckpointedRun.checkpoint_state`, whose keys stay stable so checkpoints
+of earlier runs resume) is the loop's to write and to load back.
 """
 
 from __future__ import annotations
 
 import time
-from collections import defaultdict
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
-import numpy as np
+from .checkpoint import CheckpointError, list_checkpoints, load_checkpoint, save_checkpoint
+from .config import FitConfig
+from .profiling import Timers
 
-from .checkpoint import CheckpointError, list_checkpoints, load_checkpoint, rng_state, save_checkpoint, set_rng_state
-from .proxy import ProxyMesh, region_clip
-from .surfels import Surfels
-
-if TYPE_CHECKING:
-    from .loop import FitRun
-
-__all__ = ["Checkpointer", "AFTER_WARMUP", "DECAY_HORIZON", "RUNTIME_COMPARED", "warmup_differences"]
+__all__ = ["Checkpointer", "CheckpointedRun", "AFTER_WARMUP", "DECAY_HORIZON", "RUNTIME_COMPARED", "warmup_differences"]
 
 KEEP_CHECKPOINTS = 2  # checkpoints kept on disk: the newest, and one to fall back on if it is corrupt
 CHECKPOINT_SECONDS = 120.0  # also checkpoint when this much wall-clock time passed since the last one
@@ -80,36 +75,48 @@ def warmup_differences(a: dict, b: dict) -> list[str]:
     return sorted(out)
 
 
+class CheckpointedRun(Protocol):
+    """What :class:`Checkpointer` needs of the fit it checkpoints."""
+
+    cfg: FitConfig
+    """The resolved configuration (its ``runtime`` cadences and ``start_from``)."""
+    it: int
+    """Iterations done."""
+    hash: str
+    """The configuration's hash, which a resumed checkpoint must carry."""
+    timers: Timers
+    """The fit's section timers (writing is timed as ``checkpoint``)."""
+
+    @property
+    def warmup_end(self) -> int:
+        """Iteration at which the warm-up ends: a branch starts from a checkpoint at or before it."""
+
+    def snapshot(self) -> None:
+        """Keep the current state as the last good one."""
+
+    def record(self, event: str, **fields) -> None:
+        """Append an event at the current iteration."""
+
+    def checkpoint_state(self) -> dict:
+        """The stored dictionary of the last good state (its keys: see :meth:`FitRun.checkpoint_state`)."""
+
+    def restore_checkpoint(self, state: dict) -> None:
+        """Load a stored dictionary into the fit."""
+
+
 class Checkpointer:
     """Writes checkpoints of ``run`` on an iteration and a wall-clock cadence and resumes from them.
 
     Args:
-        run: the fit it belongs to.
+        run: the fit it belongs to (:class:`~wtopo.fitting.loop.FitRun`).
         out_dir: run directory (checkpoints go to ``out_dir/checkpoints``), or ``None`` for none.
     """
 
-    def __init__(self, run: FitRun, out_dir: Path | None):
+    def __init__(self, run: CheckpointedRun, out_dir: Path | None):
         self.run = run
         self.out_dir = out_dir
         self.directory = None if out_dir is None else out_dir / "checkpoints"
         self._last_time = time.perf_counter()
-
-    def state(self) -> dict:
-        """The stored dictionary: the last good surfels and optimiser, loop state, RNGs, config."""
-        r = self.run
-        good = r.last_good
-        return {
-            "surfels": good[0] if good is not None else r.surfels.state_dict(),
-            "optimizer": good[1] if good is not None else r.opt.state_dict(),
-            "iteration": r.it, "tsdf_done": r.tsdf_done, "history": r.history, "events": r.events,
-            "gap": r.strategy.gap, "loss_sums": dict(r.loss_log.sums), "loss_count": r.loss_log.count,
-            "elapsed": r.elapsed(), "timers": dict(r.timers.total), "rng": rng_state(),
-            "generator": r.gen.get_state(), "config_hash": r.hash, "config": r.cfg.to_dict(),
-            "normalization": {"scale": r.sim.scale, "translation": list(r.sim.translation)},
-            "proxy": {"box": None if r.proxy.box is None else [np.asarray(b).tolist() for b in r.proxy.box],
-                      "prior": r.proxy.prior},
-            "tsdf_info": r.tsdf_info, "coevolution_info": r.coevolution_info, "total_failures": r.total_failures,
-        }
 
     def save(self, *, force: bool = False) -> Path | None:
         """Write a checkpoint now; ``force``: of the last good state as it is (a scheduled one first
@@ -120,7 +127,7 @@ class Checkpointer:
         if not force:
             r.snapshot()
         with r.timers("checkpoint"):
-            path = save_checkpoint(self.directory, r.it, self.state(), keep=KEEP_CHECKPOINTS)
+            path = save_checkpoint(self.directory, r.it, r.checkpoint_state(), keep=KEEP_CHECKPOINTS)
         self._last_time = time.perf_counter()
         return path
 
@@ -149,7 +156,7 @@ class Checkpointer:
         except CheckpointError as e:
             raise ValueError(f"{self.out_dir} holds checkpoints this configuration cannot resume ({e}); "
                              "use another out_dir or the configuration of that run") from None
-        self._apply(st)
+        r.restore_checkpoint(st)
         r.record("resumed", **{"from": st["path"]})
         return True
 
@@ -179,28 +186,6 @@ class Checkpointer:
                     f"run's means' decay horizon" if horizon is not None and set(diff) <= set(DECAY_HORIZON) else "")
             raise ValueError(f"runtime.start_from = {str(src)!r}: that run's warm-up differs from this one's in "
                              f"{', '.join(diff)} (a branch may change only what acts after the warm-up{hint})")
-        self._apply(st)
+        r.restore_checkpoint(st)
         r.record("started_from", **{"from": st["path"], "config_hash": st["config_hash"]})
         return True
-
-    def _apply(self, st: dict) -> None:
-        """Load a checkpoint's state into the run."""
-        r = self.run
-        r.set_surfels(Surfels.from_state_dict(st["surfels"], r.device), st["optimizer"])
-        r.it = int(st["iteration"])
-        r.tsdf_done = bool(st["tsdf_done"])
-        r.history = list(st["history"])
-        r.events = list(st["events"])
-        r.strategy.gap = float(st["gap"])
-        r.loss_log.sums = defaultdict(float, st["loss_sums"])
-        r.loss_log.count = int(st["loss_count"])
-        r.elapsed_before = float(st["elapsed"])
-        r.timers.total = defaultdict(float, st["timers"])
-        r.total_failures = int(st["total_failures"])
-        r.tsdf_info = dict(st["tsdf_info"])
-        r.coevolution_info = dict(st.get("coevolution_info", {}))  # absent from checkpoints before the thin-part rule
-        set_rng_state(st["rng"])
-        r.gen.set_state(st["generator"])
-        px = st["proxy"]
-        r.proxy = ProxyMesh(r.cfg.mesh, box=None if px["box"] is None else tuple(np.asarray(b) for b in px["box"]),
-                            prior=px["prior"], clip=region_clip(r.cfg.mesh, r.plan.layout))

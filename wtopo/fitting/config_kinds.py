@@ -78,7 +78,7 @@ class InitSource(str, enum.Enum):
     POINTS = "points"
     """The scene's points (an error without them)."""
     MVS = "mvs"
-    """Plane-sweep stereo over the training views (:mod:`wtopo.fitting.mvs`): confirmed depths
+    """Plane-sweep stereo over the training views (:mod:`wtopo.geometry.mvs`): confirmed depths
     as oriented points."""
     CAMERAS = "cameras"
     """Random points in the cameras' common volume."""

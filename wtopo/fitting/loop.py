@@ -3,10 +3,10 @@
 
 :class:`FitRun` owns the state of one fit (surfels, optimiser, iteration, history, events) and
 drives the stages; its collaborators each do one thing: :class:`~.objective.Objective` (the loss
-terms of an iteration), :class:`~.strategy.DensityStrategy` (density control and mesh guidance),
-:mod:`.stages` (TSDF re-initialisation, final mesh), :class:`~.evaluate.Evaluator`,
+terms of an iteration), :class:`~._strategy.DensityStrategy` (density control and mesh guidance),
+:func:`~._reinit.tsdf_reinit` and :func:`~._final_mesh.final_mesh` (the discrete stages), :class:`~.evaluate.Evaluator`,
 :class:`~.checkpointing.Checkpointer` (checkpoints on an iteration and a wall-clock cadence,
-resume), :class:`~.timeline.FitTimeline` (USD) and :mod:`.progress` (bars, SIGINT / SIGTERM).
+resume), :class:`~._timeline.FitTimeline` (USD) and :mod:`._progress` (bars, SIGINT / SIGTERM).
 The non-finite guard lives here: a step with a non-finite loss, gradient or parameter is skipped
 and the last good state restored; too many in a row abort with a checkpoint.
 """
@@ -15,28 +15,33 @@ from __future__ import annotations
 
 import math
 import time
+from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
 import torch
 import trimesh
 
 from .._validate import trusted_values
+from ._final_mesh import final_mesh
+from ._init_surfels import INIT_OPACITY, initial_surfels
+from ._progress import StageBar, StopRequest
+from ._reinit import tsdf_reinit
+from ._strategy import DensityStrategy, StepInfo
+from ._timeline import FitTimeline
 from .background import BackgroundState, background_surfels, contract_steps, prune_near_cameras
+from .checkpoint import rng_state, set_rng_state
 from .checkpointing import Checkpointer
 from .config import FitConfig, config_hash
 from .evaluate import Evaluator
-from .init import INIT_OPACITY, initial_surfels
 from .objective import LossLog, Objective
 from .plan import Plan, make_plan, resolve_config, split_views
 from .profiling import Timers
-from .progress import StageBar, StopRequest
 from .proxy import ProxyMesh, ProxyResult, region_clip
 from .schedule import means_rate
-from .stages import Renderer, Stage, final_mesh, tsdf_reinit
-from .strategy import DensityStrategy, StepInfo
+from .stages import Renderer, Stage
 from .surfels import Surfels
 from .thin_parts import thin_parts
-from .timeline import FitTimeline
 
 __all__ = ["FitRun", "FitAborted"]
 
@@ -183,6 +188,47 @@ class FitRun:
         self.surfels = Surfels.from_state_dict(sd, self.device)
         self.opt = self.surfels.optimizer(_lrs(self.cfg))
         self.opt.load_state_dict(od)
+
+    # -- checkpoints (written and read by the Checkpointer) ------------------------------------------
+    def checkpoint_state(self) -> dict:
+        """The stored dictionary: the last good surfels and optimiser, loop state, RNGs, config. Its keys stay
+        stable so that checkpoints of earlier runs resume."""
+        good = self.last_good
+        return {
+            "surfels": good[0] if good is not None else self.surfels.state_dict(),
+            "optimizer": good[1] if good is not None else self.opt.state_dict(),
+            "iteration": self.it, "tsdf_done": self.tsdf_done, "history": self.history, "events": self.events,
+            "gap": self.strategy.gap, "loss_sums": dict(self.loss_log.sums), "loss_count": self.loss_log.count,
+            "elapsed": self.elapsed(), "timers": dict(self.timers.total), "rng": rng_state(),
+            "generator": self.gen.get_state(), "config_hash": self.hash, "config": self.cfg.to_dict(),
+            "normalization": {"scale": self.sim.scale, "translation": list(self.sim.translation)},
+            "proxy": {"box": None if self.proxy.box is None else [np.asarray(b).tolist() for b in self.proxy.box],
+                      "prior": self.proxy.prior},
+            "tsdf_info": self.tsdf_info, "coevolution_info": self.coevolution_info,
+            "total_failures": self.total_failures,
+        }
+
+    def restore_checkpoint(self, st: dict) -> None:
+        """Load a stored dictionary (:meth:`checkpoint_state`) into this fit."""
+        self.set_surfels(Surfels.from_state_dict(st["surfels"], self.device), st["optimizer"])
+        self.it = int(st["iteration"])
+        self.tsdf_done = bool(st["tsdf_done"])
+        self.history = list(st["history"])
+        self.events = list(st["events"])
+        self.strategy.gap = float(st["gap"])
+        self.loss_log.sums = defaultdict(float, st["loss_sums"])
+        self.loss_log.count = int(st["loss_count"])
+        self.elapsed_before = float(st["elapsed"])
+        self.timers.total = defaultdict(float, st["timers"])
+        self.total_failures = int(st["total_failures"])
+        self.tsdf_info = dict(st["tsdf_info"])
+        self.coevolution_info = dict(st.get("coevolution_info", {}))  # absent before the thin-part rule
+        set_rng_state(st["rng"])
+        self.gen.set_state(st["generator"])
+        px = st["proxy"]
+        box = None if px["box"] is None else tuple(np.asarray(b) for b in px["box"])
+        clip = region_clip(self.cfg.mesh, self.plan.layout)
+        self.proxy = ProxyMesh(self.cfg.mesh, box=box, prior=px["prior"], clip=clip)
 
     def _update_lr(self) -> None:
         """Set the means' rate for this iteration."""

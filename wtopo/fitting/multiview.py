@@ -12,7 +12,7 @@ distortion and skew need no undistortion), and scores the window's normalised cr
 (NCC) against the neighbours' photographs. The loss is ``1 - NCC``; a gradient moves the depth and
 the normal of the surfels the reference view's pixels rest on.
 
-* Neighbours: :func:`wtopo.fitting.mvs.select_neighbours` (good triangulation angle at the region
+* Neighbours: :func:`wtopo.geometry.mvs.select_neighbours` (good triangulation angle at the region
   of interest's centre, optical axes within 75 degrees); two are drawn per iteration, each window
   keeps the better of the two costs (an occluded neighbour does not vote).
 * Windows whose best cost reaches ``_MAX_COST`` (no neighbour correlates: occlusion, a view that
@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from ..camera import Camera
-from .mvs import _gray, _TorchCams, select_neighbours
+from ..geometry.mvs import TorchCams, gray, select_neighbours
 
 __all__ = ["MultiViewNCC"]
 
@@ -70,7 +70,7 @@ class MultiViewNCC:
         self.pixels = int(pixels)
         self.half = patch // 2
         self.seed = int(seed)
-        self._cam = _TorchCams(cameras)
+        self._cam = TorchCams(cameras)
         self._grays: dict[int, torch.Tensor] = {}
         self._offsets: dict[torch.device, torch.Tensor] = {}
         self._generators: dict[torch.device, torch.Generator] = {}
@@ -82,7 +82,7 @@ class MultiViewNCC:
     def _gray_of(self, i: int) -> torch.Tensor:
         g = self._grays.get(i)
         if g is None:
-            g = self._grays[i] = _gray(self.images[i].float())
+            g = self._grays[i] = gray(self.images[i].float())
         return g
 
     def _window(self, device: torch.device) -> torch.Tensor:

@@ -21,10 +21,10 @@ import trimesh
 
 from .._profile import section
 from ..camera import Camera
+from ..geometry.depth_warp import pinhole_warp
+from ..geometry.winding import orient_faces
 from ..scene import NORMALIZATION_MARGIN
-from .depth_warp import pinhole_warp
 from .surfels import Surfels
-from .winding import orient_faces
 
 __all__ = ["TSDFEmptyError", "FusionBounds", "auto_bounds", "fuse_depths", "mesh_to_surfels", "cleanup_mesh",
            "repair_mesh", "hybrid_keep"]
@@ -101,7 +101,7 @@ def fuse_depths(cameras: Sequence[Camera], depths: Sequence[np.ndarray], colors:
 
     * ``"open3d"``: Open3D's sparse ``ScalableTSDFVolume`` on the CPU; a distorted or skewed view's
       depth and colour are first resampled onto an ideal pinhole camera of the same pose covering its
-      whole field (:func:`wtopo.fitting.depth_warp.pinhole_warp`), a pinhole view goes straight in.
+      whole field (:func:`wtopo.geometry.depth_warp.pinhole_warp`), a pinhole view goes straight in.
     * ``"warp"``: :func:`wtopo.tsdf_fusion.fuse_tsdf` on ``device`` (CPU or CUDA), projecting every
       node through the lens directly; the surface is open where no view observed the grid.
 

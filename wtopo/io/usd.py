@@ -51,9 +51,7 @@ Limitations:
 
 from __future__ import annotations
 
-import enum
 import os
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -70,6 +68,7 @@ from ._usd_common import (
     _vertex_normals,
 )
 from ._usd_read import Timeline, TimelineSample, _verify_file, mesh_at, read_surfels, read_timeline
+from ._usd_write import SurfelEvent, TimelineStats, _Track
 
 __all__ = ["TimelineWriter", "TimelineStats", "TimelineVerificationError", "SurfelEvent", "Timeline",
            "TimelineSample", "read_timeline", "read_cameras", "read_surfels", "mesh_at", "camera_to_usd",
@@ -80,61 +79,6 @@ FLAT_SCALE = 1e-7
 
 DISK_SEGMENTS = 16
 """Polygon sides of the disk prototype (a regular 16-gon inscribed in the unit circle)."""
-
-
-class SurfelEvent(enum.IntFlag):
-    """Per-surfel event flags stored in ``primvars:events`` (bitwise OR)."""
-
-    SPAWNED = 1
-    """Created by densification since the previous sample."""
-    PRUNED = 2
-    """Marked for removal at this sample (still present in it)."""
-    FLIPPED = 4
-    """Normal sign flipped since the previous sample."""
-
-
-@dataclass
-class TimelineStats:
-    """What :meth:`TimelineWriter.flush` wrote.
-
-    Attributes:
-        path: the file written.
-        samples: number of :meth:`TimelineWriter.add_sample` calls.
-        bytes: file size in bytes.
-        bytes_per_100_samples: ``100 * bytes / samples`` (``bytes`` when there are no samples).
-    """
-
-    path: str
-    samples: int
-    bytes: int
-    bytes_per_100_samples: float
-
-
-class _Track:
-    """One time-sampled attribute: skips repeats, writes hold keys (module docstring)."""
-
-    def __init__(self, attr, make_vt, interpolates: bool):
-        self.attr, self.make_vt, self.interpolates = attr, make_vt, interpolates
-        self.last = None
-        self.last_vt = None
-        self.skipped_at = None
-        self.count = 0
-
-    def unchanged(self, t: float) -> None:
-        if self.last is not None:
-            self.skipped_at = t
-
-    def set(self, value: np.ndarray, t: float) -> None:
-        if self.last is not None and value.shape == self.last.shape and np.array_equal(value, self.last):
-            self.skipped_at = t
-            return
-        if self.skipped_at is not None and self.interpolates and value.shape == self.last.shape:
-            self.attr.Set(self.last_vt, self.skipped_at)
-            self.count += 1
-        vt = self.make_vt(value)
-        self.attr.Set(vt, t)
-        self.count += 1
-        self.last, self.last_vt, self.skipped_at = value, vt, None
 
 
 def _export_layer(layer, path: str) -> None:

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry.components import face_components
 from ._surface import _DEFAULT_SAMPLES, _check_samples, _check_tau, _mesh_arrays, _n_faces, _Surface
 
 
@@ -50,21 +51,6 @@ def mesh_stats(mesh) -> dict:
 
 
 # -- what a reconstruction adds and misses: floaters and holes -------------------------------------
-def face_components(f: np.ndarray, n_vertices: int) -> tuple[int, np.ndarray]:
-    """Connected components of faces [F, 3] (int) that share a vertex: ``(count, label [F] int64)``
-    (SciPy; also the TSDF fusion's closing step, :mod:`wtopo.tsdf_fusion`)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    nf = len(f)
-    if nf == 0:
-        return 0, np.zeros(0, np.int64)
-    rows = np.repeat(np.arange(nf), 3)
-    adj = coo_matrix((np.ones(3 * nf), (rows, f.reshape(-1))), shape=(nf, n_vertices)).tocsr()
-    n, label = connected_components(adj @ adj.T, directed=False)
-    return int(n), label.astype(np.int64)
-
-
 @dataclass
 class Floaters:
     """Reconstructed surface that the ground truth does not explain.

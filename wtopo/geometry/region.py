@@ -15,7 +15,7 @@ import math
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from .camera import Camera
+from ..camera import Camera
 
 __all__ = ["visual_hull_box", "points_box", "carve", "mask_distances"]
 
@@ -186,7 +186,7 @@ def _forward_focus(cameras, centers: np.ndarray, images=None) -> tuple[np.ndarra
 def _stereo_depth(cameras, images, origin: np.ndarray, fwd: np.ndarray, guess: float,
                   tan_half: float) -> float | None:
     """Median depth along ``fwd`` from ``origin`` (world units) of the stereo-confirmed points
-    (:func:`wtopo.fitting.mvs.plane_sweep_points`) within ``_STEREO_CENTRAL`` of the half field of view
+    (:func:`wtopo.geometry.mvs.plane_sweep_points`) within ``_STEREO_CENTRAL`` of the half field of view
     ``tan_half`` around the rig's axis; ``None`` when fewer than 8 (an untextured capture) or the views
     differ in size. The sweep runs on ``_STEREO_VIEWS`` views at ``_STEREO_PIXELS`` px in a frame
     centred on ``origin`` and scaled by ``guess`` (the estimate does not depend on the input's units or
@@ -194,7 +194,7 @@ def _stereo_depth(cameras, images, origin: np.ndarray, fwd: np.ndarray, guess: f
     import torch
     import torch.nn.functional as fn
 
-    from .fitting.mvs import plane_sweep_points
+    from .mvs import plane_sweep_points
 
     img = torch.as_tensor(images, dtype=torch.float32)
     if img.ndim != 4 or img.shape[0] != len(cameras) or len({(c.width, c.height) for c in cameras}) != 1:

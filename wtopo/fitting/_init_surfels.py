@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
 """Stage 1: the initial surfels, from the scene's points, plane-sweep stereo
-(:mod:`wtopo.fitting.mvs`) or the cameras' common volume.
+(:mod:`wtopo.geometry.mvs`) or the cameras' common volume.
 
 Without points, candidate positions fill the normalised region of interest and are kept where
 the masks' visual hull (or, without masks, 90 % of the camera frusta) contains them, the test
@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from .._region import carve
+from ..geometry.region import carve
 from .config import InitConfig, InitSource
 from .surfels import Surfels
 
@@ -117,7 +117,7 @@ def spread_subset(points: np.ndarray, n: int, generator: torch.Generator) -> np.
 def _stereo_points(scene, cfg: InitConfig, layout, device, generator):
     """``(points, colours, normals)`` of plane-sweep stereo, thinned to ``cfg.num_points``; ``None``
     (with a warning) when too few depths are confirmed."""
-    from .mvs import plane_sweep_points
+    from ..geometry.mvs import plane_sweep_points
 
     lo, hi = (np.zeros(3), np.ones(3)) if layout is None else (layout.roi_lower, layout.roi_upper)
     near = 0.01 if layout is None else layout.near

@@ -22,7 +22,7 @@ from .profiling import format_profile
 from .surfels import Surfels
 from .validate_config import validate_config
 
-__all__ = ["fit", "FitResult"]
+__all__ = ["fit", "fit_surfels", "FitResult"]
 
 
 @dataclass
@@ -187,4 +187,35 @@ def fit(scene, config: FitConfig | None = None, *, out_dir: str | os.PathLike | 
         print(line + summary_metrics(r))
     if cfg.runtime.profile:
         print(format_profile(result.report["profile"]))
+    return result
+
+
+class _NoFinalMesh(FitRun):
+    """A fit whose final stage returns an empty mesh (:func:`fit_surfels`)."""
+
+    def _final_mesh(self) -> trimesh.Trimesh:
+        return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), process=False)
+
+
+def fit_surfels(scene, config: FitConfig, *, out_dir: str | os.PathLike, progress: bool = True) -> FitResult:
+    """:func:`fit` without its final mesh: the surfels are the result (a chunk of :mod:`wtopo.chunks` whose
+    mesh the merge re-fuses from the merged surfels, ``ChunkConfig.merge = "refuse"``).
+
+    Every stage but the final meshing runs as in :func:`fit` (resumable from the same checkpoints);
+    ``result.mesh`` is empty and ``out_dir`` gets the same files (``mesh.ply`` empty).
+
+    Args:
+        scene: a :class:`wtopo.Scene` (world frame).
+        config: a validated :class:`wtopo.FitConfig`.
+        out_dir: run directory (required: the merge reads ``surfels.ply`` and ``config.json`` there).
+        progress: print the plan and show progress bars.
+
+    Returns:
+        :class:`FitResult` with an empty ``mesh``.
+    """
+    run = _NoFinalMesh(scene, config, out_dir, progress)
+    mesh = run.run()
+    result = FitResult(mesh=mesh, surfels=run.surfels, plan=run.plan, history=run.history)
+    result.report = _report(run, mesh, scene)
+    _write_outputs(Path(out_dir), result, run)
     return result

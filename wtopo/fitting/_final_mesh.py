@@ -1,0 +1,157 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The final mesh of a fit: rendered depth fused (or the Poisson proxy), the meshing policy applied, and a
+watertight Poisson re-mesh when an object's mesh is not closed (:func:`final_mesh`, :func:`poisson_remesh`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+import trimesh
+
+from .. import _bridge
+from .._profile import section
+from ..geometry.mesh_policy import crop_near_cameras, crop_to_box, supported_components
+from . import densify as dens
+from .config import FitConfig, NormalFlip
+from .proxy import PADDING, ProxyMesh, poisson_mesh
+from .scene_kind import SceneLayout
+from .stages import TRUNCATION_VOXELS, Record, Renderer, is_scene, render_depths, roi_bounds
+from .surfels import Surfels
+from .tsdf import TSDFEmptyError, auto_bounds, cleanup_mesh, fuse_depths, repair_mesh
+
+__all__ = ["final_mesh", "poisson_remesh"]
+
+_PROXY_FINAL_RESOLUTION = 128  # Poisson nodes per side of the proxy mesh returned when the final TSDF is empty
+_REMESH_SAMPLES = 200_000  # surface samples for the watertight Poisson re-mesh of the final mesh
+_REMESH_BOX = 1.1  # the re-mesh grid spans the mesh's longest side plus 10 %: the closed surface stays inside
+
+
+def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: Renderer, proxy: ProxyMesh,
+               guided: bool, tsdf_info: dict, record: Record, layout: SceneLayout | None = None) -> trimesh.Trimesh:
+    """The returned mesh in the internal frame: TSDF of rendered depth, or the Poisson proxy when that is empty.
+
+    Args:
+        surfels: the fitted surfels.
+        cameras: training cameras (internal frame).
+        cfg: configuration (``final``, ``tsdf``, ``mesh``).
+        render: the fit's renderer.
+        proxy: the co-evolution proxy (its box and prior bound the final Poisson mesh).
+        guided: mesh guidance ran (the normal signs are aligned already).
+        tsdf_info: updated in place with the final fusion bounds.
+        record: event sink (``"final_tsdf_empty"``, ``"poisson_remesh"``, ``"mesh_policy"``).
+        layout: scene kind and region of interest; a scene's mesh is its region of interest's
+            surface, open, with no face within ``layout.near`` of a camera centre
+            (:mod:`.mesh_policy`). Objects are closed. Both keep the components the views support.
+
+    Raises:
+        TSDFEmptyError: the TSDF fusion and the proxy mesh are both empty.
+    """
+    fc = cfg.final
+    mesh = None
+    scene = is_scene(layout)
+    weld = True  # merge vertices by position in the clean-up; not a marching-cubes mesh's (see cleanup_mesh)
+    depths, colors = render_depths(render, surfels, cameras)
+    if scene:
+        bounds = roi_bounds(layout, fc.resolution, TRUNCATION_VOXELS)
+    else:
+        bounds = auto_bounds(surfels.means, surfels.opacities, resolution=fc.resolution,
+                             truncation_voxels=TRUNCATION_VOXELS)
+    tsdf_info["final_bounds"] = bounds.to_dict()
+    try:
+        mesh = fuse_depths(cameras, depths, colors, bounds, backend=cfg.tsdf.backend, device=surfels.means.device)
+    except TSDFEmptyError as e:
+        warnings.warn(f"final TSDF empty, returning the proxy mesh: {e}", RuntimeWarning, stacklevel=3)
+        record("final_tsdf_empty", why=str(e))
+    if mesh is None:
+        if NormalFlip(cfg.mesh.normal_flip) != NormalFlip.RANDOM and not guided:
+            # no mesh guidance ran: orient the normals by the cameras that saw each surfel (mesh mode
+            # keeps the scaffold's signs)
+            dens.align_normal_signs(surfels, NormalFlip(cfg.mesh.normal_flip))
+        final = ProxyMesh(dataclasses.replace(cfg.mesh, resolution=_PROXY_FINAL_RESOLUTION), box=proxy.box,
+                          prior=proxy.prior, clip=proxy.clip)
+        with torch.no_grad():
+            pm = final.build(surfels)
+        if pm is None:
+            raise TSDFEmptyError("no final mesh: the TSDF fusion and the proxy mesh are both empty")
+        mesh = trimesh.Trimesh(pm.verts.detach().cpu().numpy(), pm.faces.cpu().numpy(), process=False)
+        weld = False
+    info: dict = {}
+    with section("mesh_policy"):
+        if scene:
+            mesh = crop_to_box(mesh, layout.roi_lower, layout.roi_upper)
+            mesh, info["near_camera_faces_removed"] = crop_near_cameras(mesh, layout.camera_centers, layout.near)
+            mesh = cleanup_mesh(mesh, largest_component=False, repair=False, weld=weld)
+            with section("supported_components"):
+                mesh, info["components"] = supported_components(mesh, cameras, depths)
+        else:
+            mesh = cleanup_mesh(mesh, largest_component=False, repair=False, weld=weld)
+            with section("supported_components"):
+                mesh, info["components"] = supported_components(mesh, cameras, depths)
+            with section("repair"):  # after the support rule: repairing works component by component
+                mesh = repair_mesh(mesh)
+            if fc.watertight and not mesh.is_watertight:
+                mesh = poisson_remesh(mesh, cfg, record=record, device=surfels.means.device)
+                # the re-mesh's closed surface can wrap the repaired mesh's inner sheets into pockets of
+                # their own (a ten-view cup at 768^3: 137-343 components, no view sees most of them): the
+                # same support rule as the fused mesh's; dropping closed components keeps the mesh closed
+                with section("supported_components"):
+                    mesh, info["remesh_components"] = supported_components(mesh, cameras, depths)
+    record("mesh_policy", policy="open_roi" if scene else "watertight", **info)
+    if len(mesh.faces) == 0:
+        raise TSDFEmptyError("the final mesh is empty after the meshing policy (nothing in the region of interest "
+                             "that the views support)")
+    return mesh
+
+
+def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record,
+                   device: torch.device | str = "cpu") -> trimesh.Trimesh:
+    """A closed mesh through ``mesh``: Poisson of its area samples (the zero level set is closed).
+
+    The Poisson solve and its marching cubes run on ``device`` (the fit's: at ``final.resolution``, up to
+    768^3 on CUDA, the whole re-mesh took 32.6 s on 2 CPU threads against 10.2 s with an H100); a device
+    other than the CPU that runs out of memory falls back to the CPU
+    with a warning. The mesh keeps marching cubes' own vertex sharing (no merge by position: see
+    :func:`~.tsdf.cleanup_mesh`), so it is closed at any grid. Returns ``mesh`` itself when the re-mesh
+    comes out empty; records ``"poisson_remesh"`` (``watertight``, and the ``device`` it ran on).
+    """
+    pts, fi = trimesh.sample.sample_surface(mesh, _REMESH_SAMPLES, seed=cfg.runtime.seed)
+    lo, hi = mesh.bounds
+    side = float(np.max(hi - lo)) * _REMESH_BOX
+    lower = 0.5 * (lo + hi) - 0.5 * side
+    p = torch.as_tensor((pts - lower) / side, dtype=torch.float32)
+    n = torch.as_tensor(mesh.face_normals[fi], dtype=torch.float32)
+    device = torch.device(device)
+
+    def solve(dev: torch.device):
+        with torch.no_grad():
+            v, f = poisson_mesh(p.to(dev), n.to(dev), torch.ones(p.shape[0], device=dev), int(cfg.final.resolution),
+                                sigma=1.0, padding=PADDING)
+            return v.cpu().numpy(), f.cpu().numpy()
+
+    try:
+        verts, faces = solve(device)
+    except RuntimeError as e:  # torch.OutOfMemoryError is one; Warp's allocation failures are others
+        if device.type == "cpu" or not _out_of_memory(e):
+            raise
+        warnings.warn(f"the final Poisson re-mesh at {cfg.final.resolution}^3 ran out of memory on {device}; "
+                      f"re-meshing on the CPU instead ({e})", RuntimeWarning, stacklevel=2)
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+            _bridge.recover_after_oom(device)  # the next render's sort would otherwise fail (Warp 1.19)
+        device = torch.device("cpu")
+        verts, faces = solve(device)
+    # marching cubes shares each vertex already: no merge by position (see cleanup_mesh's weld)
+    out = trimesh.Trimesh(verts * side + lower, faces, process=False)
+    out = cleanup_mesh(out, largest_component=False, weld=False)
+    record("poisson_remesh", watertight=bool(out.is_watertight), device=str(device))
+    return out if len(out.faces) else mesh
+
+
+def _out_of_memory(e: BaseException) -> bool:
+    """Whether ``e`` says a device allocation failed (torch's and Warp's wordings)."""
+    msg = str(e).lower()
+    return isinstance(e, torch.OutOfMemoryError) or "out of memory" in msg or "failed to allocate" in msg
