@@ -92,7 +92,7 @@ def _report(run: FitRun, mesh_world: trimesh.Trimesh, scene) -> dict:
     rep["scene_kind"] = run.cfg.kind.value
     if run.cfg.runtime.profile:
         rep["profile"] = run.timers.profile(time.perf_counter() - run.t_start)
-    for k in ("psnr", "ssim", "image_metrics_on", "chamfer", "f_score", "accuracy", "completeness"):
+    for k in ("psnr", "ssim", "psnr_on", "image_metrics_on", "chamfer", "f_score", "accuracy", "completeness"):
         if k in final:
             rep[k] = final[k]
     if getattr(scene, "gt_mesh", None) is not None and len(mesh_world.faces):
@@ -106,7 +106,8 @@ def summary_metrics(report: dict) -> str:
     out = ""
     if "psnr" in report:
         on = "held-out" if report.get("image_metrics_on", "held_out") == "held_out" else "training-view"
-        out += f", {on} PSNR {report['psnr']:.2f} dB, SSIM {report.get('ssim', float('nan')):.3f}"
+        inside = " inside the masks" if report.get("psnr_on") == "masks" else ""
+        out += f", {on} PSNR{inside} {report['psnr']:.2f} dB, SSIM {report.get('ssim', float('nan')):.3f}"
     if "chamfer" in report:
         out += f", Chamfer {100 * report['chamfer']:.3f} % of diagonal, F-score {report['f_score']:.3f}"
     return out
