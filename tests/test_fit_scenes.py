@@ -40,7 +40,7 @@ def test_plan_tells_objects_from_scenes(room):
     assert q.scene_kind == "object" and q.mesh_policy == "watertight" and q.background_points == 0
     cfg = FitConfig()
     cfg.kind = "object"
-    assert make_plan(room.normalized(), cfg, dev)["scene_kind"] == "object"
+    assert make_plan(room.normalized(), cfg, dev).scene_kind == "object"
 
 
 def test_plan_runs_the_mesh_loop_for_objects_only(room):
@@ -49,7 +49,7 @@ def test_plan_runs_the_mesh_loop_for_objects_only(room):
     p = make_plan(room.normalized(), FitConfig(), dev)
     assert p.mesh_loop is False and "scene" in p.reasons["mesh_loop"]
     masked = scenes.from_mesh(trimesh.creation.icosphere(subdivisions=2), n_views=8, resolution=24)
-    assert make_plan(masked.normalized(), FitConfig(), dev)["mesh_loop"] is True
+    assert make_plan(masked.normalized(), FitConfig(), dev).mesh_loop is True
     cfg = FitConfig()
     cfg.coevolution.enabled = True
     p = make_plan(room.normalized(), cfg, dev)
@@ -112,7 +112,7 @@ def test_cuda_plan_holds_the_means_rate_at_its_floor_for_the_co_evolutions_secon
     assert p.means_decay_iterations == 1234 and "means_decay_iterations" in p.overrides
     cfg = FitConfig()
     cfg.coevolution.iterations = 600
-    assert make_plan(scene, cfg, torch.device("cuda"))["means_decay_iterations"] == warm + 300
+    assert make_plan(scene, cfg, torch.device("cuda")).means_decay_iterations == warm + 300
     # the former CUDA default (3,000 + 1,000, decayed over all of it) fitted the same warm-up
     new = resolve_config(FitConfig(), gpu)
     old = resolve_config(FitConfig(), gpu)
@@ -137,8 +137,8 @@ def test_cuda_plan_restarts_the_co_evolutions_means_and_the_cpu_does_not(room):
     o = resolve_config(FitConfig(), gpu).optim
     assert o.means_restart == 0.0625
     warm, coevo = P._ITERATIONS["cuda"]
-    assert means_rate(o, warm, warm, warm + coevo)[0] == pytest.approx(1e-4)
-    assert means_rate(o, warm - 1, warm, warm + coevo)[0] < 6e-5  # the warm-up keeps its decay
+    assert means_rate(o, warm, warm, warm + coevo) == pytest.approx(1e-4)
+    assert means_rate(o, warm - 1, warm, warm + coevo) < 6e-5  # the warm-up keeps its decay
     cpu = make_plan(scene, FitConfig(), torch.device("cpu"))
     assert cpu.means_restart == 0.0 and resolve_config(FitConfig(), cpu).optim.means_restart == 0.0
     cfg = FitConfig()
@@ -177,9 +177,9 @@ def test_reinit_faces_follow_the_pixel_footprint():
     # a footprint 2x smaller; the region of interest is found from the images, a little looser at 128 px
     assert box[256] / box[128] == pytest.approx(4.0, rel=0.1)
     assert faces[256] / faces[128] == pytest.approx(box[256] / box[128], rel=0.01)
-    assert plan(24)["reinit_faces"] == _REINIT_MIN  # a small image: the floor
-    assert plan(512)["reinit_faces"] == _REINIT_FACES["cuda"]  # capped
-    assert plan(24, "cpu")["reinit_faces"] == plan(512, "cpu")["reinit_faces"] == _REINIT_FACES["cpu"]
+    assert plan(24).reinit_faces == _REINIT_MIN  # a small image: the floor
+    assert plan(512).reinit_faces == _REINIT_FACES["cuda"]  # capped
+    assert plan(24, "cpu").reinit_faces == plan(512, "cpu").reinit_faces == _REINIT_FACES["cpu"]
     cfg = FitConfig()
     cfg.tsdf.max_faces = 1234
     p = plan(64, cfg=cfg)
@@ -339,7 +339,7 @@ def test_cpu_budget_grows_with_the_pixels_to_fit():
     dev = torch.device("cpu")
     obj = scenes.load("bunny")
     base = make_plan(obj.normalized(), FitConfig(), dev)
-    assert (base["warmup_iterations"], base["coevolution_iterations"]) == P._ITERATIONS["cpu"]
+    assert (base.warmup_iterations, base.coevolution_iterations) == P._ITERATIONS["cpu"]
     bare = wtopo.Scene(obj.cameras, obj.images, train_indices=obj.train_indices, test_indices=obj.test_indices)
     p = make_plan(bare.normalized(), FitConfig(), dev)
     n_train = len(obj.train_indices) if obj.train_indices is not None else len(obj)
@@ -351,12 +351,12 @@ def test_cpu_budget_grows_with_the_pixels_to_fit():
     assert P.iteration_budget(bare, dev)[:2] == (p.warmup_iterations, p.coevolution_iterations)
     cfg = FitConfig()
     cfg.warmup.iterations = 123  # an explicit budget is honoured
-    assert make_plan(bare.normalized(), cfg, dev)["warmup_iterations"] == 123
+    assert make_plan(bare.normalized(), cfg, dev).warmup_iterations == 123
     # 512 px (trained at 256 on a CPU): the base warm-up's views already render past the cap
     up = torch.nn.functional.interpolate(obj.images.permute(0, 3, 1, 2), scale_factor=4).permute(0, 2, 3, 1)
     big = wtopo.Scene([c.scaled(4.0) for c in obj.cameras], up, train_indices=obj.train_indices,
                       test_indices=obj.test_indices)
-    assert make_plan(big.normalized(), FitConfig(), dev)["warmup_iterations"] == warm
+    assert make_plan(big.normalized(), FitConfig(), dev).warmup_iterations == warm
 
 
 def test_resumed_scene_fit_keeps_the_clipped_proxy(room, tmp_path):

@@ -138,9 +138,9 @@ def test_plan_picks_stereo_for_unmasked_scenes_only():
     from wtopo.fitting.plan import make_plan
 
     env = scenes.load("bunny_env", n_views=8, resolution=48, n_test=0)
-    assert make_plan(env.normalized(), FitConfig(), torch.device("cpu"))["init_source"] == "mvs"
+    assert make_plan(env.normalized(), FitConfig(), torch.device("cpu")).init_source == "mvs"
     obj = scenes.load("bunny", n_views=8, resolution=48)
-    assert make_plan(obj.normalized(), FitConfig(), torch.device("cpu"))["init_source"] == "cameras"
+    assert make_plan(obj.normalized(), FitConfig(), torch.device("cpu")).init_source == "cameras"
 
 
 def test_bad_arguments_are_named():

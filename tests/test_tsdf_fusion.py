@@ -321,7 +321,7 @@ def test_plan_picks_the_backend_by_device(monkeypatch):
     assert p.tsdf_backend == "warp" and "tsdf_backend" in p.overrides
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "open3d" else real(name, *a))
-    assert make_plan(sc, FitConfig(), torch.device("cpu"))["tsdf_backend"] == "warp"
+    assert make_plan(sc, FitConfig(), torch.device("cpu")).tsdf_backend == "warp"
 
 
 def test_reinit_surfels_without_open3d_cover_the_mesh(monkeypatch):
