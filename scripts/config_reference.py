@@ -86,9 +86,9 @@ def _class_nodes(source_file: str) -> dict[str, ast.ClassDef]:
     return {node.name: node for node in ast.walk(tree) if isinstance(node, ast.ClassDef)}
 
 
-def field_docstrings(cls: type) -> dict[str, str]:
-    """Field name -> docstring (the string literal after the field) of ``cls`` and its dataclass bases."""
-    docs: dict[str, str] = {}
+def _fields_with_next(cls: type):
+    """``(field statement, the statement after it)`` for each annotated field of ``cls`` and its dataclass
+    bases, base classes first (``None`` after the last statement of a class body)."""
     for klass in reversed(cls.__mro__):
         if not dataclasses.is_dataclass(klass):
             continue
@@ -97,27 +97,22 @@ def field_docstrings(cls: type) -> dict[str, str]:
             continue
         body = node.body
         for stmt, nxt in zip(body, body[1:] + [None]):
-            if not (isinstance(stmt, ast.AnnAssign) and isinstance(stmt.target, ast.Name)):
-                continue
-            if (isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant)
-                    and isinstance(nxt.value.value, str)):
-                docs[stmt.target.id] = inspect.cleandoc(nxt.value.value)
+            if isinstance(stmt, ast.AnnAssign) and isinstance(stmt.target, ast.Name):
+                yield stmt, nxt
+
+
+def field_docstrings(cls: type) -> dict[str, str]:
+    """Field name -> docstring (the string literal after the field) of ``cls`` and its dataclass bases."""
+    docs: dict[str, str] = {}
+    for stmt, nxt in _fields_with_next(cls):
+        if isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant) and isinstance(nxt.value.value, str):
+            docs[stmt.target.id] = inspect.cleandoc(nxt.value.value)
     return docs
 
 
 def field_annotations(cls: type) -> dict[str, str]:
     """Field name -> the annotation's source text (independent of ``from __future__ import annotations``)."""
-    out: dict[str, str] = {}
-    for klass in reversed(cls.__mro__):
-        if not dataclasses.is_dataclass(klass):
-            continue
-        node = _class_nodes(inspect.getsourcefile(klass)).get(klass.__name__)
-        if node is None:
-            continue
-        for stmt in node.body:
-            if isinstance(stmt, ast.AnnAssign) and isinstance(stmt.target, ast.Name):
-                out[stmt.target.id] = ast.unparse(stmt.annotation)
-    return out
+    return {stmt.target.id: ast.unparse(stmt.annotation) for stmt, _ in _fields_with_next(cls)}
 
 
 def _enum_of(value, annotation: str, module) -> type[enum.Enum] | None:
