@@ -63,7 +63,9 @@ print('gsplat', gsplat.__version__, 'ok', float(out[1].sum()))
   $PY -c "import diff_surfel_rasterization, simple_knn._C; print('2DGS extensions import')"
   ;;
 launch)
+  # SERIAL=1: one job after another in one background chain (clean timings); else all at once
   ex=(); while [ $# -gt 0 ] && [ "$1" != "--" ]; do ex+=("$1"); shift; done; shift
+  chain=""
   mkdir -p "$STAGE/res" "$STAGE/logs"
   for e in "${ex[@]}"; do
     name=$(basename "$e")
@@ -77,10 +79,13 @@ launch)
         *) echo "unknown system $s"; exit 2 ;;
       esac
       rm -rf "$out" "$out.rc"; mkdir -p "$out"
-      setsid nohup bash -c "$(printf '%q ' "${c[@]}") > $out.log 2>&1; echo \$? > $out.rc" >/dev/null 2>&1 &
+      job="$(printf '%q ' "${c[@]}") > $out.log 2>&1; echo \$? > $out.rc"
+      if [ -n "${SERIAL:-}" ]; then : > "$out.log"; chain="${chain:+$chain; }$job"; echo "queued $name/$s"; continue; fi
+      setsid nohup bash -c "$job" >/dev/null 2>&1 &
       echo "launched $name/$s"
     done
   done
+  [ -n "$chain" ] && setsid nohup bash -c "$chain" >/dev/null 2>&1 &
   ;;
 wait)
   end=$(( $(date +%s) + ${1:-540} ))

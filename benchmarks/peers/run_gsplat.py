@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 
 import numpy as np
 import torch
@@ -57,6 +58,10 @@ def main(argv=None) -> None:
     ap.add_argument("out")
     ap.add_argument("--iterations", type=int, default=30_000)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--save-at", type=int, nargs="*", default=[7000],
+                    help="also save the splats at these steps (splats_STEP.pt), for --mesh-only")
+    ap.add_argument("--mesh-only", type=int, default=None, metavar="STEP",
+                    help="skip training: mesh and render the splats an earlier run saved at STEP")
     a = ap.parse_args(argv)
 
     from gsplat import rasterization_2dgs
@@ -104,7 +109,12 @@ def main(argv=None) -> None:
             viewmats=sel_view, Ks=K, width=W, height=H, sh_degree=sh_degree, near_plane=0.2, far_plane=200.0,
             render_mode=mode, distloss=True, backgrounds=bg[None].expand(len(sel_view), 3))
 
-    for step in range(a.iterations):
+    if a.mesh_only is not None:
+        saved = torch.load(os.path.join(a.out, f"splats_{a.mesh_only}.pt"), map_location=dev)
+        splats = torch.nn.ParameterDict({k: torch.nn.Parameter(v) for k, v in saved.items()})
+    os.makedirs(a.out, exist_ok=True)
+    t_loop = time.perf_counter()
+    for step in range(a.iterations if a.mesh_only is None else 0):
         i = int(torch.randint(len(ex.train), (1,)))
         deg = min(step // 1000, 3)
         colors, alphas, normals, normals_d, distort, median, info = render(viewmats[i:i + 1], Ks[i:i + 1], deg)
@@ -123,6 +133,11 @@ def main(argv=None) -> None:
             o.step()
             o.zero_grad(set_to_none=True)
         sched.step()
+        if step + 1 in a.save_at:
+            torch.save({k: v.detach() for k, v in splats.items()}, os.path.join(a.out, f"splats_{step + 1}.pt"))
+        if (step + 1) % 1000 == 0:
+            print(f"step {step + 1}/{a.iterations}: {len(splats['means'])} splats, "
+                  f"{(step + 1) / (time.perf_counter() - t_loop):.1f} it/s", flush=True)
 
     with torch.no_grad():
         frames = []
@@ -136,9 +151,13 @@ def main(argv=None) -> None:
         vt = torch.tensor(ex.w2c[ex.test], dtype=torch.float32, device=dev)
         kt = torch.tensor(ex.K[ex.test], dtype=torch.float32, device=dev)
         renders = [render(vt[j:j + 1], kt[j:j + 1], 3)[0][0, ..., :3].clamp(0, 1).cpu().numpy() for j in range(len(vt))]
-    run.update({"iterations": a.iterations, "surfels": int(len(splats["means"])),
+    it = a.iterations if a.mesh_only is None else a.mesh_only
+    if a.mesh_only is not None:
+        run = {"wall_s": None}  # an earlier run's training time is not known here
+    run.update({"iterations": it, "surfels": int(len(splats["means"])),
                 "recipe": "gsplat simple_trainer_2dgs (normal 0.05 > 7k, dist 0.01 > 3k), DefaultStrategy, 2DGS TSDF"})
-    write_result(a.out, system="gsplat 2DGS", mesh=mesh, renders=np.stack(renders), run=run)
+    system = "gsplat 2DGS" if it == 30_000 else f"gsplat 2DGS ({it:,} it.)"
+    write_result(a.out, system=system, mesh=mesh, renders=np.stack(renders), run=run)
 
 
 if __name__ == "__main__":
