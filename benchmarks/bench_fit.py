@@ -13,10 +13,7 @@ a ratio to it.
 Variants: ``full`` (defaults); ``no_mesh_loop`` (co-evolution iterations without the proxy
 mesh); ``view_flips`` (normal signs from view directions only); ``random_flips``; ``no_geo_density``
 (no geometry-aware prune / densification); ``one_point`` (1 oriented point per surfel instead of 5);
-``expected_depth`` (mesh-depth term on the expected instead of the median surfel depth);
-``proxy_final`` (the returned mesh is the Poisson proxy instead of the TSDF of rendered depth);
-``filter_2dgs`` (the renderer's low-pass at 2DGS's 0.71 px instead of 0.35 px); ``band_2`` (a
-2-pixel band around the mask boundary left out of the photometric and mask terms); ``mask_05``
+``filter_2dgs`` (the renderer's low-pass at 2DGS's 0.71 px instead of 0.35 px); ``mask_05``
 (mask weight 0.5 instead of 0.2).
 
 Command (writes benchmarks/fit.md)::
@@ -41,6 +38,7 @@ import torch
 from wtopo import scenes
 from wtopo.fitting import FitConfig, fit
 from wtopo.fitting.evaluate import F_SCORE_TAU, geometry_metrics
+from wtopo.fitting.stages import TRUNCATION_VOXELS
 from wtopo.fitting.tsdf import auto_bounds, cleanup_mesh, fuse_depths
 
 # variant -> FitConfig overrides (``wtopo fit --set`` syntax)
@@ -51,10 +49,7 @@ VARIANTS = {
     "random_flips": ("mesh.normal_flip=random",),
     "no_geo_density": ("densify.geometry_prune=false", "densify.geometry_densify=false"),
     "one_point": ("mesh.samples_per_surfel=1",),
-    "expected_depth": ("losses.mesh_depth_source=expected",),
-    "proxy_final": ("final.method=proxy",),
     "filter_2dgs": (f"filter_sigma={2.0 ** -0.5}",),
-    "band_2": ("losses.silhouette_band=2",),
     "mask_05": ("losses.mask=0.5",),
 }
 
@@ -66,7 +61,7 @@ def gt_depth_peer(scene) -> dict:
     train = internal.split("train")
     t = time.perf_counter()
     b = auto_bounds(torch.as_tensor(np.asarray(internal.gt_mesh.vertices)), None,
-                    resolution=FitConfig().final.resolution, truncation_voxels=FitConfig().tsdf.truncation_voxels)
+                    resolution=FitConfig().final.resolution, truncation_voxels=TRUNCATION_VOXELS)
     mesh = fuse_depths(train.cameras, [d.cpu().numpy() for d in train.depths],
                        [i.cpu().numpy() for i in train.images], b)
     mesh = sim.to_world(cleanup_mesh(mesh))

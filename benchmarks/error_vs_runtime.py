@@ -133,7 +133,6 @@ def make_config(spec: dict, *, device: str = "auto"):
     cfg.runtime.eval_every = 0  # metrics once, on the final mesh
     cfg.runtime.usd_every = 0
     cfg.runtime.checkpoint_every = 0
-    cfg.runtime.checkpoint_seconds = 0.0
     cfg.runtime.progress = False
     return cfg
 
