@@ -4,7 +4,6 @@
 python _2dgs_views.py MODEL ITERATION EXCH OUT.npz
 """
 
-import json
 import math
 import os
 import sys
@@ -14,19 +13,15 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.getcwd())
+from _result import read_json  # noqa: E402  (this script's folder is on the path too)
 from gaussian_renderer import render  # noqa: E402
 from scene.cameras import Camera  # noqa: E402
 from scene.gaussian_model import GaussianModel  # noqa: E402
 
 
-def _read_json(path: str):
-    with open(path) as f:
-        return json.load(f)
-
-
 def main() -> None:
     model, it, exch, out = sys.argv[1], int(sys.argv[2]), sys.argv[3], sys.argv[4]
-    meta = _read_json(os.path.join(exch, "meta.json"))
+    meta = read_json(os.path.join(exch, "meta.json"))
     cams = np.load(os.path.join(exch, "cameras.npz"))
     g = GaussianModel(3)
     g.load_ply(os.path.join(model, "point_cloud", f"iteration_{it}", "point_cloud.ply"))

@@ -9,7 +9,13 @@ import time
 
 import numpy as np
 
-__all__ = ["Clock", "write_result"]
+__all__ = ["Clock", "read_json", "write_result"]
+
+
+def read_json(path: str):
+    """The JSON document at ``path``."""
+    with open(path) as f:
+        return json.load(f)
 
 
 class Clock:

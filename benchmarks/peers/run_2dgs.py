@@ -13,7 +13,6 @@ The checkout's CUDA extensions (``diff_surfel_rasterization``, ``simple_knn``) m
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import subprocess
@@ -25,13 +24,8 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
-from _result import write_result  # noqa: E402
+from _result import read_json, write_result  # noqa: E402
 from exchange import load  # noqa: E402
-
-
-def _read_json(path: str):
-    with open(path) as f:
-        return json.load(f)
 
 
 def _run(cmd: list[str], cwd: str, log) -> None:
@@ -53,7 +47,7 @@ def main(argv=None) -> None:
 
     import trimesh
 
-    load(a.exchange)
+    load(a.exchange)  # fails before any training on a folder that is not an exchange folder
     src = os.path.abspath(os.path.join(a.exchange, "colmap"))
     model = os.path.abspath(os.path.join(a.out, "model"))
     it = a.mesh_only or a.iterations
@@ -78,14 +72,13 @@ def main(argv=None) -> None:
         views = os.path.join(a.out, "views.npz")
         _run([py, os.path.join(HERE, "_2dgs_views.py"), model, str(it), os.path.abspath(a.exchange), views],
              a.checkout, log)
-    peak = os.path.join(a.out, "peak_train.json")
     mesh = trimesh.load(os.path.join(model, "train", f"ours_{it}", "fuse_post.ply"), process=False)
     v = np.load(views)
     if a.mesh_only is not None:
         wall = t_train = None  # an earlier run's training time is not known here
     run = {"wall_s": wall, "train_s": t_train, "iterations": it, "surfels": int(v["n"]),
            # the training process's peak; unknown when only an earlier run's checkpoint was meshed
-           "peak_gpu_bytes": (max(int(v["peak"]), _read_json(peak)["peak_gpu_bytes"])
+           "peak_gpu_bytes": (max(int(v["peak"]), read_json(peak)["peak_gpu_bytes"])
                               if a.mesh_only is None and os.path.exists(peak) else None),
            "recipe": "2DGS DTU: --depth_ratio 1.0 --lambda_dist 1000; TSDF 0.004/0.016/3.0, 1 cluster"}
     system = "2DGS" if it == 30_000 else f"2DGS ({it:,} it.)"

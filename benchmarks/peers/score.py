@@ -24,14 +24,10 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _result import read_json  # noqa: E402
 from exchange import load  # noqa: E402
 
 F_TAU = 0.005  # F-score threshold, fraction of the ground truth's diagonal
-
-
-def _read_json(path: str):
-    with open(path) as f:
-        return json.load(f)
 
 
 def image_scores(renders: np.ndarray, ex) -> dict:
@@ -61,11 +57,8 @@ def silhouette_iou(mesh, ex) -> float | None:
 
     v = torch.tensor(np.asarray(mesh.vertices), dtype=torch.float32)
     f = torch.tensor(np.asarray(mesh.faces), dtype=torch.int32)
-    ious = []
-    for i in ex.test:
-        hit = ops.raycast_mesh(v, f, ex.camera(i)).mask.cpu().numpy().astype(bool)
-        m = ex.mask(i)
-        ious.append(float((hit & m).sum() / max((hit | m).sum(), 1)))
+    hits = ops.raycast_mesh(v, f, [ex.camera(i) for i in ex.test]).mask.cpu().numpy().astype(bool)  # one BVH
+    ious = [float((hit & m).sum() / max((hit | m).sum(), 1)) for hit, m in zip(hits, (ex.mask(i) for i in ex.test))]
     return float(np.mean(ious))
 
 
@@ -83,8 +76,7 @@ def score(exchange: str, result: str) -> dict:
     import trimesh
 
     ex = load(exchange)
-    with open(os.path.join(result, "run.json")) as f:
-        run = json.load(f)
+    run = read_json(os.path.join(result, "run.json"))
     mesh = trimesh.load(os.path.join(result, "mesh.ply"), process=False)
     row = {"scene": ex.meta["name"], "system": run["system"], "wall_s": run.get("wall_s"),
            "peak_gpu_gib": run["peak_gpu_bytes"] / 2 ** 30 if run.get("peak_gpu_bytes") else None,
@@ -106,21 +98,28 @@ def pictures(exchange: str, results: list[str], out: str, views: int = 2) -> str
     from wtopo import ops
 
     ex = load(exchange)
+    shown = ex.test[:views]
+    columns = [[(ex.image(i), "photo") for i in shown]]  # per system, one tile per view
+    for r in results:
+        mesh = trimesh.load(os.path.join(r, "mesh.ply"), process=False)
+        name = read_json(os.path.join(r, "run.json"))["system"]
+        blank = np.ones((ex.height, ex.width, 3), np.float32)
+        if not len(mesh.faces):
+            columns.append([(blank, name) for _ in shown])
+            continue
+        v = torch.tensor(np.asarray(mesh.vertices), dtype=torch.float32)
+        f = torch.tensor(np.asarray(mesh.faces), dtype=torch.int32)
+        rr = ops.raycast_mesh(v, f, [ex.camera(i) for i in shown])  # one BVH for every view
+        normals, masks = rr.normal.cpu().numpy(), rr.mask.cpu().numpy()
+        tiles = []
+        for k, i in enumerate(shown):
+            n = normals[k] @ ex.w2c[i][:3, :3].T  # camera frame
+            shade = np.clip(-n[..., 2:3], 0, 1) * 0.8 + 0.2
+            tiles.append((np.where(masks[k][..., None], shade * np.array([0.9, 0.85, 0.75]), blank), name))
+        columns.append(tiles)
     cols = []
-    for i in ex.test[:views]:
-        tiles = [(ex.image(i), "photo")]
-        for r in results:
-            mesh = trimesh.load(os.path.join(r, "mesh.ply"), process=False)
-            name = _read_json(os.path.join(r, "run.json"))["system"]
-            img = np.ones((ex.height, ex.width, 3), np.float32)
-            if len(mesh.faces):
-                v = torch.tensor(np.asarray(mesh.vertices), dtype=torch.float32)
-                f = torch.tensor(np.asarray(mesh.faces), dtype=torch.int32)
-                rr = ops.raycast_mesh(v, f, ex.camera(i))
-                n = rr.normal.cpu().numpy() @ ex.w2c[i][:3, :3].T  # camera frame
-                shade = np.clip(-n[..., 2:3], 0, 1) * 0.8 + 0.2
-                img = np.where(rr.mask.cpu().numpy()[..., None], shade * np.array([0.9, 0.85, 0.75]), 1.0)
-            tiles.append((img, name))
+    for k in range(len(shown)):
+        tiles = [c[k] for c in columns]
         row = []
         for t, label in tiles:
             im = Image.fromarray((np.clip(t, 0, 1) * 255).astype(np.uint8))
@@ -140,7 +139,7 @@ def main(argv=None) -> None:
     ap.add_argument("--out", required=True, help="rows are appended to this JSON list")
     ap.add_argument("--pictures", default=None)
     a = ap.parse_args(argv)
-    rows = _read_json(a.out) if os.path.exists(a.out) else []
+    rows = read_json(a.out) if os.path.exists(a.out) else []
     for r in a.results:
         if not os.path.exists(os.path.join(r, "run.json")):
             print(f"skip {r}: no run.json", file=sys.stderr)
@@ -148,6 +147,7 @@ def main(argv=None) -> None:
         row = score(a.exchange, r)
         print(json.dumps(row))
         rows.append(row)
+    os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
     with open(a.out, "w") as f:
         json.dump(rows, f, indent=1)
     if a.pictures:

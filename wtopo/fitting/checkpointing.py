@@ -134,8 +134,8 @@ class Checkpointer:
     def maybe_save(self) -> None:
         """Checkpoint when ``runtime.checkpoint_every`` iterations or :data:`CHECKPOINT_SECONDS` have passed."""
         rt, it = self.run.cfg.runtime, self.run.it
-        due = (rt.checkpoint_every and it % rt.checkpoint_every == 0) or (
-            CHECKPOINT_SECONDS and time.perf_counter() - self._last_time > CHECKPOINT_SECONDS)
+        due = ((rt.checkpoint_every and it % rt.checkpoint_every == 0)
+               or time.perf_counter() - self._last_time > CHECKPOINT_SECONDS)
         if due:
             self.save()
 
