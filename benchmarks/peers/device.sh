@@ -88,6 +88,10 @@ launch)
   [ -n "$chain" ] && setsid nohup bash -c "$chain" >/dev/null 2>&1 &
   ;;
 wait)
+  # until every launched job has its .rc; returns at once when none was launched (a fresh machine)
+  shopt -s nullglob
+  logs=("$STAGE"/res/*/*.log)
+  [ ${#logs[@]} -gt 0 ] || { echo "no jobs under $STAGE/res (machine restarted?)"; exit 3; }
   end=$(( $(date +%s) + ${1:-540} ))
   while [ "$(date +%s)" -lt $end ]; do
     left=0
