@@ -11,6 +11,7 @@ import wtopo
 from wtopo import scenes
 from wtopo.fitting import FitConfig
 from wtopo.fitting.plan import make_plan, resolve_config
+from wtopo.fitting.presets import budget
 from wtopo.fitting.scene_kind import NEAR_FRACTION
 from wtopo.metrics import camera_clearance
 
@@ -100,7 +101,7 @@ def test_cuda_plan_holds_the_means_rate_at_its_floor_for_the_co_evolutions_secon
 
     scene = room.normalized()
     gpu = make_plan(scene, FitConfig(), torch.device("cuda"))
-    warm, coevo = P._ITERATIONS["cuda"]
+    warm, coevo = budget("balanced", "cuda").iterations
     assert gpu.means_decay_iterations == warm + round(P._MEANS_DECAY_COEVO["cuda"] * coevo) < warm + coevo
     assert resolve_config(FitConfig(), gpu).optim.means_decay_iterations == gpu.means_decay_iterations
     cpu = make_plan(scene, FitConfig(), torch.device("cpu"))
@@ -136,7 +137,7 @@ def test_cuda_plan_restarts_the_co_evolutions_means_and_the_cpu_does_not(room):
     assert gpu.means_restart == P._MEANS_RESTART["cuda"] == 0.0625
     o = resolve_config(FitConfig(), gpu).optim
     assert o.means_restart == 0.0625
-    warm, coevo = P._ITERATIONS["cuda"]
+    warm, coevo = budget("balanced", "cuda").iterations
     assert means_rate(o, warm, warm, warm + coevo) == pytest.approx(1e-4)
     assert means_rate(o, warm - 1, warm, warm + coevo) < 6e-5  # the warm-up keeps its decay
     cpu = make_plan(scene, FitConfig(), torch.device("cpu"))
@@ -339,11 +340,11 @@ def test_cpu_budget_grows_with_the_pixels_to_fit():
     dev = torch.device("cpu")
     obj = scenes.load("bunny")
     base = make_plan(obj.normalized(), FitConfig(), dev)
-    assert (base.warmup_iterations, base.coevolution_iterations) == P._ITERATIONS["cpu"]
+    assert (base.warmup_iterations, base.coevolution_iterations) == budget("balanced", "cpu").iterations
     bare = wtopo.Scene(obj.cameras, obj.images, train_indices=obj.train_indices, test_indices=obj.test_indices)
     p = make_plan(bare.normalized(), FitConfig(), dev)
     n_train = len(obj.train_indices) if obj.train_indices is not None else len(obj)
-    warm, coevo = P._ITERATIONS["cpu"]
+    warm, coevo = budget("balanced", "cpu").iterations
     k = min(n_train * 128 * 128 / P._CPU_FIT_PIXELS, P._CPU_RENDER_PIXELS / (warm * 128 * 128))
     assert k > 1.5 and p.warmup_iterations == round(warm * k) and p.coevolution_iterations == round(coevo * k)
     assert "training pixels" in p.reasons["warmup_iterations"]

@@ -99,9 +99,9 @@ def _apply_set(cfg, item: str) -> None:
 def _config(args):
     import json
 
-    from .fitting import FitConfig
+    from .fitting import FitConfig, Preset
 
-    cfg = FitConfig.toposurfel_public() if args.preset == "toposurfel-public" else FitConfig()
+    cfg = FitConfig.toposurfel_public() if args.recipe == "toposurfel-public" else FitConfig()
     if args.config is not None:
         try:
             with open(args.config) as fh:
@@ -111,6 +111,8 @@ def _config(args):
         if not isinstance(data, dict):
             raise ValueError(f"--config {args.config!r} must hold a JSON object, got {type(data).__name__}")
         cfg = FitConfig.from_dict(data)
+    if args.preset is not None:
+        cfg.preset = Preset(args.preset)
     if args.iterations is not None:  # split evenly between warm-up and co-evolution
         w = args.iterations // 2
         cfg.warmup.iterations, cfg.coevolution.iterations = w, args.iterations - w
@@ -224,8 +226,11 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--samples-per-surfel", type=int, choices=[1, 5])
     f.add_argument("--proxy-resolution", type=int, metavar="N",
                    help="grid nodes per side of the co-evolving proxy mesh's Poisson solve (mesh.resolution)")
-    f.add_argument("--preset", choices=["default", "toposurfel-public"], default="default",
-                   help="toposurfel-public: the public TopoSurfel code's settings where supported")
+    f.add_argument("--preset", choices=["fast", "balanced", "best"],
+                   help="quality against time (FitConfig.preset; default balanced): the plan's iterations, image "
+                        "size and grids; explicit --set values still win")
+    f.add_argument("--recipe", choices=["default", "toposurfel-public"], default="default",
+                   help="toposurfel-public: start from the public TopoSurfel code's settings where supported")
     f.add_argument("--config", metavar="FILE.json",
                    help="start from a FitConfig saved as JSON (a run's config.json or FitConfig.to_dict())")
     f.add_argument("--set", action="append", metavar="PATH=VALUE",

@@ -109,7 +109,7 @@ def chunk_fit_config(cfg, device: str, share: float, space: float = 1.0, budget:
 
     c = copy.deepcopy(cfg)
     c.runtime.device = device
-    base = plan_defaults(device)
+    base = plan_defaults(device, cfg.preset)
     if space < 1.0:
         cap = cfg.runtime.max_surfels or base.max_surfels
         faces = cfg.tsdf.max_faces or base.reinit_faces
@@ -143,7 +143,7 @@ def _fit_one(scene, plan: ChunkPlan, index: int, cfg, ccfg: ChunkConfig, out: Pa
     if ccfg.space_share:
         space = max(ccfg.min_budget_share, min(1.0, chunk.volume_share(plan.roi_lower, plan.roi_upper)))
     # the share of what the whole scene's fit would run (the plan scales a CPU budget with the pixels to fit)
-    budget = iteration_budget(scene, torch.device(device), cfg.runtime.image_scale)[:2]
+    budget = iteration_budget(scene, torch.device(device), cfg.runtime.image_scale, cfg.preset)[:2]
     c = chunk_fit_config(cfg, device, share, space, budget)
     cuda = device.startswith("cuda")
     if cuda:

@@ -323,7 +323,8 @@ def _memory_chunks(n_train: int, pixels: int, fcfg, device, mem: int) -> tuple[i
     the chunks, the dense grids and the surfel cap do not. Returns ``(count, views GiB, fixed GiB)``."""
     from ..fitting import plan_defaults
 
-    base = plan_defaults("cuda" if str(device).startswith("cuda") or (device == "auto" and _cuda()) else "cpu")
+    base = plan_defaults("cuda" if str(device).startswith("cuda") or (device == "auto" and _cuda()) else "cpu",
+                         fcfg.preset)
     proxy = fcfg.mesh.resolution or base.proxy_grid
     final = fcfg.final.resolution or base.final_grid
     surfels = fcfg.runtime.max_surfels or base.max_surfels

@@ -7,6 +7,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from . import plan as _plan
+from . import presets as _presets
+from .config import Preset
 
 __all__ = ["PlanDefaults", "plan_defaults"]
 
@@ -32,10 +34,11 @@ class PlanDefaults:
     final_grid: int
 
 
-def plan_defaults(device) -> PlanDefaults:
-    """:class:`PlanDefaults` of ``device`` (``"cpu"``, ``"cuda"``, ``"cuda:1"`` or a :class:`torch.device`):
-    every CUDA device shares one budget."""
+def plan_defaults(device, preset: Preset | str = Preset.BALANCED) -> PlanDefaults:
+    """:class:`PlanDefaults` of ``device`` (``"cpu"``, ``"cuda"``, ``"cuda:1"`` or a :class:`torch.device`) under
+    ``preset`` (:mod:`wtopo.fitting.presets`): every CUDA device shares one budget."""
     kind = "cuda" if str(device).startswith("cuda") else "cpu"
-    return PlanDefaults(iterations=tuple(_plan._ITERATIONS[kind]), max_surfels=int(_plan._MAX_SURFELS[kind]),
-                        reinit_faces=int(_plan._REINIT_FACES[kind]), proxy_grid=int(_plan._PROXY_GRID[kind][1]),
-                        final_grid=int(_plan._FINAL_GRID[kind][1]))
+    b = _presets.budget(preset, kind)
+    return PlanDefaults(iterations=tuple(b.iterations), max_surfels=int(_plan._MAX_SURFELS[kind]),
+                        reinit_faces=int(_plan._REINIT_FACES[kind]), proxy_grid=int(b.proxy_grid[1]),
+                        final_grid=int(b.final_grid[1]))

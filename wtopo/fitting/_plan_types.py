@@ -9,7 +9,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from types import MappingProxyType
 
-from .config import InitSource, TSDFBackend
+from .config import InitSource, Preset, TSDFBackend
 from .scene_kind import SceneKind, SceneLayout
 
 __all__ = ["Plan"]
@@ -52,12 +52,16 @@ class Plan:
     """Multi-view NCC weight; ``losses.multiview``."""
     densify: bool
     """Screen-space clone/split in the warm-up; ``densify.enabled``."""
+    preset: Preset
+    """The preset whose budgets the plan started from (:mod:`wtopo.fitting.presets`); ``FitConfig.preset``."""
     image_scale: float
     """Factor the training images are resized by; ``runtime.image_scale``."""
     warmup_iterations: int
     """Warm-up iterations; ``warmup.iterations``."""
     coevolution_iterations: int
     """Co-evolution iterations; ``coevolution.iterations``."""
+    densify_interval: int
+    """Iterations between density-control steps; ``densify.interval``."""
     means_decay_iterations: int | None
     """Iterations of the means' decay (``None``: the whole fit); ``optim.means_decay_iterations``."""
     means_restart: float
@@ -82,6 +86,8 @@ class Plan:
     """The proxy's zero level (0: global; > 0: local, in Poisson cells); ``mesh.level_sigma``."""
     proxy_clip: bool
     """The proxy is clipped to the region of interest; ``mesh.clip_to_region``."""
+    expected_seconds: int
+    """About how long the fit takes on this device [s] (:func:`~wtopo.fitting.presets.expected_seconds`)."""
     gt_metrics: bool
     """Chamfer / F-score at evaluations (a ground-truth mesh is given and ``runtime.eval_metrics``)."""
     reasons: Mapping[str, str] = field(default_factory=dict, repr=False)
@@ -116,7 +122,8 @@ class Plan:
             ("co-evolution", co),
             ("final mesh", f"TSDF fusion at {self.final_resolution} voxels, {self.mesh_policy}"),
         ]
-        lines = [f"wtopo fit plan ({kind} on {self.device}):", "  stages:"]
+        lines = [f"wtopo fit plan ({kind} on {self.device}): preset {Preset(self.preset).value}, about "
+                 f"{_duration(self.expected_seconds)}", "  stages:"]
         lines += [f"    {i}. {name:<15} {what}" for i, (name, what) in enumerate(stages, 1)]
         lines.append("  decisions:")
         for k in names:
@@ -126,6 +133,15 @@ class Plan:
 
 
 _NOT_DECISIONS = ("reasons", "overrides", "layout")
+
+
+def _duration(seconds: float) -> str:
+    """``"45 s"``, ``"3 min"``, ``"1 h 20 min"``."""
+    s = max(0, int(round(seconds)))
+    if s < 90:
+        return f"{s} s"
+    m = int(round(s / 60))
+    return f"{m} min" if m < 90 else f"{m // 60} h {m % 60} min"
 
 
 def _json_value(v):
@@ -162,7 +178,8 @@ class _Decisions:
     def build(self) -> Plan:
         v = self.values
         typed = dict(v, scene_kind=SceneKind(v["scene_kind"]), init_source=InitSource(v["init_source"]),
-                     tsdf_backend=TSDFBackend(v["tsdf_backend"]), background=tuple(float(c) for c in v["background"]),
+                     tsdf_backend=TSDFBackend(v["tsdf_backend"]),
+                     preset=Preset(v["preset"]), background=tuple(float(c) for c in v["background"]),
                      region_of_interest=tuple(tuple(float(x) for x in c) for c in v["region_of_interest"]))
         return Plan(**typed, reasons=MappingProxyType(dict(self.reasons)), overrides=frozenset(self.overrides),
                     layout=self.layout)

@@ -28,6 +28,7 @@ from .config_kinds import (
     InitSource,
     NormalFlip,
     PoissonBox,
+    Preset,
     Range,
     TSDFBackend,
     _f,
@@ -51,6 +52,7 @@ __all__ = [
     "InitSource",
     "PoissonBox",
     "TSDFBackend",
+    "Preset",
     "DepthLoss",
     "config_hash",
     "stage_iteration",
@@ -157,8 +159,8 @@ class DensifyConfig:
 
     enabled: bool | None = None
     """Screen-space clone/split in the warm-up; ``None``: the plan's."""
-    interval: int = _f(100, POSITIVE)
-    """Iterations between density-control steps."""
+    interval: int | None = _f(None, POSITIVE)
+    """Iterations between density-control steps; ``None``: the plan's (an eighth of the warm-up, 10-100)."""
     opacity_reset_fraction: float = _f(0.75, FRACTION)
     """Opacity resets every this fraction of the warm-up (0: none)."""
     geometry_prune: bool = True
@@ -233,6 +235,9 @@ class FitConfig:
     """Proxy mesh."""
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     """Runtime."""
+    preset: Preset = Preset.BALANCED
+    """Budgets the plan starts from: ``fast``, ``balanced`` or ``best`` (:mod:`wtopo.fitting.presets`); a
+    field set here still wins over its preset."""
     kind: SceneKind | None = None
     """``OBJECT`` (closed mesh) or ``SCENE`` (background kept, open mesh of the region of interest);
     ``None``: the plan's (object when the scene has masks)."""

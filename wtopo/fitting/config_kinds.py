@@ -9,7 +9,7 @@ import enum
 from dataclasses import dataclass, field
 
 __all__ = ["Range", "RATE", "FRACTION", "COUNT", "POSITIVE", "NormalFlip", "DepthLoss", "InitSource",
-           "PoissonBox", "TSDFBackend"]
+           "PoissonBox", "TSDFBackend", "Preset"]
 
 
 @dataclass(frozen=True)
@@ -47,6 +47,18 @@ def _f(default, check, *, was_bool: bool = False):
     ``was_bool``: the field was a boolean in earlier versions; a saved or typed ``true`` / ``false``
     reads as 1 / 0 (:meth:`~wtopo.fitting.config_fields.Leaf.set`)."""
     return field(default=default, metadata={"check": check, "was_bool": was_bool})
+
+
+class Preset(str, enum.Enum):
+    """A point on the error-against-time front (``FitConfig.preset``, ``--preset``):
+    the budgets the plan starts from (:mod:`wtopo.fitting.presets`)."""
+
+    FAST = "fast"
+    """A first look in about a third of the time: fewer iterations, smaller images and grids."""
+    BALANCED = "balanced"
+    """The default: the front's knee, close to ``BEST``'s error in a fraction of its time."""
+    BEST = "best"
+    """Lowest error on the front: more iterations where they still pay."""
 
 
 class NormalFlip(str, enum.Enum):

@@ -16,8 +16,9 @@ import torch
 import torch.nn.functional as F
 
 from ..geometry.mvs import gray as _gray
+from . import presets as _presets
 from ._plan_types import Plan, _Decisions
-from .config import FitConfig, InitSource, TSDFBackend
+from .config import FitConfig, InitSource, Preset, TSDFBackend
 from .scene_kind import SceneKind, analyse_layout
 
 __all__ = ["Plan", "make_plan", "resolve_config", "split_views", "views_per_point"]
@@ -25,14 +26,9 @@ __all__ = ["Plan", "make_plan", "resolve_config", "split_views", "views_per_poin
 _TEXTURE_STD = 0.02  # colour std (in [0,1] units) below which the foreground counts as untextured
 _VIEW_CONSISTENCY = 0.04  # mean reprojected colour difference below which the scene counts as diffuse
 _MIN_SH_VIEWS = 20  # fewer views than this cannot constrain view-dependent colour
-_CPU_MAX_SIDE = 256  # longest image side trained on a CPU (keeps the default fit within minutes)
-_GPU_MAX_SIDE = 1024
 _MIN_EVAL_VIEWS = 12
-# Per-device budgets and rules below: the measurements behind each value are in design/decisions.md.
-# CPU: 800 + 800 iterations finish the default fit in a few minutes on 2 cores (800 + 400 had not converged;
-# the loop's gain against no loop grows with the co-evolution: -7.3 % mean Chamfer at 800 + 400, -11.1 % at
-# 800 + 800). CUDA: the method's schedule shortened to minutes on one GPU (~30 ms per iteration).
-_ITERATIONS = {"cpu": (800, 800), "cuda": (3000, 2000)}
+# Per-device budgets and rules below: the measurements behind each value are in design/decisions.md. The
+# iterations, image-size cap and grid ranges are the preset's (wtopo.fitting.presets).
 # The share of the co-evolution over which the means' single decay still runs (the plan sets
 # optim.means_decay_iterations = warm-up + this share of the co-evolution); the rest keeps means_final.
 # CUDA 0.5: the loop's fits better on 13 of 14 suite scenes than at 3,000 + 1,000. None (CPU): the whole fit.
@@ -40,12 +36,16 @@ _MEANS_DECAY_COEVO = {"cpu": None, "cuda": 0.5}
 # The co-evolution's means restart (optim.means_restart, a fraction of optim.means). CUDA 0.0625 (1e-4): the
 # loop's fits -3.7 % on the suite's mean at 512 px. The CPU keeps none: 0.3 swelled the chairs 15-24 %.
 _MEANS_RESTART = {"cpu": 0.0, "cuda": 0.0625}
-# CPU: the base budget covers this many training pixels to fit (unmasked pixels at the trained image
+# CPU: the preset's base budget covers this many training pixels to fit (unmasked pixels at the trained image
 # scale: twice the default bunny's 109k); a capture with more (an unmasked scene: every pixel is
 # ground, background or sky) gets proportionally more iterations, as long as the warm-up renders at
 # most _CPU_RENDER_PIXELS pixels (1,250 views of 160 x 120: a few minutes on 2 cores).
 _CPU_FIT_PIXELS = 250_000
 _CPU_RENDER_PIXELS = 24_000_000
+# Density control every warm-up / _DENSIFY_STEPS iterations within _DENSIFY_INTERVAL: the 800-iteration CPU warm-up
+# keeps its 100; shorter presets keep about as many density steps instead of one or two
+_DENSIFY_STEPS = 8
+_DENSIFY_INTERVAL = (10, 100)
 _MAX_SURFELS = {"cpu": 40_000, "cuda": 400_000}
 # Faces of the TSDF re-initialisation mesh (one surfel each): _REINIT_DENSITY faces per squared pixel
 # footprint of the region of interest's box surface (each surfel starts about a footprint across), between
@@ -59,8 +59,6 @@ _REINIT_MIN = 8000
 _REINIT_VIEWS = 11.5
 _VIEW_FACING = 0.25  # a view sees a point of the region's surface when it faces it within ~75 degrees
 _REINIT_FACES = {"cpu": _REINIT_MIN, "cuda": _MAX_SURFELS["cuda"] // 4}  # caps (CUDA: room to densify)
-_PROXY_GRID = {"cpu": (64, 64), "cuda": (128, 256)}  # (min, max) Poisson nodes per side
-_FINAL_GRID = {"cpu": (96, 192), "cuda": (192, 768)}  # (min, max) TSDF voxels along the fusion box
 _PROXY_FOOTPRINTS = 2.0  # proxy grid cell ~ 2 pixel footprints (a finer Poisson grid only adds noise)
 _SCENE_LEVEL_SIGMA = 2.0  # a scene proxy's local zero level, Poisson cells (poisson_indicator's level_sigma)
 # final TSDF voxel in pixel footprints: fused depth resolves below a pixel; 0.4 is the CPU default's
@@ -271,12 +269,22 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
         why = f"{n_pts} initial points: clone/split only while coverage gaps exist"
     plan.set("densify", dens, why, cfg.densify.enabled)
 
-    # -- image size
+    # -- image size and budgets: the preset's
+    preset = Preset(cfg.preset)
+    b = _presets.budget(preset, device)
+    plan.set("preset", preset, f"{preset.value}: {b.iterations[0]} + {b.iterations[1]} base iterations, images "
+             f"up to {b.max_side} px, proxy grid {b.proxy_grid[0]}-{b.proxy_grid[1]}, final grid "
+             f"{b.final_grid[0]}-{b.final_grid[1]} on {device.type}")
     h, w = images.shape[1:3]
-    cap = _GPU_MAX_SIDE if device.type == "cuda" else _CPU_MAX_SIDE
-    plan.set("image_scale", default_image_scale(h, w, device),
-             f"{w}x{h} images; longest side capped at {cap} px on {device.type}", cfg.runtime.image_scale)
+    plan.set("image_scale", default_image_scale(h, w, device, preset),
+             f"{w}x{h} images; longest side capped at {b.max_side} px by the {preset.value} preset on {device.type}",
+             cfg.runtime.image_scale)
     _budget(plan, scene, cfg, device, layout, float(plan["image_scale"]))
+    per_view = h * w * float(plan["image_scale"]) ** 2
+    n_it = int(plan["warmup_iterations"]) + int(plan["coevolution_iterations"])
+    plan.set("expected_seconds", round(_presets.expected_seconds(preset, device, n_it, per_view)),
+             f"{n_it} iterations of {per_view / 1e3:.0f}k-pixel views at the {preset.value} preset's measured cost on "
+             f"{'one H200' if device.type == 'cuda' else f'{torch.get_num_threads()} CPU threads'} (a planning figure)")
 
     # -- held-out views
     plan.set("eval_views", n_eval, eval_why)
@@ -368,26 +376,28 @@ def _fit_pixels(scene, image_scale: float) -> tuple[float, float]:
     return cover * per_view, per_view
 
 
-def default_image_scale(height: int, width: int, device: torch.device) -> float:
+def default_image_scale(height: int, width: int, device: torch.device, preset: Preset | str = Preset.BALANCED) -> float:
     """The plan's image scale for images of ``height`` x ``width`` px on ``device``: the longest side
-    capped at ``_CPU_MAX_SIDE`` / ``_GPU_MAX_SIDE`` (never upsampled)."""
-    cap = _GPU_MAX_SIDE if device.type == "cuda" else _CPU_MAX_SIDE
-    return min(1.0, cap / max(height, width))
+    capped at the preset's ``max_side`` (:mod:`wtopo.fitting.presets`; never upsampled)."""
+    return min(1.0, _presets.budget(preset, device).max_side / max(height, width))
 
 
-def iteration_budget(scene, device: torch.device, image_scale: float | None = None) -> tuple[int, int, str]:
+def iteration_budget(scene, device: torch.device, image_scale: float | None = None,
+                     preset: Preset | str = Preset.BALANCED) -> tuple[int, int, str]:
     """``(warm-up, co-evolution, reason)``: the plan's iterations for ``scene`` on ``device`` when the
-    configuration leaves them to it. CUDA: ``_ITERATIONS["cuda"]`` (with the means' decay horizon of
-    ``_MEANS_DECAY_COEVO``, set by the plan beside them). CPU: 800 + 800 for up to
-    ``_CPU_FIT_PIXELS`` training pixels to fit (mask pixels; every pixel without masks), proportionally
-    more beyond while the warm-up renders at most ``_CPU_RENDER_PIXELS``. ``image_scale``: the trained
-    scale (``None``: :func:`default_image_scale`). Any frame: only the images, masks and split count."""
+    configuration leaves them to it: the preset's base iterations (:mod:`wtopo.fitting.presets`); on CUDA
+    with the means' decay horizon of ``_MEANS_DECAY_COEVO``, set by the plan beside them. The CPU's base
+    covers up to ``_CPU_FIT_PIXELS`` training pixels to fit (mask pixels; every pixel without masks),
+    proportionally more beyond while the warm-up renders at most ``_CPU_RENDER_PIXELS``. ``image_scale``:
+    the trained scale (``None``: :func:`default_image_scale`). Any frame: only the images, masks and split
+    count."""
     dev = "cuda" if device.type == "cuda" else "cpu"
-    warm, coevo = _ITERATIONS[dev]
+    warm, coevo = _presets.budget(preset, device).iterations
     if dev == "cuda":
         return warm, coevo, "cuda budget"
     h, w = (int(x) for x in scene.images.shape[1:3])
-    content, per_view = _fit_pixels(scene, default_image_scale(h, w, device) if image_scale is None else image_scale)
+    content, per_view = _fit_pixels(scene, default_image_scale(h, w, device, preset) if image_scale is None
+                                    else image_scale)
     k = max(1.0, min(content / _CPU_FIT_PIXELS, _CPU_RENDER_PIXELS / (warm * per_view)))
     if k == 1.0:
         return warm, coevo, "cpu budget"
@@ -399,12 +409,15 @@ def iteration_budget(scene, device: torch.device, image_scale: float | None = No
 def _budget(plan: _Decisions, scene, cfg: FitConfig, device: torch.device, layout, image_scale: float) -> None:
     """Iterations, surfel cap and grids from the device, the region's size and the pixel footprint."""
     dev = "cuda" if device.type == "cuda" else "cpu"
-    warm, coevo, why = iteration_budget(scene, device, image_scale)
+    warm, coevo, why = iteration_budget(scene, device, image_scale, cfg.preset)
     plan.set("warmup_iterations", warm, why, cfg.warmup.iterations)
     plan.set("coevolution_iterations", coevo, why, cfg.coevolution.iterations)
     share = _MEANS_DECAY_COEVO[dev]  # of the co-evolution the plan settled on (a configured length moves it)
     warm_it, coevo_it = int(plan["warmup_iterations"]), int(plan["coevolution_iterations"])
     horizon = None if share is None else warm_it + round(share * coevo_it)
+    interval = int(np.clip(warm_it // _DENSIFY_STEPS, *_DENSIFY_INTERVAL))
+    plan.set("densify_interval", interval, f"{_DENSIFY_STEPS} density steps over the {warm_it}-iteration warm-up, "
+             f"every {_DENSIFY_INTERVAL[0]}-{_DENSIFY_INTERVAL[1]} iterations", cfg.densify.interval)
     plan.set("means_decay_iterations", horizon,
              f"{dev} budget: the means' rate decays over the whole fit" if share is None else
              f"{dev} budget: the means' rate reaches its floor {share:g} of the way through the co-evolution and "
@@ -431,12 +444,13 @@ def _budget(plan: _Decisions, scene, cfg: FitConfig, device: torch.device, layou
              f"surface ({box:.0f} footprint^2; each surfel about a footprint across) times {seen:.2f} (its points "
              f"seen from {views:.1f} views, full density from {_REINIT_VIEWS:g}) gives {rule}, kept {within}",
              cfg.tsdf.max_faces)
-    lo, hi = _PROXY_GRID[dev]
+    b = _presets.budget(cfg.preset, device)
+    lo, hi = b.proxy_grid
     proxy = int(np.clip(16 * round(1.0 / (_PROXY_FOOTPRINTS * fp) / 16), lo, hi))  # Poisson spans the unit cube
     plan.set("proxy_resolution", proxy,
              f"pixel footprint {fp:.2e} at the region of interest; a cell of ~{_PROXY_FOOTPRINTS:g} footprints, "
              f"{lo}-{hi} on {dev}", cfg.mesh.resolution)
-    lo, hi = _FINAL_GRID[dev]
+    lo, hi = b.final_grid
     final = int(np.clip(round(side / (_FINAL_FOOTPRINTS * fp)), lo, hi))
     plan.set("final_resolution", final,
              f"a voxel of {_FINAL_FOOTPRINTS:g} pixel footprints over the region of interest ({side:.3g} wide), "
@@ -461,6 +475,7 @@ def resolve_config(cfg: FitConfig, plan: Plan) -> FitConfig:
     out.sh_degree = int(plan.sh_degree)
     out.losses.multiview = float(plan.multiview)
     out.densify.enabled = bool(plan.densify)
+    out.densify.interval = int(plan.densify_interval)
     out.runtime.image_scale = float(plan.image_scale)
     out.warmup.iterations = int(plan.warmup_iterations)
     out.coevolution.iterations = int(plan.coevolution_iterations)

@@ -1,0 +1,91 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Quality presets: the budgets the stage plan starts from, one point each on the error-against-time front.
+
+``FitConfig.preset`` (``--preset``) picks one of :class:`~wtopo.fitting.config_kinds.Preset`; the plan
+(:func:`~wtopo.fitting.plan.make_plan`) takes its iterations, image-size cap and grids from the preset's
+:class:`Budget` on the fit's kind of device, and a field the configuration sets still wins. The values
+come from ``benchmarks/error_vs_runtime.py`` (its note gives the front they were read from and the
+command that made it); ``design/decisions.md`` says why each preset sits where it does.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+from .config_kinds import Preset
+
+__all__ = ["Budget", "budget", "expected_seconds", "Preset"]
+
+
+@dataclass(frozen=True)
+class Budget:
+    """What one preset gives the plan on one kind of device.
+
+    Attributes:
+        iterations: ``(warm-up, co-evolution)`` base iterations (the CPU plan scales them up for captures
+            with more pixels to fit: :func:`~wtopo.fitting.plan.iteration_budget`).
+        max_side: longest training-image side [px]; larger photographs are resized (never upsampled).
+        proxy_grid: ``(min, max)`` Poisson nodes per side of the proxy mesh (the plan picks within it from
+            the pixel footprint).
+        final_grid: ``(min, max)`` TSDF voxels along the final fusion box.
+        fixed_s: the model of :func:`expected_seconds`: seconds outside the iterations (initialisation,
+            re-initialisation, final mesh) on the reference device.
+        iteration_s: seconds per iteration on the reference device, whatever the view's size ...
+        megapixel_s: ... plus these seconds per megapixel of the trained view.
+    """
+
+    iterations: tuple[int, int]
+    max_side: int
+    proxy_grid: tuple[int, int]
+    final_grid: tuple[int, int]
+    fixed_s: float
+    iteration_s: float
+    megapixel_s: float
+
+
+_REFERENCE_CORES = 2  # the CPU timings below were measured on 2 cores; more cores scale them down
+# CPU (2 cores): read off the front of benchmarks/error_vs_runtime.md. CUDA (one H200): the GPU default as it
+# was measured on DTU and the 512-px suite (about 60 ms per iteration at 800 x 600); fast and best scale its
+# iterations like the CPU presets until a GPU front is measured.
+_BUDGETS = {
+    ("cpu", Preset.FAST): Budget((150, 150), 128, (48, 48), (64, 128), 8.0, 0.020, 4.0),
+    ("cpu", Preset.BALANCED): Budget((400, 400), 256, (64, 64), (96, 192), 10.0, 0.020, 4.0),
+    ("cpu", Preset.BEST): Budget((800, 800), 256, (64, 64), (96, 192), 10.0, 0.020, 4.0),
+    ("cuda", Preset.FAST): Budget((1500, 1000), 512, (128, 192), (192, 512), 40.0, 0.030, 0.060),
+    ("cuda", Preset.BALANCED): Budget((3000, 2000), 1024, (128, 256), (192, 768), 70.0, 0.030, 0.060),
+    ("cuda", Preset.BEST): Budget((6000, 4000), 1024, (128, 256), (192, 768), 70.0, 0.030, 0.060),
+}
+
+
+def _kind(device) -> str:
+    return "cuda" if str(getattr(device, "type", device)).startswith("cuda") else "cpu"
+
+
+def budget(preset: Preset | str, device) -> Budget:
+    """The :class:`Budget` of ``preset`` (a :class:`Preset` or its name) on ``device`` (``"cpu"``, ``"cuda:0"``,
+    a :class:`torch.device`; every CUDA device shares one budget).
+
+    Raises:
+        ValueError: ``preset`` is not ``"fast"``, ``"balanced"`` or ``"best"``.
+    """
+    try:
+        p = Preset(preset)
+    except ValueError:
+        raise ValueError(f"preset must be one of {[p.value for p in Preset]}, got {preset!r}") from None
+    return _BUDGETS[(_kind(device), p)]
+
+
+def expected_seconds(preset: Preset | str, device, iterations: int, pixels_per_view: float) -> float:
+    """About how long a fit of ``iterations`` iterations on views of ``pixels_per_view`` trained pixels takes
+    under ``preset`` on ``device`` [s]: the preset's fixed time plus ``iterations`` times its time per
+    iteration, on a CPU scaled by ``(2 / cores) ** 0.75`` for more cores than the reference's 2. A planning
+    figure, not a promise: surfel counts, the scene and other load on the machine move it."""
+    b = budget(preset, device)
+    t = b.fixed_s + max(0, int(iterations)) * (b.iteration_s + b.megapixel_s * float(pixels_per_view) / 1e6)
+    if _kind(device) == "cpu":
+        import torch
+
+        cores = max(1, min(torch.get_num_threads(), os.cpu_count() or 1))
+        t *= (_REFERENCE_CORES / max(cores, _REFERENCE_CORES)) ** 0.75
+    return float(t)
