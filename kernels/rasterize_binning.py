@@ -89,6 +89,27 @@ def pixel_to_tile_range(center: wp.float64, radius: wp.float64, size: int, tile_
     return int(lo_f) // tile_size, int(hi_f) // tile_size
 
 
+@wp.func
+def rect_union(ax0: int, ax1: int, ay0: int, ay1: int, bx0: int, bx1: int, by0: int, by1: int, nx: int, ny: int):
+    """Bounding box ``x0, x1, y0, y1`` (inclusive) of two inclusive boxes, either possibly empty (lo > hi);
+    ``nx, -1, ny, -1`` when both are."""
+    x0 = nx
+    x1 = int(-1)
+    y0 = ny
+    y1 = int(-1)
+    if ax0 <= ax1 and ay0 <= ay1:
+        x0 = ax0
+        x1 = ax1
+        y0 = ay0
+        y1 = ay1
+    if bx0 <= bx1 and by0 <= by1:
+        x0 = wp.min(x0, bx0)
+        x1 = wp.max(x1, bx1)
+        y0 = wp.min(y0, by0)
+        y1 = wp.max(y1, by1)
+    return x0, x1, y0, y1
+
+
 @wp.kernel
 def bin_surfels_kernel(
     offset: int,
@@ -197,38 +218,11 @@ def bin_surfels_kernel(
             radius = wp.max(radius, wp.max(hx * wp.float64(cam.fx), hy * wp.float64(cam.fy)))
     if full:
         radius = wp.float64(wp.max(width, height))
-    # union of the two rectangles (either may be empty)
-    x0 = tiles_x
-    x1 = int(-1)
-    y0 = tiles_y
-    y1 = int(-1)
-    if ax0 <= ax1 and ay0 <= ay1:
-        x0 = ax0
-        x1 = ax1
-        y0 = ay0
-        y1 = ay1
-    if bx0 <= bx1 and by0 <= by1:
-        x0 = wp.min(x0, bx0)
-        x1 = wp.max(x1, bx1)
-        y0 = wp.min(y0, by0)
-        y1 = wp.max(y1, by1)
+    # union of the two rectangles (either may be empty), in tiles and in pixels
+    x0, x1, y0, y1 = rect_union(ax0, ax1, ay0, ay1, bx0, bx1, by0, by1, tiles_x, tiles_y)
     if x0 > x1 or y0 > y1:
         return
-    # the same union at pixel granularity
-    qx0 = width
-    qx1 = int(-1)
-    qy0 = height
-    qy1 = int(-1)
-    if apx0 <= apx1 and apy0 <= apy1:
-        qx0 = apx0
-        qx1 = apx1
-        qy0 = apy0
-        qy1 = apy1
-    if bpx0 <= bpx1 and bpy0 <= bpy1:
-        qx0 = wp.min(qx0, bpx0)
-        qx1 = wp.max(qx1, bpx1)
-        qy0 = wp.min(qy0, bpy0)
-        qy1 = wp.max(qy1, bpy1)
+    qx0, qx1, qy0, qy1 = rect_union(apx0, apx1, apy0, apy1, bpx0, bpx1, bpy0, bpy1, width, height)
     if qx0 <= qx1 and qy0 <= qy1:
         prect[i] = wp.vec4i(qx0, qy0, qx1 + 1, qy1 + 1)
     zc[i] = pc_op[2]
