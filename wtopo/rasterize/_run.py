@@ -142,9 +142,9 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
             if tiles:
                 done = wp.empty((h, w), dtype=wp.int32, device=wdev)
                 _launch_worker_tiles(_kt.render_forward_tiles_kernel, n_tiles,
-                              [bins.tile_start, bins.tile_end, bins.ids, bins.prect, rays_wp, cam_rec, *surf],
-                              [*outs, t_final, sums, last, median_idx, done, vis_w], device=wdev, workers=workers,
-                              tiles_per_chunk=config.tiles_per_chunk)
+                                     [bins.tile_start, bins.tile_end, bins.ids, bins.prect, rays_wp, cam_rec, *surf],
+                                     [*outs, t_final, sums, last, median_idx, done, vis_w], device=wdev,
+                                     workers=workers, tiles_per_chunk=config.tiles_per_chunk)
             else:
                 surf += [coop, batch]
                 _launch_tiles(_k.render_forward_kernel, n_tiles, ts * ts,
@@ -174,9 +174,9 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
                 if tiles:
                     scratch = [wp.empty((h, w), dtype=t, device=wdev) for t in (s, s, v4)]
                     _launch_worker_tiles(_kt.render_backward_tiles_kernel, n_tiles,
-                                  [bins.tile_start, bins.ids, bins.prect, rays_wp, cam_rec, *surf, t_final, sums,
-                                   last, median_idx, *(o.grad for o in outs), *scratch],
-                                  bufs, device=wdev, workers=workers, tiles_per_chunk=config.tiles_per_chunk)
+                                         [bins.tile_start, bins.ids, bins.prect, rays_wp, cam_rec, *surf, t_final,
+                                          sums, last, median_idx, *(o.grad for o in outs), *scratch],
+                                         bufs, device=wdev, workers=workers, tiles_per_chunk=config.tiles_per_chunk)
                 else:
                     _launch_tiles(_kbwd.render_backward_kernel, n_tiles, ts * ts,
                                   [bins.tile_start, bins.ids, rays_wp, cam_rec, *surf, t_final, sums, last,
