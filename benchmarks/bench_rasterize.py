@@ -15,6 +15,14 @@ stage is charged for the kernels it waits on, and the backward runs on autograd'
 which sections do not collect.
 
 Run: ``.venv/bin/python benchmarks/bench_rasterize.py [--sizes 10000 100000] [--res 256]``
+
+``--bunny`` times instead the fit's own CPU case: the fit's entry (``wtopo.rasterize._rasterize_trusted``
+with the fit's ``filter_sigma``, black background, SH degree 0) over the 32 views of the built-in bunny
+(128 x 128) with about 12k surfels on the bunny's surface (or a saved fit's ``--surfels`` PLY), forward and
+forward + backward (random upstream gradients on all six images), medians over the views and
+``--repeats`` passes. ``--baseline DIR`` runs the same measurement on another tree of the package (for
+instance ``git archive main | tar -x -C DIR``) in a child process, alternating with this one, and prints
+the ratio.
 """
 
 from __future__ import annotations
@@ -124,8 +132,119 @@ def time_reference(cam, params, pixels: int, repeats: int = 1) -> float:
     return min(times), int(idx.numel())
 
 
+BUNNY_FILTER_SIGMA = 0.35  # wtopo.fit's RasterConfig.filter_sigma
+
+
+def bunny_state(n: int = 12_000, seed: int = 0, surfels: str | None = None):
+    """The bunny's cameras and ``n`` surfels on its surface (or those of a surfel PLY), as float32 leaves.
+
+    Like a fitted state: centres on the ground-truth surface, tangent to it, scales about the spacing,
+    opacities spread over (0.05, 0.99) (a fit's have median 0.9 and a tail of faint ones), SH degree 0.
+    """
+    import numpy as np
+
+    from wtopo import scenes
+
+    sc = scenes.load("bunny")
+    if surfels:
+        from wtopo.io import read_surfels_ply
+
+        a = read_surfels_ply(surfels)
+        arrays = (a.means, a.quats, a.scales, a.opacities, a.sh)
+    else:
+        import trimesh
+        from scipy.spatial import cKDTree
+
+        from wtopo.fitting.surfels import normals_to_quats
+
+        mesh = sc.gt_mesh
+        pts, face = trimesh.sample.sample_surface_even(mesh, n, seed=seed)
+        rng = np.random.default_rng(seed)
+        dist = cKDTree(pts).query(pts, k=4)[0][:, 1:].mean(1)
+        quats = normals_to_quats(torch.as_tensor(mesh.face_normals[face], dtype=torch.float32)).numpy()
+        scales = dist[:, None] * rng.uniform(0.5, 1.0, (len(pts), 2))
+        opac = rng.uniform(0.05, 0.99, len(pts))
+        sh = rng.normal(0.0, 0.5, (len(pts), 1, 3))
+        arrays = (pts, quats, scales, opac, sh)
+    params = [torch.tensor(np.asarray(x), dtype=torch.float32).requires_grad_(True) for x in arrays]
+    return sc.cameras, params
+
+
+def time_bunny(cams, params, repeats: int):
+    """Median seconds of forward and of forward + backward per view (the fit's entry), and the split per view."""
+    cfg = R.RasterConfig(filter_sigma=BUNNY_FILTER_SIGMA)
+    bg = torch.zeros(3)
+    g = torch.Generator().manual_seed(1)
+    h, w = cams[0].height, cams[0].width
+    ups = [torch.randn((h, w, 3) if k in ("rgb", "normal") else (h, w), generator=g) for k in IMAGES]
+    for cam in cams:  # warm-up: compiles, per-camera tables
+        R._rasterize_trusted(*params, cam, sh_degree=0, background=bg, config=cfg)
+    fw, fb = [], []
+    prof = defaultdict(float)
+    for _ in range(repeats):
+        for cam in cams:
+            with section("outside_rasterizer", add=lambda name, sec: prof.__setitem__(name, prof[name] + sec)):
+                t0 = time.perf_counter()
+                out = R._rasterize_trusted(*params, cam, sh_degree=0, background=bg, config=cfg)
+                t1 = time.perf_counter()
+                torch.autograd.backward([getattr(out, k) for k in IMAGES], ups)
+                t2 = time.perf_counter()
+            fw.append(t1 - t0)
+            fb.append(t2 - t0)
+            for p in params:
+                p.grad = None
+    split = {k: v / len(fw) for k, v in prof.items()}
+    return statistics.median(fw), statistics.median(fb), split
+
+
+def _bunny_child(args) -> None:
+    """One measurement, printed as JSON (the ``--baseline`` child and the alternating rounds)."""
+    import json
+
+    cams, params = bunny_state(args.bunny_n, surfels=args.surfels)
+    fw, fb, split = time_bunny(cams, params, args.repeats)
+    print(json.dumps({"forward": fw, "total": fb, "split": split, "n": int(params[0].shape[0]),
+                      "package": wtopo.__file__}))
+
+
+def main_bunny(args) -> None:
+    """``--bunny``: this tree and, with ``--baseline``, another one, alternately in child processes."""
+    import json
+    import subprocess
+    import sys
+
+    trees = {"this": None}
+    if args.baseline:
+        trees = {"baseline": args.baseline, "this": None}
+    results = {k: [] for k in trees}
+    for _ in range(args.rounds):
+        for name, root in trees.items():
+            env = dict(os.environ)
+            if root:
+                env["PYTHONPATH"] = os.pathsep.join([root, env.get("PYTHONPATH", "")])
+            cmd = [sys.executable, __file__, "--bunny-child", "--bunny-n", str(args.bunny_n), "--repeats",
+                   str(args.repeats)] + (["--surfels", args.surfels] if args.surfels else [])
+            r = json.loads(subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout
+                           .strip().splitlines()[-1])
+            results[name].append(r)
+            split = "  ".join(f"{k.removeprefix('rasterize_')} {v * 1e3:.1f}" for k, v in sorted(r["split"].items()))
+            print(f"{name:8s} N={r['n']}  forward {r['forward'] * 1e3:6.1f} ms  forward+backward "
+                  f"{r['total'] * 1e3:6.1f} ms   [{split}] ms  ({os.path.dirname(r['package'])})", flush=True)
+    if args.baseline:
+        med = {k: {q: statistics.median(r[q] for r in v) for q in ("forward", "total")} for k, v in results.items()}
+        for q in ("forward", "total"):
+            print(f"{q:8s} baseline {med['baseline'][q] * 1e3:6.1f} ms  this {med['this'][q] * 1e3:6.1f} ms  "
+                  f"speed-up {med['baseline'][q] / med['this'][q]:.2f}x (medians of {args.rounds} rounds)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--bunny", action="store_true", help="the CPU fit's case: bunny, 128 px, ~12k surfels")
+    ap.add_argument("--bunny-n", type=int, default=12_000, help="surfels of --bunny (without --surfels)")
+    ap.add_argument("--surfels", default=None, help="--bunny: a surfel PLY (e.g. a fit's surfels.ply)")
+    ap.add_argument("--baseline", default=None, help="--bunny: a tree of the package to compare against")
+    ap.add_argument("--rounds", type=int, default=3, help="--bunny: alternating rounds per tree")
+    ap.add_argument("--bunny-child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000])
     ap.add_argument("--res", type=int, default=256)
     ap.add_argument("--repeats", type=int, default=5)
@@ -135,6 +254,10 @@ def main() -> None:
     ap.add_argument("--fit-path", action="store_true",
                     help="also time the fit's unchecked entry (no argument checks) in the same process")
     args = ap.parse_args()
+    if args.bunny_child:
+        return _bunny_child(args)
+    if args.bunny:
+        return main_bunny(args)
     tile = R.RasterConfig().tile_size if args.tile is None else args.tile
     print(f"device {args.device}, threads {wtopo._bridge.cpu_threads()}, image {args.res}x{args.res}, float32, "
           f"tile {tile}, load average {os.getloadavg()[0]:.1f}")

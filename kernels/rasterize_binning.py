@@ -89,6 +89,27 @@ def pixel_to_tile_range(center: wp.float64, radius: wp.float64, size: int, tile_
     return int(lo_f) // tile_size, int(hi_f) // tile_size
 
 
+@wp.func
+def rect_union(ax0: int, ax1: int, ay0: int, ay1: int, bx0: int, bx1: int, by0: int, by1: int, nx: int, ny: int):
+    """Bounding box ``x0, x1, y0, y1`` (inclusive) of two inclusive boxes, either possibly empty (lo > hi);
+    ``nx, -1, ny, -1`` when both are."""
+    x0 = nx
+    x1 = int(-1)
+    y0 = ny
+    y1 = int(-1)
+    if ax0 <= ax1 and ay0 <= ay1:
+        x0 = ax0
+        x1 = ax1
+        y0 = ay0
+        y1 = ay1
+    if bx0 <= bx1 and by0 <= by1:
+        x0 = wp.min(x0, bx0)
+        x1 = wp.max(x1, bx1)
+        y0 = wp.min(y0, by0)
+        y1 = wp.max(y1, by1)
+    return x0, x1, y0, y1
+
+
 @wp.kernel
 def bin_surfels_kernel(
     offset: int,
@@ -101,14 +122,26 @@ def bin_surfels_kernel(
     colx_max: wp.array[wp.float64],
     rowy_min: wp.array[wp.float64],
     rowy_max: wp.array[wp.float64],
+    pxcol_min: wp.array[wp.float64],
+    pxcol_max: wp.array[wp.float64],
+    pxrow_min: wp.array[wp.float64],
+    pxrow_max: wp.array[wp.float64],
     tile_size: int,
     rect: wp.array[wp.vec4i],
     counts: wp.array[wp.int32],
     radii: wp.array[wp.int32],
     means2d: wp.array[Any],
     cutoff: wp.array[Any],
+    prect: wp.array[wp.vec4i],
+    zc: wp.array[Any],
 ):
-    """Tile rectangle, tile count, pixel radius and projected centre of one surfel."""
+    """Tile rectangle, tile count, pixel radius, projected centre, pixel rectangle and depth of one surfel.
+
+    ``prect`` is the same bound at pixel granularity (``px*`` tables: one entry per pixel column / row),
+    ``[x0, y0, x1, y1)``, empty where the surfel covers no tile: the CPU tile kernels
+    (``kernels/rasterize_tiles.py``) visit only its pixels. ``zc`` is the centre's z-depth, ``+inf``
+    for a culled surfel (the depth order of the binning's sort keys).
+    """
     i = wp.tid() + offset
     width = cam.width
     height = cam.height
@@ -119,6 +152,8 @@ def bin_surfels_kernel(
     radii[i] = 0
     means2d[i] = wp.vector(type(x0c)(0.0), type(x0c)(0.0))
     cutoff[i] = type(x0c)(-1.0)
+    prect[i] = wp.vec4i(0, 0, 0, 0)
+    zc[i] = type(x0c)(wp.inf)
     pc_op = cam_point(cam, p)
     op = wp.float64(opacities[i])
     near = wp.float64(cam.clip[0])
@@ -136,6 +171,8 @@ def bin_surfels_kernel(
     r2d = wp.sqrt(rr / wp.float64(cam.filter_inv_sq)) + wp.float64(PIXEL_MARGIN)
     ax0, ax1 = pixel_to_tile_range(wp.float64(m2[0]), r2d, width, tile_size)
     ay0, ay1 = pixel_to_tile_range(wp.float64(m2[1]), r2d, height, tile_size)
+    apx0, apx1 = pixel_to_tile_range(wp.float64(m2[0]), r2d, width, 1)
+    apy0, apy1 = pixel_to_tile_range(wp.float64(m2[1]), r2d, height, 1)
     radius = r2d
     # 3D disk: dual conic C* = h0 h0^T + h1 h1^T - h2 h2^T of the disk's image
     q = quats[i]
@@ -153,6 +190,10 @@ def bin_surfels_kernel(
     bx1 = tiles_x - 1
     by0 = int(0)
     by1 = tiles_y - 1
+    bpx0 = int(0)
+    bpx1 = width - 1
+    bpy0 = int(0)
+    bpy1 = height - 1
     full = True
     if pcz > ext_z:
         c22 = ext_z * ext_z - pcz * pcz
@@ -170,26 +211,21 @@ def bin_surfels_kernel(
             bx1 = last_at_most(colx_min, xc + hx)
             by0 = first_at_least(rowy_max, yc - hy)
             by1 = last_at_most(rowy_min, yc + hy)
+            bpx0 = first_at_least(pxcol_max, xc - hx)
+            bpx1 = last_at_most(pxcol_min, xc + hx)
+            bpy0 = first_at_least(pxrow_max, yc - hy)
+            bpy1 = last_at_most(pxrow_min, yc + hy)
             radius = wp.max(radius, wp.max(hx * wp.float64(cam.fx), hy * wp.float64(cam.fy)))
     if full:
         radius = wp.float64(wp.max(width, height))
-    # union of the two rectangles (either may be empty)
-    x0 = tiles_x
-    x1 = int(-1)
-    y0 = tiles_y
-    y1 = int(-1)
-    if ax0 <= ax1 and ay0 <= ay1:
-        x0 = ax0
-        x1 = ax1
-        y0 = ay0
-        y1 = ay1
-    if bx0 <= bx1 and by0 <= by1:
-        x0 = wp.min(x0, bx0)
-        x1 = wp.max(x1, bx1)
-        y0 = wp.min(y0, by0)
-        y1 = wp.max(y1, by1)
+    # union of the two rectangles (either may be empty), in tiles and in pixels
+    x0, x1, y0, y1 = rect_union(ax0, ax1, ay0, ay1, bx0, bx1, by0, by1, tiles_x, tiles_y)
     if x0 > x1 or y0 > y1:
         return
+    qx0, qx1, qy0, qy1 = rect_union(apx0, apx1, apy0, apy1, bpx0, bpx1, bpy0, bpy1, width, height)
+    if qx0 <= qx1 and qy0 <= qy1:
+        prect[i] = wp.vec4i(qx0, qy0, qx1 + 1, qy1 + 1)
+    zc[i] = pc_op[2]
     rect[i] = wp.vec4i(x0, y0, x1 + 1, y1 + 1)
     counts[i] = (x1 + 1 - x0) * (y1 + 1 - y0)
     radii[i] = int(wp.ceil(wp.min(radius, wp.float64(RADIUS_CAP))))
@@ -253,6 +289,13 @@ def tile_ranges_kernel(
         tile_end[tile] = k + 1
     elif int(wp.int64(keys[k + 1]) >> sh) != tile:
         tile_end[tile] = k + 1
+
+
+@wp.kernel
+def depth_ranks_kernel(offset: int, order: wp.array[wp.int32], rank: wp.array[wp.int64]):
+    """Depth rank of every surfel from the depth-sorted surfel ids: ``rank[order[j]] = j``."""
+    j = wp.tid() + offset
+    rank[order[j]] = wp.int64(j)
 
 
 @wp.kernel

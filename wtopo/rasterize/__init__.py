@@ -2,7 +2,7 @@
 """Differentiable Gaussian-surfel rasterizer (2D Gaussian splatting) on CPU and CUDA through Warp.
 
 Pipeline of :func:`rasterize_surfels` (kernels in ``kernels/rasterize.py``,
-``kernels/rasterize_backward.py`` and ``kernels/rasterize_binning.py``):
+``kernels/rasterize_backward.py``, ``kernels/rasterize_tiles.py`` and ``kernels/rasterize_binning.py``):
 
 1. validation (before any launch);
 2. binning (discrete, outside the tape): per-surfel tile rectangle from the footprint bound,
@@ -12,8 +12,10 @@ Pipeline of :func:`rasterize_surfels` (kernels in ``kernels/rasterize.py``,
    projected centre, SH colour; Warp autodiff), per-pixel front-to-back compositing, and the
    explicit reverse-traversal adjoint registered with :meth:`warp.Tape.record_func`.
 
-On CPU the pixel kernels run as interleaved tile chunks on one Python thread per core (Warp
-releases the GIL); each worker accumulates per-surfel gradients and visibility counts into its
+On CPU the pixel kernels are per tile (``kernels/rasterize_tiles.py``): one thread walks a tile's
+list once and each surfel visits only the pixels of its pixel rectangle (written by the binning), the
+same arithmetic per pixel as the per-pixel kernels, bit for bit. Interleaved tile chunks run on one
+Python thread per core (one launch each; Warp releases the GIL); each worker accumulates per-surfel gradients and visibility counts into its
 own buffer (Warp's CPU ``atomic_add`` is not atomic across threads) and the buffers are summed
 afterwards in a fixed order, so reruns are bit-identical. On CUDA each pixel kernel is one launch
 with real atomics, the 32 pixels of a warp walking their tile's list in step so that per-surfel

@@ -8,6 +8,7 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import warp as wp
 
@@ -15,7 +16,6 @@ from .. import _bridge
 from .._profile import section
 from ..camera import Camera
 from ..kernels import rasterize_binning as _kb
-from ._camera import _depth_row
 from ._config import RasterConfig
 
 
@@ -27,6 +27,7 @@ class _Bins:
     radii: torch.Tensor
     means2d: torch.Tensor
     cutoff: wp.array
+    prect: wp.array
     overflow: torch.Tensor | None = None
 
 
@@ -77,6 +78,19 @@ class _PairCapacity:
 _capacities: dict[str, _PairCapacity] = {}
 
 
+_iotas: dict[str, wp.array] = {}
+
+
+def _iota(n: int, wdev) -> wp.array:
+    """``0, 1, ..., n - 1`` (int32) on ``wdev``: a view of a kept array, grown when too short (never written)."""
+    key = str(wdev)
+    a = _iotas.get(key)
+    if a is None or a.shape[0] < n:
+        a = wp.array(np.arange(max(n, 1024), dtype=np.int32), dtype=wp.int32, device=wdev)
+        _iotas[key] = a
+    return a[:n]
+
+
 def _pair_capacity(wdev) -> _PairCapacity:
     return _capacities.setdefault(str(wdev), _PairCapacity())
 
@@ -100,13 +114,17 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
     radii = wp.empty(n, dtype=wp.int32, device=wdev)
     means2d = wp.empty(n, dtype=_bridge.vec_dtype(means, 2), device=wdev)
     cutoff = wp.empty(n, dtype=dt, device=wdev)
+    prect = wp.empty(n, dtype=wp.vec4i, device=wdev)
+    # centre depths, then the radix sort's scratch half (the depth order of the sort keys)
+    zc = wp.empty(2 * n, dtype=dt, device=wdev)
     inputs = [_bridge.to_warp(means, _bridge.vec_dtype(means, 3)), _bridge.to_warp(quats, _bridge.vec_dtype(quats, 4)),
               _bridge.to_warp(scales, _bridge.vec_dtype(scales, 2)), _bridge.to_warp(opacities, dt), cam_rec, *tables,
               ts]
     capacity = _pair_capacity(wdev)
     overflow = None
     with section("rasterize_binning"):
-        _bridge.launch_split(_kb.bin_surfels_kernel, n, inputs, [rect, counts, radii, means2d, cutoff], device=wdev)
+        _bridge.launch_split(_kb.bin_surfels_kernel, n, inputs, [rect, counts, radii, means2d, cutoff, prect, zc],
+                             device=wdev)
         counts_t = wp.to_torch(counts)
         csum = torch.cumsum(counts_t, 0, dtype=torch.int64)
         defer = defer_count and n > 0
@@ -134,14 +152,12 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
     values = wp.empty(max(2 * total, 1), dtype=wp.int32, device=wdev)
     if total:
         with section("rasterize_sort"):
-            # depth rank of every surfel (Warp's stable radix sort on the centre z-depths)
-            zc = torch.empty(2 * n, dtype=means.dtype, device=means.device)
-            zc[:n] = means.detach() @ _depth_row(camera, means.device, means.dtype)
-            order = torch.empty(2 * n, dtype=torch.int32, device=means.device)
-            order[:n] = torch.arange(n, dtype=torch.int32, device=means.device)
-            wp.utils.radix_sort_pairs(_bridge.to_warp(zc), _bridge.to_warp(order), n)
-            rank = torch.empty(n, dtype=torch.int64, device=means.device)
-            rank[order[:n].long()] = torch.arange(n, dtype=torch.int64, device=means.device)
+            # depth rank of every surfel (Warp's stable radix sort on the centre z-depths the binning wrote)
+            order = wp.empty(2 * n, dtype=wp.int32, device=wdev)
+            wp.copy(order, _iota(n, wdev), count=n)
+            wp.utils.radix_sort_pairs(zc, order, n)
+            rank = wp.empty(n, dtype=wp.int64, device=wdev)
+            _bridge.launch_split(_kb.depth_ranks_kernel, n, [order], [rank], device=wdev)
         with section("rasterize_binning"):
             if defer:
                 keys[:total].fill_(n_tiles << rank_bits)
@@ -150,7 +166,7 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
                 offsets = offsets.clamp_max(total)
             offsets = offsets.to(torch.int32)
             _bridge.launch_split(_kb.emit_intersections_kernel, n,
-                                 [rect, _bridge.to_warp(offsets), _bridge.to_warp(rank), tiles_x, rank_bits, total],
+                                 [rect, _bridge.to_warp(offsets), rank, tiles_x, rank_bits, total],
                                  [keys, values],
                                  device=wdev)
         with section("rasterize_sort"):
@@ -158,4 +174,4 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
         with section("rasterize_binning"):
             _bridge.launch_split(_kb.tile_ranges_kernel, total, [keys, total, rank_bits], [tile_start, tile_end],
                                  device=wdev)
-    return _Bins(tile_start, tile_end, values, wp.to_torch(radii), wp.to_torch(means2d), cutoff, overflow)
+    return _Bins(tile_start, tile_end, values, wp.to_torch(radii), wp.to_torch(means2d), cutoff, prect, overflow)

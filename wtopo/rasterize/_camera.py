@@ -17,30 +17,40 @@ from ._config import RasterConfig
 
 
 def _camera_tables(camera: Camera, device, dtype, tile_size: int):
-    """Rays [H, W, 3] and per-tile-column / per-tile-row normalised-coordinate ranges (cached on the camera)."""
+    """Rays [H, W, 3] and the normalised-coordinate range tables (cached on the camera).
+
+    The tables are ``(colx_min, colx_max, rowy_min, rowy_max)`` per tile column / row, then the same
+    four per pixel column / row (the CPU tile kernels' pixel rectangles, ``kernels/rasterize_tiles.py``).
+    """
     return camera.cached(("wtopo.rasterize.tables", str(device), dtype, tile_size),
                          lambda: _build_camera_tables(camera, device, dtype, tile_size))
+
+
+def _range_tables(x: np.ndarray, y: np.ndarray, size: int) -> tuple[np.ndarray, ...]:
+    """Min / max of ``x`` per column group and of ``y`` per row group of ``size`` pixels."""
+    h, w = x.shape
+    tx, ty = -(-w // size), -(-h // size)
+    colx_min = np.array([x[:, j * size:(j + 1) * size].min() for j in range(tx)])
+    colx_max = np.array([x[:, j * size:(j + 1) * size].max() for j in range(tx)])
+    rowy_min = np.array([y[i * size:(i + 1) * size].min() for i in range(ty)])
+    rowy_max = np.array([y[i * size:(i + 1) * size].max() for i in range(ty)])
+    # binary searches need non-decreasing tables; a lens that folds the image gets full ranges
+    if np.any(np.diff(colx_min) < 0) or np.any(np.diff(colx_max) < 0):
+        colx_min[:], colx_max[:] = -np.inf, np.inf
+    if np.any(np.diff(rowy_min) < 0) or np.any(np.diff(rowy_max) < 0):
+        rowy_min[:], rowy_max[:] = -np.inf, np.inf
+    return colx_min, colx_max, rowy_min, rowy_max
 
 
 def _build_camera_tables(camera: Camera, device, dtype, tile_size: int):
     """What :func:`_camera_tables` caches."""
     _, dirs = camera.pixel_rays(device, dtype)
     d_cam = dirs.detach().cpu().double().numpy() @ camera.R.T
-    h, w = camera.height, camera.width
-    tx, ty = -(-w // tile_size), -(-h // tile_size)
     x = d_cam[..., 0]
     y = d_cam[..., 1]
-    colx_min = np.array([x[:, j * tile_size:(j + 1) * tile_size].min() for j in range(tx)])
-    colx_max = np.array([x[:, j * tile_size:(j + 1) * tile_size].max() for j in range(tx)])
-    rowy_min = np.array([y[i * tile_size:(i + 1) * tile_size].min() for i in range(ty)])
-    rowy_max = np.array([y[i * tile_size:(i + 1) * tile_size].max() for i in range(ty)])
-    # binary searches need non-decreasing tables; a lens that folds the image gets full ranges
-    if np.any(np.diff(colx_min) < 0) or np.any(np.diff(colx_max) < 0):
-        colx_min[:], colx_max[:] = -np.inf, np.inf
-    if np.any(np.diff(rowy_min) < 0) or np.any(np.diff(rowy_max) < 0):
-        rowy_min[:], rowy_max[:] = -np.inf, np.inf
     wdev = _bridge.warp_device(device)
-    tables = tuple(wp.array(a, dtype=wp.float64, device=wdev) for a in (colx_min, colx_max, rowy_min, rowy_max))
+    tables = tuple(wp.array(a, dtype=wp.float64, device=wdev)
+                   for a in (*_range_tables(x, y, tile_size), *_range_tables(x, y, 1)))
     return dirs, tables
 
 
@@ -70,12 +80,35 @@ def _camera_record(camera: Camera, clip: torch.Tensor, dtype, filter_sigma: floa
     return rec
 
 
+def _centre_depths(means: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """z-depths of the surfel centres [N] (op dtype, on their device).
+
+    On the CPU with NumPy, one thread, term by term: torch's matrix-vector product and masked selection
+    hand a [12k] problem to their thread pool, which on a busy 2-core machine waits for a time slice
+    (measured 8 ms each at load 2-4, against 0.1 ms on one thread).
+    """
+    if means.device.type == "cpu":
+        m = means.detach().numpy()
+        r = camera.R[2].astype(m.dtype)
+        z = m[:, 0] * r[0]
+        z += m[:, 1] * r[1]
+        z += m[:, 2] * r[2]
+        z += m.dtype.type(camera.t[2])
+        return torch.from_numpy(z)
+    return means.detach() @ _depth_row(camera, means.device, means.dtype) + float(camera.t[2])
+
+
 def _default_clip(means: torch.Tensor, camera: Camera, near, far, config: RasterConfig):
     if near is not None and far is not None:
         return float(near), float(far)
-    z = means.detach() @ _depth_row(camera, means.device, means.dtype) + float(camera.t[2])
-    z = z[z > 0]
-    zref = float(z.median()) if z.numel() else 1.0  # host sync: scene-relative clip defaults
+    z = _centre_depths(means, camera)
+    if z.device.type == "cpu":  # NumPy: one thread (see _centre_depths); the lower middle, as torch.median
+        z = z.numpy()
+        z = z[z > 0]
+        zref = float(np.partition(z, (z.size - 1) // 2)[(z.size - 1) // 2]) if z.size else 1.0
+    else:
+        z = z[z > 0]
+        zref = float(z.median()) if z.numel() else 1.0  # host sync: scene-relative clip defaults
     near = config.near_fraction * zref if near is None else float(near)
     far = config.far_multiple * zref if far is None else float(far)
     if not near < far:
@@ -101,7 +134,7 @@ def _default_clip_device(means: torch.Tensor, camera: Camera, config: RasterConf
     n = means.shape[0]
     if n == 0:
         return _clip_from_host(config.near_fraction, config.far_multiple, means.device)
-    z = means.detach() @ _depth_row(camera, means.device, means.dtype) + float(camera.t[2])
+    z = _centre_depths(means, camera)
     pos = z > 0
     k = pos.sum()
     zs = torch.where(pos, z, torch.full_like(z, math.inf)).sort().values

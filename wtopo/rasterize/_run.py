@@ -16,6 +16,7 @@ from ..camera import Camera
 from ..kernels import rasterize as _k
 from ..kernels import rasterize_backward as _kbwd
 from ..kernels import rasterize_binning as _kb
+from ..kernels import rasterize_tiles as _kt
 from ._binning import _Bins
 
 # CUDA: the 32 pixels of a warp composite in step and sum their per-surfel gradients and visibility
@@ -26,6 +27,9 @@ COOPERATIVE_WARPS = True
 # With COOPERATIVE_WARPS: surfels of a tile's list fetched per step of the walk, one id load and L1 prefetch
 # of its records per lane (1..32; 1: each surfel's id, then its records, loaded when it is reached).
 PREFETCH_BATCH = 32
+# CPU: one thread per tile, each surfel visiting only its pixel rectangle (kernels/rasterize_tiles.py); False
+# runs the per-pixel kernels as CUDA does (same results bit for bit, kept for comparison in tests and benchmarks).
+CPU_TILE_KERNELS = True
 
 _compiled: set = set()
 _compile_lock = threading.Lock()
@@ -63,6 +67,39 @@ def _launch_tiles(kernel, n_tiles: int, tile_px: int, inputs: list, outputs: lis
         f.result()
 
 
+def _launch_worker_tiles(kernel, n_tiles: int, inputs: list, outputs: list, *, device, workers: int,
+                         tiles_per_chunk: int) -> None:
+    """Launch a per-tile kernel ``(worker, workers, chunk, ...)`` once per worker thread.
+
+    Worker ``w`` takes the chunks ``w, w + workers, ...`` of ``chunk`` tiles in that order (the tile chunks
+    of :func:`_launch_tiles`: the same sums in the same order), as one launch that maps its threads to them
+    (``kernels/rasterize_tiles.py``, ``worker_tile``): one launch per worker instead of one per chunk, so the
+    workers hardly take the GIL; worker 0 runs on the calling thread.
+    """
+    if n_tiles <= 0:
+        return
+    chunk = tiles_per_chunk or max(1, n_tiles // (16 * workers))
+    n_chunks = -(-n_tiles // chunk)
+    dims = [sum(min(chunk, n_tiles - c * chunk) for c in range(w, n_chunks, workers)) for w in range(workers)]
+
+    def work(w: int) -> None:
+        if dims[w]:
+            wp.launch(kernel, dim=dims[w], inputs=[w, workers, chunk, *inputs], outputs=outputs, device=device,
+                      record_tape=False)
+
+    key = (kernel.key, str(device), tuple(getattr(a, "dtype", type(a)) for a in (*inputs, *outputs)))
+    if workers <= 1 or key not in _compiled:
+        with _compile_lock:  # the first launch compiles: never from two threads at once
+            for w in range(workers):
+                work(w)
+            _compiled.add(key)
+        return
+    futures = [_bridge._get_pool(workers).submit(work, w) for w in range(1, workers)]  # noqa: SLF001
+    work(0)
+    for f in futures:
+        f.result()
+
+
 def _num_workers(wdev, n_tiles: int) -> int:
     if not wdev.is_cpu:
         return 1  # CUDA: one launch, real atomics
@@ -76,9 +113,10 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
     h, w = camera.height, camera.width
     workers = _num_workers(wdev, n_tiles)
     s = wp.float64 if dtype == torch.float64 else wp.float32
-    v2, v3 = (wp.vec2d, wp.vec3d) if dtype == torch.float64 else (wp.vec2, wp.vec3)
+    v2, v3, v4 = (wp.vec2d, wp.vec3d, wp.vec4d) if dtype == torch.float64 else (wp.vec2, wp.vec3, wp.vec4)
     rays_wp = _bridge.to_warp(rays, v3)
     coop = int(COOPERATIVE_WARPS and not wdev.is_cpu)
+    tiles = bool(CPU_TILE_KERNELS and wdev.is_cpu)
     batch = PREFETCH_BATCH if coop else 1  # a batch is spread over the lanes of a warp
 
     def run(means, quats, scales, opacities, sh, means2d):
@@ -100,11 +138,19 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
             geo = wp.empty(n, dtype=_k.SURFEL[s], device=wdev)
             _bridge.launch_split(_k.pack_surfels_kernel, n, [uax, vax, nrm, auv, m2, zc, bins.cutoff], [geo],
                                  device=wdev)
-            surf = [geo, nrm_face, color, opacities, bg_wp, ts, tiles_x, coop, batch]
-            _launch_tiles(_k.render_forward_kernel, n_tiles, ts * ts,
-                          [bins.tile_start, bins.tile_end, bins.ids, rays_wp, cam_rec, *surf],
-                          [*outs, t_final, sums, last, median_idx, vis_w], device=wdev, workers=workers,
-                          tiles_per_chunk=config.tiles_per_chunk)
+            surf = [geo, nrm_face, color, opacities, bg_wp, ts, tiles_x]
+            if tiles:
+                done = wp.empty((h, w), dtype=wp.int32, device=wdev)
+                _launch_worker_tiles(_kt.render_forward_tiles_kernel, n_tiles,
+                                     [bins.tile_start, bins.tile_end, bins.ids, bins.prect, rays_wp, cam_rec, *surf],
+                                     [*outs, t_final, sums, last, median_idx, done, vis_w], device=wdev,
+                                     workers=workers, tiles_per_chunk=config.tiles_per_chunk)
+            else:
+                surf += [coop, batch]
+                _launch_tiles(_k.render_forward_kernel, n_tiles, ts * ts,
+                              [bins.tile_start, bins.tile_end, bins.ids, rays_wp, cam_rec, *surf],
+                              [*outs, t_final, sums, last, median_idx, vis_w], device=wdev, workers=workers,
+                              tiles_per_chunk=config.tiles_per_chunk)
             if workers > 1:
                 visibility = wp.empty(n, dtype=wp.int32, device=wdev)
                 _bridge.launch_split(_kb.sum_visibility_kernel, n, [vis_w], [visibility], device=wdev)
@@ -125,10 +171,17 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
                             for g, t in zip(targets, grad_types)]
                 else:
                     bufs = [wp.zeros((workers, n), dtype=t, device=wdev) for t in grad_types]
-                _launch_tiles(_kbwd.render_backward_kernel, n_tiles, ts * ts,
-                              [bins.tile_start, bins.ids, rays_wp, cam_rec, *surf, t_final, sums, last, median_idx,
-                               *(o.grad for o in outs)],
-                              bufs, device=wdev, workers=workers, tiles_per_chunk=config.tiles_per_chunk)
+                if tiles:
+                    scratch = [wp.empty((h, w), dtype=t, device=wdev) for t in (s, s, v4)]
+                    _launch_worker_tiles(_kt.render_backward_tiles_kernel, n_tiles,
+                                         [bins.tile_start, bins.ids, bins.prect, rays_wp, cam_rec, *surf, t_final,
+                                          sums, last, median_idx, *(o.grad for o in outs), *scratch],
+                                         bufs, device=wdev, workers=workers, tiles_per_chunk=config.tiles_per_chunk)
+                else:
+                    _launch_tiles(_kbwd.render_backward_kernel, n_tiles, ts * ts,
+                                  [bins.tile_start, bins.ids, rays_wp, cam_rec, *surf, t_final, sums, last,
+                                   median_idx, *(o.grad for o in outs)],
+                                  bufs, device=wdev, workers=workers, tiles_per_chunk=config.tiles_per_chunk)
                 if workers > 1:
                     _bridge.launch_split(_kbwd.reduce_gradients_kernel, n, bufs, targets, device=wdev)
 
