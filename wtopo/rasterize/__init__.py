@@ -15,11 +15,11 @@ Pipeline of :func:`rasterize_surfels` (kernels in ``kernels/rasterize.py``,
 On CPU the pixel kernels are per tile (``kernels/rasterize_tiles.py``): one thread walks a tile's
 list once and each surfel visits only the pixels of its pixel rectangle (written by the binning), the
 same arithmetic per pixel as the per-pixel kernels, bit for bit. Interleaved tile chunks run on one
-Python thread per core (one launch each; Warp releases the GIL); each worker accumulates per-surfel gradients and visibility counts into its
-own buffer (Warp's CPU ``atomic_add`` is not atomic across threads) and the buffers are summed
-afterwards in a fixed order, so reruns are bit-identical. On CUDA each pixel kernel is one launch
-with real atomics, the 32 pixels of a warp walking their tile's list in step so that per-surfel
-gradients and visibility counts are summed over the warp before one atomic add
+Python thread per core (one launch each; Warp releases the GIL); each worker accumulates per-surfel
+gradients and visibility counts into its own buffer (Warp's CPU ``atomic_add`` is not atomic across
+threads) and the buffers are summed afterwards in a fixed order, so reruns are bit-identical. On
+CUDA each pixel kernel is one launch with real atomics, the 32 pixels of a warp walking their tile's
+list in step so that per-surfel gradients and visibility counts are summed over the warp before one atomic add
 (``_run.COOPERATIVE_WARPS``).
 
 Modules (private; import from ``wtopo.rasterize``):
