@@ -56,11 +56,11 @@ def l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 def photometric(pred: torch.Tensor, target: torch.Tensor, dssim: float) -> torch.Tensor:
     """``(1 - dssim) * L1 + dssim * (1 - SSIM)`` of images [H, W, 3] (SSIM of :func:`wtopo.metrics.ssim`).
 
-    On CUDA the fused Warp loss :func:`wtopo.ops.photometric_loss` (four launches, equal up to
-    float32 summation order); on CPU the torch formulation below (kept: the fits' CPU results stay
-    bit for bit what they were).
+    The fused Warp loss :func:`wtopo.ops.photometric_loss` on every device (four launches, equal to the
+    torch formulation below up to float32 summation order); images smaller than the SSIM window take
+    the torch formulation (and its error).
     """
-    if pred.is_cuda and min(pred.shape[0], pred.shape[1]) >= _SSIM_WINDOW:
+    if min(pred.shape[0], pred.shape[1]) >= _SSIM_WINDOW:
         return photometric_loss(pred, target.detach().to(pred.dtype), dssim=dssim)
     loss = (1.0 - dssim) * l1(pred, target)
     if dssim > 0:

@@ -20,12 +20,20 @@ the normal of the surfels the reference view's pixels rest on.
   deviation under ``_MIN_STD``) carry no loss, as in PGSR (its ``ncc < 0.9`` mask).
 * Pixels are drawn uniformly in the image interior on the fit's device (a generator there, seeded
   per iteration: no host-to-device copy, no host read); pixels the surfels do not cover (opacity
-  under one half) are weighted out.
+  under one half) are weighted out. How many: ``pixels``, or with ``fraction`` that fraction of the
+  view's pixels up to ``pixels`` (the fit draws 1/16 of a view, at most 4,096: 1,024 windows at
+  128 x 128 px, 4,096 from 256 x 256 px up; design/decisions.md).
+* What depends only on the view is made once per view and device: its grey image and, per pixel, the
+  mean and variance of the grey levels of the window centred there and the length of its ray.
+  Every ray of a view starts at its centre (:meth:`wtopo.Camera.pixel_rays`), so a window's points
+  on the plane are the centre plus its rays scaled by one ratio per pixel.
 
 Everything is torch on the fit's device; only the rendered depth and normal carry gradients.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import torch
@@ -50,28 +58,34 @@ class MultiViewNCC:
         cameras: training cameras (internal frame), at the resolution of ``images``.
         images: training images ``[V, H, W, 3]`` float32 in [0, 1], or a list of ``[H, W, 3]``.
         center: [3] the region of interest's centre (internal frame), for neighbour selection.
-        pixels: reference pixels drawn per call.
+        pixels: reference pixels drawn per call (with ``fraction``: at most).
+        fraction: when given, a call on an ``H x W`` view draws ``min(pixels, ceil(fraction * H * W))``
+            reference pixels; ``None`` draws ``pixels``.
         patch: window side in pixels (odd).
         seed: pixel and neighbour draws (deterministic given it and the iteration).
 
     Raises:
-        ValueError: ``patch`` not odd and >= 3, ``pixels`` < 1.
+        ValueError: ``patch`` not odd and >= 3, ``pixels`` < 1, ``fraction`` not in (0, 1].
     """
 
     def __init__(self, cameras: list[Camera], images, center: np.ndarray, *, pixels: int = 4096,
-                 patch: int = 7, seed: int = 0):
+                 fraction: float | None = None, patch: int = 7, seed: int = 0):
         if patch < 3 or patch % 2 == 0:
             raise ValueError(f"patch must be odd and >= 3, got {patch!r}")
         if pixels < 1:
             raise ValueError(f"pixels must be >= 1, got {pixels!r}")
+        if fraction is not None and not 0.0 < fraction <= 1.0:
+            raise ValueError(f"fraction must be in (0, 1], got {fraction!r}")
         self.cameras = cameras
         self.images = images
         self.neighbours = select_neighbours(cameras, np.asarray(center, np.float64))
         self.pixels = int(pixels)
+        self.fraction = None if fraction is None else float(fraction)
         self.half = patch // 2
         self.seed = int(seed)
         self._cam = TorchCams(cameras)
         self._grays: dict[int, torch.Tensor] = {}
+        self._stats: dict[tuple[int, torch.device], tuple[torch.Tensor, ...]] = {}
         self._offsets: dict[torch.device, torch.Tensor] = {}
         self._generators: dict[torch.device, torch.Generator] = {}
 
@@ -79,11 +93,33 @@ class MultiViewNCC:
         """View ``vi`` has a neighbour to compare with."""
         return len(self.neighbours[vi]) > 0
 
+    def count(self, height: int, width: int) -> int:
+        """Reference pixels a call draws on a ``height x width`` view."""
+        if self.fraction is None:
+            return self.pixels
+        return max(1, min(self.pixels, math.ceil(self.fraction * height * width)))
+
     def _gray_of(self, i: int) -> torch.Tensor:
         g = self._grays.get(i)
         if g is None:
             g = self._grays[i] = gray(self.images[i].float())
         return g
+
+    def _view_stats(self, vi: int, device: torch.device) -> tuple[torch.Tensor, ...]:
+        """Per pixel of view ``vi`` (made once): the mean and variance [H, W] of the grey levels of the window
+        centred there (zero within ``half`` of the border, where no window is drawn) and the ray length [H, W]."""
+        key = (vi, device)
+        st = self._stats.get(key)
+        if st is None:
+            g = self._gray_of(vi).to(device, torch.float64)[None, None]
+            k, h = 2 * self.half + 1, self.half
+            # float64 moments: E[x^2] - E[x]^2 of a flat window cancels to ~1e-8 in float32, near _MIN_STD^2
+            mean = F.avg_pool2d(g, k, stride=1)
+            var = (F.avg_pool2d(g * g, k, stride=1) - mean * mean).clamp_min(0.0)
+            pad = (h, h, h, h)
+            st = self._stats[key] = (F.pad(mean, pad)[0, 0].float(), F.pad(var, pad)[0, 0].float(),
+                                     self._cam(vi, device).dirs.norm(dim=-1))
+        return st
 
     def _window(self, device: torch.device) -> torch.Tensor:
         w = self._offsets.get(device)
@@ -101,15 +137,15 @@ class MultiViewNCC:
 
     def _reference(self, vi: int, py: torch.Tensor, px: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """What the windows centred on pixels ``(py, px)`` of view ``vi`` (at least ``half`` pixels inside the
-        image) need whatever plane goes through them: their pixels' rays ``(origins, directions)`` [P, K, 3],
-        their centred grey levels [P, K] and variance [P], and whether they are textured [P] bool."""
+        image) need whatever plane goes through them: their pixels' ray directions [P, K, 3] and lengths
+        [P, K], their centred grey levels [P, K] and variance [P], and whether they are textured [P] bool."""
         ref = self._cam(vi, py.device)
+        mean, var, length = self._view_stats(vi, py.device)
         off = self._window(py.device)
         qy, qx = py[:, None] + off[None, :, 0], px[:, None] + off[None, :, 1]  # [P, K]
-        rv = self._gray_of(vi)[qy, qx]  # [P, K]
-        rc = rv - rv.mean(1, keepdim=True)
-        rvar = (rc * rc).mean(1)
-        return ref.origin[qy, qx], ref.dirs[qy, qx], rc, rvar, rvar.sqrt() >= _MIN_STD
+        rc = self._gray_of(vi)[qy, qx] - mean[py, px][:, None]  # [P, K]
+        rvar = var[py, px]
+        return ref.dirs[qy, qx], length[qy, qx], rc, rvar, rvar.sqrt() >= _MIN_STD
 
     def _plane_costs(self, vi: int, py: torch.Tensor, px: torch.Tensor, d: torch.Tensor, n: torch.Tensor,
                      pick: list[int], windows: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -118,20 +154,22 @@ class MultiViewNCC:
         [P, 3] (differentiable in both), and which windows count (positive depth, not grazing, textured):
         ``(cost [P], ok [P] bool)``. A neighbour that does not see a window scores 2."""
         ref = self._cam(vi, d.device)
-        oq, dq, rc, rvar, textured = windows
+        dq, length, rc, rvar, textured = windows
         n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-        x = ref.origin[py, px] + ref.dirs[py, px] * d[:, None]  # [P, 3]
-        den = (dq * n[:, None]).sum(-1)
-        cos = den.detach() / dq.detach().norm(dim=-1)
-        ok = (d.detach() > 0) & (cos.abs().amin(1) > _GRAZING) & textured
+        den = (dq * n[:, None]).sum(-1)  # [P, K]
+        with torch.no_grad():
+            ok = (d > 0) & ((den / length).abs().amin(1) > _GRAZING) & textured
         den = torch.where(den.abs() < 1e-8, torch.full_like(den, 1e-8), den)
-        t = ((x[:, None] - oq) * n[:, None]).sum(-1) / den
-        y = oq + dq * t[..., None]  # window points on the plane [P, K, 3]
+        # the plane through the centre pixel's point (ray origin c, direction dp, z-depth d) meets the window
+        # ray of direction dq (same origin c) at c + dq * t, t = d <dp, n> / <dq, n>
+        t = (d * (ref.dirs[py, px] * n).sum(-1))[:, None] / den  # [P, K]
         costs = []
         for j in pick:
             src = self._cam(j, d.device)
-            u, v, z = src.project(y)
-            inside = ((z > 0) & (u >= 0) & (u <= src.W) & (v >= 0) & (v <= src.H)).all(1)
+            # the window points in the source camera: R_s (c + dq t) + t_s = (R_s c + t_s) + t (R_s dq)
+            u, v, z = src.project_camera(src.R @ ref.origin[0, 0] + src.t + t[..., None] * (dq @ src.R.T))
+            with torch.no_grad():
+                inside = ((z > 0) & (u >= 0) & (u <= src.W) & (v >= 0) & (v <= src.H)).all(1)
             sv = F.grid_sample(self._gray_of(j)[None, None], src.grid(u, v)[None], mode="bilinear",
                                padding_mode="border", align_corners=False)[0, 0]  # [P, K]
             sc = sv - sv.mean(1, keepdim=True)
@@ -193,8 +231,9 @@ class MultiViewNCC:
         if g is None:
             g = self._generators[dev] = torch.Generator(dev)
         g.manual_seed(seed)
-        py = torch.randint(h, H - h, (self.pixels,), generator=g, device=dev)
-        px = torch.randint(h, W - h, (self.pixels,), generator=g, device=dev)
+        count = self.count(H, W)
+        py = torch.randint(h, H - h, (count,), generator=g, device=dev)
+        px = torch.randint(h, W - h, (count,), generator=g, device=dev)
         pick = self._pick(vi, seed)
         best, ok = self._plane_costs(vi, py, px, median_depth[py, px], normal[py, px], pick,
                                      self._reference(vi, py, px))

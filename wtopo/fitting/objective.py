@@ -39,7 +39,10 @@ _MAX_ANISOTROPY = 10.0  # ratio of the two surfel scales above which the scale r
 _NORMAL_START = 0.5
 _DISTORTION_START = 0.5
 _MULTIVIEW_START = 0.5
-_MULTIVIEW_PIXELS = 4096  # reference pixels drawn per iteration for the multi-view term (each a 7 x 7 window)
+# reference pixels drawn per iteration for the multi-view term (each a 7 x 7 window): 1/16 of the view, at most
+# 4096 (1024 at 128 x 128 px; 4096 from 256 x 256 px up); design/decisions.md has the figures
+_MULTIVIEW_FRACTION = 1.0 / 16.0
+_MULTIVIEW_PIXELS = 4096
 
 
 @dataclasses.dataclass
@@ -86,7 +89,7 @@ class Objective:
         self.multiview = None
         if (lc.multiview or 0.0) > 0 and roi_center is not None and len(train.cameras) > 1:
             self.multiview = MultiViewNCC(train.cameras, train.images, roi_center, pixels=_MULTIVIEW_PIXELS,
-                                          seed=cfg.runtime.seed)
+                                          fraction=_MULTIVIEW_FRACTION, seed=cfg.runtime.seed)
         self.train = train
         self.render = render
         self.mask_weight = float(mask_weight)

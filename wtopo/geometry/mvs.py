@@ -129,7 +129,10 @@ class TorchCam:
 
     def project(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """World points [..., 3] -> pixel u, v (continuous, centres at +0.5) and z-depth."""
-        p = x @ self.R.T + self.t
+        return self.project_camera(x @ self.R.T + self.t)
+
+    def project_camera(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Points in this camera's frame [..., 3] -> pixel u, v (continuous, centres at +0.5) and z-depth."""
         z = p[..., 2]
         zs = torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
         xn, yn = p[..., 0] / zs, p[..., 1] / zs

@@ -1,0 +1,196 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Benchmark of the fit's per-iteration loss terms on the CPU (the ``losses`` section of the profile).
+
+Builds the default bunny fit (32 views of 128 px, CPU plan), runs a short warm-up and the TSDF
+re-initialisation (so the surfels are the co-evolution's: about 10k lying on the surface), builds the
+proxy mesh once, and then times, over every training view, the ``losses`` section of
+:class:`wtopo.fitting.objective.Objective` as the fit runs it in the co-evolution (every term on:
+photometric, mask, normal, distortion, multi-view, scale, mesh depth, mesh normal). The view's
+rendering and the proxy's ray cast are made beforehand and not timed. It also times each term on
+its own, forward and forward + backward into the rendered maps (the rasterizer's backward is not
+included), and, in the same process, the torch formulations they replace: the photometric term as
+torch L1 + :func:`wtopo.metrics.ssim`, the multi-view term at 4,096 reference pixels.
+
+Command (writes nothing; the figures go to benchmarks/losses.md by hand)::
+
+    .venv/bin/python benchmarks/bench_losses.py
+    .venv/bin/python benchmarks/bench_losses.py --repeats 5 --warmup 200   # steadier
+
+The ``--section-only`` flag times only the ``losses`` section, with nothing this version added, so
+the same script measures an older checkout of the package.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+import types
+
+import torch
+
+from wtopo import scenes
+from wtopo.fitting import FitConfig
+from wtopo.fitting.loop import FitRun
+from wtopo.fitting.profiling import Timers
+from wtopo.fitting.stages import Stage
+
+
+def build(warmup: int, seed: int) -> FitRun:
+    """The bunny fit after ``warmup`` warm-up iterations and the TSDF re-initialisation."""
+    cfg = FitConfig()
+    cfg.runtime.seed = seed
+    cfg.runtime.usd_every = 0
+    cfg.runtime.progress = False
+    run = FitRun(scenes.load("bunny"), cfg, None, False)
+    run._start()
+    run._iterate(Stage.WARMUP, 0, warmup)
+    run._tsdf_reinit()
+    return run
+
+
+class _FixedProxy:
+    """The proxy mesh built once; its ray casts made beforehand (the ``proxy`` and ``raycast`` sections)."""
+
+    def __init__(self, mesh, renders):
+        self.mesh, self.renders, self.vi = mesh, renders, 0
+
+    def build(self, surfels):
+        return self.mesh
+
+    def render(self, mesh, camera):
+        return self.renders[self.vi]
+
+
+def _leaf(out):
+    """The rendered maps as leaves that ask for gradients (the losses' own backward, not the rasterizer's)."""
+    fields = ("rgb", "alpha", "median_depth", "normal", "distortion")
+    maps = {k: getattr(out, k).detach().clone().requires_grad_() for k in fields}
+    return types.SimpleNamespace(overflow=None, **maps)
+
+
+def _time(fn, repeats: int) -> float:
+    """Best-of-``repeats`` mean seconds of ``fn()`` (one call per view inside ``fn``)."""
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--warmup", type=int, default=100, help="warm-up iterations before the TSDF re-initialisation")
+    ap.add_argument("--repeats", type=int, default=3, help="passes over the views; the best is reported")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--section-only", action="store_true", help="only the losses section (runs on older checkouts)")
+    args = ap.parse_args()
+
+    t0 = time.perf_counter()
+    run = build(args.warmup, args.seed)
+    s, obj = run.surfels, run.objective
+    views = list(range(len(run.train.cameras)))
+    with torch.no_grad():
+        outs = [_leaf(run.render(s, run.train.cameras[v])) for v in views]
+    mesh = run.proxy.build(s)
+    with torch.no_grad():
+        mrs = [run.proxy.render(mesh, run.train.cameras[v]) for v in views]
+    print(f"bunny: {len(views)} training views of {outs[0].rgb.shape[1]}x{outs[0].rgb.shape[0]} px, {len(s)} surfels, "
+          f"proxy {'built' if mesh is not None else 'empty'}; set-up {time.perf_counter() - t0:.0f} s; "
+          f"torch threads {torch.get_num_threads()}")
+
+    proxy = _FixedProxy(mesh, mrs)
+    obj.timers = Timers()
+    obj.render = lambda surfels, cam, defer_count=False: outs[proxy.vi]
+    it = run.warmup_end  # the co-evolution: every term on
+
+    def section(backward: bool):
+        for v in views:
+            proxy.vi = v
+            t = obj(Stage.COEVOLUTION, it, v, s, proxy)
+            if backward:
+                sum(t.losses.values()).backward()
+
+    names = sorted(obj(Stage.COEVOLUTION, it, 0, s, proxy).losses)
+    n = len(views)
+    obj.timers.total.clear()
+    rows = {}
+    best = float("inf")
+    for _ in range(args.repeats):
+        obj.timers.total.clear()
+        section(False)
+        best = min(best, obj.timers.total["losses"])
+    rows["losses section (forward)"] = best / n
+    rows["losses forward + backward"] = _time(lambda: section(True), args.repeats) / n
+    print(f"terms: {', '.join(names)}")
+    for k, v in rows.items():
+        print(f"  {k:40s} {1000 * v:8.2f} ms/it")
+    if args.section_only:
+        return
+    _terms(run, outs, mrs, args.repeats)
+
+
+def _terms(run, outs, mrs, repeats: int) -> None:
+    """Each term alone (forward and forward + backward), and the formulations they replace."""
+    from wtopo.fitting import losses as L
+    from wtopo.fitting import objective as O
+    from wtopo.fitting.multiview import MultiViewNCC
+    from wtopo.metrics import ssim
+
+    cfg, train, s = run.cfg, run.train, run.surfels
+    views = range(len(outs))
+    n = len(outs)
+    it = run.warmup_end
+    mv = run.objective.multiview
+    h, w = outs[0].alpha.shape
+    mv_count = mv.count(h, w) if hasattr(mv, "count") else mv.pixels
+    mv_old = MultiViewNCC(train.cameras, train.images, run.plan.layout.roi_center, pixels=4096, seed=cfg.runtime.seed)
+
+    def photo_torch(o, v):
+        img = train.images[v]
+        return (1 - O._DSSIM) * L.l1(o.rgb, img) + O._DSSIM * (1 - ssim(o.rgb, img))
+
+    def normal(o, v):
+        cam = train.cameras[v]
+        covered = o.alpha.detach() >= O.ALPHA_COVERED
+        ro, rd = cam.pixel_rays(o.alpha.device)
+        dn, dm = L.depth_normals(o.median_depth, ro, rd, covered)
+        return L.normal_consistency(o.normal, dn, o.alpha, dm)
+
+    def mesh_terms(o, v):
+        mr = mrs[v]
+        both = mr.mask & (o.alpha.detach() >= O.ALPHA_COVERED)
+        return (L.mesh_depth_loss(o.median_depth, mr.depth, both, eps=O._DEPTH_EPS, form="log_ratio",
+                                  extent=O.ROI_EXTENT, debias=cfg.losses.mesh_depth_debias)
+                + L.mesh_normal_loss(o.normal, mr.normal, both))
+
+    terms = {
+        "photo": lambda o, v: L.photometric(o.rgb, train.images[v], O._DSSIM),
+        "photo (torch L1 + SSIM)": photo_torch,
+        "mask": lambda o, v: L.mask_loss(o.alpha, train.masks[v].to(o.alpha.dtype)),
+        "normal": normal,
+        "distortion": lambda o, v: L.distortion(o.distortion),
+        f"multiview ({mv_count} px)": lambda o, v: mv(it, v, o.median_depth, o.normal, o.alpha),
+        "multiview (4096 px)": lambda o, v: mv_old(it, v, o.median_depth, o.normal, o.alpha),
+        "scale": lambda o, v: L.scale_regularizer(s.scales, O._MAX_ANISOTROPY),
+        "mesh depth + normal": mesh_terms,
+    }
+    fwd, both = {}, {}
+    for name, f in terms.items():
+        def go(backward, f=f):
+            for v in views:
+                r = f(outs[v], v)
+                if backward and r.requires_grad:
+                    r.backward()
+        go(True)  # first call: caches, compiles
+        fwd[name] = _time(lambda: go(False), repeats) / n
+        both[name] = _time(lambda: go(True), repeats) / n
+    print(f"  {'term':40s} {'forward':>8s} {'fwd+bwd':>8s}  ms/it")
+    for name in terms:
+        print(f"  {name:40s} {1000 * fwd[name]:8.2f} {1000 * both[name]:8.2f}")
+    for new, old in (("photo", "photo (torch L1 + SSIM)"), (f"multiview ({mv_count} px)", "multiview (4096 px)")):
+        print(f"  {new} vs {old}: {fwd[old] / fwd[new]:.2f}x faster forward, {both[old] / both[new]:.2f}x fwd+bwd")
+
+
+if __name__ == "__main__":
+    main()
