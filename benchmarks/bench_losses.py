@@ -17,7 +17,12 @@ Command (writes nothing; the figures go to benchmarks/losses.md by hand)::
     .venv/bin/python benchmarks/bench_losses.py --repeats 5 --warmup 200   # steadier
 
 The ``--section-only`` flag times only the ``losses`` section, with nothing this version added, so
-the same script measures an older checkout of the package.
+the same script measures an older checkout of the package. ``--quick`` skips the fit: on the bunny's
+true depth maps and normals (8 views) it times the multi-view term at the fit's count and at 4,096
+pixels and the photometric term fused and in torch, forward and forward + backward; ``--threads``
+sets torch's threads (1 measures the work without the stalls of a shared machine)::
+
+    .venv/bin/python benchmarks/bench_losses.py --quick --threads 1
 """
 
 from __future__ import annotations
@@ -84,7 +89,14 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3, help="passes over the views; the best is reported")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--section-only", action="store_true", help="only the losses section (runs on older checkouts)")
+    ap.add_argument("--quick", action="store_true", help="no fit: the multi-view and photometric terms on true depth")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's, as the fit)")
     args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if args.quick:
+        _quick(args.repeats)
+        return
 
     t0 = time.perf_counter()
     run = build(args.warmup, args.seed)
@@ -190,6 +202,57 @@ def _terms(run, outs, mrs, repeats: int) -> None:
         print(f"  {name:40s} {1000 * fwd[name]:8.2f} {1000 * both[name]:8.2f}")
     for new, old in (("photo", "photo (torch L1 + SSIM)"), (f"multiview ({mv_count} px)", "multiview (4096 px)")):
         print(f"  {new} vs {old}: {fwd[old] / fwd[new]:.2f}x faster forward, {both[old] / both[new]:.2f}x fwd+bwd")
+
+
+def _quick(repeats: int, views: int = 8) -> None:
+    """The multi-view and photometric terms on the bunny's true depth, normals and (noisy) colours."""
+    import numpy as np
+
+    from wtopo.fitting import losses as L
+    from wtopo.fitting.multiview import MultiViewNCC
+    from wtopo.fitting.objective import _DSSIM, _MULTIVIEW_FRACTION, _MULTIVIEW_PIXELS
+    from wtopo.metrics import ssim
+
+    sc = scenes.load("bunny").normalized()
+    cams, imgs = sc.cameras, sc.images
+    g = torch.Generator().manual_seed(0)
+    maps = []
+    for v in range(views):
+        d = sc.depths[v].float().clone()
+        o, r = cams[v].pixel_rays("cpu")
+        n, _ = L.depth_normals(d, o, r, d > 0)
+        rgb = (imgs[v] + 0.05 * torch.randn(imgs[v].shape, generator=g)).clamp(0, 1)
+        maps.append((d, n, (d > 0).float(), rgb))
+    center = np.full(3, 0.5)
+    fit_mv = MultiViewNCC(cams, imgs, center, pixels=_MULTIVIEW_PIXELS, fraction=_MULTIVIEW_FRACTION)
+    old_mv = MultiViewNCC(cams, imgs, center, pixels=4096)
+    h, w = imgs[0].shape[:2]
+
+    def multiview(m):
+        return lambda v, d, n, a, rgb: m(1000, v, d.requires_grad_(), n.requires_grad_(), a)
+
+    def photo_torch(v, d, n, a, rgb):
+        p = rgb.requires_grad_()
+        return (1 - _DSSIM) * L.l1(p, imgs[v]) + _DSSIM * (1 - ssim(p, imgs[v]))
+
+    terms = {f"multiview ({fit_mv.count(h, w)} px)": multiview(fit_mv), "multiview (4096 px)": multiview(old_mv),
+             "photo (fused Warp)": lambda v, d, n, a, rgb: L.photometric(rgb.requires_grad_(), imgs[v], _DSSIM),
+             "photo (torch L1 + SSIM)": photo_torch}
+
+    def go(f, backward):
+        for v, m in enumerate(maps):
+            r = f(v, *m)
+            if backward:
+                r.backward()
+
+    for f in terms.values():
+        go(f, True)  # caches, kernel loads
+    print(f"bunny true depth: {views} views of {w}x{h} px; torch threads {torch.get_num_threads()}")
+    print(f"  {'term':28s} {'forward':>8s} {'fwd+bwd':>8s}  ms/it (best of {repeats})")
+    for name, f in terms.items():
+        fwd = _time(lambda f=f: go(f, False), repeats) / views
+        both = _time(lambda f=f: go(f, True), repeats) / views
+        print(f"  {name:28s} {1000 * fwd:8.2f} {1000 * both:8.2f}")
 
 
 if __name__ == "__main__":
