@@ -118,11 +118,16 @@ def _peak_rss_mb() -> float:
     return kb / 2**20 if sys.platform == "darwin" else kb / 1024.0
 
 
-def run_point(spec: dict, device: str) -> dict:
-    """One fit in this process; its CSV row."""
+def run_point(spec: dict, device: str, threads: int = 0) -> dict:
+    """One fit in this process (``threads`` > 0: that many torch threads); its CSV row."""
     import tempfile
 
+    import torch
+
     from wtopo.fitting import fit
+
+    if threads > 0:
+        torch.set_num_threads(threads)
 
     scene = load_scene(spec["scene"])
     cfg = make_config(spec, scene, device)
@@ -144,8 +149,9 @@ def run_point(spec: dict, device: str) -> dict:
     return row
 
 
-def run_subprocess(spec: dict, device: str, timeout: float) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec), "--device", device]
+def run_subprocess(spec: dict, device: str, timeout: float, threads: int = 0) -> dict:
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec), "--device", device,
+           "--threads", str(threads)]
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -289,28 +295,40 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--timeout", type=float, default=3600.0, help="per-run limit [s]")
     ap.add_argument("--plot-only", action="store_true", help="redraw the plot and note from the CSV")
+    ap.add_argument("--threads", type=int, default=0, help="torch threads per fit (0: torch's default)")
+    ap.add_argument("--jobs", type=int, default=1, help="fits at once (with --threads 1 on a shared machine)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        print("ROW " + json.dumps(run_point(json.loads(args.worker), args.device)), flush=True)
+        print("ROW " + json.dumps(run_point(json.loads(args.worker), args.device, args.threads)), flush=True)
         return 0
     specs = [s for s in points(args.scenes) if not args.presets_only or s["scale"] == 1.0]
     if not args.plot_only:
         if not args.resume and os.path.exists(args.csv):
             os.remove(args.csv)
         done = {key(r) for r in read_csv(args.csv)} if os.path.exists(args.csv) else set()
-        for i, spec in enumerate(specs):
-            if key(spec) in done:
-                continue
-            t = time.perf_counter()
-            row = run_subprocess(spec, args.device, args.timeout)
-            append_csv(args.csv, row)
-            print(f"[{i + 1}/{len(specs)}] {label(row)} on {spec['scene']}: wall {row.get('wall_s', '-')} s "
-                  f"(plan {row.get('expected_s', '-')}), Chamfer {row.get('chamfer', '-')}, F {row.get('f_score', '-')}"
-                  f", {row.get('status')} {row.get('error', '')} ({time.perf_counter() - t:.0f} s)", flush=True)
+        todo = [s for s in specs if key(s) not in done]
+
+        import threading
+
+        lock = threading.Lock()
+
+        def one(spec):
+            row = run_subprocess(spec, args.device, args.timeout, args.threads)
+            with lock:
+                append_csv(args.csv, row)
+            print(f"{label(row)} on {spec['scene']}: wall {row.get('wall_s', '-')} s "
+                  f"(plan {row.get('expected_s', '-')}), "
+                  f"Chamfer {row.get('chamfer', '-')}, F {row.get('f_score', '-')}, {row.get('status')} "
+                  f"{row.get('error', '')}", flush=True)
+
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max(1, args.jobs)) as pool:
+            list(pool.map(one, todo))
     rows = read_csv(args.csv)
     plot(rows, args.png)
-    write_note(rows, args.md, args.png, "python benchmarks/error_vs_runtime.py" + (" --resume" if args.resume else ""))
+    write_note(rows, args.md, args.png, "python benchmarks/error_vs_runtime.py " + " ".join(argv or sys.argv[1:]))
     print(summary(rows))
     return 0
 

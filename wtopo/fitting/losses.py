@@ -56,11 +56,12 @@ def l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 def photometric(pred: torch.Tensor, target: torch.Tensor, dssim: float) -> torch.Tensor:
     """``(1 - dssim) * L1 + dssim * (1 - SSIM)`` of images [H, W, 3] (SSIM of :func:`wtopo.metrics.ssim`).
 
-    The fused Warp loss :func:`wtopo.ops.photometric_loss` on every device (four launches, equal to the
-    torch formulation below up to float32 summation order); images smaller than the SSIM window take
-    the torch formulation (and its error).
+    On CUDA the fused Warp loss :func:`wtopo.ops.photometric_loss` (four launches, equal to the torch
+    formulation below up to float32 summation order); on the CPU, and for images smaller than the SSIM
+    window, the torch formulation: on an idle 2-core CPU it is 3x faster than the fused loss at 128 px
+    (4.8 against 15.7 ms forward + backward, ``benchmarks/losses.md``).
     """
-    if min(pred.shape[0], pred.shape[1]) >= _SSIM_WINDOW:
+    if pred.is_cuda and min(pred.shape[0], pred.shape[1]) >= _SSIM_WINDOW:
         return photometric_loss(pred, target.detach().to(pred.dtype), dssim=dssim)
     loss = (1.0 - dssim) * l1(pred, target)
     if dssim > 0:
