@@ -321,12 +321,16 @@ def test_two_processes_share_the_chunks_through_gloo(tmp_path):
 def test_chunk_runs_its_share_of_the_iteration_budget():
     """Scale iterations by the chunk's view share and point budgets by its space share (configured or planned)."""
     from wtopo.chunks.engine import chunk_fit_config
-    from wtopo.fitting import FitConfig
+    from wtopo.fitting import FitConfig, Preset
 
     c = chunk_fit_config(_tiny_config(warmup=20), "cpu", 0.5)
     assert (c.warmup.iterations, c.coevolution.iterations, c.runtime.device) == (10, 0, "cpu")
     d = chunk_fit_config(FitConfig(), "cpu", 0.25, 0.5)
-    assert (d.warmup.iterations, d.coevolution.iterations) == (200, 200)  # the CPU budget 800 + 800
+    assert (d.warmup.iterations, d.coevolution.iterations) == (100, 100)  # the CPU balanced budget 400 + 400
+    cfg = FitConfig()
+    cfg.preset = Preset.BEST  # the preset's budget is what the share divides
+    b = chunk_fit_config(cfg, "cpu", 0.25)
+    assert (b.warmup.iterations, b.coevolution.iterations) == (200, 200)  # best: 800 + 800
     # half the space: half the CPU surfel cap (40k) and re-initialisation faces (8k), half the points
     assert (d.runtime.max_surfels, d.tsdf.max_faces, d.init.num_points) == (20000, 4000, 2500)
     assert d.init.background_points is None  # left to the plan (as many as num_points for a scene)

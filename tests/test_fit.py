@@ -99,11 +99,12 @@ def test_the_plan_is_typed_frozen_and_the_resolved_config_carries_its_decisions(
              "max_surfels": r.runtime.max_surfels, "reinit_faces": r.tsdf.max_faces,
              "proxy_resolution": r.mesh.resolution, "final_resolution": r.final.resolution,
              "tsdf_reinit": r.tsdf.enabled, "tsdf_backend": r.tsdf.backend, "mesh_loop": r.coevolution.enabled,
-             "proxy_level_sigma": r.mesh.level_sigma, "proxy_clip": r.mesh.clip_to_region}
+             "proxy_level_sigma": r.mesh.level_sigma, "proxy_clip": r.mesh.clip_to_region, "preset": r.preset,
+             "densify_interval": r.densify.interval}
     for name, value in pairs.items():
         assert getattr(p, name) == value, name
     assert set(p.decision_names()) - set(pairs) == {"device", "region_of_interest", "mesh_policy", "background_rule",
-                                                    "eval_views", "gt_metrics"}  # the plan-only decisions
+                                                    "eval_views", "gt_metrics", "expected_seconds"}  # plan-only
 
 
 def test_resume_after_interruption_matches_uninterrupted(tiny, tmp_path):

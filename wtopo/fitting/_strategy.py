@@ -151,7 +151,7 @@ class DensityStrategy:
         """Whether :meth:`step_end` runs density control at iteration ``it``."""
         dc = self.cfg.densify
         start = stage_iteration(DENSIFY_START, self.warmup_end)
-        return stage == Stage.WARMUP and it >= start and it % max(1, dc.interval) == 0
+        return stage == Stage.WARMUP and it >= start and it % max(1, dc.interval or 100) == 0  # None: unplanned
 
     def step_end(self, stage: Stage, it: int, surfels: Surfels) -> bool:
         """Warm-up clone / split, prune and opacity reset on the ``densify`` schedule; returns whether

@@ -4,8 +4,8 @@
 ``FitConfig.preset`` (``--preset``) picks one of :class:`~wtopo.fitting.config_kinds.Preset`; the plan
 (:func:`~wtopo.fitting.plan.make_plan`) takes its iterations, image-size cap and grids from the preset's
 :class:`Budget` on the fit's kind of device, and a field the configuration sets still wins. The values
-come from ``benchmarks/error_vs_runtime.py`` (its note gives the front they were read from and the
-command that made it); ``design/decisions.md`` says why each preset sits where it does.
+and the figures behind them are in ``design/decisions.md`` ("presets"); ``benchmarks/error_vs_runtime.py``
+measures the error-against-time front over a suite of scenes with the presets marked.
 """
 
 from __future__ import annotations
@@ -45,13 +45,14 @@ class Budget:
 
 
 _REFERENCE_CORES = 2  # the CPU timings below were measured on 2 cores; more cores scale them down
-# CPU (2 cores): read off the front of benchmarks/error_vs_runtime.md. CUDA (one H200): the GPU default as it
-# was measured on DTU and the 512-px suite (about 60 ms per iteration at 800 x 600); fast and best scale its
-# iterations like the CPU presets until a GPU front is measured.
+# CPU (2 idle cores): the bunny's balanced fit (400 + 400 iterations of 128 px views) took 117.7 s, 24.8 s of it
+# outside the iterations (design/decisions.md, "presets"). CUDA (one H200): the GPU default as measured on DTU
+# and the 512-px suite (about 60 ms per iteration at 800 x 600); fast and best scale its iterations like the CPU
+# presets until a GPU front is measured.
 _BUDGETS = {
-    ("cpu", Preset.FAST): Budget((150, 150), 128, (48, 48), (64, 128), 8.0, 0.020, 4.0),
-    ("cpu", Preset.BALANCED): Budget((400, 400), 256, (64, 64), (96, 192), 10.0, 0.020, 4.0),
-    ("cpu", Preset.BEST): Budget((800, 800), 256, (64, 64), (96, 192), 10.0, 0.020, 4.0),
+    ("cpu", Preset.FAST): Budget((150, 150), 128, (48, 48), (64, 128), 20.0, 0.036, 4.9),
+    ("cpu", Preset.BALANCED): Budget((400, 400), 256, (64, 64), (96, 192), 25.0, 0.036, 4.9),
+    ("cpu", Preset.BEST): Budget((800, 800), 256, (64, 64), (96, 192), 25.0, 0.036, 4.9),
     ("cuda", Preset.FAST): Budget((1500, 1000), 512, (128, 192), (192, 512), 40.0, 0.030, 0.060),
     ("cuda", Preset.BALANCED): Budget((3000, 2000), 1024, (128, 256), (192, 768), 70.0, 0.030, 0.060),
     ("cuda", Preset.BEST): Budget((6000, 4000), 1024, (128, 256), (192, 768), 70.0, 0.030, 0.060),
