@@ -24,6 +24,7 @@ import torch
 from . import densify as dens
 from .background import BackgroundState, prune_near_cameras
 from .config import FitConfig, NormalFlip, stage_iteration
+from .plan import _DENSIFY_INTERVAL
 from .proxy import ProxyMesh
 from .stages import ROI_EXTENT, Record, Stage
 from .surfels import Surfels
@@ -151,7 +152,8 @@ class DensityStrategy:
         """Whether :meth:`step_end` runs density control at iteration ``it``."""
         dc = self.cfg.densify
         start = stage_iteration(DENSIFY_START, self.warmup_end)
-        return stage == Stage.WARMUP and it >= start and it % max(1, dc.interval or 100) == 0  # None: unplanned
+        interval = dc.interval or _DENSIFY_INTERVAL[1]  # None: a configuration the plan has not resolved
+        return stage == Stage.WARMUP and it >= start and it % max(1, interval) == 0
 
     def step_end(self, stage: Stage, it: int, surfels: Surfels) -> bool:
         """Warm-up clone / split, prune and opacity reset on the ``densify`` schedule; returns whether
