@@ -7,7 +7,7 @@
 #   STAGE=/tmp/peers bash benchmarks/peers/device.sh wait SECONDS  # until every job ends or SECONDS pass
 #   STAGE=/tmp/peers bash benchmarks/peers/device.sh score OUT_DIR # rows.json, table.md, pictures
 #
-# SYSTEM: wtopo, wtopo_noloop, gsplat, 2dgs. $STAGE holds: big.part* (split xz tar of the unpacked Warp and
+# SYSTEM: wtopo, wtopo_noloop, gsplat, 2dgs (WTOPO_ARGS: extra arguments of run_wtopo.py, e.g. --set ...). $STAGE holds: big.part* (split xz tar of the unpacked Warp and
 # Open3D wheels) and/or whl/*.whl (trimesh, plyfile, gsplat), peers/2dgs (a 2d-gaussian-splatting checkout with
 # its submodules: diff-surfel-rasterization with third_party/glm, simple-knn) and exch/NAME (export.py's folders).
 set -uo pipefail
@@ -72,8 +72,8 @@ launch)
     for s in "$@"; do
       out=$STAGE/res/$name/$s
       case $s in
-        wtopo) c=("$PY" "$HERE/run_wtopo.py" "$e" "$out") ;;
-        wtopo_noloop) c=("$PY" "$HERE/run_wtopo.py" "$e" "$out" --no-loop) ;;
+        wtopo) c=("$PY" "$HERE/run_wtopo.py" "$e" "$out" ${WTOPO_ARGS:-}) ;;
+        wtopo_noloop) c=("$PY" "$HERE/run_wtopo.py" "$e" "$out" --no-loop ${WTOPO_ARGS:-}) ;;
         gsplat) c=("$PY" "$HERE/run_gsplat.py" "$e" "$out") ;;
         2dgs) c=("$PY" "$HERE/run_2dgs.py" "$e" "$out" --checkout "$STAGE/peers/2dgs") ;;
         *) echo "unknown system $s"; exit 2 ;;

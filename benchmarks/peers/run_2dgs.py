@@ -63,7 +63,8 @@ def main(argv=None) -> None:
             _run([py, os.path.join(HERE, "_peak.py"), peak, "train.py", "-s", src, "-m", model, "--quiet",
                   "--test_iterations", "-1", "--depth_ratio", "1.0", "-r", "1", "--lambda_dist", "1000",
                   "--iterations", str(a.iterations), "--port", str(port),
-                  "--save_iterations", *sorted({str(min(7000, a.iterations)), str(a.iterations)})], a.checkout, log)
+                  "--save_iterations", *sorted({str(min(k, a.iterations)) for k in (7000, 15000, a.iterations)},
+                                               key=int)], a.checkout, log)
         t_train = time.perf_counter() - t0
         _run([py, "render.py", "-s", src, "-m", model, "--quiet", "--skip_train", "--skip_test", "--iteration",
               str(it), "--depth_ratio", "1.0", "--num_cluster", "1", "--voxel_size", "0.004",

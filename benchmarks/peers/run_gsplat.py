@@ -58,7 +58,7 @@ def main(argv=None) -> None:
     ap.add_argument("out")
     ap.add_argument("--iterations", type=int, default=30_000)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--save-at", type=int, nargs="*", default=[7000],
+    ap.add_argument("--save-at", type=int, nargs="*", default=[7000, 15000],
                     help="also save the splats at these steps (splats_STEP.pt), for --mesh-only")
     ap.add_argument("--mesh-only", type=int, default=None, metavar="STEP",
                     help="skip training: mesh and render the splats an earlier run saved at STEP")
