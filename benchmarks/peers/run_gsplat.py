@@ -100,7 +100,8 @@ def main(argv=None) -> None:
     sched = torch.optim.lr_scheduler.ExponentialLR(opts["means"], gamma=0.01 ** (1.0 / a.iterations))
     strategy = DefaultStrategy(key_for_gradient="gradient_2dgs", verbose=False)
     strategy.check_sanity(splats, opts)
-    state = strategy.initialize_state()
+    # simple_trainer passes the camera spread: the growth and pruning thresholds are relative to it
+    state = strategy.initialize_state(scene_scale=scene_scale)
 
     def render(sel_view, K, sh_degree, mode="RGB+D"):
         return rasterization_2dgs(
