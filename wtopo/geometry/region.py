@@ -71,31 +71,31 @@ def _converge_point(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray | None:
     return np.linalg.solve(A, b)
 
 
-def _project_all(cameras, pts: np.ndarray):
-    """Pixel (row, col) int indices and in-image flags of ``pts`` [M, 3] in every camera ([N, M] x3),
-    and ``(depth, distance, focal)``: the points' camera depth and distance [N, M] (float64, world
-    units) and each camera's larger focal length [N, 1] (pixels), for :func:`carve`'s footprints."""
-    n, m = len(cameras), len(pts)
-    rows, cols = np.zeros((n, m), np.int64), np.zeros((n, m), np.int64)
-    ok = np.zeros((n, m), bool)
-    depth, dist = np.zeros((n, m)), np.zeros((n, m))
-    for i, cam in enumerate(cameras):
-        pc = pts @ cam.R.T + cam.t
-        depth[i], dist[i] = pc[:, 2], np.linalg.norm(pc, axis=1)
-        if cam.distortion is None:  # pinhole fast path (same maths as Camera.project)
-            z = pc[:, 2]
-            zs = np.where(z > 0, z, 1.0)
-            y = pc[:, 1] / zs
-            u = cam.K[0, 0] * (pc[:, 0] / zs) + cam.K[0, 1] * y + cam.K[0, 2]
-            v = cam.K[1, 1] * y + cam.K[1, 2]
-        else:
-            uv, z = cam.project(pts)
-            u, v = uv[:, 0], uv[:, 1]
-        ok[i] = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        rows[i] = np.clip(np.floor(v), 0, cam.height - 1)
-        cols[i] = np.clip(np.floor(u), 0, cam.width - 1)
-    focal = np.array([max(abs(c.K[0, 0]), abs(c.K[1, 1])) for c in cameras])[:, None]
-    return rows, cols, ok, (depth, dist, focal)
+def _project_one(cam, pts: np.ndarray):
+    """Pixel (row, col) int64 indices [M], in-image flags [M] and camera-frame points [M, 3] (float64,
+    world units) of ``pts`` [M, 3] in one camera."""
+    pc = pts @ cam.R.T + cam.t
+    if cam.distortion is None:  # pinhole fast path (same maths as Camera.project)
+        z = pc[:, 2]
+        zs = np.where(z > 0, z, 1.0)
+        y = pc[:, 1] / zs
+        u = cam.K[0, 0] * (pc[:, 0] / zs) + cam.K[0, 1] * y + cam.K[0, 2]
+        v = cam.K[1, 1] * y + cam.K[1, 2]
+    else:
+        uv, z = cam.project(pts)
+        u, v = uv[:, 0], uv[:, 1]
+    ok = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    rows = np.clip(np.floor(v), 0, cam.height - 1).astype(np.int64)
+    cols = np.clip(np.floor(u), 0, cam.width - 1).astype(np.int64)
+    return rows, cols, ok, pc
+
+
+def _seen_count(cameras, pts: np.ndarray) -> np.ndarray:
+    """How many of ``cameras`` hold each of ``pts`` [M, 3] in their image (int [M])."""
+    seen = np.zeros(len(pts), np.int64)
+    for cam in cameras:
+        seen += _project_one(cam, pts)[2]
+    return seen
 
 
 def mask_distances(masks_np: np.ndarray) -> np.ndarray:
@@ -136,25 +136,32 @@ def carve(cameras, masks_np, lo, hi, res, *, mask_dist=None, footprint: bool = T
     """
     axes = [lo[k] + (np.arange(res) + 0.5) * (hi[k] - lo[k]) / res for k in range(3)]
     g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    rows, cols, ok, (depth, dist, focal) = _project_all(cameras, g)
     n = len(cameras)
-    seen = ok.sum(axis=0)
-    if masks_np is None:
-        keep = seen >= math.ceil(0.9 * n)
-    else:
-        if footprint:
-            if mask_dist is None:
-                mask_dist = mask_distances(masks_np)
-            radius = 0.5 * float(np.linalg.norm((np.asarray(hi) - np.asarray(lo)) / res))  # cell's bounding sphere
-            near = depth - radius
-            with np.errstate(divide="ignore", invalid="ignore"):
-                reach = np.where(near > 0, radius * focal * dist / (depth * near), np.inf)
-            gap = mask_dist[np.arange(n)[:, None], rows, cols]
-            rejected = (ok & (gap > reach + 2.0 * _PIXEL_SLACK)).any(axis=0)
-        else:
-            rejected = (ok & ~masks_np[np.arange(n)[:, None], rows, cols]).any(axis=0)
-        keep = ~rejected & (seen >= max(min(2, n), math.ceil(0.5 * n)))
-    return g[keep]
+    need = math.ceil(0.9 * n) if masks_np is None else max(min(2, n), math.ceil(0.5 * n))
+    if masks_np is not None and footprint:
+        if mask_dist is None:
+            mask_dist = mask_distances(masks_np)
+        radius = 0.5 * float(np.linalg.norm((np.asarray(hi) - np.asarray(lo)) / res))  # cell's bounding sphere
+    # one view at a time over the cells still alive: a rejected cell, or one that can no longer reach
+    # ``need`` views, is never projected again (the same cells as testing every cell in every view)
+    alive = np.arange(len(g))
+    seen = np.zeros(len(g), np.int64)
+    for i, cam in enumerate(cameras):
+        rows, cols, ok, pc = _project_one(cam, g[alive])
+        seen[alive] += ok
+        if masks_np is not None:
+            if footprint:
+                depth, dist = pc[:, 2], np.linalg.norm(pc, axis=1)
+                focal = max(abs(cam.K[0, 0]), abs(cam.K[1, 1]))
+                near = depth - radius
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    reach = np.where(near > 0, radius * focal * dist / (depth * near), np.inf)
+                rejected = ok & (mask_dist[i][rows, cols] > reach + 2.0 * _PIXEL_SLACK)
+            else:
+                rejected = ok & ~masks_np[i][rows, cols]
+            alive = alive[~rejected]
+        alive = alive[seen[alive] + (n - 1 - i) >= need]
+    return g[alive[seen[alive] >= need]]
 
 
 def _forward_focus(cameras, centers: np.ndarray, images=None) -> tuple[np.ndarray | None, float]:
@@ -269,8 +276,7 @@ def visual_hull_box(cameras, masks, images=None) -> tuple[np.ndarray, np.ndarray
 def points_box(cameras, points: np.ndarray):
     """The 2nd-98th percentile box of the ``points`` [P, 3] that half of the cameras see, grown by 5 %
     of its longest side: ``(lower [3], upper [3])`` float64, or None when fewer than 8 are seen."""
-    _, _, ok, _ = _project_all(cameras, points)
-    vis = points[ok.sum(axis=0) >= math.ceil(0.5 * len(cameras))]
+    vis = points[_seen_count(cameras, points) >= math.ceil(0.5 * len(cameras))]
     if len(vis) < 8:
         return None
     lo, hi = np.percentile(vis, 2, axis=0), np.percentile(vis, 98, axis=0)
