@@ -13,12 +13,13 @@ import numpy as np
 import torch
 import trimesh
 
+from ..geometry.mesh_policy import supported_components
 from .config import FitConfig, PoissonBox
 from .proxy import ProxyMesh, region_clip
 from .scene_kind import SceneLayout
 from .stages import ROI_EXTENT, TRUNCATION_VOXELS, Record, Renderer, is_scene, render_depths, roi_bounds
 from .surfels import Surfels
-from .tsdf import TSDFEmptyError, auto_bounds, cleanup_mesh, fuse_depths, hybrid_keep, mesh_to_surfels
+from .tsdf import TSDFEmptyError, auto_bounds, cleanup_mesh, fuse_depths, hybrid_keep, mesh_to_surfels, repair_mesh
 
 __all__ = ["Reinit", "tsdf_reinit"]
 
@@ -49,9 +50,11 @@ def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: 
     """Fuse the rendered depth of ``surfels`` and put one surfel on each face of the fused mesh.
 
     With ``background_rule``, the old surfels farther than ``_HYBRID_DISTANCE`` from that mesh
-    are kept (background the object's TSDF does not cover) and the mesh is not cut to its largest
-    component. A scene (``layout.kind``) fuses only its region of interest. An empty fusion keeps
-    the warm-up surfels (event ``"tsdf_empty"``).
+    are kept (background the object's TSDF does not cover) and every component of the mesh is kept.
+    Without it, the mesh keeps the components the views support
+    (:func:`~wtopo.geometry.mesh_policy.supported_components`, never by rank: a torus beside a capsule
+    keeps both; counts in ``info["components"]``). A scene (``layout.kind``) fuses only its region of
+    interest. An empty fusion keeps the warm-up surfels (event ``"tsdf_empty"``).
     """
     tc, device = cfg.tsdf, surfels.means.device
     cams = cameras[:: max(1, math.ceil(len(cameras) / _REINIT_MAX_VIEWS))]
@@ -69,7 +72,14 @@ def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: 
                       stacklevel=3)
         record("tsdf_empty", why=str(e))
         return Reinit(None, info)
-    mesh = cleanup_mesh(mesh, largest_component=not background_rule)
+    if background_rule:
+        mesh = cleanup_mesh(mesh, largest_component=False)
+    else:
+        # the components the views support, never the largest alone: a torus beside a capsule keeps both (the
+        # final mesh's rule); repaired after the support rule, which drops the specks first (see repair_mesh)
+        mesh = cleanup_mesh(mesh, largest_component=False, repair=False)
+        mesh, info["components"] = supported_components(mesh, cams, depths)
+        mesh = repair_mesh(mesh)
     new = mesh_to_surfels(mesh, max_faces=tc.max_faces, device=device, sh_degree=s.sh_degree, opacity=_REINIT_OPACITY)
     kept = 0
     if background_rule:
