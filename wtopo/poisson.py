@@ -141,6 +141,46 @@ def _spectrum(r: int, fn, device: torch.device, dtype: torch.dtype) -> torch.Ten
 _DEFAULT_CONTEXT = PoissonContext()
 
 
+def _solve(chi_h: torch.Tensor, s: torch.Tensor, r: int) -> torch.Tensor:
+    """``irfftn(-i s chi_h)`` in place on ``chi_h`` (the spectrum of ``w . V``): chi [R, R, R]."""
+    chi_h *= s
+    chi_h *= -1j
+    return torch.fft.irfftn(chi_h, s=(r, r, r), dim=(0, 1, 2))
+
+
+class _SpectralSolve(torch.autograd.Function):
+    """chi [R, R, R] of ``laplacian(chi) = div(V)`` for a vector grid V [R, R, R, 3] on the ``rfftn`` spectrum.
+
+    Forward: ``chi^ = -i s (wx V^x + wy V^y + wz V^z)``. The map is a real convolution with an odd kernel,
+    so its adjoint is the same solve with ``+i``: the backward is one ``rfftn`` of the incoming gradient and
+    one batched ``irfftn`` (autograd's backward of ``rfftn`` runs a full complex transform of all three
+    components). Equal to autograd's gradient to float64 round-off (``tests/test_poisson.py``).
+    """
+
+    @staticmethod
+    def forward(ctx, v, wx, wy, wz, s):
+        r = v.shape[0]
+        vh = torch.fft.rfftn(v.permute(3, 0, 1, 2), dim=(1, 2, 3))
+        chi_h = wx * vh[0]
+        chi_h += wy * vh[1]
+        chi_h += wz * vh[2]
+        del vh
+        ctx.save_for_backward(wx, wy, wz, s)
+        return _solve(chi_h, s, r)
+
+    @staticmethod
+    def backward(ctx, grad):
+        wx, wy, wz, s = ctx.saved_tensors
+        r = grad.shape[0]
+        gh = torch.fft.rfftn(grad)
+        gh *= s
+        gh *= 1j
+        spec = torch.stack([gh * wx, gh * wy, gh * wz])
+        del gh
+        gv = torch.fft.irfftn(spec, s=(r, r, r), dim=(1, 2, 3)).permute(1, 2, 3, 0)
+        return gv, None, None, None, None
+
+
 def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torch.Tensor, resolution: int, *,
                       sigma: float = 1.0, padding: float = 0.1, level_sigma: float = 0.0,
                       context: PoissonContext | None = None) -> PoissonField:
@@ -226,12 +266,8 @@ def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torc
     if torch.is_grad_enabled() and (points.requires_grad or normals.requires_grad or weights.requires_grad):
         with section("scatter"):
             v = scatter_unchecked(q, values, r)
-        vh = torch.fft.rfftn(v.permute(3, 0, 1, 2), dim=(1, 2, 3))
-        del v  # the transform's backward does not keep its input: at 768^3 the grid is 5.4 GB
-        chi_h = wx * vh[0]
-        chi_h += wy * vh[1]
-        chi_h += wz * vh[2]
-        del vh
+        chi = _SpectralSolve.apply(v, wx, wy, wz, s)
+        del v  # the solve keeps no grid for its backward: at 768^3 one is 5.4 GB
     else:  # nothing to differentiate (the final re-mesh): one component at a time, a third of the memory
         chi_h = None
         for c, wc in enumerate((wx, wy, wz)):
@@ -242,10 +278,8 @@ def poisson_indicator(points: torch.Tensor, normals: torch.Tensor, weights: torc
             term *= wc
             chi_h = term if chi_h is None else chi_h.add_(term)
             del term
-    chi_h *= s
-    chi_h *= -1j
-    chi = torch.fft.irfftn(chi_h, s=(r, r, r), dim=(0, 1, 2))
-    del chi_h
+        chi = _solve(chi_h, s, r)
+        del chi_h
     at_points = sample_unchecked(chi[..., None], q)[:, 0]
     wsum = weights.sum()
     level = _safe_divide((weights * at_points).sum(), wsum, WEIGHT_FLOOR) * (wsum > WEIGHT_FLOOR)
