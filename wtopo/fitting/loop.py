@@ -23,6 +23,7 @@ import torch
 import trimesh
 
 from .._validate import trusted_values
+from . import presets as _presets
 from ._final_mesh import final_mesh
 from ._init_surfels import INIT_OPACITY, initial_surfels
 from ._progress import StageBar, StopRequest
@@ -134,7 +135,8 @@ class FitRun:
         self.last_good: tuple[dict, dict] | None = None  # (surfel, optimiser) state dicts of the last good step
         self.objective = Objective(cfg, self.train, render=self.render, mask_weight=float(cfg.losses.mask),
                                    warmup_end=self.warmup_end, timers=self.timers,
-                                   roi_center=self.plan.layout.roi_center)
+                                   roi_center=self.plan.layout.roi_center,
+                                   mesh_every=_presets.budget(cfg.preset, self.device).mesh_every)
         # scenes keep a background: contracted steps outside the region, nothing on the lenses
         self.background = BackgroundState(self.plan.layout, self.device) if self.plan.background_rule else None
         self.strategy = DensityStrategy(cfg, densify=bool(cfg.densify.enabled), warmup_end=self.warmup_end,

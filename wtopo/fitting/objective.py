@@ -76,6 +76,9 @@ class Objective:
         timers: the fit's section timers (``"render"``, ``"losses"``, ``"proxy"``, ``"raycast"``).
         roi_center: [3] the region of interest's centre (internal frame): picks the neighbouring views
             of the multi-view term (``losses.multiview``); ``None`` leaves it out.
+        mesh_every: the proxy is built and the mesh terms applied on every ``mesh_every``-th co-evolution
+            iteration (counted from its first), weighted ``mesh_every`` (the preset's,
+            :attr:`~wtopo.fitting.presets.Budget.mesh_every`).
 
     Attributes:
         mesh_terms: whether the co-evolution's mesh terms run at all (the fit sets it from
@@ -83,7 +86,7 @@ class Objective:
     """
 
     def __init__(self, cfg: FitConfig, train, *, render: Renderer, mask_weight: float, warmup_end: int, timers,
-                 roi_center=None):
+                 roi_center=None, mesh_every: int = 1):
         self.cfg = cfg
         lc = cfg.losses
         self.multiview = None
@@ -95,6 +98,7 @@ class Objective:
         self.mask_weight = float(mask_weight)
         self.warmup_end = warmup_end
         self.timers = timers
+        self.mesh_every = max(1, int(mesh_every))
         self.mesh_terms = True
 
     def __call__(self, stage: Stage, it: int, vi: int, surfels: Surfels, proxy: ProxyMesh, *,
@@ -129,7 +133,9 @@ class Objective:
                 L["scale"] = lc.scale * scale_regularizer(s.scales, _MAX_ANISOTROPY)
         terms = Terms(L, out, covered)
         co = self.cfg.coevolution
-        if stage == Stage.COEVOLUTION and co.enabled and self.mesh_terms and (lc.mesh_depth > 0 or lc.mesh_normal > 0):
+        k = self.mesh_every
+        if (stage == Stage.COEVOLUTION and co.enabled and self.mesh_terms and (lc.mesh_depth > 0 or lc.mesh_normal > 0)
+                and (it - self.warmup_end) % k == 0):
             with T("proxy"):
                 pm = proxy.build(s)
             terms.proxy_built, terms.proxy = True, pm
@@ -140,11 +146,11 @@ class Objective:
                     both = mr.mask & covered
                     if lc.mesh_depth > 0:
                         form = str(getattr(lc.depth_form, "value", lc.depth_form))
-                        L["mesh_depth"] = lc.mesh_depth * mesh_depth_loss(out.median_depth, mr.depth, both,
+                        L["mesh_depth"] = k * lc.mesh_depth * mesh_depth_loss(out.median_depth, mr.depth, both,
                                                                           eps=_DEPTH_EPS, form=form, extent=ROI_EXTENT,
                                                                           debias=lc.mesh_depth_debias)
                     if lc.mesh_normal > 0:
-                        L["mesh_normal"] = lc.mesh_normal * mesh_normal_loss(out.normal, mr.normal, both)
+                        L["mesh_normal"] = k * lc.mesh_normal * mesh_normal_loss(out.normal, mr.normal, both)
         return terms
 
 

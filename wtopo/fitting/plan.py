@@ -274,7 +274,9 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     b = _presets.budget(preset, device)
     plan.set("preset", preset, f"{preset.value}: {b.iterations[0]} + {b.iterations[1]} base iterations, images "
              f"up to {b.max_side} px, proxy grid {b.proxy_grid[0]}-{b.proxy_grid[1]}, final grid "
-             f"{b.final_grid[0]}-{b.final_grid[1]} on {device.type}")
+             f"{b.final_grid[0]}-{b.final_grid[1]}"
+             + (f", proxy and mesh terms every {b.mesh_every} co-evolution iterations" if b.mesh_every > 1 else "")
+             + f" on {device.type}")
     h, w = images.shape[1:3]
     plan.set("image_scale", default_image_scale(h, w, device, preset),
              f"{w}x{h} images; longest side capped at {b.max_side} px by the {preset.value} preset on {device.type}",
