@@ -7,9 +7,15 @@
 #   STAGE=/tmp/peers bash benchmarks/peers/device.sh wait SECONDS  # until every job ends or SECONDS pass
 #   STAGE=/tmp/peers bash benchmarks/peers/device.sh score OUT_DIR # rows.json, table.md, pictures
 #
-# SYSTEM: wtopo, wtopo_noloop, gsplat, 2dgs (WTOPO_ARGS: extra arguments of run_wtopo.py, e.g. --set ...). $STAGE holds: big.part* (split xz tar of the unpacked Warp and
+# SYSTEM: wtopo, wtopo_noloop, gsplat, 2dgs, pgsr, pgsr_nomesh (WTOPO_ARGS: extra arguments of run_wtopo.py, e.g.
+# --set ...). pgsr runs the TopoSurfel authors' code whole (PGSR warm-up, then its DPSR mesh stage) and also writes
+# pgsr_nomesh from its warm-up, unless pgsr_nomesh is launched too (then a run of its own, the warm-up twice).
+# $STAGE holds: big.part* (split xz tar of the unpacked Warp and
 # Open3D wheels) and/or whl/*.whl (trimesh, plyfile, gsplat), peers/2dgs (a 2d-gaussian-splatting checkout with
-# its submodules: diff-surfel-rasterization with third_party/glm, simple-knn) and exch/NAME (export.py's folders).
+# its submodules: diff-surfel-rasterization with third_party/glm, simple-knn), peers/pgsr_dpsr (Fan-Treasure/pgsr_dpsr
+# at its newest commit, with submodules/diff-plane-rasterization and simple-knn), peers/pgsr_init (the same repository
+# at de24f1a, plain PGSR, without submodules), peers/nvdiffrast, peers/diso (NVlabs/nvdiffrast, SarahWeiii/diso) and
+# exch/NAME (export.py's folders). Each peer is optional: build and launch use what is there.
 set -uo pipefail
 HERE="$(cd "$(dirname "$0")" && pwd)"
 REPO="$(cd "$HERE/../.." && pwd)"
@@ -42,12 +48,29 @@ install)
   $PY -c "import warp, open3d, trimesh, wtopo, plyfile; print('imports ok: warp', warp.__version__, 'open3d', open3d.__version__)"
   ;;
 build)
-  # 2DGS's CUDA extensions into $SITE, gsplat's JIT build into $TORCH_EXTENSIONS_DIR (needs gsplat in $SITE)
+  # the peers' CUDA extensions into $SITE (each only where its checkout is staged), gsplat's JIT build into
+  # $TORCH_EXTENSIONS_DIR (needs gsplat in $SITE). simple-knn is one module for 2DGS and PGSR: built once.
   mkdir -p "$SITE" "$STAGE/logs"
-  for ext in diff-surfel-rasterization simple-knn; do
-    (cd "$STAGE/peers/2dgs/submodules/$ext" && $PY -m pip install --no-index --no-deps --no-build-isolation \
-       --no-cache-dir --target "$SITE" . > "$STAGE/logs/build_$ext.log" 2>&1; echo "build $ext: rc $?") &
+  P=$STAGE/peers
+  exts=()
+  [ -d "$P/2dgs/submodules/diff-surfel-rasterization" ] && exts+=("$P/2dgs/submodules/diff-surfel-rasterization")
+  for d in "$P/2dgs/submodules/simple-knn" "$P/pgsr_dpsr/submodules/simple-knn"; do
+    [ -d "$d" ] && { exts+=("$d"); break; }
   done
+  if [ -d "$P/pgsr_dpsr/submodules/diff-plane-rasterization" ]; then
+    # CUDA 13's headers no longer bring in <cstdint> for the rasterizer's uint32_t (as for 2DGS's)
+    h=$P/pgsr_dpsr/submodules/diff-plane-rasterization/cuda_rasterizer/rasterizer_impl.h
+    grep -q '<cstdint>' "$h" || sed -i '0,/^#include/s//#include <cstdint>\n#include/' "$h"
+    exts+=("$P/pgsr_dpsr/submodules/diff-plane-rasterization")
+  fi
+  [ -d "$P/nvdiffrast" ] && exts+=("$P/nvdiffrast")
+  [ -d "$P/diso" ] && exts+=("$P/diso")
+  for d in "${exts[@]}"; do
+    ext=$(basename "$d")
+    (cd "$d" && FORCE_CUDA=1 $PY -m pip install --no-index --no-deps --no-build-isolation --no-cache-dir \
+       --target "$SITE" . > "$STAGE/logs/build_$ext.log" 2>&1; echo "build $ext: rc $?") &
+  done
+  if $PY -c "import gsplat" 2>/dev/null; then
   ($PY -c "
 import torch, gsplat
 from gsplat import rasterization_2dgs
@@ -58,9 +81,12 @@ K = torch.tensor([[[50., 0, 32], [0, 50, 32], [0, 0, 1]]], device='cuda')
 out = rasterization_2dgs(m, q, s, o, c, torch.eye(4, device='cuda')[None], K, 64, 64)
 print('gsplat', gsplat.__version__, 'ok', float(out[1].sum()))
 " > "$STAGE/logs/build_gsplat.log" 2>&1; echo "build gsplat: rc $?") &
+  fi
   wait
   tail -n 3 "$STAGE"/logs/build_*.log
-  $PY -c "import diff_surfel_rasterization, simple_knn._C; print('2DGS extensions import')"
+  for m in diff_surfel_rasterization simple_knn._C diff_plane_rasterization nvdiffrast.torch diso; do
+    $PY -c "import torch, $m" 2>/dev/null && echo "import $m: ok" || echo "import $m: MISSING"
+  done
   ;;
 launch)
   # SERIAL=1: one job after another in one background chain (clean timings); else all at once
@@ -76,6 +102,13 @@ launch)
         wtopo_noloop) c=("$PY" "$HERE/run_wtopo.py" "$e" "$out" --no-loop ${WTOPO_ARGS:-}) ;;
         gsplat) c=("$PY" "$HERE/run_gsplat.py" "$e" "$out") ;;
         2dgs) c=("$PY" "$HERE/run_2dgs.py" "$e" "$out" --checkout "$STAGE/peers/2dgs") ;;
+        pgsr|pgsr_nomesh)
+          c=("$PY" "$HERE/run_pgsr.py" "$e" "$out" --checkout "$STAGE/peers/pgsr_dpsr"
+             --init-checkout "$STAGE/peers/pgsr_init")
+          if [ "$s" = pgsr_nomesh ]; then c+=(--no-mesh-stage)
+          elif [[ " $* " != *" pgsr_nomesh "* ]]; then
+            c+=(--nomesh-out "$STAGE/res/$name/pgsr_nomesh"); rm -rf "$STAGE/res/$name/pgsr_nomesh"
+          fi ;;
         *) echo "unknown system $s"; exit 2 ;;
       esac
       rm -rf "$out" "$out.rc"; mkdir -p "$out"

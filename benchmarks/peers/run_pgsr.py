@@ -1,0 +1,209 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The TopoSurfel authors' code (``Fan-Treasure/pgsr_dpsr``) on an exchange folder (the peers benchmark).
+
+PGSR with a DPSR proxy mesh, with and without its mesh stage.
+
+Its ``train.py`` starts from a per-scene ``mesh_init.ply`` in the source folder (``train.py:110-113``, no
+fallback) that nothing in the repository makes. So, in two stages, each with the repository's own DTU
+recipe (``scripts/run_dtu.py``: ``train.py -r2 --ncc_scale 0.5``, then ``render.py --num_cluster 1
+--voxel_size 0.002 --max_depth 5.0`` with ``OMP_NUM_THREADS=4``):
+
+1. warm-up: the same repository's earlier plain-PGSR commit (``de24f1a``, ``--init-checkout``) trains
+   30,000 iterations (its default) from the exchange folder's initial points; its TSDF mesh
+   (``mesh/tsdf_fusion_post.ply``) becomes ``mesh_init.ply``;
+2. mesh stage: the newest commit (``--checkout``) trains 10,000 iterations (its default) from that mesh,
+   with the DPSR proxy mesh from iteration 5,000 (mesh-guided normal flips, mesh-guided densification,
+   mesh depth / normal losses), and its ``render.py`` makes the TSDF mesh that is scored.
+
+``--no-mesh-stage`` stops after stage 1 and scores the warm-up's own mesh: plain PGSR, the authors'
+code without its mesh stage. ``-r 1`` instead of ``-r2``: the exchange folder is already at the
+training resolution (as for 2DGS); ``--ncc_scale 0.5`` is kept (the NCC patches then span the same
+training pixels as in the recipe). No ``--eval``: the COLMAP model holds the training views only, and
+the held-out views are rendered afterwards with the checkout's renderer (``_pgsr_views.py``). The source
+folder PGSR reads (``sparse/*.txt``: the recipe's ``cp sparse/0/* sparse/``; ``images`` linked;
+``mesh_init.ply``) is made under OUT, since PGSR writes into it. Needs the CUDA extensions
+``diff_plane_rasterization``, ``simple_knn``, and for the mesh stage ``nvdiffrast`` and ``diso``
+importable, and ``shims/`` (pytorch3d, pymeshlab, kaolin, igl stand-ins) on the path.
+
+    python benchmarks/peers/run_pgsr.py EXCH OUT --checkout PATH [--init-checkout PATH] [--no-mesh-stage]
+        [--iterations 10000] [--warmup-iterations 30000] [--nomesh-out DIR] [--mesh-only ITERATION]
+
+``--nomesh-out DIR`` also writes the warm-up's own result (plain PGSR, timed alone) from the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+from _result import read_json, write_result  # noqa: E402
+from exchange import load  # noqa: E402
+
+# the repository's DTU recipe (scripts/run_dtu.py), less -r2 (the exchange folder is at training resolution)
+TRAIN_ARGS = ["--quiet", "-r", "1", "--ncc_scale", "0.5"]
+MESH_ARGS = ["--quiet", "--num_cluster", "1", "--voxel_size", "0.002", "--max_depth", "5.0"]
+
+
+def _env() -> dict:
+    """The children's environment: the shims on the path, the recipe's OMP_NUM_THREADS=4 for render.py."""
+    env = dict(os.environ)
+    shims = os.path.join(HERE, "shims")
+    path = env.get("PYTHONPATH", "")
+    if shims not in path.split(os.pathsep):
+        env["PYTHONPATH"] = shims + (os.pathsep + path if path else "")
+    return env
+
+
+def _run(cmd: list[str], cwd: str, log, **env) -> None:
+    log.write("$ " + " ".join(cmd) + "\n")
+    log.flush()
+    subprocess.run(cmd, cwd=cwd, stdout=log, stderr=subprocess.STDOUT, check=True, env={**_env(), **env})
+
+
+def source_folder(exchange: str, dst: str) -> str:
+    """PGSR's source folder for the exchange folder's COLMAP model: ``sparse/{cameras,images,points3D}.txt``
+    (copies: PGSR writes ``sparse/points3D.ply`` and reads ``mesh_init.ply`` here) and ``images`` (a link)."""
+    col = os.path.abspath(os.path.join(exchange, "colmap"))
+    os.makedirs(os.path.join(dst, "sparse"), exist_ok=True)
+    for name in ("cameras.txt", "images.txt", "points3D.txt"):
+        shutil.copyfile(os.path.join(col, "sparse", "0", name), os.path.join(dst, "sparse", name))
+    link = os.path.join(dst, "images")
+    if not os.path.lexists(link):
+        os.symlink(os.path.join(col, "images"), link)
+    return os.path.abspath(dst)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("exchange")
+    ap.add_argument("out")
+    ap.add_argument("--checkout", required=True, help="path of a pgsr_dpsr checkout (its newest commit)")
+    ap.add_argument("--init-checkout", default=None,
+                    help="path of the same repository at its plain-PGSR commit de24f1a (the warm-up); "
+                         "default: pgsr_init beside --checkout")
+    ap.add_argument("--no-mesh-stage", action="store_true", help="the warm-up (plain PGSR) only")
+    ap.add_argument("--iterations", type=int, default=10_000, help="mesh stage (pgsr_dpsr's default)")
+    ap.add_argument("--warmup-iterations", type=int, default=30_000, help="warm-up (PGSR's default)")
+    ap.add_argument("--nomesh-out", default=None, metavar="DIR",
+                    help="also write the warm-up's own result (plain PGSR, its time alone) to DIR")
+    ap.add_argument("--mesh-only", type=int, default=None, metavar="ITERATION",
+                    help="skip training: mesh and render this iteration's checkpoint of an earlier run "
+                         "(the final stage's: the warm-up's with --no-mesh-stage)")
+    a = ap.parse_args(argv)
+
+    load(a.exchange)  # fails before any training on a folder that is not an exchange folder
+    head = os.path.abspath(a.checkout)
+    init = os.path.abspath(a.init_checkout or os.path.join(os.path.dirname(head), "pgsr_init"))
+    for path, what in ((init, "--init-checkout"), (head, "--checkout")):
+        if not os.path.exists(os.path.join(path, "train.py")):
+            sys.exit(f"{what}: no train.py in {path}")
+    out = os.path.abspath(a.out)
+    os.makedirs(out, exist_ok=True)
+    src = source_folder(a.exchange, os.path.join(out, "source"))
+    warm, model = os.path.join(out, "warmup"), os.path.join(out, "model")
+    final, final_ckout = (warm, init) if a.no_mesh_stage else (model, head)
+    it = a.mesh_only or (a.warmup_iterations if a.no_mesh_stage else a.iterations)  # the final stage's
+    py = sys.executable
+    peaks = []
+
+    def peak(name):
+        peaks.append(os.path.join(out, f"peak_{name}.json"))
+        return [py, os.path.join(HERE, "_peak.py"), peaks[-1]]
+
+    times = {}
+    with open(os.path.join(out, "log.txt"), "a") as log:
+        t0 = t = time.perf_counter()
+
+        def lap(name):
+            nonlocal t
+            now = time.perf_counter()
+            times[name] = now - t
+            t = now
+
+        if a.mesh_only is None:
+            shutil.rmtree(warm, ignore_errors=True)
+            shutil.rmtree(model, ignore_errors=True)
+            # 1. warm-up: plain PGSR (de24f1a) and its TSDF mesh
+            _run(peak("warmup_train") + ["train.py", "-s", src, "-m", warm, *TRAIN_ARGS, "--test_iterations", "-1",
+                                         "--iterations", str(a.warmup_iterations)], init, log)
+            lap("warmup_train_s")
+            _run(peak("warmup_mesh") + ["render.py", "-m", warm, *MESH_ARGS, "--iteration", str(a.warmup_iterations)],
+                 init, log, OMP_NUM_THREADS="4")
+            lap("warmup_mesh_s")
+            if not a.no_mesh_stage:
+                # 2. mesh stage: pgsr_dpsr from the warm-up's mesh
+                shutil.copyfile(os.path.join(warm, "mesh", "tsdf_fusion_post.ply"), os.path.join(src, "mesh_init.ply"))
+                _run(peak("train") + ["train.py", "-s", src, "-m", model, *TRAIN_ARGS, "--test_iterations", "-1",
+                                      "--iterations", str(a.iterations)], head, log)
+                lap("train_s")
+                _run(peak("mesh") + ["render.py", "-m", model, *MESH_ARGS, "--iteration", str(a.iterations)],
+                     head, log, OMP_NUM_THREADS="4")
+                lap("mesh_s")
+        else:
+            _run(peak("mesh") + ["render.py", "-m", final, *MESH_ARGS, "--iteration", str(it)], final_ckout, log,
+                 OMP_NUM_THREADS="4")
+        wall = time.perf_counter() - t0
+        done = a.mesh_only is None
+        warm_it = a.mesh_only if a.no_mesh_stage and not done else a.warmup_iterations
+        if a.no_mesh_stage:
+            _finish(a.out, a.exchange, warm, init, warm_it, log, system=_system(warm_it, None),
+                    run=_run_json(warm_it, None, wall if done else None,
+                                  times if done else {}, peaks if done else None))
+        else:
+            _finish(a.out, a.exchange, model, head, it, log, system=_system(a.warmup_iterations, it),
+                    run=_run_json(a.warmup_iterations, it, wall if done else None,
+                                  times if done else {}, peaks if done else None))
+            if a.nomesh_out and done:  # the warm-up alone is plain PGSR: its own result, its own time
+                _finish(a.nomesh_out, a.exchange, warm, init, warm_it, log, system=_system(warm_it, None),
+                        run=_run_json(warm_it, None, times["warmup_train_s"] + times["warmup_mesh_s"],
+                                      {k: times[k] for k in ("warmup_train_s", "warmup_mesh_s")}, peaks[:2]))
+
+
+def _system(warmup_it: int, mesh_it) -> str:
+    if mesh_it is None:
+        return "PGSR (authors', no mesh stage)" if warmup_it == 30_000 else f"PGSR (authors', {warmup_it:,} it.)"
+    if (warmup_it, mesh_it) == (30_000, 10_000):
+        return "PGSR+DPSR (authors')"
+    return f"PGSR+DPSR (authors', {warmup_it:,} + {mesh_it:,} it.)"
+
+
+def _run_json(warmup_it: int, mesh_it, wall, times: dict, peaks) -> dict:
+    """run.json less the surfel count and the held-out renders' peak (``_finish`` adds them).
+
+    ``wall`` / ``peaks`` are None when only an earlier run's checkpoint was meshed (its training's time
+    and memory are not known here)."""
+    stage = "" if mesh_it is None else f" + pgsr_dpsr {mesh_it:,} it. from that mesh (DPSR proxy mesh from it. 5,000)"
+    return {"wall_s": wall, **times,
+            "iterations": warmup_it + (mesh_it or 0), "warmup_iterations": warmup_it, "mesh_stage_iterations": mesh_it,
+            "_peaks": peaks,
+            "recipe": (f"PGSR de24f1a {warmup_it:,} it., its TSDF mesh{stage}; DTU recipe with -r 1 "
+                       "--ncc_scale 0.5; TSDF voxel 0.002, truncation 0.008, max depth 5.0, 1 cluster")}
+
+
+def _finish(out: str, exchange: str, model: str, checkout: str, it: int, log, *, system: str, run: dict) -> None:
+    """Render the held-out views of ``model`` at ``it`` and write the result folder ``out``."""
+    import trimesh
+
+    os.makedirs(out, exist_ok=True)
+    views = os.path.join(os.path.abspath(out), "views.npz")
+    _run([sys.executable, os.path.join(HERE, "_pgsr_views.py"), model, str(it), os.path.abspath(exchange), views],
+         checkout, log)
+    mesh = trimesh.load(os.path.join(model, "mesh", "tsdf_fusion_post.ply"), process=False)
+    v = np.load(views)
+    peaks = run.pop("_peaks")
+    run["surfels"] = int(v["n"])
+    # the processes' peaks (training, meshing, held-out renders); unknown for an earlier run's training
+    gpu = [read_json(p)["peak_gpu_bytes"] for p in peaks or () if os.path.exists(p)] + [int(v["peak"])]
+    run["peak_gpu_bytes"] = None if peaks is None else max(gpu)
+    write_result(out, system=system, mesh=mesh, renders=v["rgb"].astype(np.float32), run=run)
+
+if __name__ == "__main__":
+    main()
