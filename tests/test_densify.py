@@ -3,6 +3,7 @@
 
 import math
 
+import pytest
 import torch
 
 from wtopo.fitting import densify as D
@@ -246,3 +247,29 @@ def test_a_scene_densifies_by_gradient_although_its_background_leaves_no_gap(mon
         st.step_end(warmup, 200, s)
         assert (len(s) > 10) == grows, (background, len(s))
         assert ("densify" in events) == grows and ("densify_skipped" in events) != grows
+
+
+@pytest.mark.parametrize("warmup,interval", [(3000, 100), (1500, 100), (800, 100), (400, 50), (150, 18), (1000, 30),
+                                             (1234, 37)])
+def test_opacity_resets_fall_on_the_density_step_nearest_each_intended_iteration(warmup, interval, monkeypatch):
+    """Reset (or skip, too late) at the density step nearest every multiple of the reset period, whatever the
+    warm-up and interval: the CUDA budget's 2,250 of 3,000 against steps every 100 resets at 2,300."""
+    from wtopo.fitting import _strategy as strategy
+    from wtopo.fitting.config import stage_iteration
+
+    s, _ = _surfels(n=10)
+    st, events, warm = _strategy(None, monkeypatch)
+    st.densify = False
+    st.warmup_end = warmup
+    st.cfg.densify.interval = interval
+    every = stage_iteration(st.cfg.densify.opacity_reset_fraction, warmup)
+    at = []
+    st.record = lambda name, **kw: at.append((it, name))
+    for it in range(warmup):
+        st.step_end(warm, it, s)
+    got = sorted(it for it, name in at if name in ("opacity_reset", "opacity_reset_skipped"))
+    steps = [t for t in range(0, warmup, interval) if t >= stage_iteration(strategy.DENSIFY_START, warmup)]
+    nearest = {min(range(0, 2 * warmup, interval), key=lambda t: (abs(t - k * every), -t))
+               for k in range(1, warmup // every + 1)}
+    want = sorted(t for t in nearest if t in steps and t < strategy.DENSIFY_STOP * warmup)
+    assert got == want and got, (got, want)

@@ -44,18 +44,38 @@ def test_plan_tells_objects_from_scenes(room):
     assert make_plan(room.normalized(), cfg, dev).scene_kind == "object"
 
 
-def test_plan_runs_the_mesh_loop_for_objects_only(room):
-    """Leave the proxy-mesh loop out for a scene, run it for an object, honour an explicit setting."""
+def test_plan_runs_the_mesh_loop_and_the_reinit_for_objects_only(room):
+    """Leave the proxy-mesh loop out for a scene and with it the TSDF re-initialisation (its reason printed; the
+    background rule needs no TSDF mesh); run both for an object and for a scene with the loop; honour explicit
+    settings."""
     dev = torch.device("cpu")
     p = make_plan(room.normalized(), FitConfig(), dev)
     assert p.mesh_loop is False and "scene" in p.reasons["mesh_loop"]
+    assert p.tsdf_reinit is False and "proxy-mesh loop" in p.reasons["tsdf_reinit"] and "skipped" in str(p)
+    assert p.background_rule is True
+    resolved = resolve_config(FitConfig(), p)
+    assert resolved.coevolution.enabled is False and resolved.tsdf.enabled is False
     masked = scenes.from_mesh(trimesh.creation.icosphere(subdivisions=2), n_views=8, resolution=24)
-    assert make_plan(masked.normalized(), FitConfig(), dev).mesh_loop is True
+    q = make_plan(masked.normalized(), FitConfig(), dev)
+    assert q.mesh_loop is True and q.tsdf_reinit is True
     cfg = FitConfig()
     cfg.coevolution.enabled = True
     p = make_plan(room.normalized(), cfg, dev)
-    assert p.mesh_loop is True and "mesh_loop" in p.overrides
-    assert resolve_config(FitConfig(), make_plan(room.normalized(), FitConfig(), dev)).coevolution.enabled is False
+    assert p.mesh_loop is True and "mesh_loop" in p.overrides and p.tsdf_reinit is True
+    cfg = FitConfig()
+    cfg.tsdf.enabled = True
+    p = make_plan(room.normalized(), cfg, dev)
+    assert p.mesh_loop is False and p.tsdf_reinit is True and "tsdf_reinit" in p.overrides
+
+
+def test_scene_fit_without_reinit_keeps_its_warm_up_surfels(room):
+    """The co-evolution of a scene goes on from the warm-up's own surfels: no re-initialisation event, no TSDF
+    record, and the warm-up's surfel count carries over (nothing was replaced by one surfel per face)."""
+    res = wtopo.fit(room, _small(warmup=20, coevolution=4), progress=False)
+    assert "tsdf_reinit" not in {e["event"] for e in res.report["events"]}
+    stages = [h["stage"] for h in res.history]
+    assert "tsdf" not in stages and stages[0] == "warmup" and res.history[0]["iteration"] == 20
+    assert res.history[-1]["surfels"] == res.history[0]["surfels"] and len(res.mesh.faces) > 0
 
 
 def test_plan_gives_a_scene_an_open_proxy(room):
@@ -276,6 +296,35 @@ def test_plan_counts_only_the_training_views():
     few = scenes.from_mesh(mesh, n_views=8, resolution=24)  # under 12 views nothing is held out
     p = make_plan(few.normalized(), FitConfig(), dev)
     assert p.eval_views == 0 and split_views(few, p.eval_views) == (list(range(8)), [])
+
+
+def test_plan_gives_textured_photographs_without_depth_sh_degree_3():
+    """Enough textured training views and no depth to test view dependence: degree 3 (3DGS, 2DGS); the same
+    capture with depth maps is decided by how its colours reproject instead."""
+    import dataclasses
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    dev = torch.device("cpu")
+    sc = scenes.from_mesh(mesh, n_views=26, resolution=24, texture="coffee")
+    assert "reprojected colours" in make_plan(sc.normalized(), FitConfig(), dev).reasons["sh_degree"]
+    photos = dataclasses.replace(sc, depths=None)
+    p = make_plan(photos.normalized(), FitConfig(), dev)
+    assert p.sh_degree == 3 and "no depth" in p.reasons["sh_degree"]
+
+
+def test_window_texture_leaves_clipped_windows_out():
+    """Saturated white and black windows carry no texture to match: with 80 % of the picture clipped the
+    median window std is the textured part's (the multi-view gate opens), not 0; a flat grey picture stays 0."""
+    from wtopo.fitting.plan import _MULTIVIEW_TEXTURE, _window_std
+
+    g = torch.Generator().manual_seed(0)
+    img = 0.5 + 0.1 * torch.randn(4, 40, 100, 3, generator=g)  # textured: window std ~0.07
+    img[:, :, :40] = 1.0  # saturated highlight
+    img[:, :, 40:80] = 0.0  # black
+    textured = _window_std(img.numpy(), None)
+    assert textured > 2 * _MULTIVIEW_TEXTURE, textured
+    assert _window_std(np.full((4, 40, 100, 3), 0.5, np.float32), None) == 0.0
+    assert _window_std(np.ones((4, 40, 100, 3), np.float32), None) == 0.0  # nothing left: no texture
 
 
 def test_plan_image_statistics_read_only_the_training_photographs():

@@ -41,7 +41,8 @@ class Plan:
     mask_loss: float
     """Alpha-vs-mask weight; ``losses.mask``."""
     background_rule: bool
-    """Scenes: background surfels far from the TSDF mesh survive the re-initialisation."""
+    """Scenes: steps outside the region of interest are contracted, surfels on a lens pruned, background surfels
+    spared by the geometry-aware prune, and a TSDF re-initialisation (when one runs) keeps those far from its mesh."""
     background_points: int
     """Background surfels on shells beyond the cameras; ``init.background_points``."""
     background: tuple[float, float, float]
@@ -77,7 +78,7 @@ class Plan:
     eval_views: int
     """Views held out for PSNR (the scene's test split, else ``runtime.eval_views`` with 12 views or more)."""
     tsdf_reinit: bool
-    """The TSDF re-initialisation runs; ``tsdf.enabled``."""
+    """The TSDF re-initialisation runs (not on a scene whose proxy-mesh loop is off); ``tsdf.enabled``."""
     tsdf_backend: TSDFBackend
     """Which TSDF fusion runs; ``tsdf.backend``."""
     mesh_loop: bool

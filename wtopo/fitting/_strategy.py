@@ -29,7 +29,7 @@ from .proxy import ProxyMesh
 from .stages import ROI_EXTENT, Record, Stage
 from .surfels import Surfels
 
-__all__ = ["DensityStrategy", "StepInfo"]
+__all__ = ["DensityStrategy", "StepInfo", "is_reset_step"]
 
 _GAP_EMA = 0.9  # smoothing of the running uncovered-pixel fraction
 _GAP_THRESHOLD = 0.002  # clone/split runs while more than this fraction of object pixels is uncovered
@@ -65,6 +65,21 @@ class StepInfo:
     covered: torch.Tensor
     mask: torch.Tensor | None
     camera: object
+
+
+def is_reset_step(it: int, every: int, interval: int) -> bool:
+    """Whether the density step ``it`` (a multiple of ``interval``) is the one nearest an intended opacity reset.
+
+    Resets are meant every ``every`` iterations (``every``, ``2 * every``, ...), but density control runs only
+    every ``interval``: an intended iteration ``t`` falls on the step ``interval * floor(t / interval + 1/2)``
+    (halves to the later step, as :func:`~.config.stage_iteration` rounds), i.e. ``it`` takes every ``t`` in
+    ``[it - interval / 2, it + interval / 2)``, so ``every`` need not be a multiple of ``interval`` (the CUDA
+    budget's reset at 2,250 of a 3,000-iteration warm-up runs at the step of 2,300). Several intended resets in
+    one window reset once.
+    """
+    first = max(1, -((interval - 2 * it) // (2 * every)))  # ceil((2 it - interval) / (2 every)), from the first
+    last = -(-(2 * it + interval) // (2 * every)) - 1  # ceil((2 it + interval) / (2 every)) - 1
+    return last >= first
 
 
 class DensityStrategy:
@@ -148,12 +163,14 @@ class DensityStrategy:
                                 lambda: torch.as_tensor(cam.center, dtype=torch.float32, device=dev))
             dens.accumulate_view_directions(surfels, center, visible)
 
+    def _interval(self) -> int:
+        """Iterations between density steps (``densify.interval``)."""
+        return max(1, self.cfg.densify.interval or _DENSIFY_INTERVAL[1])  # None: a configuration not yet resolved
+
     def is_density_step(self, stage: Stage, it: int) -> bool:
         """Whether :meth:`step_end` runs density control at iteration ``it``."""
-        dc = self.cfg.densify
         start = stage_iteration(DENSIFY_START, self.warmup_end)
-        interval = dc.interval or _DENSIFY_INTERVAL[1]  # None: a configuration the plan has not resolved
-        return stage == Stage.WARMUP and it >= start and it % max(1, interval) == 0
+        return stage == Stage.WARMUP and it >= start and it % self._interval() == 0
 
     def step_end(self, stage: Stage, it: int, surfels: Surfels) -> bool:
         """Warm-up clone / split, prune and opacity reset on the ``densify`` schedule; returns whether
@@ -181,12 +198,12 @@ class DensityStrategy:
                     self.record("near_camera_prune", removed=near)
                 changed |= near > 0
             reset_every = max(1, stage_iteration(dc.opacity_reset_fraction, W)) if dc.opacity_reset_fraction else 0
-            if reset_every and it % reset_every == 0 and it < DENSIFY_STOP * W:
+            if reset_every and is_reset_step(it, reset_every, self._interval()) and it < DENSIFY_STOP * W:
                 if W - it >= _RESET_RECOVERY:
                     dens.reset_opacity(surfels, _OPACITY_RESET_VALUE)
                     self.record("opacity_reset", value=_OPACITY_RESET_VALUE)
                     changed = True
-                else:  # too late: the surfels would reach the TSDF re-initialisation still transparent
+                else:  # too late: the surfels would reach the warm-up's end (the re-initialisation) still transparent
                     self.record("opacity_reset_skipped", remaining_warmup=W - it)
         return changed
 

@@ -119,8 +119,9 @@ class WarmupConfig:
 class TSDFConfig:
     """Stage 3: TSDF fusion of rendered surfel depth, re-initialising the surfels (bounds are automatic)."""
 
-    enabled: bool = True
-    """Re-initialise the surfels from the fused mesh between warm-up and co-evolution."""
+    enabled: bool | None = None
+    """Re-initialise the surfels from the fused mesh between warm-up and co-evolution; ``None``: the plan's (off
+    for a scene whose proxy-mesh loop is off, where nothing would use the re-initialised surfels; on otherwise)."""
     resolution: int = _f(128, Range(_GRID_MIN, _TSDF_MAX))
     """Voxels along the longest side of the automatic bounds."""
     max_faces: int | None = _f(None, POSITIVE)
@@ -242,7 +243,8 @@ class FitConfig:
     """``OBJECT`` (closed mesh) or ``SCENE`` (background kept, open mesh of the region of interest);
     ``None``: the plan's (object when the scene has masks)."""
     sh_degree: int | None = _f(None, Range(0, _SH_MAX))
-    """SH degree of the colours (0..3); ``None``: the plan's (0 for an untextured or diffuse scene)."""
+    """SH degree of the colours (0..3); ``None``: the plan's (0 for an untextured or diffuse scene or one of under
+    20 training views, else 3)."""
     background: tuple[float, float, float] | None = _f(None, FRACTION)
     """RGB background colour behind the surfels, in [0, 1]; ``None``: the scene's, else black."""
     filter_sigma: float = _f(0.35, Range(*FILTER_SIGMA_RANGE))

@@ -26,6 +26,7 @@ __all__ = ["Plan", "make_plan", "resolve_config", "split_views", "views_per_poin
 _TEXTURE_STD = 0.02  # colour std (in [0,1] units) below which the foreground counts as untextured
 _VIEW_CONSISTENCY = 0.04  # mean reprojected colour difference below which the scene counts as diffuse
 _MIN_SH_VIEWS = 20  # fewer views than this cannot constrain view-dependent colour
+_VIEW_DEPENDENT_SH = 3  # SH degree where view-dependent colour is found or cannot be ruled out: 3DGS's and 2DGS's
 _MIN_EVAL_VIEWS = 12
 # Per-device budgets and rules below: the measurements behind each value are in design/decisions.md. The
 # iterations, image-size cap and grid ranges are the preset's (wtopo.fitting.presets).
@@ -70,6 +71,10 @@ _MULTIVIEW_WEIGHT = 0.15  # PGSR's multi-view NCC weight
 # median 7x7 grey std below which the multi-view term is left out (measured: the flat-albedo blob 0.009,
 # every textured scene of the suite and the rigs >= 0.043)
 _MULTIVIEW_TEXTURE = 0.02
+# a window whose grey levels all lie above _CLIPPED[1] or all below _CLIPPED[0] is clipped (saturated white,
+# black): no texture to measure there, and it is left out of the median (DTU scan24, whose white table and black
+# backdrop clip: 0.018 over every window, 0.035 without the clipped ones; the bunny 0.1054 -> 0.1056)
+_CLIPPED = (0.05, 0.98)
 
 
 def _as_np(x):
@@ -95,14 +100,21 @@ def _texture_std(images: np.ndarray, masks: np.ndarray | None) -> float:
 
 def _window_std(images: np.ndarray, masks: np.ndarray | None, window: int = 7) -> float:
     """Median grey-level standard deviation of ``window`` x ``window`` windows over the foreground
-    (mask) pixels of up to 8 views: the texture a patch comparison between views can match."""
+    (mask) pixels of up to 8 views: the texture a patch comparison between views can match. Clipped windows
+    (every grey level below ``_CLIPPED[0]`` or above ``_CLIPPED[1]``: saturated highlights, black) are left
+    out; 0.0 when nothing is left."""
     step = max(1, images.shape[0] // 8)
     g = _gray(torch.as_tensor(images[::step].astype(np.float32)))[:, None]
-    mu = F.avg_pool2d(g, window, 1, window // 2, count_include_pad=False)
-    mu2 = F.avg_pool2d(g * g, window, 1, window // 2, count_include_pad=False)
+    pad = window // 2
+    mu = F.avg_pool2d(g, window, 1, pad, count_include_pad=False)
+    mu2 = F.avg_pool2d(g * g, window, 1, pad, count_include_pad=False)
     std = (mu2 - mu * mu).clamp_min(0).sqrt()[:, 0]
+    hi = F.max_pool2d(g, window, 1, pad)[:, 0]
+    lo = -F.max_pool2d(-g, window, 1, pad)[:, 0]
+    keep = (hi >= _CLIPPED[0]) & (lo <= _CLIPPED[1])
     if masks is not None:
-        std = std[torch.as_tensor(masks[::step].astype(bool))]
+        keep &= torch.as_tensor(masks[::step].astype(bool))
+    std = std[keep]
     return float(std.median()) if std.numel() else 0.0
 
 
@@ -220,7 +232,8 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
              cfg.losses.mask)
     plan.set("background_rule", is_scene,
              "object: nothing behind it to keep" if not is_scene
-             else "scene: background surfels far from the TSDF mesh keep their warm-up parameters")
+             else "scene: contracted steps outside the region of interest, nothing on a lens, background spared by "
+                  "the geometry-aware prune; a TSDF re-initialisation keeps the surfels far from its mesh")
     n_bg = int(cfg.init.num_points) if is_scene else 0
     plan.set("background_points", n_bg,
              "scene: surfels on shells beyond the cameras hold the background at distance" if is_scene
@@ -242,9 +255,10 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
         if np.isfinite(inc) and inc < _VIEW_CONSISTENCY:
             deg, why = 0, f"diffuse: reprojected colours differ by {inc:.3f} (< {_VIEW_CONSISTENCY}) between views"
         else:
-            deg, why = 1, f"view-dependent colour: reprojected colours differ by {inc:.3f}"
+            deg, why = _VIEW_DEPENDENT_SH, f"view-dependent colour: reprojected colours differ by {inc:.3f}"
     else:
-        deg, why = 1, f"textured (colour std {tex:.3f}) and no depth to test view dependence"
+        deg, why = _VIEW_DEPENDENT_SH, (f"textured (colour std {tex:.3f}), {n_views} training views and no depth to "
+                                        "test view dependence: the degree of 3DGS and 2DGS")
     plan.set("sh_degree", deg, why, cfg.sh_degree)
 
     # -- multi-view consistency (PGSR's patch NCC): it needs texture that windows can match
@@ -252,11 +266,11 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     if n_views < 2:
         mv, why = 0.0, "one view: no neighbour to compare with"
     elif wstd < _MULTIVIEW_TEXTURE:
-        mv, why = 0.0, (f"shading only (median 7x7 grey std {wstd:.4f} < {_MULTIVIEW_TEXTURE}): windows do not "
-                        "match between views (flat-albedo blob: Chamfer 0.34 -> 0.50 % with the term)")
+        mv, why = 0.0, (f"shading only (median 7x7 grey std {wstd:.4f} of unclipped windows < {_MULTIVIEW_TEXTURE}): "
+                        "windows do not match between views (flat-albedo blob: Chamfer 0.34 -> 0.50 % with the term)")
     else:
-        mv, why = _MULTIVIEW_WEIGHT, (f"textured (median 7x7 grey std {wstd:.3f}): patch NCC against two "
-                                      "neighbouring views from mid warm-up")
+        mv, why = _MULTIVIEW_WEIGHT, (f"textured (median 7x7 grey std {wstd:.3f} of unclipped windows): patch NCC "
+                                      "against two neighbouring views from mid warm-up")
     plan.set("multiview", mv, why, cfg.losses.multiview)
 
     # -- density control
@@ -292,8 +306,6 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     plan.set("eval_views", n_eval, eval_why)
 
     # -- stages
-    plan.set("tsdf_reinit", cfg.tsdf.enabled, "configuration" if not cfg.tsdf.enabled else
-             "re-initialise from fused surfel depth between warm-up and co-evolution")
     if device.type == "cuda":
         backend, why = "warp", "CUDA: the Warp TSDF kernel fuses on the GPU"
     elif importlib.util.find_spec("open3d") is not None:
@@ -310,6 +322,16 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     else:
         loop, why = True, "object: proxy mesh rebuilt and supervising the surfels"
     plan.set("mesh_loop", loop, why, cfg.coevolution.enabled)
+    if is_scene and not plan["mesh_loop"]:
+        reinit, why = False, ("scene without the proxy-mesh loop: nothing would use a re-initialised scaffold, and "
+                              "replacing the warm-up's surfels cost DTU scan24 6.0 dB held-out PSNR that the "
+                              "co-evolution did not win back (25.40 -> 19.37 -> 25.13 dB on an H200)")
+    else:
+        reinit, why = True, ("re-initialise from fused surfel depth between warm-up and co-evolution: the proxy "
+                             "loop starts from its scaffold" if plan["mesh_loop"] else
+                             "re-initialise from fused surfel depth between warm-up and co-evolution (object: the "
+                             "components the views support)")
+    plan.set("tsdf_reinit", reinit, why, cfg.tsdf.enabled)
     if is_scene:
         lvl, why = _SCENE_LEVEL_SIGMA, (f"scene: the proxy's zero level is local ({_SCENE_LEVEL_SIGMA:g} cells), so "
                                         "a ground the region of interest cuts keeps its crossing beside closed parts")
