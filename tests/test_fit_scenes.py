@@ -315,7 +315,8 @@ def test_plan_gives_textured_photographs_without_depth_sh_degree_3():
 def test_window_texture_leaves_clipped_windows_out():
     """Saturated white and black windows carry no texture to match: with 80 % of the picture clipped the
     median window std is the textured part's (the multi-view gate opens), not 0; a flat grey picture stays 0."""
-    from wtopo.fitting.plan import _MULTIVIEW_TEXTURE, _window_std
+    from wtopo.fitting._image_stats import window_std as _window_std
+    from wtopo.fitting.plan import _MULTIVIEW_TEXTURE
 
     g = torch.Generator().manual_seed(0)
     img = 0.5 + 0.1 * torch.randn(4, 40, 100, 3, generator=g)  # textured: window std ~0.07

@@ -13,10 +13,9 @@ import importlib.util
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
-from ..geometry.mvs import gray as _gray
 from . import presets as _presets
+from ._image_stats import as_np, texture_std, view_inconsistency, window_std
 from ._plan_types import Plan, _Decisions
 from .config import FitConfig, InitSource, Preset, TSDFBackend
 from .scene_kind import SceneKind, analyse_layout
@@ -71,88 +70,6 @@ _MULTIVIEW_WEIGHT = 0.15  # PGSR's multi-view NCC weight
 # median 7x7 grey std below which the multi-view term is left out (measured: the flat-albedo blob 0.009,
 # every textured scene of the suite and the rigs >= 0.043)
 _MULTIVIEW_TEXTURE = 0.02
-# a window whose grey levels all lie above _CLIPPED[1] or all below _CLIPPED[0] is clipped (saturated white,
-# black): no texture to measure there, and it is left out of the median (DTU scan24, whose white table and black
-# backdrop clip: 0.018 over every window, 0.035 without the clipped ones; the bunny 0.1054 -> 0.1056)
-_CLIPPED = (0.05, 0.98)
-
-
-def _as_np(x):
-    if x is None:
-        return None
-    if isinstance(x, torch.Tensor):
-        return x.detach().cpu().numpy()
-    return np.asarray(x)
-
-
-def _texture_std(images: np.ndarray, masks: np.ndarray | None) -> float:
-    step = max(1, images.shape[0] // 8)
-    imgs = images[::step].astype(np.float32)
-    if masks is not None:
-        m = masks[::step].astype(bool)
-        px = imgs[m]
-    else:
-        px = imgs.reshape(-1, 3)
-    if px.shape[0] < 2:
-        return 0.0
-    return float(px.std(axis=0).mean())
-
-
-def _window_std(images: np.ndarray, masks: np.ndarray | None, window: int = 7) -> float:
-    """Median grey-level standard deviation of ``window`` x ``window`` windows over the foreground
-    (mask) pixels of up to 8 views: the texture a patch comparison between views can match. Clipped windows
-    (every grey level below ``_CLIPPED[0]`` or above ``_CLIPPED[1]``: saturated highlights, black) are left
-    out; 0.0 when nothing is left."""
-    step = max(1, images.shape[0] // 8)
-    g = _gray(torch.as_tensor(images[::step].astype(np.float32)))[:, None]
-    pad = window // 2
-    mu = F.avg_pool2d(g, window, 1, pad, count_include_pad=False)
-    mu2 = F.avg_pool2d(g * g, window, 1, pad, count_include_pad=False)
-    std = (mu2 - mu * mu).clamp_min(0).sqrt()[:, 0]
-    hi = F.max_pool2d(g, window, 1, pad)[:, 0]
-    lo = -F.max_pool2d(-g, window, 1, pad)[:, 0]
-    keep = (hi >= _CLIPPED[0]) & (lo <= _CLIPPED[1])
-    if masks is not None:
-        keep &= torch.as_tensor(masks[::step].astype(bool))
-    std = std[keep]
-    return float(std.median()) if std.numel() else 0.0
-
-
-def _view_inconsistency(scene, images: np.ndarray, depths: np.ndarray, rng: np.random.Generator) -> float:
-    """Mean colour difference of pixels reprojected between neighbouring views via the depth maps."""
-    cams = scene.cameras
-    n = len(cams)
-    centers = np.stack([c.center for c in cams])
-    diffs = []
-    for a in rng.choice(n, size=min(n, 6), replace=False):
-        d = np.linalg.norm(centers - centers[a], axis=1)
-        d[a] = np.inf
-        b = int(np.argmin(d))
-        dep = depths[a]
-        ii, jj = np.nonzero(dep > 0)
-        if ii.size == 0:
-            continue
-        pick = rng.choice(ii.size, size=min(ii.size, 2000), replace=False)
-        ii, jj = ii[pick], jj[pick]
-        dirs = cams[a].pixel_directions_camera()[ii, jj]
-        pc = dirs * dep[ii, jj][:, None]
-        pw = (pc - cams[a].t) @ cams[a].R  # camera -> world
-        uv, z = cams[b].project(pw)
-        u, v = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
-        ok = (z > 0) & (u >= 0) & (v >= 0) & (u < cams[b].width) & (v < cams[b].height)
-        if not ok.any():
-            continue
-        # visible in b: the reprojected depth matches b's depth map
-        zb = depths[b][v[ok], u[ok]]
-        vis = np.abs(zb - z[ok]) < 0.01 * np.abs(z[ok]).mean()
-        if vis.sum() < 10:
-            continue
-        ca = images[a][ii[ok][vis], jj[ok][vis]]
-        cb = images[b][v[ok][vis], u[ok][vis]]
-        diffs.append(np.abs(ca - cb).mean())
-    return float(np.mean(diffs)) if diffs else float("nan")
-
-
 def split_views(scene, eval_views: int) -> tuple[list[int], list[int]]:
     """``(training, held-out)`` camera indices of ``scene`` as the fit splits them: the scene's own test
     split, else ``eval_views`` evenly spaced views held out (neither end; fewer when ``eval_views``
@@ -191,9 +108,9 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     # the image statistics below read the photographs the fit trains on, never the held-out ones (the
     # normalisation and the region of interest still come from every view: analyse_layout)
     seen = scene.subset(train_idx) if 0 < n_views < len(scene.cameras) else scene
-    images = _as_np(seen.images)
-    masks = _as_np(getattr(seen, "masks", None))
-    depths = _as_np(getattr(seen, "depths", None))
+    images = as_np(seen.images)
+    masks = as_np(getattr(seen, "masks", None))
+    depths = as_np(getattr(seen, "depths", None))
     points = getattr(scene, "points", None)
     has_masks = masks is not None
     bg = getattr(scene, "background", None)
@@ -245,13 +162,13 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     plan.set("background", bg_val, why, None if cfg.background is None else tuple(cfg.background))
 
     # -- colour model
-    tex = _texture_std(images, masks)
+    tex = texture_std(images, masks)
     if tex < _TEXTURE_STD:
         deg, why = 0, f"untextured (foreground colour std {tex:.3f} < {_TEXTURE_STD})"
     elif n_views < _MIN_SH_VIEWS:
         deg, why = 0, f"{n_views} training views (< {_MIN_SH_VIEWS}) cannot constrain view-dependent colour"
     elif depths is not None:
-        inc = _view_inconsistency(seen, images, depths, rng)
+        inc = view_inconsistency(seen, images, depths, rng)
         if np.isfinite(inc) and inc < _VIEW_CONSISTENCY:
             deg, why = 0, f"diffuse: reprojected colours differ by {inc:.3f} (< {_VIEW_CONSISTENCY}) between views"
         else:
@@ -262,7 +179,7 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     plan.set("sh_degree", deg, why, cfg.sh_degree)
 
     # -- multi-view consistency (PGSR's patch NCC): it needs texture that windows can match
-    wstd = _window_std(images, masks)
+    wstd = window_std(images, masks)
     if n_views < 2:
         mv, why = 0.0, "one view: no neighbour to compare with"
     elif wstd < _MULTIVIEW_TEXTURE:
