@@ -4,7 +4,7 @@
 Runs the checkout's own ``train.py`` and ``render.py`` with its DTU recipe (``--depth_ratio 1.0
 --lambda_dist 1000``, 30,000 iterations; mesh: ``--num_cluster 1 --voxel_size 0.004 --sdf_trunc 0.016
 --depth_trunc 3.0``, the post-processed ``fuse_post.ply``) on the exchange folder's COLMAP model at its
-full resolution, then renders the held-out views with the checkout's renderer (``_2dgs_views.py``).
+full resolution, then renders the held-out views with the checkout's renderer (``_peer_views.py``).
 The checkout's CUDA extensions (``diff_surfel_rasterization``, ``simple_knn``) must be importable.
 
     python benchmarks/peers/run_2dgs.py EXCH OUT --checkout PATH [--iterations 30000]
@@ -71,7 +71,7 @@ def main(argv=None) -> None:
               "--sdf_trunc", "0.016", "--depth_trunc", "3.0"], a.checkout, log)
         wall = time.perf_counter() - t0
         views = os.path.join(a.out, "views.npz")
-        _run([py, os.path.join(HERE, "_2dgs_views.py"), model, str(it), os.path.abspath(a.exchange), views],
+        _run([py, os.path.join(HERE, "_peer_views.py"), "2dgs", model, str(it), os.path.abspath(a.exchange), views],
              a.checkout, log)
     mesh = trimesh.load(os.path.join(model, "train", f"ours_{it}", "fuse_post.ply"), process=False)
     v = np.load(views)

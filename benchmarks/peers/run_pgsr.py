@@ -19,7 +19,7 @@ recipe (``scripts/run_dtu.py``: ``train.py -r2 --ncc_scale 0.5``, then ``render.
 code without its mesh stage. ``-r 1`` instead of ``-r2``: the exchange folder is already at the
 training resolution (as for 2DGS); ``--ncc_scale 0.5`` is kept (the NCC patches then span the same
 training pixels as in the recipe). No ``--eval``: the COLMAP model holds the training views only, and
-the held-out views are rendered afterwards with the checkout's renderer (``_pgsr_views.py``). The source
+the held-out views are rendered afterwards with the checkout's renderer (``_peer_views.py``). The source
 folder PGSR reads (``sparse/*.txt``: the recipe's ``cp sparse/0/* sparse/``; ``images`` linked;
 ``mesh_init.ply``) is made under OUT, since PGSR writes into it. Needs the CUDA extensions
 ``diff_plane_rasterization``, ``simple_knn``, and for the mesh stage ``nvdiffrast`` and ``diso``
@@ -128,28 +128,26 @@ def main(argv=None) -> None:
             times[name] = now - t
             t = now
 
+        def stage(prefix, ckout, model_dir, iterations, train=True):
+            """``train.py`` then ``render.py`` (its TSDF mesh) of one stage, each timed and its peak recorded."""
+            if train:
+                _run(peak(prefix + "train") + ["train.py", "-s", src, "-m", model_dir, *TRAIN_ARGS, "--test_iterations",
+                                               "-1", "--iterations", str(iterations)], ckout, log)
+                lap(prefix + "train_s")
+            _run(peak(prefix + "mesh") + ["render.py", "-m", model_dir, *MESH_ARGS, "--iteration", str(iterations)],
+                 ckout, log, OMP_NUM_THREADS="4")
+            lap(prefix + "mesh_s")
+
         if a.mesh_only is None:
             shutil.rmtree(warm, ignore_errors=True)
             shutil.rmtree(model, ignore_errors=True)
-            # 1. warm-up: plain PGSR (de24f1a) and its TSDF mesh
-            _run(peak("warmup_train") + ["train.py", "-s", src, "-m", warm, *TRAIN_ARGS, "--test_iterations", "-1",
-                                         "--iterations", str(a.warmup_iterations)], init, log)
-            lap("warmup_train_s")
-            _run(peak("warmup_mesh") + ["render.py", "-m", warm, *MESH_ARGS, "--iteration", str(a.warmup_iterations)],
-                 init, log, OMP_NUM_THREADS="4")
-            lap("warmup_mesh_s")
+            stage("warmup_", init, warm, a.warmup_iterations)  # 1. plain PGSR (de24f1a) and its TSDF mesh
             if not a.no_mesh_stage:
                 # 2. mesh stage: pgsr_dpsr from the warm-up's mesh
                 shutil.copyfile(os.path.join(warm, "mesh", "tsdf_fusion_post.ply"), os.path.join(src, "mesh_init.ply"))
-                _run(peak("train") + ["train.py", "-s", src, "-m", model, *TRAIN_ARGS, "--test_iterations", "-1",
-                                      "--iterations", str(a.iterations)], head, log)
-                lap("train_s")
-                _run(peak("mesh") + ["render.py", "-m", model, *MESH_ARGS, "--iteration", str(a.iterations)],
-                     head, log, OMP_NUM_THREADS="4")
-                lap("mesh_s")
+                stage("", head, model, a.iterations)
         else:
-            _run(peak("mesh") + ["render.py", "-m", final, *MESH_ARGS, "--iteration", str(it)], final_ckout, log,
-                 OMP_NUM_THREADS="4")
+            stage("", final_ckout, final, it, train=False)
         wall = time.perf_counter() - t0
         done = a.mesh_only is None
         warm_it = a.mesh_only if a.no_mesh_stage and not done else a.warmup_iterations
@@ -194,8 +192,8 @@ def _finish(out: str, exchange: str, model: str, checkout: str, it: int, log, *,
 
     os.makedirs(out, exist_ok=True)
     views = os.path.join(os.path.abspath(out), "views.npz")
-    _run([sys.executable, os.path.join(HERE, "_pgsr_views.py"), model, str(it), os.path.abspath(exchange), views],
-         checkout, log)
+    _run([sys.executable, os.path.join(HERE, "_peer_views.py"), "pgsr", model, str(it), os.path.abspath(exchange),
+          views], checkout, log)
     mesh = trimesh.load(os.path.join(model, "mesh", "tsdf_fusion_post.ply"), process=False)
     v = np.load(views)
     peaks = run.pop("_peaks")

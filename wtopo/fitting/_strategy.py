@@ -77,9 +77,8 @@ def is_reset_step(it: int, every: int, interval: int) -> bool:
     budget's reset at 2,250 of a 3,000-iteration warm-up runs at the step of 2,300). Several intended resets in
     one window reset once.
     """
-    first = max(1, -((interval - 2 * it) // (2 * every)))  # ceil((2 it - interval) / (2 every)), from the first
-    last = -(-(2 * it + interval) // (2 * every)) - 1  # ceil((2 it + interval) / (2 every)) - 1
-    return last >= first
+    k = max(1, -((interval - 2 * it) // (2 * every)))  # the first intended reset at or after the window's start
+    return 2 * k * every < 2 * it + interval  # ... lies before its end
 
 
 class DensityStrategy:
