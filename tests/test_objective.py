@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """The objective's schedule of the co-evolution's mesh terms (the proxy every ``mesh_every``-th iteration)."""
 
+import contextlib
 from types import SimpleNamespace
 
 import pytest
@@ -12,19 +13,6 @@ from wtopo.fitting.stages import Stage
 
 H = W = 12
 WARMUP_END = 10
-
-
-class _Timers:
-    def __call__(self, name):
-        return _Null()
-
-
-class _Null:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *a):
-        return False
 
 
 class _Proxy:
@@ -57,8 +45,8 @@ def _objective(mesh_every):
     cfg.losses.multiview = 0.0
     cfg.coevolution.enabled = True
     train = SimpleNamespace(cameras=[None], images=torch.full((1, H, W, 3), 0.4), masks=None)
-    return Objective(cfg, train, render=_render, mask_weight=0.0, warmup_end=WARMUP_END, timers=_Timers(),
-                     mesh_every=mesh_every)
+    return Objective(cfg, train, render=_render, mask_weight=0.0, warmup_end=WARMUP_END,
+                     timers=lambda name: contextlib.nullcontext(), mesh_every=mesh_every)
 
 
 @pytest.mark.parametrize("mesh_every", [1, 2, 3])
