@@ -7,8 +7,8 @@
 #   STAGE=/tmp/peers bash benchmarks/peers/device.sh wait SECONDS  # until every job ends or SECONDS pass
 #   STAGE=/tmp/peers bash benchmarks/peers/device.sh score OUT_DIR # rows.json, table.md, pictures
 #
-# SYSTEM: wtopo, wtopo_noloop, gsplat, 2dgs, pgsr, pgsr_nomesh (WTOPO_ARGS: extra arguments of run_wtopo.py, e.g.
-# --set ...). pgsr runs the TopoSurfel authors' code whole (PGSR warm-up, then its DPSR mesh stage) and also writes
+# SYSTEM: wtopo, wtopo_noloop, gsplat, 2dgs, pgsr, pgsr_nomesh (WTOPO_ARGS, GSPLAT_ARGS, PGSR_ARGS: extra arguments
+# of run_wtopo.py, run_gsplat.py, run_pgsr.py, e.g. WTOPO_ARGS="--set ..." or PGSR_ARGS="--warmup-iterations 2000"). pgsr runs the TopoSurfel authors' code whole (PGSR warm-up, then its DPSR mesh stage) and also writes
 # pgsr_nomesh from its warm-up, unless pgsr_nomesh is launched too (then a run of its own, the warm-up twice).
 # $STAGE holds: big.part* (split xz tar of the unpacked Warp and
 # Open3D wheels) and/or whl/*.whl (trimesh, plyfile, gsplat), peers/2dgs (a 2d-gaussian-splatting checkout with
@@ -100,11 +100,11 @@ launch)
       case $s in
         wtopo) c=("$PY" "$HERE/run_wtopo.py" "$e" "$out" ${WTOPO_ARGS:-}) ;;
         wtopo_noloop) c=("$PY" "$HERE/run_wtopo.py" "$e" "$out" --no-loop ${WTOPO_ARGS:-}) ;;
-        gsplat) c=("$PY" "$HERE/run_gsplat.py" "$e" "$out") ;;
+        gsplat) c=("$PY" "$HERE/run_gsplat.py" "$e" "$out" ${GSPLAT_ARGS:-}) ;;
         2dgs) c=("$PY" "$HERE/run_2dgs.py" "$e" "$out" --checkout "$STAGE/peers/2dgs") ;;
         pgsr|pgsr_nomesh)
           c=("$PY" "$HERE/run_pgsr.py" "$e" "$out" --checkout "$STAGE/peers/pgsr_dpsr"
-             --init-checkout "$STAGE/peers/pgsr_init")
+             --init-checkout "$STAGE/peers/pgsr_init" ${PGSR_ARGS:-})
           if [ "$s" = pgsr_nomesh ]; then c+=(--no-mesh-stage)
           elif [[ " $* " != *" pgsr_nomesh "* ]]; then
             c+=(--nomesh-out "$STAGE/res/$name/pgsr_nomesh"); rm -rf "$STAGE/res/$name/pgsr_nomesh"
