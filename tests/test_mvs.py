@@ -123,6 +123,41 @@ def test_spread_subset_is_bounded_and_covers_clusters():
     assert len(spread_subset(pts[:10], 300, torch.Generator())) == 10
 
 
+def _spread_subset_by_unique(points, n, generator):
+    """The definition, one ``np.unique`` of integer cells per grid: one random point per occupied cell of the
+    coarsest power-of-two grid (up to 4096 per side) with at least ``n`` occupied cells."""
+    if len(points) <= n:
+        return np.arange(len(points))
+    lo, span = points.min(0), float(np.ptp(points, axis=0).max()) or 1.0
+    order = torch.randperm(len(points), generator=generator).numpy()
+    cells = 2
+    while True:
+        _, first = np.unique(np.floor((points[order] - lo) / span * cells).astype(np.int64), axis=0, return_index=True)
+        if len(first) >= n or cells >= 4096:
+            break
+        cells *= 2
+    pick = order[np.sort(first)]
+    if len(pick) > n:
+        pick = pick[torch.randperm(len(pick), generator=generator).numpy()[:n]]
+    return np.sort(pick)
+
+
+@pytest.mark.parametrize("layout", ["uniform", "layers", "lattice", "duplicates"])
+def test_spread_subset_matches_its_definition(layout):
+    rng = np.random.default_rng(3)
+    pts = rng.random((20000, 3)) * np.array([4.0, 1.0, 0.3]) - 2.0
+    if layout == "layers":  # a few planes: many empty cells
+        pts[:, 2] = np.round(pts[:, 2] * 3) / 3
+    elif layout == "lattice":  # points on cell faces of every grid
+        pts = np.round(pts * 16) / 16
+    elif layout == "duplicates":  # fewer distinct points than asked for
+        pts = np.repeat(pts[:50], 400, axis=0)
+    for n in (1, 37, 2000, 19999):
+        got = spread_subset(pts, n, torch.Generator().manual_seed(n))
+        want = _spread_subset_by_unique(pts, n, torch.Generator().manual_seed(n))
+        assert np.array_equal(got, want), (layout, n)
+
+
 def test_neighbours_on_an_orbit_are_the_adjacent_views():
     cams = scenes.rig_cameras("orbit", 24, np.zeros(3), 1.0, resolution=(32, 24))
     nb = select_neighbours(cams, np.zeros(3), k=4)
