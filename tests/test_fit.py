@@ -225,6 +225,43 @@ def test_injected_nan_is_survived_and_persistent_nan_aborts(tiny, tmp_path, monk
     assert list_checkpoints(tmp_path / "checkpoints")
 
 
+class _NaNGradient(torch.autograd.Function):
+    """Identity forward, non-finite gradient: a step whose loss is finite but whose update is not."""
+
+    @staticmethod
+    def forward(ctx, x):
+        return x.clone()
+
+    @staticmethod
+    def backward(ctx, g):
+        return g * float("nan")
+
+
+def test_non_finite_gradients_are_survived_without_a_second_host_read(tiny, monkeypatch):
+    """A step with finite losses and NaN gradients is found with the next iteration's one read: the fit goes
+    back to its last good state, never renders a non-finite parameter, and finishes; NaN gradients on every
+    step abort after MAX_CONSECUTIVE_FAILURES."""
+    real = fit_objective.photometric
+    calls = {"n": 0}
+
+    def flaky(pred, target, dssim):
+        calls["n"] += 1
+        assert torch.isfinite(pred).all(), "a non-finite update reached the renderer"
+        out = real(pred, target, dssim)
+        return _NaNGradient.apply(out) if calls["n"] in (5, 9) else out
+
+    monkeypatch.setattr(fit_objective, "photometric", flaky)
+    res = fit(tiny, _config(20, 0), progress=False)
+    assert res.report["non_finite_steps"] == 2 and res.report["status"] == "completed"
+    assert [e["why"] for e in res.report["events"] if e["event"] == "non_finite"] == ["step", "step"]
+    assert all(torch.isfinite(p).all() for p in res.surfels.params.values())
+
+    monkeypatch.setattr(fit_objective, "photometric", lambda p, t, d: _NaNGradient.apply(real(p, t, d)))
+    monkeypatch.setattr(fit_loop, "MAX_CONSECUTIVE_FAILURES", 3)
+    with pytest.raises(FitAborted, match="3 consecutive"):
+        fit(tiny, _config(20, 0), progress=False)
+
+
 def test_late_opacity_reset_is_skipped(tiny, monkeypatch):
     """A reset with fewer than 100 warm-up iterations left is skipped and recorded; an early one runs."""
     from wtopo.fitting import _strategy as strategy

@@ -43,11 +43,6 @@ class FitTimeline:
             return None
         return cls(out_dir / "timeline.usdc", every, sim, cameras, timers)
 
-    def maybe_sample(self, it: int, surfels: Surfels, proxy_mesh: ProxyResult | None) -> None:
-        """Add a sample at iteration ``it`` when it falls on the cadence."""
-        if it % self.every == 0:
-            self.sample(it, surfels, proxy_mesh)
-
     def sample(self, it: int, surfels: Surfels, proxy_mesh: ProxyResult | None) -> None:
         """Surfels (and the proxy mesh, when there is one) at time ``it``."""
         s, sim = surfels, self.sim

@@ -13,6 +13,7 @@ and the last good state restored; too many in a row abort with a checkpoint.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections import defaultdict
@@ -133,6 +134,9 @@ class FitRun:
         self.surfels: Surfels | None = None
         self.opt: torch.optim.Adam | None = None
         self.last_good: tuple[dict, dict] | None = None  # (surfel, optimiser) state dicts of the last good step
+        # whether the last step's gradients and parameters are finite: a device flag read with the next
+        # iteration's losses (one host read per iteration), or by settle() before the state is used
+        self._unverified: torch.Tensor | None = None
         self.objective = Objective(cfg, self.train, render=self.render, mask_weight=float(cfg.losses.mask),
                                    warmup_end=self.warmup_end, timers=self.timers,
                                    roi_center=self.plan.layout.roi_center,
@@ -182,8 +186,21 @@ class FitRun:
         self.snapshot()
 
     def snapshot(self) -> None:
-        """Keep the current surfels and optimiser as the last good state."""
-        self.last_good = (self.surfels.state_dict(), self.opt.state_dict())
+        """Keep the current surfels and optimiser as the last good state (after :meth:`settle`: a step not yet
+        known to be finite is checked first). The optimiser's moments are copied: the live ones change in place."""
+        self.settle()
+        self.last_good = (self.surfels.state_dict(), copy.deepcopy(self.opt.state_dict()))
+
+    def settle(self) -> None:
+        """Read whether the last step left finite gradients and parameters (one host read when a step is
+        unverified); a non-finite step is a failure and the last good state comes back."""
+        flag, self._unverified = self._unverified, None
+        if flag is None:
+            return
+        if bool(flag):
+            self.failures = 0
+        else:
+            self._failure("step", {})
 
     def _restore(self) -> None:
         sd, od = self.last_good
@@ -242,6 +259,7 @@ class FitRun:
 
     # -- one iteration ---------------------------------------------------------------------------------
     def _failure(self, why: str, terms: dict[str, float]) -> None:
+        self._unverified = None
         self.failures += 1
         self.total_failures += 1
         self.record("non_finite", why=why, terms=terms)
@@ -262,10 +280,18 @@ class FitRun:
             t = self.objective(stage, self.it, vi, self.surfels, self.proxy, defer_count=defer)
             info = StepInfo(stage, t.render, t.covered, mask, self.train.cameras[vi])
             extra = [self.strategy.coverage_counts(info)]
+            if self._unverified is not None:
+                extra.append(self._unverified.double().view(1))
             if t.render.overflow is not None:
                 extra.append(t.render.overflow.double().view(1))
-            # host sync: the one read of an iteration (loss terms, coverage, overflow flag)
+            # host sync: the one read of an iteration (loss terms, coverage, the last step's finiteness, overflow)
             read = torch.cat([torch.stack([v.detach() for v in t.losses.values()]).double(), *extra]).tolist()
+            if self._unverified is not None:  # the last step: its failure discards this forward too
+                self._unverified = None
+                if not read[len(t.losses) + 2]:
+                    self._failure("step", {})
+                    return
+                self.failures = 0
             if t.render.overflow is None or not read[-1]:
                 break
         if t.proxy_built:
@@ -279,24 +305,24 @@ class FitRun:
             return
         with self.timers("backward"):
             total.backward()
-        grads = [(k, p.grad) for k, p in self.surfels.params.items() if p.grad is not None]
-        finite = torch.stack([torch.isfinite(g).all() for _, g in grads]).tolist() if grads else []  # one read
-        bad = [k for (k, _), ok in zip(grads, finite) if not ok]
-        if bad:
-            self._failure("gradient", {k: float("nan") for k in bad})
-            return
+        grads = [p.grad for p in self.surfels.params.values() if p.grad is not None]
         with self.timers("optimizer"):
+            # whether this step is finite is a device flag, read with the next iteration's losses (no host read
+            # here); its gradients are zeroed where not finite, so that the next forward never sees a non-finite
+            # parameter before the flag sends the fit back to its last good state
+            finite = torch.isfinite(torch.stack(torch._foreach_norm(grads))).all() if grads else None
+            for g in grads:
+                g.nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)
             self._update_lr()
             before = self.surfels.means.detach().clone() if self.background is not None else None
             self.opt.step()
             if self.background is not None:
                 contract_steps(self.surfels.means, before, self.background.step_scale(before))
-        if not self.surfels.is_finite():
-            self._failure("parameters", {})
-            return
+            values = [p.detach() for p in self.surfels.params.values()]
+            params = torch.isfinite(torch.stack(torch._foreach_norm(values))).all()
+            self._unverified = params if finite is None else params & finite
         self.strategy.step_post_backward(self.surfels, info)
         self.opt.zero_grad(set_to_none=True)
-        self.failures = 0
         self.loss_log.add(terms, first=self.loss_log.count == 0 and not self.history)
         if self.it % _SNAPSHOT_EVERY == 0:
             self.snapshot()
@@ -314,14 +340,17 @@ class FitRun:
                 if self.strategy.step_end(stage, self.it, self.surfels):
                     self.snapshot()
                 self.it += 1
-                if self.timeline is not None:
-                    self.timeline.maybe_sample(self.it, self.surfels, self.proxy_mesh)
+                if self.timeline is not None and self.it % self.timeline.every == 0:
+                    self.settle()
+                    self.timeline.sample(self.it, self.surfels, self.proxy_mesh)
                 if rt.eval_every and self.it % rt.eval_every == 0:
+                    self.settle()
                     self._evaluate(stage)
                 self.checkpoints.maybe_save()
                 if rt.stop_at is not None and self.it >= rt.stop_at:
                     self.stop.request()
                 bar.update(self.it, self._bar_status)
+            self.settle()
         finally:
             bar.close()
 

@@ -307,7 +307,3 @@ class Surfels:
         """Inverse of :meth:`state_dict` (no optimiser attached)."""
         p = {k: v.to(device) for k, v in state["params"].items()}
         return Surfels(**p, buffers={k: v.to(device) for k, v in state["buffers"].items()})
-
-    def is_finite(self) -> bool:
-        """Whether every parameter is finite (host sync)."""
-        return bool(torch.stack([torch.isfinite(v).all() for v in self.params.values()]).all())  # one read
