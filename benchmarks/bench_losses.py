@@ -9,7 +9,8 @@ photometric, mask, normal, distortion, multi-view, scale, mesh depth, mesh norma
 rendering and the proxy's ray cast are made beforehand and not timed. It also times each term on
 its own, forward and forward + backward into the rendered maps (the rasterizer's backward is not
 included), and, in the same process, the torch formulations they replace: the photometric term as
-torch L1 + :func:`wtopo.metrics.ssim`, the multi-view term at 4,096 reference pixels.
+torch L1 + :func:`wtopo.metrics.ssim`, the multi-view term's windows scored by the torch op chain the
+Warp kernel replaced (``tests/reference/multiview.py``: same pixels, neighbours and masks).
 
 Command (writes nothing; the figures go to benchmarks/losses.md by hand)::
 
@@ -19,7 +20,8 @@ Command (writes nothing; the figures go to benchmarks/losses.md by hand)::
 The ``--section-only`` flag times only the ``losses`` section, with nothing this version added, so
 the same script measures an older checkout of the package. ``--quick`` skips the fit: on the bunny's
 true depth maps and normals (8 views) it times the multi-view term at the fit's count and at 4,096
-pixels and the photometric term fused and in torch, forward and forward + backward; ``--threads``
+pixels, by the Warp kernel and by the torch op chain, and the photometric term fused and in torch,
+forward and forward + backward; ``--threads``
 sets torch's threads (1 measures the work without the stalls of a shared machine)::
 
     .venv/bin/python benchmarks/bench_losses.py --quick --threads 1
@@ -32,6 +34,7 @@ import time
 import types
 
 import torch
+from _from_tests import load  # beside this script
 
 from wtopo import scenes
 from wtopo.fitting import FitConfig
@@ -146,7 +149,6 @@ def _terms(run, outs, mrs, repeats: int) -> None:
     """Each term alone (forward and forward + backward), and the formulations they replace."""
     from wtopo.fitting import losses as L
     from wtopo.fitting import objective as O
-    from wtopo.fitting.multiview import MultiViewNCC
     from wtopo.metrics import ssim
 
     cfg, train, s = run.cfg, run.train, run.surfels
@@ -156,7 +158,7 @@ def _terms(run, outs, mrs, repeats: int) -> None:
     mv = run.objective.multiview
     h, w = outs[0].alpha.shape
     mv_count = mv.count(h, w) if hasattr(mv, "count") else mv.pixels
-    mv_old = MultiViewNCC(train.cameras, train.images, run.plan.layout.roi_center, pixels=4096, seed=cfg.runtime.seed)
+    torch_loss = load("reference/multiview.py").multiview_loss_torch
 
     def photo_torch(o, v):
         img = train.images[v]
@@ -183,7 +185,7 @@ def _terms(run, outs, mrs, repeats: int) -> None:
         "normal": normal,
         "distortion": lambda o, v: L.distortion(o.distortion),
         f"multiview ({mv_count} px)": lambda o, v: mv(it, v, o.median_depth, o.normal, o.alpha),
-        "multiview (4096 px)": lambda o, v: mv_old(it, v, o.median_depth, o.normal, o.alpha),
+        f"multiview ({mv_count} px, torch ops)": lambda o, v: torch_loss(mv, it, v, o.median_depth, o.normal, o.alpha),
         "scale": lambda o, v: L.scale_regularizer(s.scales, O._MAX_ANISOTROPY),
         "mesh depth + normal": mesh_terms,
     }
@@ -200,7 +202,9 @@ def _terms(run, outs, mrs, repeats: int) -> None:
     print(f"  {'term':40s} {'forward':>8s} {'fwd+bwd':>8s}  ms/it")
     for name in terms:
         print(f"  {name:40s} {1000 * fwd[name]:8.2f} {1000 * both[name]:8.2f}")
-    for new, old in (("photo", "photo (torch L1 + SSIM)"), (f"multiview ({mv_count} px)", "multiview (4096 px)")):
+    mv_name = f"multiview ({mv_count} px)"
+    pairs = (("photo", "photo (torch L1 + SSIM)"), (mv_name, f"{mv_name[:-1]}, torch ops)"))
+    for new, old in pairs:
         print(f"  {new} vs {old}: {fwd[old] / fwd[new]:.2f}x faster forward, {both[old] / both[new]:.2f}x fwd+bwd")
 
 
@@ -213,6 +217,7 @@ def _quick(repeats: int, views: int = 8) -> None:
     from wtopo.fitting.objective import _DSSIM, _MULTIVIEW_FRACTION, _MULTIVIEW_PIXELS
     from wtopo.metrics import ssim
 
+    torch_loss = load("reference/multiview.py").multiview_loss_torch
     sc = scenes.load("bunny").normalized()
     cams, imgs = sc.cameras, sc.images
     g = torch.Generator().manual_seed(0)
@@ -231,11 +236,16 @@ def _quick(repeats: int, views: int = 8) -> None:
     def multiview(m):
         return lambda v, d, n, a, rgb: m(1000, v, d.requires_grad_(), n.requires_grad_(), a)
 
+    def multiview_torch(m):
+        return lambda v, d, n, a, rgb: torch_loss(m, 1000, v, d.requires_grad_(), n.requires_grad_(), a)
+
     def photo_torch(v, d, n, a, rgb):
         p = rgb.requires_grad_()
         return (1 - _DSSIM) * L.l1(p, imgs[v]) + _DSSIM * (1 - ssim(p, imgs[v]))
 
-    terms = {f"multiview ({fit_mv.count(h, w)} px)": multiview(fit_mv), "multiview (4096 px)": multiview(old_mv),
+    c = fit_mv.count(h, w)
+    terms = {f"multiview ({c} px, Warp)": multiview(fit_mv), f"multiview ({c} px, torch ops)": multiview_torch(fit_mv),
+             "multiview (4096 px, Warp)": multiview(old_mv), "multiview (4096 px, torch ops)": multiview_torch(old_mv),
              "photo (fused Warp)": lambda v, d, n, a, rgb: L.photometric(rgb.requires_grad_(), imgs[v], _DSSIM),
              "photo (torch L1 + SSIM)": photo_torch}
 
@@ -248,11 +258,11 @@ def _quick(repeats: int, views: int = 8) -> None:
     for f in terms.values():
         go(f, True)  # caches, kernel loads
     print(f"bunny true depth: {views} views of {w}x{h} px; torch threads {torch.get_num_threads()}")
-    print(f"  {'term':28s} {'forward':>8s} {'fwd+bwd':>8s}  ms/it (best of {repeats})")
+    print(f"  {'term':32s} {'forward':>8s} {'fwd+bwd':>8s}  ms/it (best of {repeats})")
     for name, f in terms.items():
         fwd = _time(lambda f=f: go(f, False), repeats) / views
         both = _time(lambda f=f: go(f, True), repeats) / views
-        print(f"  {name:28s} {1000 * fwd:8.2f} {1000 * both:8.2f}")
+        print(f"  {name:32s} {1000 * fwd:8.2f} {1000 * both:8.2f}")
 
 
 if __name__ == "__main__":

@@ -117,28 +117,31 @@ def test_untextured_images_and_lone_views_carry_nothing(plane):
 
 @pytest.mark.parametrize("lens", ["pinhole", "barrel"])
 def test_costs_and_gradients_match_the_reference(plane, lens):
-    """Match the direct world-space reference: each window's best cost and its gradient w.r.t. depth and normal."""
+    """Match the direct world-space reference: each counted window's best cost and its gradient w.r.t. depth
+    and normal."""
     cams, imgs = (plane.cameras, plane.images) if lens == "pinhole" else barrel_twin(plane)
     mv = _term(cams, imgs)
     d, n, a = _truth(cams[0])
     h = mv.half
     g = torch.Generator().manual_seed(3)
     py, px = (a[h:-h, h:-h] > 0).nonzero(as_tuple=True)
-    keep = torch.randperm(len(py), generator=g)[:300]
+    keep = torch.randperm(len(py), generator=g)[:300]  # distinct centres: one map entry per window
     py, px = py[keep] + h, px[keep] + h
     # off the truth in depth and tilt, so the costs and their gradients are not at a minimum
-    depth = (d[py, px] * 1.02).requires_grad_(True)
-    normal = (n[py, px] + torch.tensor([0.2, -0.1, 0.0])).requires_grad_(True)
+    depth = (d * 1.02).requires_grad_(True)
+    normal = (n + torch.tensor([0.2, -0.1, 0.0])).requires_grad_(True)
     pick = mv._pick(0, 5)
-    cost, _ = mv._plane_costs(0, py, px, depth, normal, pick, mv._reference(0, py, px))
-    d64 = depth.detach().double().requires_grad_(True)
-    n64 = normal.detach().double().requires_grad_(True)
+    cost, ok = mv._plane_costs(0, py, px, depth, normal, a, pick)
+    on = ok > 0  # the windows that count are scored (the others cost 2 and carry no loss)
+    assert float(on.float().mean()) > 0.5
+    d64 = depth.detach()[py, px].double().requires_grad_(True)
+    n64 = normal.detach()[py, px].double().requires_grad_(True)
     want = plane_costs_reference(cams, imgs, 0, py, px, d64, n64, pick, h).amin(1)
-    torch.testing.assert_close(cost.double(), want, atol=COST_ATOL, rtol=0)
-    w = torch.rand(len(py), generator=g, dtype=torch.float64)  # a random cotangent
+    torch.testing.assert_close(cost.double()[on], want[on], atol=COST_ATOL, rtol=0)
+    w = torch.rand(len(py), generator=g, dtype=torch.float64) * on  # a random cotangent on them
     gd, gn = torch.autograd.grad((cost * w.float()).sum(), (depth, normal))
     wd, wn = torch.autograd.grad((want * w).sum(), (d64, n64))
-    for got, ref in ((gd, wd), (gn, wn)):
+    for got, ref in ((gd[py, px], wd), (gn[py, px], wn)):
         assert float(ref.abs().max()) > 0, "the gradient was not exercised"
         err = float((got.double() - ref).abs().max() / ref.abs().max())
         assert err < GRAD_REL, f"gradient off by {err:.3g} of its largest entry"

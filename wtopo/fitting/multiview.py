@@ -28,7 +28,9 @@ the normal of the surfels the reference view's pixels rest on.
   Every ray of a view starts at its centre (:meth:`wtopo.Camera.pixel_rays`), so a window's points
   on the plane are the centre plus its rays scaled by one ratio per pixel.
 
-Everything is torch on the fit's device; only the rendered depth and normal carry gradients.
+The windows are scored by :func:`wtopo.multiview_ncc.window_ncc_costs` (one Warp kernel forward, one
+backward, on the fit's device; the torch formulation it replaced is ``tests/reference/multiview.py``'s
+``plane_costs_torch``); only the rendered depth and normal carry gradients.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ import torch.nn.functional as F
 
 from ..camera import Camera
 from ..geometry.mvs import TorchCams, gray, select_neighbours
+from ..multiview_ncc import ReferenceWindows, source_params, window_ncc_costs
 
 __all__ = ["MultiViewNCC"]
 
@@ -49,6 +52,7 @@ _MIN_STD = 0.01  # reference windows with a grey-level std below this (of [0, 1]
 _NCC_EPS = 1e-6
 _DRAWN_NEIGHBOURS = 2  # neighbours scored per iteration; each window keeps its better one
 _GRAZING = 0.05  # |cos| between a patch ray and the plane normal below which the window is dropped
+_ALPHA_COVERED = 0.5  # windows whose centre the surfels cover less than this carry no loss
 
 
 class MultiViewNCC:
@@ -85,8 +89,8 @@ class MultiViewNCC:
         self.seed = int(seed)
         self._cam = TorchCams(cameras)
         self._grays: dict[int, torch.Tensor] = {}
-        self._stats: dict[tuple[int, torch.device], tuple[torch.Tensor, ...]] = {}
-        self._offsets: dict[torch.device, torch.Tensor] = {}
+        self._stats: dict[tuple[int, torch.device], ReferenceWindows] = {}
+        self._source_cache: dict[tuple, tuple[list[torch.Tensor], torch.Tensor]] = {}
         self._generators: dict[torch.device, torch.Generator] = {}
 
     def has_neighbours(self, vi: int) -> bool:
@@ -105,9 +109,10 @@ class MultiViewNCC:
             g = self._grays[i] = gray(self.images[i].float())
         return g
 
-    def _view_stats(self, vi: int, device: torch.device) -> tuple[torch.Tensor, ...]:
-        """Per pixel of view ``vi`` (made once): the mean and variance [H, W] of the grey levels of the window
-        centred there (zero within ``half`` of the border, where no window is drawn) and the ray length [H, W]."""
+    def _view_stats(self, vi: int, device: torch.device) -> ReferenceWindows:
+        """What every window of view ``vi`` reads whatever its plane (made once per view and device): the grey
+        image, per pixel the mean and variance [H, W] of the grey levels of the window centred there (zero
+        within ``half`` of the border, where no window is drawn), the ray directions and their lengths."""
         key = (vi, device)
         st = self._stats.get(key)
         if st is None:
@@ -117,17 +122,10 @@ class MultiViewNCC:
             mean = F.avg_pool2d(g, k, stride=1)
             var = (F.avg_pool2d(g * g, k, stride=1) - mean * mean).clamp_min(0.0)
             pad = (h, h, h, h)
-            st = self._stats[key] = (F.pad(mean, pad)[0, 0].float(), F.pad(var, pad)[0, 0].float(),
-                                     self._cam(vi, device).dirs.norm(dim=-1))
+            dirs = self._cam(vi, device).dirs
+            st = self._stats[key] = ReferenceWindows(self._gray_of(vi).to(device), F.pad(mean, pad)[0, 0].float(),
+                                                     F.pad(var, pad)[0, 0].float(), dirs, dirs.norm(dim=-1))
         return st
-
-    def _window(self, device: torch.device) -> torch.Tensor:
-        w = self._offsets.get(device)
-        if w is None:
-            r = torch.arange(-self.half, self.half + 1, device=device)
-            dy, dx = torch.meshgrid(r, r, indexing="ij")
-            w = self._offsets[device] = torch.stack([dy.reshape(-1), dx.reshape(-1)], -1)  # [K, 2] (row, col)
-        return w
 
     def _pick(self, vi: int, seed: int) -> list[int]:
         """The neighbours of ``vi`` scored at this draw (indices into the training views)."""
@@ -135,48 +133,28 @@ class MultiViewNCC:
         pick = torch.randperm(len(nb), generator=torch.Generator().manual_seed(seed))[:_DRAWN_NEIGHBOURS].tolist()
         return [nb[j] for j in pick]
 
-    def _reference(self, vi: int, py: torch.Tensor, px: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """What the windows centred on pixels ``(py, px)`` of view ``vi`` (at least ``half`` pixels inside the
-        image) need whatever plane goes through them: their pixels' ray directions [P, K, 3] and lengths
-        [P, K], their centred grey levels [P, K] and variance [P], and whether they are textured [P] bool."""
-        ref = self._cam(vi, py.device)
-        mean, var, length = self._view_stats(vi, py.device)
-        off = self._window(py.device)
-        qy, qx = py[:, None] + off[None, :, 0], px[:, None] + off[None, :, 1]  # [P, K]
-        rc = self._gray_of(vi)[qy, qx] - mean[py, px][:, None]  # [P, K]
-        rvar = var[py, px]
-        return ref.dirs[qy, qx], length[qy, qx], rc, rvar, rvar.sqrt() >= _MIN_STD
+    def _sources(self, vi: int, pick: list[int], device: torch.device) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """The grey images of the views ``pick`` on ``device`` and their rows for :func:`window_ncc_costs` seen
+        from view ``vi`` (made once per view, pick and device)."""
+        key = (vi, tuple(pick), device)
+        src = self._source_cache.get(key)
+        if src is None:
+            ref = self.cameras[vi]
+            rows = [source_params(ref, self.cameras[j], device=device) for j in pick]
+            src = self._source_cache[key] = ([self._gray_of(j).to(device) for j in pick], torch.stack(rows))
+        return src
 
-    def _plane_costs(self, vi: int, py: torch.Tensor, px: torch.Tensor, d: torch.Tensor, n: torch.Tensor,
-                     pick: list[int], windows: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Best ``1 - NCC`` over the neighbours ``pick`` of the windows ``windows`` (:meth:`_reference` of the
-        same pixels ``(py, px)`` of view ``vi``) mapped through the planes of depth ``d`` [P] and normal ``n``
-        [P, 3] (differentiable in both), and which windows count (positive depth, not grazing, textured):
-        ``(cost [P], ok [P] bool)``. A neighbour that does not see a window scores 2."""
-        ref = self._cam(vi, d.device)
-        dq, length, rc, rvar, textured = windows
-        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-        den = (dq * n[:, None]).sum(-1)  # [P, K]
-        with torch.no_grad():
-            ok = (d > 0) & ((den / length).abs().amin(1) > _GRAZING) & textured
-        den = torch.where(den.abs() < 1e-8, torch.full_like(den, 1e-8), den)
-        # the plane through the centre pixel's point (ray origin c, direction dp, z-depth d) meets the window
-        # ray of direction dq (same origin c) at c + dq * t, t = d <dp, n> / <dq, n>
-        t = (d * (ref.dirs[py, px] * n).sum(-1))[:, None] / den  # [P, K]
-        costs = []
-        for j in pick:
-            src = self._cam(j, d.device)
-            # the window points in the source camera: R_s (c + dq t) + t_s = (R_s c + t_s) + t (R_s dq)
-            u, v, z = src.project_camera(src.R @ ref.origin[0, 0] + src.t + t[..., None] * (dq @ src.R.T))
-            with torch.no_grad():
-                inside = ((z > 0) & (u >= 0) & (u <= src.W) & (v >= 0) & (v <= src.H)).all(1)
-            sv = F.grid_sample(self._gray_of(j)[None, None], src.grid(u, v)[None], mode="bilinear",
-                               padding_mode="border", align_corners=False)[0, 0]  # [P, K]
-            sc = sv - sv.mean(1, keepdim=True)
-            ncc = (rc * sc).mean(1) / (rvar * (sc * sc).mean(1) + _NCC_EPS).sqrt()
-            cost = (1.0 - ncc).clamp(0.0, 2.0)
-            costs.append(torch.where(inside, cost, torch.full_like(cost, 2.0)))
-        return torch.stack(costs).amin(0), ok
+    def _plane_costs(self, vi: int, py: torch.Tensor, px: torch.Tensor, depth: torch.Tensor, normal: torch.Tensor,
+                     alpha: torch.Tensor, pick: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Best ``1 - NCC`` over the neighbours ``pick`` of the windows centred on pixels ``(py, px)`` of view
+        ``vi`` mapped through the planes of the rendered z-depth ``depth`` [H, W] and normal ``normal``
+        [H, W, 3] at their centres (differentiable in both), and which windows count (positive depth, not
+        grazing, textured, ``alpha`` [H, W] at least one half): ``(cost [P], ok [P] 0/1)``. A neighbour that
+        does not see a window scores 2; a window that does not count is not scored (2, no gradient)."""
+        images, params = self._sources(vi, pick, depth.device)
+        return window_ncc_costs(depth, normal, alpha, py, px, self._view_stats(vi, depth.device), images, params,
+                                half=self.half, min_std=_MIN_STD, grazing=_GRAZING, alpha_min=_ALPHA_COVERED,
+                                eps=_NCC_EPS)
 
     @torch.no_grad()
     def prefers(self, it: int, vi: int, depth_a: torch.Tensor, normal_a: torch.Tensor, depth_b: torch.Tensor,
@@ -204,10 +182,10 @@ class MultiViewNCC:
         if py.numel() == 0:
             return out
         pick = self._pick(vi, self.seed * 1_000_003 + it)
-        windows = self._reference(vi, py, px)  # shared by both planes
-        ca, oka = self._plane_costs(vi, py, px, depth_a[py, px], normal_a[py, px], pick, windows)
-        cb, okb = self._plane_costs(vi, py, px, depth_b[py, px], normal_b[py, px], pick, windows)
-        out[py, px] = oka & okb & (ca < _MAX_COST) & (cb - ca > margin)
+        covered = torch.ones_like(depth_a)  # the caller's mask says which pixels count
+        ca, oka = self._plane_costs(vi, py, px, depth_a, normal_a, covered, pick)
+        cb, okb = self._plane_costs(vi, py, px, depth_b, normal_b, covered, pick)
+        out[py, px] = (oka > 0) & (okb > 0) & (ca < _MAX_COST) & (cb - ca > margin)
         return out
 
     def __call__(self, it: int, vi: int, median_depth: torch.Tensor, normal: torch.Tensor,
@@ -234,10 +212,6 @@ class MultiViewNCC:
         count = self.count(H, W)
         py = torch.randint(h, H - h, (count,), generator=g, device=dev)
         px = torch.randint(h, W - h, (count,), generator=g, device=dev)
-        pick = self._pick(vi, seed)
-        best, ok = self._plane_costs(vi, py, px, median_depth[py, px], normal[py, px], pick,
-                                     self._reference(vi, py, px))
-        ok = ok & (alpha.detach()[py, px] >= 0.5)
-        use = ok & (best.detach() < _MAX_COST)
-        w = use.to(best.dtype)
+        best, ok = self._plane_costs(vi, py, px, median_depth, normal, alpha, self._pick(vi, seed))
+        w = ok * (best.detach() < _MAX_COST)
         return (best * w).sum() / w.sum().clamp_min(1.0)
