@@ -9,8 +9,8 @@ import sys
 import time
 
 import wtopo
-from wtopo.fitting import _strategy, densify
 from wtopo.cli import _apply_set
+from wtopo.fitting import _strategy, densify
 from wtopo.fitting.config import FitConfig
 
 VARIANTS = {"base": {}, "3dgs": {"grad": 2e-4, "prune": 0.005}, "grad2": {"grad": 2e-4}}
@@ -34,7 +34,8 @@ def main():
 
     res = wtopo.fit(load_scene(scene), cfg, out_dir=out, progress=False)
     wall = time.perf_counter() - t
-    rep = json.load(open(f"{out}/report.json"))
+    with open(f"{out}/report.json") as fh:
+        rep = json.load(fh)
     print(json.dumps({"variant": variant, "scene": scene, "wall_s": round(wall, 1),
                       "surfels": len(res.surfels) if hasattr(res, "surfels") else None,
                       **{k: rep.get(k) for k in ("psnr", "ssim", "psnr_on", "chamfer", "f_score")}}))
