@@ -4,8 +4,11 @@
 The recipe of gsplat's ``examples/simple_trainer_2dgs.py`` with its 2DGS losses on: 30,000 steps,
 L1 + 0.2 D-SSIM, normal consistency (0.05 from step 7,000), depth distortion (0.01 from step 3,000),
 SH degree 3 (one more every 1,000 steps), initial points from the exchange folder, gsplat's
-``DefaultStrategy`` on the 2DGS gradient; then 2DGS's TSDF mesh (median depth, voxel 0.004,
-truncation 0.016, depth cut 3.0, largest cluster).
+``DefaultStrategy`` on the 2DGS gradient with the trainer's settings (``prune_opa`` 0.05; thresholds in
+the trainer's normalised world, where the median camera distance is 1) and its opacity reset every
+3,000 steps (gsplat 1.5.3's own reset never fires: ``step % reset_every == 0 & step > 0`` is always
+false; fixed upstream after 1.5.3 in #776, so it is done here); then 2DGS's TSDF mesh (median depth,
+voxel 0.004, truncation 0.016, depth cut 3.0, largest cluster).
 
     python benchmarks/peers/run_gsplat.py EXCH OUT [--iterations 30000]
 """
@@ -58,6 +61,10 @@ def main(argv=None) -> None:
     ap.add_argument("out")
     ap.add_argument("--iterations", type=int, default=30_000)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--reset-opacity", type=float, default=None,
+                    help="opacity the periodic reset clamps to (default: gsplat's 2 * prune_opa = 0.1; 2DGS uses 0.01)")
+    ap.add_argument("--mask-bg", action="store_true",
+                    help="masked captures: train against a random background outside the masks (not gsplat's recipe)")
     ap.add_argument("--save-at", type=int, nargs="*", default=[7000, 15000],
                     help="also save the splats at these steps (splats_STEP.pt), for --mesh-only")
     ap.add_argument("--mesh-only", type=int, default=None, metavar="STEP",
@@ -66,6 +73,7 @@ def main(argv=None) -> None:
 
     from gsplat import rasterization_2dgs
     from gsplat.strategy import DefaultStrategy
+    from gsplat.strategy.ops import reset_opa
 
     dev = torch.device("cuda")
     torch.manual_seed(a.seed)
@@ -75,10 +83,20 @@ def main(argv=None) -> None:
     Ks = torch.tensor(ex.K[ex.train], dtype=torch.float32, device=dev)
     # gsplat's pixel centres are at +0.5 like ours: the K carries over unchanged
     viewmats = torch.tensor(ex.w2c[ex.train], dtype=torch.float32, device=dev)
-    centres = torch.linalg.inv(viewmats)[:, :3, 3]
+    c2w = torch.linalg.inv(viewmats)
+    centres = c2w[:, :3, 3]
     scene_scale = float((centres - centres.mean(0)).norm(dim=-1).max()) * 1.1
+    # simple_trainer_2dgs calls initialize_state() with its default scene_scale 1.0 in a world that its
+    # COLMAP parser scaled to a median camera distance of 1 (to the cameras' focus): that unit, here
+    axes = c2w[:, :3, 2]
+    proj = torch.eye(3, device=dev) - axes[:, :, None] * axes[:, None, :]
+    focus = torch.linalg.solve(proj.sum(0), (proj @ centres[:, :, None]).sum(0))[:, 0]
+    unit = float((centres - focus).norm(dim=-1).median())
     bg = torch.tensor(ex.meta["background"] or [0.0, 0.0, 0.0], dtype=torch.float32, device=dev)
     W, H = ex.width, ex.height
+    masks = None
+    if a.mask_bg and ex.masked:
+        masks = torch.stack([torch.from_numpy(ex.mask(i)) for i in ex.train]).to(dev)[..., None].float()
 
     pts, col = ex.points()
     pts = torch.tensor(pts, dtype=torch.float32, device=dev)
@@ -98,17 +116,21 @@ def main(argv=None) -> None:
     opts = {k: torch.optim.Adam([{"params": splats[k], "lr": lr, "name": k}], eps=1e-15)
             for k, (_, lr) in params.items()}
     sched = torch.optim.lr_scheduler.ExponentialLR(opts["means"], gamma=0.01 ** (1.0 / a.iterations))
-    strategy = DefaultStrategy(key_for_gradient="gradient_2dgs", verbose=False)
+    # simple_trainer_2dgs's Config: prune_opa 0.05 (DefaultStrategy's own default is 0.005); the rest as the defaults
+    strategy = DefaultStrategy(key_for_gradient="gradient_2dgs", verbose=False, prune_opa=0.05, grow_grad2d=0.0002,
+                               grow_scale3d=0.01, prune_scale3d=0.1, refine_start_iter=500, refine_stop_iter=15_000,
+                               reset_every=3000, refine_every=100, absgrad=False)
     strategy.check_sanity(splats, opts)
-    # simple_trainer passes the camera spread: the growth and pruning thresholds are relative to it
-    state = strategy.initialize_state(scene_scale=scene_scale)
+    state = strategy.initialize_state(scene_scale=unit)
+    reset_value = 2.0 * strategy.prune_opa if a.reset_opacity is None else a.reset_opacity
 
-    def render(sel_view, K, sh_degree, mode="RGB+D"):
+    def render(sel_view, K, sh_degree, mode="RGB+D", background=None):
         return rasterization_2dgs(
             means=splats["means"], quats=splats["quats"], scales=torch.exp(splats["scales"]),
             opacities=torch.sigmoid(splats["opacities"]), colors=torch.cat([splats["sh0"], splats["shN"]], 1),
             viewmats=sel_view, Ks=K, width=W, height=H, sh_degree=sh_degree, near_plane=0.2, far_plane=200.0,
-            render_mode=mode, distloss=True, backgrounds=bg[None].expand(len(sel_view), 3))
+            render_mode=mode, distloss=True,
+            backgrounds=(bg if background is None else background)[None].expand(len(sel_view), 3))
 
     if a.mesh_only is not None:
         saved = torch.load(os.path.join(a.out, f"splats_{a.mesh_only}.pt"), map_location=dev)
@@ -118,10 +140,14 @@ def main(argv=None) -> None:
     for step in range(a.iterations if a.mesh_only is None else 0):
         i = int(torch.randint(len(ex.train), (1,)))
         deg = min(step // 1000, 3)
-        colors, alphas, normals, normals_d, distort, median, info = render(viewmats[i:i + 1], Ks[i:i + 1], deg)
+        step_bg = torch.rand(3, device=dev) if masks is not None else None
+        colors, alphas, normals, normals_d, distort, median, info = render(viewmats[i:i + 1], Ks[i:i + 1], deg,
+                                                                           background=step_bg)
         rgb = colors[..., :3]
         strategy.step_pre_backward(splats, opts, state, step, info)
         gt = images[i:i + 1]
+        if masks is not None:
+            gt = gt * masks[i:i + 1] + step_bg * (1 - masks[i:i + 1])
         loss = 0.8 * (rgb - gt).abs().mean() + 0.2 * (1 - _ssim(rgb.permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2)))
         if step > 7000:
             nd = (normals_d * alphas.detach())
@@ -130,6 +156,8 @@ def main(argv=None) -> None:
             loss = loss + 0.01 * distort.mean()
         loss.backward()
         strategy.step_post_backward(splats, opts, state, step, info, packed=False)
+        if 0 < step < strategy.refine_stop_iter and step % strategy.reset_every == 0:
+            reset_opa(params=splats, optimizers=opts, state=state, value=reset_value)  # what 1.5.3 means to do
         for o in opts.values():
             o.step()
             o.zero_grad(set_to_none=True)
@@ -156,7 +184,9 @@ def main(argv=None) -> None:
     if a.mesh_only is not None:
         run = {"wall_s": None}  # an earlier run's training time is not known here
     run.update({"iterations": it, "surfels": int(len(splats["means"])),
-                "recipe": "gsplat simple_trainer_2dgs (normal 0.05 > 7k, dist 0.01 > 3k), DefaultStrategy, 2DGS TSDF"})
+                "recipe": "gsplat simple_trainer_2dgs (normal 0.05 > 7k, dist 0.01 > 3k), DefaultStrategy "
+                          f"(prune_opa 0.05, opacity reset to {reset_value:g} every 3k)"
+                          + (", random background outside the masks" if masks is not None else "") + ", 2DGS TSDF"})
     system = "gsplat 2DGS" if it == 30_000 else f"gsplat 2DGS ({it:,} it.)"
     write_result(a.out, system=system, mesh=mesh, renders=np.stack(renders), run=run)
 
