@@ -62,7 +62,9 @@ def main():
             rec = run.evaluator(run.surfels, mesh=mesh)
             row = {"scene": name, "factor": f, "resolution": run.cfg.final.resolution, "faces": len(mesh.faces),
                    "final_s": round(dt, 2), "watertight": bool(mesh.is_watertight),
-                   **{k: rec.get(k) for k in ("chamfer", "f_score", "accuracy", "completeness", "psnr")}}
+                   **{k: rec.get(k) for k in ("chamfer", "f_score", "accuracy", "completeness", "psnr")},
+                   "final_grid_thin": [e["resolution"] for e in run.events if e["event"] == "final_grid_thin"],
+                   "thin": run.coevolution_info}
             print(json.dumps(row), flush=True)
             if a.out:
                 with open(a.out, "a") as fh:

@@ -394,3 +394,33 @@ def test_the_loop_computes_an_overflowing_step_again(tiny, monkeypatch):
     run._step(Stage.COEVOLUTION)
     assert calls == [True, False], "the step should have been computed again after the overflow"
     assert not torch.equal(run.surfels.means.detach(), before) and run.failures == 0
+
+
+def test_final_grid_is_twice_as_fine_where_the_coevolution_found_thin_parts(tiny):
+    """The plan's final TSDF grid doubles (up to the preset's finest) when the co-evolution's first thin-part
+    measure exceeds FINAL_THIN_SHARE; an explicit final.resolution, a share at or below it, or no measure
+    (scenes, no co-evolution) keep it."""
+    from wtopo.fitting import presets
+    from wtopo.fitting.loop import FINAL_THIN_SHARE, FitRun
+
+    cfg = _config(10, 10)
+    cfg.final.resolution = None
+    run = FitRun(tiny, cfg, None, progress=False)
+    base = int(run.cfg.final.resolution)
+    hi = presets.budget(run.cfg.preset, run.device).final_grid[1]
+    for info, want in [({}, base),
+                       ({"thin_share": FINAL_THIN_SHARE, "resolution": 48, "limit": 0.15}, base),
+                       ({"thin_share": FINAL_THIN_SHARE + 0.01, "resolution": 48, "limit": 0.15}, min(2 * base, hi)),
+                       # the rule measured again on a finer proxy grid: its first measure decides
+                       ({"thin_share": 0.01, "resolution": 96, "coarse": {"resolution": 48, "thin_share": 0.3}},
+                        min(2 * base, hi))]:
+        run.coevolution_info = info
+        assert run._final_config().final.resolution == want, info
+    assert run.cfg.final.resolution == base  # the fit's own configuration is not changed
+    assert [e["event"] for e in run.events].count("final_grid_thin") == (2 if min(2 * base, hi) != base else 0)
+
+    explicit = _config(10, 10)
+    explicit.final.resolution = 40
+    run = FitRun(tiny, explicit, None, progress=False)
+    run.coevolution_info = {"thin_share": 0.5, "resolution": 48, "limit": 0.15}
+    assert run._final_config().final.resolution == 40

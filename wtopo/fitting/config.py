@@ -148,8 +148,9 @@ class FinalConfig:
     """Stage 5: the returned mesh, TSDF fusion of the rendered surfel depth of every training view."""
 
     resolution: int | None = _f(None, Range(_GRID_MIN, _TSDF_MAX))
-    """TSDF voxels along the longest side of the fusion bounds; ``None``: the plan's (one voxel per 0.4
-    pixel footprints at the region of interest, capped per device)."""
+    """TSDF voxels along the longest side of the fusion bounds; ``None``: the plan's (one voxel per 0.8
+    pixel footprints at the region of interest, twice as fine where the co-evolution finds thin parts,
+    within the preset's range)."""
     watertight: bool = True
     """Objects: Poisson re-meshes a fused mesh that is not closed. Scenes are never closed."""
 

@@ -14,6 +14,7 @@ and the last good state restored; too many in a row abort with a checkpoint.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import time
 from collections import defaultdict
@@ -48,6 +49,7 @@ from .thin_parts import thin_parts
 __all__ = ["FitRun", "FitAborted"]
 
 _SNAPSHOT_EVERY = 25  # iterations between in-memory "last good" snapshots
+FINAL_THIN_SHARE = 0.10  # thin share above which the final TSDF grid is twice as fine (design/decisions.md)
 MAX_CONSECUTIVE_FAILURES = 20  # non-finite steps in a row after which the fit aborts (with a checkpoint)
 _SH_REST_LR = 5e-4  # learning rate of the higher SH bands: 1/20 of the DC rate, as 3DGS
 
@@ -114,6 +116,7 @@ class FitRun:
             internal = internal.downscaled(1.0 / scale)
         self.train, self.test, held_out = _split_views(internal, self.plan.eval_views)
         self.hash = config_hash(user_cfg)
+        self.final_grid_auto = user_cfg.final.resolution is None  # the plan's: finer where parts are thin
         self.gen = torch.Generator().manual_seed(cfg.runtime.seed)
         from ..rasterize import RasterConfig
 
@@ -407,11 +410,29 @@ class FitRun:
             self.proxy = self.proxy.with_resolution(int(res))
         self.objective.mesh_terms = bool(self.coevolution_info.get("mesh_terms", True))
 
+    def _final_config(self) -> FitConfig:
+        """The configuration of the final mesh: the plan's TSDF grid twice as fine (up to the preset's finest)
+        when more than :data:`FINAL_THIN_SHARE` of what the views see is thin on the co-evolution's first proxy
+        grid (:mod:`.thin_parts`: under 3 proxy cells, about 6 pixel footprints, thick; fused at 0.8 footprints
+        per voxel with a 4-voxel truncation, such a part's two sides share one band and it erodes); an explicit
+        ``final.resolution`` stays."""
+        info = self.coevolution_info
+        share = info.get("coarse", info).get("thin_share")
+        if not self.final_grid_auto or share is None or share <= FINAL_THIN_SHARE:
+            return self.cfg
+        hi = _presets.budget(self.cfg.preset, self.device).final_grid[1]
+        res = min(2 * int(self.cfg.final.resolution), hi)
+        if res == int(self.cfg.final.resolution):
+            return self.cfg
+        self.record("final_grid_thin", resolution=res, thin_share=share)
+        return dataclasses.replace(self.cfg, final=dataclasses.replace(self.cfg.final, resolution=res))
+
     def _final_mesh(self) -> trimesh.Trimesh:
         with self.timers("final"):
             guided = self.cfg.coevolution.enabled and self.it > self.warmup_end
-            return final_mesh(self.surfels, self.train.cameras, self.cfg, render=self.render, proxy=self.proxy,
-                              guided=guided, tsdf_info=self.tsdf_info, record=self.record, layout=self.plan.layout)
+            return final_mesh(self.surfels, self.train.cameras, self._final_config(), render=self.render,
+                              proxy=self.proxy, guided=guided, tsdf_info=self.tsdf_info, record=self.record,
+                              layout=self.plan.layout)
 
     def _evaluate(self, stage: Stage, mesh: trimesh.Trimesh | None = None) -> dict:
         with self.timers("evaluate"):

@@ -61,9 +61,10 @@ _VIEW_FACING = 0.25  # a view sees a point of the region's surface when it faces
 _REINIT_FACES = {"cpu": _REINIT_MIN, "cuda": _MAX_SURFELS["cuda"] // 4}  # caps (CUDA: room to densify)
 _PROXY_FOOTPRINTS = 2.0  # proxy grid cell ~ 2 pixel footprints (a finer Poisson grid only adds noise)
 _SCENE_LEVEL_SIGMA = 2.0  # a scene proxy's local zero level, Poisson cells (poisson_indicator's level_sigma)
-# final TSDF voxel in pixel footprints: fused depth resolves below a pixel; 0.4 is the CPU default's
-# 192 voxels on the 128-px bunny, kept for every image size
-_FINAL_FOOTPRINTS = 0.4
+# final TSDF voxel in pixel footprints: 0.8, and half that where the co-evolution finds thin parts
+# (FitRun._final_mesh); finer voxels fuse the rendered depth's sub-pixel noise into the surface
+# (design/decisions.md, "final voxel")
+_FINAL_FOOTPRINTS = 0.8
 _MASK_WEIGHT = 0.2  # alpha-vs-mask BCE weight: 0.5 pulls the surface in, 0 leaves short fits semi-transparent
 
 _MULTIVIEW_WEIGHT = 0.15  # PGSR's multi-view NCC weight
@@ -395,7 +396,7 @@ def _budget(plan: _Decisions, scene, cfg: FitConfig, device: torch.device, layou
     final = int(np.clip(round(side / (_FINAL_FOOTPRINTS * fp)), lo, hi))
     plan.set("final_resolution", final,
              f"a voxel of {_FINAL_FOOTPRINTS:g} pixel footprints over the region of interest ({side:.3g} wide), "
-             f"{lo}-{hi} on {dev}",
+             f"{lo}-{hi} on {dev} (twice as fine, up to {hi}, where the co-evolution finds thin parts)",
              cfg.final.resolution)
 
 
