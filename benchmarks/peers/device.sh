@@ -8,7 +8,8 @@
 #   STAGE=/tmp/peers bash benchmarks/peers/device.sh score OUT_DIR # rows.json, table.md, pictures
 #
 # SYSTEM: wtopo, wtopo_noloop, gsplat, 2dgs, pgsr, pgsr_nomesh (WTOPO_ARGS, GSPLAT_ARGS, PGSR_ARGS: extra arguments
-# of run_wtopo.py, run_gsplat.py, run_pgsr.py, e.g. WTOPO_ARGS="--set ..." or PGSR_ARGS="--warmup-iterations 2000"). pgsr runs the TopoSurfel authors' code whole (PGSR warm-up, then its DPSR mesh stage) and also writes
+# of run_wtopo.py, run_gsplat.py, run_pgsr.py, e.g. WTOPO_ARGS="--set ..." or PGSR_ARGS="--warmup-iterations 2000").
+# pgsr runs the TopoSurfel authors' code whole (PGSR warm-up, then its DPSR mesh stage) and also writes
 # pgsr_nomesh from its warm-up, unless pgsr_nomesh is launched too (then a run of its own, the warm-up twice).
 # $STAGE holds: big.part* (split xz tar of the unpacked Warp and
 # Open3D wheels) and/or whl/*.whl (trimesh, plyfile, gsplat), peers/2dgs (a 2d-gaussian-splatting checkout with
