@@ -14,9 +14,9 @@ import trimesh
 from fit_configs import fit_with_loss_term
 from lenses import barrel_twin
 from reference.multiview import plane_costs_reference
+from shapes import plane_truth, textured_plane
 
 from wtopo import scenes
-from wtopo.camera import Camera
 from wtopo.fitting.multiview import MultiViewNCC
 
 _LO, _HI = np.array([-1.2, -1.2, -0.3]), np.array([1.2, 1.2, 0.3])
@@ -29,22 +29,7 @@ GRAD_REL = 2e-4
 
 @pytest.fixture(scope="module")
 def plane():
-    quad = trimesh.Trimesh([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]], process=False)
-    return scenes.from_mesh(quad, n_views=8, resolution=(96, 72), rig="hemisphere", texture="astronaut",
-                            background="black", seed=1)
-
-
-def _truth(cam: Camera):
-    """z-depth [H, W] of the plane z = 0 along the camera's pixel rays, the up normal, full alpha
-    where the ray meets the textured quad."""
-    o, d = cam.pixel_rays()
-    t = -o[..., 2] / d[..., 2]
-    hit = o + d * t[..., None]
-    on = (t > 0) & (hit[..., 0].abs() < 0.95) & (hit[..., 1].abs() < 0.95)
-    depth = torch.where(on, t, torch.zeros_like(t)).float()
-    normal = torch.zeros(*depth.shape, 3)
-    normal[..., 2] = 1.0
-    return depth, normal * on[..., None], on.float()
+    return textured_plane()
 
 
 def _term(cams, images, **kw):
@@ -54,7 +39,7 @@ def _term(cams, images, **kw):
 def test_true_plane_scores_near_zero_and_a_wrong_depth_scores_worse(plane):
     sc = plane
     mv = _term(sc.cameras, sc.images)
-    d, n, a = _truth(sc.cameras[0])
+    d, n, a = plane_truth(sc.cameras[0])
     assert a.sum() > 1000, "the quad must cover the reference view"
     true = float(mv(0, 0, d, n, a))
     off = float(mv(0, 0, d * 1.04, n, a))
@@ -68,10 +53,10 @@ def test_true_plane_scores_near_zero_and_a_wrong_depth_scores_worse(plane):
 
 
 @pytest.mark.parametrize("scale, sign", [(1.03, 1.0), (0.97, -1.0)])
-def test_depth_gradient_points_to_the_truth(plane, scale, sign):
+def test_depth_gradient_points_to_theplane_truth(plane, scale, sign):
     sc = plane
     mv = _term(sc.cameras, sc.images)
-    d, n, a = _truth(sc.cameras[0])
+    d, n, a = plane_truth(sc.cameras[0])
     s = torch.tensor(scale, requires_grad=True)
     loss = mv(0, 0, d * s, n, a)
     loss.backward()
@@ -82,7 +67,7 @@ def test_depth_gradient_points_to_the_truth(plane, scale, sign):
 def test_gradient_reaches_the_normal(plane):
     sc = plane
     mv = _term(sc.cameras, sc.images)
-    d, n, a = _truth(sc.cameras[0])
+    d, n, a = plane_truth(sc.cameras[0])
     n = n.clone()
     n[..., 0] = 0.3 * a
     n.requires_grad_(True)
@@ -93,10 +78,10 @@ def test_gradient_reaches_the_normal(plane):
 
 def test_distorted_rig_scores_like_its_pinhole_twin(plane):
     cams, imgs = barrel_twin(plane)
-    d, n, a = _truth(cams[0])
+    d, n, a = plane_truth(cams[0])
     true = float(_term(cams, imgs)(0, 0, d, n, a))
     off = float(_term(cams, imgs)(0, 0, d * 1.04, n, a))
-    twin = float(_term(plane.cameras, plane.images)(0, 0, *_truth(plane.cameras[0])))
+    twin = float(_term(plane.cameras, plane.images)(0, 0, *plane_truth(plane.cameras[0])))
     # measured: 0.148 through the barrel lens, 0.171 for the pinhole twin, 0.66 at 4 % off the depth
     assert true < 1.2 * twin + 0.02
     assert off > 2.5 * true
@@ -104,7 +89,7 @@ def test_distorted_rig_scores_like_its_pinhole_twin(plane):
 
 def test_untextured_images_and_lone_views_carry_nothing(plane):
     sc = plane
-    d, n, a = _truth(sc.cameras[0])
+    d, n, a = plane_truth(sc.cameras[0])
     flat = torch.full_like(sc.images, 0.4)
     loss = _term(sc.cameras, flat)(0, 0, d.requires_grad_(True), n, a)
     assert float(loss) == 0.0
@@ -121,7 +106,7 @@ def test_costs_and_gradients_match_the_reference(plane, lens):
     and normal."""
     cams, imgs = (plane.cameras, plane.images) if lens == "pinhole" else barrel_twin(plane)
     mv = _term(cams, imgs)
-    d, n, a = _truth(cams[0])
+    d, n, a = plane_truth(cams[0])
     h = mv.half
     g = torch.Generator().manual_seed(3)
     py, px = (a[h:-h, h:-h] > 0).nonzero(as_tuple=True)
@@ -154,7 +139,7 @@ def test_fraction_sets_the_pixel_count(plane):
     assert mv.count(256, 256) == 4096 and mv.count(800, 600) == 4096
     assert mv.count(40, 40) == 100 and mv.count(3, 3) == 1
     assert _term(plane.cameras, plane.images, pixels=500).count(128, 128) == 500
-    d, n, a = _truth(plane.cameras[0])
+    d, n, a = plane_truth(plane.cameras[0])
     assert torch.isfinite(mv(0, 0, d, n, a))
 
 
@@ -205,7 +190,7 @@ def test_prefers_the_true_plane_to_a_wrong_one_and_says_nothing_without_texture(
     nothing (False everywhere); the border's half window is never marked."""
     sc = plane
     mv = _term(sc.cameras, sc.images)
-    d, n, a = _truth(sc.cameras[0])
+    d, n, a = plane_truth(sc.cameras[0])
     on = a > 0
     yes = mv.prefers(0, 0, d, n, d * 1.04, n, on, 0.1)
     rev = mv.prefers(0, 0, d * 1.04, n, d, n, on, 0.1)

@@ -11,11 +11,10 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-import trimesh
 from lenses import barrel_twin
 from reference.multiview import multiview_loss_torch, plane_costs_torch
+from shapes import plane_truth, textured_plane
 
-from wtopo import scenes
 from wtopo.camera import Camera
 from wtopo.fitting import multiview as M
 from wtopo.multiview_ncc import ReferenceWindows, source_params, window_ncc_costs
@@ -34,21 +33,7 @@ MIN_STD, GRAZING = M._MIN_STD, M._GRAZING
 
 @pytest.fixture(scope="module")
 def plane():
-    quad = trimesh.Trimesh([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]], process=False)
-    return scenes.from_mesh(quad, n_views=8, resolution=(96, 72), rig="hemisphere", texture="astronaut",
-                            background="black", seed=1)
-
-
-def _truth(cam: Camera, device="cpu"):
-    """z-depth [H, W] of the plane z = 0 along the camera's rays, the up normal, alpha 1 on the quad."""
-    o, d = cam.pixel_rays()
-    t = -o[..., 2] / d[..., 2]
-    hit = o + d * t[..., None]
-    on = (t > 0) & (hit[..., 0].abs() < 0.95) & (hit[..., 1].abs() < 0.95)
-    depth = torch.where(on, t, torch.zeros_like(t)).float()
-    normal = torch.zeros(*depth.shape, 3)
-    normal[..., 2] = 1.0
-    return depth.to(device), (normal * on[..., None]).to(device), on.float().to(device)
+    return textured_plane()
 
 
 def _off(d, n, a):
@@ -69,7 +54,7 @@ def test_costs_masks_and_gradients_match_the_torch_path(plane, device, lens):
     """Match the torch formulation the kernel replaced: costs, masks and the gradients of a random cotangent."""
     cams, imgs = (plane.cameras, plane.images) if lens == "pinhole" else barrel_twin(plane)
     mv = M.MultiViewNCC(cams, imgs, np.zeros(3), pixels=600, seed=0)
-    d, n, a = _truth(cams[0], device)
+    d, n, a = plane_truth(cams[0], device)
     py, px = _centres(a, 600, 3)  # centres may repeat: the scatter adds them
     pick = mv._pick(0, 5)
     assert len(pick) == 2
@@ -97,7 +82,7 @@ def test_term_matches_the_torch_path(plane, device, it):
     """Give the term's loss and map gradients of the torch formulation: same pixels, neighbours and masks."""
     mv = M.MultiViewNCC(plane.cameras, plane.images, np.zeros(3), pixels=4096, fraction=1 / 16, seed=2)
     for vi in (0, 3):
-        d, n, a = _truth(plane.cameras[vi], device)
+        d, n, a = plane_truth(plane.cameras[vi], device)
         d1, n1 = _off(d, n, a)
         d2, n2 = _off(d, n, a)
         got = mv(it, vi, d1, n1, a)
