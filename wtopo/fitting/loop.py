@@ -198,12 +198,17 @@ class FitRun:
         """Read whether the last step left finite gradients and parameters (one host read when a step is
         unverified); a non-finite step is a failure and the last good state comes back."""
         flag, self._unverified = self._unverified, None
-        if flag is None:
-            return
-        if bool(flag):
+        if flag is not None:
+            self._verdict(bool(flag))
+
+    def _verdict(self, finite: bool) -> bool:
+        """Act on the last step's flag once read: a finite step ends a run of failures, a non-finite one is a
+        failure (the last good state comes back). Returns ``finite``."""
+        if finite:
             self.failures = 0
         else:
             self._failure("step", {})
+        return finite
 
     def _restore(self) -> None:
         sd, od = self.last_good
@@ -291,10 +296,8 @@ class FitRun:
             read = torch.cat([torch.stack([v.detach() for v in t.losses.values()]).double(), *extra]).tolist()
             if self._unverified is not None:  # the last step: its failure discards this forward too
                 self._unverified = None
-                if not read[len(t.losses) + 2]:
-                    self._failure("step", {})
+                if not self._verdict(bool(read[len(t.losses) + 2])):
                     return
-                self.failures = 0
             if t.render.overflow is None or not read[-1]:
                 break
         if t.proxy_built:
