@@ -8,7 +8,11 @@ SH degree 3 (one more every 1,000 steps), initial points from the exchange folde
 the trainer's normalised world, where the median camera distance is 1) and its opacity reset every
 3,000 steps (gsplat 1.5.3's own reset never fires: ``step % reset_every == 0 & step > 0`` is always
 false; fixed upstream after 1.5.3 in #776, so it is done here); then 2DGS's TSDF mesh (median depth,
-voxel 0.004, truncation 0.016, depth cut 3.0, largest cluster).
+voxel 0.004, truncation 0.016, depth cut 3.0, largest cluster). On a masked capture the masks are the
+images' alpha: each step composites the photograph on a random background outside its mask, as gsplat's
+trainer does for RGBA images with ``random_bkgd`` (``--no-mask-bg``: train on the photographs as they are;
+on a black background the splats outside the visual hull then turn black and hide the object from
+held-out views, see ``benchmarks/peers.md``).
 
     python benchmarks/peers/run_gsplat.py EXCH OUT [--iterations 30000]
 """
@@ -63,8 +67,9 @@ def main(argv=None) -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--reset-opacity", type=float, default=None,
                     help="opacity the periodic reset clamps to (default: gsplat's 2 * prune_opa = 0.1; 2DGS uses 0.01)")
-    ap.add_argument("--mask-bg", action="store_true",
-                    help="masked captures: train against a random background outside the masks (not gsplat's recipe)")
+    ap.add_argument("--no-mask-bg", dest="mask_bg", action="store_false",
+                    help="masked captures: train on the photographs as they are, not on a random background "
+                         "outside the masks")
     ap.add_argument("--save-at", type=int, nargs="*", default=[7000, 15000],
                     help="also save the splats at these steps (splats_STEP.pt), for --mesh-only")
     ap.add_argument("--mesh-only", type=int, default=None, metavar="STEP",

@@ -31,7 +31,8 @@ F_TAU = 0.005  # F-score threshold, fraction of the ground truth's diagonal
 
 
 def image_scores(renders: np.ndarray, ex) -> dict:
-    """Mean held-out PSNR [dB] and SSIM of ``renders`` [T, H, W, 3] against the exchange folder's test views."""
+    """Mean held-out PSNR [dB] and SSIM of ``renders`` [T, H, W, 3] against the exchange folder's test views, and
+    each view's PSNR (``psnr_views``, in the order of ``ex.test``: a mean can hide one extrapolated view)."""
     from wtopo import metrics
 
     p, s = [], []
@@ -46,7 +47,8 @@ def image_scores(renders: np.ndarray, ex) -> dict:
         else:
             p.append(float(metrics.psnr(pred, gt)))
             s.append(float(metrics.ssim(pred, gt)))
-    return {"psnr": float(np.mean(p)), "ssim": float(np.mean(s)), "psnr_on": "masks" if ex.masked else "image"}
+    return {"psnr": float(np.mean(p)), "ssim": float(np.mean(s)), "psnr_on": "masks" if ex.masked else "image",
+            "psnr_views": [round(x, 2) for x in p]}
 
 
 def silhouette_iou(mesh, ex) -> float | None:

@@ -190,9 +190,10 @@ class FitRun:
 
     def snapshot(self) -> None:
         """Keep the current surfels and optimiser as the last good state (after :meth:`settle`: a step not yet
-        known to be finite is checked first). The optimiser's moments are copied: the live ones change in place."""
+        known to be finite is checked first). Parameters and moments are copied on the fit's device (the live
+        ones change in place; a checkpoint moves them to the host when it writes)."""
         self.settle()
-        self.last_good = (self.surfels.state_dict(), copy.deepcopy(self.opt.state_dict()))
+        self.last_good = (self.surfels.state_dict(self.device), copy.deepcopy(self.opt.state_dict()))
 
     def settle(self) -> None:
         """Read whether the last step left finite gradients and parameters (one host read when a step is

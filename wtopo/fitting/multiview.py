@@ -90,7 +90,8 @@ class MultiViewNCC:
         self._cam = TorchCams(cameras)
         self._grays: dict[int, torch.Tensor] = {}
         self._stats: dict[tuple[int, torch.device], ReferenceWindows] = {}
-        self._source_cache: dict[tuple, tuple[list[torch.Tensor], torch.Tensor]] = {}
+        self._rows: dict[tuple, torch.Tensor] = {}  # (reference, source, device) -> source row
+        self._grays_on: dict[tuple, torch.Tensor] = {}  # (view, device) -> grey image there
         self._generators: dict[torch.device, torch.Generator] = {}
 
     def has_neighbours(self, vi: int) -> bool:
@@ -109,6 +110,12 @@ class MultiViewNCC:
             g = self._grays[i] = gray(self.images[i].float())
         return g
 
+    def _gray_on(self, i: int, device: torch.device) -> torch.Tensor:
+        g = self._grays_on.get((i, device))
+        if g is None:
+            g = self._grays_on[(i, device)] = self._gray_of(i).to(device)
+        return g
+
     def _view_stats(self, vi: int, device: torch.device) -> ReferenceWindows:
         """What every window of view ``vi`` reads whatever its plane (made once per view and device): the grey
         image, per pixel the mean and variance [H, W] of the grey levels of the window centred there (zero
@@ -123,7 +130,7 @@ class MultiViewNCC:
             var = (F.avg_pool2d(g * g, k, stride=1) - mean * mean).clamp_min(0.0)
             pad = (h, h, h, h)
             dirs = self._cam(vi, device).dirs
-            st = self._stats[key] = ReferenceWindows(self._gray_of(vi).to(device), F.pad(mean, pad)[0, 0].float(),
+            st = self._stats[key] = ReferenceWindows(self._gray_on(vi, device), F.pad(mean, pad)[0, 0].float(),
                                                      F.pad(var, pad)[0, 0].float(), dirs, dirs.norm(dim=-1))
         return st
 
@@ -135,14 +142,17 @@ class MultiViewNCC:
 
     def _sources(self, vi: int, pick: list[int], device: torch.device) -> tuple[list[torch.Tensor], torch.Tensor]:
         """The grey images of the views ``pick`` on ``device`` and their rows for :func:`window_ncc_costs` seen
-        from view ``vi`` (made once per view, pick and device)."""
-        key = (vi, tuple(pick), device)
-        src = self._source_cache.get(key)
-        if src is None:
-            ref = self.cameras[vi]
-            rows = [source_params(ref, self.cameras[j], device=device) for j in pick]
-            src = self._source_cache[key] = ([self._gray_of(j).to(device) for j in pick], torch.stack(rows))
-        return src
+        from view ``vi``. Each grey image and each (reference, source) row is copied to the device once: the
+        draws that follow only gather device tensors (no host transfer in the loop)."""
+        ref = self.cameras[vi]
+        rows, images = [], []
+        for j in pick:
+            row = self._rows.get((vi, j, device))
+            if row is None:
+                row = self._rows[(vi, j, device)] = source_params(ref, self.cameras[j], device=device)
+            rows.append(row)
+            images.append(self._gray_on(j, device))
+        return images, torch.stack(rows)
 
     def _plane_costs(self, vi: int, py: torch.Tensor, px: torch.Tensor, depth: torch.Tensor, normal: torch.Tensor,
                      alpha: torch.Tensor, pick: list[int]) -> tuple[torch.Tensor, torch.Tensor]:

@@ -297,10 +297,11 @@ class Surfels:
                 st["exp_avg_sq"].zero_()
 
     # -- (de)serialisation ---------------------------------------------------------------------
-    def state_dict(self) -> dict:
-        """Detached parameters and buffers."""
-        return {"params": {k: v.detach().cpu().clone() for k, v in self.params.items()},
-                "buffers": {k: v.cpu().clone() for k, v in self.buffers.items()}}
+    def state_dict(self, device: torch.device | str = "cpu") -> dict:
+        """Detached copies of the parameters and buffers on ``device`` (the fit's own device keeps its
+        in-memory snapshots there: no host transfer, no synchronisation)."""
+        return {"params": {k: v.detach().to(device, copy=True) for k, v in self.params.items()},
+                "buffers": {k: v.to(device, copy=True) for k, v in self.buffers.items()}}
 
     @staticmethod
     def from_state_dict(state: dict, device: torch.device | str = "cpu") -> Surfels:
