@@ -37,6 +37,7 @@ import torch
 from _from_tests import load  # beside this script
 
 from wtopo import scenes
+from wtopo.depth_normals import depth_normals
 from wtopo.fitting import FitConfig
 from wtopo.fitting.loop import FitRun
 from wtopo.fitting.profiling import Timers
@@ -168,7 +169,7 @@ def _terms(run, outs, mrs, repeats: int) -> None:
         cam = train.cameras[v]
         covered = o.alpha.detach() >= O.ALPHA_COVERED
         ro, rd = cam.pixel_rays(o.alpha.device)
-        dn, dm = L.depth_normals(o.median_depth, ro, rd, covered)
+        dn, dm = depth_normals(o.median_depth, ro, rd, covered)
         return L.normal_consistency(o.normal, dn, o.alpha, dm)
 
     def mesh_terms(o, v):
@@ -225,7 +226,7 @@ def _quick(repeats: int, views: int = 8) -> None:
     for v in range(views):
         d = sc.depths[v].float().clone()
         o, r = cams[v].pixel_rays("cpu")
-        n, _ = L.depth_normals(d, o, r, d > 0)
+        n, _ = depth_normals(d, o, r, d > 0)
         rgb = (imgs[v] + 0.05 * torch.randn(imgs[v].shape, generator=g)).clamp(0, 1)
         maps.append((d, n, (d > 0).float(), rgb))
     center = np.full(3, 0.5)

@@ -144,32 +144,6 @@ def test_mesh_normal_loss_ignores_mesh_orientation():
     torch.testing.assert_close(L.mesh_normal_loss(sn, mn, torch.tensor([[False, False, True]])), torch.tensor(1.0))
 
 
-def test_depth_normals_of_a_tilted_plane():
-    """Recover the normal of a plane z = 2 + 0.3 x, facing the camera, with zero borders."""
-    o, d = _rays(16, 16)
-    # ray x = d_x t, z = t: t = 2 / (1 - 0.3 d_x)
-    depth = 2.0 / (1 - 0.3 * d[..., 0])
-    n, m = L.depth_normals(depth, o, d, torch.ones(16, 16, dtype=torch.bool))
-    want = torch.tensor([0.3, 0.0, -1.0]) / math.sqrt(1.09)
-    assert m[1:-1, 1:-1].all() and not m[0].any() and not m[:, -1].any()
-    torch.testing.assert_close(n[5, 5], want, atol=1e-4, rtol=0)
-    assert torch.equal(n[0], torch.zeros(16, 3))
-
-
-def test_depth_normals_at_discontinuities_are_finite_and_masked():
-    """Invalid (zero) depth and jumps stay finite; invalid neighbours are masked out."""
-    o, d = _rays(8, 8)
-    depth = torch.ones(8, 8)
-    depth[:, 4:] = 5.0
-    depth[2, 2] = 0.0
-    valid = depth > 0
-    depth.requires_grad_()
-    n, m = L.depth_normals(depth, o, d, valid)
-    n.sum().backward()
-    assert torch.isfinite(n).all() and torch.isfinite(depth.grad).all()
-    assert not m[2, 2] and not m[1, 2] and not m[2, 1]
-
-
 def test_normal_consistency_is_zero_for_agreeing_normals():
     """Give 0 when the rendered normal equals the depth normal at full opacity."""
     n = torch.tensor([0.0, 0.6, -0.8]).expand(4, 4, 3)

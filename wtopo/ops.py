@@ -22,6 +22,7 @@ _OPS = {
     "MeshRender": "wtopo.raycast",
     "closest_faces": "wtopo.raycast",
     "photometric_loss": "wtopo.photometric",
+    "depth_normals": "wtopo.depth_normals",
 }
 
 __all__ = list(_OPS)

@@ -19,8 +19,6 @@ __all__ = [
     "l1",
     "photometric",
     "mask_loss",
-    "depth_to_points",
-    "depth_normals",
     "normal_consistency",
     "distortion",
     "scale_regularizer",
@@ -74,34 +72,6 @@ def mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     float target opacity in [0, 1]."""
     a = alpha.clamp(1e-6, 1 - 1e-6)  # BCE is infinite at exactly 0 / 1
     return F.binary_cross_entropy(a, mask.to(alpha.dtype))
-
-
-def depth_to_points(depth: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
-    """World points [H, W, 3] of z-depths [H, W] along rays whose camera-z component is 1."""
-    return origins + directions * depth[..., None]
-
-
-def depth_normals(depth: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor,
-                  valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Normals [H, W, 3] from a depth map by central differences, facing the camera, and their mask.
-
-    Border pixels and pixels whose four neighbours are not all ``valid`` get a zero normal and
-    ``False`` in the mask (2DGS pads borders with zero).
-    """
-    p = depth_to_points(torch.where(valid, depth, torch.zeros_like(depth)), origins, directions)
-    dx = p[1:-1, 2:] - p[1:-1, :-2]
-    dy = p[2:, 1:-1] - p[:-2, 1:-1]
-    n = torch.cross(dx, dy, dim=-1)
-    inner = valid[1:-1, 2:] & valid[1:-1, :-2] & valid[2:, 1:-1] & valid[:-2, 1:-1] & valid[1:-1, 1:-1]
-    inner = inner & (n.norm(dim=-1) > _NORMAL_EPS)
-    n = safe_normalize(n)
-    # face the camera: the normal points against the viewing ray
-    facing = (n * directions[1:-1, 1:-1]).sum(-1, keepdim=True)
-    n = torch.where(facing > 0, -n, n)
-    n = torch.where(inner[..., None], n, torch.zeros_like(n))
-    out = F.pad(n.permute(2, 0, 1), (1, 1, 1, 1)).permute(1, 2, 0)
-    mask = F.pad(inner, (1, 1, 1, 1), value=False)
-    return out, mask
 
 
 def normal_consistency(rendered: torch.Tensor, from_depth: torch.Tensor, alpha: torch.Tensor,

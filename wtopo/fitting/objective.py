@@ -10,9 +10,9 @@ from collections import defaultdict
 
 import torch
 
+from ..depth_normals import depth_normals
 from .config import FitConfig, stage_iteration
 from .losses import (
-    depth_normals,
     distortion,
     mask_loss,
     mesh_depth_loss,
