@@ -71,6 +71,8 @@ class Plan:
     """Surfel cap; ``runtime.max_surfels``."""
     reinit_faces: int
     """Faces (one surfel each) of the TSDF re-initialisation mesh; ``tsdf.max_faces``."""
+    reinit_resolution: int
+    """TSDF voxels along the re-initialisation's fusion box; ``tsdf.resolution``."""
     proxy_resolution: int
     """Poisson nodes per side of the proxy mesh; ``mesh.resolution``."""
     final_resolution: int
@@ -119,7 +121,8 @@ class Plan:
             ("initial surfels", f"{InitSource(self.init_source).value}: {self.reasons.get('init_source', '')}"),
             ("warm-up", f"{self.warmup_iterations} iterations ({self.reasons.get('warmup_iterations', '')}); "
                         f"clone/split {'on' if self.densify else 'off'}"),
-            ("TSDF re-init", f"{'runs' if self.tsdf_reinit else 'skipped'}: {self.reasons.get('tsdf_reinit', '')}"),
+            ("TSDF re-init", (f"runs at {self.reinit_resolution} voxels: " if self.tsdf_reinit else "skipped: ")
+                             + self.reasons.get("tsdf_reinit", "")),
             ("co-evolution", co),
             ("final mesh", f"TSDF fusion at {self.final_resolution} voxels, {self.mesh_policy}"),
         ]

@@ -122,8 +122,9 @@ class TSDFConfig:
     enabled: bool | None = None
     """Re-initialise the surfels from the fused mesh between warm-up and co-evolution; ``None``: the plan's (off
     for a scene whose proxy-mesh loop is off, where nothing would use the re-initialised surfels; on otherwise)."""
-    resolution: int = _f(128, Range(_GRID_MIN, _TSDF_MAX))
-    """Voxels along the longest side of the automatic bounds."""
+    resolution: int | None = _f(None, Range(_GRID_MIN, _TSDF_MAX))
+    """Voxels along the longest side of the automatic bounds; ``None``: the plan's (the final mesh's voxel of
+    0.8 pixel footprints, at most 128 voxels)."""
     max_faces: int | None = _f(None, POSITIVE)
     """The fused mesh is decimated to at most this many faces (one surfel each); ``None``: the plan's,
     from the pixel footprint and the views per point, capped per device."""

@@ -65,6 +65,7 @@ _SCENE_LEVEL_SIGMA = 2.0  # a scene proxy's local zero level, Poisson cells (poi
 # (FitRun._final_mesh); finer voxels fuse the rendered depth's sub-pixel noise into the surface
 # (design/decisions.md, "final voxel")
 _FINAL_FOOTPRINTS = 0.8
+_REINIT_GRID_MAX = 128  # the re-initialisation's TSDF voxels at most (its mesh is decimated to tsdf.max_faces)
 _MASK_WEIGHT = 0.2  # alpha-vs-mask BCE weight: 0.5 pulls the surface in, 0 leaves short fits semi-transparent
 
 _MULTIVIEW_WEIGHT = 0.15  # PGSR's multi-view NCC weight
@@ -398,6 +399,10 @@ def _budget(plan: _Decisions, scene, cfg: FitConfig, device: torch.device, layou
              f"a voxel of {_FINAL_FOOTPRINTS:g} pixel footprints over the region of interest ({side:.3g} wide), "
              f"{lo}-{hi} on {dev} (twice as fine, up to {hi}, where the co-evolution finds thin parts)",
              cfg.final.resolution)
+    reinit = min(int(plan.values["final_resolution"]), _REINIT_GRID_MAX)
+    plan.set("reinit_resolution", reinit,
+             f"the final mesh's voxel ({_FINAL_FOOTPRINTS:g} pixel footprints), at most {_REINIT_GRID_MAX} voxels: "
+             "the re-initialisation keeps one surfel per face of at most the planned faces", cfg.tsdf.resolution)
 
 
 def resolve_config(cfg: FitConfig, plan: Plan) -> FitConfig:
@@ -426,6 +431,7 @@ def resolve_config(cfg: FitConfig, plan: Plan) -> FitConfig:
     out.optim.means_restart = float(plan.means_restart)
     out.runtime.max_surfels = int(plan.max_surfels)
     out.tsdf.max_faces = int(plan.reinit_faces)
+    out.tsdf.resolution = int(plan.reinit_resolution)
     out.mesh.resolution = int(plan.proxy_resolution)
     out.final.resolution = int(plan.final_resolution)
     out.tsdf.enabled = bool(plan.tsdf_reinit)
