@@ -97,6 +97,7 @@ def test_the_plan_is_typed_frozen_and_the_resolved_config_carries_its_decisions(
              "warmup_iterations": r.warmup.iterations, "coevolution_iterations": r.coevolution.iterations,
              "means_decay_iterations": r.optim.means_decay_iterations, "means_restart": r.optim.means_restart,
              "max_surfels": r.runtime.max_surfels, "reinit_faces": r.tsdf.max_faces,
+             "reinit_resolution": r.tsdf.resolution,
              "proxy_resolution": r.mesh.resolution, "final_resolution": r.final.resolution,
              "tsdf_reinit": r.tsdf.enabled, "tsdf_backend": r.tsdf.backend, "mesh_loop": r.coevolution.enabled,
              "proxy_level_sigma": r.mesh.level_sigma, "proxy_clip": r.mesh.clip_to_region, "preset": r.preset,
