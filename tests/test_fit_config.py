@@ -249,7 +249,8 @@ def test_fit_rejects_a_bad_config_before_any_work(monkeypatch):
     scene = _tiny_scene()
     with pytest.raises(ValueError, match=re.escape("FitConfig.warmup.iterations must be an int >= 0 or None, got -3")):
         wtopo.fit(scene, _with("warmup.iterations", -3), progress=False)
-    with pytest.raises(TypeError, match=re.escape("FitConfig.tsdf.resolution must be an int in [8, 2048] or None, got True")):
+    bad_grid = "FitConfig.tsdf.resolution must be an int in [8, 2048] or None, got True"
+    with pytest.raises(TypeError, match=re.escape(bad_grid)):
         wtopo.fit(scene, _with("tsdf.resolution", True), progress=False)
 
 
