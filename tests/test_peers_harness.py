@@ -1,0 +1,73 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The peers benchmark's exchange folder and its one scorer (``benchmarks/peers/``), on the CPU: a scene
+written and read back, a perfect result scoring as one, and a shifted render and a scaled mesh scoring
+worse in the measures they should move (held-out PSNR per view, Chamfer, F, silhouette IoU)."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+import pytest
+
+PEERS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", "peers")
+sys.path.insert(0, PEERS)
+
+from _result import write_result  # noqa: E402
+from exchange import export, load  # noqa: E402
+from score import score  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def exch(tmp_path_factory):
+    from wtopo import scenes
+
+    root = str(tmp_path_factory.mktemp("exch") / "bunny16")
+    scene = scenes.load("bunny", n_views=16, resolution=48)
+    scene.name = "bunny16"
+    export(scene, root, test_every=4, n_points=500)
+    return load(root)
+
+
+def _result(ex, out, *, renders=None, mesh=None):
+    renders = np.stack([ex.image(i) for i in ex.test]) if renders is None else renders
+    write_result(str(out), system="test", mesh=ex.gt() if mesh is None else mesh, renders=renders,
+                 run={"wall_s": 1.0, "iterations": 1})
+    return score(ex.root, str(out))
+
+
+def test_the_exchange_folder_reads_back(exch):
+    """Train and test views split as asked, images, masks, cameras and ground truth present and consistent."""
+    assert exch.meta["name"] == "bunny16" and exch.meta["masked"] and exch.meta["gt"]
+    assert exch.test == [0, 4, 8, 12] and len(exch.train) == 12 and not set(exch.test) & set(exch.train)
+    img, m = exch.image(exch.test[0]), exch.mask(exch.test[0])
+    assert img.shape == (exch.height, exch.width, 3) and m.shape == img.shape[:2] and 0 < m.mean() < 1
+    sparse = os.path.join(exch.root, "colmap", "sparse", "0")
+    for name in ("cameras.txt", "images.txt", "points3D.txt"):
+        assert os.path.isfile(os.path.join(sparse, name)), name
+    # the peers train on the training views only: COLMAP's images are those
+    assert len(os.listdir(os.path.join(exch.root, "colmap", "images"))) == len(exch.train)
+    gt = exch.gt()
+    cam = exch.camera(exch.test[0])
+    uv, z = cam.project(np.asarray(gt.vertices))
+    assert (z > 0).all()  # the object lies in front of a held-out camera, in the exchange's frame
+
+
+def test_a_perfect_result_scores_as_one(exch, tmp_path):
+    row = _result(exch, tmp_path / "perfect")
+    assert row["scene"] == "bunny16" and row["psnr_on"] == "masks"
+    assert len(row["psnr_views"]) == len(exch.test) and row["psnr"] > 45  # float16 storage of the renders
+    assert row["ssim"] > 0.999 and row["f_score"] > 0.999 and row["chamfer_pct"] < 0.05
+    assert row["silhouette_iou"] > 0.9 and row["watertight"] == exch.gt().is_watertight
+
+
+def test_a_shifted_render_and_a_scaled_mesh_score_worse(exch, tmp_path):
+    perfect = _result(exch, tmp_path / "perfect")
+    shifted = np.stack([np.roll(exch.image(i), 2, axis=1) for i in exch.test])
+    gt = exch.gt().copy()
+    gt.apply_scale(1.05)  # about the frame's origin: moved and grown
+    row = _result(exch, tmp_path / "worse", renders=shifted, mesh=gt)
+    assert all(a < b - 5 for a, b in zip(row["psnr_views"], perfect["psnr_views"]))
+    assert row["chamfer_pct"] > 20 * perfect["chamfer_pct"] and row["f_score"] < perfect["f_score"]
+    assert row["silhouette_iou"] < perfect["silhouette_iou"]
