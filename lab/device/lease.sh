@@ -1,6 +1,10 @@
 #!/usr/bin/env bash
-# One lease's jobs (lab): after the staging calls. Step "a": install, wtopo DTU alone, then the peers' builds;
-# step "b": the concurrent batch (gsplat fixed, density variants, a short sync count). S is the stage folder.
+# One lease's jobs (lab), after the staging calls (benchmarks/peers.md, "Staging a lease"). S is the stage folder.
+#   a [SECONDS]: install; wtopo on DTU alone (profiled), waiting up to SECONDS (default 300) for it to end so its
+#                times are clean; then the peers' builds in the foreground
+#   b: the concurrent batch of 2026-12-02 (gsplat, wtopo's density variants, a short synchronisation count)
+#   c: the next batch: gsplat on bunny64 (masks as alpha) and DTU (per-view PSNR), the authors' code on DTU at
+#      its published counts (30,000 + 10,000 iterations: a lease of its own beside these two)
 set -uo pipefail
 S=${S:-/root/peers}
 D=benchmarks/peers/device.sh
@@ -8,8 +12,9 @@ case $1 in
 a)
   cp -r .stage/small/whl .stage/small/peers "$S"/ && mkdir -p "$S/exch" && cp -r .stage/exch/* "$S/exch/"
   STAGE=$S bash $D install || exit 1
-  STAGE=$S SERIAL=1 bash $D launch "$S/exch/dtu_scan24" -- wtopo
-  sleep "${2:-45}"
+  STAGE=$S WTOPO_ARGS="--set runtime.profile=true" bash $D launch "$S/exch/dtu_scan24" -- wtopo
+  end=$(( $(date +%s) + ${2:-300} ))
+  while [ ! -f "$S/res/dtu_scan24/wtopo.rc" ] && [ "$(date +%s)" -lt $end ]; do sleep 5; done
   MAX_JOBS=12 STAGE=$S timeout 480 bash $D build
   ;;
 b)
@@ -29,5 +34,9 @@ b)
   mkdir -p "$S/sync"
   setsid nohup bash -c "python3 lab/sync_count.py $S/exch/dtu_scan24 --set warmup.iterations=400 \
     --set coevolution.iterations=300 > $S/sync/sync.log 2>&1" >/dev/null 2>&1 &
+  ;;
+c)
+  STAGE=$S bash $D launch "$S/exch/bunny64" "$S/exch/dtu_scan24" -- gsplat
+  STAGE=$S bash $D launch "$S/exch/dtu_scan24" -- pgsr
   ;;
 esac
