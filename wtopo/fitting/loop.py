@@ -32,6 +32,7 @@ from ._progress import StageBar, StopRequest
 from ._reinit import tsdf_reinit
 from ._strategy import DensityStrategy, StepInfo
 from ._timeline import FitTimeline
+from .adam import Adam
 from .background import BackgroundState, background_surfels, contract_steps, prune_near_cameras
 from .checkpoint import rng_state, set_rng_state
 from .checkpointing import Checkpointer
@@ -135,7 +136,7 @@ class FitRun:
         self.coevolution_info: dict = {}  # the thin-part rule's measure and decision (thin_parts)
         self.status = "running"
         self.surfels: Surfels | None = None
-        self.opt: torch.optim.Adam | None = None
+        self.opt: Adam | None = None
         self.last_good: tuple[dict, dict] | None = None  # (surfel, optimiser) state dicts of the last good step
         # whether the last step's gradients and parameters are finite: a device flag read with the next
         # iteration's losses (one host read per iteration), or by settle() before the state is used

@@ -15,6 +15,7 @@ import math
 import torch
 
 from ..io._common import rgb_to_sh_dc, sh_dc_to_rgb
+from .adam import Adam
 
 __all__ = ["Surfels", "quat_to_matrix", "normals_to_quats"]
 
@@ -122,7 +123,7 @@ class Surfels:
             given = None if buffers is None else buffers.get(name)
             self.buffers[name] = (given.detach().clone().float() if given is not None
                                   else torch.full((n, *shape), fill, device=dev))
-        self._optimizer: torch.optim.Optimizer | None = None
+        self._optimizer: Adam | None = None
 
     # -- construction -------------------------------------------------------------------------
     @staticmethod
@@ -201,10 +202,11 @@ class Surfels:
         return sh_dc_to_rgb(self.params["sh_dc"].detach()[:, 0])
 
     # -- optimiser ------------------------------------------------------------------------
-    def optimizer(self, lrs: dict[str, float]) -> torch.optim.Adam:
-        """Adam with one group per parameter (``lrs`` maps parameter name -> learning rate)."""
+    def optimizer(self, lrs: dict[str, float]) -> Adam:
+        """Adam (:class:`~wtopo.fitting.adam.Adam`) with one group per parameter (``lrs`` maps parameter name ->
+        learning rate)."""
         groups = [{"params": [self.params[k]], "lr": float(lrs[k]), "name": k} for k in _PARAMS]
-        self._optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        self._optimizer = Adam(groups, eps=1e-15)
         return self._optimizer
 
     def _replace(self, fn_param, fn_state) -> None:
