@@ -37,10 +37,11 @@ def _rough(h, w, dtype, device, seed=0):
     return depth.to(device), valid.to(device)
 
 
+@pytest.mark.parametrize("hw", [(23, 37), (130, 70)])  # one CPU launch; a launch split across threads
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_equals_the_torch_formulation(device, dtype):
+def test_equals_the_torch_formulation(device, dtype, hw):
     """Normals and mask equal the reference's on a rough surface with holes, a step and zero depths."""
-    h, w = 23, 37
+    h, w = hw
     o, d = _rays(h, w, dtype=dtype, device=device)
     depth, valid = _rough(h, w, dtype, device)
     n, m = depth_normals(depth, o, d, valid)
