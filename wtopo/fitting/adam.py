@@ -66,7 +66,7 @@ class Adam:
                 st["step"] += 1
                 t = float(st["step"])
                 st["exp_avg"].lerp_(grad, 1 - b1)
-                st["exp_avg_sq"].mul_(b2).addcmul_(grad, grad.conj(), value=1 - b2)
+                st["exp_avg_sq"].mul_(b2).addcmul_(grad, grad, value=1 - b2)
                 step_size = lr / (1 - b1 ** t)
                 denom = (st["exp_avg_sq"].sqrt() / math.sqrt(1 - b2 ** t)).add_(eps)
                 p.addcdiv_(st["exp_avg"], denom, value=-step_size)
