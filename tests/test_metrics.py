@@ -2,7 +2,6 @@
 """Metrics against shapes and images with known answers."""
 
 import math
-import sys
 
 import numpy as np
 import pytest
@@ -276,8 +275,10 @@ def test_inward_offset_of_concentric_boxes_and_shifted_cube():
     r = metrics.inward_offset(inner, outer, n_samples=N_SAMPLES)
     np.testing.assert_allclose([r.mean, r.median, r.inside], [0.2, 0.2, 1.0], atol=1e-9)
     r = metrics.inward_offset(outer, inner, n_samples=N_SAMPLES)
-    # all outside; beyond the inner cube's edges the side of the closest face's plane is nearer than the gap
-    assert -0.2 - 1e-9 < r.mean < -0.15 and r.median == pytest.approx(-0.2) and r.inside == 0.0
+    # all outside; beyond the inner cube's edges the side of the closest face's plane is nearer than the gap.
+    # A sample a few 1e-5 inside a side's plane is as near the side (float32 search) as the face under it: a
+    # tie broken either way, counted inside by 1e-5 (3 of 40,000 samples here); far fewer than 1 in 1,000
+    assert -0.2 - 1e-9 < r.mean < -0.15 and r.median == pytest.approx(-0.2) and r.inside < 1e-3
     shifted = _box(2.0, center=(0.1, 0.0, 0.0))
     r = metrics.inward_offset(shifted, _box(2.0), n_samples=N_SAMPLES)
     assert abs(r.mean) < 0.01 and 0.1 < r.inside < 0.5  # the x = -0.9 face in, x = 1.1 out, the rest on
@@ -339,26 +340,30 @@ def test_observed_chamfer_argument_errors():
         metrics.observed_chamfer(cube, cube, _top_cameras(), tolerance=float("nan"))
 
 
-def test_metrics_without_open3d_use_warp_and_agree(monkeypatch):
-    """Where Open3D is not installed (a GPU machine may lack it) the closest-face search and the ray casts
-    run on Warp's BVH: the same closed forms, the same numbers as Open3D's Embree, the same views seen."""
+def test_closest_faces_and_ray_hits_match_embree():
+    """The metrics' BVH queries (closest face, first ray hit) against Open3D's Embree scene as an independent
+    reference: the same faces and hits on a sphere's samples, the same analytic mean distance."""
+    o3d = pytest.importorskip("open3d")
+    from wtopo.metrics._surface import _closest_on_triangles, _Surface
+
     a, b = _sphere(), _sphere(center=(0, 0, 0.3))
-    cube = _box(1.0)
-    pts, _ = metrics.sample_surface(cube, 5000, seed=3)
-
-    def measure():
-        r = metrics.chamfer(a, b, n_samples=20_000)
-        f = metrics.f_score(a, b, 0.1, n_samples=20_000)
-        return [r.accuracy, r.completeness, f.precision, f.recall], metrics.view_counts(
-            pts, cube, _top_cameras(), tolerance=1e-4)
-
-    embree, embree_views = measure()
-    monkeypatch.setitem(sys.modules, "open3d", None)  # import open3d now fails
-    from wtopo.metrics._surface import _open3d
-
-    assert _open3d() is None
-    warp, warp_views = measure()
-    np.testing.assert_allclose(warp[:2], _offset_sphere_distance_mean(0.3), atol=MEAN_TOL)
-    np.testing.assert_allclose(warp, embree, atol=1e-9)
-    assert (warp_views == 2).sum() > 500 and (warp_views == 0).sum() > 2000  # both kinds of sample seen
-    np.testing.assert_array_equal(warp_views, embree_views)
+    r = metrics.chamfer(a, b, n_samples=20_000)
+    np.testing.assert_allclose([r.accuracy, r.completeness], _offset_sphere_distance_mean(0.3), atol=MEAN_TOL)
+    s = _Surface("b", b, 0, seed=0)
+    q = metrics.sample_surface(a, 5000, seed=3)[0]
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor((s.v - s.center).astype(np.float32)), o3d.core.Tensor(s.f.astype(np.uint32)))
+    fi = scene.compute_closest_points(o3d.core.Tensor((q - s.center).astype(np.float32)))["primitive_ids"].numpy()
+    t = s.tri[fi.astype(np.int64)]
+    embree = np.linalg.norm(_closest_on_triangles(q, t[:, 0], t[:, 1], t[:, 2]) - q, axis=1)
+    # near-ties between faces are broken in float32 by each search: float64 distances agree to float32's resolution
+    np.testing.assert_allclose(s.closest(q)[0], embree, atol=1e-6)
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(4000, 3))
+    rays = np.concatenate([np.zeros((4000, 3)) - s.center, d / np.linalg.norm(d, axis=1, keepdims=True)], axis=1)
+    rays[::2, :3] += 3.0  # half start outside the sphere and mostly miss
+    hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy().astype(np.float64)
+    ours = s.cast(rays)
+    assert np.isfinite(ours).sum() > 2000 and np.isinf(ours).sum() > 500  # both kinds of ray
+    np.testing.assert_array_equal(np.isfinite(ours), np.isfinite(hit))
+    np.testing.assert_allclose(ours[np.isfinite(ours)], hit[np.isfinite(hit)], rtol=1e-5, atol=1e-6)

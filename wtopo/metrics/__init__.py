@@ -9,7 +9,7 @@ surface far from the truth, and :func:`holes`, true surface far from the reconst
 :func:`camera_clearance` (how close a mesh comes to the cameras); for recovered camera poses
 :func:`align_similarity` (least-squares similarity between two point sets, Umeyama). Surfaces are
 sampled uniformly by area; distances are exact point-to-triangle distances to the other surface (closest face from
-Open3D's Embree scene, distance recomputed in float64), so the result does not carry the sampling
+Warp's BVH, distance recomputed in float64), so the result does not carry the sampling
 density's bias of a plain point-to-point Chamfer.
 
 Images (torch, differentiable): :func:`psnr`, :func:`ssim`.

@@ -44,7 +44,7 @@ def view_counts(points: np.ndarray, mesh, cameras, *, tolerance: float) -> np.nd
 
     A point is seen by a camera when it lies in front of it, projects inside its image, and the ray
     from the camera's centre towards it first meets ``mesh`` no nearer than ``tolerance`` (world
-    units) before the point (Open3D's Embree ray cast, on the host).
+    units) before the point (Warp's BVH ray cast, on the CPU).
 
     Args:
         points: world points [N, 3] on (or within ``tolerance`` of) ``mesh``.
@@ -57,7 +57,7 @@ def view_counts(points: np.ndarray, mesh, cameras, *, tolerance: float) -> np.nd
 
 
 def _view_counts(p: np.ndarray, s: _Surface, cameras, tolerance: float) -> np.ndarray:
-    """:func:`view_counts` against a built surface ``s`` (its Embree scene reused), ``tolerance`` checked."""
+    """:func:`view_counts` against a built surface ``s`` (its BVH reused), ``tolerance`` checked."""
     count = np.zeros(len(p), dtype=np.int64)
     for cam in cameras:
         uv, z = cam.project(p)

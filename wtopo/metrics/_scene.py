@@ -128,7 +128,7 @@ def roi_f_score(pred_mesh, gt_mesh, lower, upper, tau: float, *, n_samples: int 
 def camera_clearance(mesh, camera_centers) -> np.ndarray:
     """Distance from each camera centre to the nearest point of a mesh surface.
 
-    Exact point-to-triangle distances (closest face found by Embree, distance recomputed in
+    Exact point-to-triangle distances (closest face found by Warp's BVH, distance recomputed in
     float64), not distances to vertices, so a large face passing next to a camera counts.
 
     Args:

@@ -2,10 +2,9 @@
 """Mesh input and exact point-to-surface queries shared by the geometry metrics.
 
 Meshes are read from a ``trimesh.Trimesh`` or a ``(verts, faces)`` pair (numpy or torch) into
-float64 / int64 arrays, sampled uniformly by area, and queried for exact closest points: Open3D's
-Embree scene finds the closest face, the distance to it is recomputed in float64. Where Open3D is not
-installed (a GPU machine may lack it) Warp's BVH (:class:`wtopo.raycast.MeshRaycaster`, CPU or CUDA)
-finds the face and casts the rays instead, with the same float32 search and float64 distances.
+float64 / int64 arrays, sampled uniformly by area, and queried for exact closest points: Warp's BVH
+(:class:`wtopo.raycast.MeshRaycaster`, on the CPU) finds the closest face in float32 around the mesh's
+centre and casts the rays; the distance to that face is recomputed in float64.
 """
 
 from __future__ import annotations
@@ -14,6 +13,8 @@ import math
 
 import numpy as np
 import torch
+
+from ..raycast import MeshRaycaster
 
 _DEFAULT_SAMPLES = 100_000
 
@@ -101,20 +102,10 @@ def _closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.nda
     return out
 
 
-def _open3d():
-    """Open3D's module, or ``None`` where it is not installed."""
-    try:
-        import open3d
-    except ImportError:
-        return None
-    return open3d
-
-
 class _Surface:
-    """Area samples of a mesh plus an Open3D (Embree) closest-point scene for exact
-    point-to-surface queries: Embree finds the closest face in float32 around the mesh's centre,
-    the distance to that face is then recomputed in float64. Without Open3D, Warp's BVH does the
-    float32 search (closest face, first hit of a ray) the same way."""
+    """Area samples of a mesh plus a Warp BVH for exact point-to-surface queries: the BVH finds the
+    closest face (and a ray's first hit) in float32 around the mesh's centre, the distance to that face is
+    then recomputed in float64."""
 
     def __init__(self, name: str, mesh, n_samples: int, seed: int):
         self.v, self.f = _mesh_arrays(name, mesh)
@@ -126,18 +117,9 @@ class _Surface:
         used = self.v[np.unique(self.f)]
         self.center = 0.5 * (used.min(0) + used.max(0))
         self.bbox_diag = float(np.linalg.norm(used.max(0) - used.min(0)))
-        o3d = _open3d()
-        self._o3d, self._scene, self._bvh = o3d, None, None
-        if o3d is not None:
-            self._scene = o3d.t.geometry.RaycastingScene()
-            self._scene.add_triangles(o3d.core.Tensor((self.v - self.center).astype(np.float32)),
-                                      o3d.core.Tensor(self.f.astype(np.uint32)))
-        else:
-            from ..raycast import MeshRaycaster
-
-            self._bvh = MeshRaycaster()
-            self._bvh_v = torch.as_tensor((self.v - self.center).astype(np.float32))
-            self._bvh_f = torch.as_tensor(self.f.astype(np.int32))
+        self._bvh = MeshRaycaster()
+        self._bvh_v = torch.as_tensor((self.v - self.center).astype(np.float32))
+        self._bvh_f = torch.as_tensor(self.f.astype(np.int32))
 
     def closest_points(self, q: np.ndarray) -> np.ndarray:
         """Closest points [M, 3] float64 of this surface to query points [M, 3]."""
@@ -148,20 +130,14 @@ class _Surface:
     def cast(self, rays: np.ndarray) -> np.ndarray:
         """Distance [M] float64 along unit rays [M, 6] (origin relative to ``center``, direction) to
         the first hit of this surface (float32 precision), ``inf`` on a miss."""
-        if self._bvh is not None:
-            r32 = torch.as_tensor(np.ascontiguousarray(rays, dtype=np.float32))
-            hit = self._bvh.raycast(self._bvh_v, self._bvh_f, rays=(r32[:, :3], r32[:, 3:]))
-            return np.where(hit.mask.numpy(), hit.depth.numpy().astype(np.float64), np.inf)
-        r = self._scene.cast_rays(self._o3d.core.Tensor(rays.astype(np.float32)))
-        return r["t_hit"].numpy().astype(np.float64)
+        r32 = torch.as_tensor(np.ascontiguousarray(rays, dtype=np.float32))
+        hit = self._bvh.raycast(self._bvh_v, self._bvh_f, rays=(r32[:, :3], r32[:, 3:]))
+        return np.where(hit.mask.numpy(), hit.depth.numpy().astype(np.float64), np.inf)
 
     def closest(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(distance [M] float64, face [M] int64) from query points [M, 3] to this surface."""
         q32 = np.ascontiguousarray(q - self.center, dtype=np.float32)
-        if self._bvh is not None:
-            fi = self._bvh.closest_faces(self._bvh_v, self._bvh_f, torch.as_tensor(q32))[0].numpy()
-        else:
-            fi = self._scene.compute_closest_points(self._o3d.core.Tensor(q32))["primitive_ids"].numpy()
+        fi = self._bvh.closest_faces(self._bvh_v, self._bvh_f, torch.as_tensor(q32))[0].numpy()
         fi = fi.astype(np.int64)
         t = self.tri[fi]
         d = np.linalg.norm(_closest_on_triangles(q, t[:, 0], t[:, 1], t[:, 2]) - q, axis=1)
