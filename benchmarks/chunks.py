@@ -23,8 +23,8 @@ compilation and first-call costs are not charged to whichever run comes first.
 Per run: wall clock, peak memory per GPU (torch's ``max_memory_allocated`` plus Warp's memory-pool
 high-water mark, which cannot be reset: run ``single`` and ``chunked`` in separate processes with
 ``--runs`` for clean figures; on CPU the peak resident set, labelled), ROI F1 (Tanks-and-Temples
-protocol, tau = 0.5 % of the ROI diagonal; exact distances with Open3D, else nearest of 2M surface
-samples, :class:`_Distance`), F1 inside a band around the chunk cuts (the seams; half-width = the
+protocol, tau = 0.5 % of the ROI diagonal; exact distances,
+:class:`_Distance`), F1 inside a band around the chunk cuts (the seams; half-width = the
 chunks' overlap margin) and outside it, and the open edges left near the cuts. Every run writes
 ``<run-dir>/results/<run>.json`` and the table in ``--out`` is rebuilt from all results there,
 under ``## <label>``. Speed-ups: over ``single`` (one fit of the whole scene on one device) and over
@@ -32,8 +32,7 @@ under ``## <label>``. Speed-ups: over ``single`` (one fit of the whole scene on 
 one-GPU run of equal quality), each with the F1 difference, so the table shows which comparison meets
 issue 18's "F1 within 0.01".
 
-Commands (a host with two GPUs and the package's dependencies: warp, torch, trimesh, scipy, scikit-image;
-Open3D optional)::
+Commands (a host with two GPUs and the package's dependencies: warp, torch, trimesh, scipy, scikit-image)::
 
     python benchmarks/chunks.py --device cuda:0 --runs single --run-dir runs/chunks --label gpu
     python benchmarks/chunks.py --device cuda:0 --runs chunked --run-dir runs/chunks --label gpu
@@ -67,7 +66,6 @@ from wtopo.scenes import Photometric  # noqa: E402
 
 TAU_FRACTION = 0.005  # F-score threshold, fraction of the ROI diagonal (as benchmarks/real.py)
 EVAL_SAMPLES = 100_000  # in-box samples per surface
-REFERENCE_SAMPLES = 2_000_000  # without Open3D: samples standing in for each surface in distance queries
 F1_EQUAL = 0.01  # issue 18: "equal quality" is F1 within 0.01
 FULL = dict(n_objects=6, orbit_views=24, forward_views=60, resolution=(200, 150))
 SMOKE = dict(n_objects=3, orbit_views=8, forward_views=8, resolution=(64, 48))
@@ -122,25 +120,16 @@ def cuts_of(scene, chunks: int, overlap: float):
 
 
 class _Distance:
-    """Distance from points to a mesh: exact with Open3D (``wtopo.metrics``), else the nearest of
-    ``REFERENCE_SAMPLES`` area samples of the mesh near the box (overestimates by about half the
-    sample spacing: ~1 cm on the default scene, against tau = 14 cm)."""
+    """Exact distance from points to a mesh (``wtopo.metrics``: closest face by Warp's BVH, distance in
+    float64)."""
 
     def __init__(self, mesh, lo, hi, tau: float, seed: int):
         self.v, self.f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
-        try:
-            self.exact = _Surface("mesh", (self.v, self.f), 0, seed)
-            self.kind = "exact (Open3D)"
-        except ImportError:
-            from scipy.spatial import cKDTree
-
-            self.exact = None
-            ref = _sample_in_box(self.v, self.f, lo - 2 * tau, hi + 2 * tau, REFERENCE_SAMPLES, seed + 3)
-            self.tree = cKDTree(ref)
-            self.kind = f"nearest of {len(ref)} samples (no Open3D)"
+        self.exact = _Surface("mesh", (self.v, self.f), 0, seed)
+        self.kind = "exact"
 
     def __call__(self, q: np.ndarray) -> np.ndarray:
-        return self.exact.closest(q)[0] if self.exact is not None else self.tree.query(q)[0]
+        return self.exact.closest(q)[0]
 
 
 def banded_f1(mesh, gt, lo, hi, tau: float, cuts, widths, seed: int = 0) -> dict:
@@ -271,7 +260,7 @@ def write_markdown(args) -> None:
     lines = [f"## {args.label}", "",
              f"Scene: {first['views']} views of {first['resolution'][0]}x{first['resolution'][1]} px, "
              f"device `{args.device}`, {args.chunks} chunks, overlap {args.overlap}; distances "
-             f"{first['f1'].get('distance', 'exact (Open3D)')}.", "",
+             f"{first['f1'].get('distance', 'exact')}.", "",
              "| run | wall s | speed-up over `single` | speed-up over `chunked_1proc` (same merge) "
              "| peak memory GiB (per process) | F1 | F1 band | F1 rest | open edges at cuts | faces |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -289,8 +278,8 @@ def write_markdown(args) -> None:
                             f"{c['views']} views, share {c.get('iteration_share', 1):.2f}, rank {c['rank']}"
                             for c in r["per_chunk"])
             m = r["merge"]
-            how = (f"re-fused at {m.get('resolution')} voxels ({m.get('voxel') or 0:.3g} world units, "
-                   f"{m.get('tsdf_backend')}) in {r.get('merge_s', 0):.1f} s" if m.get("method", "weld") == "refuse"
+            how = (f"re-fused at {m.get('resolution')} voxels ({m.get('voxel') or 0:.3g} world units) "
+                   f"in {r.get('merge_s', 0):.1f} s" if m.get("method", "weld") == "refuse"
                    else f"welded {m.get('welded', 0)} vertices in {r.get('merge_s', 0):.1f} s")
             lines.append(f"\n`{name}`: grid {r['grid']}; {per}; merge: {how}.")
     section = "\n".join(lines) + "\n"

@@ -5,8 +5,9 @@ The fit's two fusions at the fit's sizes: 48 views of the Stanford bunny (exact 
 mesh ray caster, one colour per view) at 160x120 (the CPU default's images) and 800x600 (a GPU
 capture), fused at 192^3 and 384^3 voxels over the bunny's box (+5 %), truncation 4 voxels, each
 view cut at the box's farthest corner: exactly what ``wtopo.fitting.tsdf.fuse_depths`` does in a fit.
-Both backends are timed through ``fuse_depths`` (host preparation, fusion, mesh extraction,
-``trimesh`` construction and the crop to the box), median of ``--repeats`` after one warm-up run
+The fit's fusion is timed through ``fuse_depths``, Open3D through the tests' reference of the same
+contract (``tests/reference/tsdf_open3d.py``): host preparation, fusion, mesh extraction, ``trimesh``
+construction and the crop to the box, median of ``--repeats`` after one warm-up run
 (Warp's kernel compilation is not timed). Printed per case: seconds of each, the ratio Warp /
 Open3D (below 1: Warp is faster), faces, the Chamfer distance between the two meshes in voxels,
 Warp's time split (block test, integration, marching cubes) and, on CUDA, Warp's peak memory pool.
@@ -29,6 +30,7 @@ from collections import defaultdict
 
 import numpy as np
 import torch
+from _from_tests import load
 
 import wtopo  # noqa: F401  (configures Warp)
 from wtopo._profile import section
@@ -40,6 +42,10 @@ from wtopo.scenes import bunny_mesh, rig_cameras
 _MARGIN = 0.05  # the box grows by this fraction of its longest side on every side (as auto_bounds)
 _TRUNCATION_VOXELS = 4.0  # tsdf.truncation_voxels' default
 
+
+
+def _o3d_reference():
+    return load("reference/tsdf_open3d.py")
 
 def make_views(n_views: int, size: tuple[int, int], device: str):
     """Cameras around the unit-sized bunny, their exact z-depth (NumPy) and a colour per view."""
@@ -103,7 +109,7 @@ def main() -> None:
         for grid in args.grids:
             b = bounds_for(v, grid)
             views = (cams, depths, colors)
-            warp = lambda b=b, views=views: fuse_depths(*views, b, backend="warp", device=args.device)  # noqa: E731
+            warp = lambda b=b, views=views: fuse_depths(*views, b, device=args.device)  # noqa: E731
             warp()  # compile the kernels, fill the memory pool
             if cuda:
                 wdev = wp.get_device(args.device)
@@ -117,7 +123,7 @@ def main() -> None:
                 print(f"{size:>9} {grid:>5} {tw:8.2f} {'-':>9} {'-':>9} {len(mw.faces):>11} {'-':>10} {'-':>12}  "
                       f"{split}{mem}")
                 continue
-            o3d = lambda b=b, views=views: fuse_depths(*views, b, backend="open3d")  # noqa: E731
+            o3d = lambda b=b, views=views: _o3d_reference().fuse_depths_open3d(*views, b)  # noqa: E731
             to, mo, _ = timed(o3d, args.repeats, "cpu")
             ch = chamfer(mw, mo, n_samples=100_000).chamfer / b.voxel
             print(f"{size:>9} {grid:>5} {tw:8.2f} {to:9.2f} {tw / to:9.2f} {len(mw.faces):>11} {len(mo.faces):>10} "

@@ -75,13 +75,13 @@ def test_the_plan_is_typed_frozen_and_the_resolved_config_carries_its_decisions(
     import dataclasses
     import json
 
-    from wtopo.fitting.config import InitSource, TSDFBackend
+    from wtopo.fitting.config import InitSource
     from wtopo.fitting.plan import Plan, resolve_config
     from wtopo.fitting.scene_kind import SceneKind
 
     p = make_plan(tiny.normalized(), FitConfig(), torch.device("cpu"))
     assert isinstance(p, Plan) and isinstance(p.scene_kind, SceneKind) and isinstance(p.init_source, InitSource)
-    assert isinstance(p.tsdf_backend, TSDFBackend) and isinstance(p.warmup_iterations, int)
+    assert isinstance(p.warmup_iterations, int)
     with pytest.raises(dataclasses.FrozenInstanceError):
         p.warmup_iterations = 3
     d = json.loads(json.dumps(p.to_dict()))
@@ -99,7 +99,7 @@ def test_the_plan_is_typed_frozen_and_the_resolved_config_carries_its_decisions(
              "max_surfels": r.runtime.max_surfels, "reinit_faces": r.tsdf.max_faces,
              "reinit_resolution": r.tsdf.resolution,
              "proxy_resolution": r.mesh.resolution, "final_resolution": r.final.resolution,
-             "tsdf_reinit": r.tsdf.enabled, "tsdf_backend": r.tsdf.backend, "mesh_loop": r.coevolution.enabled,
+             "tsdf_reinit": r.tsdf.enabled, "mesh_loop": r.coevolution.enabled,
              "proxy_level_sigma": r.mesh.level_sigma, "proxy_clip": r.mesh.clip_to_region, "preset": r.preset,
              "densify_interval": r.densify.interval}
     for name, value in pairs.items():

@@ -73,7 +73,6 @@ def test_profiled_fit_reports_every_stage_within_the_wall_time(tiny, tmp_path, c
     cfg = small_fit_config(24, 8, points=300, grids=(32, 40, 32), max_faces=800, density_every=8, eval_every=16,
                            checkpoint_every=16)
     monkeypatch.setattr(strategy, "DENSIFY_START", 0.0)
-    cfg.tsdf.backend = "warp"  # the Warp fusion in a fit, end to end
     cfg.runtime.profile = True
     cfg.runtime.device = device
     res = fit(tiny, cfg, out_dir=tmp_path, progress=False)

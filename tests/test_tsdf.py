@@ -22,13 +22,24 @@ from wtopo.metrics import chamfer
 from wtopo.ops import raycast_mesh
 from wtopo.scenes import rig_cameras
 
-# Open3D (CPU) resamples a lens view onto an ideal pinhole camera; the Warp kernel projects through the
-# lens itself (wtopo.tsdf_fusion), on the CPU and on CUDA where there is one.
+# The fit's fusion (the Warp kernel, wtopo.tsdf_fusion) projects through the lens itself, on the CPU and on CUDA
+# where there is one; the Open3D reference (tests/reference/tsdf_open3d.py) resamples a lens view onto an ideal
+# pinhole camera first: both must meet the same bounds.
 BACKENDS = [pytest.param("open3d", "cpu", marks=pytest.mark.skipif(importlib.util.find_spec("open3d") is None,
                                                                      reason="needs Open3D")),
             ("warp", "cpu"),
             pytest.param("warp", "cuda:0", marks=pytest.mark.skipif(not torch.cuda.is_available(),
                                                                     reason="needs CUDA"))]
+
+
+
+def _fuse(backend, cams, deps, cols, bounds, device):
+    if backend == "open3d":
+        from reference.tsdf_open3d import fuse_depths_open3d
+
+        return fuse_depths_open3d(cams, deps, cols, bounds)
+    return fuse_depths(cams, deps, cols, bounds, device=device)
+
 
 # A strong barrel lens with tangential terms, and skew: at the sphere test's field (0.9 rad) the
 # image corners move by about 5 px of 96, enough that a pinhole intrinsic misplaces the surface.
@@ -166,7 +177,7 @@ def test_fuse_distorted_sphere_matches_its_undistorted_twin(sphere, backend, dev
     for name, cams, deps in (("twin", sphere["twin"], sphere["d_twin"]),
                              ("distorted", sphere["distorted"], sphere["d_distorted"]),
                              ("old", [_old_pinhole(c) for c in sphere["distorted"]], sphere["d_distorted"])):
-        mesh = fuse_depths(cams, deps, _grey(cams), b, backend=backend, device=device)
+        mesh = _fuse(backend, cams, deps, _grey(cams), b, device)
         err[name] = chamfer(mesh, gt, n_samples=_SAMPLES).chamfer_rel
     assert err["twin"] < _SPHERE_CHAMFER_TOL, err
     assert err["distorted"] < _SPHERE_CHAMFER_TOL, err
@@ -216,8 +227,8 @@ def test_fuse_tilted_plane_through_a_distorted_lens(backend, device):
     cam, z, n, pts, b = _plane_case()
     assert pinhole_warp(cam).width > cam.width  # barrel: the ideal camera's field is wider
     col = _grey([cam])
-    new = _plane_errors(fuse_depths([cam], [z], col, b, backend=backend, device=device), n, pts, b.voxel)
-    old = _plane_errors(fuse_depths([_old_pinhole(cam)], [z], col, b, backend=backend, device=device), n, pts,
+    new = _plane_errors(_fuse(backend, [cam], [z], col, b, device), n, pts, b.voxel)
+    old = _plane_errors(_fuse(backend, [_old_pinhole(cam)], [z], col, b, device), n, pts,
                         b.voxel)
     assert new[0] < _PLANE_RESIDUAL_TOL and new[1] > _PLANE_EXTENT_TOL, (new, old)
     assert old[0] > 2 * _PLANE_RESIDUAL_TOL or old[1] < _PLANE_EXTENT_TOL, (new, old)

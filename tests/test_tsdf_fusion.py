@@ -3,9 +3,9 @@
 
 Analytic surfaces (a plane, a sphere) fused from exact depth, the NumPy reference node by node,
 the block test and the slabs leaving the mesh unchanged, unobserved space making no face, Open3D's
-mesh of the same depths, and input errors raised before any launch. Every test runs on the CPU
-and again on CUDA where there is one (skipped otherwise). The distorted-lens cases shared with the
-Open3D path are parametrised by backend in ``tests/test_tsdf.py``.
+mesh of the same depths (``tests/reference/tsdf_open3d.py``), and input errors raised before any launch.
+Every test runs on the CPU and again on CUDA where there is one (skipped otherwise). The distorted-lens cases
+are in ``tests/test_tsdf.py``, beside the Open3D reference.
 """
 
 import numpy as np
@@ -217,12 +217,14 @@ _O3D_CHAMFER_VOXELS = 0.3
 def test_mesh_matches_open3d(device):
     """Agree with Open3D's ScalableTSDFVolume fusing the same depths to a fraction of a voxel (Chamfer)."""
     pytest.importorskip("open3d")
+    from reference.tsdf_open3d import fuse_depths_open3d
+
     mesh, cams, depths = _sphere_rig(px=96)
     g = _sphere_grid(96)
     b = FusionBounds(np.array(g["lower"]), np.array(g["upper"]), g["voxel"], g["truncation"])
     grey = [np.full((c.height, c.width, 3), 0.5, np.float32) for c in cams]
-    ours = fuse_depths(cams, depths, grey, b, backend="warp", device=device)
-    theirs = fuse_depths(cams, depths, grey, b, backend="open3d")
+    ours = fuse_depths(cams, depths, grey, b, device=device)
+    theirs = fuse_depths_open3d(cams, depths, grey, b)
     c = chamfer(ours, theirs, n_samples=_SAMPLES)
     assert c.chamfer < _O3D_CHAMFER_VOXELS * g["voxel"], c
     np.testing.assert_array_equal(np.asarray(ours.visual.vertex_colors)[:, :3], 128)  # 0.5 -> 128 (rounded)
@@ -260,7 +262,7 @@ def test_no_data_gives_no_surface(device):
     grey = [np.full(d.shape + (3,), 0.5, np.float32) for d in depths]
     for cs, ds, cols in ((cams, zero, grey), ([], [], [])):
         with pytest.raises(TSDFEmptyError):
-            fuse_depths(cs, ds, cols, b, backend="warp", device=device)
+            fuse_depths(cs, ds, cols, b, device=device)
 
 
 def test_bad_input_is_rejected_before_any_launch(monkeypatch):
@@ -295,47 +297,40 @@ def test_bad_input_is_rejected_before_any_launch(monkeypatch):
         fuse_tsdf(cams, depths, far=[1.0, -1.0, 1, 1, 1], **grid)
     with pytest.raises(ValueError, match="slab_nodes must be an int >= two node layers"):
         fuse_tsdf(cams, depths, slab_nodes=10, **grid)
-    with pytest.raises(ValueError, match="backend must be 'open3d' or 'warp'"):
-        fuse_depths(cams, depths, cols, FusionBounds(np.zeros(3), np.ones(3), 0.1, 0.4), backend="cuda")
+    with pytest.raises(ValueError, match=r"camera .plane0. must be \[32, 40\] \(its image size\), got \[32, 39\]"):
+        fuse_depths(cams, [depths[0][:, :-1]] + depths[1:], cols, FusionBounds(np.zeros(3), np.ones(3), 0.1, 0.4))
     assert not launched
 
 
-def test_plan_picks_the_backend_by_device(monkeypatch):
-    """Choose Warp on CUDA and Open3D on the CPU (Warp without Open3D); honour tsdf.backend."""
-    import importlib.util
+def test_tsdf_backend_field_is_gone():
+    """The Open3D fusion backend was removed (the Warp kernel is faster on the CPU too): setting the field says so."""
+    from wtopo.fitting import FitConfig, RemovedFieldError
 
-    from wtopo import scenes
-    from wtopo.fitting import FitConfig, TSDFBackend
-    from wtopo.fitting.plan import make_plan, resolve_config
-
-    sc = scenes.from_mesh(trimesh.creation.icosphere(subdivisions=2), n_views=8, resolution=24).normalized()
-    cpu = make_plan(sc, FitConfig(), torch.device("cpu"))
-    gpu = make_plan(sc, FitConfig(), torch.device("cuda"))
-    on_cpu = "open3d" if importlib.util.find_spec("open3d") is not None else "warp"
-    assert cpu.tsdf_backend == on_cpu and "CPU" in cpu.reasons["tsdf_backend"]
-    assert gpu.tsdf_backend == "warp" and "CUDA" in gpu.reasons["tsdf_backend"]
-    assert resolve_config(FitConfig(), gpu).tsdf.backend is TSDFBackend.WARP
-    cfg = FitConfig()
-    cfg.tsdf.backend = "warp"
-    p = make_plan(sc, cfg, torch.device("cpu"))
-    assert p.tsdf_backend == "warp" and "tsdf_backend" in p.overrides
-    real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "open3d" else real(name, *a))
-    assert make_plan(sc, FitConfig(), torch.device("cpu")).tsdf_backend == "warp"
+    with pytest.raises(RemovedFieldError, match="tsdf.backend"):
+        FitConfig.from_dict({"tsdf": {"backend": "open3d"}})
 
 
-def test_reinit_surfels_without_open3d_cover_the_mesh(monkeypatch):
-    """Draw max_faces faces by area when Open3D is missing; their discs add up to the mesh's area."""
-    import importlib.util
+def test_decimate_keeps_the_shape_and_the_colours():
+    """Quadric decimation of a sphere to a face budget: at most the budget, on the sphere, facing out, colours
+    carried from the nearest input vertex; a mesh under the budget comes back as it is."""
+    from wtopo.fitting.tsdf import decimate, mesh_to_surfels
 
-    from wtopo.fitting.tsdf import mesh_to_surfels
-
-    mesh = trimesh.creation.icosphere(subdivisions=4)  # 5120 faces
-    real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "open3d" else real(name, *a))
+    mesh = trimesh.creation.icosphere(subdivisions=4)  # 5120 faces, radius 1
+    cols = np.where(mesh.vertices[:, :1] > 0, [[255, 0, 0, 255]], [[0, 0, 255, 255]]).astype(np.uint8)
+    mesh.visual.vertex_colors = cols
+    small = decimate(mesh, 500)
+    assert 450 <= len(small.faces) <= 500
+    np.testing.assert_allclose(np.linalg.norm(small.vertices, axis=1), 1.0, atol=0.02)
+    assert small.is_watertight and small.volume > 0  # closed and still facing out
+    red = np.asarray(small.visual.vertex_colors)[:, 0] == 255
+    away = np.abs(small.vertices[:, 0]) > 0.1  # farther than an input edge (~0.08) from the colours' border
+    np.testing.assert_array_equal(red[away], small.vertices[away, 0] > 0)  # each side keeps its colour
+    assert decimate(mesh, 6000) is mesh
+    with pytest.raises(ValueError, match="max_faces must be a positive integer"):
+        decimate(mesh, 0)
     s = mesh_to_surfels(mesh, max_faces=500, device="cpu", sh_degree=0, opacity=0.8)
-    assert len(s) == 500
+    assert 450 <= len(s) <= 500
     area = float((np.pi * s.scales[:, 0] * s.scales[:, 1]).sum().detach())
-    np.testing.assert_allclose(area, mesh.area, rtol=1e-5)
-    np.testing.assert_allclose(s.means.detach().norm(dim=1).numpy(), 1.0, atol=0.01)  # centroids of the sphere's faces
+    np.testing.assert_allclose(area, small.area, rtol=1e-5)  # each disc carries its face's area
+    np.testing.assert_allclose(s.means.detach().norm(dim=1).numpy(), 1.0, atol=0.02)
     assert bool((s.buffers["mesh_sign"] == 1.0).all())  # the triangles' signs, kept by a sign refresh

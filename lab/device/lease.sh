@@ -5,6 +5,9 @@
 #   b: the concurrent batch of 2026-12-02 (gsplat, wtopo's density variants, a short synchronisation count)
 #   c: the next batch: gsplat on bunny64 (masks as alpha) and DTU (per-view PSNR), the authors' code on DTU at
 #      its published counts (30,000 + 10,000 iterations: a lease of its own beside these two)
+#   d: install and build (gsplat, 2DGS), then at once: gsplat on bunny64 (random background) and DTU, 2DGS on DTU,
+#      wtopo on DTU as shipped and with the peers' initial point count (100,000 stereo points, with and without
+#      the background shells): every row with its per-view PSNR
 set -uo pipefail
 S=${S:-/root/peers}
 D=benchmarks/peers/device.sh
@@ -34,6 +37,30 @@ b)
   mkdir -p "$S/sync"
   setsid nohup bash -c "python3 lab/sync_count.py $S/exch/dtu_scan24 --set warmup.iterations=400 \
     --set coevolution.iterations=300 > $S/sync/sync.log 2>&1" >/dev/null 2>&1 &
+  ;;
+d)
+  [ -d .stage/small ] && cp -r .stage/small/whl .stage/small/peers "$S"/   # (or copied by an earlier call)
+  mkdir -p "$S/exch" && cp -r .stage/exch/* "$S/exch/"
+  STAGE=$S bash $D install || exit 1
+  export PYTHONPATH=$S/site:$PWD/benchmarks/peers/shims PYTHONUNBUFFERED=1
+  [ -d "$S/gl/root" ] && export LD_LIBRARY_PATH=$S/gl/root/usr/lib/x86_64-linux-gnu
+  if [ ! -f "$S/exch/dtu_scan24/meta.json" ] && [ -d .stage/dtu_raw/dtu_scan24 ]; then  # its stereo on the GPU
+    rm -rf "$S/exch/dtu_scan24"
+    python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 "$S/exch/dtu_scan24" --name dtu_scan24 || exit 1
+  fi
+  STAGE=$S bash $D launch "$S/exch/dtu_scan24" -- wtopo
+  variant() {  # dir label --set ...
+    out=$S/res/dtu_scan24/$1; lab=$2; shift 2; rm -rf "$out" "$out.rc"; mkdir -p "$out"
+    setsid nohup bash -c "python3 benchmarks/peers/run_wtopo.py $S/exch/dtu_scan24 $out --label '$lab' $* \
+      > $out.log 2>&1; echo \$? > $out.rc" >/dev/null 2>&1 &
+    echo "launched dtu_scan24/$1"
+  }
+  variant wtopo_init100k "wtopo (100k stereo points)" --set init.num_points=100000
+  variant wtopo_init100k_nobg "wtopo (100k stereo points, no shells)" --set init.num_points=100000 \
+    --set init.background_points=0
+  MAX_JOBS=14 STAGE=$S timeout 420 bash $D build
+  STAGE=$S bash $D launch "$S/exch/bunny64" "$S/exch/dtu_scan24" -- gsplat
+  STAGE=$S bash $D launch "$S/exch/dtu_scan24" -- 2dgs
   ;;
 c)
   STAGE=$S bash $D launch "$S/exch/bunny64" "$S/exch/dtu_scan24" -- gsplat

@@ -333,7 +333,6 @@ def refuse_mesh(scene, surfels, config, *, resolution: int, device: str = "cpu",
     info = {"method": "refuse", "resolution": int(resolution), "views": len(cams), "surfels": int(len(means)),
             "views_per_chunk_core": plan is not None, "scene_kind": cfg.kind.value,
             "near": float(sim.length_to_world(layout.near)),
-            "tsdf_backend": str(cfg.tsdf.backend.value),
             "voxel": None if bounds is None else float(sim.length_to_world(bounds["voxel"])),
             "final_bounds_internal": bounds, "events": events,
             "profile_s": {r["path"]: round(r["self_s"], 3) for r in prof["rows"]}}

@@ -61,7 +61,6 @@ from .config import (
     Preset,
     RemovedFieldError,
     RuntimeConfig,
-    TSDFBackend,
     TSDFConfig,
     WarmupConfig,
 )
@@ -77,7 +76,7 @@ from .validate_config import validate_config
 __all__ = [
     "fit", "FitResult", "FitConfig", "FitAborted", "Plan", "Surfels", "InitConfig", "OptimConfig", "WarmupConfig",
     "TSDFConfig", "CoevolutionConfig", "FinalConfig", "DensifyConfig", "LossConfig", "MeshConfig",
-    "RuntimeConfig", "NormalFlip", "DepthLoss", "InitSource", "PoissonBox", "TSDFBackend", "Preset",
+    "RuntimeConfig", "NormalFlip", "DepthLoss", "InitSource", "PoissonBox", "Preset",
     "SceneKind", "RemovedFieldError",
     # for the code that drives fits (wtopo.chunks, the CLI)
     "fit_surfels", "validate_config", "make_plan", "resolve_config", "iteration_budget", "PlanDefaults",

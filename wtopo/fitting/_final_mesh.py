@@ -62,7 +62,7 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
                              truncation_voxels=TRUNCATION_VOXELS)
     tsdf_info["final_bounds"] = bounds.to_dict()
     try:
-        mesh = fuse_depths(cameras, depths, colors, bounds, backend=cfg.tsdf.backend, device=surfels.means.device)
+        mesh = fuse_depths(cameras, depths, colors, bounds, device=surfels.means.device)
     except TSDFEmptyError as e:
         warnings.warn(f"final TSDF empty, returning the proxy mesh: {e}", RuntimeWarning, stacklevel=3)
         record("final_tsdf_empty", why=str(e))

@@ -9,7 +9,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from types import MappingProxyType
 
-from .config import InitSource, Preset, TSDFBackend
+from .config import InitSource, Preset
 from .scene_kind import SceneKind, SceneLayout
 
 __all__ = ["Plan"]
@@ -81,8 +81,6 @@ class Plan:
     """Views held out for PSNR (the scene's test split, else ``runtime.eval_views`` with 12 views or more)."""
     tsdf_reinit: bool
     """The TSDF re-initialisation runs (not on a scene whose proxy-mesh loop is off); ``tsdf.enabled``."""
-    tsdf_backend: TSDFBackend
-    """Which TSDF fusion runs; ``tsdf.backend``."""
     mesh_loop: bool
     """The proxy-mesh loop runs in the co-evolution; ``coevolution.enabled``."""
     proxy_level_sigma: float
@@ -182,7 +180,6 @@ class _Decisions:
     def build(self) -> Plan:
         v = self.values
         typed = dict(v, scene_kind=SceneKind(v["scene_kind"]), init_source=InitSource(v["init_source"]),
-                     tsdf_backend=TSDFBackend(v["tsdf_backend"]),
                      preset=Preset(v["preset"]), background=tuple(float(c) for c in v["background"]),
                      region_of_interest=tuple(tuple(float(x) for x in c) for c in v["region_of_interest"]))
         return Plan(**typed, reasons=MappingProxyType(dict(self.reasons)), overrides=frozenset(self.overrides),

@@ -66,7 +66,7 @@ def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: 
         bounds = auto_bounds(s.means, s.opacities, resolution=tc.resolution, truncation_voxels=TRUNCATION_VOXELS)
     info = {"reinit_bounds": bounds.to_dict()}
     try:
-        mesh = fuse_depths(cams, depths, colors, bounds, backend=tc.backend, device=device)
+        mesh = fuse_depths(cams, depths, colors, bounds, device=device)
     except TSDFEmptyError as e:
         warnings.warn(f"TSDF re-initialisation skipped, keeping the warm-up surfels: {e}", RuntimeWarning,
                       stacklevel=3)

@@ -30,7 +30,6 @@ from .config_kinds import (
     PoissonBox,
     Preset,
     Range,
-    TSDFBackend,
     _f,
 )
 from .config_loop import LossConfig, MeshConfig
@@ -51,7 +50,6 @@ __all__ = [
     "NormalFlip",
     "InitSource",
     "PoissonBox",
-    "TSDFBackend",
     "Preset",
     "DepthLoss",
     "config_hash",
@@ -128,9 +126,6 @@ class TSDFConfig:
     max_faces: int | None = _f(None, POSITIVE)
     """The fused mesh is decimated to at most this many faces (one surfel each); ``None``: the plan's,
     from the pixel footprint and the views per point, capped per device."""
-    backend: TSDFBackend = TSDFBackend.AUTO
-    """Fusion of the re-initialisation and the final mesh; ``AUTO``: the plan's (Warp on CUDA, Open3D on
-    the CPU)."""
 
 
 @dataclass(kw_only=True)

@@ -41,6 +41,7 @@ REMOVED: dict[str, tuple[str, object]] = {
     "final.closure": (_REJECTED, "poisson"),
     "final.silhouette_calibration": (_REJECTED, False),
     "final.largest_component": (_REJECTED, False),
+    "tsdf.backend": (_REJECTED, "warp"),
     # internal constants nobody should tune: the value the fit now always uses
     "init.opacity": (_FIXED, 0.3),
     "optim.means_thin_decay": (_FIXED, 0.5),

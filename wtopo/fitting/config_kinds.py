@@ -9,7 +9,7 @@ import enum
 from dataclasses import dataclass, field
 
 __all__ = ["Range", "RATE", "FRACTION", "COUNT", "POSITIVE", "NormalFlip", "DepthLoss", "InitSource",
-           "PoissonBox", "TSDFBackend", "Preset"]
+           "PoissonBox", "Preset"]
 
 
 @dataclass(frozen=True)
@@ -103,17 +103,6 @@ class PoissonBox(str, enum.Enum):
     """The normalised unit cube."""
     INITIAL_MESH = "initial_mesh"
     """The TSDF mesh's box + 10 % (public TopoSurfel code)."""
-
-
-class TSDFBackend(str, enum.Enum):
-    """Which TSDF fusion runs (:func:`wtopo.fitting.tsdf.fuse_depths`)."""
-
-    AUTO = "auto"
-    """The plan's: ``WARP`` on CUDA, ``OPEN3D`` on the CPU (``WARP`` when Open3D is not installed)."""
-    WARP = "warp"
-    """The Warp kernel (:func:`wtopo.tsdf_fusion.fuse_tsdf`) on the fit's device, CPU or CUDA."""
-    OPEN3D = "open3d"
-    """Open3D's sparse ``ScalableTSDFVolume`` on the CPU."""
 
 
 _GRID_MIN = 8  # coarser Poisson / TSDF grids cannot resolve any shape

@@ -9,15 +9,13 @@ choice and the plan says so. It is printed at the start of :func:`wtopo.fit` and
 
 from __future__ import annotations
 
-import importlib.util
-
 import numpy as np
 import torch
 
 from . import presets as _presets
 from ._image_stats import as_np, texture_std, view_inconsistency, window_std
 from ._plan_types import Plan, _Decisions
-from .config import FitConfig, InitSource, Preset, TSDFBackend
+from .config import FitConfig, InitSource, Preset
 from .scene_kind import SceneKind, analyse_layout
 
 __all__ = ["Plan", "make_plan", "resolve_config", "split_views", "views_per_point"]
@@ -225,14 +223,6 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     plan.set("eval_views", n_eval, eval_why)
 
     # -- stages
-    if device.type == "cuda":
-        backend, why = "warp", "CUDA: the Warp TSDF kernel fuses on the GPU"
-    elif importlib.util.find_spec("open3d") is not None:
-        backend, why = "open3d", "CPU: Open3D's sparse voxel blocks"
-    else:
-        backend, why = "warp", "CPU without Open3D: the Warp TSDF kernel"
-    plan.set("tsdf_backend", backend, why,
-             None if cfg.tsdf.backend == TSDFBackend.AUTO else TSDFBackend(cfg.tsdf.backend).value)
     if int(plan["coevolution_iterations"]) == 0:
         loop, why = False, "no co-evolution iterations"
     elif is_scene:
@@ -435,7 +425,6 @@ def resolve_config(cfg: FitConfig, plan: Plan) -> FitConfig:
     out.mesh.resolution = int(plan.proxy_resolution)
     out.final.resolution = int(plan.final_resolution)
     out.tsdf.enabled = bool(plan.tsdf_reinit)
-    out.tsdf.backend = TSDFBackend(plan.tsdf_backend)
     out.coevolution.enabled = bool(plan.mesh_loop)
     out.mesh.level_sigma = float(plan.proxy_level_sigma)
     out.mesh.clip_to_region = bool(plan.proxy_clip)

@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""TSDF fusion of rendered surfel depth (Open3D 0.19 ``ScalableTSDFVolume`` on the CPU, or the Warp
-kernel of :mod:`wtopo.tsdf_fusion` on CPU or CUDA) and the TSDF re-initialisation of the surfels.
+"""TSDF fusion of rendered surfel depth (the Warp kernel of :mod:`wtopo.tsdf_fusion`, on CPU or CUDA) and the
+TSDF re-initialisation of the surfels.
 
 Bounds, voxel size, truncation and the per-view depth cut-off are derived from the cameras and
 the current surfels, never given by hand: the bounds are a robust box around the opaque surfels
@@ -11,7 +11,6 @@ the farthest corner of the bounds from that camera.
 
 from __future__ import annotations
 
-import importlib.util
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -21,7 +20,6 @@ import trimesh
 
 from .._profile import section
 from ..camera import Camera
-from ..geometry.depth_warp import pinhole_warp
 from ..geometry.winding import orient_faces
 from ..scene import NORMALIZATION_MARGIN
 from .surfels import Surfels
@@ -35,7 +33,6 @@ _BOX_MARGIN = 0.05  # box grows by this fraction of its longest side on every si
 # farther than one more margin outside the unit cube
 _SCENE_LIMIT = (-NORMALIZATION_MARGIN, 1.0 + NORMALIZATION_MARGIN)
 _MIN_OPACITY = 0.1  # surfels below this opacity do not shape the bounds
-_SAMPLE_SEED = 0  # faces drawn for the re-initialisation without Open3D: the same draw for the same mesh
 
 
 class TSDFEmptyError(RuntimeError):
@@ -91,41 +88,31 @@ def _far_depth(camera: Camera, bounds: FusionBounds) -> float:
 
 
 def fuse_depths(cameras: Sequence[Camera], depths: Sequence[np.ndarray], colors: Sequence[np.ndarray],
-                bounds: FusionBounds, *, backend: str = "open3d",
-                device: torch.device | str = "cpu", close: bool = False) -> trimesh.Trimesh:
+                bounds: FusionBounds, *, device: torch.device | str = "cpu", close: bool = False) -> trimesh.Trimesh:
     """Fuse z-depth maps into a TSDF and extract its mesh, cropped to ``bounds``.
 
-    Both backends integrate each view along its camera's own per-pixel rays (principal point, skew
-    and OpenCV distortion) with the same rule: truncation ``bounds.truncation``, per-view depth
-    cut-off at the farthest corner of the bounds, weight 1 per view, depth 0 (or NaN / inf) = no data.
-
-    * ``"open3d"``: Open3D's sparse ``ScalableTSDFVolume`` on the CPU; a distorted or skewed view's
-      depth and colour are first resampled onto an ideal pinhole camera of the same pose covering its
-      whole field (:func:`wtopo.geometry.depth_warp.pinhole_warp`), a pinhole view goes straight in.
-    * ``"warp"``: :func:`wtopo.tsdf_fusion.fuse_tsdf` on ``device`` (CPU or CUDA), projecting every
-      node through the lens directly; the surface is open where no view observed the grid.
+    :func:`wtopo.tsdf_fusion.fuse_tsdf` on ``device`` (CPU or CUDA) integrates each view along its camera's own
+    per-pixel rays (principal point, skew and OpenCV distortion, every node projected through the lens):
+    truncation ``bounds.truncation``, per-view depth cut-off at the farthest corner of the bounds, weight 1
+    per view, depth 0 (or NaN / inf) = no data; the surface is open where no view observed the grid.
+    Not differentiable.
 
     Args:
         cameras: one camera per depth map (internal frame).
         depths: z-depth [H, W] float (0 = no measurement), internal units, in the camera's pixel grid.
         colors: RGB [H, W, 3] float in [0, 1].
         bounds: from :func:`auto_bounds`.
-        backend: ``"open3d"`` or ``"warp"`` (:class:`~wtopo.fitting.config.TSDFBackend` values; the fit's
-            plan resolves ``"auto"``).
-        device: where the ``"warp"`` backend fuses.
+        device: where the fusion runs.
         close: close the surface by space carving (:func:`wtopo.tsdf_fusion.fuse_tsdf`'s ``close``:
-            unobserved space no view saw empty is inside); always fused by the ``"warp"`` backend.
+            unobserved space no view saw empty is inside).
 
     Returns:
         A vertex-coloured mesh in the internal frame.
 
     Raises:
-        ValueError: a depth or colour map whose size is not its camera's image size, an unknown ``backend``.
+        ValueError: a depth or colour map whose size is not its camera's image size.
         TSDFEmptyError: no surface (every depth empty, or depths in other units than the cameras).
     """
-    backend = str(getattr(backend, "value", backend))
-    if backend not in ("open3d", "warp"):
-        raise ValueError(f"backend must be 'open3d' or 'warp', got {backend!r}")
     views = []
     for cam, dep, col in zip(cameras, depths, colors):
         dep = np.ascontiguousarray(np.nan_to_num(np.asarray(dep, np.float32), nan=0.0, posinf=0.0, neginf=0.0))
@@ -137,10 +124,7 @@ def fuse_depths(cameras: Sequence[Camera], depths: Sequence[np.ndarray], colors:
     v = f = c = np.zeros((0, 3))
     with section("tsdf_fusion"):
         if views:
-            if close or backend == "warp":
-                v, f, c = _fuse_warp(views, bounds, device, close=close)
-            else:
-                v, f, c = _fuse_open3d(views, bounds, device)
+            v, f, c = _fuse_warp(views, bounds, device, close=close)
     if not views or f.shape[0] == 0:
         raise TSDFEmptyError(
             f"TSDF fusion of {len(depths)} depth maps ({len(views)} with valid pixels) produced no surface; "
@@ -154,32 +138,6 @@ def fuse_depths(cameras: Sequence[Camera], depths: Sequence[np.ndarray], colors:
     if len(tm.faces) == 0:
         raise TSDFEmptyError("TSDF mesh lies entirely outside the automatic bounds")
     return tm
-
-
-def _fuse_open3d(views: list, bounds: FusionBounds, device) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Open3D ``ScalableTSDFVolume`` of ``views`` ``(camera, depth, colour)``: vertices, faces, uint8 colours."""
-    import open3d as o3d
-
-    vol = o3d.pipelines.integration.ScalableTSDFVolume(
-        voxel_length=bounds.voxel, sdf_trunc=bounds.truncation,
-        color_type=o3d.pipelines.integration.TSDFVolumeColorType.RGB8)
-    for cam, dep, col in views:
-        # Open3D takes only a pinhole intrinsic: a distorted or skewed view is first resampled onto
-        # the ideal pinhole camera of the same pose that covers its field (depth_warp).
-        warp = pinhole_warp(cam)
-        dep = np.ascontiguousarray(warp.resample_depth(dep))
-        # Open3D puts pixel centres at integer coordinates; wtopo at +0.5 (camera.py).
-        intr = o3d.camera.PinholeCameraIntrinsic(warp.width, warp.height, warp.K[0, 0], warp.K[1, 1],
-                                                 warp.K[0, 2] - 0.5, warp.K[1, 2] - 0.5)
-        rgb = np.ascontiguousarray(warp.resample((col * 255).astype(np.uint8)))
-        rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
-            o3d.geometry.Image(rgb), o3d.geometry.Image(dep), depth_scale=1.0,
-            depth_trunc=_far_depth(cam, bounds), convert_rgb_to_intensity=False)
-        vol.integrate(rgbd, intr, cam.world_to_camera)
-    mesh = vol.extract_triangle_mesh()
-    c = np.asarray(mesh.vertex_colors)
-    return (np.asarray(mesh.vertices), np.asarray(mesh.triangles),
-            (np.clip(c, 0, 1) * 255).astype(np.uint8) if c.size else np.zeros((0, 3), np.uint8))
 
 
 def _fuse_warp(views: list, bounds: FusionBounds, device, *,
@@ -245,22 +203,10 @@ def mesh_to_surfels(mesh: trimesh.Trimesh, *, max_faces: int, device: torch.devi
     ``sqrt(area / pi)`` (a disc of one sigma has the triangle's area, so neighbours overlap and the
     surface is covered from the start), colour the mean of the vertex colours; the normal's sign is
     the triangle's and marked as a mesh's (``buffers["mesh_sign"]``). The decimation is
-    Open3D's quadric one; without Open3D (a GPU machine may lack it) ``max_faces`` faces are drawn
-    with probability proportional to their area (seeded) and each surfel's disc takes an equal share
-    of the whole mesh's area, so the surface stays covered.
+    :func:`decimate` (quadric edge collapse).
     """
-    sample = len(mesh.faces) > max_faces and importlib.util.find_spec("open3d") is None
-    if len(mesh.faces) > max_faces and not sample:
-        import open3d as o3d
-
-        om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
-                                       o3d.utility.Vector3iVector(mesh.faces))
-        if mesh.visual.kind == "vertex":
-            om.vertex_colors = o3d.utility.Vector3dVector(np.asarray(mesh.visual.vertex_colors)[:, :3] / 255.0)
-        om = om.simplify_quadric_decimation(target_number_of_triangles=int(max_faces))
-        cols = np.asarray(om.vertex_colors)
-        mesh = trimesh.Trimesh(np.asarray(om.vertices), np.asarray(om.triangles),
-                               vertex_colors=(cols * 255).astype(np.uint8) if cols.size else None, process=False)
+    if len(mesh.faces) > max_faces:
+        mesh = decimate(mesh, int(max_faces))
     v = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32)
     f = torch.as_tensor(np.asarray(mesh.faces), dtype=torch.long)
     tri = v[f]
@@ -275,16 +221,41 @@ def mesh_to_surfels(mesh: trimesh.Trimesh, *, max_faces: int, device: torch.devi
     else:
         col = torch.full((f.shape[0], 3), 0.5)
     scale = torch.sqrt(area / np.pi)
-    if sample and area.shape[0] > max_faces:
-        p = area.double().numpy()
-        pick = np.random.default_rng(_SAMPLE_SEED).choice(p.size, size=int(max_faces), replace=False, p=p / p.sum())
-        pick = torch.as_tensor(np.sort(pick))
-        tri, cr, e1, col = tri[pick], cr[pick], e1[pick], col[pick]
-        scale = torch.full((pick.numel(),), float(np.sqrt(p.sum() / pick.numel() / np.pi)))
     s = Surfels.from_points(tri.mean(dim=1), col, scales=scale, normals=cr, tangents=e1, opacity=opacity,
                             sh_degree=sh_degree)
     s.buffers["mesh_sign"].fill_(1.0)  # the triangle's side: a sign refresh keeps it (align_normal_signs)
     return _to(s, device)
+
+
+def decimate(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
+    """``mesh`` reduced to at most ``max_faces`` faces by quadric edge collapse (Garland and Heckbert,
+    1997; the ``fast_simplification`` library). Each kept vertex takes the colour of the input vertex
+    nearest to it. Not differentiable.
+
+    Args:
+        mesh: triangle mesh, optionally with vertex colours.
+        max_faces: most faces of the result, >= 1.
+
+    Returns:
+        A new mesh (``process=False``); ``mesh`` itself when it already has at most ``max_faces`` faces.
+    """
+    if isinstance(max_faces, bool) or int(max_faces) != max_faces or max_faces < 1:
+        raise ValueError(f"max_faces must be a positive integer, got {max_faces!r}")
+    if len(mesh.faces) <= max_faces:
+        return mesh
+    import fast_simplification
+    from scipy.spatial import cKDTree
+
+    verts = np.asarray(mesh.vertices, dtype=np.float64)
+    v, f = fast_simplification.simplify(verts, np.asarray(mesh.faces, dtype=np.int32),
+                                        target_count=int(max_faces))
+    if len(f) > max_faces:  # the collapse stops a few faces short of its target on some meshes
+        v, f = fast_simplification.simplify(v, f.astype(np.int32), target_count=int(max_faces) - (len(f) - max_faces))
+    colors = None
+    if mesh.visual.kind == "vertex":
+        near = cKDTree(verts).query(v)[1]
+        colors = np.asarray(mesh.visual.vertex_colors)[near]
+    return trimesh.Trimesh(v, f, vertex_colors=colors, process=False)
 
 
 def _to(s: Surfels, device) -> Surfels:
