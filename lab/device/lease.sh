@@ -8,6 +8,8 @@
 #   d: install and build (gsplat, 2DGS), then at once: gsplat on bunny64 (random background) and DTU, 2DGS on DTU,
 #      wtopo on DTU as shipped and with the peers' initial point count (100,000 stereo points, with and without
 #      the background shells): every row with its per-view PSNR
+#   e: the background shells on DTU, bunny_env and bunny_env_forward (exported on the GPU machine): as shipped,
+#      without them (init.background_points=0) and seeded only where the stereo found nothing (lab/shell_seeds.py)
 set -uo pipefail
 S=${S:-/root/peers}
 D=benchmarks/peers/device.sh
@@ -61,6 +63,31 @@ d)
   MAX_JOBS=14 STAGE=$S timeout 420 bash $D build
   STAGE=$S bash $D launch "$S/exch/bunny64" "$S/exch/dtu_scan24" -- gsplat
   STAGE=$S bash $D launch "$S/exch/dtu_scan24" -- 2dgs
+  ;;
+e)
+  [ -d .stage/small ] && cp -r .stage/small/whl .stage/small/peers "$S"/
+  mkdir -p "$S/exch" && { [ -d .stage/exch ] && cp -r .stage/exch/* "$S/exch/"; }
+  STAGE=$S bash $D install || exit 1
+  export PYTHONPATH=$S/site:$PWD/benchmarks/peers/shims PYTHONUNBUFFERED=1
+  [ -d "$S/gl/root" ] && export LD_LIBRARY_PATH=$S/gl/root/usr/lib/x86_64-linux-gnu
+  [ -f "$S/exch/dtu_scan24/meta.json" ] || python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 \
+    "$S/exch/dtu_scan24" --name dtu_scan24 || exit 1
+  for sc in bunny_env bunny_env_forward; do
+    [ -f "$S/exch/$sc/meta.json" ] || python3 benchmarks/peers/export.py $sc "$S/exch/$sc" --name $sc || exit 1
+  done
+  for sc in dtu_scan24 bunny_env bunny_env_forward; do
+    r=$S/res/$sc; mkdir -p $r
+    for v in wtopo wtopo_noshells wtopo_seeded; do
+      case $v in
+        wtopo) c="benchmarks/peers/run_wtopo.py $S/exch/$sc $r/$v" ;;
+        wtopo_noshells) c="benchmarks/peers/run_wtopo.py $S/exch/$sc $r/$v --label 'wtopo (no shells)' --set init.background_points=0" ;;
+        wtopo_seeded) c="lab/shell_seeds.py run_wtopo $S/exch/$sc $r/$v" ;;
+      esac
+      rm -rf $r/$v $r/$v.rc; mkdir -p $r/$v
+      setsid nohup bash -c "python3 $c > $r/$v.log 2>&1; echo \$? > $r/$v.rc" >/dev/null 2>&1 &
+      echo "launched $sc/$v"
+    done
+  done
   ;;
 c)
   STAGE=$S bash $D launch "$S/exch/bunny64" "$S/exch/dtu_scan24" -- gsplat
