@@ -23,8 +23,8 @@ compilation and first-call costs are not charged to whichever run comes first.
 Per run: wall clock, peak memory per GPU (torch's ``max_memory_allocated`` plus Warp's memory-pool
 high-water mark, which cannot be reset: run ``single`` and ``chunked`` in separate processes with
 ``--runs`` for clean figures; on CPU the peak resident set, labelled), ROI F1 (Tanks-and-Temples
-protocol, tau = 0.5 % of the ROI diagonal; exact distances,
-:class:`_Distance`), F1 inside a band around the chunk cuts (the seams; half-width = the
+protocol, tau = 0.5 % of the ROI diagonal; exact distances
+from ``wtopo.metrics``), F1 inside a band around the chunk cuts (the seams; half-width = the
 chunks' overlap margin) and outside it, and the open edges left near the cuts. Every run writes
 ``<run-dir>/results/<run>.json`` and the table in ``--out`` is rebuilt from all results there,
 under ``## <label>``. Speed-ups: over ``single`` (one fit of the whole scene on one device) and over
@@ -119,29 +119,15 @@ def cuts_of(scene, chunks: int, overlap: float):
     return plan.cuts(), [overlap * step[a] for a, _ in plan.cuts()]
 
 
-class _Distance:
-    """Exact distance from points to a mesh (``wtopo.metrics``: closest face by Warp's BVH, distance in
-    float64)."""
-
-    def __init__(self, mesh, lo, hi, tau: float, seed: int):
-        self.v, self.f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
-        self.exact = _Surface("mesh", (self.v, self.f), 0, seed)
-        self.kind = "exact"
-
-    def __call__(self, q: np.ndarray) -> np.ndarray:
-        return self.exact.closest(q)[0]
-
-
 def banded_f1(mesh, gt, lo, hi, tau: float, cuts, widths, seed: int = 0) -> dict:
     """Precision / recall / F1 in the ROI overall, inside the band around the cuts and outside it."""
-    g = _Distance(gt, lo, hi, tau, seed)
+    g = _Surface("gt", gt, 0, seed)  # exact distances: closest face by Warp's BVH, distance in float64
     gp = _sample_in_box(g.v, g.f, lo, hi, EVAL_SAMPLES, seed + 1)
-    out = {"distance": g.kind}
     if len(mesh.faces) == 0:
-        return out | {k: {"precision": 0.0, "recall": 0.0, "f1": 0.0} for k in ("all", "band", "rest")}
-    p = _Distance(mesh, lo, hi, tau, seed)
+        return {k: {"precision": 0.0, "recall": 0.0, "f1": 0.0} for k in ("all", "band", "rest")}
+    p = _Surface("mesh", mesh, 0, seed)
     pp = _sample_in_box(p.v, p.f, lo, hi, EVAL_SAMPLES, seed)
-    dp, dg = g(pp) <= tau, p(gp) <= tau
+    dp, dg = g.closest(pp)[0] <= tau, p.closest(gp)[0] <= tau
 
     def band(x):
         m = np.zeros(len(x), bool)
@@ -150,6 +136,7 @@ def banded_f1(mesh, gt, lo, hi, tau: float, cuts, widths, seed: int = 0) -> dict
         return m
 
     bp, bg = band(pp), band(gp)
+    out = {}
     for key, sp, sg in (("all", np.ones(len(pp), bool), np.ones(len(gp), bool)), ("band", bp, bg), ("rest", ~bp, ~bg)):
         pr = float(dp[sp].mean()) if sp.any() else 0.0
         rc = float(dg[sg].mean()) if sg.any() else 0.0
@@ -259,8 +246,7 @@ def write_markdown(args) -> None:
     first = next(iter(rows.values()))
     lines = [f"## {args.label}", "",
              f"Scene: {first['views']} views of {first['resolution'][0]}x{first['resolution'][1]} px, "
-             f"device `{args.device}`, {args.chunks} chunks, overlap {args.overlap}; distances "
-             f"{first['f1'].get('distance', 'exact')}.", "",
+             f"device `{args.device}`, {args.chunks} chunks, overlap {args.overlap}; exact distances.", "",
              "| run | wall s | speed-up over `single` | speed-up over `chunked_1proc` (same merge) "
              "| peak memory GiB (per process) | F1 | F1 band | F1 rest | open edges at cuts | faces |",
              "|---|---|---|---|---|---|---|---|---|---|"]

@@ -42,10 +42,8 @@ from wtopo.scenes import bunny_mesh, rig_cameras
 _MARGIN = 0.05  # the box grows by this fraction of its longest side on every side (as auto_bounds)
 _TRUNCATION_VOXELS = 4.0  # tsdf.truncation_voxels' default
 
+fuse_depths_open3d = load("reference/tsdf_open3d.py").fuse_depths_open3d  # the tests' Open3D reference
 
-
-def _o3d_reference():
-    return load("reference/tsdf_open3d.py")
 
 def make_views(n_views: int, size: tuple[int, int], device: str):
     """Cameras around the unit-sized bunny, their exact z-depth (NumPy) and a colour per view."""
@@ -123,7 +121,7 @@ def main() -> None:
                 print(f"{size:>9} {grid:>5} {tw:8.2f} {'-':>9} {'-':>9} {len(mw.faces):>11} {'-':>10} {'-':>12}  "
                       f"{split}{mem}")
                 continue
-            o3d = lambda b=b, views=views: _o3d_reference().fuse_depths_open3d(*views, b)  # noqa: E731
+            o3d = lambda b=b, views=views: fuse_depths_open3d(*views, b)  # noqa: E731
             to, mo, _ = timed(o3d, args.repeats, "cpu")
             ch = chamfer(mw, mo, n_samples=100_000).chamfer / b.voxel
             print(f"{size:>9} {grid:>5} {tw:8.2f} {to:9.2f} {tw / to:9.2f} {len(mw.faces):>11} {len(mo.faces):>10} "

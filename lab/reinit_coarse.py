@@ -2,10 +2,10 @@
 
     python lab/reinit_coarse.py SCENE PRESET VARIANT
 
-VARIANT: base (shipped: Open3D fusion on the CPU, Open3D's quadric decimation to the planned faces);
-warp (Warp fusion, still Open3D's decimation); coarse (Warp fusion; where the fused mesh has more than the
-planned faces, fused again at a voxel grown by sqrt(faces / planned), so no decimation runs);
-coarse90 (the same, aiming at 90 % of the planned faces).
+VARIANT: base (shipped: the fusion and the quadric decimation to the planned faces); coarse (where the fused
+mesh has more than the planned faces, fused again at a voxel grown by sqrt(faces / planned), so no decimation
+runs); coarse90 (the same, aiming at 90 % of the planned faces). Its A/B of the Open3D fusion and decimation
+against Warp's and fast_simplification's (decisions.md) ran at the commit before they went.
 Prints one JSON line: fit seconds, re-init seconds, faces of the re-init mesh, Chamfer, F, PSNR."""
 import json
 import math
@@ -29,8 +29,6 @@ def main():
     cfg = FitConfig()
     cfg.preset = preset
     cfg.runtime.device = "cpu"
-    if variant != "base" and hasattr(cfg.tsdf, "backend"):  # (the field is gone where Warp is the only backend)
-        cfg.tsdf.backend = "warp"
     if variant.startswith("coarse"):
         aim = 0.9 if variant == "coarse90" else 1.0
         real = R.fuse_depths

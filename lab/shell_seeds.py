@@ -52,7 +52,6 @@ def patch():
                     cov[y[m], x[m]] = True
             free.append(~cov)
         frac = float(np.mean([f.mean() for f in free]))
-        FOUND["free_fraction"] = frac
         print(f"shell seeds: {frac:.1%} of the training pixels have no stereo point", flush=True)
         if frac == 0.0:
             return real_bg(scene, layout, n, sh_degree=sh_degree, opacity=opacity, device=device, generator=generator)
@@ -99,10 +98,8 @@ def main():
         import run_wtopo
         run_wtopo.main(sys.argv[2:] + ["--label", "wtopo (shells on stereo-free pixels)"])
     else:
-        import wtopo
         from wtopo.cli import main as cli
         sys.argv = ["wtopo", "fit", sys.argv[2], "--out", sys.argv[3], *sys.argv[4:]]
-        del wtopo
         cli()
 
 

@@ -205,8 +205,7 @@ def mesh_to_surfels(mesh: trimesh.Trimesh, *, max_faces: int, device: torch.devi
     the triangle's and marked as a mesh's (``buffers["mesh_sign"]``). The decimation is
     :func:`decimate` (quadric edge collapse).
     """
-    if len(mesh.faces) > max_faces:
-        mesh = decimate(mesh, int(max_faces))
+    mesh = decimate(mesh, int(max_faces))
     v = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32)
     f = torch.as_tensor(np.asarray(mesh.faces), dtype=torch.long)
     tri = v[f]
@@ -249,7 +248,7 @@ def decimate(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
     verts = np.asarray(mesh.vertices, dtype=np.float64)
     v, f = fast_simplification.simplify(verts, np.asarray(mesh.faces, dtype=np.int32),
                                         target_count=int(max_faces))
-    if len(f) > max_faces:  # the collapse stops a few faces short of its target on some meshes
+    if len(f) > max_faces:  # the library documents that a collapse may stop short of its target: once more
         v, f = fast_simplification.simplify(v, f.astype(np.int32), target_count=int(max_faces) - (len(f) - max_faces))
     colors = None
     if mesh.visual.kind == "vertex":
