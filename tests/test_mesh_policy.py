@@ -156,6 +156,41 @@ def test_poisson_remesh_closes_an_open_mesh_and_records_its_device():
     below = out.vertices[:, 2] < 0.65  # where the open mesh is; above it Poisson closes the cut cap
     assert below.sum() > 100 and off[below].max() < 0.03 and out.vertices[:, 2].max() > 0.68
     assert events == [("poisson_remesh", {"watertight": True, "device": "cpu"})]
+    # where the open mesh is, the re-mesh's vertices lie on it (moved onto its faces), not on Poisson's
+    # smoothed copy of it; the closing cap stays Poisson's
+    from wtopo.metrics._surface import _Surface
+
+    on_src = _Surface("src", src, 0, 0).closest(out.vertices[below])[0]
+    assert on_src.max() < 1e-5, on_src.max()
+
+
+def test_fill_boundary_loops_caps_small_simple_holes_consistently_and_leaves_large_or_pinched_ones():
+    from wtopo.fitting.tsdf import fill_boundary_loops
+
+    box = trimesh.creation.box()
+    box.visual.vertex_colors = np.tile([200, 100, 50, 255], (len(box.vertices), 1))
+    box.update_faces(np.arange(len(box.faces)) != 0)  # one triangle gone: a three-edge loop
+    assert not box.is_watertight
+    assert fill_boundary_loops(box, 48) == 1
+    assert box.is_watertight and box.is_winding_consistent and np.isclose(box.volume, 1.0)
+    assert len(box.visual.vertex_colors) == len(box.vertices) == 9
+    assert (box.visual.vertex_colors[-1] == [200, 100, 50, 255]).all()
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    cut = sphere.triangles_center[:, 2] < 0.5  # a cap of a loop of more than 8 edges
+    big = trimesh.Trimesh(sphere.vertices, sphere.faces[cut], process=True)
+    n_loop = len(big.outline().entities[0].points) - 1
+    assert n_loop > 8 and fill_boundary_loops(big, 8) == 0 and not big.is_watertight
+    assert fill_boundary_loops(big, n_loop) == 1 and big.is_watertight and big.is_winding_consistent
+    assert big.volume > 0
+
+    # two holes that share a vertex: their boundary passes that vertex twice, no simple loop to cap
+    s = trimesh.creation.icosphere(subdivisions=2)
+    v = 0
+    ring = np.flatnonzero((s.faces == v).any(axis=1))
+    pinched = trimesh.Trimesh(s.vertices, np.delete(s.faces, ring[[0, 3]], axis=0), process=False)
+    assert not pinched.is_watertight
+    assert fill_boundary_loops(pinched, 48) == 0 and not pinched.is_watertight
 
 
 def test_poisson_remesh_falls_back_to_the_cpu_when_its_device_runs_out_of_memory(monkeypatch):

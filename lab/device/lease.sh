@@ -8,8 +8,9 @@
 #   d: install and build (gsplat, 2DGS), then at once: gsplat on bunny64 (random background) and DTU, 2DGS on DTU,
 #      wtopo on DTU as shipped and with the peers' initial point count (100,000 stereo points, with and without
 #      the background shells): every row with its per-view PSNR
-#   e: the background shells on DTU, bunny_env and bunny_env_forward (exported on the GPU machine): as shipped,
-#      without them (init.background_points=0) and seeded only where the stereo found nothing (lab/shell_seeds.py)
+#   e: the background shells on DTU, bunny_env and bunny_env_forward (exported on the GPU machine): as shipped
+#      (since 2026-12-02e seeded only where the stereo found nothing) and without them (init.background_points=0);
+#      lab/device/e_all.sh runs it, waits and scores in one call
 set -uo pipefail
 S=${S:-/root/peers}
 D=benchmarks/peers/device.sh
@@ -77,11 +78,10 @@ e)
   done
   for sc in dtu_scan24 bunny_env bunny_env_forward; do
     r=$S/res/$sc; mkdir -p $r
-    for v in wtopo wtopo_noshells wtopo_seeded; do
+    for v in wtopo wtopo_noshells; do
       case $v in
         wtopo) c="benchmarks/peers/run_wtopo.py $S/exch/$sc $r/$v" ;;
         wtopo_noshells) c="benchmarks/peers/run_wtopo.py $S/exch/$sc $r/$v --label 'wtopo (no shells)' --set init.background_points=0" ;;
-        wtopo_seeded) c="lab/shell_seeds.py run_wtopo $S/exch/$sc $r/$v" ;;
       esac
       rm -rf $r/$v $r/$v.rc; mkdir -p $r/$v
       setsid nohup bash -c "python3 $c > $r/$v.log 2>&1; echo \$? > $r/$v.rc" >/dev/null 2>&1 &

@@ -28,6 +28,7 @@ __all__ = ["final_mesh", "poisson_remesh"]
 _PROXY_FINAL_RESOLUTION = 128  # Poisson nodes per side of the proxy mesh returned when the final TSDF is empty
 _REMESH_SAMPLES = 200_000  # surface samples for the watertight Poisson re-mesh of the final mesh
 _REMESH_BOX = 1.1  # the re-mesh grid spans the mesh's longest side plus 10 %: the closed surface stays inside
+_SNAP_CELLS = 1.5  # re-mesh vertices within this many grid cells of the mesh move onto it (farther: hole fills)
 
 
 def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: Renderer, proxy: ProxyMesh,
@@ -115,7 +116,8 @@ def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record,
     768^3 on CUDA, the whole re-mesh took 32.6 s on 2 CPU threads against 10.2 s with an H100); a device
     other than the CPU that runs out of memory falls back to the CPU
     with a warning. The mesh keeps marching cubes' own vertex sharing (no merge by position: see
-    :func:`~.tsdf.cleanup_mesh`), so it is closed at any grid. Returns ``mesh`` itself when the re-mesh
+    :func:`~.tsdf.cleanup_mesh`), so it is closed at any grid; its vertices near ``mesh`` are then moved
+    onto it (:func:`_snap`). Returns ``mesh`` itself when the re-mesh
     comes out empty; records ``"poisson_remesh"`` (``watertight``, and the ``device`` it ran on).
     """
     pts, fi = trimesh.sample.sample_surface(mesh, _REMESH_SAMPLES, seed=cfg.runtime.seed)
@@ -145,10 +147,28 @@ def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record,
         device = torch.device("cpu")
         verts, faces = solve(device)
     # marching cubes shares each vertex already: no merge by position (see cleanup_mesh's weld)
-    out = trimesh.Trimesh(verts * side + lower, faces, process=False)
+    verts = _snap(verts * side + lower, mesh, _SNAP_CELLS * side / int(cfg.final.resolution))
+    out = trimesh.Trimesh(verts, faces, process=False)
     out = cleanup_mesh(out, largest_component=False, weld=False)
     record("poisson_remesh", watertight=bool(out.is_watertight), device=str(device))
     return out if len(out.faces) else mesh
+
+
+def _snap(verts: np.ndarray, mesh: trimesh.Trimesh, reach: float) -> np.ndarray:
+    """``verts`` [V, 3] with each vertex within ``reach`` of ``mesh`` moved to its closest point there: the
+    Poisson surface is a smoothed copy of ``mesh`` (Chamfer 0.229 -> 0.205 % on the bunny at the balanced
+    preset), its own only where it closes a hole. The connectivity, hence the closedness, is the re-mesh's."""
+    from ..raycast import closest_faces
+
+    if len(verts) == 0:
+        return verts
+    _, dist, closest = closest_faces(torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float64),
+                                     torch.as_tensor(np.asarray(mesh.faces), dtype=torch.int64),
+                                     torch.as_tensor(verts, dtype=torch.float64), max_distance=reach)
+    near = (dist < reach).numpy()
+    out = verts.copy()
+    out[near] = closest.numpy()[near]
+    return out
 
 
 def _out_of_memory(e: BaseException) -> bool:

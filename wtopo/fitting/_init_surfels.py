@@ -19,8 +19,8 @@ from ..geometry.region import carve
 from .config import InitConfig, InitSource
 from .surfels import Surfels
 
-__all__ = ["initial_surfels", "common_volume_points", "projected_colors", "spread_subset", "MIN_MVS_POINTS",
-           "INIT_OPACITY"]
+__all__ = ["initial_surfels", "stereo_points", "common_volume_points", "projected_colors", "spread_subset",
+           "MIN_MVS_POINTS", "INIT_OPACITY"]
 
 INIT_OPACITY = 0.3
 """Opacity of every initial surfel (scene points, stereo, random and background ones), in (0, 1)."""
@@ -136,36 +136,48 @@ def spread_subset(points: np.ndarray, n: int, generator: torch.Generator) -> np.
     return np.sort(pick)
 
 
-def _stereo_points(scene, cfg: InitConfig, layout, device, generator):
-    """``(points, colours, normals)`` of plane-sweep stereo, thinned to ``cfg.num_points``; ``None``
-    (with a warning) when too few depths are confirmed."""
+def stereo_points(scene, layout, device):
+    """Plane-sweep stereo's confirmed points of ``scene`` (:class:`~wtopo.geometry.mvs.MVSPoints`, internal
+    frame, not thinned), swept over ``layout``'s region of interest (the unit cube without one); a CPU
+    device sweeps at most ``_CPU_STEREO_VIEWS`` views. Fewer than :data:`MIN_MVS_POINTS` points: the capture
+    is too untextured to start from them."""
     from ..geometry.mvs import plane_sweep_points
 
     lo, hi = (np.zeros(3), np.ones(3)) if layout is None else (layout.roi_lower, layout.roi_upper)
     near = 0.01 if layout is None else layout.near
     max_views = None if torch.device(device).type == "cuda" else _CPU_STEREO_VIEWS
-    found = plane_sweep_points(scene.cameras, scene.images, lo, hi, near=near, device=device, max_views=max_views)
+    return plane_sweep_points(scene.cameras, scene.images, lo, hi, near=near, device=device, max_views=max_views)
+
+
+def _thinned_stereo(found, cfg: InitConfig, generator):
+    """``(points, colours, normals)`` of ``found`` thinned to ``cfg.num_points``; ``None`` (with a warning)
+    when too few depths are confirmed."""
     if len(found.points) < MIN_MVS_POINTS:
         warnings.warn(f"plane-sweep stereo confirmed {len(found.points)} points (< {MIN_MVS_POINTS}): the images are "
                       "too untextured; starting from random points in the cameras' common volume", RuntimeWarning,
-                      stacklevel=3)
+                      stacklevel=4)
         return None
     keep = spread_subset(found.points, int(cfg.num_points), generator)
     return found.points[keep], found.colors[keep], found.normals[keep]
 
 
 def initial_surfels(scene, cfg: InitConfig, source: InitSource | str, *, sh_degree: int, device: torch.device,
-                    generator: torch.Generator, layout=None) -> Surfels:
+                    generator: torch.Generator, layout=None, stereo=None) -> Surfels:
     """Surfels for stage 1 in the internal frame of the normalised ``scene``.
 
     Scales are the mean distance to ``_SCALE_NEIGHBOURS`` nearest neighbours; rotations random
     (stereo points: facing their reference camera along the depth map's normal); colours the
     scene's point colours, the stereo reference pixel's, or the mean colour the points project to.
     ``layout`` (:class:`~wtopo.fitting.scene_kind.SceneLayout`) gives the stereo sweep its region of
-    interest and near distance; without it, the unit cube and 1 % of it.
+    interest and near distance; without it, the unit cube and 1 % of it. ``stereo`` is
+    :func:`stereo_points`' result when the caller has it already (source ``mvs``; computed here otherwise).
     """
     normals = None
-    stereo = _stereo_points(scene, cfg, layout, device, generator) if source == InitSource.MVS else None
+    if source == InitSource.MVS:
+        found = stereo_points(scene, layout, device) if stereo is None else stereo
+        stereo = _thinned_stereo(found, cfg, generator)
+    else:
+        stereo = None
     if stereo is not None:
         pts, cols, normals = stereo
     elif source in (InitSource.MVS, InitSource.CAMERAS):

@@ -11,6 +11,10 @@ surfels from the start, at the distances it plausibly has, and keeps them there:
   geometrically from just beyond the farthest camera to ``_FAR_MULTIPLE`` times that (the last
   shell stands in for the sky). A surfel takes the colour of the pixel it came from and a size of
   ``_FOOTPRINT_PIXELS`` pixel footprints at its depth, facing the camera that placed it.
+  Only pixels the initial stereo did not explain seed a shell: a pixel within ``_COVER_PIXELS``
+  of a confirmed stereo point's projection in its view is left to that point (on DTU, shells
+  seeded on the near table's pixels showed its white through the black backdrop of a held-out
+  view; ``design/decisions.md``, "background shells").
 * **Contracted steps.** Adam moves every mean by about the learning rate per step whatever the
   gradient's size; a background surfel at distance ``r`` from the region's centre gets its step
   scaled by ``r / R`` (``R``: the region's radius), the Jacobian of the inverse of the
@@ -32,7 +36,8 @@ import torch
 from .scene_kind import SceneLayout
 from .surfels import Surfels
 
-__all__ = ["shell_radii", "background_surfels", "contract_steps", "prune_near_cameras", "BackgroundState"]
+__all__ = ["shell_radii", "uncovered_pixels", "background_surfels", "contract_steps", "prune_near_cameras",
+           "BackgroundState"]
 
 _SHELLS = 4  # shells between the first radius and the sky
 _FIRST_SHELL = 1.2  # first shell radius, times the farthest camera's distance from the region's centre
@@ -40,6 +45,8 @@ _FAR_MULTIPLE = 30.0  # the last shell (the sky) at this multiple of the first r
 _FOOTPRINT_PIXELS = 2.0  # initial surfel radius in pixel footprints at its depth (neighbours overlap)
 _MAX_STEP_SCALE = 100.0  # step scaling cap: beyond it a surfel is effectively at infinity
 _ROI_GROWTH = 0.1  # "inside the region of interest" allows this fraction of its side around it
+_COVER_PIXELS = 2  # a confirmed stereo point explains the pixels within this many pixels of its projection
+_COVER_MAX_POINTS = 2_000_000  # more stereo points than this: a random subset marks the covered pixels
 
 
 def shell_radii(layout: SceneLayout) -> np.ndarray:
@@ -49,8 +56,46 @@ def shell_radii(layout: SceneLayout) -> np.ndarray:
     return first * _FAR_MULTIPLE ** (np.arange(_SHELLS) / (_SHELLS - 1))
 
 
+def uncovered_pixels(cameras, points, device: torch.device | str = "cpu",
+                     generator: torch.Generator | None = None) -> list[torch.Tensor]:
+    """Per view, the pixels no point of ``points`` explains.
+
+    Args:
+        cameras: the training views (:class:`~wtopo.camera.Camera`, internal frame).
+        points: float [P, 3] points in the same frame (the stereo's confirmed points); more than
+            ``_COVER_MAX_POINTS`` are subsampled (``generator`` picks them).
+        device: where the projection runs (the fit's device).
+        generator: CPU generator for the subsample.
+
+    Returns:
+        One bool tensor [H, W] per camera on ``device``: True where no point in front of the camera
+        projects within ``_COVER_PIXELS`` pixels (a square window) of the pixel.
+    """
+    from ..geometry.mvs import TorchCam
+
+    dev = torch.device(device)
+    pts = torch.as_tensor(np.asarray(points, np.float64).reshape(-1, 3), dtype=torch.float32)
+    if len(pts) > _COVER_MAX_POINTS:
+        pts = pts[torch.randperm(len(pts), generator=generator)[:_COVER_MAX_POINTS]]
+    pts = pts.to(dev)
+    k = 2 * _COVER_PIXELS + 1
+    out = []
+    with torch.no_grad():
+        for cam in cameras:
+            u, v, z = TorchCam(cam, dev).project(pts)
+            x, y = torch.floor(u), torch.floor(v)
+            ok = (z > 0) & (x >= 0) & (x < cam.width) & (y >= 0) & (y < cam.height)
+            hit = torch.zeros(cam.height * cam.width, device=dev)
+            hit[(y[ok] * cam.width + x[ok]).long()] = 1.0
+            cov = torch.nn.functional.max_pool2d(hit.view(1, 1, cam.height, cam.width), k, stride=1,
+                                                 padding=_COVER_PIXELS)
+            out.append(cov[0, 0] == 0)
+    return out
+
+
 def background_surfels(scene, layout: SceneLayout, n: int, *, sh_degree: int, opacity: float,
-                       device: torch.device, generator: torch.Generator) -> Surfels | None:
+                       device: torch.device, generator: torch.Generator,
+                       covered_by: np.ndarray | None = None) -> Surfels | None:
     """``n`` background surfels on the shells of :func:`shell_radii`, seen from ``scene``'s views.
 
     Args:
@@ -61,6 +106,9 @@ def background_surfels(scene, layout: SceneLayout, n: int, *, sh_degree: int, op
         opacity: initial opacity in (0, 1).
         device: torch device of the result.
         generator: seeds the views, pixels and shells (CPU generator).
+        covered_by: float [P, 3] points (internal frame) that already explain their pixels, the
+            stereo's confirmed points: seeds come only from :func:`uncovered_pixels` (every pixel
+            when ``None``, or when the points cover every pixel of every view).
 
     Returns:
         :class:`Surfels` (internal frame) or ``None``.
@@ -71,9 +119,17 @@ def background_surfels(scene, layout: SceneLayout, n: int, *, sh_degree: int, op
     c = layout.roi_center
     cams = scene.cameras
     images = scene.images.detach().cpu().numpy()
-    view = torch.randint(0, len(cams), (n,), generator=generator).numpy()
+    free = None
+    if covered_by is not None and len(covered_by) > 0:
+        free = [f.cpu().numpy() for f in uncovered_pixels(cams, covered_by, device, generator)]
+        if not any(f.any() for f in free):
+            free = None
+    if free is None:
+        free = [np.ones((cam.height, cam.width), bool) for cam in cams]
+    counts = torch.as_tensor([float(f.sum()) for f in free], dtype=torch.float64)
+    view = torch.multinomial(counts, n, replacement=True, generator=generator).numpy()  # views by free pixels
+    pick = torch.rand(n, generator=generator, dtype=torch.float64).numpy()
     shell = np.arange(n) % len(radii)
-    uv = torch.rand(n, 2, generator=generator, dtype=torch.float64).numpy()
     pts = np.zeros((n, 3))
     cols = np.zeros((n, 3))
     nrm = np.zeros((n, 3))
@@ -81,9 +137,8 @@ def background_surfels(scene, layout: SceneLayout, n: int, *, sh_degree: int, op
     for i in np.unique(view):
         sel = np.nonzero(view == i)[0]
         cam = cams[i]
-        col_f = uv[sel, 0] * cam.width
-        row_f = uv[sel, 1] * cam.height
-        r_i, c_i = np.minimum(row_f.astype(int), cam.height - 1), np.minimum(col_f.astype(int), cam.width - 1)
+        flat = np.flatnonzero(free[i])
+        r_i, c_i = np.divmod(flat[np.minimum((pick[sel] * len(flat)).astype(np.int64), len(flat) - 1)], cam.width)
         _, rays = cam.pixel_rays("cpu", torch.float64)  # cached per camera: world directions, camera z = 1
         d = rays[r_i, c_i].numpy()
         d = d / np.linalg.norm(d, axis=1, keepdims=True)

@@ -25,7 +25,7 @@ from ..scene import NORMALIZATION_MARGIN
 from .surfels import Surfels
 
 __all__ = ["TSDFEmptyError", "FusionBounds", "auto_bounds", "fuse_depths", "mesh_to_surfels", "cleanup_mesh",
-           "repair_mesh", "hybrid_keep"]
+           "repair_mesh", "fill_boundary_loops", "hybrid_keep"]
 
 _BOX_PERCENTILE = 0.5  # percent of surfels ignored on each side when boxing them (floaters)
 _BOX_MARGIN = 0.05  # box grows by this fraction of its longest side on every side
@@ -33,6 +33,7 @@ _BOX_MARGIN = 0.05  # box grows by this fraction of its longest side on every si
 # farther than one more margin outside the unit cube
 _SCENE_LIMIT = (-NORMALIZATION_MARGIN, 1.0 + NORMALIZATION_MARGIN)
 _MIN_OPACITY = 0.1  # surfels below this opacity do not shape the bounds
+_FAN_MAX_EDGES = 48  # repair_mesh caps boundary loops of at most this many edges with a fan (larger: Poisson)
 
 
 class TSDFEmptyError(RuntimeError):
@@ -180,7 +181,9 @@ def cleanup_mesh(mesh: trimesh.Trimesh, *, largest_component: bool = True, repai
 
 
 def repair_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    """Fill small holes (trimesh ``fill_holes``) of a mesh that is not closed and orient its faces
+    """Fill small holes (trimesh ``fill_holes``, then :func:`fill_boundary_loops` up to ``_FAN_MAX_EDGES``
+    edges: a surface cut by the fusion box leaves a loop of a few edges on the box's face) of a mesh that is
+    not closed and orient its faces
     (:func:`~.winding.orient_faces`: neighbours agree, each part as most of its faces are; a closed mesh
     of negative volume is turned), in place.
 
@@ -190,9 +193,65 @@ def repair_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     ``fix_normals``, a breadth-first walk in Python: over 15 minutes on a ten-view cup's 512-px mesh."""
     if not mesh.is_watertight:
         trimesh.repair.fill_holes(mesh)
+    if not mesh.is_watertight:
+        fill_boundary_loops(mesh, _FAN_MAX_EDGES)
     mesh.faces = orient_faces(mesh.faces)
     trimesh.repair.fix_inversion(mesh)  # a closed mesh of negative volume points inwards: turn it
     return mesh
+
+
+def fill_boundary_loops(mesh: trimesh.Trimesh, max_edges: int) -> int:
+    """Cap every simple boundary loop of at most ``max_edges`` edges with a fan of triangles around the
+    loop's centroid (a new vertex; coloured as the loop's mean where the mesh has vertex colours), wound
+    against the loop's own faces so the neighbours agree; in place.
+
+    A loop is simple when each of its vertices starts exactly one boundary edge; loops through a vertex
+    where several boundary edges meet are left open. Returns the number of loops capped."""
+    f = np.asarray(mesh.faces, np.int64)
+    if len(f) == 0:
+        return 0
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    key = np.sort(directed, axis=1)
+    _, inv, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    border = directed[count[inv.reshape(-1)] == 1]  # each as its face winds it: a -> b
+    if len(border) == 0:
+        return 0
+    starts, n_out = np.unique(border[:, 0], return_counts=True)
+    simple = set(starts[n_out == 1].tolist())
+    nxt = {int(a): int(b) for a, b in border if int(a) in simple}
+    seen: set[int] = set()
+    loops = []
+    for a0 in nxt:
+        if a0 in seen:
+            continue
+        loop, a = [], a0
+        while a in nxt and a not in seen:
+            seen.add(a)
+            loop.append(a)
+            a = nxt[a]
+        if a == a0 and 3 <= len(loop) <= max_edges:
+            loops.append(loop)
+    if not loops:
+        return 0
+    v = np.asarray(mesh.vertices)
+    colors = mesh.visual.vertex_colors if mesh.visual.kind == "vertex" else None
+    new_v, new_f, new_c = [], [], []
+    for loop in loops:
+        c = len(v) + len(new_v)
+        new_v.append(v[loop].mean(axis=0))
+        if colors is not None:
+            new_c.append(np.asarray(colors)[loop].mean(axis=0))
+        a = np.asarray(loop)
+        b = np.roll(a, -1)
+        new_f.append(np.stack([b, a, np.full_like(a, c)], axis=1))  # the edge a -> b read as b -> a
+    verts = np.concatenate([v, np.asarray(new_v)])
+    faces = np.concatenate([f, *new_f])
+    vc = None if colors is None else np.concatenate([np.asarray(colors), np.round(new_c).astype(np.uint8)])
+    mesh.vertices = verts
+    mesh.faces = faces
+    if vc is not None:
+        mesh.visual.vertex_colors = vc
+    return len(loops)
 
 
 def mesh_to_surfels(mesh: trimesh.Trimesh, *, max_faces: int, device: torch.device | str, sh_degree: int,
