@@ -32,9 +32,11 @@ def _scene_and_layout(cam):
     return scene, layout
 
 
-def test_uncovered_pixels_are_those_farther_than_the_cover_radius_from_every_projected_point():
+def test_uncovered_pixels_are_those_farther_than_the_cover_radius_from_every_projected_point(device):
     cam = _camera()
-    free = uncovered_pixels([cam], _left_half_points(cam, 10))[0].numpy()
+    free = uncovered_pixels([cam], _left_half_points(cam, 10), device)[0]
+    assert free.device == torch.device(device)
+    free = free.cpu().numpy()
     assert free.shape == (H, W) and free.dtype == bool
     assert not free[:, :10 + _COVER_PIXELS].any()  # the points' columns and their cover radius
     assert free[:, 10 + _COVER_PIXELS:].all()
@@ -48,13 +50,13 @@ def test_points_behind_the_camera_or_outside_the_image_cover_nothing():
     assert bool(free.all())
 
 
-def test_shells_are_seeded_only_on_pixels_the_points_leave_free():
+def test_shells_are_seeded_only_on_pixels_the_points_leave_free(device):
     cam = _camera()
     scene, layout = _scene_and_layout(cam)
     pts = _left_half_points(cam, 20)
-    s = background_surfels(scene, layout, 400, sh_degree=0, opacity=0.3, device=torch.device("cpu"),
+    s = background_surfels(scene, layout, 400, sh_degree=0, opacity=0.3, device=torch.device(device),
                            generator=torch.Generator().manual_seed(1), covered_by=pts)
-    means = s.means.detach().double().numpy()
+    means = s.means.detach().double().cpu().numpy()
     uv, z = cam.project(means)
     assert (z > 0).all()
     col = np.floor(uv[:, 0]).astype(int)
@@ -64,7 +66,7 @@ def test_shells_are_seeded_only_on_pixels_the_points_leave_free():
     # the colour of the pixel each seed came from
     row = np.floor(uv[:, 1]).astype(int)
     want = scene.images[0].numpy()[row, col]
-    assert np.allclose(s.colors().numpy(), want, atol=1e-5)
+    assert np.allclose(s.colors().cpu().numpy(), want, atol=1e-5)
 
 
 @pytest.mark.parametrize("covered", ["none", "everything", "empty"])
