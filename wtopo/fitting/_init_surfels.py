@@ -155,7 +155,7 @@ def _thinned_stereo(found, cfg: InitConfig, generator):
     if len(found.points) < MIN_MVS_POINTS:
         warnings.warn(f"plane-sweep stereo confirmed {len(found.points)} points (< {MIN_MVS_POINTS}): the images are "
                       "too untextured; starting from random points in the cameras' common volume", RuntimeWarning,
-                      stacklevel=4)
+                      stacklevel=3)
         return None
     keep = spread_subset(found.points, int(cfg.num_points), generator)
     return found.points[keep], found.colors[keep], found.normals[keep]
@@ -173,13 +173,11 @@ def initial_surfels(scene, cfg: InitConfig, source: InitSource | str, *, sh_degr
     :func:`stereo_points`' result when the caller has it already (source ``mvs``; computed here otherwise).
     """
     normals = None
+    thinned = None
     if source == InitSource.MVS:
-        found = stereo_points(scene, layout, device) if stereo is None else stereo
-        stereo = _thinned_stereo(found, cfg, generator)
-    else:
-        stereo = None
-    if stereo is not None:
-        pts, cols, normals = stereo
+        thinned = _thinned_stereo(stereo_points(scene, layout, device) if stereo is None else stereo, cfg, generator)
+    if thinned is not None:
+        pts, cols, normals = thinned
     elif source in (InitSource.MVS, InitSource.CAMERAS):
         pts = common_volume_points(scene, int(cfg.num_points), generator)
         cols = projected_colors(scene, pts)

@@ -210,10 +210,8 @@ def fill_boundary_loops(mesh: trimesh.Trimesh, max_edges: int) -> int:
     f = np.asarray(mesh.faces, np.int64)
     if len(f) == 0:
         return 0
-    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    key = np.sort(directed, axis=1)
-    _, inv, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    border = directed[count[inv.reshape(-1)] == 1]  # each as its face winds it: a -> b
+    # trimesh's cached edges (is_watertight built them): each boundary edge as its face winds it, a -> b
+    border = np.asarray(mesh.edges, np.int64)[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)]
     if len(border) == 0:
         return 0
     starts, n_out = np.unique(border[:, 0], return_counts=True)
