@@ -71,3 +71,40 @@ def test_a_shifted_render_and_a_scaled_mesh_score_worse(exch, tmp_path):
     assert all(a < b - 5 for a, b in zip(row["psnr_views"], perfect["psnr_views"]))
     assert row["chamfer_pct"] > 20 * perfect["chamfer_pct"] and row["f_score"] < perfect["f_score"]
     assert row["silhouette_iou"] < perfect["silhouette_iou"]
+
+
+@pytest.fixture(scope="module")
+def exch_env(tmp_path_factory):
+    """The unbounded ``mug_torus_env`` of the benchmark's own scenes, at a size for a test."""
+    import scenes as peer_scenes
+
+    root = str(tmp_path_factory.mktemp("exch") / "env")
+    scene = peer_scenes.load("mug_torus_env", n_views=9, resolution=(48, 36), n_test=2)
+    export(scene, root, n_points=500)
+    return load(root), scene
+
+
+def test_an_unbounded_scene_carries_its_region_of_interest(exch_env):
+    """The box the ROI F-score is taken over reaches the exchange's frame: it holds the objects' truth there."""
+    ex, scene = exch_env
+    assert not ex.masked and ex.meta["gt"] and len(ex.test) == 2
+    lo, hi = ex.roi()
+    sim = scene.normalization()
+    want = [sim.to_internal(np.asarray(b, np.float64)) for b in scene.info["roi"]]
+    np.testing.assert_allclose(lo, want[0], atol=1e-9)
+    np.testing.assert_allclose(hi, want[1], atol=1e-9)
+    v = np.asarray(ex.gt().vertices)
+    inside = np.all((v >= lo) & (v <= hi), axis=1)
+    assert 0 < inside.mean() < 1  # the truth runs past the box (ground, hills): only the box is scored
+
+
+def test_the_roi_score_of_the_truth_is_one_and_of_a_moved_mesh_lower(exch_env, tmp_path):
+    ex, _ = exch_env
+    perfect = _result(ex, tmp_path / "perfect")
+    assert perfect["psnr_on"] == "image" and perfect["roi_f1"] > 0.999 and "chamfer_pct" not in perfect
+    moved = ex.gt().copy()
+    lo, hi = ex.roi()
+    moved.apply_translation([0.0, 0.0, 0.02 * float(np.linalg.norm(hi - lo))])  # 4 tau up
+    row = _result(ex, tmp_path / "moved", mesh=moved)
+    # the ground and every horizontal face miss by 4 tau; the sides of the mug and the torus slide along themselves
+    assert row["roi_f1"] < 0.6 and row["roi_precision"] < 0.6 and row["roi_recall"] < 0.6

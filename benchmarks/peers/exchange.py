@@ -5,7 +5,9 @@
 every peer see the same images, masks, cameras, held-out views and initial points:
 
 * ``meta.json``: size, split, whether the capture is masked, the similarity back to the scene's
-  frame, where the initial points came from;
+  frame, where the initial points came from, and for a scene with a region of interest
+  (``scene.info["roi"]``: the unbounded synthetic scenes) that box (``roi``, normalised frame): the
+  ROI F-score is taken over it;
 * ``cameras.npz``: ``K`` [N, 3, 3] and ``w2c`` [N, 4, 4] (OpenCV axes) in the normalised frame;
 * ``images/NNNN.png`` (every view), ``masks/NNNN.png`` (masked captures), ``gt.ply`` (when the
   scene has a ground-truth mesh, normalised frame), ``points.npz`` (initial points, colours);
@@ -153,6 +155,9 @@ def export(scene, out: str, *, test_every: int = 8, n_points: int = 100_000, see
             "points": kind, "gt": norm.gt_mesh is not None,
             "to_world": {"scale": float(sim.scale), "translation": [float(v) for v in sim.translation]},
             "crop": {"x0": x0.tolist(), "y0": y0.tolist(), "source_size": [int(W), int(H)]}}
+    roi = (getattr(scene, "info", None) or {}).get("roi")
+    if roi is not None:
+        meta["roi"] = [np.asarray(sim.to_internal(np.asarray(b, np.float64))).tolist() for b in roi]
     with open(os.path.join(out, "meta.json"), "w") as f:
         json.dump(meta, f, indent=1)
     return meta
@@ -218,6 +223,11 @@ class Exchange:
         import trimesh
         path = os.path.join(self.root, "gt.ply")
         return trimesh.load(path, process=False) if os.path.exists(path) else None
+
+    def roi(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The region of interest ``(lower [3], upper [3])`` (normalised frame) or ``None``."""
+        roi = self.meta.get("roi")
+        return None if roi is None else (np.asarray(roi[0], np.float64), np.asarray(roi[1], np.float64))
 
     def camera(self, i: int):
         from wtopo import Camera

@@ -4,7 +4,10 @@
 For each result folder (``mesh.ply``, ``renders.npz``, ``run.json``) of one exchange folder:
 
 * against the ground-truth mesh (when the scene has one): Chamfer, accuracy, completeness (each as
-  a percentage of the ground truth's bounding-box diagonal) and F-score at 0.5 % of it;
+  a percentage of the ground truth's bounding-box diagonal) and F-score at 0.5 % of it; for a scene
+  with a region of interest (the unbounded scenes, whose truth runs to the horizon) the ROI precision,
+  recall and F-score instead (Tanks-and-Temples, :func:`wtopo.metrics.roi_f_score`, at 0.5 % of the
+  box's diagonal, against all the truth's geometry);
 * held-out PSNR and SSIM: inside the masks for masked captures (the IDR / NeuS convention; SSIM of
   both images composited on black), the whole image otherwise;
 * the mesh's silhouette IoU against the held-out masks (masked captures);
@@ -74,6 +77,15 @@ def geometry_scores(mesh, gt) -> dict:
             "completeness_pct": 100 * ch.completeness_rel, "f_score": fs.f_score}
 
 
+def roi_scores(mesh, gt, lower, upper) -> dict:
+    """ROI precision, recall and F-score of ``mesh`` at 0.5 % of the box's diagonal (``wtopo.metrics.roi_f_score``)."""
+    from wtopo import metrics
+
+    tau = F_TAU * float(np.linalg.norm(upper - lower))
+    f = metrics.roi_f_score(mesh, gt, lower, upper, tau, n_samples=200_000, seed=0)
+    return {"roi_precision": f.precision, "roi_recall": f.recall, "roi_f1": f.f_score}
+
+
 def score(exchange: str, result: str) -> dict:
     import trimesh
 
@@ -86,8 +98,10 @@ def score(exchange: str, result: str) -> dict:
            "watertight": bool(mesh.is_watertight) if len(mesh.faces) else False}
     row.update(image_scores(np.load(os.path.join(result, "renders.npz"))["rgb"], ex))
     row["silhouette_iou"] = silhouette_iou(mesh, ex)
-    gt = ex.gt()
-    if gt is not None and len(mesh.faces):
+    gt, roi = ex.gt(), ex.roi()
+    if gt is not None and roi is not None:
+        row.update(roi_scores(mesh, gt, *roi))  # an empty mesh scores 0
+    elif gt is not None and len(mesh.faces):
         row.update(geometry_scores(mesh, gt))
     return row
 

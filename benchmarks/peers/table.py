@@ -11,6 +11,9 @@ import sys
 
 # (key, header, format, better): better is min, max or None (not ranked)
 COLUMNS = [
+    ("roi_f1", "ROI F1", "{:.3f}", max),
+    ("roi_precision", "ROI P", "{:.3f}", max),
+    ("roi_recall", "ROI R", "{:.3f}", max),
     ("chamfer_pct", "Chamfer %", "{:.3f}", min),
     ("f_score", "F", "{:.3f}", max),
     ("accuracy_pct", "acc. %", "{:.3f}", min),

@@ -11,6 +11,8 @@
 #   e: the background shells on DTU, bunny_env and bunny_env_forward (exported on the GPU machine): as shipped
 #      (since 2026-12-02e seeded only where the stereo found nothing) and without them (init.background_points=0);
 #      lab/device/e_all.sh runs it, waits and scores in one call
+#   f: the peers benchmark's new scenes (benchmarks/peers/scenes.py) beside gsplat: lab/device/f_all.sh (install,
+#      export on the machine, wtopo and gsplat launched), then lab/device/f_score.sh (wait, score) in later calls
 set -uo pipefail
 S=${S:-/root/peers}
 D=benchmarks/peers/device.sh

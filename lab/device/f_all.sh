@@ -1,0 +1,32 @@
+# Lease step f in one device call (after the p1, p2 and p3 + gl + small/whl staging calls; carry .stage/usd and
+# .stage/dtu_raw): install; export the peers benchmark's new scenes on the machine (benchmarks/peers/scenes.py:
+# chair, chair_sparse, chair_env, mug_torus_env; and bunny_env, DTU from its raw folder); wtopo at the CUDA
+# default on all six; gsplat's JIT build, then gsplat at its 30,000 iterations on the five synthetic scenes
+# (saving its splats at 7,000 and 15,000 steps: --mesh-only meshes them if the lease ends first). Then it waits
+# until WAIT seconds after its start; lab/device/f_score.sh (the next call, within 30 s) waits on and scores.
+S=/root/peers
+D=benchmarks/peers/device.sh
+t0=$(date +%s)
+mkdir -p $S/exch $S/res
+python3 -m pip install -q --no-index --no-deps --no-compile --target $S/site .stage/usd/*.whl 2>&1 | tail -2
+STAGE=$S bash $D install 2>&1 | tail -3 || exit 1
+export PYTHONPATH=$S/site:$PWD/benchmarks/peers/shims PYTHONUNBUFFERED=1
+[ -d "$S/gl/root" ] && export LD_LIBRARY_PATH=$S/gl/root/usr/lib/x86_64-linux-gnu
+SYN="chair chair_sparse chair_env mug_torus_env bunny_env"
+for sc in $SYN; do
+  [ -f "$S/exch/$sc/meta.json" ] || python3 benchmarks/peers/export.py $sc "$S/exch/$sc" --name $sc \
+    > $S/exch_$sc.log 2>&1 &
+done
+[ -f "$S/exch/dtu_scan24/meta.json" ] || python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 \
+  "$S/exch/dtu_scan24" --name dtu_scan24 > $S/exch_dtu.log 2>&1 &
+wait
+tail -n 1 $S/exch_*.log
+echo "exported after $(( $(date +%s) - t0 )) s"
+for sc in $SYN dtu_scan24; do STAGE=$S bash $D launch "$S/exch/$sc" -- wtopo; done
+MAX_JOBS=12 STAGE=$S timeout 400 bash $D build 2>&1 | grep -i "gsplat"
+echo "gsplat built after $(( $(date +%s) - t0 )) s"
+for sc in $SYN; do STAGE=$S bash $D launch "$S/exch/$sc" -- gsplat; done
+end=$(( t0 + ${WAIT:-560} ))
+while [ "$(date +%s)" -lt $end ]; do sleep 10; done
+for f in $S/res/*/*.log; do echo "== $f rc=$(cat ${f%.log}.rc 2>/dev/null || echo running): $(tail -c 160 $f | tr '\n' ' ')"; done
+nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv,noheader
