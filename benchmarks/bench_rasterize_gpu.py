@@ -8,9 +8,10 @@ kernels, minutes on a machine without a kernel cache):
 1. Rasterizer, ``--res`` x ``--res`` pixels, one camera, ``--sizes`` random surfels (SH degree 3), float32:
    wtopo's public :func:`wtopo.ops.rasterize_surfels` (argument checks, exact pair count: host
    synchronisations), wtopo's fit path ``wtopo.rasterize._rasterize_trusted`` with ``defer_count``
-   (no host synchronisation), and, when ``import gsplat`` works, gsplat's ``rasterization_2dgs`` on
-   the same surfels and camera (``render_mode="RGB+ED"``, ``distloss=True``: colour, alpha,
-   expected and median depth, normals and distortion, as wtopo renders). Forward alone and forward +
+   (no host synchronisation; also with Warp's own overload lookup at every launch, ``warp_lookup``), and,
+   when ``import gsplat`` works, gsplat's ``rasterization_2dgs`` on the same surfels and camera
+   (``render_mode="RGB+ED"``, ``distloss=True``: colour, alpha, expected and median depth, normals and
+   distortion, as wtopo renders). Forward alone and forward +
    backward of ``sum(image * random weights)`` over all six images. Two modes: ``latency`` (the
    device is idle at each call's start and the time runs until its last kernel ends: host overhead
    and synchronisations count in full) and ``pipelined`` (``--repeats`` calls back to back, events
@@ -44,6 +45,7 @@ import warp as wp
 from bench_rasterize import scene as cpu_scene  # noqa: E402
 
 import wtopo  # noqa: E402
+from wtopo import _bridge  # noqa: E402
 from wtopo import rasterize as R  # noqa: E402
 from wtopo.photometric import photometric_loss  # noqa: E402
 from wtopo.rasterize import _run as K  # noqa: E402  kernel-mode switches
@@ -103,6 +105,21 @@ def kernel_mode(render, coop: bool, batch: int):
             return render(*a)
         finally:
             K.COOPERATIVE_WARPS, K.PREFETCH_BATCH = saved
+
+    return run
+
+
+def warp_lookup(render):
+    """``render`` with Warp's own overload lookup at every launch of a generic kernel (``_bridge.RESOLVE_OVERLOADS``
+    off): the host time the resolved launches save."""
+
+    def run(*a):
+        saved = _bridge.RESOLVE_OVERLOADS
+        _bridge.RESOLVE_OVERLOADS = False
+        try:
+            return render(*a)
+        finally:
+            _bridge.RESOLVE_OVERLOADS = saved
 
     return run
 
@@ -228,7 +245,8 @@ def bench_rasterizer(args, device) -> list[dict]:
         impls = {"wtopo_public": (lambda p: wtopo_public(p, cam), (params,), params),
                  "wtopo_fit_path": (fit_render, (params,), params),
                  "wtopo_fit_per_pixel": (kernel_mode(fit_render, False, 1), (params,), params),
-                 "wtopo_fit_no_batch": (kernel_mode(fit_render, True, 1), (params,), params)}
+                 "wtopo_fit_no_batch": (kernel_mode(fit_render, True, 1), (params,), params),
+                 "wtopo_fit_warp_lookup": (warp_lookup(fit_render), (params,), params)}
         if gsplat_version is not None:
             try:
                 leaves, viewmat, K = gsplat_inputs(params, cam, near)
@@ -296,7 +314,8 @@ def print_rasterizer(rows) -> None:
     print(f"{'N':>9} {'impl':<20} {'fwd':>8} {'fwd+bwd':>8} {'fwd pipe':>9} {'f+b pipe':>9} {'host fwd':>9} "
           f"{'peak MB':>8}")
     for r in rows:
-        for name in ("wtopo_public", "wtopo_fit_path", "wtopo_fit_per_pixel", "wtopo_fit_no_batch", "gsplat_2dgs"):
+        for name in ("wtopo_public", "wtopo_fit_path", "wtopo_fit_per_pixel", "wtopo_fit_no_batch",
+                     "wtopo_fit_warp_lookup", "gsplat_2dgs"):
             if name not in r:
                 continue
             t = r[name]
@@ -305,7 +324,8 @@ def print_rasterizer(rows) -> None:
                   f"{t['forward']['host_ms']:9.2f} {t['torch_peak_mb']:8.0f}")
         if "gsplat_2dgs" in r:
             g = r["gsplat_2dgs"]
-            for name in ("wtopo_public", "wtopo_fit_path", "wtopo_fit_per_pixel", "wtopo_fit_no_batch"):
+            for name in ("wtopo_public", "wtopo_fit_path", "wtopo_fit_per_pixel", "wtopo_fit_no_batch",
+                         "wtopo_fit_warp_lookup"):
                 t = r[name]
                 ratios = [t[k]["ms"] / g[k]["ms"] for k in ("forward", "forward_backward", "forward_pipelined",
                                                             "forward_backward_pipelined")]

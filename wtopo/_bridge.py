@@ -18,9 +18,11 @@ kernels register them with :meth:`warp.Tape.record_func`). :func:`apply` wraps t
 Outputs flagged non-differentiable (indices, masks, counts) are marked so with
 ``ctx.mark_non_differentiable`` and never receive a gradient.
 
-:func:`launch_split` runs a kernel whose threads write disjoint outputs in several chunks from
-Python threads: Warp's CPU backend runs each launch on one thread but releases the GIL, so on a
-2-core CPU this gives about 2x (measured, ``design/overview.md``). On CUDA it is a single launch.
+:func:`launch` is ``wp.launch`` with a generic kernel's overload resolved once per argument types (Warp
+infers it at every launch otherwise: a third of a small render's host time). :func:`launch_split` runs a
+kernel whose threads write disjoint outputs in several chunks from Python threads: Warp's CPU backend runs
+each launch on one thread but releases the GIL, so on a 2-core CPU this gives about 2x (measured,
+``design/overview.md``). On CUDA it is a single launch.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ __all__ = [
     "active_tape",
     "warp_device",
     "to_warp",
+    "launch",
     "launch_split",
     "cpu_threads",
     "float_dtype",
@@ -306,6 +309,36 @@ def _get_pool(n: int) -> ThreadPoolExecutor:
     return _pool
 
 
+_overloads: dict = {}
+# False: :func:`launch` leaves the overload lookup to Warp at every launch (kept for comparison in benchmarks)
+RESOLVE_OVERLOADS = True
+
+
+def _arg_key(a) -> object:
+    # what Warp's overload inference reads of an argument: an array's class, dtype and rank, else the value's type
+    dt = getattr(a, "dtype", None)
+    return type(a) if dt is None else (type(a), dt, getattr(a, "ndim", None))
+
+
+def resolve(kernel, args: Sequence) -> wp.Kernel:
+    """The overload of ``kernel`` that ``wp.launch`` would pick for ``args`` (inputs then outputs), looked up once
+    per kernel and argument types; a kernel that is not generic is returned as it is."""
+    if not (RESOLVE_OVERLOADS and kernel.is_generic):
+        return kernel
+    key = (kernel, *map(_arg_key, args))
+    k = _overloads.get(key)
+    if k is None:
+        k = kernel.add_overload(kernel.infer_argument_types(list(args)))
+        _overloads[key] = k
+    return k
+
+
+def launch(kernel, dim, inputs: Sequence = (), outputs: Sequence = (), **kwargs) -> None:
+    """``wp.launch(kernel, dim, inputs, outputs, **kwargs)`` with a generic kernel's overload resolved by
+    :func:`resolve` (same kernel, same results; what changes is the host time of the launch)."""
+    wp.launch(resolve(kernel, (*inputs, *outputs)), dim=dim, inputs=inputs, outputs=outputs, **kwargs)
+
+
 def launch_split(kernel, dim: int, inputs: list, outputs: list | None = None, *, device, min_chunk: int = 4096,
                  record_tape: bool = False) -> None:
     """Launch ``kernel`` over ``dim`` threads, split into chunks across CPU threads.
@@ -322,8 +355,9 @@ def launch_split(kernel, dim: int, inputs: list, outputs: list | None = None, *,
     n = cpu_threads() if device.is_cpu else 1
     n = int(min(n, max(1, dim // max(1, min_chunk))))
     if n <= 1:
-        wp.launch(kernel, dim=dim, inputs=[0, *inputs], outputs=outputs, device=device, record_tape=record_tape)
+        launch(kernel, dim, [0, *inputs], outputs, device=device, record_tape=record_tape)
         return
+    kernel = resolve(kernel, (0, *inputs, *outputs))
     bounds = np.linspace(0, dim, n + 1).astype(np.int64)
 
     def _run(i):

@@ -175,7 +175,7 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
         def backward():
             # One launch: several vertices scatter into the same node, and Warp's CPU atomics are
             # only atomic within a launch.
-            wp.launch(_k.scatter_vertex_adjoint_kernel, dim=n_verts,
+            _bridge.launch(_k.scatter_vertex_adjoint_kernel, dim=n_verts,
                       inputs=[field, grid, vert_node, vert_kind, verts.grad], outputs=[field.grad],
                       device=device, record_tape=False)
 

@@ -158,7 +158,7 @@ def window_ncc_costs(depth: torch.Tensor, normal: torch.Tensor, alpha: torch.Ten
             _bridge.launch_split(adjoint_kernel, count, [d, n, yy, xx, gray, mean, var, dirs, im0, im1, prm, sources,
                                                          int(half), stats, cost.grad], [gwd, gwn], device=dev,
                                  min_chunk=_MIN_CHUNK)
-            wp.launch(scatter_kernel, dim=count, inputs=[yy, xx, gwd, gwn], outputs=[gd, gn], device=dev,
+            _bridge.launch(scatter_kernel, dim=count, inputs=[yy, xx, gwd, gwn], outputs=[gd, gn], device=dev,
                       record_tape=False)
 
         tape = _bridge.active_tape()

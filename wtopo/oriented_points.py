@@ -47,7 +47,7 @@ def _op(dtype: torch.dtype, samples: int, params: tuple) -> _bridge.WarpOp:
         normals = wp.zeros(n * samples, dtype=v3, device=dev, requires_grad=True)
         weights = wp.zeros(n * samples, dtype=sc, device=dev, requires_grad=True)
         if n > 0:
-            wp.launch(oriented_points_kernel, dim=n,
+            _bridge.launch(oriented_points_kernel, dim=n,
                       inputs=[means, quats, scales, opacities, sign, samples, *consts],
                       outputs=[points, normals, weights], device=dev)
         return points, normals, weights

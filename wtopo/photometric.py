@@ -71,18 +71,18 @@ def _maps(pred: torch.Tensor, target: torch.Tensor, win: torch.Tensor, c1: float
         l1 = wp.empty((h, w, c), dtype=s, device=dev, requires_grad=True)
         ssim = wp.empty((hv, wv, c), dtype=s, device=dev, requires_grad=True)
         partials = wp.empty((hv, wv, c), dtype=v3, device=dev)
-        wp.launch(_k.ssim_rows_kernel, dim=(h, w, c), inputs=[x, y, window], outputs=[rows, l1], device=dev,
+        _bridge.launch(_k.ssim_rows_kernel, dim=(h, w, c), inputs=[x, y, window], outputs=[rows, l1], device=dev,
                   record_tape=False)
-        wp.launch(_k.ssim_map_kernel, dim=(hv, wv, c), inputs=[rows, window, s(c1), s(c2)],
+        _bridge.launch(_k.ssim_map_kernel, dim=(hv, wv, c), inputs=[rows, window, s(c1), s(c2)],
                   outputs=[ssim, partials], device=dev, record_tape=False)
 
         def backward():
             if not x.requires_grad:
                 return
             cols = wp.empty((h, wv, c), dtype=v3, device=dev)
-            wp.launch(_k.ssim_adjoint_columns_kernel, dim=(h, wv, c), inputs=[partials, ssim.grad, window],
+            _bridge.launch(_k.ssim_adjoint_columns_kernel, dim=(h, wv, c), inputs=[partials, ssim.grad, window],
                       outputs=[cols], device=dev, record_tape=False)
-            wp.launch(_k.photometric_grad_kernel, dim=(h, w, c), inputs=[x, y, cols, l1.grad, window],
+            _bridge.launch(_k.photometric_grad_kernel, dim=(h, w, c), inputs=[x, y, cols, l1.grad, window],
                       outputs=[x.grad], device=dev, record_tape=False)
 
         tape = _bridge.active_tape()

@@ -175,7 +175,7 @@ def _shade_run(verts, faces, face_id, origins, directions):
     if tape is not None and verts.requires_grad:
 
         def backward():
-            wp.launch(_k.shade_hits_kernel, dim=n, inputs=[0, *inputs], outputs=[depth, normal],
+            _bridge.launch(_k.shade_hits_kernel, dim=n, inputs=[0, *inputs], outputs=[depth, normal],
                       adj_inputs=[0, verts.grad, None, None, None, None], adj_outputs=[depth.grad, normal.grad],
                       adjoint=True, device=verts.device)
 

@@ -59,7 +59,7 @@ def scatter_launch(points: wp.array, values: wp.array, resolution: int, grid: wp
     threads = len(bounds) - 1
 
     def _run(t: int) -> None:
-        wp.launch(scatter_trilinear_kernel, dim=n, inputs=[points, values, resolution, bounds[t], bounds[t + 1]],
+        _bridge.launch(scatter_trilinear_kernel, dim=n, inputs=[points, values, resolution, bounds[t], bounds[t + 1]],
                   outputs=[grid], device=device, record_tape=False)
 
     key = (str(device), points.dtype, values.dtype)

@@ -1,7 +1,8 @@
 # Lease step f in one device call (after the p1, p2 and p3 + gl + small/whl staging calls; carry .stage/usd and
 # .stage/dtu_raw): install; export the peers benchmark's new scenes on the machine (benchmarks/peers/scenes.py:
-# chair, chair_sparse, chair_env, mug_torus_env; and bunny_env, DTU from its raw folder); wtopo at the CUDA
-# default on all six; gsplat's JIT build, then gsplat at its 30,000 iterations on the five synthetic scenes
+# chair, chair_sparse, chair_env, mug_torus_env; and bunny_env, DTU from its raw folder) while gsplat's JIT build
+# runs; the rasterizer against gsplat on the idle GPU (benchmarks/bench_rasterize_gpu.py, $OUT/f/bench); then
+# wtopo at the CUDA default on all six and gsplat at its 30,000 iterations on the five synthetic scenes
 # (saving its splats at 7,000 and 15,000 steps: --mesh-only meshes them if the lease ends first). Then it waits
 # until WAIT seconds after its start; lab/device/f_score.sh (the next call, within 30 s) waits on and scores.
 S=/root/peers
@@ -19,12 +20,16 @@ for sc in $SYN; do
 done
 [ -f "$S/exch/dtu_scan24/meta.json" ] || python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 \
   "$S/exch/dtu_scan24" --name dtu_scan24 > $S/exch_dtu.log 2>&1 &
+MAX_JOBS=12 STAGE=$S timeout 400 bash $D build 2>&1 | grep -i "gsplat"
+echo "gsplat built after $(( $(date +%s) - t0 )) s"
 wait
 tail -n 1 $S/exch_*.log
 echo "exported after $(( $(date +%s) - t0 )) s"
+mkdir -p $OUT/f/bench
+(cd benchmarks && timeout 240 python3 bench_rasterize_gpu.py --device cuda:0 --only rasterizer --warmup 3 --repeats 15 \
+  --out $OUT/f/bench > $OUT/f/bench/log.txt 2>&1); grep -A40 "^Rasterizer" $OUT/f/bench/log.txt | head -40
+echo "benchmark done after $(( $(date +%s) - t0 )) s"
 for sc in $SYN dtu_scan24; do STAGE=$S bash $D launch "$S/exch/$sc" -- wtopo; done
-MAX_JOBS=12 STAGE=$S timeout 400 bash $D build 2>&1 | grep -i "gsplat"
-echo "gsplat built after $(( $(date +%s) - t0 )) s"
 for sc in $SYN; do STAGE=$S bash $D launch "$S/exch/$sc" -- gsplat; done
 end=$(( t0 + ${WAIT:-560} ))
 while [ "$(date +%s)" -lt $end ]; do sleep 10; done

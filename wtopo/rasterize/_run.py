@@ -42,7 +42,7 @@ def _launch_tiles(kernel, n_tiles: int, tile_px: int, inputs: list, outputs: lis
         return
     key = (kernel.key, str(device), tuple(getattr(a, "dtype", type(a)) for a in (*inputs, *outputs)))
     if workers <= 1:
-        wp.launch(kernel, dim=n_tiles * tile_px, inputs=[0, 0, *inputs], outputs=outputs, device=device,
+        _bridge.launch(kernel, dim=n_tiles * tile_px, inputs=[0, 0, *inputs], outputs=outputs, device=device,
                   record_tape=False)
         return
     chunk = tiles_per_chunk or max(1, n_tiles // (16 * workers))
@@ -53,7 +53,7 @@ def _launch_tiles(kernel, n_tiles: int, tile_px: int, inputs: list, outputs: lis
         # buffer always sums the same chunks in the same order (bit-identical reruns)
         for c in range(w, n_chunks, workers):
             lo, hi = c * chunk, min(n_tiles, (c + 1) * chunk)
-            wp.launch(kernel, dim=(hi - lo) * tile_px, inputs=[lo * tile_px, w, *inputs], outputs=outputs,
+            _bridge.launch(kernel, dim=(hi - lo) * tile_px, inputs=[lo * tile_px, w, *inputs], outputs=outputs,
                       device=device, record_tape=False)
 
     if key not in _compiled:
@@ -84,7 +84,7 @@ def _launch_worker_tiles(kernel, n_tiles: int, inputs: list, outputs: list, *, d
 
     def work(w: int) -> None:
         if dims[w]:
-            wp.launch(kernel, dim=dims[w], inputs=[w, workers, chunk, *inputs], outputs=outputs, device=device,
+            _bridge.launch(kernel, dim=dims[w], inputs=[w, workers, chunk, *inputs], outputs=outputs, device=device,
                       record_tape=False)
 
     key = (kernel.key, str(device), tuple(getattr(a, "dtype", type(a)) for a in (*inputs, *outputs)))

@@ -8,6 +8,7 @@ import numpy as np
 import torch
 import warp as wp
 
+from .. import _bridge
 from .._profile import section
 from ..kernels import tsdf_fusion as _k
 
@@ -22,11 +23,11 @@ def _pyramid(views: wp.array, depth: wp.array, sizes: list[tuple[int, int]], dev
     offsets = np.cumsum([0] + [n * a * b for a, b in dims])
     dmin = wp.empty(int(offsets[-1]), dtype=wp.float32, device=device)
     dmax = wp.empty(int(offsets[-1]), dtype=wp.float32, device=device)
-    wp.launch(_k.depth_range_base_kernel, dim=(n, h, w), inputs=[views, depth, h, w], outputs=[dmin, dmax],
+    _bridge.launch(_k.depth_range_base_kernel, dim=(n, h, w), inputs=[views, depth, h, w], outputs=[dmin, dmax],
               device=device)
     for li in range(1, len(dims)):
         (sh, sw), (dh, dw) = dims[li - 1], dims[li]
-        wp.launch(_k.depth_range_reduce_kernel, dim=(n, dh, dw),
+        _bridge.launch(_k.depth_range_reduce_kernel, dim=(n, dh, dw),
                   inputs=[int(offsets[li - 1]), sh, sw, int(offsets[li]), dh, dw], outputs=[dmin, dmax], device=device)
     levels = wp.array([wp.vec4i(int(o), a, b, 0) for o, (a, b) in zip(offsets[:-1], dims)], dtype=wp.vec4i,
                       device=device)
