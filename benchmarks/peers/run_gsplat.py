@@ -92,10 +92,11 @@ def main(argv=None) -> None:
     centres = c2w[:, :3, 3]
     scene_scale = float((centres - centres.mean(0)).norm(dim=-1).max()) * 1.1
     # simple_trainer_2dgs calls initialize_state() with its default scene_scale 1.0 in a world that its
-    # COLMAP parser scaled to a median camera distance of 1 (to the cameras' focus): that unit, here
+    # COLMAP parser scaled to a median camera distance of 1 (to the cameras' focus): that unit, here (the focus by
+    # least squares: a forward-facing rig's parallel axes leave it undetermined along them, pinv takes the nearest)
     axes = c2w[:, :3, 2]
     proj = torch.eye(3, device=dev) - axes[:, :, None] * axes[:, None, :]
-    focus = torch.linalg.solve(proj.sum(0), (proj @ centres[:, :, None]).sum(0))[:, 0]
+    focus = (torch.linalg.pinv(proj.sum(0)) @ (proj @ centres[:, :, None]).sum(0))[:, 0]
     unit = float((centres - focus).norm(dim=-1).median())
     bg = torch.tensor(ex.meta["background"] or [0.0, 0.0, 0.0], dtype=torch.float32, device=dev)
     W, H = ex.width, ex.height
