@@ -391,3 +391,24 @@ def test_the_tsdf_reinit_of_an_object_keeps_every_component_the_views_support(mo
     assert near_capsule.sum() == len(capsule.faces) and (means[:, 2] < 1.0).all()  # the capsule's; no speck's
     info = dict(events)["tsdf_reinit"]
     assert info["components"]["components"] == 3 and info["components"]["kept"] == 2
+
+
+def test_face_components_label_faces_that_share_a_vertex_together():
+    """Separate parts get their own labels (as trimesh's edge adjacency gives them), two tetrahedra that share
+    only a vertex are one component, unreferenced vertices are no component, and no faces give none."""
+    from wtopo.geometry.components import face_components
+
+    a = trimesh.creation.icosphere(subdivisions=2)
+    parts = [a.copy() for _ in range(3)]
+    for k, p in enumerate(parts):
+        p.apply_translation([3.0 * k, 0.0, 0.0])
+    mesh = trimesh.util.concatenate(parts)
+    n, label = face_components(np.asarray(mesh.faces), len(mesh.vertices) + 5)  # 5 vertices no face uses
+    ref = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    assert n == 3 and label.shape == (len(mesh.faces),) and set(label.tolist()) == {0, 1, 2}
+    assert len({(x, y) for x, y in zip(label.tolist(), ref.tolist())}) == 3  # the same partition as trimesh's
+    tet = np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [0, 2, 3]])
+    pinched = np.concatenate([tet, tet + 3])  # the second tetrahedron's vertex 0 is the first's vertex 3
+    n, label = face_components(pinched, 7)
+    assert n == 1 and (label == 0).all()
+    assert face_components(np.zeros((0, 3), np.int64), 4)[0] == 0

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from ..geometry.components import face_components
 from ..io._common import atomic_write
 from .checkpoint import versions
 from .config import FitConfig
@@ -62,10 +63,8 @@ def _json_default(o):
 
 
 def _components(mesh: trimesh.Trimesh) -> int:
-    """Number of face-connected components (labelled once; ``Trimesh.split`` is slow with many)."""
-    if len(mesh.faces) == 0:
-        return 0
-    return int(trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces)).max()) + 1
+    """Number of connected components (faces sharing a vertex; :func:`~wtopo.geometry.components.face_components`)."""
+    return face_components(np.asarray(mesh.faces), len(mesh.vertices))[0]
 
 
 def _report(run: FitRun, mesh_world: trimesh.Trimesh, scene) -> dict:

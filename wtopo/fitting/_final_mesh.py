@@ -54,7 +54,6 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
     fc = cfg.final
     mesh = None
     scene = is_scene(layout)
-    weld = True  # merge vertices by position in the clean-up; not a marching-cubes mesh's (see cleanup_mesh)
     depths, colors = render_depths(render, surfels, cameras)
     if scene:
         bounds = roi_bounds(layout, fc.resolution, TRUNCATION_VOXELS)
@@ -79,17 +78,17 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
         if pm is None:
             raise TSDFEmptyError("no final mesh: the TSDF fusion and the proxy mesh are both empty")
         mesh = trimesh.Trimesh(pm.verts.detach().cpu().numpy(), pm.faces.cpu().numpy(), process=False)
-        weld = False
     info: dict = {}
+    # the fused and the proxy mesh come from marching cubes, which shares each edge's vertex: no merge by position
     with section("mesh_policy"):
         if scene:
             mesh = crop_to_box(mesh, layout.roi_lower, layout.roi_upper)
             mesh, info["near_camera_faces_removed"] = crop_near_cameras(mesh, layout.camera_centers, layout.near)
-            mesh = cleanup_mesh(mesh, largest_component=False, repair=False, weld=weld)
+            mesh = cleanup_mesh(mesh, largest_component=False, repair=False, weld=False)
             with section("supported_components"):
                 mesh, info["components"] = supported_components(mesh, cameras, depths)
         else:
-            mesh = cleanup_mesh(mesh, largest_component=False, repair=False, weld=weld)
+            mesh = cleanup_mesh(mesh, largest_component=False, repair=False, weld=False)
             with section("supported_components"):
                 mesh, info["components"] = supported_components(mesh, cameras, depths)
             with section("repair"):  # after the support rule: repairing works component by component
