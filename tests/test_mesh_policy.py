@@ -171,10 +171,19 @@ def test_fill_boundary_loops_caps_small_simple_holes_consistently_and_leaves_lar
     box.visual.vertex_colors = np.tile([200, 100, 50, 255], (len(box.vertices), 1))
     box.update_faces(np.arange(len(box.faces)) != 0)  # one triangle gone: a three-edge loop
     assert not box.is_watertight
-    assert fill_boundary_loops(box, 48) == 1
+    assert fill_boundary_loops(box, 48) == 1  # one triangle, no new vertex
     assert box.is_watertight and box.is_winding_consistent and np.isclose(box.volume, 1.0)
-    assert len(box.visual.vertex_colors) == len(box.vertices) == 9
-    assert (box.visual.vertex_colors[-1] == [200, 100, 50, 255]).all()
+    assert len(box.visual.vertex_colors) == len(box.vertices) == 8 and len(box.faces) == 12
+
+    ball = trimesh.creation.icosphere(subdivisions=2)
+    ball.visual.vertex_colors = np.tile([200, 100, 50, 255], (len(ball.vertices), 1))
+    ring = np.flatnonzero((ball.faces == 0).any(axis=1))  # the faces round vertex 0: a loop of 5 edges
+    ball = trimesh.Trimesh(ball.vertices, np.delete(ball.faces, ring, axis=0), vertex_colors=ball.visual.vertex_colors,
+                           process=False)
+    nv = len(ball.vertices)
+    assert fill_boundary_loops(ball, 48) == 1  # a fan round a new centre vertex, coloured as the loop
+    assert ball.is_watertight and ball.is_winding_consistent and ball.volume > 0 and len(ball.vertices) == nv + 1
+    assert (ball.visual.vertex_colors[-1] == [200, 100, 50, 255]).all()
 
     sphere = trimesh.creation.icosphere(subdivisions=3)
     cut = sphere.triangles_center[:, 2] < 0.5  # a cap of a loop of more than 8 edges

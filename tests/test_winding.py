@@ -176,3 +176,25 @@ def test_bad_faces_are_refused_and_empty_is_empty():
     with pytest.raises(ValueError, match="the index -1"):
         orient_faces(np.array([[0, 1, -1]]))
     assert orient_faces(np.zeros((0, 3), dtype=int)).shape == (0, 3)
+
+
+def test_is_closed_boundary_edges_and_signed_volume_agree_with_trimesh():
+    """The fast closedness test, the boundary edges and the signed volume against trimesh on closed meshes, on
+    the same meshes with faces removed, and inside out."""
+    import trimesh
+
+    from wtopo.fitting.tsdf import signed_volume
+    from wtopo.geometry.winding import boundary_edges, is_closed
+
+    for mesh in (trimesh.creation.icosphere(subdivisions=2), trimesh.creation.box(), trimesh.creation.torus(1.0, 0.3)):
+        assert is_closed(mesh.faces) and mesh.is_watertight and len(boundary_edges(mesh.faces)) == 0
+        assert np.isclose(signed_volume(mesh), mesh.volume, rtol=1e-12)
+        inside_out = trimesh.Trimesh(mesh.vertices, mesh.faces[:, ::-1], process=False)
+        assert np.isclose(signed_volume(inside_out), -mesh.volume, rtol=1e-12)
+        open_mesh = trimesh.Trimesh(mesh.vertices, mesh.faces[2:], process=False)
+        assert not is_closed(open_mesh.faces) and not open_mesh.is_watertight
+        border = boundary_edges(open_mesh.faces)
+        ref = open_mesh.edges[trimesh.grouping.group_rows(open_mesh.edges_sorted, require_count=1)]
+        assert sorted(map(tuple, border.tolist())) == sorted(map(tuple, ref.tolist()))  # as the faces wind them
+    tri = np.array([[0, 1, 2], [0, 2, 1], [0, 1, 2]])  # an edge of three faces: not closed
+    assert not is_closed(tri) and not is_closed(np.zeros((0, 3), np.int64))

@@ -13,6 +13,7 @@ import numpy as np
 import trimesh
 
 from ..geometry.components import face_components
+from ..geometry.winding import is_closed
 from ..io._common import atomic_write
 from .checkpoint import versions
 from .config import FitConfig
@@ -77,7 +78,7 @@ def _report(run: FitRun, mesh_world: trimesh.Trimesh, scene) -> dict:
         "surfels": len(run.surfels),
         "proxy_faces": 0 if run.proxy_mesh is None else run.proxy_mesh.num_faces,
         "mesh": {"vertices": int(len(mesh_world.vertices)), "faces": int(len(mesh_world.faces)),
-                 "watertight": bool(mesh_world.is_watertight),
+                 "watertight": is_closed(mesh_world.faces),
                  "components": _components(mesh_world)},
         "non_finite_steps": run.total_failures,
         "device": str(run.device),

@@ -15,6 +15,7 @@ import trimesh
 from .. import _bridge
 from .._profile import section
 from ..geometry.mesh_policy import crop_near_cameras, crop_to_box, supported_components
+from ..geometry.winding import is_closed
 from . import densify as dens
 from .config import FitConfig, NormalFlip
 from .proxy import PADDING, ProxyMesh, poisson_mesh
@@ -93,7 +94,7 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
                 mesh, info["components"] = supported_components(mesh, cameras, depths)
             with section("repair"):  # after the support rule: repairing works component by component
                 mesh = repair_mesh(mesh)
-            if fc.watertight and not mesh.is_watertight:
+            if fc.watertight and not is_closed(mesh.faces):
                 mesh = poisson_remesh(mesh, cfg, record=record, device=surfels.means.device)
                 # the re-mesh's closed surface can wrap the repaired mesh's inner sheets into pockets of
                 # their own (a ten-view cup at 768^3: 137-343 components, no view sees most of them): the
@@ -149,7 +150,7 @@ def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record,
     verts = _snap(verts * side + lower, mesh, _SNAP_CELLS * side / int(cfg.final.resolution))
     out = trimesh.Trimesh(verts, faces, process=False)
     out = cleanup_mesh(out, largest_component=False, weld=False)
-    record("poisson_remesh", watertight=bool(out.is_watertight), device=str(device))
+    record("poisson_remesh", watertight=is_closed(out.faces), device=str(device))
     return out if len(out.faces) else mesh
 
 
