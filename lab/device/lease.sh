@@ -13,6 +13,8 @@
 #      lab/device/e_all.sh runs it, waits and scores in one call
 #   f: the peers benchmark's new scenes (benchmarks/peers/scenes.py) beside gsplat: lab/device/f_all.sh (install,
 #      export on the machine, wtopo and gsplat launched), then lab/device/f_score.sh (wait, score) in later calls
+#   g: gsplat at 30,000 steps on bunny_env and chair_env and wtopo on DTU in the profile, three jobs only:
+#      lab/device/g_all.sh, then lab/device/f_score.sh
 set -uo pipefail
 S=${S:-/root/peers}
 D=benchmarks/peers/device.sh

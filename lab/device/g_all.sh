@@ -1,0 +1,32 @@
+# Lease step g in one device call (after the p1, p2 and p3 + gl + small/whl staging calls; carry .stage/usd and
+# .stage/dtu_raw), planned after lease f: fewer jobs at once so that gsplat reaches its 30,000 steps (lease f ran
+# eleven jobs and gsplat trained at 11-25 it/s). Install; export bunny_env, chair_env and DTU on the machine while
+# gsplat's JIT build runs; then gsplat on the two unbounded scenes (the ROI F1 target) and wtopo on DTU alone in the
+# profile (runtime.profile: the "after" of benchmarks/gpu.md's DTU profile, with the launch and mesh-policy
+# changes). lab/device/f_score.sh (WAIT, SCORE=1) in the next calls, within 30 s of each other.
+S=/root/peers
+D=benchmarks/peers/device.sh
+t0=$(date +%s)
+mkdir -p $S/exch $S/res
+python3 -m pip install -q --no-index --no-deps --no-compile --target $S/site .stage/usd/*.whl 2>&1 | tail -2
+STAGE=$S bash $D install 2>&1 | tail -3 || exit 1
+export PYTHONPATH=$S/site:$PWD/benchmarks/peers/shims PYTHONUNBUFFERED=1
+[ -d "$S/gl/root" ] && export LD_LIBRARY_PATH=$S/gl/root/usr/lib/x86_64-linux-gnu
+for sc in bunny_env chair_env; do
+  [ -f "$S/exch/$sc/meta.json" ] || python3 benchmarks/peers/export.py $sc "$S/exch/$sc" --name $sc \
+    > $S/exch_$sc.log 2>&1 &
+done
+[ -f "$S/exch/dtu_scan24/meta.json" ] || python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 \
+  "$S/exch/dtu_scan24" --name dtu_scan24 > $S/exch_dtu.log 2>&1 &
+MAX_JOBS=12 STAGE=$S timeout 400 bash $D build 2>&1 | grep -i "gsplat"
+wait
+tail -n 1 $S/exch_*.log
+echo "exported and built after $(( $(date +%s) - t0 )) s"
+for sc in bunny_env chair_env; do STAGE=$S bash $D launch "$S/exch/$sc" -- gsplat; done
+STAGE=$S WTOPO_ARGS="--set runtime.profile=true" bash $D launch "$S/exch/dtu_scan24" -- wtopo
+end=$(( t0 + ${WAIT:-560} ))
+while [ "$(date +%s)" -lt $end ]; do sleep 10; done
+for f in $S/res/*/*.log; do echo "== $f rc=$(cat ${f%.log}.rc 2>/dev/null || echo running): $(tail -c 160 $f | tr '\n' ' ')"; done
+f=$(find $S/res/dtu_scan24/wtopo -maxdepth 3 -name report.json | head -1)
+[ -n "$f" ] && mkdir -p $OUT/g && cp $f $OUT/g/dtu_profile_report.json
+nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv,noheader
