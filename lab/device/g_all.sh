@@ -3,7 +3,9 @@
 # eleven jobs and gsplat trained at 11-25 it/s). Install; export bunny_env, chair_env and DTU on the machine while
 # gsplat's JIT build runs; then gsplat on the two unbounded scenes (the ROI F1 target) and wtopo on DTU alone in the
 # profile (runtime.profile: the "after" of benchmarks/gpu.md's DTU profile, with the launch and mesh-policy
-# changes). lab/device/f_score.sh (WAIT, SCORE=1) in the next calls, within 30 s of each other.
+# changes); and lab/shell_consistency.py's shells on DTU and bunny_env (after the profile's start: its sections
+# synchronise, the others only share the GPU). lab/device/f_score.sh (WAIT, SCORE=1) in the next calls, within
+# 30 s of each other.
 S=/root/peers
 D=benchmarks/peers/device.sh
 t0=$(date +%s)
@@ -24,6 +26,11 @@ tail -n 1 $S/exch_*.log
 echo "exported and built after $(( $(date +%s) - t0 )) s"
 for sc in bunny_env chair_env; do STAGE=$S bash $D launch "$S/exch/$sc" -- gsplat; done
 STAGE=$S WTOPO_ARGS="--set runtime.profile=true" bash $D launch "$S/exch/dtu_scan24" -- wtopo
+for sc in dtu_scan24 bunny_env; do  # the shells kept only where the views agree on their colour (lab patch)
+  out=$S/res/$sc/wtopo_consistent; rm -rf $out $out.rc; mkdir -p $out
+  setsid nohup bash -c "python3 lab/shell_consistency.py run_wtopo $S/exch/$sc $out > $out.log 2>&1; \
+    echo \$? > $out.rc" >/dev/null 2>&1 &
+done
 end=$(( t0 + ${WAIT:-560} ))
 while [ "$(date +%s)" -lt $end ]; do sleep 10; done
 for f in $S/res/*/*.log; do echo "== $f rc=$(cat ${f%.log}.rc 2>/dev/null || echo running): $(tail -c 160 $f | tr '\n' ' ')"; done
