@@ -108,3 +108,35 @@ def test_recover_after_oom_retries_a_failed_sort_and_then_gives_up(monkeypatch):
     with pytest.raises(RuntimeError, match="still fails after a failed allocation"):
         _bridge.recover_after_oom("cuda:0")
     assert len(calls) == 2 + _bridge._RECOVER_TRIES
+
+
+@wp.kernel
+def _scale_kernel(s: Any, x: wp.array[Any], out: wp.array[Any]):
+    i = wp.tid()
+    out[i] = s * x[i]
+
+
+@pytest.mark.parametrize("resolve", [True, False])
+def test_launch_resolves_each_argument_types_overload_once_and_computes_as_wp_launch(device, resolve, monkeypatch):
+    """``_bridge.launch`` picks the overload ``wp.launch`` would for every argument types (float32 and float64
+    arrays, a float32 and a float64 scalar), keeps it per kernel and types (the same object on a second call), records
+    on the tape as ``wp.launch`` does, and with ``RESOLVE_OVERLOADS`` off leaves the lookup to Warp."""
+    monkeypatch.setattr(_bridge, "RESOLVE_OVERLOADS", resolve)
+    picked = []
+    for wdt, scalar in ((wp.float32, wp.float32(2.0)), (wp.float64, wp.float64(2.0))):
+        x = wp.array(np.arange(5.0), dtype=wdt, device=device, requires_grad=True)
+        out = wp.zeros(5, dtype=wdt, device=device, requires_grad=True)
+        tape = wp.Tape()
+        with tape:
+            _bridge.launch(_scale_kernel, 5, [scalar, x], [out], device=device)
+        np.testing.assert_array_equal(out.numpy(), 2.0 * np.arange(5.0))
+        tape.backward(grads={out: wp.ones(5, dtype=wdt, device=device)})
+        np.testing.assert_array_equal(x.grad.numpy(), np.full(5, 2.0))
+        k = _bridge.resolve(_scale_kernel, [scalar, x, out])
+        picked.append(k)
+        if resolve:
+            assert not k.is_generic and k is _bridge.resolve(_scale_kernel, [scalar, x, out])
+            assert k.adj.arg_types["x"].dtype == wdt and k.adj.arg_types["s"] == wdt
+        else:
+            assert k is _scale_kernel
+    assert (picked[0] is not picked[1]) == resolve  # one overload per float type
