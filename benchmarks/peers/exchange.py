@@ -155,7 +155,7 @@ def export(scene, out: str, *, test_every: int = 8, n_points: int = 100_000, see
             "points": kind, "gt": norm.gt_mesh is not None,
             "to_world": {"scale": float(sim.scale), "translation": [float(v) for v in sim.translation]},
             "crop": {"x0": x0.tolist(), "y0": y0.tolist(), "source_size": [int(W), int(H)]}}
-    roi = (getattr(scene, "info", None) or {}).get("roi")
+    roi = scene.info.get("roi")
     if roi is not None:
         meta["roi"] = [np.asarray(sim.to_internal(np.asarray(b, np.float64))).tolist() for b in roi]
     with open(os.path.join(out, "meta.json"), "w") as f:

@@ -6,26 +6,12 @@
 # synthetic scenes
 # (saving its splats at 7,000 and 15,000 steps: --mesh-only meshes them if the lease ends first). Then it waits
 # until WAIT seconds after its start; lab/device/f_score.sh (the next call, within 30 s) waits on and scores.
-S=/root/peers
-D=benchmarks/peers/device.sh
+source lab/device/lease_env.sh
 t0=$(date +%s)
-mkdir -p $S/exch $S/res
-python3 -m pip install -q --no-index --no-deps --no-compile --target $S/site .stage/usd/*.whl 2>&1 | tail -2
-STAGE=$S bash $D install 2>&1 | tail -3 || exit 1
-export PYTHONPATH=$S/site:$PWD/benchmarks/peers/shims PYTHONUNBUFFERED=1
-[ -d "$S/gl/root" ] && export LD_LIBRARY_PATH=$S/gl/root/usr/lib/x86_64-linux-gnu
+lease_install || exit 1
 SYN="chair chair_sparse chair_env mug_torus_env bunny_env"
-for sc in $SYN; do
-  [ -f "$S/exch/$sc/meta.json" ] || python3 benchmarks/peers/export.py $sc "$S/exch/$sc" --name $sc \
-    > $S/exch_$sc.log 2>&1 &
-done
-[ -f "$S/exch/dtu_scan24/meta.json" ] || python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 \
-  "$S/exch/dtu_scan24" --name dtu_scan24 > $S/exch_dtu.log 2>&1 &
-MAX_JOBS=12 STAGE=$S timeout 400 bash $D build 2>&1 | grep -i "gsplat"
-echo "gsplat built after $(( $(date +%s) - t0 )) s"
-wait
-tail -n 1 $S/exch_*.log
-echo "exported after $(( $(date +%s) - t0 )) s"
+lease_prepare $SYN dtu_scan24
+echo "exported and built after $(( $(date +%s) - t0 )) s"
 mkdir -p $OUT/f/bench
 (cd benchmarks && timeout 240 python3 bench_rasterize_gpu.py --device cuda:0 --only rasterizer --warmup 3 --repeats 15 \
   --out $OUT/f/bench > $OUT/f/bench/log.txt 2>&1); grep -A40 "^Rasterizer" $OUT/f/bench/log.txt | head -40

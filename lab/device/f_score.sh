@@ -3,10 +3,7 @@
 # tail). A gsplat run still training is stopped and meshed from its saved splats with MESH_ONLY=STEP (7000 or 15000),
 # each within MESH_S seconds (default 150). Every step has a time limit: on 2026-12-02 (lease f) the meshing of four
 # stopped runs outlasted the call and nothing was scored.
-S=/root/peers
-D=benchmarks/peers/device.sh
-export PYTHONPATH=$S/site:$PWD/benchmarks/peers/shims PYTHONUNBUFFERED=1
-[ -d "$S/gl/root" ] && export LD_LIBRARY_PATH=$S/gl/root/usr/lib/x86_64-linux-gnu
+source lab/device/lease_env.sh
 t0=$(date +%s)
 end=$(( t0 + ${WAIT:-540} ))
 while [ "$(date +%s)" -lt $end ]; do

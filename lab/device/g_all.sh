@@ -6,23 +6,10 @@
 # changes); and lab/shell_consistency.py's shells on DTU and bunny_env (after the profile's start: its sections
 # synchronise, the others only share the GPU). lab/device/f_score.sh (WAIT, SCORE=1) in the next calls, within
 # 30 s of each other.
-S=/root/peers
-D=benchmarks/peers/device.sh
+source lab/device/lease_env.sh
 t0=$(date +%s)
-mkdir -p $S/exch $S/res
-python3 -m pip install -q --no-index --no-deps --no-compile --target $S/site .stage/usd/*.whl 2>&1 | tail -2
-STAGE=$S bash $D install 2>&1 | tail -3 || exit 1
-export PYTHONPATH=$S/site:$PWD/benchmarks/peers/shims PYTHONUNBUFFERED=1
-[ -d "$S/gl/root" ] && export LD_LIBRARY_PATH=$S/gl/root/usr/lib/x86_64-linux-gnu
-for sc in bunny_env chair_env; do
-  [ -f "$S/exch/$sc/meta.json" ] || python3 benchmarks/peers/export.py $sc "$S/exch/$sc" --name $sc \
-    > $S/exch_$sc.log 2>&1 &
-done
-[ -f "$S/exch/dtu_scan24/meta.json" ] || python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 \
-  "$S/exch/dtu_scan24" --name dtu_scan24 > $S/exch_dtu.log 2>&1 &
-MAX_JOBS=12 STAGE=$S timeout 400 bash $D build 2>&1 | grep -i "gsplat"
-wait
-tail -n 1 $S/exch_*.log
+lease_install || exit 1
+lease_prepare bunny_env chair_env dtu_scan24
 echo "exported and built after $(( $(date +%s) - t0 )) s"
 for sc in bunny_env chair_env; do STAGE=$S bash $D launch "$S/exch/$sc" -- gsplat; done
 STAGE=$S WTOPO_ARGS="--set runtime.profile=true" bash $D launch "$S/exch/dtu_scan24" -- wtopo

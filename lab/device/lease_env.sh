@@ -1,0 +1,28 @@
+# Sourced by the lease scripts (f_all.sh, g_all.sh, f_score.sh): the stage folder, the harness's device script and
+# the environment the peers' runs need (site-packages, shims, unbuffered logs, the staged libGL).
+#   lease_install            usd-core, then device.sh install (Warp, Open3D, wheels, wtopo)
+#   lease_prepare SCENE...   export each scene (a name of export.py; dtu_scan24 from .stage/dtu_raw) in the
+#                            background while gsplat's JIT build runs, then wait for both
+S=/root/peers
+D=benchmarks/peers/device.sh
+export PYTHONPATH=$S/site:$PWD/benchmarks/peers/shims PYTHONUNBUFFERED=1
+[ -d "$S/gl/root" ] && export LD_LIBRARY_PATH=$S/gl/root/usr/lib/x86_64-linux-gnu
+
+lease_install() {
+  mkdir -p $S/exch $S/res
+  python3 -m pip install -q --no-index --no-deps --no-compile --target $S/site .stage/usd/*.whl 2>&1 | tail -2
+  STAGE=$S bash $D install 2>&1 | tail -3 || return 1
+  [ -d "$S/gl/root" ] && export LD_LIBRARY_PATH=$S/gl/root/usr/lib/x86_64-linux-gnu
+  return 0
+}
+
+lease_prepare() {
+  for sc in "$@"; do
+    [ -f "$S/exch/$sc/meta.json" ] && continue
+    src=$sc; [ "$sc" = dtu_scan24 ] && src=.stage/dtu_raw/dtu_scan24
+    python3 benchmarks/peers/export.py $src "$S/exch/$sc" --name $sc > $S/exch_$sc.log 2>&1 &
+  done
+  MAX_JOBS=12 STAGE=$S timeout 400 bash $D build 2>&1 | grep -i "gsplat"
+  wait
+  tail -n 1 $S/exch_*.log
+}
