@@ -25,6 +25,11 @@ forward and forward + backward; ``--threads``
 sets torch's threads (1 measures the work without the stalls of a shared machine)::
 
     .venv/bin/python benchmarks/bench_losses.py --quick --threads 1
+
+On a GPU (#60's goal: every per-pixel loss together at most 1 ms an iteration at 800 x 600; a 700 px square
+bunny has 490k pixels, 800 x 600 has 480k), every time synchronised so that it includes the kernels::
+
+    python benchmarks/bench_losses.py --device cuda --resolution 700 --views 16
 """
 
 from __future__ import annotations
@@ -44,13 +49,17 @@ from wtopo.fitting.profiling import Timers
 from wtopo.fitting.stages import Stage
 
 
-def build(warmup: int, seed: int) -> FitRun:
-    """The bunny fit after ``warmup`` warm-up iterations and the TSDF re-initialisation."""
+def build(warmup: int, seed: int, device: str = "cpu", resolution: int | None = None,
+          views: int | None = None) -> FitRun:
+    """The bunny fit on ``device`` after ``warmup`` warm-up iterations and the TSDF re-initialisation
+    (``resolution`` / ``views``: the scene's, default the embedded bunny's 128 px and 32 views)."""
     cfg = FitConfig()
     cfg.runtime.seed = seed
     cfg.runtime.usd_every = 0
     cfg.runtime.progress = False
-    run = FitRun(scenes.load("bunny"), cfg, None, False)
+    cfg.runtime.device = device
+    kw = {k: v for k, v in (("resolution", resolution), ("n_views", views)) if v}
+    run = FitRun(scenes.load("bunny", **kw), cfg, None, False)
     run._start()
     run._iterate(Stage.WARMUP, 0, warmup)
     run._tsdf_reinit()
@@ -77,12 +86,19 @@ def _leaf(out):
     return types.SimpleNamespace(overflow=None, **maps)
 
 
+def _sync() -> None:
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        torch.cuda.synchronize()
+
+
 def _time(fn, repeats: int) -> float:
-    """Best-of-``repeats`` mean seconds of ``fn()`` (one call per view inside ``fn``)."""
+    """Best-of-``repeats`` seconds of ``fn()`` (one call per view inside ``fn``), the device's work included."""
     best = float("inf")
     for _ in range(repeats):
+        _sync()
         t = time.perf_counter()
         fn()
+        _sync()
         best = min(best, time.perf_counter() - t)
     return best
 
@@ -95,6 +111,9 @@ def main() -> None:
     ap.add_argument("--section-only", action="store_true", help="only the losses section (runs on older checkouts)")
     ap.add_argument("--quick", action="store_true", help="no fit: the multi-view and photometric terms on true depth")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's, as the fit)")
+    ap.add_argument("--device", default="cpu", help="the fit's device (cuda: every time includes the kernels)")
+    ap.add_argument("--resolution", type=int, default=None, help="the bunny's image size in px (default 128)")
+    ap.add_argument("--views", type=int, default=None, help="the bunny's view count (default 32)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -103,7 +122,7 @@ def main() -> None:
         return
 
     t0 = time.perf_counter()
-    run = build(args.warmup, args.seed)
+    run = build(args.warmup, args.seed, args.device, args.resolution, args.views)
     s, obj = run.surfels, run.objective
     views = list(range(len(run.train.cameras)))
     with torch.no_grad():
@@ -131,12 +150,7 @@ def main() -> None:
     n = len(views)
     obj.timers.total.clear()
     rows = {}
-    best = float("inf")
-    for _ in range(args.repeats):
-        obj.timers.total.clear()
-        section(False)
-        best = min(best, obj.timers.total["losses"])
-    rows["losses section (forward)"] = best / n
+    rows["losses section (forward)"] = _time(lambda: section(False), args.repeats) / n
     rows["losses forward + backward"] = _time(lambda: section(True), args.repeats) / n
     print(f"terms: {', '.join(names)}")
     for k, v in rows.items():

@@ -94,6 +94,7 @@ def test_repair_turns_a_closed_inside_out_mesh_and_matches_trimesh():
     theirs = trimesh.Trimesh(s.vertices, inside_out, process=False)
     trimesh.repair.fix_normals(theirs)
     assert ours.is_winding_consistent and ours.volume > 0
+    assert ours.metadata["closed"] is True  # its own closedness test, kept for the final mesh's policy
     assert _oriented_like(ours.faces, theirs.faces).all()
     assert _oriented_like(ours.faces, s.faces).all()
     # an already consistent mesh of two parts, one inside out (a cavity), is left as it is by both
@@ -104,6 +105,10 @@ def test_repair_turns_a_closed_inside_out_mesh_and_matches_trimesh():
     trimesh.repair.fix_normals(theirs)
     ours = repair_mesh(two.copy())
     assert (ours.faces == two.faces).all() and (theirs.faces == two.faces).all()
+    # a hole larger than the loops it caps (a fine hemisphere's rim, over _FAN_MAX_EDGES): left open, and said so
+    fine = trimesh.creation.icosphere(subdivisions=5)
+    half = fine.faces[fine.triangles_center[:, 2] > 0.0]
+    assert repair_mesh(trimesh.Trimesh(fine.vertices, half, process=False)).metadata["closed"] is False
 
 
 def _inconsistent_edges(faces: np.ndarray) -> int:

@@ -11,6 +11,10 @@ t0=$(date +%s)
 lease_install || exit 1
 lease_prepare bunny_env chair_env dtu_scan24
 echo "exported and built after $(( $(date +%s) - t0 )) s"
+mkdir -p $OUT/g $S/sync
+# the per-pixel losses at 700 x 700 px (#60 goal 3), alone on the GPU before the runs start
+timeout 180 python3 benchmarks/bench_losses.py --device cuda --resolution 700 --views 16 > $OUT/g/losses_gpu.txt 2>&1
+tail -n 25 $OUT/g/losses_gpu.txt
 for sc in bunny_env chair_env; do STAGE=$S bash $D launch "$S/exch/$sc" -- gsplat; done
 STAGE=$S WTOPO_ARGS="--set runtime.profile=true" bash $D launch "$S/exch/dtu_scan24" -- wtopo
 for sc in dtu_scan24 bunny_env; do  # the shells kept only where the views agree on their colour (lab patch)
@@ -18,9 +22,12 @@ for sc in dtu_scan24 bunny_env; do  # the shells kept only where the views agree
   setsid nohup bash -c "python3 lab/shell_consistency.py run_wtopo $S/exch/$sc $out > $out.log 2>&1; \
     echo \$? > $out.rc" >/dev/null 2>&1 &
 done
+setsid nohup bash -c "python3 lab/sync_count.py $S/exch/dtu_scan24 --set warmup.iterations=400 \
+  --set coevolution.iterations=300 > $S/sync/sync.log 2>&1" >/dev/null 2>&1 &
 end=$(( t0 + ${WAIT:-560} ))
 while [ "$(date +%s)" -lt $end ]; do sleep 10; done
 for f in $S/res/*/*.log; do echo "== $f rc=$(cat ${f%.log}.rc 2>/dev/null || echo running): $(tail -c 160 $f | tr '\n' ' ')"; done
 f=$(find $S/res/dtu_scan24/wtopo -maxdepth 3 -name report.json | head -1)
-[ -n "$f" ] && mkdir -p $OUT/g && cp $f $OUT/g/dtu_profile_report.json
+[ -n "$f" ] && cp $f $OUT/g/dtu_profile_report.json
+tail -n 45 $S/sync/sync.log > $OUT/g/sync_count.txt 2>/dev/null; tail -n 4 $OUT/g/sync_count.txt
 nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv,noheader

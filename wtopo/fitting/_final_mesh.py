@@ -94,7 +94,8 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
                 mesh, info["components"] = supported_components(mesh, cameras, depths)
             with section("repair"):  # after the support rule: repairing works component by component
                 mesh = repair_mesh(mesh)
-            if fc.watertight and not is_closed(mesh.faces):
+            closed = mesh.metadata.get("closed")  # repair_mesh's own test of the edges
+            if fc.watertight and not (is_closed(mesh.faces) if closed is None else closed):
                 mesh = poisson_remesh(mesh, cfg, record=record, device=surfels.means.device)
                 # the re-mesh's closed surface can wrap the repaired mesh's inner sheets into pockets of
                 # their own (a ten-view cup at 768^3: 137-343 components, no view sees most of them): the
