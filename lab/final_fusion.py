@@ -9,6 +9,10 @@ and F1 at 0.5 % of the region's diagonal, as benchmarks/real.py and the peers' s
     PYTHONPATH=. .venv/bin/python lab/final_fusion.py SCENE [--views 48 --width 160 --height 120] [--set K=V ...]
 
 SCENE: a built-in (bunny_env) or a name of benchmarks/peers/scenes.py (chair_env, mug_torus_env).
+
+--depths: instead, fuse at the planned truncation and voxel the median depth (the package's) and the expected
+depth (alpha-normalised mean of the contributions: what 2DGS fuses for unbounded scenes, its depth_ratio 0), each
+where the rendered opacity reaches 0.5.
 """
 import argparse
 import dataclasses
@@ -34,6 +38,7 @@ def main():
     ap.add_argument("--height", type=int, default=120)
     ap.add_argument("--set", action="append", default=[])
     ap.add_argument("--out", default="/tmp/final_fusion")
+    ap.add_argument("--depths", action="store_true", help="median against expected depth, planned grid")
     a = ap.parse_args()
 
     import wtopo
@@ -54,6 +59,36 @@ def main():
     sim = scene.normalization()
     rows = []
     real = F.final_mesh
+
+    import torch
+
+    from wtopo.fitting import stages as S
+
+    def expected_depths(render, surfels, cameras):
+        depths, colors = [], []
+        with torch.no_grad():
+            for cam in cameras:
+                out = render(surfels, cam)
+                d = torch.where(out.alpha >= S.ALPHA_THRESHOLD, out.depth, torch.zeros_like(out.depth))
+                depths.append(d.cpu().numpy())
+                colors.append(out.rgb.clamp(0, 1).cpu().numpy())
+        return depths, colors
+
+    def score(m, **row):
+        world = sim.to_world(m)
+        f = metrics.roi_f_score(world, scene.gt_mesh, lo, hi, tau, n_samples=100_000, seed=0)
+        rows.append({**row, "f1": f.f_score, "precision": f.precision, "recall": f.recall, "faces": len(m.faces)})
+        print(json.dumps(rows[-1]), flush=True)
+
+    def depth_variants(surfels, cameras, cfg, **k):
+        for name, fn in (("expected", expected_depths), ("median", S.render_depths)):
+            F.render_depths = fn
+            try:
+                m = real(surfels, cameras, cfg, **{**k, "tsdf_info": {}})
+            finally:
+                F.render_depths = S.render_depths
+            score(m, depth=name)
+        return m
 
     def variants(surfels, cameras, cfg, **k):
         base_res = int(cfg.final.resolution)
@@ -78,7 +113,7 @@ def main():
         F.TRUNCATION_VOXELS = 4.0
         return real(surfels, cameras, cfg, **k)
 
-    L.final_mesh = variants
+    L.final_mesh = depth_variants if a.depths else variants
     cfg = FitConfig()
     for s in ["runtime.device=cpu", "runtime.usd_every=0", *a.set]:
         _apply_set(cfg, s)

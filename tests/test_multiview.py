@@ -143,6 +143,22 @@ def test_fraction_sets_the_pixel_count(plane):
     assert torch.isfinite(mv(0, 0, d, n, a))
 
 
+def test_source_rows_are_made_once_for_every_pair(plane):
+    """The first draw makes the row of every (reference, neighbour) pair in one transfer; the rows equal
+    :func:`~wtopo.multiview_ncc.source_params` of each pair, and later draws add none."""
+    from wtopo.multiview_ncc import source_params
+
+    mv = _term(plane.cameras, plane.images)
+    d, n, a = plane_truth(plane.cameras[0])
+    mv(0, 0, d, n, a)
+    pairs = {(vi, j) for vi, nb in enumerate(mv.neighbours) for j in nb}
+    assert pairs and {(vi, j) for vi, j, _ in mv._rows} == pairs
+    for (vi, j, _), row in mv._rows.items():
+        assert torch.equal(row, source_params(plane.cameras[vi], plane.cameras[j]))
+    mv(1, 1, *plane_truth(plane.cameras[1]))
+    assert len(mv._rows) == len(pairs)
+
+
 def test_bad_arguments_are_named(plane):
     with pytest.raises(ValueError, match="patch"):
         MultiViewNCC(plane.cameras, plane.images, np.zeros(3), patch=4)

@@ -1,10 +1,10 @@
 # Lease step g in one device call (after the p1, p2 and p3 + gl + small/whl staging calls; carry .stage/usd and
 # .stage/dtu_raw), planned after lease f: fewer jobs at once so that gsplat reaches its 30,000 steps (lease f ran
 # eleven jobs and gsplat trained at 11-25 it/s). Install; export bunny_env, chair_env and DTU on the machine while
-# gsplat's JIT build runs; then gsplat on the two unbounded scenes (the ROI F1 target) and wtopo on DTU alone in the
+# gsplat's JIT build runs; then gsplat on the two unbounded scenes (the ROI F1 target) and wtopo on DTU in the
 # profile (runtime.profile: the "after" of benchmarks/gpu.md's DTU profile, with the launch and mesh-policy
-# changes); and lab/shell_consistency.py's shells on DTU and bunny_env (after the profile's start: its sections
-# synchronise, the others only share the GPU). lab/device/f_score.sh (WAIT, SCORE=1) in the next calls, within
+# changes). Run 2026-12-03 at f324f72, when it also ran lab/shell_consistency.py on DTU and bunny_env (rejected
+# and deleted since: design/decisions.md). lab/device/f_score.sh (WAIT, SCORE=1) in the next calls, within
 # 30 s of each other.
 source lab/device/lease_env.sh
 t0=$(date +%s)
@@ -17,11 +17,6 @@ timeout 180 python3 benchmarks/bench_losses.py --device cuda --resolution 700 --
 tail -n 25 $OUT/g/losses_gpu.txt
 for sc in bunny_env chair_env; do STAGE=$S bash $D launch "$S/exch/$sc" -- gsplat; done
 STAGE=$S WTOPO_ARGS="--set runtime.profile=true" bash $D launch "$S/exch/dtu_scan24" -- wtopo
-for sc in dtu_scan24 bunny_env; do  # the shells kept only where the views agree on their colour (lab patch)
-  out=$S/res/$sc/wtopo_consistent; rm -rf $out $out.rc; mkdir -p $out
-  setsid nohup bash -c "python3 lab/shell_consistency.py run_wtopo $S/exch/$sc $out > $out.log 2>&1; \
-    echo \$? > $out.rc" >/dev/null 2>&1 &
-done
 setsid nohup bash -c "python3 lab/sync_count.py $S/exch/dtu_scan24 --set warmup.iterations=400 \
   --set coevolution.iterations=300 > $S/sync/sync.log 2>&1" >/dev/null 2>&1 &
 end=$(( t0 + ${WAIT:-560} ))

@@ -142,17 +142,22 @@ class MultiViewNCC:
 
     def _sources(self, vi: int, pick: list[int], device: torch.device) -> tuple[list[torch.Tensor], torch.Tensor]:
         """The grey images of the views ``pick`` on ``device`` and their rows for :func:`window_ncc_costs` seen
-        from view ``vi``. Each grey image and each (reference, source) row is copied to the device once: the
-        draws that follow only gather device tensors (no host transfer in the loop)."""
-        ref = self.cameras[vi]
-        rows, images = [], []
-        for j in pick:
-            row = self._rows.get((vi, j, device))
-            if row is None:
-                row = self._rows[(vi, j, device)] = source_params(ref, self.cameras[j], device=device)
-            rows.append(row)
-            images.append(self._gray_on(j, device))
-        return images, torch.stack(rows)
+        from view ``vi``. Each grey image is copied to the device once and every (reference, source) row at the
+        first call: the draws that follow only gather device tensors (no host transfer in the loop)."""
+        if (vi, pick[0], device) not in self._rows:
+            self._all_rows(device)
+        rows = [self._rows[(vi, j, device)] for j in pick]
+        return [self._gray_on(j, device) for j in pick], torch.stack(rows)
+
+    def _all_rows(self, device: torch.device) -> None:
+        """Every (reference, neighbour) row, made on the CPU and copied to ``device`` in one transfer (one
+        copy per pair cost three host synchronisations each, spread over the fit's first thousand iterations)."""
+        pairs = [(vi, j) for vi, nb in enumerate(self.neighbours) for j in nb]
+        if not pairs:
+            return
+        table = torch.stack([source_params(self.cameras[vi], self.cameras[j]) for vi, j in pairs]).to(device)
+        for k, pair in enumerate(pairs):
+            self._rows[(*pair, device)] = table[k]
 
     def _plane_costs(self, vi: int, py: torch.Tensor, px: torch.Tensor, depth: torch.Tensor, normal: torch.Tensor,
                      alpha: torch.Tensor, pick: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
