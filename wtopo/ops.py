@@ -23,6 +23,8 @@ _OPS = {
     "closest_faces": "wtopo.raycast",
     "photometric_loss": "wtopo.photometric",
     "depth_normals": "wtopo.depth_normals",
+    "pixel_terms": "wtopo.pixel_terms",
+    "PixelTerms": "wtopo.pixel_terms",
 }
 
 __all__ = list(_OPS)
