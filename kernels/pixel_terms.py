@@ -5,8 +5,8 @@ in one pass over the rendered maps.
 Forward: a thread takes a run of ``run`` pixels of one row (``offset`` counts runs, so a CPU launch splits into
 chunks across threads) and writes the run's four partial sums: the normal term's numerator
 ``sum(alpha - <n_rendered, n_depth>)`` and pixel count over the pixels with a depth normal, the distortion sum,
-and the mask's binary cross-entropy sum. Backward: one thread per pixel turns the seeds of its run's sums into the
-gradients of the rendered normal, opacity and distortion. Every thread writes its own outputs (no atomics): CPU
+and the mask's binary cross-entropy sum. Backward: the same runs turn the seeds of their sums into the gradients of
+the rendered normal, opacity and distortion of their pixels. Every thread writes its own outputs (no atomics): CPU
 and CUDA add the same terms in the same order.
 """
 
@@ -89,24 +89,30 @@ def pixel_terms_backward_kernel(
     alpha_grad: wp.array2d[Any],
     dist_grad: wp.array2d[Any],
 ):
-    """Pixel ``i = offset + tid`` (row-major): with ``g`` the seed of its run's sums, ``normal_grad = -g[0] n_depth``
-    (the opacity in the numerator and the count are held fixed), ``dist_grad = g[2]``, ``alpha_grad = g[3] ((1 - m)
-    / (1 - a) - m / a)`` where ``lo <= alpha <= hi`` (0 outside: the clamp), each written where wanted."""
+    """Run ``r = offset + tid`` as in :func:`pixel_terms_kernel`; with ``g`` the seed of its sums, each of its
+    pixels gets ``normal_grad = -g[0] n_depth`` (the opacity in the numerator and the count are held fixed),
+    ``dist_grad = g[2]``, ``alpha_grad = g[3] ((1 - m) / (1 - a) - m / a)`` where ``lo <= alpha <= hi`` (0
+    outside: the clamp), each written where wanted."""
     w = alpha.shape[1]
     runs = (w + run - 1) // run
-    i = offset + wp.tid()
-    y = i // w
-    x = i - y * w
-    r = y * runs + x // run
-    if want_normal != 0:
-        normal_grad[y, x] = depth_normals[y, x] * (-sums_grad[r, 0])
-    if want_dist != 0:
-        dist_grad[y, x] = sums_grad[r, 2]
-    if want_alpha != 0:
-        g = lo * type(lo)(0.0)
-        a = alpha[y, x]
-        if has_target != 0 and a >= lo and a <= hi:
-            one = type(lo)(1.0)
-            m = target[y, x]
-            g = sums_grad[r, 3] * ((one - m) / (one - a) - m / a)
-        alpha_grad[y, x] = g
+    r = offset + wp.tid()
+    y = r // runs
+    x0 = (r - y * runs) * run
+    x1 = wp.min(x0 + run, w)
+    g_normal = -sums_grad[r, 0]
+    g_dist = sums_grad[r, 2]
+    g_bce = sums_grad[r, 3]
+    zero = lo * type(lo)(0.0)
+    one = type(lo)(1.0)
+    for x in range(x0, x1):
+        if want_normal != 0:
+            normal_grad[y, x] = depth_normals[y, x] * g_normal
+        if want_dist != 0:
+            dist_grad[y, x] = g_dist
+        if want_alpha != 0:
+            g = zero
+            a = alpha[y, x]
+            if has_target != 0 and a >= lo and a <= hi:
+                m = target[y, x]
+                g = g_bce * ((one - m) / (one - a) - m / a)
+            alpha_grad[y, x] = g

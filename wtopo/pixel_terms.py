@@ -22,7 +22,7 @@ __all__ = ["pixel_terms", "PixelTerms"]
 
 _RUN_CPU = 64  # pixels of a row per forward thread (one partial sum each): a CPU thread costs about a pixel
 _RUN_CUDA = 16  # ... on CUDA: 30k threads at 800 x 600, each still summing a run
-_MIN_CHUNK = 64  # runs (forward) or 64x pixels (backward) per CPU launch thread at least
+_MIN_CHUNK = 1024  # runs per CPU launch thread at least: below, a thread pool costs more than it saves (128 px)
 
 
 class PixelTerms(NamedTuple):
@@ -112,9 +112,9 @@ def pixel_terms(normal: torch.Tensor, alpha: torch.Tensor, median_depth: torch.T
             wants = [int(a.requires_grad) for a in (n_wp, a_wp, dist_wp)]
             grads = [a.grad if a.requires_grad else wp.empty((0, 0), dtype=t, device=dev)
                      for a, t in ((n_wp, v3), (a_wp, s), (dist_wp, s))]
-            _bridge.launch_split(_k.pixel_terms_backward_kernel, h * w,
+            _bridge.launch_split(_k.pixel_terms_backward_kernel, n_runs,
                                  [a_wp, t_wp, dn, sums.grad, int(has_target), lo, hi, run_px, *wants], grads,
-                                 device=dev, min_chunk=_MIN_CHUNK * run_px)
+                                 device=dev, min_chunk=_MIN_CHUNK)
 
         tape = _bridge.active_tape()
         if tape is not None:
