@@ -12,10 +12,7 @@ TESTS = Path(__file__).resolve().parents[1] / "tests"
 
 
 def load(relpath: str):
-    """The module at ``tests/<relpath>`` (e.g. ``"reference/rasterize.py"``), imported once; ``tests/`` goes at the
-    end of ``sys.path`` so that a reference can import its siblings as the tests do (``reference.depth_normals``)."""
-    if str(TESTS) not in sys.path:
-        sys.path.append(str(TESTS))
+    """The module at ``tests/<relpath>`` (e.g. ``"reference/rasterize.py"``), imported once."""
     path = TESTS / relpath
     name = "_tests_" + relpath.removesuffix(".py").replace("/", "_")
     if name in sys.modules:

@@ -10,8 +10,7 @@ rendering and the proxy's ray cast are made beforehand and not timed. It also ti
 its own, forward and forward + backward into the rendered maps (the rasterizer's backward is not
 included), and, in the same process, the torch formulations they replace: the photometric term as
 torch L1 + :func:`wtopo.metrics.ssim`, the multi-view term's windows scored by the torch op chain the
-Warp kernel replaced (``tests/reference/multiview.py``: same pixels, neighbours and masks), and the normal,
-distortion and mask terms as the torch operations the fused pass replaced (``tests/reference/pixel_terms.py``).
+Warp kernel replaced (``tests/reference/multiview.py``: same pixels, neighbours and masks).
 
 Command (writes nothing; the figures go to benchmarks/losses.md by hand)::
 
@@ -48,7 +47,6 @@ from wtopo.fitting import FitConfig
 from wtopo.fitting.loop import FitRun
 from wtopo.fitting.profiling import Timers
 from wtopo.fitting.stages import Stage
-from wtopo.pixel_terms import pixel_terms
 
 
 def build(warmup: int, seed: int, device: str = "cpu", resolution: int | None = None,
@@ -181,15 +179,12 @@ def _terms(run, outs, mrs, repeats: int) -> None:
         img = train.images[v]
         return (1 - O._DSSIM) * L.l1(o.rgb, img) + O._DSSIM * (1 - ssim(o.rgb, img))
 
-    pixel_ref = load("reference/pixel_terms.py").pixel_terms_torch
-
-    def pixel(fn, with_mask=True):
-        def f(o, v):
-            ro, rd = train.cameras[v].pixel_rays(o.alpha.device)
-            m = train.masks[v] if with_mask and train.masks is not None else None
-            t = fn(o.normal, o.alpha, o.median_depth, o.distortion, ro, rd, o.alpha.detach() >= O.ALPHA_COVERED, m)
-            return sum(x for x in t if x is not None)
-        return f
+    def normal(o, v):
+        cam = train.cameras[v]
+        covered = o.alpha.detach() >= O.ALPHA_COVERED
+        ro, rd = cam.pixel_rays(o.alpha.device)
+        dn, dm = depth_normals(o.median_depth, ro, rd, covered)
+        return L.normal_consistency(o.normal, dn, o.alpha, dm)
 
     def mesh_terms(o, v):
         mr = mrs[v]
@@ -201,8 +196,9 @@ def _terms(run, outs, mrs, repeats: int) -> None:
     terms = {
         "photo": lambda o, v: L.photometric(o.rgb, train.images[v], O._DSSIM),
         "photo (torch L1 + SSIM)": photo_torch,
-        "normal + distortion + mask (fused)": pixel(pixel_terms),
-        "normal + distortion + mask (torch ops)": pixel(pixel_ref),
+        "mask": lambda o, v: L.mask_loss(o.alpha, train.masks[v].to(o.alpha.dtype)),
+        "normal": normal,
+        "distortion": lambda o, v: L.distortion(o.distortion),
         f"multiview ({mv_count} px)": lambda o, v: mv(it, v, o.median_depth, o.normal, o.alpha),
         f"multiview ({mv_count} px, torch ops)": lambda o, v: torch_loss(mv, it, v, o.median_depth, o.normal, o.alpha),
         "scale": lambda o, v: L.scale_regularizer(s.scales, O._MAX_ANISOTROPY),
@@ -222,8 +218,7 @@ def _terms(run, outs, mrs, repeats: int) -> None:
     for name in terms:
         print(f"  {name:40s} {1000 * fwd[name]:8.2f} {1000 * both[name]:8.2f}")
     mv_name = f"multiview ({mv_count} px)"
-    pairs = (("photo", "photo (torch L1 + SSIM)"), (mv_name, f"{mv_name[:-1]}, torch ops)"),
-             ("normal + distortion + mask (fused)", "normal + distortion + mask (torch ops)"))
+    pairs = (("photo", "photo (torch L1 + SSIM)"), (mv_name, f"{mv_name[:-1]}, torch ops)"))
     for new, old in pairs:
         print(f"  {new} vs {old}: {fwd[old] / fwd[new]:.2f}x faster forward, {both[old] / both[new]:.2f}x fwd+bwd")
 

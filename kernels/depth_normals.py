@@ -12,10 +12,8 @@ import warp as wp
 
 
 @wp.func
-def depth_normal(depth: wp.array2d[Any], origins: wp.array2d[Any], dirs: wp.array2d[Any], valid: wp.array2d[wp.uint8],
-                 eps: Any, y: int, x: int, h: int, w: int):
-    """The normal of pixel ``(y, x)`` and 1, or a zero vector and 0 (see :func:`depth_normals_kernel`); also read
-    by ``kernels/pixel_terms.py``."""
+def _pixel(depth: wp.array2d[Any], origins: wp.array2d[Any], dirs: wp.array2d[Any], valid: wp.array2d[wp.uint8],
+           eps: Any, y: int, x: int, h: int, w: int, normals: wp.array2d[Any], mask: wp.array2d[wp.uint8]):
     d0 = dirs[y, x]
     n = d0 * type(eps)(0.0)
     ok = wp.uint8(0)
@@ -33,7 +31,8 @@ def depth_normal(depth: wp.array2d[Any], origins: wp.array2d[Any], dirs: wp.arra
             if wp.dot(n, d0) > type(eps)(0.0):
                 n = -n
             ok = wp.uint8(1)
-    return n, ok
+    normals[y, x] = n
+    mask[y, x] = ok
 
 
 @wp.kernel
@@ -59,10 +58,7 @@ def depth_normals_kernel(
     end = wp.min(start + per_thread, h * w)
     for i in range(start, end):
         y = i // w
-        x = i - y * w
-        n, ok = depth_normal(depth, origins, dirs, valid, eps, y, x, h, w)
-        normals[y, x] = n
-        mask[y, x] = ok
+        _pixel(depth, origins, dirs, valid, eps, y, i - y * w, h, w, normals, mask)
 
 
 # explicit float32 / float64 overloads, launched as such: {scalar: kernel}

@@ -144,10 +144,22 @@ def test_mesh_normal_loss_ignores_mesh_orientation():
     torch.testing.assert_close(L.mesh_normal_loss(sn, mn, torch.tensor([[False, False, True]])), torch.tensor(1.0))
 
 
-def test_photometric_is_zero_for_identical_images():
-    """Photometric loss is 0 for identical images (the mask, normal and distortion terms: test_pixel_terms.py)."""
+def test_normal_consistency_is_zero_for_agreeing_normals():
+    """Give 0 when the rendered normal equals the depth normal at full opacity."""
+    n = torch.tensor([0.0, 0.6, -0.8]).expand(4, 4, 3)
+    alpha = torch.ones(4, 4)
+    out = L.normal_consistency(n, n, alpha, torch.ones(4, 4, dtype=torch.bool))
+    torch.testing.assert_close(out, torch.tensor(0.0), atol=TOL, rtol=0)
+
+
+def test_photometric_and_mask_loss_values():
+    """Photometric loss is 0 for identical images; BCE is finite at alpha exactly 0 and 1."""
     img = torch.rand(16, 16, 3)
     torch.testing.assert_close(L.photometric(img, img, 0.2), torch.tensor(0.0), atol=1e-5, rtol=0)
+    a = torch.tensor([[0.0, 1.0]], requires_grad=True)
+    loss = L.mask_loss(a, torch.tensor([[True, False]]))
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(a.grad).all() and loss > 1.0
 
 
 # fused float32 loss vs the float64 torch formulation: observed <= 8e-9 on the value and <= 8e-7 of the

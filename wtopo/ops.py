@@ -23,8 +23,6 @@ _OPS = {
     "closest_faces": "wtopo.raycast",
     "photometric_loss": "wtopo.photometric",
     "depth_normals": "wtopo.depth_normals",
-    "pixel_terms": "wtopo.pixel_terms",
-    "PixelTerms": "wtopo.pixel_terms",
 }
 
 __all__ = list(_OPS)

@@ -18,6 +18,9 @@ __all__ = [
     "masked_mean",
     "l1",
     "photometric",
+    "mask_loss",
+    "normal_consistency",
+    "distortion",
     "scale_regularizer",
     "mesh_depth_loss",
     "mesh_normal_loss",
@@ -62,6 +65,29 @@ def photometric(pred: torch.Tensor, target: torch.Tensor, dssim: float) -> torch
     if dssim > 0:
         loss = loss + dssim * (1.0 - ssim(pred, target))
     return loss
+
+
+def mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Binary cross-entropy between rendered opacity [H, W] and an object mask [H, W]: bool, or a
+    float target opacity in [0, 1]."""
+    a = alpha.clamp(1e-6, 1 - 1e-6)  # BCE is infinite at exactly 0 / 1
+    return F.binary_cross_entropy(a, mask.to(alpha.dtype))
+
+
+def normal_consistency(rendered: torch.Tensor, from_depth: torch.Tensor, alpha: torch.Tensor,
+                       mask: torch.Tensor) -> torch.Tensor:
+    """Alpha-weighted ``1 - <n_rendered, n_depth>`` over ``mask`` (2DGS).
+
+    ``rendered`` [H, W, 3] is the alpha-weighted rendered normal (its length is about the alpha), so
+    ``<rendered, n_depth>`` is weighted by coverage without normalising zero vectors.
+    """
+    dot = (rendered * from_depth.detach()).sum(-1)
+    return masked_mean(alpha.detach() - dot, mask)
+
+
+def distortion(dist: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean of the rendered depth-distortion map [H, W] (over ``mask`` when given)."""
+    return dist.mean() if mask is None else masked_mean(dist, mask)
 
 
 def scale_regularizer(scales: torch.Tensor, max_anisotropy: float) -> torch.Tensor:

@@ -10,9 +10,17 @@ from collections import defaultdict
 
 import torch
 
-from ..pixel_terms import pixel_terms
+from ..depth_normals import depth_normals
 from .config import FitConfig, stage_iteration
-from .losses import mesh_depth_loss, mesh_normal_loss, photometric, scale_regularizer
+from .losses import (
+    distortion,
+    mask_loss,
+    mesh_depth_loss,
+    mesh_normal_loss,
+    normal_consistency,
+    photometric,
+    scale_regularizer,
+)
 from .multiview import MultiViewNCC
 from .proxy import ProxyMesh, ProxyResult
 from .stages import ROI_EXTENT, Renderer, Stage
@@ -107,22 +115,16 @@ class Objective:
         with T("losses"):
             L["photo"] = photometric(out.rgb, img, _DSSIM)
             covered = out.alpha.detach() >= ALPHA_COVERED
+            if self.train.masks is not None and self.mask_weight > 0:
+                m = self.train.masks[vi]
+                L["mask"] = self.mask_weight * mask_loss(out.alpha, m.to(out.alpha.dtype))
             late = stage != Stage.WARMUP
-            want_mask = self.train.masks is not None and self.mask_weight > 0
-            want_normal = lc.normal > 0 and (late or it >= stage_iteration(_NORMAL_START, self.warmup_end))
-            want_dist = lc.distortion > 0 and (late or it >= stage_iteration(_DISTORTION_START, self.warmup_end))
-            if want_mask or want_normal or want_dist:  # one fused pass (wtopo.pixel_terms)
-                m = self.train.masks[vi] if want_mask else None
-                if m is not None and m.dtype != torch.bool:
-                    m = m.to(out.alpha.dtype)
-                o, d = cam.pixel_rays(out.alpha.device, out.alpha.dtype)
-                pt = pixel_terms(out.normal, out.alpha, out.median_depth, out.distortion, o, d, covered, m)
-                if want_mask:
-                    L["mask"] = self.mask_weight * pt.mask
-                if want_normal:
-                    L["normal"] = lc.normal * pt.normal
-                if want_dist:
-                    L["distortion"] = lc.distortion * pt.distortion
+            if lc.normal > 0 and (late or it >= stage_iteration(_NORMAL_START, self.warmup_end)):
+                o, d = cam.pixel_rays(out.alpha.device)
+                dn, dmask = depth_normals(out.median_depth, o, d, covered)
+                L["normal"] = lc.normal * normal_consistency(out.normal, dn, out.alpha, dmask)
+            if lc.distortion > 0 and (late or it >= stage_iteration(_DISTORTION_START, self.warmup_end)):
+                L["distortion"] = lc.distortion * distortion(out.distortion)
             mv = self.multiview
             mv_on = late or it >= stage_iteration(_MULTIVIEW_START, self.warmup_end)
             if mv is not None and mv_on and mv.has_neighbours(vi):
