@@ -39,6 +39,7 @@ def main():
     ap.add_argument("--set", action="append", default=[])
     ap.add_argument("--out", default="/tmp/final_fusion")
     ap.add_argument("--depths", action="store_true", help="median against expected depth, planned grid")
+    ap.add_argument("--save-meshes", action="store_true", help="write each scored mesh (world frame) to --out")
     a = ap.parse_args()
 
     import wtopo
@@ -76,6 +77,9 @@ def main():
 
     def score(m, **row):
         world = sim.to_world(m)
+        if a.save_meshes:
+            os.makedirs(a.out, exist_ok=True)
+            world.export(os.path.join(a.out, f"{a.scene}_{'_'.join(str(v) for v in row.values())}.ply"))
         f = metrics.roi_f_score(world, scene.gt_mesh, lo, hi, tau, n_samples=100_000, seed=0)
         rows.append({**row, "f1": f.f_score, "precision": f.precision, "recall": f.recall, "faces": len(m.faces)})
         print(json.dumps(rows[-1]), flush=True)
