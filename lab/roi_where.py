@@ -1,9 +1,10 @@
 """Lab (nothing imports it): where a scene mesh's ROI precision and recall are lost.
 
 Samples the predicted mesh inside the scene's region of interest as the ROI F-score does (wtopo.metrics.roi_f_score),
-and sorts the samples farther than tau from the truth by the truth's face they are nearest to: ground (face normal
-within 30 degrees of the up axis, below the object's box) or object; on the ground, whether they lie above (a bump)
-or below (a pit) the truth, and how far in units of tau. The same for the ground-truth samples the mesh misses.
+and sorts the samples farther than tau from the truth by the truth's face they are nearest to: flat (face normal
+within 30 degrees of the up axis: the ground, and any horizontal face of the objects, such as a chair's seat) or
+not; for the mesh's samples, whether they lie above the truth along the up axis, and how far in units of tau. The
+same for the ground-truth samples the mesh misses.
 
     PYTHONPATH=. .venv/bin/python lab/roi_where.py SCENE MESH.ply [--views 48 --width 160 --height 120]
 """
@@ -55,9 +56,10 @@ def main():
         else:
             _, gfi = gt.closest(pts)
             on_ground = ground_face[gfi]
-        for label, sel in (("ground", on_ground), ("object", ~on_ground)):
+        for label, sel in (("flat", on_ground), ("other", ~on_ground)):
             s = bad & sel
-            line = f"  {label:6s}: {sel.mean():.3f} of the samples, {s.sum() / max(1, sel.sum()):.3f} of them beyond tau"
+            share = s.sum() / max(1, sel.sum())
+            line = f"  {label:6s}: {sel.mean():.3f} of the samples, {share:.3f} of them beyond tau"
             if name.startswith("precision") and s.any():
                 cp = gt.closest_points(pts[s])
                 off = ((pts[s] - cp) @ up) / tau
