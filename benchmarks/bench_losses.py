@@ -148,7 +148,6 @@ def main() -> None:
 
     names = sorted(obj(Stage.COEVOLUTION, it, 0, s, proxy).losses)
     n = len(views)
-    obj.timers.total.clear()
     rows = {}
     rows["losses section (forward)"] = _time(lambda: section(False), args.repeats) / n
     rows["losses forward + backward"] = _time(lambda: section(True), args.repeats) / n

@@ -188,7 +188,7 @@ def repair_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     not closed and orient its faces
     (:func:`~.winding.orient_faces`: neighbours agree, each part as most of its faces are; a closed mesh
     of negative volume is turned), in place. It leaves whether the result is closed in
-    ``mesh.metadata["closed"]`` (the caller need not test the edges again: a second second on 2.6M faces).
+    ``mesh.metadata["closed"]`` (the caller need not test the edges again: about a second on 2.6M faces).
 
     Run it after the components that no view supports are dropped (:func:`~.mesh_policy.supported_components`),
     not before: a 512-px fit's final TSDF mesh has 20,000-30,000 components, nearly all of them specks, and
