@@ -20,6 +20,18 @@ def _square_sum_kernel(x: wp.array[Any], y: wp.array[Any], out: wp.array[Any], f
 
 
 @wp.kernel
+def _double_vec4_kernel(x: wp.array[wp.vec4d], out: wp.array[wp.vec4d]):
+    i = wp.tid()
+    out[i] = wp.float64(2.0) * x[i]
+
+
+def _run_double_vec4(x):
+    out = wp.zeros(x.shape, dtype=x.dtype, device=x.device, requires_grad=True)
+    wp.launch(_double_vec4_kernel, dim=x.shape[0], inputs=[x], outputs=[out], device=x.device)
+    return (out,)
+
+
+@wp.kernel
 def _offset_kernel(offset: int, x: wp.array[float], out: wp.array[float]):
     i = wp.tid() + offset
     out[i] = x[i] + float(i)
@@ -57,6 +69,40 @@ def test_bridge_no_double_gradients(device):
     torch.testing.assert_close(g1[1], torch.full_like(y, 3.0))
     torch.testing.assert_close(g1[0], g2[0])
     torch.testing.assert_close(g1[1], g2[1])
+
+
+def _run_chain(x, y):
+    # an intermediate array between two recorded launches: its gradient buffer is the bridge's to clear
+    mid, flag = _run(x, y)
+    return _run(mid, y)
+
+
+def test_bridge_accumulates_repeated_backward_into_grad_without_touching_the_first(device):
+    """Backward twice through an op with an intermediate array (retain_graph), into .grad and into a kept
+    gradient: the second adds the same amount and leaves what the first handed to torch as it was; an input
+    sliced with an odd stride on a size-1 dimension gets its gradient too."""
+    wdt = wp.float64
+    op = _bridge.WarpOp("chain", _run_chain, (wdt, wdt), (True, True), (True, False))
+    x = torch.randn(6, dtype=torch.float64, device=device, requires_grad=True)
+    y = torch.randn(6, dtype=torch.float64, device=device, requires_grad=True)
+    out, _ = _bridge.apply(op, x, y)
+    mid = x.detach() ** 2 + 3 * y.detach()
+    want_x, want_y = 4 * mid * x.detach(), 2 * mid * 3 + 3  # d/dx, d/dy of sum((x^2 + 3y)^2 + 3y)
+    first = torch.autograd.grad(out.sum(), (x, y), retain_graph=True)
+    kept = [g.clone() for g in first]
+    out.sum().backward(retain_graph=True)
+    out.sum().backward()
+    torch.testing.assert_close(x.grad, 2 * want_x)
+    torch.testing.assert_close(y.grad, 2 * want_y)
+    for g, k, w in zip(first, kept, (want_x, want_y)):
+        torch.testing.assert_close(g, k)
+        torch.testing.assert_close(g, w)
+    wide = torch.randn(1, 6, dtype=torch.float64, device=device, requires_grad=True)
+    sliced = wide[:, :4]  # contiguous for torch, stride 6 on its size-1 dimension
+    vec_op = _bridge.WarpOp("double_vec4", _run_double_vec4, (wp.vec4d,), (True,), (True,))
+    (out,) = _bridge.apply(vec_op, sliced)
+    out.sum().backward()
+    torch.testing.assert_close(wide.grad, torch.tensor([[2.0, 2, 2, 2, 0, 0]], dtype=torch.float64, device=device))
 
 
 def test_bridge_partial_requires_grad(device):

@@ -6,7 +6,7 @@ import pytest
 import trimesh
 
 from wtopo import Camera
-from wtopo.geometry.mesh_policy import crop_near_cameras, crop_to_box, supported_components
+from wtopo.geometry.mesh_policy import crop_near_cameras, crop_to_box, supported_components, supported_faces
 from wtopo.metrics import camera_clearance
 
 
@@ -421,3 +421,55 @@ def test_face_components_label_faces_that_share_a_vertex_together():
     n, label = face_components(pinched, 7)
     assert n == 1 and (label == 0).all()
     assert face_components(np.zeros((0, 3), np.int64), 4)[0] == 0
+
+
+def _grid(size, n, z):
+    """A square [-size/2, size/2]^2 at height z, n x n cells of two triangles."""
+    t = np.linspace(-size / 2, size / 2, n + 1)
+    x, y = np.meshgrid(t, t, indexing="ij")
+    v = np.stack([x.ravel(), y.ravel(), np.full(x.size, z)], 1)
+    i = np.arange(n)[:, None] * (n + 1) + np.arange(n)[None, :]
+    f = np.concatenate([np.stack([i, i + n + 1, i + 1], -1).reshape(-1, 3),
+                        np.stack([i + 1, i + n + 1, i + n + 2], -1).reshape(-1, 3)])
+    return trimesh.Trimesh(v, f, process=False)
+
+
+def test_supported_faces_drop_a_sheet_no_view_shows_and_keep_what_they_see():
+    """A ground seen by a ring of cameras and a sheet hung under it (in none of the rendered depths): the sheet's
+    faces go, the ground's stay; a face needs min_views views at each vertex, within the tolerance."""
+    ground = _grid(1.0, 20, 0.0)
+    sheet = _grid(0.4, 8, -0.2)  # under the ground: every view sees the ground there instead
+    cams = [Camera.look_at(np.array([2.0 * np.cos(a), 2.0 * np.sin(a), 2.5]), np.zeros(3), np.array([0, 0, 1.0]),
+                           fov_x=0.9, width=128, height=128) for a in np.linspace(0, 2 * np.pi, 6, endpoint=False)]
+    depths = _depths(ground, cams)
+    both = trimesh.util.concatenate([ground, sheet])
+    kept, info = supported_faces(both, cams, depths, tolerance=0.05)
+    assert info["faces"] == len(both.faces) and len(kept.faces) == info["kept"] >= 0.9 * len(ground.faces)
+    np.testing.assert_allclose(kept.vertices[:, 2], 0.0)  # nothing of the sheet is left
+    # of the ground only faces at its edge go (a vertex there falls on pixels half off the ground in some views)
+    kept_centres = {tuple(c) for c in np.round(kept.triangles_center, 9)}
+    inner = np.abs(ground.triangles_center[:, :2]).max(axis=1) < 0.45
+    assert all(tuple(c) in kept_centres for c in np.round(ground.triangles_center[inner], 9))
+    none, info = supported_faces(ground, cams, depths, tolerance=0.05, min_views=len(cams) + 1)
+    assert info["kept"] == 0 and len(none.faces) == 0
+    inner_mesh = _grid(0.8, 16, 0.0)
+    assert supported_faces(inner_mesh, cams, depths, tolerance=0.05)[0] is inner_mesh  # nothing to drop: the input
+    # regions: the sheet (0.16) goes at a smaller least area and stays at a larger one; the ground's few edge faces
+    # that fail are small regions and stay
+    kept, _ = supported_faces(both, cams, depths, tolerance=0.05, min_region_area=0.1)
+    assert np.allclose(kept.vertices[:, 2], 0.0) and len(kept.faces) == len(ground.faces)
+    kept, _ = supported_faces(both, cams, depths, tolerance=0.05, min_region_area=0.2)
+    assert kept is both
+
+
+@pytest.mark.parametrize("kwargs, match", [({"tolerance": 0.0}, "tolerance"),
+                                           ({"tolerance": float("nan")}, "tolerance"),
+                                           ({"tolerance": 0.05, "min_views": 0}, "min_views"),
+                                           ({"tolerance": 0.05, "min_views": 2.5}, "min_views"),
+                                           ({"tolerance": 0.05, "min_region_area": -1.0}, "min_region_area")])
+def test_supported_faces_name_a_bad_argument(kwargs, match):
+    cam = Camera.look_at(np.array([0.0, 0.0, 2.0]), np.zeros(3), np.array([0, 1.0, 0]), fov_x=0.9, width=8, height=8)
+    with pytest.raises(ValueError, match=match):
+        supported_faces(_grid(1.0, 2, 0.0), [cam], [np.ones((8, 8))], **kwargs)
+    with pytest.raises(ValueError, match="one map per camera"):
+        supported_faces(_grid(1.0, 2, 0.0), [cam, cam], [np.ones((8, 8))], tolerance=0.05)

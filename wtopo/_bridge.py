@@ -159,10 +159,24 @@ def to_warp(t: torch.Tensor, dtype=None, *, requires_grad: bool = False) -> wp.a
     t = t.detach().contiguous()
     if t.numel() == 0:  # an empty tensor counts as contiguous whatever its strides; Warp checks them
         t = torch.empty(t.shape, dtype=t.dtype, device=t.device)
+    elif t.dim() > 1:
+        # a size-1 dimension keeps any stride in a contiguous tensor ([1, 4] sliced from [1, 6]: stride 6); a
+        # gradient buffer made for it has the canonical ones, which Warp requires to match
+        t = t.view(-1).view(t.shape)
     arr = wp.from_torch(t, dtype=dtype, requires_grad=False)
     if requires_grad:
         arr.requires_grad = True  # allocates a zeroed Warp-owned gradient buffer
     return arr
+
+
+def _grad_buffer(arr: wp.array, like: torch.Tensor) -> torch.Tensor:
+    """Attach a zeroed gradient buffer owned by torch to ``arr`` (a view of ``like``) and return it.
+
+    Warp views it without a copy, so backward hands it to torch as it is (no clone, no ``tape.zero()``).
+    """
+    g = torch.zeros(like.shape, dtype=like.dtype, device=like.device)
+    arr.grad = wp.from_torch(g, dtype=arr.dtype)
+    return g
 
 
 @dataclass(frozen=True)
@@ -187,12 +201,29 @@ class WarpOp:
     extra: dict = field(default_factory=dict)
 
 
+_streams: dict = {}
+
+
+def _warp_stream(device) -> wp.Stream:
+    """Warp's handle of torch's current stream on ``device``, made once per stream.
+
+    ``wp.stream_from_torch`` registers the stream with Warp's runtime at every call and unregisters it when the
+    handle goes (two runtime calls per scope, four per op); the cached handle keeps the torch stream alive.
+    """
+    ts = torch.cuda.current_stream(device)
+    key = (ts.device_index, ts.cuda_stream)
+    ws = _streams.get(key)
+    if ws is None:
+        ws = _streams[key] = wp.stream_from_torch(ts)
+    return ws
+
+
 @contextlib.contextmanager
 def _on_torch_stream(wdev, device):
     """Scope Warp to ``wdev`` and, on CUDA, to torch's current stream on ``device``."""
     with wp.ScopedDevice(wdev):
         if wdev.is_cuda:
-            with wp.ScopedStream(wp.stream_from_torch(device)):
+            with wp.ScopedStream(_warp_stream(device)):
                 yield
         else:
             yield
@@ -216,13 +247,16 @@ class _WarpFunction(torch.autograd.Function):
         # All Warp work (gradient-buffer zeroing included) on torch's current stream, so it is
         # ordered with the torch ops around it.
         with _on_torch_stream(wdev, device):
-            wp_inputs = []
+            wp_inputs, in_grads = [], []
             for t, dt, diff in zip(tensors, op.in_dtypes, op.differentiable_inputs):
                 if not isinstance(t, torch.Tensor):
                     wp_inputs.append(t)
                     continue
-                req = bool(diff and t.requires_grad)
-                wp_inputs.append(to_warp(t, dt, requires_grad=req))
+                arr = to_warp(t, dt)
+                if diff and t.requires_grad:
+                    # the input's gradient lives in a torch tensor that backward hands to torch as it is
+                    in_grads.append([arr, t, _grad_buffer(arr, t)])
+                wp_inputs.append(arr)
             with tape:
                 outs = op.run(*wp_inputs)
         if len(outs) != len(op.differentiable_outputs):
@@ -237,6 +271,8 @@ class _WarpFunction(torch.autograd.Function):
         ctx.tape = tape
         ctx.wp_inputs = wp_inputs
         ctx.wp_outputs = outs
+        ctx.in_grads = in_grads  # [warp input, its tensor, the torch gradient its .grad views]
+        ctx.handed = set()  # addresses of the input gradients backward has handed to torch (never written again)
         ctx.wdev = wdev
         ctx.torch_device = device
         ctx.save_for_backward(*[t for t in tensors if isinstance(t, torch.Tensor)])
@@ -260,17 +296,24 @@ class _WarpFunction(torch.autograd.Function):
         # gradients while the backward kernels are still running (seen on an H200 as partially
         # accumulated gradients).
         with _on_torch_stream(ctx.wdev, ctx.torch_device):
+            if ctx.handed:
+                # a second backward of the same graph (retain_graph, gradcheck): fresh input gradients, and every
+                # other gradient buffer the first one wrote zeroed; never a buffer already handed to torch, which
+                # may now be a parameter's .grad
+                for entry in ctx.in_grads:
+                    entry[2] = _grad_buffer(entry[0], entry[1])
+                for g in ctx.tape.gradients.values():
+                    if isinstance(g, wp.array) and g.ptr not in ctx.handed:
+                        g.zero_()
             if seeds:
                 ctx.tape.backward(grads=seeds)
+            grads_of = {id(a): g for a, _, g in ctx.in_grads}
             result: list = [None]
-            for a, diff in zip(ctx.wp_inputs, op.differentiable_inputs):
-                if isinstance(a, wp.array) and diff and a.requires_grad and seeds:
-                    # Warp's copy (one memcpy) rather than torch's clone: torch's 2-thread copy waits for
-                    # a time slice of its second thread and stalls ~20 ms on an oversubscribed CPU.
-                    result.append(wp.to_torch(wp.clone(a.grad)))
-                else:
-                    result.append(None)
-            ctx.tape.zero()
+            for a in ctx.wp_inputs:
+                g = grads_of.get(id(a)) if seeds else None
+                result.append(g)
+                if g is not None:
+                    ctx.handed.add(g.data_ptr())
         return tuple(result)
 
 

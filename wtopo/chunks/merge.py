@@ -229,7 +229,11 @@ def _core_renderer(base, plan: ChunkPlan, sim, views: dict):
             owner = grid_owner(o + d * z[..., None], lo, hi, plan.grid)
             return dataclasses.replace(out, alpha=torch.where(allowed[owner], out.alpha, torch.zeros_like(out.alpha)))
 
-    return _CoreViews(base.background, base.config)
+    core = _CoreViews(base.background, base.config)
+    # what the views see, unmasked: the final mesh's per-face view support compares the mesh with it (a masked
+    # pixel says which chunk vouches for a surface there, not that no surface is there)
+    core.unmasked = base
+    return core
 
 
 def chunk_near(scene, plan: ChunkPlan) -> float:

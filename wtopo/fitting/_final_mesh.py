@@ -14,7 +14,7 @@ import trimesh
 
 from .. import _bridge
 from .._profile import section
-from ..geometry.mesh_policy import crop_near_cameras, crop_to_box, supported_components
+from ..geometry.mesh_policy import crop_near_cameras, crop_to_box, supported_components, supported_faces
 from ..geometry.winding import is_closed
 from . import densify as dens
 from .config import FitConfig, NormalFlip
@@ -30,6 +30,10 @@ _PROXY_FINAL_RESOLUTION = 128  # Poisson nodes per side of the proxy mesh return
 _REMESH_SAMPLES = 200_000  # surface samples for the watertight Poisson re-mesh of the final mesh
 _REMESH_BOX = 1.1  # the re-mesh grid spans the mesh's longest side plus 10 %: the closed surface stays inside
 _SNAP_CELLS = 1.5  # re-mesh vertices within this many grid cells of the mesh move onto it (farther: hole fills)
+# a scene's face stays where three views' depths agree at each vertex within this many fusion voxels, or where the
+# faces that fail form a region smaller than this many voxels squared (supported_faces; design/decisions.md)
+_FACE_SUPPORT_VOXELS = 2.0
+_FACE_REGION_VOXELS2 = 100.0
 
 
 def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: Renderer, proxy: ProxyMesh,
@@ -88,6 +92,13 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
             mesh = cleanup_mesh(mesh, largest_component=False, repair=False, weld=False)
             with section("supported_components"):
                 mesh, info["components"] = supported_components(mesh, cameras, depths)
+            with section("supported_faces"):  # a sheet the fusion made where no view shows one (never all)
+                seen = depths
+                if getattr(render, "unmasked", None) is not None:  # a chunked merge's views fuse their cores only
+                    seen, _ = render_depths(render.unmasked, surfels, cameras)
+                kept, info["faces"] = supported_faces(mesh, cameras, seen, _FACE_SUPPORT_VOXELS * bounds.voxel,
+                                                      min_region_area=_FACE_REGION_VOXELS2 * bounds.voxel ** 2)
+                mesh = kept if len(kept.faces) else mesh
         else:
             mesh = cleanup_mesh(mesh, largest_component=False, repair=False, weld=False)
             with section("supported_components"):

@@ -7,7 +7,10 @@
   A torus beside a capsule keeps both; a floater seen from one direction goes.
 * Scenes: the mesh is cropped to the region of interest and no face may lie within the layout's
   ``near`` distance of a camera centre (exact point-to-triangle distance): never a hull around the
-  cameras. Nothing is closed or hole-filled: what was not observed stays open.
+  cameras. Nothing is closed or hole-filled: what was not observed stays open. A face stays only where
+  ``_FACE_SUPPORT_VIEWS`` views' rendered depths put a surface at each of its vertices, within a tolerance of
+  the fusion's voxel, or where the faces that fail form a small region (:func:`supported_faces`): a sheet the
+  fusion made where no view shows one goes.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from scipy.spatial import cKDTree
 
 from .components import face_components
 
-__all__ = ["crop_to_box", "crop_near_cameras", "supported_components"]
+__all__ = ["crop_to_box", "crop_near_cameras", "supported_components", "supported_faces"]
 
 _MIN_SUPPORT_VIEWS = 3  # two views triangulate a point; a third guards against chance agreement
 _MIN_AREA_FRACTION = 1e-3  # components below this share of the mesh's area are slivers no view resolves
@@ -29,6 +32,7 @@ _MIN_AREA_FRACTION = 1e-3  # components below this share of the mesh's area are 
 # voxel disagree further (a fused sphere from 32-px views: ~19 % of all vertices agree within 2 %)
 _SUPPORT_VERTEX_FRACTION = 0.05
 _DEPTH_TOLERANCE = 0.02  # relative z-depth agreement between a vertex and a rendered depth map
+_FACE_SUPPORT_VIEWS = 3  # a scene face needs this many views agreeing at each of its vertices (supported_faces)
 
 
 def crop_to_box(mesh: trimesh.Trimesh, lower, upper) -> trimesh.Trimesh:
@@ -146,5 +150,73 @@ def supported_components(mesh: trimesh.Trimesh, cameras: Sequence, depths: Seque
         return mesh, info
     out = mesh.copy()
     out.update_faces(keep[label])
+    out.remove_unreferenced_vertices()
+    return out, info
+
+
+def supported_faces(mesh: trimesh.Trimesh, cameras: Sequence, depths: Sequence[np.ndarray], tolerance: float, *,
+                    min_views: int = _FACE_SUPPORT_VIEWS, min_region_area: float = 0.0
+                    ) -> tuple[trimesh.Trimesh, dict]:
+    """Keep the faces whose every vertex at least ``min_views`` views see where their rendered depth puts a surface.
+
+    A view supports a vertex when the vertex projects into its image, in front of it, onto a pixel whose depth
+    map is positive and within ``tolerance`` of the vertex's z-depth (the pixel it falls in: accepting any of the
+    four pixel centres around it also accepts a sheet's edges, ``design/decisions.md``). The scene's fusion can
+    make a sheet where no view shows a surface (under a chair's seat, which the cameras above never see:
+    ``benchmarks/peers.md``); such a sheet's vertices disagree with every depth map, where the surfaces the views
+    do show agree with the views that fused them.
+
+    Args:
+        mesh: the mesh, internal frame (not changed).
+        cameras: training cameras, internal frame.
+        depths: their rendered z-depth maps [H, W] (0 where the surfels are not opaque).
+        tolerance: largest depth difference [internal units] that agrees (the fit: twice the fusion's voxel).
+        min_views: views a vertex needs.
+        min_region_area: unsupported faces go only as regions (faces joined through shared vertices) of at least
+            this area [internal units^2]: a sheet goes, where a seen surface's few faces at a silhouette that
+            coarse views miss stay (0: every unsupported face goes).
+
+    Returns:
+        ``(mesh, info)``: the kept faces (the input itself when all stay) and ``{"faces": before, "kept": after}``.
+
+    Raises:
+        ValueError: ``tolerance`` not a positive finite number, ``min_views`` not an integer >= 1,
+            ``min_region_area`` negative, or ``depths`` not one map per camera.
+    """
+    if not (np.isfinite(tolerance) and tolerance > 0):
+        raise ValueError(f"tolerance must be a finite depth > 0, got {tolerance!r}")
+    if isinstance(min_views, bool) or not isinstance(min_views, (int, np.integer)) or min_views < 1:
+        raise ValueError(f"min_views must be an integer >= 1, got {min_views!r}")
+    if not (np.isfinite(min_region_area) and min_region_area >= 0):
+        raise ValueError(f"min_region_area must be a finite area >= 0, got {min_region_area!r}")
+    if len(depths) != len(cameras):
+        raise ValueError(f"depths must hold one map per camera: {len(depths)} maps for {len(cameras)} cameras")
+    faces = np.asarray(mesh.faces)
+    if len(faces) == 0:
+        return mesh, {"faces": 0, "kept": 0}
+    verts = np.asarray(mesh.vertices)
+    support = np.zeros(len(verts), np.int64)
+    active = np.unique(faces)
+    for cam, dep in zip(cameras, depths):
+        # a vertex with its min_views views is decided: only the others are projected (the result is unchanged)
+        if len(active) == 0:
+            break
+        uv, z = cam.project(verts[active])
+        u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        idx = np.flatnonzero((z > 0) & (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height))
+        d = np.asarray(dep)[v[idx], u[idx]]
+        support[active[idx[(d > 0) & (np.abs(d - z[idx]) <= tolerance)]]] += 1
+        active = active[support[active] < min_views]
+    keep = support[faces].min(axis=1) >= min_views
+    if min_region_area > 0 and not keep.all():
+        drop = np.flatnonzero(~keep)
+        n, label = face_components(faces[drop], len(verts))
+        area = np.bincount(label, weights=np.asarray(mesh.area_faces)[drop], minlength=n)
+        keep[drop[area[label] < min_region_area]] = True
+    info = {"faces": len(faces), "kept": int(keep.sum())}
+    if keep.all():
+        return mesh, info
+    out = mesh.copy()
+    out.update_faces(keep)
     out.remove_unreferenced_vertices()
     return out, info
