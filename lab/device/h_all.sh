@@ -23,4 +23,9 @@ for sc in chair_env bunny_env mug_torus_env dtu_scan24; do STAGE=$S bash $D laun
 end=$(( t0 + ${WAIT:-560} ))
 while [ "$(date +%s)" -lt $end ]; do sleep 10; done
 for f in $S/res/*/*.log; do echo "== $f rc=$(cat ${f%.log}.rc 2>/dev/null || echo running): $(tail -c 160 $f | tr '\n' ' ')"; done
+# score what finished in this call: on 2026-12-03 the device tool's reply came late, the machine went back idle
+# before the next call, and every run and result on it was lost (rows_2026-12-03i is the rerun of wtopo's three)
+for d in $S/res/*/wtopo; do sc=$(basename $(dirname $d)); [ -f $d/run.json ] && timeout 60 python3 \
+  benchmarks/peers/score.py $S/exch/$sc $d --out $OUT/h/rows_$sc.json > /dev/null 2>&1 & done; wait
+(cd $OUT/h && cat rows_*.json > rows_all.txt 2>/dev/null && rm -f rows_*.json)
 nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv,noheader
