@@ -8,12 +8,13 @@ kernels register them with :meth:`warp.Tape.record_func`). :func:`apply` wraps t
 ``torch.autograd.Function``:
 
 * forward: tensors are made contiguous and viewed as Warp arrays without a copy (inputs that
-  require grad get their own zeroed gradient buffer), launches run on the tensors' device and,
-  on CUDA, on torch's current stream;
-* backward: the upstream gradients are copied into the outputs' gradient buffers, the tape is
-  replayed backwards, the input gradients are cloned out, and ``tape.zero()`` resets every
-  buffer so the same graph can be differentiated again (``retain_graph`` and
-  ``torch.autograd.gradcheck`` call backward several times).
+  require grad get a zeroed gradient buffer owned by torch, which Warp views), launches run on the
+  tensors' device and, on CUDA, on torch's current stream;
+* backward: the upstream gradients are copied into the outputs' gradient buffers (Warp's adjoints
+  may clear what they read, so torch's own tensors are never handed to them), the tape is replayed
+  backwards and the input gradient buffers go back to torch as they are. Differentiating the same
+  graph again (``retain_graph``, ``torch.autograd.gradcheck``) gives the inputs fresh buffers and
+  zeroes every other buffer the tape wrote, never one already handed to torch.
 
 Outputs flagged non-differentiable (indices, masks, counts) are marked so with
 ``ctx.mark_non_differentiable`` and never receive a gradient.
@@ -292,7 +293,7 @@ class _WarpFunction(torch.autograd.Function):
                 continue
             seeds[o] = to_warp(g, o.dtype)
         # Everything below runs on torch's current stream: Warp's own CUDA streams do not order
-        # against it, so a clone or zero issued outside this scope could read or clear the input
+        # against it, so a copy or zero issued outside this scope could read or clear the
         # gradients while the backward kernels are still running (seen on an H200 as partially
         # accumulated gradients).
         with _on_torch_stream(ctx.wdev, ctx.torch_device):
