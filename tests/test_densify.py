@@ -47,6 +47,11 @@ def test_prune_slices_adam_state_and_buffers_consistently():
     loss = sum((p ** 2).sum() for p in s.params.values())
     loss.backward()
     opt.step()  # shapes of moments and parameters agree
+    n = len(s)
+    for bad in (torch.arange(n), torch.ones(n + 1, dtype=torch.bool)):  # indices, or the wrong length: refused
+        with pytest.raises(TypeError, match="keep must be a bool tensor"):
+            s.prune(bad)
+    assert len(s) == n
 
 
 def test_clone_and_split_follow_gradients_and_shrink_split_surfels():

@@ -227,10 +227,13 @@ class Surfels:
 
     def prune(self, keep: torch.Tensor) -> None:
         """Keep the surfels where ``keep`` [N] bool is True (parameters, moments, buffers)."""
-        keep = keep.to(self.device)
-        self._replace(lambda p, _: p[keep], lambda s, _: s[keep])
+        if keep.dtype != torch.bool or keep.shape != (len(self),):
+            raise TypeError(f"keep must be a bool tensor [{len(self)}], got {keep.dtype} {list(keep.shape)}")
+        # one host synchronisation (the count) for every tensor: a boolean index syncs once per tensor (about 25)
+        idx = torch.nonzero(keep.to(self.device)).flatten()
+        self._replace(lambda p, _: p.index_select(0, idx), lambda s, _: s.index_select(0, idx))
         for k in self.buffers:
-            self.buffers[k] = self.buffers[k][keep]
+            self.buffers[k] = self.buffers[k].index_select(0, idx)
 
     def append(self, new: dict[str, torch.Tensor], buffers: dict[str, torch.Tensor] | None = None) -> None:
         """Append surfels given as parameter tensors (same names as :attr:`params`); moments start at 0."""
