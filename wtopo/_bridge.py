@@ -150,11 +150,11 @@ def vec_dtype(t: torch.Tensor, n: int | None = None):
     return _VEC[(t.dtype, n)]
 
 
-def to_warp(t: torch.Tensor, dtype=None, *, requires_grad: bool = False) -> wp.array:
+def to_warp(t: torch.Tensor, dtype=None) -> wp.array:
     """View a tensor as a Warp array without copying (the tensor is made contiguous first).
 
-    ``dtype`` is a Warp scalar or vector type; a vector type consumes the tensor's last dimension.
-    With ``requires_grad`` a fresh zeroed gradient buffer is attached (never the tensor's ``.grad``).
+    ``dtype`` is a Warp scalar or vector type; a vector type consumes the tensor's last dimension. No gradient
+    buffer is attached (the bridge attaches torch-owned ones to the inputs that need them).
     """
     _ensure_init()
     t = t.detach().contiguous()
@@ -164,14 +164,11 @@ def to_warp(t: torch.Tensor, dtype=None, *, requires_grad: bool = False) -> wp.a
         # a size-1 dimension keeps any stride in a contiguous tensor ([1, 4] sliced from [1, 6]: stride 6); a
         # gradient buffer made for it has the canonical ones, which Warp requires to match
         t = t.view(-1).view(t.shape)
-    arr = wp.from_torch(t, dtype=dtype, requires_grad=False)
-    if requires_grad:
-        arr.requires_grad = True  # allocates a zeroed Warp-owned gradient buffer
-    return arr
+    return wp.from_torch(t, dtype=dtype, requires_grad=False)
 
 
 def _grad_buffer(arr: wp.array, like: torch.Tensor) -> torch.Tensor:
-    """Attach a zeroed gradient buffer owned by torch to ``arr`` (a view of ``like``) and return it.
+    """Attach a zeroed gradient buffer owned by torch, of ``like``'s shape and dtype, to ``arr`` and return it.
 
     Warp views it without a copy, so backward hands it to torch as it is (no clone, no ``tape.zero()``).
     """
@@ -256,7 +253,7 @@ class _WarpFunction(torch.autograd.Function):
                 arr = to_warp(t, dt)
                 if diff and t.requires_grad:
                     # the input's gradient lives in a torch tensor that backward hands to torch as it is
-                    in_grads.append([arr, t, _grad_buffer(arr, t)])
+                    in_grads.append([arr, _grad_buffer(arr, t)])
                 wp_inputs.append(arr)
             with tape:
                 outs = op.run(*wp_inputs)
@@ -272,7 +269,7 @@ class _WarpFunction(torch.autograd.Function):
         ctx.tape = tape
         ctx.wp_inputs = wp_inputs
         ctx.wp_outputs = outs
-        ctx.in_grads = in_grads  # [warp input, its tensor, the torch gradient its .grad views]
+        ctx.in_grads = in_grads  # [warp input, the torch gradient its .grad views]
         ctx.handed = set()  # addresses of the input gradients backward has handed to torch (never written again)
         ctx.wdev = wdev
         ctx.torch_device = device
@@ -302,13 +299,13 @@ class _WarpFunction(torch.autograd.Function):
                 # other gradient buffer the first one wrote zeroed; never a buffer already handed to torch, which
                 # may now be a parameter's .grad
                 for entry in ctx.in_grads:
-                    entry[2] = _grad_buffer(entry[0], entry[1])
+                    entry[1] = _grad_buffer(*entry)
                 for g in ctx.tape.gradients.values():
                     if isinstance(g, wp.array) and g.ptr not in ctx.handed:
                         g.zero_()
             if seeds:
                 ctx.tape.backward(grads=seeds)
-            grads_of = {id(a): g for a, _, g in ctx.in_grads}
+            grads_of = {id(a): g for a, g in ctx.in_grads}
             result: list = [None]
             for a in ctx.wp_inputs:
                 g = grads_of.get(id(a)) if seeds else None

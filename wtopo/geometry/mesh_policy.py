@@ -82,15 +82,17 @@ def crop_near_cameras(mesh: trimesh.Trimesh, centers: np.ndarray, near: float) -
     return out, int(drop.sum())
 
 
-def _vertex_agreement(vertices: np.ndarray, camera, depth: np.ndarray) -> np.ndarray:
-    """Boolean [V]: the vertex projects into ``camera``'s image where its depth map [H, W] (z-depth,
-    0 = none) agrees with the vertex's z-depth within ``_DEPTH_TOLERANCE``."""
+def _vertex_agreement(vertices: np.ndarray, camera, depth: np.ndarray, tolerance: float | None = None) -> np.ndarray:
+    """Boolean [V]: the vertex projects into ``camera``'s image onto a pixel where its depth map [H, W] (z-depth,
+    0 = none) agrees with the vertex's z-depth within ``tolerance`` (internal units; ``None``:
+    ``_DEPTH_TOLERANCE`` times the vertex's depth)."""
     uv, z = camera.project(vertices)
     u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
     ok = (z > 0) & (u >= 0) & (v >= 0) & (u < camera.width) & (v < camera.height)
     out = np.zeros(len(vertices), bool)
     d = np.asarray(depth)[v[ok], u[ok]]
-    out[ok] = (d > 0) & (np.abs(d - z[ok]) <= _DEPTH_TOLERANCE * z[ok])
+    tol = _DEPTH_TOLERANCE * z[ok] if tolerance is None else tolerance
+    out[ok] = (d > 0) & (np.abs(d - z[ok]) <= tol)
     return out
 
 
@@ -201,11 +203,7 @@ def supported_faces(mesh: trimesh.Trimesh, cameras: Sequence, depths: Sequence[n
         # a vertex with its min_views views is decided: only the others are projected (the result is unchanged)
         if len(active) == 0:
             break
-        uv, z = cam.project(verts[active])
-        u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-        idx = np.flatnonzero((z > 0) & (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height))
-        d = np.asarray(dep)[v[idx], u[idx]]
-        support[active[idx[(d > 0) & (np.abs(d - z[idx]) <= tolerance)]]] += 1
+        support[active[_vertex_agreement(verts[active], cam, dep, tolerance)]] += 1
         active = active[support[active] < min_views]
     keep = support[faces].min(axis=1) >= min_views
     if min_region_area > 0 and not keep.all():
