@@ -4,7 +4,7 @@
 ``torch.optim.Optimizer.add_param_group`` is wrapped to disable TorchDynamo, and its first call imports
 ``torch._dynamo``: about 1.6 s on a 2-core CPU, paid by every fit for a compiler it never uses. This class is
 the update of ``torch.optim.Adam`` (no weight decay, no AMSGrad; the single-tensor path's operations in the
-same order) with the parts of its interface the fit uses: ``param_groups`` (one dict per group with
+same order, as torch's multi-tensor operations) with the parts of its interface the fit uses: ``param_groups`` (one dict per group with
 ``"params"``, ``"lr"``, ``"name"``), ``state`` (per parameter ``"step"``, ``"exp_avg"``, ``"exp_avg_sq"``),
 :meth:`step`, :meth:`zero_grad`, and :meth:`state_dict` / :meth:`load_state_dict` in ``torch.optim.Adam``'s
 layout, so checkpoints written by either load into the other.
@@ -51,25 +51,39 @@ class Adam:
 
     @torch.no_grad()
     def step(self) -> None:
-        """One update of every parameter that has a gradient."""
+        """One update of every parameter that has a gradient.
+
+        The parameters of every group with the same betas and eps are updated together by torch's multi-tensor
+        (``_foreach``) operations, each with its own step count and rate: on CUDA seven launches in all instead of
+        seven per parameter; on the CPU the same per-tensor operations as before.
+        """
+        buckets: dict[tuple, list] = {}
         for g in self.param_groups:
             b1, b2 = g["betas"]
             lr, eps = float(g["lr"]), float(g["eps"])
             for p in g["params"]:
                 if p.grad is None:
                     continue
-                grad = p.grad
                 st = self.state.get(p)
                 if not st:
                     st = self.state[p] = {"step": torch.tensor(0.0), "exp_avg": torch.zeros_like(p),
                                           "exp_avg_sq": torch.zeros_like(p)}
                 st["step"] += 1
                 t = float(st["step"])
-                st["exp_avg"].lerp_(grad, 1 - b1)
-                st["exp_avg_sq"].mul_(b2).addcmul_(grad, grad, value=1 - b2)
-                step_size = lr / (1 - b1 ** t)
-                denom = (st["exp_avg_sq"].sqrt() / math.sqrt(1 - b2 ** t)).add_(eps)
-                p.addcdiv_(st["exp_avg"], denom, value=-step_size)
+                buckets.setdefault((b1, b2, eps, p.device, p.dtype), []).append(
+                    (p, p.grad, st, lr / (1 - b1 ** t), math.sqrt(1 - b2 ** t)))
+        for (b1, b2, eps, _, _), items in buckets.items():
+            params = [it[0] for it in items]
+            grads = [it[1] for it in items]
+            m = [it[2]["exp_avg"] for it in items]
+            v = [it[2]["exp_avg_sq"] for it in items]
+            torch._foreach_lerp_(m, grads, 1 - b1)
+            torch._foreach_mul_(v, b2)
+            torch._foreach_addcmul_(v, grads, grads, value=1 - b2)
+            denom = torch._foreach_sqrt(v)
+            torch._foreach_div_(denom, [it[4] for it in items])
+            torch._foreach_add_(denom, eps)
+            torch._foreach_addcdiv_(params, m, denom, [-it[3] for it in items])
 
     def zero_grad(self, set_to_none: bool = True) -> None:
         """Drop (or zero) every parameter's gradient."""
