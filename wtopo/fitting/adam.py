@@ -4,10 +4,11 @@
 ``torch.optim.Optimizer.add_param_group`` is wrapped to disable TorchDynamo, and its first call imports
 ``torch._dynamo``: about 1.6 s on a 2-core CPU, paid by every fit for a compiler it never uses. This class is
 the update of ``torch.optim.Adam`` (no weight decay, no AMSGrad; the single-tensor path's operations in the
-same order, as torch's multi-tensor operations) with the parts of its interface the fit uses: ``param_groups`` (one dict per group with
-``"params"``, ``"lr"``, ``"name"``), ``state`` (per parameter ``"step"``, ``"exp_avg"``, ``"exp_avg_sq"``),
-:meth:`step`, :meth:`zero_grad`, and :meth:`state_dict` / :meth:`load_state_dict` in ``torch.optim.Adam``'s
-layout, so checkpoints written by either load into the other.
+same order, as torch's multi-tensor operations) with the parts of its interface the fit uses:
+``param_groups`` (one dict per group with ``"params"``, ``"lr"``, ``"name"``), ``state`` (per parameter
+``"step"``, ``"exp_avg"``, ``"exp_avg_sq"``), :meth:`step`, :meth:`zero_grad`, and :meth:`state_dict` /
+:meth:`load_state_dict` in ``torch.optim.Adam``'s layout, so
+checkpoints written by either load into the other.
 """
 
 from __future__ import annotations
