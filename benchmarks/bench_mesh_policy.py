@@ -10,11 +10,12 @@ depth maps; timed in one process, each step beside the trimesh operation it repl
   against a k-d tree over every face centre (``cKDTree(face centres).query_ball_point``);
 * the clean-up: without merging vertices by position (a marching-cubes mesh shares them already) against
   ``Trimesh.merge_vertices``;
-* :func:`~wtopo.geometry.mesh_policy.supported_components` whole;
+* :func:`~wtopo.geometry.mesh_policy.supported_components` and :func:`~wtopo.geometry.mesh_policy.supported_faces`
+  with their projections on ``--device`` (torch, float64) against the same rules in NumPy on the host;
 * an object's repair (:func:`wtopo.fitting.tsdf.repair_mesh`, the same mesh with 50 faces removed) against the
   same steps on trimesh's ``is_watertight``, ``fill_holes`` first and ``fix_inversion`` (mass properties).
 
-    .venv/bin/python benchmarks/bench_mesh_policy.py [--subdivisions 8]
+    .venv/bin/python benchmarks/bench_mesh_policy.py [--subdivisions 8] [--device cpu]
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from scipy.spatial import cKDTree
 from wtopo import Camera
 from wtopo.fitting.tsdf import _FAN_MAX_EDGES, cleanup_mesh, fill_boundary_loops, repair_mesh
 from wtopo.geometry.components import face_components
-from wtopo.geometry.mesh_policy import crop_near_cameras, supported_components
+from wtopo.geometry.mesh_policy import crop_near_cameras, supported_components, supported_faces
 from wtopo.geometry.winding import orient_faces
 from wtopo.ops import raycast_mesh
 
@@ -63,6 +64,8 @@ def _repair_with_trimesh(mesh):
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--subdivisions", type=int, default=8)
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
+                    help="torch device of the support rules' projections")
     a = ap.parse_args(argv)
     sphere = trimesh.creation.icosphere(subdivisions=a.subdivisions)
     other = sphere.copy()
@@ -90,8 +93,13 @@ def main(argv=None) -> None:
     t_new, _ = _timed(lambda: cleanup_mesh(mesh, largest_component=False, repair=False, weld=False))
     t_old, _ = _timed(lambda: cleanup_mesh(mesh, largest_component=False, repair=False, weld=True))
     rows.append(("clean-up (old: merge vertices by position)", t_new, t_old))
-    t_new, _ = _timed(lambda: supported_components(mesh, cams, depths))
-    rows.append(("supported components, whole", t_new, None))
+    t_old, _ = _timed(lambda: supported_components(mesh, cams, depths))
+    t_new, _ = _timed(lambda: supported_components(mesh, cams, depths, device=a.device))
+    rows.append((f"supported components on {a.device} (old: NumPy)", t_new, t_old))
+    tol = 2.0 * 2.5 / 512  # the fit's: two fusion voxels of a 512-voxel box around both spheres
+    t_old, _ = _timed(lambda: supported_faces(mesh, cams, depths, tol))
+    t_new, _ = _timed(lambda: supported_faces(mesh, cams, depths, tol, device=a.device))
+    rows.append((f"supported faces on {a.device} (old: NumPy)", t_new, t_old))
     holed = np.asarray(mesh.faces)[np.setdiff1d(np.arange(len(mesh.faces)),
                                                 np.random.default_rng(0).choice(len(mesh.faces), 50, replace=False))]
     t_new, _ = _timed(lambda: repair_mesh(trimesh.Trimesh(mesh.vertices, holed, process=False)))

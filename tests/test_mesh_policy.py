@@ -473,3 +473,41 @@ def test_supported_faces_name_a_bad_argument(kwargs, match):
         supported_faces(_grid(1.0, 2, 0.0), [cam], [np.ones((8, 8))], **kwargs)
     with pytest.raises(ValueError, match="one map per camera"):
         supported_faces(_grid(1.0, 2, 0.0), [cam, cam], [np.ones((8, 8))], tolerance=0.05)
+
+
+def test_support_rules_decide_the_same_on_a_torch_device_as_in_numpy(device):
+    """supported_components and supported_faces with ``device`` (float64 torch projections, one view at a time)
+    keep exactly the faces the NumPy path keeps, with the same counts; one camera has lens distortion (its
+    normalised coordinates go through the host)."""
+    import dataclasses
+
+    torus = trimesh.creation.torus(0.6, 0.2)
+    torus.apply_translation([-0.7, 0, 0])
+    capsule = trimesh.creation.capsule(height=0.6, radius=0.2)
+    capsule.apply_translation([0.8, 0, 0])
+    seen = trimesh.util.concatenate([torus, capsule])
+    cams = _ring_cameras()
+    cams[3] = dataclasses.replace(cams[3], distortion=np.array([0.05, -0.01, 0.001, 0.0005]))
+    depths = _depths(seen, cams)
+    lone = trimesh.creation.icosphere(subdivisions=2, radius=0.15)
+    lone.apply_translation([0, 0, 1.0])
+    for k in (0, 1):
+        depths[k] = np.where(depths[k] > 0, depths[k], _depths(lone, [cams[k]])[0])
+    speck = trimesh.creation.icosphere(subdivisions=1, radius=0.05)
+    speck.apply_translation([0, 0.9, 0.9])
+    mesh = trimesh.util.concatenate([seen, lone, speck])
+    ref, ref_info = supported_components(mesh, cams, depths)
+    out, info = supported_components(mesh, cams, depths, device=device)
+    assert info == ref_info and ref_info["kept"] == 2
+    np.testing.assert_array_equal(out.faces, ref.faces)
+
+    ground = _grid(1.0, 20, 0.0)
+    both = trimesh.util.concatenate([ground, _grid(0.4, 8, -0.2)])
+    ring = [Camera.look_at(np.array([2.0 * np.cos(a), 2.0 * np.sin(a), 2.5]), np.zeros(3), np.array([0, 0, 1.0]),
+                           fov_x=0.9, width=128, height=128) for a in np.linspace(0, 2 * np.pi, 6, endpoint=False)]
+    gd = _depths(ground, ring)
+    for kwargs in ({}, {"min_region_area": 0.1}, {"min_views": 2}):
+        ref, ref_info = supported_faces(both, ring, gd, tolerance=0.05, **kwargs)
+        out, info = supported_faces(both, ring, gd, tolerance=0.05, device=device, **kwargs)
+        assert info == ref_info and ref_info["kept"] < len(both.faces)
+        np.testing.assert_array_equal(out.faces, ref.faces)

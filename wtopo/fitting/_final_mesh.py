@@ -84,6 +84,9 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
             raise TSDFEmptyError("no final mesh: the TSDF fusion and the proxy mesh are both empty")
         mesh = trimesh.Trimesh(pm.verts.detach().cpu().numpy(), pm.faces.cpu().numpy(), process=False)
     info: dict = {}
+    # the support rules project the mesh's vertices on a CUDA fit's device; on the CPU NumPy is 2-3x faster than
+    # torch (benchmarks/mesh_policy.md)
+    dev = surfels.means.device if surfels.means.is_cuda else None
     # the fused and the proxy mesh come from marching cubes, which shares each edge's vertex: no merge by position
     with section("mesh_policy"):
         if scene:
@@ -91,18 +94,19 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
             mesh, info["near_camera_faces_removed"] = crop_near_cameras(mesh, layout.camera_centers, layout.near)
             mesh = cleanup_mesh(mesh, largest_component=False, repair=False, weld=False)
             with section("supported_components"):
-                mesh, info["components"] = supported_components(mesh, cameras, depths)
+                mesh, info["components"] = supported_components(mesh, cameras, depths, device=dev)
             with section("supported_faces"):  # a sheet the fusion made where no view shows one (never all)
                 seen = depths
                 if getattr(render, "unmasked", None) is not None:  # a chunked merge's views fuse their cores only
                     seen, _ = render_depths(render.unmasked, surfels, cameras)
                 kept, info["faces"] = supported_faces(mesh, cameras, seen, _FACE_SUPPORT_VOXELS * bounds.voxel,
-                                                      min_region_area=_FACE_REGION_VOXELS2 * bounds.voxel ** 2)
+                                                      min_region_area=_FACE_REGION_VOXELS2 * bounds.voxel ** 2,
+                                                      device=dev)
                 mesh = kept if len(kept.faces) else mesh
         else:
             mesh = cleanup_mesh(mesh, largest_component=False, repair=False, weld=False)
             with section("supported_components"):
-                mesh, info["components"] = supported_components(mesh, cameras, depths)
+                mesh, info["components"] = supported_components(mesh, cameras, depths, device=dev)
             with section("repair"):  # after the support rule: repairing works component by component
                 mesh = repair_mesh(mesh)
             closed = mesh.metadata.get("closed")  # repair_mesh's own test of the edges
@@ -112,7 +116,7 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
                 # their own (a ten-view cup at 768^3: 137-343 components, no view sees most of them): the
                 # same support rule as the fused mesh's; dropping closed components keeps the mesh closed
                 with section("supported_components"):
-                    mesh, info["remesh_components"] = supported_components(mesh, cameras, depths)
+                    mesh, info["remesh_components"] = supported_components(mesh, cameras, depths, device=dev)
     record("mesh_policy", policy="open_roi" if scene else "watertight", **info)
     if len(mesh.faces) == 0:
         raise TSDFEmptyError("the final mesh is empty after the meshing policy (nothing in the region of interest "
