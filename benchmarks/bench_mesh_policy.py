@@ -10,8 +10,9 @@ depth maps; timed in one process, each step beside the trimesh operation it repl
   against a k-d tree over every face centre (``cKDTree(face centres).query_ball_point``);
 * the clean-up: without merging vertices by position (a marching-cubes mesh shares them already) against
   ``Trimesh.merge_vertices``;
-* :func:`~wtopo.geometry.mesh_policy.supported_components` and :func:`~wtopo.geometry.mesh_policy.supported_faces`
-  with their projections on ``--device`` (torch, float64) against the same rules in NumPy on the host;
+* the support rules' projections (every vertex into every view) in torch on ``--device`` against NumPy, and on CUDA
+  :func:`~wtopo.geometry.mesh_policy.supported_components` and :func:`~wtopo.geometry.mesh_policy.supported_faces`
+  on the GPU against the same rules in NumPy on the host;
 * an object's repair (:func:`wtopo.fitting.tsdf.repair_mesh`, the same mesh with 50 faces removed) against the
   same steps on trimesh's ``is_watertight``, ``fill_holes`` first and ``fix_inversion`` (mass properties).
 
@@ -31,7 +32,7 @@ from scipy.spatial import cKDTree
 from wtopo import Camera
 from wtopo.fitting.tsdf import _FAN_MAX_EDGES, cleanup_mesh, fill_boundary_loops, repair_mesh
 from wtopo.geometry.components import face_components
-from wtopo.geometry.mesh_policy import crop_near_cameras, supported_components, supported_faces
+from wtopo.geometry.mesh_policy import _vertex_agreement, crop_near_cameras, supported_components, supported_faces
 from wtopo.geometry.winding import orient_faces
 from wtopo.ops import raycast_mesh
 
@@ -93,13 +94,22 @@ def main(argv=None) -> None:
     t_new, _ = _timed(lambda: cleanup_mesh(mesh, largest_component=False, repair=False, weld=False))
     t_old, _ = _timed(lambda: cleanup_mesh(mesh, largest_component=False, repair=False, weld=True))
     rows.append(("clean-up (old: merge vertices by position)", t_new, t_old))
-    t_old, _ = _timed(lambda: supported_components(mesh, cams, depths))
-    t_new, _ = _timed(lambda: supported_components(mesh, cams, depths, device=a.device))
-    rows.append((f"supported components on {a.device} (old: NumPy)", t_new, t_old))
-    tol = 2.0 * 2.5 / 512  # the fit's: two fusion voxels of a 512-voxel box around both spheres
-    t_old, _ = _timed(lambda: supported_faces(mesh, cams, depths, tol))
-    t_new, _ = _timed(lambda: supported_faces(mesh, cams, depths, tol, device=a.device))
-    rows.append((f"supported faces on {a.device} (old: NumPy)", t_new, t_old))
+    # the rules' projections (every vertex into every view) in torch on --device against NumPy: what decides where
+    # the rules run (mesh_policy uses torch on CUDA only)
+    verts = np.asarray(mesh.vertices)
+    vt = torch.as_tensor(verts, dtype=torch.float64, device=a.device)
+    dt = [torch.as_tensor(d, dtype=torch.float64, device=a.device) for d in depths]
+    t_old, _ = _timed(lambda: [_vertex_agreement(verts, c, d) for c, d in zip(cams, depths)])
+    t_new, _ = _timed(lambda: [_vertex_agreement(vt, c, d).sum().item() for c, d in zip(cams, dt)])
+    rows.append((f"support projections, torch on {a.device} (old: NumPy)", t_new, t_old))
+    if torch.device(a.device).type == "cuda":
+        t_old, _ = _timed(lambda: supported_components(mesh, cams, depths))
+        t_new, _ = _timed(lambda: supported_components(mesh, cams, depths, device=a.device))
+        rows.append((f"supported components on {a.device} (old: NumPy)", t_new, t_old))
+        tol = 2.0 * 2.5 / 512  # the fit's: two fusion voxels of a 512-voxel box around both spheres
+        t_old, _ = _timed(lambda: supported_faces(mesh, cams, depths, tol))
+        t_new, _ = _timed(lambda: supported_faces(mesh, cams, depths, tol, device=a.device))
+        rows.append((f"supported faces on {a.device} (old: NumPy)", t_new, t_old))
     holed = np.asarray(mesh.faces)[np.setdiff1d(np.arange(len(mesh.faces)),
                                                 np.random.default_rng(0).choice(len(mesh.faces), 50, replace=False))]
     t_new, _ = _timed(lambda: repair_mesh(trimesh.Trimesh(mesh.vertices, holed, process=False)))

@@ -33,13 +33,32 @@ def _depths(mesh, cams):
     return out
 
 
-def test_two_objects_are_both_kept_and_an_unseen_floater_goes():
-    """Keep a torus and a capsule the views see; drop a speck that no rendered depth supports."""
+def _seen_pair():
+    """A torus and a capsule side by side: what the ring of cameras sees."""
     torus = trimesh.creation.torus(0.6, 0.2)
     torus.apply_translation([-0.7, 0, 0])
     capsule = trimesh.creation.capsule(height=0.6, radius=0.2)
     capsule.apply_translation([0.8, 0, 0])
-    seen = trimesh.util.concatenate([torus, capsule])
+    return trimesh.util.concatenate([torus, capsule])
+
+
+def _pair_lone_and_speck(cams):
+    """``(mesh, seen, depths)``: the seen pair, a sphere only cams[0] and cams[1] see (below _MIN_SUPPORT_VIEWS)
+    and a speck in no depth map; the depths are the pair's, with the sphere added in those two views."""
+    seen = _seen_pair()
+    depths = _depths(seen, cams)
+    lone = trimesh.creation.icosphere(subdivisions=2, radius=0.15)
+    lone.apply_translation([0, 0, 1.0])
+    for k in (0, 1):
+        depths[k] = np.where(depths[k] > 0, depths[k], _depths(lone, [cams[k]])[0])
+    speck = trimesh.creation.icosphere(subdivisions=1, radius=0.05)
+    speck.apply_translation([0, 0.9, 0.9])
+    return trimesh.util.concatenate([seen, lone, speck]), seen, depths
+
+
+def test_two_objects_are_both_kept_and_an_unseen_floater_goes():
+    """Keep a torus and a capsule the views see; drop a speck that no rendered depth supports."""
+    seen = _seen_pair()
     cams = _ring_cameras()
     depths = _depths(seen, cams)  # the speck is not in the rendered depth: no view supports it
     speck = trimesh.creation.icosphere(subdivisions=1, radius=0.05)
@@ -72,20 +91,8 @@ def test_support_stops_testing_decided_components_without_changing_the_result():
     ones, on a scene with a seen pair, a floater and a component only two views support."""
     from wtopo.geometry import mesh_policy as mp
 
-    torus = trimesh.creation.torus(0.6, 0.2)
-    torus.apply_translation([-0.7, 0, 0])
-    capsule = trimesh.creation.capsule(height=0.6, radius=0.2)
-    capsule.apply_translation([0.8, 0, 0])
     cams = _ring_cameras()
-    seen = trimesh.util.concatenate([torus, capsule])
-    depths = _depths(seen, cams)
-    lone = trimesh.creation.icosphere(subdivisions=2, radius=0.15)
-    lone.apply_translation([0, 0, 1.0])
-    for k in (0, 1):  # two views also see it: below _MIN_SUPPORT_VIEWS
-        depths[k] = np.where(depths[k] > 0, depths[k], _depths(lone, [cams[k]])[0])
-    speck = trimesh.creation.icosphere(subdivisions=1, radius=0.05)
-    speck.apply_translation([0, 0.9, 0.9])
-    mesh = trimesh.util.concatenate([seen, lone, speck])
+    mesh, seen, depths = _pair_lone_and_speck(cams)
     views = _support_views_exhaustive(mesh, cams, depths)
     out, info = supported_components(mesh, cams, depths)
     share = np.bincount(trimesh.graph.connected_component_labels(mesh.face_adjacency), weights=mesh.area_faces)
@@ -476,26 +483,27 @@ def test_supported_faces_name_a_bad_argument(kwargs, match):
 
 
 def test_support_rules_decide_the_same_on_a_torch_device_as_in_numpy(device):
-    """supported_components and supported_faces with ``device`` (float64 torch projections, one view at a time)
-    keep exactly the faces the NumPy path keeps, with the same counts; one camera has lens distortion (its
-    normalised coordinates go through the host)."""
+    """The torch projection of the support rules agrees with NumPy's vertex by vertex on ``device`` (one camera
+    with lens distortion: its normalised coordinates go through the host); supported_components and
+    supported_faces given ``device`` (torch on CUDA, NumPy otherwise) keep exactly the faces of the NumPy path, with
+    the same counts."""
     import dataclasses
 
-    torus = trimesh.creation.torus(0.6, 0.2)
-    torus.apply_translation([-0.7, 0, 0])
-    capsule = trimesh.creation.capsule(height=0.6, radius=0.2)
-    capsule.apply_translation([0.8, 0, 0])
-    seen = trimesh.util.concatenate([torus, capsule])
+    import torch
+
+    from wtopo.geometry import mesh_policy as mp
+
     cams = _ring_cameras()
     cams[3] = dataclasses.replace(cams[3], distortion=np.array([0.05, -0.01, 0.001, 0.0005]))
-    depths = _depths(seen, cams)
-    lone = trimesh.creation.icosphere(subdivisions=2, radius=0.15)
-    lone.apply_translation([0, 0, 1.0])
-    for k in (0, 1):
-        depths[k] = np.where(depths[k] > 0, depths[k], _depths(lone, [cams[k]])[0])
-    speck = trimesh.creation.icosphere(subdivisions=1, radius=0.05)
-    speck.apply_translation([0, 0.9, 0.9])
-    mesh = trimesh.util.concatenate([seen, lone, speck])
+    mesh, _, depths = _pair_lone_and_speck(cams)
+    verts = np.asarray(mesh.vertices)
+    vt = torch.as_tensor(verts, dtype=torch.float64, device=device)
+    for c, d in zip(cams, depths):
+        for tol in (None, 0.05):
+            ref = mp._vertex_agreement(verts, c, d, tol)
+            got = mp._vertex_agreement(vt, c, torch.as_tensor(d, dtype=torch.float64, device=device), tol)
+            assert ref.any()
+            np.testing.assert_array_equal(got.cpu().numpy(), ref)
     ref, ref_info = supported_components(mesh, cams, depths)
     out, info = supported_components(mesh, cams, depths, device=device)
     assert info == ref_info and ref_info["kept"] == 2

@@ -78,8 +78,7 @@ def tsdf_reinit(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: 
         # the components the views support, never the largest alone: a torus beside a capsule keeps both (the
         # final mesh's rule); repaired after the support rule, which drops the specks first (see repair_mesh)
         mesh = cleanup_mesh(mesh, largest_component=False, repair=False)
-        on = device if device.type == "cuda" else None  # NumPy on the CPU (faster there; benchmarks/mesh_policy.md)
-        mesh, info["components"] = supported_components(mesh, cams, depths, device=on)
+        mesh, info["components"] = supported_components(mesh, cams, depths, device=device)
         mesh = repair_mesh(mesh)
     new = mesh_to_surfels(mesh, max_faces=tc.max_faces, device=device, sh_degree=s.sh_degree, opacity=_REINIT_OPACITY)
     kept = 0

@@ -120,11 +120,13 @@ def _vertex_agreement(vertices, camera, depth, tolerance: float | None = None):
 
 
 def _device_views(verts: np.ndarray, depths, device):
-    """``verts`` and each depth map as float64 tensors on ``device`` (``None``: stay NumPy)."""
-    if device is None:
-        return verts, depths
+    """``(verts, depths, device)``: on a CUDA ``device`` the vertices and each depth map as float64 tensors there;
+    otherwise (``None``, the CPU) the NumPy arrays and ``None``: on a CPU NumPy projects 2-3x faster than torch
+    (``benchmarks/mesh_policy.md``)."""
+    if device is None or torch.device(device).type != "cuda":
+        return verts, depths, None
     return (torch.as_tensor(verts, dtype=torch.float64, device=device),
-            [torch.as_tensor(np.asarray(d), dtype=torch.float64, device=device) for d in depths])
+            [torch.as_tensor(np.asarray(d), dtype=torch.float64, device=device) for d in depths], device)
 
 
 def supported_components(mesh: trimesh.Trimesh, cameras: Sequence, depths: Sequence[np.ndarray], *,
@@ -143,8 +145,8 @@ def supported_components(mesh: trimesh.Trimesh, cameras: Sequence, depths: Seque
         mesh: the mesh, internal frame.
         cameras: training cameras, internal frame.
         depths: their rendered z-depth maps [H, W] (0 where the surfels are not opaque).
-        device: torch device the projections run on (a CUDA fit's); ``None``: NumPy on the host (on a CPU, 2-3x
-            faster than torch). The same decisions either way (float64 both).
+        device: the fit's torch device: on CUDA the projections run there (float64 torch), otherwise in NumPy on
+            the host (``None`` too). The same decisions either way (float64 both).
 
     Returns:
         ``(mesh, info)``: the kept components, and counts with the largest dropped components'
@@ -161,7 +163,7 @@ def supported_components(mesh: trimesh.Trimesh, cameras: Sequence, depths: Seque
     vlabel[faces.reshape(-1)] = np.repeat(label, 3)
     used = vlabel >= 0
     vcount = np.bincount(vlabel[used], minlength=n_comp).astype(np.float64)
-    verts, depths = _device_views(np.asarray(mesh.vertices), depths, device)
+    verts, depths, device = _device_views(np.asarray(mesh.vertices), depths, device)
     views = np.zeros(n_comp, np.int64)
     active = np.flatnonzero(used)
     bincount = np.bincount
@@ -217,8 +219,8 @@ def supported_faces(mesh: trimesh.Trimesh, cameras: Sequence, depths: Sequence[n
         min_region_area: unsupported faces go only as regions (faces joined through shared vertices) of at least
             this area [internal units^2]: a sheet goes, where a seen surface's few faces at a silhouette that
             coarse views miss stay (0: every unsupported face goes).
-        device: torch device the projections run on (a CUDA fit's); ``None``: NumPy on the host (on a CPU, 2-3x
-            faster than torch). The same decisions either way (float64 both).
+        device: the fit's torch device: on CUDA the projections run there (float64 torch), otherwise in NumPy on
+            the host (``None`` too). The same decisions either way (float64 both).
 
     Returns:
         ``(mesh, info)``: the kept faces (the input itself when all stay) and ``{"faces": before, "kept": after}``.
@@ -238,7 +240,7 @@ def supported_faces(mesh: trimesh.Trimesh, cameras: Sequence, depths: Sequence[n
     faces = np.asarray(mesh.faces)
     if len(faces) == 0:
         return mesh, {"faces": 0, "kept": 0}
-    verts, depths = _device_views(np.asarray(mesh.vertices), depths, device)
+    verts, depths, device = _device_views(np.asarray(mesh.vertices), depths, device)
     support = np.zeros(len(verts), np.int64)
     active = np.unique(faces)
     if device is not None:
