@@ -21,6 +21,8 @@ VARIANTS = {
     "filter_2dgs": ["filter_sigma=0.71"],
     "no_scale": ["losses.scale=0"],
     "no_reinit": ["tsdf.enabled=false"],
+    "filter_025": ["filter_sigma=0.25"],
+    "filter_018": ["filter_sigma=0.18"],
 }
 
 
