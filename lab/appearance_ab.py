@@ -48,9 +48,10 @@ def main():
             _apply_set(cfg, item)
         res = wtopo.fit(scene, cfg, progress=False)
         rep = res.report
-        row = {"scene": a.scene, "variant": name, "seed": a.seed, "psnr": rep.get("psnr"), "psnr_on": rep.get("psnr_on"),
-               "surfels": rep.get("surfels"), "elapsed_s": rep.get("elapsed_s"),
-               "chamfer_pct": None if rep.get("chamfer") is None else 100 * rep["chamfer"], "f_score": rep.get("f_score")}
+        chamfer = rep.get("chamfer")
+        row = {"scene": a.scene, "variant": name, "seed": a.seed, "psnr": rep.get("psnr"),
+               "psnr_on": rep.get("psnr_on"), "surfels": rep.get("surfels"), "elapsed_s": rep.get("elapsed_s"),
+               "chamfer_pct": None if chamfer is None else 100 * chamfer, "f_score": rep.get("f_score")}
         print(json.dumps(row), flush=True)
 
 

@@ -16,7 +16,8 @@ from wtopo.fitting.profiling import Timers, format_profile
 
 # what a user needs to see (issue 16): every stage of the loop and the proxy mesh's parts, as call paths
 _PATHS = {
-    "render", "render/rasterize_forward", "losses", "backward", "optimizer", "densify", "proxy",
+    "setup", "render", "render/rasterize_forward", "losses", "read", "backward", "optimizer", "statistics", "densify",
+    "proxy",
     "proxy/oriented_points", "proxy/poisson", "proxy/poisson/scatter", "proxy/marching_cubes", "raycast",
     "raycast/bvh_build", "tsdf", "tsdf/render_depths", "tsdf/tsdf_fusion", "tsdf/tsdf_fusion/tsdf_integrate",
     "tsdf/tsdf_fusion/marching_cubes", "final", "final/tsdf_fusion", "evaluate", "checkpoint",
@@ -94,7 +95,8 @@ def test_profiled_fit_reports_every_stage_within_the_wall_time(tiny, tmp_path, c
     assert sum(r["percent_wall"] for r in tops) <= 100.0 + 1e-6
     assert prof["synchronized"] is device.startswith("cuda")  # the CPU has nothing to synchronise
     out = capsys.readouterr().out
-    for label in ("wtopo fit profile", "render forward", "backward", "losses", "optimizer", "density control",
+    for label in ("wtopo fit profile", "setup (plan", "render forward", "backward", "losses", "host read",
+                  "optimizer", "density statistics", "density control",
                   "proxy mesh", "marching cubes", "BVH build", "TSDF re-initialisation", "TSDF fusion",
                   "evaluation", "checkpoint", "outside any section"):
         assert label in out, label

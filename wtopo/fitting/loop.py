@@ -107,6 +107,11 @@ class FitRun:
         self.timers = Timers((lambda: torch.cuda.synchronize(self.device)) if profile_sync else None)
         self.t_start = time.perf_counter()
         self.elapsed_before = 0.0
+        with self.timers("setup"):
+            self._setup(scene, cfg)
+
+    def _setup(self, scene, cfg: FitConfig) -> None:
+        """The plan, the scene on the device and the fit's collaborators (the profile's ``setup``)."""
         self.sim = scene.normalization()
         internal = scene.normalized().to(self.device)
         self.plan: Plan = make_plan(internal, cfg, self.device)
@@ -289,13 +294,14 @@ class FitRun:
         for defer in (True, False):
             t = self.objective(stage, self.it, vi, self.surfels, self.proxy, defer_count=defer)
             info = StepInfo(stage, t.render, t.covered, mask, self.train.cameras[vi])
-            extra = [self.strategy.coverage_counts(info)]
-            if self._unverified is not None:
-                extra.append(self._unverified.double().view(1))
-            if t.render.overflow is not None:
-                extra.append(t.render.overflow.double().view(1))
-            # host sync: the one read of an iteration (loss terms, coverage, the last step's finiteness, overflow)
-            read = torch.cat([torch.stack([v.detach() for v in t.losses.values()]).double(), *extra]).tolist()
+            with self.timers("read"):
+                extra = [self.strategy.coverage_counts(info)]
+                if self._unverified is not None:
+                    extra.append(self._unverified.double().view(1))
+                if t.render.overflow is not None:
+                    extra.append(t.render.overflow.double().view(1))
+                # host sync: the one read of an iteration (loss terms, coverage, the last step's finiteness, overflow)
+                read = torch.cat([torch.stack([v.detach() for v in t.losses.values()]).double(), *extra]).tolist()
             if self._unverified is not None:  # the last step: its failure discards this forward too
                 self._unverified = None
                 if not self._verdict(bool(read[len(t.losses) + 2])):
@@ -329,7 +335,8 @@ class FitRun:
             values = [p.detach() for p in self.surfels.params.values()]
             params = torch.isfinite(torch.stack(torch._foreach_norm(values))).all()
             self._unverified = params if finite is None else params & finite
-        self.strategy.step_post_backward(self.surfels, info)
+        with self.timers("statistics"):
+            self.strategy.step_post_backward(self.surfels, info)
         self.opt.zero_grad(set_to_none=True)
         self.loss_log.add(terms, first=self.loss_log.count == 0 and not self.history)
         if self.it % _SNAPSHOT_EVERY == 0:

@@ -27,6 +27,7 @@ __all__ = ["Timers", "format_profile"]
 
 LABELS = {
     "render": "render forward",
+    "setup": "setup (plan, scene on the device)",
     "init": "initial surfels (stereo)",
     "rasterize_binning": "binning",
     "rasterize_sort": "depth sort",
@@ -35,6 +36,8 @@ LABELS = {
     "losses": "losses",
     "backward": "backward",
     "optimizer": "optimizer",
+    "read": "host read (losses, flags)",
+    "statistics": "density statistics",
     "densify": "density control",
     "guidance": "mesh guidance",
     "proxy": "proxy mesh",
@@ -57,8 +60,8 @@ LABELS = {
 }
 """What the table calls each section (sections without an entry show their name)."""
 
-ORDER = ("init", "render", "losses", "backward", "optimizer", "densify", "guidance", "proxy", "raycast", "tsdf",
-         "final", "evaluate", "checkpoint", "timeline")
+ORDER = ("setup", "init", "render", "losses", "read", "backward", "optimizer", "statistics", "densify", "guidance",
+         "proxy", "raycast", "tsdf", "final", "evaluate", "checkpoint", "timeline")
 """Order of the top-level rows (the loop's order); nested rows follow by time."""
 
 
