@@ -16,7 +16,7 @@ sys.path.insert(0, PEERS)
 
 from _result import write_result  # noqa: E402
 from exchange import export, load  # noqa: E402
-from score import score  # noqa: E402
+from score import render_pictures, score  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -71,6 +71,28 @@ def test_a_shifted_render_and_a_scaled_mesh_score_worse(exch, tmp_path):
     assert all(a < b - 5 for a, b in zip(row["psnr_views"], perfect["psnr_views"]))
     assert row["chamfer_pct"] > 20 * perfect["chamfer_pct"] and row["f_score"] < perfect["f_score"]
     assert row["silhouette_iou"] < perfect["silhouette_iou"]
+
+
+def test_the_render_pictures_show_each_view_and_where_a_system_errs(exch, tmp_path):
+    """One row per held-out view (photo, each render, each error); a perfect render's error tile is black and a
+    shifted one's is not."""
+    from PIL import Image
+
+    _result(exch, tmp_path / "perfect")
+    shifted = np.stack([np.roll(exch.image(i), 2, axis=1) for i in exch.test])
+    _result(exch, tmp_path / "worse", renders=shifted)
+    path = render_pictures(exch.root, [str(tmp_path / "perfect"), str(tmp_path / "worse")], str(tmp_path / "pics"))
+    pic = np.asarray(Image.open(path).convert("RGB"), np.float32) / 255
+    h, w = exch.height, exch.width
+    assert pic.shape == (len(exch.test) * h, 5 * w, 3)  # photo, two renders, two errors
+    label = (slice(0, 20), slice(0, w))  # the text drawn in a tile's corner
+    for k in range(len(exch.test)):
+        row = pic[k * h:(k + 1) * h]
+        tiles = [row[:, j * w:(j + 1) * w].copy() for j in range(5)]
+        for t in tiles:
+            t[label] = 0
+        assert np.abs(tiles[1] - tiles[0]).max() < 0.02  # the perfect render is the photo
+        assert tiles[3].max() < 0.02 < tiles[4].max()  # its error is black; the shifted render's is not
 
 
 @pytest.fixture(scope="module")

@@ -148,12 +148,52 @@ def pictures(exchange: str, results: list[str], out: str, views: int = 2) -> str
     return path
 
 
+def _tile(img: np.ndarray, label: str) -> np.ndarray:
+    from PIL import Image, ImageDraw
+
+    im = Image.fromarray((np.clip(img, 0, 1) * 255).astype(np.uint8))
+    ImageDraw.Draw(im).text((4, 4), label, fill=(255, 0, 0))
+    return np.asarray(im)
+
+
+def render_pictures(exchange: str, results: list[str], out: str, gain: float = 4.0) -> str:
+    """Every held-out view as rows of tiles: the photo, each system's render, then each system's absolute error
+    times ``gain`` (inside the mask for a masked capture, as the PSNR is taken), each labelled with its system and
+    that view's PSNR [dB]. Where one system's renders lose to another's (#59) the error tiles show what: blur,
+    colour, a missing part or a view-dependent halo. Returns the PNG's path (``out/<scene>_renders.png``)."""
+    from PIL import Image
+
+    ex = load(exchange)
+    rows = []
+    systems = [(read_json(os.path.join(r, "run.json"))["system"], np.load(os.path.join(r, "renders.npz"))["rgb"])
+               for r in results]
+    for k, i in enumerate(ex.test):
+        gt = ex.image(i).astype(np.float32)
+        m = ex.mask(i)
+        keep = np.ones(gt.shape[:2], bool) if m is None else m.astype(bool)
+        renders, errors = [], []
+        for name, rgb in systems:
+            pred = rgb[k].astype(np.float32)
+            err = np.where(keep[..., None], np.abs(pred - gt), 0.0)
+            mse = float((err[keep] ** 2).mean()) if keep.any() else 0.0
+            db = 10 * np.log10(1.0 / max(mse, 1e-12))
+            renders.append(_tile(pred, f"{name} {db:.2f} dB"))
+            errors.append(_tile(err * gain, f"{name} |error| x{gain:g}"))
+        rows.append(np.concatenate([_tile(gt, f"photo, view {i}"), *renders, *errors], axis=1))
+    os.makedirs(out, exist_ok=True)
+    path = os.path.join(out, f"{ex.meta['name']}_renders.png")
+    Image.fromarray(np.concatenate(rows, axis=0)).save(path)
+    return path
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("exchange")
     ap.add_argument("results", nargs="+")
     ap.add_argument("--out", required=True, help="rows are appended to this JSON list")
-    ap.add_argument("--pictures", default=None)
+    ap.add_argument("--pictures", default=None, help="folder for every system's mesh beside the photos")
+    ap.add_argument("--render-pictures", default=None,
+                    help="folder for every held-out view's photo, each system's render and its error")
     a = ap.parse_args(argv)
     rows = read_json(a.out) if os.path.exists(a.out) else []
     for r in a.results:
@@ -169,6 +209,9 @@ def main(argv=None) -> None:
     if a.pictures:
         ok = [r for r in a.results if os.path.exists(os.path.join(r, "run.json"))]
         print(pictures(a.exchange, ok, a.pictures))
+    if a.render_pictures:
+        ok = [r for r in a.results if os.path.exists(os.path.join(r, "renders.npz"))]
+        print(render_pictures(a.exchange, ok, a.render_pictures))
 
 
 if __name__ == "__main__":
