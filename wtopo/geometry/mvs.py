@@ -134,7 +134,7 @@ class TorchCam:
     def project_camera(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Points in this camera's frame [..., 3] -> pixel u, v (continuous, centres at +0.5) and z-depth."""
         z = p[..., 2]
-        zs = torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
+        zs = torch.where(z.abs() < 1e-12, 1e-12, z)
         xn, yn = p[..., 0] / zs, p[..., 1] / zs
         if self.dist is not None:
             k1, k2, p1, p2, k3 = self.dist
@@ -145,6 +145,12 @@ class TorchCam:
         u = self.K[0, 0] * xn + self.K[0, 1] * yn + self.K[0, 2]
         v = self.K[1, 1] * yn + self.K[1, 2]
         return u, v, z
+
+    def ray_frame(self, origin: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rays ``origin + depth * dirs`` (world, [..., 3] each) in this camera's frame: ``(a, b)`` with the ray's point
+        at ``depth`` at ``a + depth * b`` (for :meth:`project_camera`), so that a sweep projects every depth of a
+        ray without a matrix product per depth."""
+        return origin @ self.R.T + self.t, dirs @ self.R.T
 
     def grid(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         """Pixel coordinates -> ``grid_sample`` coordinates (align_corners=False)."""
@@ -176,7 +182,10 @@ def _box_sum(x: torch.Tensor, dim: int) -> torch.Tensor:
 
 
 def _box(x: torch.Tensor) -> torch.Tensor:
-    """Window mean over the last two dims [..., H, W]; border windows average their in-image pixels."""
+    """Window mean over the last two dims [..., H, W]; border windows average their in-image pixels.
+
+    Running sums: on the CPU three times faster than ``avg_pool2d`` (separable or not) and ten times faster than a
+    separable ``conv2d`` at [160, 1, 192, 192]."""
     ones = torch.ones(x.shape[-2:], dtype=x.dtype, device=x.device)
     count = _box_sum(_box_sum(ones, -1), -2)
     return _box_sum(_box_sum(x, -1), -2) / count
@@ -234,14 +243,14 @@ class _Level:
         self.shape = tuple(ref.dirs.shape[:2])
 
     def _valid(self, d: torch.Tensor) -> torch.Tensor:
-        return torch.where((d >= self.lo) & (d <= self.hi), d, torch.full_like(d, -1.0))
+        return torch.where((d >= self.lo) & (d <= self.hi), d, -1.0)
 
     def depth(self, p: torch.Tensor) -> torch.Tensor:
-        b = torch.where(self.b.abs() < 1e-6, torch.full_like(self.b, 1e-6), self.b)
+        b = torch.where(self.b.abs() < 1e-6, 1e-6, self.b)
         return self._valid((p[:, None, None] - self.a) / b)
 
     def depth_at(self, p: torch.Tensor) -> torch.Tensor:
-        b = torch.where(self.b.abs() < 1e-6, torch.full_like(self.b, 1e-6), self.b)
+        b = torch.where(self.b.abs() < 1e-6, 1e-6, self.b)
         return self._valid((p - self.a) / b)
 
 
@@ -260,13 +269,14 @@ def _sweep(ref: TorchCam, srcs: list[TorchCam], ref_gray: torch.Tensor, src_gray
     costs = torch.empty(n_planes, H, W, device=ref_gray.device)
     chunk = max(1, int(_CHUNK_BYTES // (4 * K * H * W * 6)))
     srcs_img = src_gray[:, None]  # [K, 1, H, W]
+    rays = [src.ray_frame(ref.origin, ref.dirs) for src in srcs]  # the reference's rays in each source's frame
     for s in range(0, n_planes, chunk):
         depth = family.depth(params[s:s + chunk])  # [P, H, W]
         P = depth.shape[0]
-        x = ref.origin[None] + ref.dirs[None] * depth[..., None]  # [P, H, W, 3]
         warped, valid = [], []
         for k, src in enumerate(srcs):
-            u, v, z = src.project(x)
+            a, b = rays[k]
+            u, v, z = src.project_camera(torch.addcmul(a, depth[..., None], b))  # [P, H, W] each
             g = src.grid(u, v)  # [P, H, W, 2]
             w = F.grid_sample(srcs_img[k:k + 1].expand(P, -1, -1, -1), g, mode="bilinear",
                               padding_mode="zeros", align_corners=False)[:, 0]
@@ -280,7 +290,7 @@ def _sweep(ref: TorchCam, srcs: list[TorchCam], ref_gray: torch.Tensor, src_gray
         var_s = (_box(flat * flat) - mu_s * mu_s).clamp_min(0)
         cov = _box(flat * r) - mu_s * mu_r
         ncc = (cov / torch.sqrt(var_s * var_r + 1e-12)).reshape(P, K, H, W)
-        ncc = torch.where(ok & (var_s.reshape(P, K, H, W) > _MIN_TEXTURE), ncc, torch.full_like(ncc, -1.0))
+        ncc = torch.where(ok & (var_s.reshape(P, K, H, W) > _MIN_TEXTURE), ncc, -1.0)
         costs[s:s + P] = ncc.topk(best_k, dim=1).values.mean(1)
     score, idx = costs.max(0)
     # parabola through the winner and its neighbours, in the family's parameter
@@ -294,7 +304,7 @@ def _sweep(ref: TorchCam, srcs: list[TorchCam], ref_gray: torch.Tensor, src_gray
     step = params[1] - params[0] if n_planes > 1 else params.new_tensor(0.0)
     depth = family.depth_at(params[idx] + off * step)
     keep = (score > _MIN_SCORE) & (var_r[0, 0] > _MIN_TEXTURE) & (depth > 0)
-    return torch.where(keep, depth, torch.zeros_like(depth)), torch.where(keep, score, torch.full_like(score, -1.0))
+    return torch.where(keep, depth, 0.0), torch.where(keep, score, -1.0)
 
 
 def _consistent(ref: TorchCam, depth: torch.Tensor, srcs: list[TorchCam],
