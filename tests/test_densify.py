@@ -32,6 +32,28 @@ def _tag_moments(s, opt):
     s.buffers["grad_accum"].copy_(torch.arange(len(s), dtype=torch.float32))
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_gradient_and_view_statistics_count_the_visible_surfels_only(dtype):
+    """Analytic: a visible surfel adds its screen-space gradient norm in NDC units (pixels times half the image
+    size, as 3DGS), one count and its unit direction to the camera; a hidden one adds nothing, whatever its
+    gradient (a non-finite one included)."""
+    s, _ = _surfels(n=4)
+    with torch.no_grad():
+        s.params["means"].copy_(torch.tensor([[0.0, 0, 0], [0, 0, 1], [1, 0, 0], [0, 2, 0]]))
+    grad = torch.tensor([[3e-3, 4e-3], [1e-3, 0.0], [float("nan"), 1.0], [0.0, 2e-3]], dtype=dtype)
+    visible = torch.tensor([True, True, False, True])
+    for _ in range(2):
+        D.accumulate_gradients(s, grad, visible, 200, 100)
+        D.accumulate_view_directions(s, torch.tensor([0.0, 0.0, 3.0]), visible)
+    b = s.buffers
+    want = 2 * torch.tensor([math.hypot(0.3, 0.2), 0.1, 0.0, 0.1])
+    assert b["grad_accum"].dtype == torch.float32 and torch.allclose(b["grad_accum"], want, rtol=1e-6, atol=0)
+    assert b["grad_count"].tolist() == [2.0, 2.0, 0.0, 2.0]
+    d = torch.tensor([[0.0, 0, 1], [0, 0, 1], [0, 0, 0], [0, -2, 3]])
+    d[3] /= math.sqrt(13)
+    assert torch.allclose(b["view_dirs"], 2 * d, atol=1e-6)
+
+
 def test_prune_slices_adam_state_and_buffers_consistently():
     """After a prune, moments and buffers of survivor i are those of the surfel it was."""
     s, opt = _surfels()

@@ -56,19 +56,17 @@ def accumulate_gradients(surfels: Surfels, means2d_grad: torch.Tensor, visible: 
         width: image width in pixels, to convert the gradient to NDC units.
         height: image height in pixels, to convert the gradient to NDC units.
     """
-    g = means2d_grad.detach().clone()  # scaled per column in place: no host-to-device copy of the factors
-    g[:, 0] *= 0.5 * width
-    g[:, 1] *= 0.5 * height
-    norm = torch.where(visible, g.norm(dim=-1), torch.zeros_like(g[:, 0]))
-    surfels.buffers["grad_accum"] += norm.float()
-    surfels.buffers["grad_count"] += visible.float()
+    g = means2d_grad.detach()
+    norm = torch.hypot(g[:, 0] * (0.5 * width), g[:, 1] * (0.5 * height))  # scalar factors: no host-to-device copy
+    surfels.buffers["grad_accum"] += torch.where(visible, norm, 0.0)
+    surfels.buffers["grad_count"] += visible
 
 
 def accumulate_view_directions(surfels: Surfels, camera_center: torch.Tensor, visible: torch.Tensor) -> None:
     """Add the unit direction from each visible surfel towards the camera centre [3]."""
     d = camera_center.to(surfels.means) - surfels.means.detach()
-    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    surfels.buffers["view_dirs"] += torch.where(visible[:, None], d, torch.zeros_like(d))
+    weight = visible[:, None] / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)  # 1 / |d| where visible, else 0
+    surfels.buffers["view_dirs"].addcmul_(d, weight)
 
 
 def _keep_at_least(keep: torch.Tensor, score: torch.Tensor) -> torch.Tensor:
