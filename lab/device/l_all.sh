@@ -1,7 +1,9 @@
 # Lease step l in one device call (after the p1, p2 and p3 + gl + small/whl staging calls; carry .stage/usd):
 # #59's 64-view chair, where gsplat renders the held-out views 2.8 dB sharper: gsplat at its 30,000 iterations
 # and wtopo at the default side by side (gsplat's run takes about 760 s: lab/device/l_wait.sh waits for it),
-# then score.py --render-pictures puts each held-out view's photo beside both renders and their errors.
+# then score.py --render-pictures puts each held-out view's photo beside both renders and their errors; on the side,
+# bench_mvs.py times the stereo against its module at 3fe093d (the working tree on the device may have no .git:
+# stage that file as .stage/mvs_old.py first).
 source lab/device/lease_env.sh
 t0=$(date +%s)
 lease_install || exit 1
@@ -9,4 +11,8 @@ lease_prepare chair
 STAGE=$S bash $D launch "$S/exch/chair" -- gsplat
 d=$S/res/chair/wtopo_l; mkdir -p $d
 timeout 400 python3 benchmarks/peers/run_wtopo.py $S/exch/chair $d > $d.log 2>&1; echo "wtopo rc=$? after $(( $(date +%s) - t0 )) s"
+# the stereo against its previous module in one process (beside gsplat's training: read the ratio)
+mkdir -p $OUT/l; git show 3fe093d:wtopo/geometry/mvs.py > /tmp/mvs_old.py 2>/dev/null || cp .stage/mvs_old.py /tmp/mvs_old.py
+timeout 150 python3 benchmarks/bench_mvs.py --device cuda --views 42 --against /tmp/mvs_old.py > $OUT/l/mvs_gpu.txt 2>&1
+tail -n 4 $OUT/l/mvs_gpu.txt
 WAIT=$(( 560 - ($(date +%s) - t0) )) bash lab/device/l_wait.sh
