@@ -1,4 +1,4 @@
-# Lease step l in one device call (after the p1, p2 and p3 + gl + small/whl staging calls; carry .stage/usd):
+# Lease step l in one device call (after the p1, p2 and p3 + gl + small/whl staging calls; carry .stage/usd and .stage/mvs_old.py):
 # #59's 64-view chair, where gsplat renders the held-out views 2.8 dB sharper: gsplat at its 30,000 iterations
 # and wtopo at the default side by side (gsplat's run takes about 760 s: lab/device/l_wait.sh waits for it),
 # then score.py --render-pictures puts each held-out view's photo beside both renders and their errors; on the side,
