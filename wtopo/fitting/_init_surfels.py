@@ -191,7 +191,7 @@ def initial_surfels(scene, cfg: InitConfig, source: InitSource | str, *, sh_degr
         raise ValueError(f"init source must be 'points', 'mvs' or 'cameras', got {source!r}")
     k = min(_SCALE_NEIGHBOURS + 1, len(pts))
     if k > 1:
-        d, _ = cKDTree(pts).query(pts, k=k)
+        d, _ = cKDTree(pts).query(pts, k=k, workers=-1)
         scale = np.clip(d[:, 1:].mean(axis=1), 1e-6, _MAX_INIT_SCALE)
     else:
         scale = np.full(len(pts), 0.01)

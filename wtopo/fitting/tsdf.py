@@ -337,7 +337,7 @@ def decimate(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
         v, f = fast_simplification.simplify(v, f.astype(np.int32), target_count=int(max_faces) - (len(f) - max_faces))
     colors = None
     if mesh.visual.kind == "vertex":
-        near = cKDTree(verts).query(v)[1]
+        near = cKDTree(verts).query(v, workers=-1)[1]
         colors = np.asarray(mesh.visual.vertex_colors)[near]
     return trimesh.Trimesh(v, f, vertex_colors=colors, process=False)
 

@@ -64,7 +64,7 @@ def crop_near_cameras(mesh: trimesh.Trimesh, centers: np.ndarray, near: float) -
     # faces whose bounding sphere reaches within ``near`` of the nearest camera (a k-d tree over the few camera
     # centres, queried by every face centre: 2.6M faces in about a second), then the exact point-to-triangle
     # distance to each camera that sphere reaches
-    d, _ = cKDTree(centers).query(cen, k=1)
+    d, _ = cKDTree(centers).query(cen, k=1, workers=-1)
     cand = np.flatnonzero(d - rad < near)
     if len(cand) == 0:
         return mesh, 0

@@ -83,8 +83,8 @@ def chamfer_vertices(a, b) -> ChamferResult:
         return v
 
     va, vb = verts("a", a), verts("b", b)
-    acc = float(cKDTree(vb).query(va)[0].mean())
-    comp = float(cKDTree(va).query(vb)[0].mean())
+    acc = float(cKDTree(vb).query(va, workers=-1)[0].mean())
+    comp = float(cKDTree(va).query(vb, workers=-1)[0].mean())
     return _chamfer_result(acc, comp, float(np.linalg.norm(vb.max(0) - vb.min(0))))
 
 

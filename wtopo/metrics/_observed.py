@@ -108,7 +108,7 @@ def observed_chamfer(a, b, cameras, *, min_views: int = 2, tolerance: float | No
     obs = views >= int(min_views)
     if not obs.any():
         raise ValueError(f"no sample of the reference is seen by {min_views} of the {len(cameras)} cameras")
-    near = cKDTree(sb.points).query(sa.points)[1]
+    near = cKDTree(sb.points).query(sa.points, workers=-1)[1]
     keep = obs[near]
     acc = float(sb.closest(sa.points[keep])[0].mean()) if keep.any() else 0.0
     comp = float(sa.closest(sb.points[obs])[0].mean())
