@@ -23,6 +23,8 @@ VARIANTS = {
     "no_reinit": ["tsdf.enabled=false"],
     "filter_025": ["filter_sigma=0.25"],
     "filter_018": ["filter_sigma=0.18"],
+    "lr_colour_3dgs": ["optim.sh_dc=0.0025"],
+    "lr_3dgs": ["optim.sh_dc=0.0025", "optim.scales=0.005", "optim.quats=0.001"],
 }
 
 
