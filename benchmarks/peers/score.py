@@ -106,10 +106,18 @@ def score(exchange: str, result: str) -> dict:
     return row
 
 
+def _tile(img: np.ndarray, label: str) -> np.ndarray:
+    from PIL import Image, ImageDraw
+
+    im = Image.fromarray((np.clip(img, 0, 1) * 255).astype(np.uint8))
+    ImageDraw.Draw(im).text((4, 4), label, fill=(255, 0, 0))
+    return np.asarray(im)
+
+
 def pictures(exchange: str, results: list[str], out: str, views: int = 2) -> str:
     """Every system's mesh, normal-shaded, from the first ``views`` held-out views, beside the photo."""
     import trimesh
-    from PIL import Image, ImageDraw
+    from PIL import Image
 
     from wtopo import ops
 
@@ -133,27 +141,12 @@ def pictures(exchange: str, results: list[str], out: str, views: int = 2) -> str
             shade = np.clip(-n[..., 2:3], 0, 1) * 0.8 + 0.2
             tiles.append((np.where(masks[k][..., None], shade * np.array([0.9, 0.85, 0.75]), blank), name))
         columns.append(tiles)
-    cols = []
-    for k in range(len(shown)):
-        tiles = [c[k] for c in columns]
-        row = []
-        for t, label in tiles:
-            im = Image.fromarray((np.clip(t, 0, 1) * 255).astype(np.uint8))
-            ImageDraw.Draw(im).text((4, 4), label, fill=(255, 0, 0))
-            row.append(np.asarray(im))
-        cols.append(np.concatenate(row, axis=1))
+    cols = [np.concatenate([_tile(t, label) for t, label in (c[k] for c in columns)], axis=1)
+            for k in range(len(shown))]
     os.makedirs(out, exist_ok=True)
     path = os.path.join(out, f"{ex.meta['name']}.png")
     Image.fromarray(np.concatenate(cols, axis=0)).save(path)
     return path
-
-
-def _tile(img: np.ndarray, label: str) -> np.ndarray:
-    from PIL import Image, ImageDraw
-
-    im = Image.fromarray((np.clip(img, 0, 1) * 255).astype(np.uint8))
-    ImageDraw.Draw(im).text((4, 4), label, fill=(255, 0, 0))
-    return np.asarray(im)
 
 
 def render_pictures(exchange: str, results: list[str], out: str, gain: float = 4.0) -> str:
@@ -162,6 +155,8 @@ def render_pictures(exchange: str, results: list[str], out: str, gain: float = 4
     that view's PSNR [dB]. Where one system's renders lose to another's (#59) the error tiles show what: blur,
     colour, a missing part or a view-dependent halo. Returns the PNG's path (``out/<scene>_renders.png``)."""
     from PIL import Image
+
+    from wtopo import metrics
 
     ex = load(exchange)
     rows = []
@@ -175,8 +170,8 @@ def render_pictures(exchange: str, results: list[str], out: str, gain: float = 4
         for name, rgb in systems:
             pred = rgb[k].astype(np.float32)
             err = np.where(keep[..., None], np.abs(pred - gt), 0.0)
-            mse = float((err[keep] ** 2).mean()) if keep.any() else 0.0
-            db = 10 * np.log10(1.0 / max(mse, 1e-12))
+            db = float(metrics.psnr(torch.from_numpy(pred), torch.from_numpy(gt),
+                                    mask=None if m is None else torch.from_numpy(m)))  # as image_scores takes it
             renders.append(_tile(pred, f"{name} {db:.2f} dB"))
             errors.append(_tile(err * gain, f"{name} |error| x{gain:g}"))
         rows.append(np.concatenate([_tile(gt, f"photo, view {i}"), *renders, *errors], axis=1))
