@@ -43,8 +43,10 @@ def main(argv=None) -> None:
     scene = ex.scene()
     res = wtopo.fit(scene, cfg, out_dir=os.path.join(a.out, "run"), progress=False)
     run = clock.stop()
-    # the held-out views, rendered as the fit renders them (internal frame)
+    # the held-out views, rendered as the fit renders them (internal frame, the fit's screen-space filter: the
+    # rasterizer's own default is 2DGS's wider one)
     inner = scene.normalized()
+    raster = wtopo.ops.RasterConfig(filter_sigma=cfg.filter_sigma)
     s = res.surfels
     bg = torch.tensor(scene.background if scene.background is not None else (0.0, 0.0, 0.0), dtype=torch.float32,
                       device=s.means.device)
@@ -52,7 +54,7 @@ def main(argv=None) -> None:
     with torch.no_grad():
         for i in ex.test:
             out = wtopo.ops.rasterize_surfels(s.means, s.quats, s.scales, s.opacities, s.sh, inner.cameras[i],
-                                              sh_degree=s.sh_degree, background=bg)
+                                              sh_degree=s.sh_degree, background=bg, config=raster)
             renders.append(out.rgb.clamp(0, 1).cpu().numpy())
     run.update({"iterations": res.report.get("iterations"), "surfels": int(s.means.shape[0]),
                 "settings": sets, "own_report": {k: res.report.get(k) for k in ("psnr", "ssim", "chamfer", "f_score")}})

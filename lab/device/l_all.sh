@@ -1,16 +1,25 @@
 # Lease step l in one device call (after the p1, p2 and p3 + gl + small/whl staging calls; carry .stage/usd and .stage/mvs_old.py):
 # #59's 64-view chair, where gsplat renders the held-out views 2.8 dB sharper: gsplat at its 30,000 iterations
-# and wtopo at the default side by side (gsplat's run takes about 760 s: lab/device/l_wait.sh waits for it),
+# and wtopo at the default (and two variants) side by side (gsplat's run takes about 760 s: lab/device/l_wait.sh waits for it),
 # then score.py --render-pictures puts each held-out view's photo beside both renders and their errors; on the side,
 # bench_mvs.py times the stereo against its module at 3fe093d (the working tree on the device may have no .git:
 # stage that file as .stage/mvs_old.py first).
 source lab/device/lease_env.sh
 t0=$(date +%s)
 lease_install || exit 1
-lease_prepare chair
+lease_prepare chair bunny64
 STAGE=$S bash $D launch "$S/exch/chair" -- gsplat
-d=$S/res/chair/wtopo_l; mkdir -p $d
-timeout 400 python3 benchmarks/peers/run_wtopo.py $S/exch/chair $d > $d.log 2>&1; echo "wtopo rc=$? after $(( $(date +%s) - t0 )) s"
+# wtopo at the default and two hypotheses for the gap, side by side: four times the re-initialisation's surfels
+# (one per face: 64k at the default) and SH degree 3 (the plan gives the diffuse chair 0; gsplat fits 3), and
+# the surfels on bunny64 (the default reaches the CUDA cap of 100k faces there)
+for v in "chair l" "chair l_faces --set tsdf.max_faces=250000" "chair l_sh3 --set sh_degree=3" \
+         "chair l_both --set tsdf.max_faces=250000 --set sh_degree=3" "bunny64 l" \
+         "bunny64 l_faces --set tsdf.max_faces=250000"; do
+  set -- $v; sc=$1; d=$S/res/$sc/wtopo_$2; shift 2; mkdir -p $d
+  # detached: the fits outlive this call (l_wait.sh waits for their run.json)
+  setsid nohup timeout 1200 python3 benchmarks/peers/run_wtopo.py $S/exch/$sc $d --label $(basename $d) "$@" \
+    > $d.log 2>&1 < /dev/null &
+done
 # the stereo against its previous module in one process (beside gsplat's training: read the ratio)
 mkdir -p $OUT/l; git show 3fe093d:wtopo/geometry/mvs.py > /tmp/mvs_old.py 2>/dev/null || cp .stage/mvs_old.py /tmp/mvs_old.py
 timeout 150 python3 benchmarks/bench_mvs.py --device cuda --views 42 --against /tmp/mvs_old.py > $OUT/l/mvs_gpu.txt 2>&1
