@@ -32,10 +32,10 @@ from wtopo.geometry import mvs
 DTU = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data", "dtu_scan24")
 
 
-def _scene(views: int, scale: float):
+def _scene(views: int, scale: float, data: str = DTU):
     from wtopo import load_scene, scenes
 
-    scene = load_scene(DTU) if os.path.isdir(DTU) else scenes.load("bunny", n_views=32, resolution=256)
+    scene = load_scene(data) if os.path.isdir(data) else scenes.load("bunny", n_views=32, resolution=256)
     scene = scene.normalized()
     if scale > 1:
         scene = scene.downscaled(scale)
@@ -74,9 +74,10 @@ def main(argv=None) -> None:
     ap.add_argument("--scale", type=float, default=1.0, help="downscale the images this many times")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--data", default=DTU, help="the capture (default: DTU scan24 in ../shared/data)")
     ap.add_argument("--against", default=None, help="another version of wtopo/geometry/mvs.py, timed beside it")
     a = ap.parse_args(argv)
-    cams, images = _scene(a.views, a.scale)
+    cams, images = _scene(a.views, a.scale, a.data)
     print(f"{len(cams)} views of {cams[0].width} x {cams[0].height}, device {a.device}", flush=True)
     rows = [("wtopo.geometry.mvs", *_time(mvs, cams, images, a.device, a.repeats))]
     if a.against:

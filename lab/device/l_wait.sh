@@ -16,6 +16,8 @@ if done_all; then
     --pictures $OUT/l --render-pictures $OUT/l > $OUT/l/score.log 2>&1; tail -n 3 $OUT/l/score.log
   timeout 200 python3 benchmarks/peers/score.py $S/exch/bunny64 $S/res/bunny64/wtopo_l*/ --out $OUT/l/rows_bunny64.json \
     --render-pictures $OUT/l > $OUT/l/score_bunny64.log 2>&1; tail -n 3 $OUT/l/score_bunny64.log
+  timeout 200 python3 benchmarks/peers/score.py $S/exch/dtu_scan24 $S/res/dtu_scan24/wtopo_l*/ \
+    --out $OUT/l/rows_dtu.json > $OUT/l/score_dtu.log 2>&1; tail -n 3 $OUT/l/score_dtu.log
 else
   echo "still running after $(( $(date +%s) - t0 )) s: call l_wait.sh again"; ls $S/res/chair
 fi
