@@ -25,8 +25,6 @@ VARIANTS = {
     "filter_018": ["filter_sigma=0.18"],
     "lr_colour_3dgs": ["optim.sh_dc=0.0025"],
     "lr_3dgs": ["optim.sh_dc=0.0025", "optim.scales=0.005", "optim.quats=0.001"],
-    "faces_4x": ["tsdf.max_faces=32000"],
-    "sh3": ["sh_degree=3"],
 }
 
 

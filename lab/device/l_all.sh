@@ -1,6 +1,6 @@
 # Lease step l in one device call (after the p1, p2 and p3 + gl + small/whl staging calls; carry .stage/usd,
 # .stage/dtu_raw and .stage/mvs_old.py):
-# #59's 64-view chair, where gsplat renders the held-out views 2.8 dB sharper: gsplat at its 30,000 iterations
+# #59's 64-view chair, where gsplat read 2.8 dB sharper (2.1 of it the harness's render filter, since fixed): gsplat at its 30,000 iterations
 # and wtopo at the default (and two variants) side by side (gsplat's run takes about 760 s: lab/device/l_wait.sh waits for it),
 # then score.py --render-pictures puts each held-out view's photo beside both renders and their errors; on the side,
 # bench_mvs.py times the stereo against its module at 3fe093d (the working tree on the device may have no .git:
