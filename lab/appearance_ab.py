@@ -4,6 +4,8 @@ variant on one scene of the peers' set (default: the chair, 48 views of 200 px),
 of ``--set`` items. Prints held-out PSNR (inside the masks), Chamfer, F-score, surfels and time as JSON lines.
 
     PYTHONPATH=. .venv/bin/python lab/appearance_ab.py [--scene chair] [--views 48] [--size 200] [--only NAME ...]
+
+``--views 0``: the peers' scene at the harness's size; a name outside the peers' set is a built-in scene.
 """
 import argparse
 import json
@@ -44,7 +46,12 @@ def main():
     from wtopo.fitting.config import FitConfig
 
     for name in a.only:
-        scene = peer_scenes.load(a.scene, n_views=a.views, resolution=a.size)
+        if a.scene not in peer_scenes.names():  # a built-in scene at its own size (bunny, bunny_env)
+            scene = wtopo.scenes.load(a.scene)
+        elif a.views > 0:
+            scene = peer_scenes.load(a.scene, n_views=a.views, resolution=a.size)
+        else:  # the peers' scene as the harness exports it
+            scene = peer_scenes.load(a.scene)
         cfg = FitConfig()
         for item in ["runtime.device=cpu", "runtime.usd_every=0", f"runtime.seed={a.seed}", *VARIANTS[name]]:
             _apply_set(cfg, item)
@@ -53,7 +60,8 @@ def main():
         chamfer = rep.get("chamfer")
         row = {"scene": a.scene, "variant": name, "seed": a.seed, "psnr": rep.get("psnr"),
                "psnr_on": rep.get("psnr_on"), "surfels": rep.get("surfels"), "elapsed_s": rep.get("elapsed_s"),
-               "chamfer_pct": None if chamfer is None else 100 * chamfer, "f_score": rep.get("f_score")}
+               "chamfer_pct": None if chamfer is None else 100 * chamfer, "f_score": rep.get("f_score"),
+               "roi_f1": rep.get("roi_f1")}
         print(json.dumps(row), flush=True)
 
 

@@ -95,6 +95,22 @@ def test_the_render_pictures_show_each_view_and_where_a_system_errs(exch, tmp_pa
         assert tiles[3].max() < 0.02 < tiles[4].max()  # its error is black; the shifted render's is not
 
 
+def test_wtopo_s_held_out_renders_score_as_its_own_evaluation(exch, tmp_path):
+    """``run_wtopo.py`` renders the held-out views as the fit does (its screen-space filter, its background): the
+    scorer's PSNR of those renders is the fit's own report's, on the same views inside the same masks."""
+    import json
+
+    import run_wtopo
+
+    out = tmp_path / "wtopo"
+    run_wtopo.main([exch.root, str(out), "--device", "cpu", "--set", "preset=fast", "--set", "warmup.iterations=40",
+                    "--set", "coevolution.iterations=40", "--set", "runtime.usd_every=0"])
+    own = json.loads((out / "run.json").read_text())["own_report"]["psnr"]
+    row = score(exch.root, str(out))
+    assert row["psnr_on"] == "masks" and np.isfinite(own)
+    assert abs(row["psnr"] - own) < 0.05, (row["psnr"], own)  # float16 storage of the renders
+
+
 @pytest.fixture(scope="module")
 def exch_env(tmp_path_factory):
     """The unbounded ``mug_torus_env`` of the benchmark's own scenes, at a size for a test."""

@@ -5,6 +5,8 @@
 #   2. detached fits (lab/device/m_wait.sh waits and scores): the four unmasked scenes with the sweep capped at
 #      32,768 pixels per view (DTU seeds 0 and 1; DTU's default at seed 1 beside them), the 64-view chair and
 #      bunny64 at filter_sigma 0.25. The defaults at seed 0 are rows_2026-12-04l's.
+# The cap (wtopo.fitting._init_surfels._STEREO_MAX_PIXELS) and lab/run_wtopo_stereo.py were removed after this lease
+# (rejected: design/decisions.md); they are in commit 0448678 for a rerun.
 source lab/device/lease_env.sh
 t0=$(date +%s)
 lease_install || exit 1

@@ -9,7 +9,6 @@ the masks' visual hull (or, without masks, 90 % of the camera frusta) contains t
 
 from __future__ import annotations
 
-import math
 import warnings
 
 import numpy as np
@@ -27,8 +26,6 @@ INIT_OPACITY = 0.3
 """Opacity of every initial surfel (scene points, stereo, random and background ones), in (0, 1)."""
 
 _CPU_STEREO_VIEWS = 24  # views a CPU fit sweeps (evenly spaced): the points are thinned to num_points anyway
-# pixels per view the sweep runs at: larger views are downscaled first (area averaging); None: the fit's images
-_STEREO_MAX_PIXELS: int | None = None
 MIN_MVS_POINTS = 100  # fewer confirmed stereo points than this: the capture is too untextured, use CAMERAS
 
 _SCALE_NEIGHBOURS = 3  # initial scale = mean distance to this many nearest neighbours (3DGS)
@@ -149,9 +146,6 @@ def stereo_points(scene, layout, device):
     lo, hi = (np.zeros(3), np.ones(3)) if layout is None else (layout.roi_lower, layout.roi_upper)
     near = 0.01 if layout is None else layout.near
     max_views = None if torch.device(device).type == "cuda" else _CPU_STEREO_VIEWS
-    cam = scene.cameras[0]
-    if _STEREO_MAX_PIXELS is not None and cam.width * cam.height > _STEREO_MAX_PIXELS:
-        scene = scene.downscaled(math.sqrt(cam.width * cam.height / _STEREO_MAX_PIXELS))
     return plane_sweep_points(scene.cameras, scene.images, lo, hi, near=near, device=device, max_views=max_views)
 
 
