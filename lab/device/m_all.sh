@@ -2,7 +2,7 @@
 # .stage/dtu_raw and .stage/exch/bunny64). #60's stereo at fewer pixels (lab/stereo_res.py's question on whole
 # fits) and #59's narrower render filter on the GPU:
 #   1. bench_mvs.py on DTU's 42 training-size views at scales 1, 1.5 and 2, alone on the GPU;
-#   2. detached fits (lab/device/m_wait.sh waits and scores): the four unmasked scenes with the sweep capped at
+#   2. detached fits (lab/device/wait_fits.sh waits and scores): the four unmasked scenes with the sweep capped at
 #      32,768 pixels per view (DTU seeds 0 and 1; DTU's default at seed 1 beside them), the 64-view chair and
 #      bunny64 at filter_sigma 0.25. The defaults at seed 0 are rows_2026-12-04l's.
 # The cap (wtopo.fitting._init_surfels._STEREO_MAX_PIXELS) and lab/run_wtopo_stereo.py were removed after this lease
@@ -35,4 +35,4 @@ run dtu_scan24 m_seed1 benchmarks/peers/run_wtopo.py --set runtime.seed=1
 run chair m_f025 benchmarks/peers/run_wtopo.py --set filter_sigma=0.25
 run bunny64 m_f025 benchmarks/peers/run_wtopo.py --set filter_sigma=0.25
 echo "fits launched after $(( $(date +%s) - t0 )) s"
-WAIT=$(( 570 - ($(date +%s) - t0) )) bash lab/device/m_wait.sh
+TAG=m WAIT=$(( 570 - ($(date +%s) - t0) )) bash lab/device/wait_fits.sh

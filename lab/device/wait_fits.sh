@@ -1,0 +1,21 @@
+# The calls after a lease step's detached fits (within 30 s of the last): TAG=m (m_all.sh) or n (n_all.sh). Waits up
+# to WAIT seconds for every $S/res/SCENE/wtopo_TAG* result, then scores each scene's into $OUT/TAG/rows_SCENE.json.
+source lab/device/lease_env.sh
+t0=$(date +%s)
+end=$(( t0 + ${WAIT:-540} ))
+done_all() {
+  for d in $S/res/*/wtopo_${TAG:-m}*/; do [ -f "$d/run.json" ] || return 1; done
+}
+while [ "$(date +%s)" -lt $end ] && ! done_all; do sleep 10; done
+for d in $S/res/*/wtopo_${TAG:-m}*/; do echo "$d $([ -f $d/run.json ] && echo done || (echo running; tail -n 2 ${d%/}.log))"; done
+mkdir -p $OUT/${TAG:-m}
+if done_all; then
+  # a call brings back a limited number of files: the rows only, the logs stay on the machine
+  for sc in $(ls $S/res); do
+    ls -d $S/res/$sc/wtopo_${TAG:-m}*/ > /dev/null 2>&1 || continue
+    timeout 100 python3 benchmarks/peers/score.py $S/exch/$sc $S/res/$sc/wtopo_${TAG:-m}*/ --out $OUT/${TAG:-m}/rows_$sc.json \
+      > $S/score_${TAG:-m}_$sc.log 2>&1; tail -n 2 $S/score_${TAG:-m}_$sc.log | cut -c1-300
+  done
+else
+  echo "still running after $(( $(date +%s) - t0 )) s: call wait_fits.sh again"
+fi
