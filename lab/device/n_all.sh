@@ -3,8 +3,8 @@
 #   #59: the 0.25-px render filter (lease m: the 64-view chair 31.00 -> 31.18 dB, bunny64 31.46 -> 31.62, both
 #   meshes closer) on the scenes it has not met on the GPU: the three unmasked scenes, DTU at seeds 0 and 1 and
 #   the ten-view chair; and wtopo without its mesh loop on bunny64 and the chair (#59's with / without the loop
-#   rows, beside the authors' code with and without its mesh stage). The defaults are rows_2026-12-04l's (seed 0)
-#   and rows_2026-12-04m's (DTU seed 1). lab/device/wait_fits.sh (TAG=n) waits and scores.
+#   rows, beside the authors' code with and without its mesh stage); DTU's held-out renders for its view 40.
+#   The defaults are rows_2026-12-04l's (seed 0) and rows_2026-12-04m's (DTU seed 1). lab/device/wait_fits.sh (TAG=n) waits and scores.
 source lab/device/lease_env.sh
 t0=$(date +%s)
 lease_install || exit 1
@@ -27,4 +27,4 @@ run dtu_scan24 n_f025_seed1 --set filter_sigma=0.25 --set runtime.seed=1
 run bunny64 n_noloop --no-loop
 run chair n_noloop --no-loop
 echo "fits launched after $(( $(date +%s) - t0 )) s"
-TAG=n WAIT=$(( 570 - ($(date +%s) - t0) )) bash lab/device/wait_fits.sh
+TAG=n PICTURES=dtu_scan24 WAIT=$(( 570 - ($(date +%s) - t0) )) bash lab/device/wait_fits.sh

@@ -1,5 +1,6 @@
 # The calls after a lease step's detached fits (within 30 s of the last): TAG=m (m_all.sh) or n (n_all.sh). Waits up
-# to WAIT seconds for every $S/res/SCENE/wtopo_TAG* result, then scores each scene's into $OUT/TAG/rows_SCENE.json.
+# to WAIT seconds for every $S/res/SCENE/wtopo_TAG* result, then scores each scene's into $OUT/TAG/rows_SCENE.json
+# (PICTURES=SCENE: that scene's held-out renders and errors as well, SCENE_renders.png).
 source lab/device/lease_env.sh
 t0=$(date +%s)
 end=$(( t0 + ${WAIT:-540} ))
@@ -13,8 +14,9 @@ if done_all; then
   # a call brings back a limited number of files: the rows only, the logs stay on the machine
   for sc in $(ls $S/res); do
     ls -d $S/res/$sc/wtopo_${TAG:-m}*/ > /dev/null 2>&1 || continue
+    pics=(); [ "$sc" = "${PICTURES:-}" ] && pics=(--render-pictures $OUT/${TAG:-m})  # held-out renders of one scene
     timeout 100 python3 benchmarks/peers/score.py $S/exch/$sc $S/res/$sc/wtopo_${TAG:-m}*/ --out $OUT/${TAG:-m}/rows_$sc.json \
-      > $S/score_${TAG:-m}_$sc.log 2>&1; tail -n 2 $S/score_${TAG:-m}_$sc.log | cut -c1-300
+      "${pics[@]}" > $S/score_${TAG:-m}_$sc.log 2>&1; tail -n 2 $S/score_${TAG:-m}_$sc.log | cut -c1-300
   done
 else
   echo "still running after $(( $(date +%s) - t0 )) s: call wait_fits.sh again"
