@@ -4,7 +4,8 @@
 #   meshes closer) on the scenes it has not met on the GPU: the three unmasked scenes, DTU at seeds 0 and 1 and
 #   the ten-view chair; and wtopo without its mesh loop on bunny64 and the chair (#59's with / without the loop
 #   rows, beside the authors' code with and without its mesh stage); DTU's held-out renders for its view 40.
-#   The defaults are rows_2026-12-04l's (seed 0) and rows_2026-12-04m's (DTU seed 1). lab/device/wait_fits.sh (TAG=n) waits and scores.
+#   The defaults are rows_2026-12-04l's (seed 0) and rows_2026-12-04m's (DTU seed 1).
+#   lab/device/wait_fits.sh (TAG=n) waits and scores.
 source lab/device/lease_env.sh
 t0=$(date +%s)
 lease_install || exit 1
