@@ -1,0 +1,68 @@
+"""Lab (nothing imports it): DTU scan24's held-out view 40, where wtopo's render loses 4-10 dB to gsplat's on the GPU
+(`benchmarks/peers.md`). One CPU fit at the default on the peers' split (every 8th view held out), then every
+held-out view rendered with the fit's filter, with and without the surfels outside the region of interest (the
+background shells and whatever they became), PSNR per view, and a picture of view 40: the photo, both renders and
+their errors (x4).
+
+    PYTHONPATH=. .venv/bin/python lab/dtu_view40.py [--data ../shared/data/dtu_scan24] [--out /tmp/dtu_view40.png]
+"""
+import argparse
+import json
+import os
+
+import numpy as np
+import torch
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--data", default=os.path.join(HERE, "..", "..", "shared", "data", "dtu_scan24"))
+    ap.add_argument("--out", default="/tmp/dtu_view40.png")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--set", action="append", default=[])
+    a = ap.parse_args()
+
+    from PIL import Image
+
+    import wtopo
+    from wtopo import ops
+    from wtopo.cli import _apply_set
+    from wtopo.fitting.background import BackgroundState
+    from wtopo.fitting.config import FitConfig
+
+    scene = wtopo.load_scene(a.data)
+    n = len(scene.cameras)
+    test = list(range(0, n, 8))
+    scene = scene._replace(train_indices=[i for i in range(n) if i not in test], test_indices=test)
+    cfg = FitConfig()
+    for item in ["runtime.device=cpu", "runtime.usd_every=0", f"runtime.seed={a.seed}", *a.set]:
+        _apply_set(cfg, item)
+    res = wtopo.fit(scene, cfg, progress=False)
+    s = res.surfels
+    inner = scene.normalized()
+    outside = BackgroundState(res.plan.layout, s.means.device).outside_roi(s.means)
+    raster = ops.RasterConfig(filter_sigma=cfg.filter_sigma)
+    rows, tiles = [], None
+    for i in test:
+        photo = inner.images[i].numpy()
+        out = []
+        for keep in (torch.ones_like(outside), ~outside):
+            with torch.no_grad():
+                r = ops.rasterize_surfels(s.means[keep], s.quats[keep], s.scales[keep], s.opacities[keep], s.sh[keep],
+                                          inner.cameras[i], sh_degree=s.sh_degree, config=raster)
+            out.append(r.rgb.clamp(0, 1).numpy())
+        psnr = [float(-10 * np.log10(np.mean((o - photo) ** 2))) for o in out]
+        rows.append({"view": i, "psnr": round(psnr[0], 2), "psnr_without_outside": round(psnr[1], 2)})
+        if i == 40:
+            err = [np.clip(4 * np.abs(o - photo), 0, 1) for o in out]
+            tiles = np.concatenate([photo, *out, *err], axis=1)
+    print(json.dumps({"surfels": int(len(s.means)), "outside_roi": int(outside.sum()),
+                      "report_psnr": res.report.get("psnr"), "views": rows}), flush=True)
+    if tiles is not None:
+        Image.fromarray((tiles * 255).astype(np.uint8)).save(a.out)
+
+
+if __name__ == "__main__":
+    main()
