@@ -127,6 +127,29 @@ def test_faces_near_a_camera_are_removed_and_only_those():
     assert camera_clearance(plane, centers)[0] < 0.5
 
 
+def test_faces_near_a_camera_match_the_exhaustive_test_whatever_the_cameras():
+    """Cameras far from the mesh's box are skipped before any per-face work: the faces removed are exactly those an
+    exhaustive point-to-triangle test over every camera finds, for cameras near, inside and far from the box."""
+    rng = np.random.default_rng(0)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    near = 0.3
+    centers = np.concatenate([rng.normal(size=(6, 3)) * 0.7,  # inside or near the sphere's box
+                              rng.normal(size=(6, 3)) + np.array([4.0, 0.0, 0.0]),  # far from it
+                              [[1.2, 0.0, 0.0], [0.0, 0.0, -1.25]]])  # just outside a face, within near
+    tris = np.asarray(sphere.triangles)
+    exhaustive = np.zeros(len(tris), bool)
+    for c in centers:
+        closest = trimesh.triangles.closest_point(tris, np.broadcast_to(c, (len(tris), 3)))
+        exhaustive |= np.linalg.norm(closest - c, axis=1) < near
+    out, removed = crop_near_cameras(sphere, centers, near)
+    assert removed == int(exhaustive.sum()) > 0
+    np.testing.assert_allclose(np.sort(np.asarray(out.triangles).reshape(-1, 9), axis=0),
+                               np.sort(tris[~exhaustive].reshape(-1, 9), axis=0))
+    far_only = centers[6:12]
+    same, none = crop_near_cameras(sphere, far_only, near)
+    assert none == 0 and same is sphere
+
+
 def test_crop_to_box_keeps_faces_inside():
     """Keep exactly the faces whose vertices lie in the box."""
     s = trimesh.creation.icosphere(subdivisions=3, radius=1.0)

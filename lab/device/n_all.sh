@@ -19,6 +19,9 @@ python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 $S/exch/dtu_scan24 
 wait
 tail -q -n 1 $S/exch_*.log
 echo "exports done after $(( $(date +%s) - t0 )) s"
+# #60: the final mesh's host steps on the GPU machine (the near-camera crop now skips cameras away from the mesh)
+timeout 150 python3 benchmarks/bench_mesh_policy.py --device cuda > $OUT/n/mesh_policy_gpu.txt 2>&1
+tail -n 9 $OUT/n/mesh_policy_gpu.txt
 run() {  # SCENE NAME ARGS...
   local sc=$1 d=$S/res/$1/wtopo_$2; shift 2; mkdir -p $d
   setsid nohup timeout 700 python3 benchmarks/peers/run_wtopo.py $S/exch/$sc $d --label $(basename $d) "$@" \

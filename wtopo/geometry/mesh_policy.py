@@ -58,9 +58,17 @@ def crop_near_cameras(mesh: trimesh.Trimesh, centers: np.ndarray, near: float) -
         return mesh, 0
     v = np.asarray(mesh.vertices)
     f = np.asarray(mesh.faces)
+    centers = np.asarray(centers, np.float64).reshape(-1, 3)
+    # only the cameras within ``near`` of the mesh's bounding box can be within ``near`` of a face (exact: a face
+    # lies in the box); cameras outside a region of interest's mesh usually are not, and then nothing is computed
+    # per face
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    gap = np.linalg.norm(np.maximum(0.0, np.maximum(lo - centers, centers - hi)), axis=1)
+    centers = centers[gap < near]
+    if len(centers) == 0:
+        return mesh, 0
     cen = (v[f[:, 0]] + v[f[:, 1]] + v[f[:, 2]]) / 3.0
     rad = np.sqrt(np.max([np.einsum("ij,ij->i", v[f[:, k]] - cen, v[f[:, k]] - cen) for k in range(3)], axis=0))
-    centers = np.asarray(centers, np.float64).reshape(-1, 3)
     # faces whose bounding sphere reaches within ``near`` of the nearest camera (a k-d tree over the few camera
     # centres, queried by every face centre: 2.6M faces in about a second), then the exact point-to-triangle
     # distance to each camera that sphere reaches
