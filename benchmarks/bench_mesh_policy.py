@@ -34,7 +34,13 @@ from scipy.spatial import cKDTree
 from wtopo import Camera
 from wtopo.fitting.tsdf import _FAN_MAX_EDGES, cleanup_mesh, fill_boundary_loops, repair_mesh
 from wtopo.geometry.components import face_components
-from wtopo.geometry.mesh_policy import _vertex_agreement, crop_near_cameras, supported_components, supported_faces
+from wtopo.geometry.mesh_policy import (
+    _vertex_agreement,
+    _without_faces,
+    crop_near_cameras,
+    supported_components,
+    supported_faces,
+)
 from wtopo.geometry.winding import orient_faces
 from wtopo.ops import raycast_mesh
 
@@ -60,12 +66,7 @@ def _crop_near_every_camera(mesh, centers, near):
             tri = v[f[cand[close]]]
             closest = trimesh.triangles.closest_point(tri, np.broadcast_to(c, (len(tri), 3)))
             drop[cand[close][np.linalg.norm(closest - c, axis=1) < near]] = True
-    if not drop.any():
-        return mesh, 0
-    out = mesh.copy()
-    out.update_faces(~drop)
-    out.remove_unreferenced_vertices()
-    return out, int(drop.sum())
+    return _without_faces(mesh, drop)
 
 
 def _repair_with_trimesh(mesh):

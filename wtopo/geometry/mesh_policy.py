@@ -83,6 +83,12 @@ def crop_near_cameras(mesh: trimesh.Trimesh, centers: np.ndarray, near: float) -
         if close.any():
             ids = cand[close]
             drop[ids[_face_distance(tri[close], c) < near]] = True
+    return _without_faces(mesh, drop)
+
+
+def _without_faces(mesh: trimesh.Trimesh, drop: np.ndarray) -> tuple[trimesh.Trimesh, int]:
+    """``mesh`` without the faces ``drop`` [F] marks (and the vertices only they used), and how many; ``mesh``
+    itself when none is marked."""
     if not drop.any():
         return mesh, 0
     out = mesh.copy()
