@@ -1,8 +1,8 @@
 """Lab (nothing imports it): DTU scan24's held-out view 40, where wtopo's render loses 4-10 dB to gsplat's on the GPU
 (`benchmarks/peers.md`). One CPU fit at the default on the peers' split (every 8th view held out), then every
-held-out view rendered with the fit's filter, with and without the surfels outside the region of interest (the
-background shells and whatever they became), PSNR per view, and a picture of view 40: the photo, both renders and
-their errors (x4).
+held-out view rendered with the fit's filter: all surfels, without those outside the region of interest (the
+background shells and whatever they became), and only those that contribute to a pixel of some training view; PSNR
+per view, and a picture of view 40: the photo, the three renders and their errors (x4).
 
     PYTHONPATH=. .venv/bin/python lab/dtu_view40.py [--data ../shared/data/dtu_scan24] [--out /tmp/dtu_view40.png]
 """
@@ -44,21 +44,29 @@ def main():
     inner = scene.normalized()
     outside = BackgroundState(res.plan.layout, s.means.device).outside_roi(s.means)
     raster = ops.RasterConfig(filter_sigma=cfg.filter_sigma)
+    # the surfels that contribute to no pixel of any training view: no photograph supports them
+    seen = torch.zeros(len(s.means), dtype=torch.bool)
+    for i in scene.train_indices:
+        with torch.no_grad():
+            r = ops.rasterize_surfels(s.means, s.quats, s.scales, s.opacities, s.sh, inner.cameras[i],
+                                      sh_degree=s.sh_degree, config=raster)
+        seen |= r.visibility > 0
     rows, tiles = [], None
     for i in test:
         photo = inner.images[i].numpy()
         out = []
-        for keep in (torch.ones_like(outside), ~outside):
+        for keep in (torch.ones_like(outside), ~outside, seen):
             with torch.no_grad():
                 r = ops.rasterize_surfels(s.means[keep], s.quats[keep], s.scales[keep], s.opacities[keep], s.sh[keep],
                                           inner.cameras[i], sh_degree=s.sh_degree, config=raster)
             out.append(r.rgb.clamp(0, 1).numpy())
         psnr = [float(-10 * np.log10(np.mean((o - photo) ** 2))) for o in out]
-        rows.append({"view": i, "psnr": round(psnr[0], 2), "psnr_without_outside": round(psnr[1], 2)})
+        rows.append({"view": i, "psnr": round(psnr[0], 2), "psnr_without_outside": round(psnr[1], 2),
+                     "psnr_seen_only": round(psnr[2], 2)})
         if i == 40:
             err = [np.clip(4 * np.abs(o - photo), 0, 1) for o in out]
             tiles = np.concatenate([photo, *out, *err], axis=1)
-    print(json.dumps({"surfels": int(len(s.means)), "outside_roi": int(outside.sum()),
+    print(json.dumps({"surfels": int(len(s.means)), "outside_roi": int(outside.sum()), "unseen": int((~seen).sum()),
                       "report_psnr": res.report.get("psnr"), "views": rows}), flush=True)
     if tiles is not None:
         Image.fromarray((tiles * 255).astype(np.uint8)).save(a.out)
