@@ -7,9 +7,9 @@ depth maps; timed in one process, each step beside the trimesh operation it repl
 * component labels: :func:`wtopo.geometry.components.face_components` (SciPy on the vertex graph) against
   ``trimesh.graph.connected_component_labels(mesh.face_adjacency)``;
 * faces near a camera: :func:`wtopo.geometry.mesh_policy.crop_near_cameras` (the cameras within ``near`` of the
-  mesh's box, then a k-d tree over them) against its previous form (every face against a k-d tree over every
-  camera), with the cameras all away from the mesh (a region of interest's final mesh, DTU's) and with one within
-  ``near`` of it;
+  mesh's box, then a k-d tree over them) against its previous form, its per-face pass over every camera
+  (``_crop_near``), with the cameras all away from the mesh (a region of interest's final mesh, DTU's) and with
+  one within ``near`` of it;
 * the clean-up: without merging vertices by position (a marching-cubes mesh shares them already) against
   ``Trimesh.merge_vertices``;
 * the support rules' projections (every vertex into every view) in torch on ``--device`` against NumPy, and on CUDA
@@ -29,14 +29,13 @@ import time
 import numpy as np
 import torch
 import trimesh
-from scipy.spatial import cKDTree
 
 from wtopo import Camera
 from wtopo.fitting.tsdf import _FAN_MAX_EDGES, cleanup_mesh, fill_boundary_loops, repair_mesh
 from wtopo.geometry.components import face_components
 from wtopo.geometry.mesh_policy import (
+    _crop_near,
     _vertex_agreement,
-    _without_faces,
     crop_near_cameras,
     supported_components,
     supported_faces,
@@ -49,24 +48,6 @@ def _timed(fn):
     t = time.perf_counter()
     out = fn()
     return time.perf_counter() - t, out
-
-
-def _crop_near_every_camera(mesh, centers, near):
-    """The crop before the box test: every face's bounding sphere against a k-d tree over every camera, then the
-    exact distance to each camera a sphere reaches; the mesh without those faces and their number."""
-    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    cen = (v[f[:, 0]] + v[f[:, 1]] + v[f[:, 2]]) / 3.0
-    rad = np.sqrt(np.max([np.einsum("ij,ij->i", v[f[:, k]] - cen, v[f[:, k]] - cen) for k in range(3)], axis=0))
-    d, _ = cKDTree(centers).query(cen, k=1, workers=-1)
-    cand = np.flatnonzero(d - rad < near)
-    drop = np.zeros(len(f), bool)
-    for c in centers:
-        close = np.linalg.norm(cen[cand] - c, axis=1) - rad[cand] < near
-        if close.any():
-            tri = v[f[cand[close]]]
-            closest = trimesh.triangles.closest_point(tri, np.broadcast_to(c, (len(tri), 3)))
-            drop[cand[close][np.linalg.norm(closest - c, axis=1) < near]] = True
-    return _without_faces(mesh, drop)
 
 
 def _repair_with_trimesh(mesh):
@@ -107,12 +88,12 @@ def main(argv=None) -> None:
         trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).face_adjacency, node_count=len(mesh.faces)))
     rows.append(("component labels", t_new, t_old))
     t_new, (_, n_new) = _timed(lambda: crop_near_cameras(mesh, centers, 0.1))
-    t_old, (_, n_old) = _timed(lambda: _crop_near_every_camera(mesh, centers, 0.1))
+    t_old, (_, n_old) = _timed(lambda: _crop_near(mesh, centers, 0.1))
     assert n_new == n_old
     rows.append(("faces near a camera, none near the mesh (old: every face)", t_new, t_old))
     one = np.concatenate([centers, [[0.0, 0.0, 1.05]]])  # above the first sphere's pole, within 0.1 of it
     t_new, (_, n_new) = _timed(lambda: crop_near_cameras(mesh, one, 0.1))
-    t_old, (_, n_old) = _timed(lambda: _crop_near_every_camera(mesh, one, 0.1))
+    t_old, (_, n_old) = _timed(lambda: _crop_near(mesh, one, 0.1))
     assert n_new == n_old > 0
     rows.append(("faces near a camera, one near the mesh (old: every face)", t_new, t_old))
     t_new, _ = _timed(lambda: cleanup_mesh(mesh, largest_component=False, repair=False, weld=False))

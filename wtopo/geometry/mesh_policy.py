@@ -57,7 +57,6 @@ def crop_near_cameras(mesh: trimesh.Trimesh, centers: np.ndarray, near: float) -
     if len(mesh.faces) == 0:
         return mesh, 0
     v = np.asarray(mesh.vertices)
-    f = np.asarray(mesh.faces)
     centers = np.asarray(centers, np.float64).reshape(-1, 3)
     # only the cameras within ``near`` of the mesh's bounding box can be within ``near`` of a face (exact: a face
     # lies in the box); cameras outside a region of interest's mesh usually are not, and then nothing is computed
@@ -67,11 +66,18 @@ def crop_near_cameras(mesh: trimesh.Trimesh, centers: np.ndarray, near: float) -
     centers = centers[gap < near]
     if len(centers) == 0:
         return mesh, 0
+    return _crop_near(mesh, centers, near)
+
+
+def _crop_near(mesh: trimesh.Trimesh, centers: np.ndarray, near: float) -> tuple[trimesh.Trimesh, int]:
+    """:func:`crop_near_cameras`' per-face pass over the cameras ``centers`` [C, 3] (float64): faces whose bounding
+    sphere reaches within ``near`` of the nearest camera (a k-d tree over the few camera centres, queried by every
+    face centre: 2.6M faces in about a second), then the exact point-to-triangle distance to each camera that
+    sphere reaches."""
+    v = np.asarray(mesh.vertices)
+    f = np.asarray(mesh.faces)
     cen = (v[f[:, 0]] + v[f[:, 1]] + v[f[:, 2]]) / 3.0
     rad = np.sqrt(np.max([np.einsum("ij,ij->i", v[f[:, k]] - cen, v[f[:, k]] - cen) for k in range(3)], axis=0))
-    # faces whose bounding sphere reaches within ``near`` of the nearest camera (a k-d tree over the few camera
-    # centres, queried by every face centre: 2.6M faces in about a second), then the exact point-to-triangle
-    # distance to each camera that sphere reaches
     d, _ = cKDTree(centers).query(cen, k=1, workers=-1)
     cand = np.flatnonzero(d - rad < near)
     if len(cand) == 0:
@@ -83,12 +89,6 @@ def crop_near_cameras(mesh: trimesh.Trimesh, centers: np.ndarray, near: float) -
         if close.any():
             ids = cand[close]
             drop[ids[_face_distance(tri[close], c) < near]] = True
-    return _without_faces(mesh, drop)
-
-
-def _without_faces(mesh: trimesh.Trimesh, drop: np.ndarray) -> tuple[trimesh.Trimesh, int]:
-    """``mesh`` without the faces ``drop`` [F] marks (and the vertices only they used), and how many; ``mesh``
-    itself when none is marked."""
     if not drop.any():
         return mesh, 0
     out = mesh.copy()
