@@ -132,7 +132,7 @@ def time_reference(cam, params, pixels: int, repeats: int = 1) -> float:
     return min(times), int(idx.numel())
 
 
-BUNNY_FILTER_SIGMA = 0.35  # wtopo.fit's RasterConfig.filter_sigma
+BUNNY_FILTER_SIGMA = 0.35  # the CPU plan's filter_sigma (wtopo.fitting.plan._FILTER_SIGMA["cpu"])
 
 
 def bunny_state(n: int = 12_000, seed: int = 0, surfels: str | None = None):

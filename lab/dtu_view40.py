@@ -43,7 +43,7 @@ def main():
     s = res.surfels
     inner = scene.normalized()
     outside = BackgroundState(res.plan.layout, s.means.device).outside_roi(s.means)
-    raster = ops.RasterConfig(filter_sigma=cfg.filter_sigma)
+    raster = ops.RasterConfig(filter_sigma=res.plan.filter_sigma)
     # the surfels that contribute to no pixel of any training view: no photograph supports them
     seen = torch.zeros(len(s.means), dtype=torch.bool)
     for i in scene.train_indices:

@@ -169,6 +169,22 @@ def test_cuda_plan_restarts_the_co_evolutions_means_and_the_cpu_does_not(room):
     assert warmup_differences(resolve_config(cfg, p).to_dict(), resolve_config(FitConfig(), gpu).to_dict()) == []
 
 
+def test_plan_picks_the_render_filter_per_device_and_a_users_wins(room):
+    """The renderer's low-pass is the plan's: 0.25 px on CUDA, 0.35 on the CPU (design/decisions.md); the resolved
+    configuration, which the fit renders with, carries it; a user's value wins on either device."""
+    scene = room.normalized()
+    for dev, want in (("cuda", 0.25), ("cpu", 0.35)):
+        p = make_plan(scene, FitConfig(), torch.device(dev))
+        assert p.filter_sigma == want and "filter_sigma" not in p.overrides
+        assert resolve_config(FitConfig(), p).filter_sigma == want
+        assert p.to_dict()["filter_sigma"]["value"] == want
+    cfg = FitConfig(filter_sigma=0.5)
+    for dev in ("cuda", "cpu"):
+        p = make_plan(scene, cfg, torch.device(dev))
+        assert p.filter_sigma == 0.5 and "filter_sigma" in p.overrides
+        assert resolve_config(cfg, p).filter_sigma == 0.5
+
+
 def test_reinit_faces_follow_the_pixel_footprint():
     """Put about one re-initialisation face per 4 squared pixel footprints of the region's box surface on
     CUDA (a 32-view rig sees the surface from enough views for the full density): 2x the image side gives

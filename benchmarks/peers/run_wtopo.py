@@ -46,7 +46,7 @@ def main(argv=None) -> None:
     # the held-out views, rendered as the fit renders them (internal frame, the fit's screen-space filter: the
     # rasterizer's own default is 2DGS's wider one)
     inner = scene.normalized()
-    raster = wtopo.ops.RasterConfig(filter_sigma=cfg.filter_sigma)
+    raster = wtopo.ops.RasterConfig(filter_sigma=res.plan.filter_sigma)
     s = res.surfels
     bg = torch.tensor(scene.background if scene.background is not None else (0.0, 0.0, 0.0), dtype=torch.float32,
                       device=s.means.device)

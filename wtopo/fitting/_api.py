@@ -35,8 +35,8 @@ class FitResult:
         mesh: the final mesh, in the scene's (the caller's) frame.
         surfels: the fitted surfels, in the internal frame (``report["normalization"]`` maps them back;
             ``surfels.ply`` in ``out_dir`` holds them in the caller's frame). Render them with the screen-space
-            filter they were fitted with, ``RasterConfig(filter_sigma=config.filter_sigma)`` (0.35 px by
-            default): the rasterizer's own default, 2DGS's 0.71 px, blurs them.
+            filter they were fitted with, ``RasterConfig(filter_sigma=plan.filter_sigma)`` (by default 0.25 px on CUDA,
+            0.35 on the CPU): the rasterizer's own default, 2DGS's 0.71 px, blurs them.
         plan: the stage plan (:class:`~wtopo.fitting.plan.Plan`): ``print(result.plan)`` says which stages
             ran and why; ``plan.json`` in ``out_dir`` is its :meth:`~wtopo.fitting.plan.Plan.to_dict`.
         history: one record per evaluation (iteration, stage, elapsed, stage_times, losses,

@@ -69,6 +69,8 @@ class Plan:
     """The co-evolution's means restart, fraction of ``optim.means``; ``optim.means_restart``."""
     max_surfels: int
     """Surfel cap; ``runtime.max_surfels``."""
+    filter_sigma: float
+    """The renderer's screen-space low-pass [pixels]; ``FitConfig.filter_sigma``."""
     reinit_faces: int
     """Faces (one surfel each) of the TSDF re-initialisation mesh; ``tsdf.max_faces``."""
     reinit_resolution: int

@@ -244,8 +244,10 @@ class FitConfig:
     20 training views, else 3)."""
     background: tuple[float, float, float] | None = _f(None, FRACTION)
     """RGB background colour behind the surfels, in [0, 1]; ``None``: the scene's, else black."""
-    filter_sigma: float = _f(0.35, Range(*FILTER_SIGMA_RANGE))
-    """Screen-space low-pass of the surfel renderer [pixels] (:class:`wtopo.RasterConfig`)."""
+    filter_sigma: float | None = _f(None, Range(*FILTER_SIGMA_RANGE))
+    """Screen-space low-pass of the surfel renderer [pixels] (:class:`wtopo.RasterConfig`); ``None``: the plan's
+    (0.25 on CUDA, 0.35 on the CPU; 2DGS's is 0.71). Render fitted surfels with the plan's value
+    (``FitResult.plan.filter_sigma``)."""
 
     @staticmethod
     def toposurfel_public() -> FitConfig:
