@@ -38,6 +38,11 @@ def main() -> None:
     st = pstats.Stats(pr)
     total_calls = sum(v[1] for v in st.stats.values())
     print(f"{total_calls / n:.0f} Python calls per iteration ({n} iterations)")
+    groups = {"warp's Python": "warp/_src/", "wtopo": "/wtopo/", "torch's Python": "torch/"}
+    for label, key in groups.items():
+        own = sum(v[2] for (f, _, _), v in st.stats.items() if key in f)
+        calls = sum(v[1] for (f, _, _), v in st.stats.items() if key in f)
+        print(f"{label}: {1e3 * own / n:.2f} ms own time and {calls / n:.0f} calls per iteration")
     rows = sorted(st.stats.items(), key=lambda kv: -kv[1][2])[: a.top]
     print(f"{'own ms/it':>9} {'cum ms/it':>9} {'calls/it':>8}  function")
     for (f, line, name), (_cc, nc, tt, ct, _) in rows:

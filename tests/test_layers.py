@@ -30,7 +30,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("kernels", ("wtopo.kernels",)),
     # what every op shares: the torch bridge, validation, profiling sections, the camera; the root package
     # (``wtopo.__version__``, Warp's configuration)
-    ("base", ("wtopo", "wtopo._bridge", "wtopo._validate", "wtopo._profile", "wtopo.camera")),
+    ("base", ("wtopo", "wtopo._views", "wtopo._bridge", "wtopo._validate", "wtopo._profile", "wtopo.camera")),
     # one module per differentiable or discrete op
     ("ops", ("wtopo.ops", "wtopo.rasterize", "wtopo.raycast", "wtopo.scatter", "wtopo.poisson",
              "wtopo.marching_cubes", "wtopo.oriented_points", "wtopo.photometric", "wtopo.multiview_ncc",

@@ -19,6 +19,10 @@ kernels register them with :meth:`warp.Tape.record_func`). :func:`apply` wraps t
 Outputs flagged non-differentiable (indices, masks, counts) are marked so with
 ``ctx.mark_non_differentiable`` and never receive a gradient.
 
+The hot ops allocate their arrays with :func:`empty` (``wtopo._views``): torch's caching allocator owns the memory
+and an output goes back to torch as a view of its tensor, with no conversion; :func:`to_warp` views a tensor
+directly at its address (a quarter of ``wp.from_torch``'s host time, measured in ``benchmarks/gpu.md``).
+
 :func:`launch` is ``wp.launch`` with a generic kernel's overload resolved once per argument types (Warp
 infers it at every launch otherwise: a third of a small render's host time). :func:`launch_split` runs a
 kernel whose threads write disjoint outputs in several chunks from Python threads: Warp's CPU backend runs
@@ -30,7 +34,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -39,12 +42,16 @@ import numpy as np
 import torch
 import warp as wp
 
+from ._views import _ensure_init, as_torch, empty, float_dtype, to_warp, vec_dtype
+
 __all__ = [
     "WarpOp",
     "apply",
     "active_tape",
     "warp_device",
     "to_warp",
+    "empty",
+    "as_torch",
     "launch",
     "launch_split",
     "cpu_threads",
@@ -53,19 +60,6 @@ __all__ = [
     "torch_stream",
     "recover_after_oom",
 ]
-
-_init_lock = threading.Lock()
-_initialized = False
-
-
-def _ensure_init() -> None:
-    global _initialized
-    if not _initialized:
-        with _init_lock:
-            if not _initialized:
-                wp.init()  # a no-op after wtopo's import-time initialisation (wtopo/__init__.py configures Warp)
-                _initialized = True
-
 
 _pools_kept: set = set()
 _POOL_KEEP_BYTES = 4 << 30  # at most this much freed memory stays cached in a CUDA device's pool
@@ -127,53 +121,13 @@ def recover_after_oom(device: torch.device | str) -> None:
                        f"({_RECOVER_TRIES} checked tries); restart the process")
 
 
-_VEC = {
-    (torch.float32, 1): wp.float32,
-    (torch.float64, 1): wp.float64,
-    (torch.float32, 2): wp.vec2,
-    (torch.float64, 2): wp.vec2d,
-    (torch.float32, 3): wp.vec3,
-    (torch.float64, 3): wp.vec3d,
-    (torch.float32, 4): wp.vec4,
-    (torch.float64, 4): wp.vec4d,
-}
-
-
-def float_dtype(t: torch.Tensor):
-    """Warp scalar type for a float32/float64 tensor."""
-    return _VEC[(t.dtype, 1)]
-
-
-def vec_dtype(t: torch.Tensor, n: int | None = None):
-    """Warp vector type ``vecN``/``vecNd`` for a tensor whose last dimension is ``n``."""
-    n = t.shape[-1] if n is None else n
-    return _VEC[(t.dtype, n)]
-
-
-def to_warp(t: torch.Tensor, dtype=None) -> wp.array:
-    """View a tensor as a Warp array without copying (the tensor is made contiguous first).
-
-    ``dtype`` is a Warp scalar or vector type; a vector type consumes the tensor's last dimension. No gradient
-    buffer is attached (the bridge attaches torch-owned ones to the inputs that need them).
-    """
-    _ensure_init()
-    t = t.detach().contiguous()
-    if t.numel() == 0:  # an empty tensor counts as contiguous whatever its strides; Warp checks them
-        t = torch.empty(t.shape, dtype=t.dtype, device=t.device)
-    elif t.dim() > 1:
-        # a size-1 dimension keeps any stride in a contiguous tensor ([1, 4] sliced from [1, 6]: stride 6); a
-        # gradient buffer made for it has the canonical ones, which Warp requires to match
-        t = t.view(-1).view(t.shape)
-    return wp.from_torch(t, dtype=dtype, requires_grad=False)
-
-
 def _grad_buffer(arr: wp.array, like: torch.Tensor) -> torch.Tensor:
     """Attach a zeroed gradient buffer owned by torch, of ``like``'s shape and dtype, to ``arr`` and return it.
 
     Warp views it without a copy, so backward hands it to torch as it is (no clone, no ``tape.zero()``).
     """
     g = torch.zeros(like.shape, dtype=like.dtype, device=like.device)
-    arr.grad = wp.from_torch(g, dtype=arr.dtype)
+    arr.grad = to_warp(g, arr.dtype)
     return g
 
 
@@ -264,7 +218,7 @@ class _WarpFunction(torch.autograd.Function):
         for o, diff in zip(outs, op.differentiable_outputs):
             if diff and o.grad is None:
                 raise RuntimeError(f"{op.name}: differentiable output allocated without requires_grad")
-            torch_outs.append(wp.to_torch(o, requires_grad=False))
+            torch_outs.append(as_torch(o))
         ctx.op = op
         ctx.tape = tape
         ctx.wp_inputs = wp_inputs

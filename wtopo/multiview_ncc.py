@@ -141,9 +141,9 @@ def window_ncc_costs(depth: torch.Tensor, normal: torch.Tensor, alpha: torch.Ten
     def run(d, n, a, yy, xx, gray, mean, var, dirs, length, im0, im1, prm):
         dev = d.device
         count = yy.shape[0]
-        cost = wp.empty(count, dtype=s, device=dev, requires_grad=True)
-        ok = wp.empty(count, dtype=s, device=dev)
-        stats = wp.empty((count, _MAX_SOURCES), dtype=v4, device=dev)
+        cost = _bridge.empty(count, s, dev, requires_grad=True)
+        ok = _bridge.empty(count, s, dev)
+        stats = _bridge.empty((count, _MAX_SOURCES), v4, dev)
         _bridge.launch_split(forward_kernel, count, [d, n, a, yy, xx, gray, mean, var, dirs, length, im0, im1, prm,
                                                      sources, int(half), s(min_std), s(grazing), s(alpha_min), s(eps)],
                              [cost, ok, stats], device=dev, min_chunk=_MIN_CHUNK)
@@ -151,10 +151,10 @@ def window_ncc_costs(depth: torch.Tensor, normal: torch.Tensor, alpha: torch.Ten
         def backward():
             if not (d.requires_grad or n.requires_grad):
                 return
-            gd = d.grad if d.requires_grad else wp.zeros(d.shape, dtype=s, device=dev)
-            gn = n.grad if n.requires_grad else wp.zeros(n.shape, dtype=v3, device=dev)
-            gwd = wp.empty(count, dtype=s, device=dev)
-            gwn = wp.empty(count, dtype=v3, device=dev)
+            gd = d.grad if d.requires_grad else _bridge.empty(d.shape, s, dev, zero=True)
+            gn = n.grad if n.requires_grad else _bridge.empty(n.shape, v3, dev, zero=True)
+            gwd = _bridge.empty(count, s, dev)
+            gwn = _bridge.empty(count, v3, dev)
             _bridge.launch_split(adjoint_kernel, count, [d, n, yy, xx, gray, mean, var, dirs, im0, im1, prm, sources,
                                                          int(half), stats, cost.grad], [gwd, gwn], device=dev,
                                  min_chunk=_MIN_CHUNK)

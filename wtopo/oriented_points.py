@@ -6,7 +6,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-import warp as wp
 
 from . import _bridge
 from ._validate import require_finite, require_positive, require_same_device, require_tensor, value_checks
@@ -43,9 +42,9 @@ def _op(dtype: torch.dtype, samples: int, params: tuple) -> _bridge.WarpOp:
     def run(means, quats, scales, opacities, sign):
         n = means.shape[0]
         dev = means.device
-        points = wp.zeros(n * samples, dtype=v3, device=dev, requires_grad=True)
-        normals = wp.zeros(n * samples, dtype=v3, device=dev, requires_grad=True)
-        weights = wp.zeros(n * samples, dtype=sc, device=dev, requires_grad=True)
+        points = _bridge.empty(n * samples, v3, dev, requires_grad=True, zero=True)
+        normals = _bridge.empty(n * samples, v3, dev, requires_grad=True, zero=True)
+        weights = _bridge.empty(n * samples, sc, dev, requires_grad=True, zero=True)
         if n > 0:
             _bridge.launch(oriented_points_kernel, dim=n,
                       inputs=[means, quats, scales, opacities, sign, samples, *consts],

@@ -67,10 +67,10 @@ def _maps(pred: torch.Tensor, target: torch.Tensor, win: torch.Tensor, c1: float
         h, w, c = x.shape
         hv, wv = h - k + 1, w - k + 1
         dev = x.device
-        rows = wp.empty((h, wv, c), dtype=v5, device=dev)
-        l1 = wp.empty((h, w, c), dtype=s, device=dev, requires_grad=True)
-        ssim = wp.empty((hv, wv, c), dtype=s, device=dev, requires_grad=True)
-        partials = wp.empty((hv, wv, c), dtype=v3, device=dev)
+        rows = _bridge.empty((h, wv, c), v5, dev)
+        l1 = _bridge.empty((h, w, c), s, dev, requires_grad=True)
+        ssim = _bridge.empty((hv, wv, c), s, dev, requires_grad=True)
+        partials = _bridge.empty((hv, wv, c), v3, dev)
         _bridge.launch(_k.ssim_rows_kernel, dim=(h, w, c), inputs=[x, y, window], outputs=[rows, l1], device=dev,
                   record_tape=False)
         _bridge.launch(_k.ssim_map_kernel, dim=(hv, wv, c), inputs=[rows, window, s(c1), s(c2)],
@@ -79,7 +79,7 @@ def _maps(pred: torch.Tensor, target: torch.Tensor, win: torch.Tensor, c1: float
         def backward():
             if not x.requires_grad:
                 return
-            cols = wp.empty((h, wv, c), dtype=v3, device=dev)
+            cols = _bridge.empty((h, wv, c), v3, dev)
             _bridge.launch(_k.ssim_adjoint_columns_kernel, dim=(h, wv, c), inputs=[partials, ssim.grad, window],
                       outputs=[cols], device=dev, record_tape=False)
             _bridge.launch(_k.photometric_grad_kernel, dim=(h, w, c), inputs=[x, y, cols, l1.grad, window],

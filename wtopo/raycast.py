@@ -165,8 +165,8 @@ class _Launcher:
 
 def _shade_run(verts, faces, face_id, origins, directions):
     n = face_id.shape[0]
-    depth = wp.zeros(n, dtype=verts.dtype._wp_scalar_type_, device=verts.device, requires_grad=True)
-    normal = wp.zeros(n, dtype=verts.dtype, device=verts.device, requires_grad=True)
+    depth = _bridge.empty(n, verts.dtype._wp_scalar_type_, verts.device, requires_grad=True, zero=True)
+    normal = _bridge.empty(n, verts.dtype, verts.device, requires_grad=True, zero=True)
     inputs = [verts, faces, face_id, origins, directions]
     # per-ray disjoint writes: split over CPU threads; the adjoint scatters into verts.grad with
     # atomics, so it is one launch, registered on the bridge's tape by hand

@@ -109,14 +109,14 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
     tiles_x, tiles_y = -(-camera.width // ts), -(-camera.height // ts)
     n_tiles = tiles_x * tiles_y
     dt = _bridge.float_dtype(means)
-    rect = wp.empty(n, dtype=wp.vec4i, device=wdev)
-    counts = wp.empty(n, dtype=wp.int32, device=wdev)
-    radii = wp.empty(n, dtype=wp.int32, device=wdev)
-    means2d = wp.empty(n, dtype=_bridge.vec_dtype(means, 2), device=wdev)
-    cutoff = wp.empty(n, dtype=dt, device=wdev)
-    prect = wp.empty(n, dtype=wp.vec4i, device=wdev)
+    rect = _bridge.empty(n, wp.vec4i, wdev)
+    counts = _bridge.empty(n, wp.int32, wdev)
+    radii = _bridge.empty(n, wp.int32, wdev)
+    means2d = _bridge.empty(n, _bridge.vec_dtype(means, 2), wdev)
+    cutoff = _bridge.empty(n, dt, wdev)
+    prect = _bridge.empty(n, wp.vec4i, wdev)
     # centre depths, then the radix sort's scratch half (the depth order of the sort keys)
-    zc = wp.empty(2 * n, dtype=dt, device=wdev)
+    zc = _bridge.empty(2 * n, dt, wdev)
     inputs = [_bridge.to_warp(means, _bridge.vec_dtype(means, 3)), _bridge.to_warp(quats, _bridge.vec_dtype(quats, 4)),
               _bridge.to_warp(scales, _bridge.vec_dtype(scales, 2)), _bridge.to_warp(opacities, dt), cam_rec, *tables,
               ts]
@@ -125,7 +125,7 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
     with section("rasterize_binning"):
         _bridge.launch_split(_kb.bin_surfels_kernel, n, inputs, [rect, counts, radii, means2d, cutoff, prect, zc],
                              device=wdev)
-        counts_t = wp.to_torch(counts)
+        counts_t = _bridge.as_torch(counts)
         csum = torch.cumsum(counts_t, 0, dtype=torch.int64)
         defer = defer_count and n > 0
         if defer:
@@ -143,20 +143,20 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
         raise ValueError(f"rasterize_surfels: {n} surfels cover {total} (tile, surfel) pairs, above "
                          f"config.max_intersections = {config.max_intersections}; raise the budget, use a larger "
                          f"tile_size, or prune/shrink large surfels")
-    tile_start = wp.zeros(n_tiles, dtype=wp.int32, device=wdev)
-    tile_end = wp.zeros(n_tiles, dtype=wp.int32, device=wdev)
+    tile_start = _bridge.empty(n_tiles, wp.int32, wdev, zero=True)
+    tile_end = _bridge.empty(n_tiles, wp.int32, wdev, zero=True)
     rank_bits = max(1, (n - 1).bit_length())
     # deferred: one more tile value for the padding keys (tile n_tiles), sorted after every real pair
     key_bits = rank_bits + max(1, (n_tiles if defer else n_tiles - 1).bit_length())
-    keys = wp.empty(max(2 * total, 1), dtype=wp.int32 if key_bits <= 31 else wp.int64, device=wdev)
-    values = wp.empty(max(2 * total, 1), dtype=wp.int32, device=wdev)
+    keys = _bridge.empty(max(2 * total, 1), wp.int32 if key_bits <= 31 else wp.int64, wdev)
+    values = _bridge.empty(max(2 * total, 1), wp.int32, wdev)
     if total:
         with section("rasterize_sort"):
             # depth rank of every surfel (Warp's stable radix sort on the centre z-depths the binning wrote)
-            order = wp.empty(2 * n, dtype=wp.int32, device=wdev)
+            order = _bridge.empty(2 * n, wp.int32, wdev)
             wp.copy(order, _iota(n, wdev), count=n)
             wp.utils.radix_sort_pairs(zc, order, n)
-            rank = wp.empty(n, dtype=wp.int64, device=wdev)
+            rank = _bridge.empty(n, wp.int64, wdev)
             _bridge.launch_split(_kb.depth_ranks_kernel, n, [order], [rank], device=wdev)
         with section("rasterize_binning"):
             if defer:
@@ -174,4 +174,5 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
         with section("rasterize_binning"):
             _bridge.launch_split(_kb.tile_ranges_kernel, total, [keys, total, rank_bits], [tile_start, tile_end],
                                  device=wdev)
-    return _Bins(tile_start, tile_end, values, wp.to_torch(radii), wp.to_torch(means2d), cutoff, prect, overflow)
+    return _Bins(tile_start, tile_end, values, _bridge.as_torch(radii), _bridge.as_torch(means2d), cutoff, prect,
+                 overflow)

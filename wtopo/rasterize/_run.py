@@ -122,25 +122,26 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
     def run(means, quats, scales, opacities, sh, means2d):
         n = means.shape[0]
         with section("rasterize_forward"):
-            prep = [wp.empty(n, dtype=t, device=wdev, requires_grad=True) for t in (v3, v3, v3, v3, v3, v2, s, v3)]
+            prep = [_bridge.empty(n, t, wdev, requires_grad=True) for t in (v3, v3, v3, v3, v3, v2, s, v3)]
             uax, vax, nrm, auv, nrm_face, m2, zc, color = prep
             _bridge.launch_split(_k.prepare_surfels_kernel, n, [means, quats, scales, sh, cam_rec, sh_degree], prep,
                                  device=wdev, record_tape=True)
-            outs = [wp.empty((h, w), dtype=t, device=wdev, requires_grad=True) for t in (v3, s, s, s, v3, s)]
+            outs = [_bridge.empty((h, w), t, wdev, requires_grad=True) for t in (v3, s, s, s, v3, s)]
             rgb, alpha, depth, median, normal, dist = outs
-            t_final = wp.empty((h, w), dtype=s, device=wdev)
-            sums = wp.empty((h, w), dtype=v3, device=wdev)
-            last = wp.empty((h, w), dtype=wp.int32, device=wdev)
-            median_idx = wp.empty((h, w), dtype=wp.int32, device=wdev)
-            visibility = wp.zeros(n, dtype=wp.int32, device=wdev) if workers == 1 else None
+            t_final = _bridge.empty((h, w), s, wdev)
+            sums = _bridge.empty((h, w), v3, wdev)
+            last = _bridge.empty((h, w), wp.int32, wdev)
+            median_idx = _bridge.empty((h, w), wp.int32, wdev)
+            visibility = _bridge.empty(n, wp.int32, wdev, zero=True) if workers == 1 else None
             # one worker (CUDA): the kernel counts straight into the output, no per-worker buffer to sum
-            vis_w = visibility.reshape((1, n)) if workers == 1 else wp.zeros((workers, n), dtype=wp.int32, device=wdev)
+            vis_w = (visibility.reshape((1, n)) if workers == 1
+                     else _bridge.empty((workers, n), wp.int32, wdev, zero=True))
             geo = wp.empty(n, dtype=_k.SURFEL[s], device=wdev)
             _bridge.launch_split(_k.pack_surfels_kernel, n, [uax, vax, nrm, auv, m2, zc, bins.cutoff], [geo],
                                  device=wdev)
             surf = [geo, nrm_face, color, opacities, bg_wp, ts, tiles_x]
             if tiles:
-                done = wp.empty((h, w), dtype=wp.int32, device=wdev)
+                done = _bridge.empty((h, w), wp.int32, wdev)
                 _launch_worker_tiles(_kt.render_forward_tiles_kernel, n_tiles,
                                      [bins.tile_start, bins.tile_end, bins.ids, bins.prect, rays_wp, cam_rec, *surf],
                                      [*outs, t_final, sums, last, median_idx, done, vis_w], device=wdev,
@@ -152,7 +153,7 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
                               [*outs, t_final, sums, last, median_idx, vis_w], device=wdev, workers=workers,
                               tiles_per_chunk=config.tiles_per_chunk)
             if workers > 1:
-                visibility = wp.empty(n, dtype=wp.int32, device=wdev)
+                visibility = _bridge.empty(n, wp.int32, wdev)
                 _bridge.launch_split(_kb.sum_visibility_kernel, n, [vis_w], [visibility], device=wdev)
 
         # gradient order: uax, vax, nrm, auv, nrm_face, m2, zc, color, opacity, shift
@@ -167,12 +168,12 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
                 if workers == 1:
                     # one worker (CUDA): accumulate straight into the tape's zeroed gradient arrays (same sums
                     # as a zeroed buffer added to them), no buffers to clear and no reduction launch
-                    bufs = [g.reshape((1, n)) if g.shape[0] else wp.zeros((1, n), dtype=t, device=wdev)
+                    bufs = [g.reshape((1, n)) if g.shape[0] else _bridge.empty((1, n), t, wdev, zero=True)
                             for g, t in zip(targets, grad_types)]
                 else:
-                    bufs = [wp.zeros((workers, n), dtype=t, device=wdev) for t in grad_types]
+                    bufs = [_bridge.empty((workers, n), t, wdev, zero=True) for t in grad_types]
                 if tiles:
-                    scratch = [wp.empty((h, w), dtype=t, device=wdev) for t in (s, s, v4)]
+                    scratch = [_bridge.empty((h, w), t, wdev) for t in (s, s, v4)]
                     _launch_worker_tiles(_kt.render_backward_tiles_kernel, n_tiles,
                                          [bins.tile_start, bins.ids, bins.prect, rays_wp, cam_rec, *surf, t_final,
                                           sums, last, median_idx, *(o.grad for o in outs), *scratch],

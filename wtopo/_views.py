@@ -1,0 +1,148 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The bridge's memory: torch tensors viewed as Warp arrays and Warp arrays allocated in torch's memory.
+
+:func:`to_warp` views a tensor without a copy; :func:`empty` allocates an op's arrays through torch's caching
+allocator; :func:`as_torch` hands such an array back to torch. :mod:`wtopo._bridge` re-exports all three, and the ops
+use them from there.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import torch
+import warp as wp
+
+_init_lock = threading.Lock()
+_initialized = False
+
+
+def _ensure_init() -> None:
+    global _initialized
+    if not _initialized:
+        with _init_lock:
+            if not _initialized:
+                wp.init()  # a no-op after wtopo's import-time initialisation (wtopo/__init__.py configures Warp)
+                _initialized = True
+
+
+_VEC = {
+    (torch.float32, 1): wp.float32,
+    (torch.float64, 1): wp.float64,
+    (torch.float32, 2): wp.vec2,
+    (torch.float64, 2): wp.vec2d,
+    (torch.float32, 3): wp.vec3,
+    (torch.float64, 3): wp.vec3d,
+    (torch.float32, 4): wp.vec4,
+    (torch.float64, 4): wp.vec4d,
+}
+
+
+def float_dtype(t: torch.Tensor):
+    """Warp scalar type for a float32/float64 tensor."""
+    return _VEC[(t.dtype, 1)]
+
+
+def vec_dtype(t: torch.Tensor, n: int | None = None):
+    """Warp vector type ``vecN``/``vecNd`` for a tensor whose last dimension is ``n``."""
+    n = t.shape[-1] if n is None else n
+    return _VEC[(t.dtype, n)]
+
+
+_SCALAR = {torch.float32: wp.float32, torch.float64: wp.float64, torch.float16: wp.float16, torch.int32: wp.int32,
+           torch.int64: wp.int64, torch.int16: wp.int16, torch.int8: wp.int8, torch.uint8: wp.uint8,
+           torch.bool: wp.bool}
+_wp_devices: dict = {}
+
+
+def _view_device(device: torch.device):
+    d = _wp_devices.get(device)
+    if d is None:
+        d = _wp_devices[device] = wp.device_from_torch(device)
+    return d
+
+
+def to_warp(t: torch.Tensor, dtype=None) -> wp.array:
+    """View a tensor as a Warp array without copying (the tensor is made contiguous first).
+
+    ``dtype`` is a Warp scalar or vector type; a vector type consumes the tensor's last dimension. No gradient
+    buffer is attached (the bridge attaches torch-owned ones to the inputs that need them). The view keeps the
+    tensor alive. A contiguous tensor of a known dtype takes a direct path (``wp.array`` at the tensor's address
+    with the canonical strides: a quarter of the host time of ``wp.from_torch`` behind the stride fix-ups below,
+    measured in ``benchmarks/bench_bridge.py``); the result is the same view.
+    """
+    _ensure_init()
+    scalar = _SCALAR.get(t.dtype)
+    if scalar is not None and t.is_contiguous() and t.numel() > 0:
+        shape = tuple(t.shape)
+        if dtype is None:
+            dtype = scalar
+        elif dtype is not scalar:  # a vector type of this scalar consumes the last dimensions; anything else below
+            want = getattr(dtype, "_shape_", None)
+            k = 0 if want is None else len(want)
+            if k == 0 or getattr(dtype, "_wp_scalar_type_", None) is not scalar or shape[-k:] != tuple(want):
+                shape = None
+            else:
+                shape = shape[:-k] or (1,)
+        if shape is not None:
+            arr = wp.array(ptr=t.data_ptr(), dtype=dtype, shape=shape, device=_view_device(t.device))
+            arr._tensor = t.detach()  # noqa: SLF001 - keeps the storage (not the graph) alive, as wp.from_torch does
+            return arr
+    t = t.detach().contiguous()
+    if t.numel() == 0:  # an empty tensor counts as contiguous whatever its strides; Warp checks them
+        t = torch.empty(t.shape, dtype=t.dtype, device=t.device)
+    elif t.dim() > 1:
+        # a size-1 dimension keeps any stride in a contiguous tensor ([1, 4] sliced from [1, 6]: stride 6); a
+        # gradient buffer made for it has the canonical ones, which Warp requires to match
+        t = t.view(-1).view(t.shape)
+    return wp.from_torch(t, dtype=dtype, requires_grad=False)
+
+
+_TORCH_OF = {v: k for k, v in _SCALAR.items()}
+_torch_devices: dict = {}
+
+
+def empty(shape, dtype, device, requires_grad: bool = False, zero: bool = False) -> wp.array:
+    """``wp.empty`` (``zero``: ``wp.zeros``) whose memory torch's caching allocator owns.
+
+    ``shape`` an int or tuple; ``dtype`` a Warp scalar or vector type (a struct type or an empty shape falls
+    back to Warp's own allocation); ``device`` a Warp device or its name. ``requires_grad`` attaches a zeroed
+    gradient array of the same kind. On CUDA torch's allocator hands back a cached block in about a microsecond
+    of host time where Warp's stream-ordered pool takes tens, and an op's output made here goes back to torch
+    without a conversion (:func:`apply`). Allocated on torch's current stream, which the bridge's launches use.
+    """
+    if not isinstance(device, wp.Device):
+        device = wp.get_device(device)
+    scalar = getattr(dtype, "_wp_scalar_type_", dtype)
+    ts = _TORCH_OF.get(scalar)
+    shape = (int(shape),) if isinstance(shape, int) else tuple(int(x) for x in shape)
+    if ts is None or not all(shape):
+        make = wp.zeros if zero else wp.empty
+        return make(shape, dtype=dtype, device=device, requires_grad=requires_grad)
+    tdev = _torch_devices.get(id(device))  # Warp's devices are long-lived singletons, and not hashable
+    if tdev is None:
+        tdev = _torch_devices[id(device)] = torch.device(wp.device_to_torch(device))
+    full = shape + tuple(getattr(dtype, "_shape_", ()))
+    t = torch.zeros(full, dtype=ts, device=tdev) if zero else torch.empty(full, dtype=ts, device=tdev)
+    arr = wp.array(ptr=t.data_ptr(), dtype=dtype, shape=shape, device=device)
+    arr._tensor = t  # noqa: SLF001 - keeps the storage alive
+    arr._wtopo_tensor = t  # noqa: SLF001 - the tensor apply() returns for this output
+    if requires_grad:
+        g = torch.zeros(full, dtype=ts, device=tdev)
+        ga = wp.array(ptr=g.data_ptr(), dtype=dtype, shape=shape, device=device)
+        ga._tensor = g  # noqa: SLF001
+        arr.grad = ga
+    return arr
+
+
+def as_torch(a: wp.array) -> torch.Tensor:
+    """The torch tensor of an op's output: a view of the one :func:`empty` allocated it in, else ``wp.to_torch``'s.
+
+    Always a new tensor object: :func:`apply`'s context keeps the Warp array, which keeps its tensor, so handing
+    torch that same tensor as the op's output (whose ``grad_fn`` keeps the context) would make a reference cycle
+    through the autograd graph that is never freed.
+    """
+    t = getattr(a, "_wtopo_tensor", None)
+    return wp.to_torch(a, requires_grad=False) if t is None else t.view(t.shape)
+
+
