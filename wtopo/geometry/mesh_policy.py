@@ -256,7 +256,9 @@ def supported_faces(mesh: trimesh.Trimesh, cameras: Sequence, depths: Sequence[n
         return mesh, {"faces": 0, "kept": 0}
     verts, depths, device = _device_views(np.asarray(mesh.vertices), depths, device)
     support = np.zeros(len(verts), np.int64)
-    active = np.unique(faces)
+    used = np.zeros(len(verts), bool)
+    used[faces.reshape(-1)] = True
+    active = np.flatnonzero(used)  # the vertices some face uses, ascending (np.unique's sort took 1 s at 2.6M faces)
     if device is not None:
         support, active = torch.as_tensor(support, device=verts.device), torch.as_tensor(active, device=verts.device)
     for cam, dep in zip(cameras, depths):
