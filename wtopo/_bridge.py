@@ -21,7 +21,8 @@ Outputs flagged non-differentiable (indices, masks, counts) are marked so with
 
 The hot ops allocate their arrays with :func:`empty` (``wtopo._views``): torch's caching allocator owns the memory
 and an output goes back to torch as a view of its tensor, with no conversion; :func:`to_warp` views a tensor
-directly at its address (a quarter of ``wp.from_torch``'s host time, measured in ``benchmarks/gpu.md``).
+directly at its address (a fifth of the host time of the view through ``wp.from_torch`` it replaces,
+``benchmarks/gpu.md``).
 
 :func:`launch` is ``wp.launch`` with a generic kernel's overload resolved once per argument types (Warp
 infers it at every launch otherwise: a third of a small render's host time). :func:`launch_split` runs a
