@@ -542,3 +542,28 @@ def test_support_rules_decide_the_same_on_a_torch_device_as_in_numpy(device):
         out, info = supported_faces(both, ring, gd, tolerance=0.05, device=device, **kwargs)
         assert info == ref_info and ref_info["kept"] < len(both.faces)
         np.testing.assert_array_equal(out.faces, ref.faces)
+
+
+def test_keep_faces_and_face_areas_match_trimesh():
+    """The policy's own face selection and areas give what trimesh's copy / update_faces /
+    remove_unreferenced_vertices and ``area_faces`` give: the same vertices, faces, vertex colours and metadata."""
+    from wtopo.geometry.mesh_policy import _face_areas, _keep_faces
+
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    mesh = trimesh.Trimesh(mesh.vertices * [1.0, 2.0, 0.5], mesh.faces, process=False)
+    rng = np.random.default_rng(3)
+    mesh.visual.vertex_colors = rng.integers(0, 256, (len(mesh.vertices), 4), dtype=np.uint8)
+    mesh.metadata["closed"] = True
+    keep = rng.random(len(mesh.faces)) < 0.4
+    ref = mesh.copy()
+    ref.update_faces(keep)
+    ref.remove_unreferenced_vertices()
+    out = _keep_faces(mesh, keep)
+    assert np.array_equal(out.vertices, ref.vertices) and np.array_equal(out.faces, ref.faces)
+    assert np.array_equal(out.visual.vertex_colors, ref.visual.vertex_colors)
+    assert out.metadata["closed"] is True and len(mesh.faces) == 1280  # the input is unchanged
+    np.testing.assert_allclose(_face_areas(mesh), mesh.area_faces, rtol=1e-12, atol=0)
+    some = np.flatnonzero(keep)
+    np.testing.assert_allclose(_face_areas(mesh, some), mesh.area_faces[some], rtol=1e-12, atol=0)
+    plain = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)  # no colours: none made up
+    assert _keep_faces(plain, keep).visual.kind is None
