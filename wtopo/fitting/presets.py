@@ -51,16 +51,18 @@ class Budget:
 _REFERENCE_CORES = 2  # the CPU timings below were measured on 2 cores; more cores scale them down
 # CPU (2 idle cores, 2026-12-02, the fit without Open3D): the bunny's fast fit (150 + 150 iterations of 128 px
 # views) took 21.7-22.0 s, about 6 s of it outside the iterations; balanced (400 + 400) 54.7-57.1 s, about 9 s
-# outside them; best (800 + 800, every co-evolution iteration building the proxy) 114 s. CUDA (one H200): the
-# GPU default as measured on DTU and the 512-px suite (about 60 ms per iteration at 800 x 600); fast and best
-# scale its iterations like the CPU presets until a GPU front is measured.
+# outside them; best (800 + 800, every co-evolution iteration building the proxy) 114 s. CUDA (one H200, alone, warm
+# kernel cache): DTU at the balanced default (5,000 iterations of 137k-pixel views, no mesh loop) 101 s with 20 s
+# outside the iterations (2026-12-04, benchmarks/gpu.md), the 64-view chair (262k-pixel views, the mesh loop) 127 s
+# (2026-12-03, benchmarks/peers.md): 13 ms an iteration plus 32 ms per megapixel of view; fast and best scale the
+# iterations and keep the rates until a GPU front is measured.
 _BUDGETS = {
     ("cpu", Preset.FAST): Budget((150, 150), 128, (48, 48), (64, 128), 6.0, 0.0, 3.3, mesh_every=2),
     ("cpu", Preset.BALANCED): Budget((400, 400), 256, (64, 64), (96, 192), 9.0, 0.010, 3.0, mesh_every=2),
     ("cpu", Preset.BEST): Budget((800, 800), 256, (64, 64), (96, 192), 9.0, 0.029, 2.2),
-    ("cuda", Preset.FAST): Budget((1500, 1000), 512, (128, 192), (192, 512), 40.0, 0.030, 0.060),
-    ("cuda", Preset.BALANCED): Budget((3000, 2000), 1024, (128, 256), (192, 768), 70.0, 0.030, 0.060),
-    ("cuda", Preset.BEST): Budget((6000, 4000), 1024, (128, 256), (192, 768), 70.0, 0.030, 0.060),
+    ("cuda", Preset.FAST): Budget((1500, 1000), 512, (128, 192), (192, 512), 12.0, 0.013, 0.032),
+    ("cuda", Preset.BALANCED): Budget((3000, 2000), 1024, (128, 256), (192, 768), 20.0, 0.013, 0.032),
+    ("cuda", Preset.BEST): Budget((6000, 4000), 1024, (128, 256), (192, 768), 20.0, 0.013, 0.032),
 }
 
 
