@@ -301,7 +301,8 @@ class FitRun:
                 if t.render.overflow is not None:
                     extra.append(t.render.overflow.double().view(1))
                 # host sync: the one read of an iteration (loss terms, coverage, the last step's finiteness, overflow)
-                read = torch.cat([torch.stack([v.detach() for v in t.losses.values()]).double(), *extra]).tolist()
+                stacked = torch.stack(list(t.losses.values()))  # the terms, once: read here, summed for backward
+                read = torch.cat([stacked.detach().double(), *extra]).tolist()
             if self._unverified is not None:  # the last step: its failure discards this forward too
                 self._unverified = None
                 if not self._verdict(bool(read[len(t.losses) + 2])):
@@ -312,7 +313,7 @@ class FitRun:
             self.proxy_mesh = t.proxy
         nl = len(t.losses)
         self.strategy.step_pre_backward(info, read[nl:nl + 2])
-        total = sum(t.losses.values())
+        total = stacked.sum()  # one op, not one addition per term
         terms = dict(zip(t.losses, read[:nl]))
         if not math.isfinite(sum(terms.values())):
             self._failure("loss", {k: v for k, v in terms.items() if not math.isfinite(v)})
