@@ -103,7 +103,7 @@ class _NoThresholds:
 
 
 def c2f_points(cameras, images, lower, upper, *, near, device="cpu", max_views=None, offsets=9, all_coarse=True,
-               edges=False):
+               edges=False, sparse=0):
     """:func:`wtopo.geometry.mvs.plane_sweep_points` with each family swept coarse to fine (module docstring)."""
     lower, upper = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
     if max_views is not None and len(cameras) > max_views:
@@ -155,6 +155,12 @@ def c2f_points(cameras, images, lower, upper, *, near, device="cpu", max_views=N
                                       _AroundFronto(torch.where(ok_s, inv_s, 0.0), params))
                     better = ss > score
                     d, score = torch.where(better, ds, d), torch.where(better, ss, score)
+            if sparse > 1:  # every sparse-th plane of the full sweep too: for pixels whose coarse winner is wrong
+                fs = M._Fronto(lo, hi, max(2, n_full // sparse), dev)
+                fs.shape = (ref.H, ref.W)
+                ds, ss = M._sweep(ref, srcs, grays[i], src_gray, fs)
+                better = ss > score
+                d, score = torch.where(better, ds, d), torch.where(better, ss, score)
             won = torch.zeros_like(d, dtype=torch.bool)
             if up is not None:
                 h = corners @ up
@@ -194,6 +200,7 @@ def main():
     ap.add_argument("--coarse-thresholds", action="store_true", help="the coarse pass keeps only confident winners")
     ap.add_argument("--no-full", action="store_true", help="skip the fit's sweep")
     ap.add_argument("--edges", action="store_true", help="also sweep around each side of a coarse depth edge")
+    ap.add_argument("--sparse", type=int, default=0, help="also sweep every N-th plane of the full sweep")
     a = ap.parse_args()
 
     import scenes as peer_scenes
@@ -218,7 +225,8 @@ def main():
             else:
                 pts = c2f_points(scene.cameras, scene.images, layout.roi_lower, layout.roi_upper, near=layout.near,
                                  device=a.device, max_views=a.views, offsets=a.offsets,
-                                 all_coarse=not a.coarse_thresholds, edges=a.edges)
+                                 all_coarse=not a.coarse_thresholds, edges=a.edges,
+                                 sparse=a.sparse)
             sec = time.perf_counter() - t
             d, _ = tree.query(pts, workers=-1)
             unc = uncovered_pixels(scene.cameras, pts, device=a.device)
