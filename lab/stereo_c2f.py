@@ -64,7 +64,7 @@ class _AroundLevel:
         return self._d(self.h0 + p)
 
 
-def _up(x: torch.Tensor, H: int, W: int, valid: torch.Tensor, fill: int = 2, smooth: int = 1):
+def _up(x: torch.Tensor, H: int, W: int, valid: torch.Tensor, fill: int = 2, smooth: int = 3):
     """A coarse map with holes (``valid`` False) filled from up to ``fill`` pixels around, smoothed by ``smooth``
     3 x 3 means and brought up bilinearly: a window's pixels must share about one plane, as in the full sweep, so
     the field must not jump from pixel to pixel (nearest upsampling's 2 x 2 steps lost a sixth of the points)."""
