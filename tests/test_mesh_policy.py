@@ -567,3 +567,9 @@ def test_keep_faces_and_face_areas_match_trimesh():
     np.testing.assert_allclose(_face_areas(mesh, some), mesh.area_faces[some], rtol=1e-12, atol=0)
     plain = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)  # no colours: none made up
     assert _keep_faces(plain, keep).visual.kind is None
+    faced = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False,
+                            face_colors=rng.integers(0, 256, (len(mesh.faces), 4), dtype=np.uint8))
+    ref = faced.copy()
+    ref.update_faces(keep)
+    ref.remove_unreferenced_vertices()
+    assert np.array_equal(_keep_faces(faced, keep).visual.face_colors, ref.visual.face_colors)

@@ -37,8 +37,8 @@ _FACE_SUPPORT_VIEWS = 3  # a scene face needs this many views agreeing at each o
 
 
 def _keep_faces(mesh: trimesh.Trimesh, keep: np.ndarray) -> trimesh.Trimesh:
-    """A new mesh of the faces ``keep`` [F] bool selects and the vertices they use, in their order, with the vertex
-    colours and metadata: what ``copy()``, ``update_faces`` and ``remove_unreferenced_vertices`` give, without
+    """A new mesh of the faces ``keep`` [F] bool selects and the vertices they use, in their order, with the vertex or
+    face colours and metadata: what ``copy()``, ``update_faces`` and ``remove_unreferenced_vertices`` give, without
     trimesh's cache (which hashes every array it checks: 0.7 of the 4.4-s policy at 2.6M faces on 2 CPU cores)."""
     v = np.asarray(mesh.vertices)
     f = np.asarray(mesh.faces)[keep]
@@ -46,8 +46,11 @@ def _keep_faces(mesh: trimesh.Trimesh, keep: np.ndarray) -> trimesh.Trimesh:
     used[f.reshape(-1)] = True
     number = np.cumsum(used, dtype=np.int64) - 1
     out = trimesh.Trimesh(v[used], number[f], process=False)
-    if mesh.visual.kind == "vertex":
+    kind = mesh.visual.kind
+    if kind == "vertex":
         out.visual.vertex_colors = np.asarray(mesh.visual.vertex_colors)[used]
+    elif kind == "face":
+        out.visual.face_colors = np.asarray(mesh.visual.face_colors)[keep]
     out.metadata.update(mesh.metadata)
     return out
 
