@@ -178,17 +178,7 @@ def c2f_points(cameras, images, lower, upper, *, near, device="cpu", max_views=N
                 d = torch.where(won, d2, d)
             depths.append(d)
             level.append(won & (d > 0))
-        pts = []
-        for i, ref in enumerate(tcams):
-            if not nbrs[i]:
-                continue
-            need = min(M._MIN_CONSISTENT, len(nbrs[i]))
-            n_ok = M._consistent(ref, depths[i], [tcams[j] for j in nbrs[i]], [depths[j] for j in nbrs[i]])
-            nrm = M._normals(ref, depths[i])
-            good = (n_ok >= need) & (depths[i] > 0) & (nrm.norm(dim=-1) > 0)
-            x = ref.origin + ref.dirs * depths[i][..., None]
-            pts.append(x[good].double().cpu().numpy())
-    return np.concatenate(pts) if pts else np.zeros((0, 3))
+    return M.confirmed_points(tcams, images, nbrs, depths, level, up).points
 
 
 def main():

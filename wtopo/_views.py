@@ -115,7 +115,7 @@ def empty(shape, dtype, device, requires_grad: bool = False, zero: bool = False)
         device = wp.get_device(device)
     scalar = getattr(dtype, "_wp_scalar_type_", dtype)
     ts = _TORCH_OF.get(scalar)
-    shape = (int(shape),) if isinstance(shape, int) else tuple(int(x) for x in shape)
+    shape = tuple(int(x) for x in shape) if hasattr(shape, "__len__") else (int(shape),)
     if ts is None or not all(shape):
         make = wp.zeros if zero else wp.empty
         return make(shape, dtype=dtype, device=device, requires_grad=requires_grad)
@@ -124,14 +124,10 @@ def empty(shape, dtype, device, requires_grad: bool = False, zero: bool = False)
         tdev = _torch_devices[id(device)] = torch.device(wp.device_to_torch(device))
     full = shape + tuple(getattr(dtype, "_shape_", ()))
     t = torch.zeros(full, dtype=ts, device=tdev) if zero else torch.empty(full, dtype=ts, device=tdev)
-    arr = wp.array(ptr=t.data_ptr(), dtype=dtype, shape=shape, device=device)
-    arr._tensor = t  # noqa: SLF001 - keeps the storage alive
+    arr = to_warp(t, dtype)
     arr._wtopo_tensor = t  # noqa: SLF001 - the tensor apply() returns for this output
     if requires_grad:
-        g = torch.zeros(full, dtype=ts, device=tdev)
-        ga = wp.array(ptr=g.data_ptr(), dtype=dtype, shape=shape, device=device)
-        ga._tensor = g  # noqa: SLF001
-        arr.grad = ga
+        arr.grad = to_warp(torch.zeros(full, dtype=ts, device=tdev), dtype)
     return arr
 
 

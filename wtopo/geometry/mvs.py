@@ -42,7 +42,7 @@ import torch.nn.functional as F
 
 from ..camera import Camera
 
-__all__ = ["MVSPoints", "TorchCam", "TorchCams", "gray", "plane_sweep_points", "select_neighbours"]
+__all__ = ["MVSPoints", "TorchCam", "TorchCams", "confirmed_points", "gray", "plane_sweep_points", "select_neighbours"]
 
 _NEIGHBOURS = 4  # source views per reference view
 _BEST_ANGLE = 12.0  # degrees: preferred triangulation angle at the region of interest
@@ -411,6 +411,16 @@ def plane_sweep_points(cameras: list[Camera], images: torch.Tensor, roi_lower: n
                 d = torch.where(won, d2, d)
             depths.append(d)
             level.append(won & (d > 0))
+        return confirmed_points(tcams, images, nbrs, depths, level, up)
+
+
+def confirmed_points(tcams: list[TorchCam], images, nbrs: list[list[int]], depths: list[torch.Tensor],
+                     level: list[torch.Tensor], up: np.ndarray | None) -> MVSPoints:
+    """The sweep's second half: the depths [H, W] per view (0: none) that the neighbours ``nbrs`` confirm
+    (forward-backward check), as coloured points with normals from the depth map (a level-plane winner, ``level``
+    [H, W] bool, takes the ``up`` direction facing its camera). ``images``: RGB [H, W, 3] per view."""
+    dev = depths[0].device
+    with torch.no_grad():
         pts, cols, nrms = [], [], []
         kept = total = 0
         for i, ref in enumerate(tcams):
