@@ -178,7 +178,7 @@ def c2f_points(cameras, images, lower, upper, *, near, device="cpu", max_views=N
                 d = torch.where(won, d2, d)
             depths.append(d)
             level.append(won & (d > 0))
-    return M.confirmed_points(tcams, images, nbrs, depths, level, up).points
+    return M.confirmed_points(tcams, images, nbrs, depths, level, up)
 
 
 def main():
@@ -216,7 +216,7 @@ def main():
                 pts = c2f_points(scene.cameras, scene.images, layout.roi_lower, layout.roi_upper, near=layout.near,
                                  device=a.device, max_views=a.views, offsets=a.offsets,
                                  all_coarse=not a.coarse_thresholds, edges=a.edges,
-                                 sparse=a.sparse)
+                                 sparse=a.sparse).points
             sec = time.perf_counter() - t
             d, _ = tree.query(pts, workers=-1)
             unc = uncovered_pixels(scene.cameras, pts, device=a.device)
