@@ -17,9 +17,9 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.join(HERE, "..", "benchmarks", "peers"))
 
-import stereo_c2f  # noqa: E402
 from exchange import load  # noqa: E402
 
+import stereo_c2f  # noqa: E402
 from wtopo.fitting.background import uncovered_pixels  # noqa: E402
 from wtopo.fitting.scene_kind import analyse_layout  # noqa: E402
 from wtopo.geometry import mvs  # noqa: E402
@@ -55,7 +55,8 @@ def main():
             sync()
             best = min(best, time.perf_counter() - t)
         unc = uncovered_pixels(train.cameras, out.points, device=dev)
-        print(json.dumps({"exchange": os.path.basename(a.exchange.rstrip("/")), "sweep": name, "views": len(train.cameras),
+        print(json.dumps({"exchange": os.path.basename(a.exchange.rstrip("/")), "sweep": name,
+                          "views": len(train.cameras),
                           "size": [train.cameras[0].width, train.cameras[0].height], "s": round(best, 2),
                           "points": len(out.points),
                           "uncovered": round(float(sum(u.float().mean().item() for u in unc) / len(unc)), 4)}),

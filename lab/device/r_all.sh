@@ -1,8 +1,8 @@
 # Lease step r in one device call (after the p1, p2 and p3 + gl + small/whl staging calls; carry .stage/usd,
 # .stage/dtu_raw and .stage/exch/bunny64), all fits side by side (quality, not time):
-#   #60: the coarse-to-fine plane sweep (lab/run_c2f.py) against the fit's on every scene whose initial surfels come
-#   from stereo (DTU at seeds 0 and 1, bunny_env, chair_env, mug_torus_env): held-out PSNR and ROI F1 before it can
-#   replace the sweep.
+#   #60: the coarse-to-fine plane sweep (lab/run_c2f.py) against the fit's on DTU at seeds 0 and 1 (held-out PSNR;
+#   on CPU fits it lost on mug_torus_env, lab/gpu.md, so it is not a candidate as it stands: this measures whether
+#   DTU's table survives it, for the next form, coarse to fine for the camera-facing family only).
 #   #59: clone/split by gradient in the co-evolution (lab/coevo_densify.py) again on the 64-view chair and bunny64:
 #   lease k2 rejected it while the harness rendered wtopo with the wider 0.71-px filter, which blurs a densified
 #   model's smaller surfels more than the default's; now both render with the fit's filter.
@@ -12,7 +12,7 @@ t0=$(date +%s)
 lease_install || exit 1
 mkdir -p $S/exch $S/res $OUT/r
 cp -r .stage/exch/bunny64 $S/exch/
-for sc in chair bunny_env chair_env mug_torus_env; do
+for sc in chair; do
   python3 benchmarks/peers/export.py $sc $S/exch/$sc --name $sc > $S/exch_$sc.log 2>&1 &
 done
 python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 $S/exch/dtu_scan24 --name dtu_scan24 > $S/exch_dtu.log 2>&1
@@ -24,10 +24,8 @@ run() {  # SCENE NAME SCRIPT ARGS...
   setsid nohup timeout 900 python3 $script $S/exch/$sc $d --label $(basename $d) "$@" > $d.log 2>&1 < /dev/null &
 }
 W=benchmarks/peers/run_wtopo.py
-for sc in dtu_scan24 bunny_env chair_env mug_torus_env; do
-  run $sc r_default $W
-  run $sc r_c2f lab/run_c2f.py
-done
+run dtu_scan24 r_default $W
+run dtu_scan24 r_c2f lab/run_c2f.py
 run dtu_scan24 r_default_seed1 $W --set runtime.seed=1
 run dtu_scan24 r_c2f_seed1 lab/run_c2f.py --set runtime.seed=1
 for sc in chair bunny64; do
