@@ -1,7 +1,8 @@
 """Lab (nothing imports it): benchmarks/peers/run_wtopo.py with the initial surfels' plane sweep replaced by the
 coarse-to-fine sweep of ``lab/stereo_c2f.py`` (smoothed field, each side of a depth edge: its best row; #60: stereo
-10.8 s of DTU's 101 s on an H200, goal 3 s), to measure what it does to the held-out PSNR and ROI F1 on the GPU before anything lands. Views smaller than ``MIN_SIDE``
-pixels on a side (the unbounded region's own sweep at reduced size) keep the fit's sweep. Prints the sweep's time.
+10.8 s of DTU's 101 s on an H200, goal 3 s), to measure what it does to the held-out PSNR and ROI F1 on the GPU before
+anything lands. Views smaller than ``MIN_SIDE`` pixels on a side (the unbounded region's own sweep at reduced size)
+keep the fit's sweep. Prints the sweep's time.
 
     python3 lab/run_c2f.py EXCH OUT [run_wtopo.py's arguments]
 """
