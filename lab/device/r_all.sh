@@ -1,8 +1,7 @@
 # Lease step r in one device call (after the p1, p2 and p3 + gl + small/whl staging calls; carry .stage/usd,
-# .stage/dtu_raw and .stage/exch/bunny64), all fits side by side (quality, not time):
-#   #60: the coarse-to-fine plane sweep (lab/run_c2f.py) against the fit's on DTU at seeds 0 and 1 (held-out PSNR;
-#   on CPU fits it lost on mug_torus_env, lab/gpu.md, so it is not a candidate as it stands: this measures whether
-#   DTU's table survives it, for the next form, coarse to fine for the camera-facing family only).
+# .stage/dtu_raw, .stage/exch/bunny64 and .stage/mvs_torch.py), all fits side by side (quality, not time):
+#   #60: DTU at seeds 0 and 1 with the plane sweep's score in Warp kernels (wtopo/plane_sweep.py; the same
+#   points as the torch score it replaced on the CPU exchange folders): does DTU's table hold.
 #   #59: clone/split by gradient in the co-evolution (lab/coevo_densify.py) again on the 64-view chair and bunny64:
 #   lease k2 rejected it while the harness rendered wtopo with the wider 0.71-px filter, which blurs a densified
 #   model's smaller surfels more than the default's; now both render with the fit's filter.
@@ -25,9 +24,7 @@ run() {  # SCENE NAME SCRIPT ARGS...
 }
 W=benchmarks/peers/run_wtopo.py
 run dtu_scan24 r_default $W
-run dtu_scan24 r_c2f lab/run_c2f.py
 run dtu_scan24 r_default_seed1 $W --set runtime.seed=1
-run dtu_scan24 r_c2f_seed1 lab/run_c2f.py --set runtime.seed=1
 for sc in chair bunny64; do
   run $sc r_default $W
   run $sc r_coevo lab/coevo_densify.py

@@ -20,6 +20,7 @@
 #   exch/bunny64       export.py's exchange folder (the venv's python; 64 views of 512 px, 14 MB)
 #   dtu_raw/dtu_scan24 the raw DTU scene (11 MB) that lease.sh d exports on the GPU machine (its stereo is too slow
 #                      on this CPU); EXPORT_DTU=1 writes exch/dtu_scan24 here instead (over 25 minutes)
+#   mvs_torch.py       e77081a's wtopo/geometry/mvs.py: the plane sweep's torch score, before the Warp kernels
 #
 # Carrying it (64 MiB a call, 6.6 MB of it the working tree): four calls, e.g. p1; p2; p3 + small + gl (58 MB);
 # usd + exch + dtu_raw (60 MB). p3 + usd alone is 68 MB: too much for one call.
@@ -219,6 +220,8 @@ print('RaycastingScene distance from the centre:', d)
       rm -rf "$OUT/dtu_raw"; mkdir -p "$OUT/dtu_raw"; cp -r "$REPO/../shared/data/dtu_scan24" "$OUT/dtu_raw/"
     fi
     strip_ignored "$OUT/exch"
+    # the plane sweep's torch score before the Warp kernels (for lab/device/r_wait.sh's bench_mvs.py --against)
+    (cd "$REPO" && git show e77081a:wtopo/geometry/mvs.py > "$OUT/mvs_torch.py")
     ;;
   *) echo "unknown step $step (big wheels usd gl peers exch)"; exit 2 ;;
   esac

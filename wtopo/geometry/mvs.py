@@ -27,7 +27,8 @@ confirmed pixels as coloured, oriented points.
 * Filter: a depth is kept when at least ``_MIN_CONSISTENT`` neighbours' depths reproject to within
   ``_REPROJ_PIXELS`` px and ``_DEPTH_REL`` relative depth of it.
 
-Everything is torch (CPU or CUDA, the fit's device); nothing here is differentiated.
+The score of every hypothesis is :func:`wtopo.plane_sweep.plane_costs` (Warp kernels); the rest is torch. Both run
+on the fit's device (CPU or CUDA); nothing here is differentiated.
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ import torch
 import torch.nn.functional as F
 
 from ..camera import Camera
+from ..multiview_ncc import source_params
+from ..plane_sweep import LevelPlanes, SweepReference, plane_costs
 
 __all__ = ["MVSPoints", "TorchCam", "TorchCams", "confirmed_points", "gray", "plane_sweep_points", "select_neighbours"]
 
@@ -58,7 +61,6 @@ _REPROJ_PIXELS = 1.0  # forward-backward reprojection tolerance, pixels
 _DEPTH_REL = 0.01  # relative depth tolerance of the forward-backward check
 _MIN_CONSISTENT = 2  # neighbours that must confirm a depth (fewer when a view has fewer neighbours)
 _NORMAL_STEP = 2  # pixels between the depth samples a normal is taken from (1 is noisy at sub-pixel depth noise)
-_CHUNK_BYTES = 256 * 2**20  # bytes of warped neighbour images held at once per reference view
 
 
 @dataclass
@@ -146,12 +148,6 @@ class TorchCam:
         v = self.K[1, 1] * yn + self.K[1, 2]
         return u, v, z
 
-    def ray_frame(self, origin: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Rays ``origin + depth * dirs`` (world, [..., 3] each) in this camera's frame: ``(a, b)`` with the ray's point
-        at ``depth`` at ``a + depth * b`` (for :meth:`project_camera`), so that a sweep projects every depth of a
-        ray without a matrix product per depth."""
-        return origin @ self.R.T + self.t, dirs @ self.R.T
-
     def grid(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         """Pixel coordinates -> ``grid_sample`` coordinates (align_corners=False)."""
         return torch.stack([u / self.W * 2 - 1, v / self.H * 2 - 1], dim=-1)
@@ -221,10 +217,6 @@ class _Fronto:
 
     def __init__(self, lo: float, hi: float, n: int, device):
         self.params = torch.linspace(1.0 / lo, 1.0 / hi, n, device=device)
-        self.shape: tuple[int, int] | None = None
-
-    def depth(self, p: torch.Tensor) -> torch.Tensor:
-        return (1.0 / p)[:, None, None].expand(-1, *self.shape)
 
     def depth_at(self, p: torch.Tensor) -> torch.Tensor:
         return 1.0 / p.clamp_min(1e-12)
@@ -240,14 +232,9 @@ class _Level:
         self.b = (ref.dirs * u).sum(-1)  # [H, W] height change per unit depth
         self.params = torch.linspace(heights[0], heights[1], n, device=ref.dirs.device)
         self.lo, self.hi = lo, hi
-        self.shape = tuple(ref.dirs.shape[:2])
 
     def _valid(self, d: torch.Tensor) -> torch.Tensor:
         return torch.where((d >= self.lo) & (d <= self.hi), d, -1.0)
-
-    def depth(self, p: torch.Tensor) -> torch.Tensor:
-        b = torch.where(self.b.abs() < 1e-6, 1e-6, self.b)
-        return self._valid((p[:, None, None] - self.a) / b)
 
     def depth_at(self, p: torch.Tensor) -> torch.Tensor:
         b = torch.where(self.b.abs() < 1e-6, 1e-6, self.b)
@@ -259,39 +246,14 @@ def _sweep(ref: TorchCam, srcs: list[TorchCam], ref_gray: torch.Tensor, src_gray
     """Best depth [H, W] (0: none) and its aggregated NCC [H, W] (-1: none) of one reference view over
     one ``family`` of planes."""
     params = family.params
-    H, W = ref.H, ref.W
-    K = len(srcs)
     n_planes = int(params.shape[0])
-    r = ref_gray[None, None]
-    mu_r = _box(r)
-    var_r = (_box(r * r) - mu_r * mu_r).clamp_min(0)
-    best_k = max(1, (K + 1) // 2)
-    costs = torch.empty(n_planes, H, W, device=ref_gray.device)
-    chunk = max(1, int(_CHUNK_BYTES // (4 * K * H * W * 6)))
-    srcs_img = src_gray[:, None]  # [K, 1, H, W]
-    rays = [src.ray_frame(ref.origin, ref.dirs) for src in srcs]  # the reference's rays in each source's frame
-    for s in range(0, n_planes, chunk):
-        depth = family.depth(params[s:s + chunk])  # [P, H, W]
-        P = depth.shape[0]
-        warped, valid = [], []
-        for k, src in enumerate(srcs):
-            a, b = rays[k]
-            u, v, z = src.project_camera(torch.addcmul(a, depth[..., None], b))  # [P, H, W] each
-            g = src.grid(u, v)  # [P, H, W, 2]
-            w = F.grid_sample(srcs_img[k:k + 1].expand(P, -1, -1, -1), g, mode="bilinear",
-                              padding_mode="zeros", align_corners=False)[:, 0]
-            ok = (z > 0) & (depth > 0) & (u >= 0) & (u <= src.W) & (v >= 0) & (v <= src.H)
-            warped.append(w)
-            valid.append(ok)
-        w = torch.stack(warped, 1)  # [P, K, H, W]
-        ok = torch.stack(valid, 1)
-        flat = w.reshape(P * K, 1, H, W)
-        mu_s = _box(flat)
-        var_s = (_box(flat * flat) - mu_s * mu_s).clamp_min(0)
-        cov = _box(flat * r) - mu_s * mu_r
-        ncc = (cov / torch.sqrt(var_s * var_r + 1e-12)).reshape(P, K, H, W)
-        ncc = torch.where(ok & (var_s.reshape(P, K, H, W) > _MIN_TEXTURE), ncc, -1.0)
-        costs[s:s + P] = ncc.topk(best_k, dim=1).values.mean(1)
+    r = ref_gray.double()[None, None]  # float64: a flat window's variance is a difference of near-equal sums
+    mu = _box(r)[0, 0]
+    mu_r, var_r = mu.float(), (_box(r * r)[0, 0] - mu * mu).clamp_min(0).float()
+    rows = torch.stack([source_params(ref.cam, src.cam, device=ref_gray.device) for src in srcs])
+    planes = params if isinstance(family, _Fronto) else LevelPlanes(params, family.a, family.b, family.lo, family.hi)
+    costs = plane_costs(SweepReference(ref_gray, mu_r, var_r, ref.dirs), src_gray, rows, planes, half=_WINDOW // 2,
+                        best=max(1, (len(srcs) + 1) // 2), min_texture=_MIN_TEXTURE)
     score, idx = costs.max(0)
     # parabola through the winner and its neighbours, in the family's parameter
     i0 = idx.clamp(1, max(n_planes - 2, 1)) if n_planes >= 3 else idx
@@ -303,7 +265,7 @@ def _sweep(ref: TorchCam, srcs: list[TorchCam], ref_gray: torch.Tensor, src_gray
     off = torch.where(idx == i0, off, torch.zeros_like(off))
     step = params[1] - params[0] if n_planes > 1 else params.new_tensor(0.0)
     depth = family.depth_at(params[idx] + off * step)
-    keep = (score > _MIN_SCORE) & (var_r[0, 0] > _MIN_TEXTURE) & (depth > 0)
+    keep = (score > _MIN_SCORE) & (var_r > _MIN_TEXTURE) & (depth > 0)
     return torch.where(keep, depth, 0.0), torch.where(keep, score, -1.0)
 
 
@@ -399,9 +361,7 @@ def plane_sweep_points(cameras: list[Camera], images: torch.Tensor, roi_lower: n
             lo, hi = _depth_range(cameras[i], lower, upper, near)
             n_planes = _n_planes(ref, srcs[0], lo, hi)
             src_gray = torch.stack([grays[j] for j in nbrs[i]])
-            fronto = _Fronto(lo, hi, n_planes, dev)
-            fronto.shape = (ref.H, ref.W)
-            d, score = _sweep(ref, srcs, grays[i], src_gray, fronto)
+            d, score = _sweep(ref, srcs, grays[i], src_gray, _Fronto(lo, hi, n_planes, dev))
             won = torch.zeros_like(d, dtype=torch.bool)
             if up is not None:
                 h = corners @ up
