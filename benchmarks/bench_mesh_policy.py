@@ -12,23 +12,28 @@ depth maps; timed in one process, each step beside the trimesh operation it repl
   one within ``near`` of it;
 * the clean-up: without merging vertices by position (a marching-cubes mesh shares them already) against
   ``Trimesh.merge_vertices``;
-* the support rules' projections (every vertex into every view) in torch on ``--device`` against NumPy, and on CUDA
+* the support rules' projections (every vertex into every view): :func:`wtopo.vertex_support.view_agreement` (a
+  Warp kernel) on ``--device`` against their NumPy formulation (``tests/reference/vertex_support.py``), and
   :func:`~wtopo.geometry.mesh_policy.supported_components` and :func:`~wtopo.geometry.mesh_policy.supported_faces`
-  on the GPU against the same rules in NumPy on the host;
+  on ``--device``; with ``--against FILE`` (another version of ``wtopo/geometry/mesh_policy.py``, e.g. ``git show
+  e77081a:wtopo/geometry/mesh_policy.py``: NumPy on the CPU, torch on CUDA) beside that version's rules;
 * an object's repair (:func:`wtopo.fitting.tsdf.repair_mesh`, the same mesh with 50 faces removed) against the
   same steps on trimesh's ``is_watertight``, ``fill_holes`` first and ``fix_inversion`` (mass properties).
 
-    .venv/bin/python benchmarks/bench_mesh_policy.py [--subdivisions 8] [--device cpu]
+    .venv/bin/python benchmarks/bench_mesh_policy.py [--subdivisions 8] [--device cpu] [--against FILE]
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import sys
 import time
 
 import numpy as np
 import torch
 import trimesh
+from _from_tests import load  # beside this script
 
 from wtopo import Camera
 from wtopo.fitting.tsdf import _FAN_MAX_EDGES, cleanup_mesh, fill_boundary_loops, repair_mesh
@@ -37,13 +42,22 @@ from wtopo.geometry.mesh_policy import (
     _crop_near,
     _face_areas,
     _keep_faces,
-    _vertex_agreement,
     crop_near_cameras,
     supported_components,
     supported_faces,
 )
 from wtopo.geometry.winding import orient_faces
 from wtopo.ops import raycast_mesh
+from wtopo.vertex_support import view_agreement
+
+
+def _module(path: str):
+    """Another version of ``wtopo/geometry/mesh_policy.py``, loaded as a sibling so its relative imports resolve."""
+    spec = importlib.util.spec_from_file_location("wtopo.geometry._mesh_policy_against", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
 
 
 def _timed(fn):
@@ -68,6 +82,7 @@ def main(argv=None) -> None:
     ap.add_argument("--subdivisions", type=int, default=8)
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
                     help="torch device of the support rules' projections")
+    ap.add_argument("--against", default=None, help="another version of wtopo/geometry/mesh_policy.py")
     a = ap.parse_args(argv)
     sphere = trimesh.creation.icosphere(subdivisions=a.subdivisions)
     other = sphere.copy()
@@ -101,22 +116,30 @@ def main(argv=None) -> None:
     t_new, _ = _timed(lambda: cleanup_mesh(mesh, largest_component=False, repair=False, weld=False))
     t_old, _ = _timed(lambda: cleanup_mesh(mesh, largest_component=False, repair=False, weld=True))
     rows.append(("clean-up (old: merge vertices by position)", t_new, t_old))
-    # the rules' projections (every vertex into every view) in torch on --device against NumPy: what decides where
-    # the rules run (mesh_policy uses torch on CUDA only)
+    # the rules' projections (every vertex into every view): the kernel on --device against the NumPy formulation
+    view_agreement_numpy = load("reference/vertex_support.py").view_agreement_numpy
     verts = np.asarray(mesh.vertices)
     vt = torch.as_tensor(verts, dtype=torch.float64, device=a.device)
-    dt = [torch.as_tensor(d, dtype=torch.float64, device=a.device) for d in depths]
-    t_old, _ = _timed(lambda: [_vertex_agreement(verts, c, d) for c, d in zip(cams, depths)])
-    t_new, _ = _timed(lambda: [_vertex_agreement(vt, c, d).sum().item() for c, d in zip(cams, dt)])
-    rows.append((f"support projections, torch on {a.device} (old: NumPy)", t_new, t_old))
-    if torch.device(a.device).type == "cuda":
-        t_old, _ = _timed(lambda: supported_components(mesh, cams, depths))
-        t_new, _ = _timed(lambda: supported_components(mesh, cams, depths, device=a.device))
-        rows.append((f"supported components on {a.device} (old: NumPy)", t_new, t_old))
-        tol = 2.0 * 2.5 / 512  # the fit's: two fusion voxels of a 512-voxel box around both spheres
-        t_old, _ = _timed(lambda: supported_faces(mesh, cams, depths, tol))
-        t_new, _ = _timed(lambda: supported_faces(mesh, cams, depths, tol, device=a.device))
-        rows.append((f"supported faces on {a.device} (old: NumPy)", t_new, t_old))
+    every = torch.arange(len(verts), device=a.device)
+    dt = [torch.as_tensor(d, device=a.device) for d in depths]
+    view_agreement(vt, every, cams[0], dt[0])  # the kernel's first launch loads (or builds) its module
+    t_old, _ = _timed(lambda: [view_agreement_numpy(verts, c, d) for c, d in zip(cams, depths)])
+    t_new, _ = _timed(lambda: [view_agreement(vt, every, c, d).sum().item() for c, d in zip(cams, dt)])
+    rows.append((f"support projections, kernel on {a.device} (old: NumPy)", t_new, t_old))
+    old = _module(a.against) if a.against else None
+    old_dev = a.device if torch.device(a.device).type == "cuda" else None
+    tol = 2.0 * 2.5 / 512  # the fit's: two fusion voxels of a 512-voxel box around both spheres
+    for name, new_fn, old_fn in (
+            ("supported components", lambda: supported_components(mesh, cams, depths, device=a.device),
+             lambda: old.supported_components(mesh, cams, depths, device=old_dev)),
+            ("supported faces", lambda: supported_faces(mesh, cams, depths, tol, device=a.device),
+             lambda: old.supported_faces(mesh, cams, depths, tol, device=old_dev))):
+        t_new, out = _timed(new_fn)
+        t_old = None
+        if old is not None:
+            t_old, ref = _timed(old_fn)
+            assert out[1] == ref[1] and np.array_equal(out[0].faces, ref[0].faces), f"{name}: another result"
+        rows.append((f"{name} on {a.device}" + (" (old: --against)" if old else ""), t_new, t_old))
     keep = np.random.default_rng(1).random(len(mesh.faces)) < 0.9
 
     def _trimesh_keep():

@@ -1,6 +1,6 @@
 """Lab (nothing imports it): the fit's plane sweep on an exchange folder's training views as a fit runs it (its
 layout; a CPU fit's 24 views, every view on CUDA): seconds (best of ``--repeats`` after a warm-up), confirmed
-points, level-plane winners, and the share of training pixels no point explains. ``--save`` keeps the points
+points and the share of training pixels no point explains. ``--save`` keeps the points
 (npz) to compare two commits.
 
     python3 lab/sweep_time.py EXCH [--device cpu] [--repeats 1] [--save out.npz]

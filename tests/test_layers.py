@@ -34,7 +34,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     # one module per differentiable or discrete op
     ("ops", ("wtopo.ops", "wtopo.rasterize", "wtopo.raycast", "wtopo.scatter", "wtopo.poisson",
              "wtopo.marching_cubes", "wtopo.oriented_points", "wtopo.photometric", "wtopo.multiview_ncc",
-             "wtopo.plane_sweep", "wtopo.depth_normals")),
+             "wtopo.plane_sweep", "wtopo.vertex_support", "wtopo.depth_normals")),
     # what several callers share; the TSDF fusion composes marching cubes, the lens warp and components
     ("geometry", ("wtopo.geometry", "wtopo.tsdf_fusion")),
     # scenes and their files, synthetic scenes, surfel / mesh / USD files, metrics

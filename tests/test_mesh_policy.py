@@ -72,6 +72,8 @@ def test_two_objects_are_both_kept_and_an_unseen_floater_goes():
 
 def _support_views_exhaustive(mesh, cams, depths):
     """Reference: every view tested on every vertex of every component (the rule without early exit)."""
+    from reference.vertex_support import view_agreement_numpy
+
     from wtopo.geometry import mesh_policy as mp
 
     label = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
@@ -81,7 +83,7 @@ def _support_views_exhaustive(mesh, cams, depths):
     vcount = np.bincount(vlabel[vlabel >= 0], minlength=n)
     views = np.zeros(n, int)
     for c, d in zip(cams, depths):
-        agree = mp._vertex_agreement(np.asarray(mesh.vertices), c, d) & (vlabel >= 0)
+        agree = view_agreement_numpy(np.asarray(mesh.vertices), c, d) & (vlabel >= 0)
         views += np.bincount(vlabel[agree], minlength=n) / np.maximum(vcount, 1) >= mp._SUPPORT_VERTEX_FRACTION
     return views
 
@@ -505,28 +507,36 @@ def test_supported_faces_name_a_bad_argument(kwargs, match):
         supported_faces(_grid(1.0, 2, 0.0), [cam, cam], [np.ones((8, 8))], tolerance=0.05)
 
 
-def test_support_rules_decide_the_same_on_a_torch_device_as_in_numpy(device):
-    """The torch projection of the support rules agrees with NumPy's vertex by vertex on ``device`` (one camera
-    with lens distortion: its normalised coordinates go through the host); supported_components and
-    supported_faces given ``device`` (torch on CUDA, NumPy otherwise) keep exactly the faces of the NumPy path, with
-    the same counts."""
+def test_support_rules_decide_the_same_on_every_device_as_the_numpy_projection(device):
+    """The support rules' projection (:func:`wtopo.vertex_support.view_agreement`) agrees with the NumPy reference
+    vertex by vertex on ``device`` (one camera with lens distortion; a listed subset with repeats; float32 and
+    float64 depth maps); supported_components and supported_faces on ``device`` keep exactly the faces they keep
+    on the CPU, with the same counts."""
     import dataclasses
 
     import torch
+    from reference.vertex_support import view_agreement_numpy
 
-    from wtopo.geometry import mesh_policy as mp
+    from wtopo.vertex_support import view_agreement
 
     cams = _ring_cameras()
-    cams[3] = dataclasses.replace(cams[3], distortion=np.array([0.05, -0.01, 0.001, 0.0005]))
+    cams[3] = dataclasses.replace(cams[3], distortion=np.array([0.05, -0.01, 0.001, 0.0005, 0.0]))
     mesh, _, depths = _pair_lone_and_speck(cams)
     verts = np.asarray(mesh.vertices)
     vt = torch.as_tensor(verts, dtype=torch.float64, device=device)
+    every = torch.arange(len(verts), device=device)
+    some = torch.as_tensor(np.random.default_rng(0).integers(0, len(verts), 500), device=device)
     for c, d in zip(cams, depths):
         for tol in (None, 0.05):
-            ref = mp._vertex_agreement(verts, c, d, tol)
-            got = mp._vertex_agreement(vt, c, torch.as_tensor(d, dtype=torch.float64, device=device), tol)
+            ref = view_agreement_numpy(verts, c, d, tol)
             assert ref.any()
-            np.testing.assert_array_equal(got.cpu().numpy(), ref)
+            for dtype in (torch.float64, torch.float32):
+                dd = torch.as_tensor(d, dtype=dtype, device=device)
+                want = ref if dtype == torch.float64 else view_agreement_numpy(verts, c, dd.cpu().numpy(), tol)
+                got = view_agreement(vt, every, c, dd, tolerance=tol)
+                np.testing.assert_array_equal(got.cpu().numpy(), want)
+                np.testing.assert_array_equal(view_agreement(vt, some, c, dd, tolerance=tol).cpu().numpy(),
+                                              want[some.cpu().numpy()])
     ref, ref_info = supported_components(mesh, cams, depths)
     out, info = supported_components(mesh, cams, depths, device=device)
     assert info == ref_info and ref_info["kept"] == 2

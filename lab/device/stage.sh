@@ -21,6 +21,8 @@
 #   dtu_raw/dtu_scan24 the raw DTU scene (11 MB) that lease.sh d exports on the GPU machine (its stereo is too slow
 #                      on this CPU); EXPORT_DTU=1 writes exch/dtu_scan24 here instead (over 25 minutes)
 #   mvs_torch.py       e77081a's wtopo/geometry/mvs.py: the plane sweep's torch score, before the Warp kernels
+#   mesh_policy_numpy.py  e77081a's wtopo/geometry/mesh_policy.py: the support rules before their kernel
+#   old/               `git archive e77081a`: the tree before both (lab/device/s_all.sh's "old" DTU profile)
 #
 # Carrying it (64 MiB a call, 6.6 MB of it the working tree): four calls, e.g. p1; p2; p3 + small + gl (58 MB);
 # usd + exch + dtu_raw (60 MB). p3 + usd alone is 68 MB: too much for one call.
@@ -220,8 +222,12 @@ print('RaycastingScene distance from the centre:', d)
       rm -rf "$OUT/dtu_raw"; mkdir -p "$OUT/dtu_raw"; cp -r "$REPO/../shared/data/dtu_scan24" "$OUT/dtu_raw/"
     fi
     strip_ignored "$OUT/exch"
-    # the plane sweep's torch score before the Warp kernels (for lab/device/r_wait.sh's bench_mvs.py --against)
-    (cd "$REPO" && git show e77081a:wtopo/geometry/mvs.py > "$OUT/mvs_torch.py")
+    # the plane sweep's torch score and the support rules' NumPy / torch projections before the Warp kernels, and
+    # that whole tree (lab/device/s_all.sh and r_wait.sh: bench_mvs.py and bench_mesh_policy.py --against, DTU's
+    # profile before)
+    (cd "$REPO" && git show e77081a:wtopo/geometry/mvs.py > "$OUT/mvs_torch.py" \
+      && git show e77081a:wtopo/geometry/mesh_policy.py > "$OUT/mesh_policy_numpy.py" \
+      && rm -rf "$OUT/old" && mkdir -p "$OUT/old" && git archive e77081a | tar -x -C "$OUT/old")
     ;;
   *) echo "unknown step $step (big wheels usd gl peers exch)"; exit 2 ;;
   esac

@@ -84,7 +84,7 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
             raise TSDFEmptyError("no final mesh: the TSDF fusion and the proxy mesh are both empty")
         mesh = trimesh.Trimesh(pm.verts.detach().cpu().numpy(), pm.faces.cpu().numpy(), process=False)
     info: dict = {}
-    dev = surfels.means.device  # the support rules project the mesh's vertices there on CUDA
+    dev = surfels.means.device  # where the support rules project the mesh's vertices
     # the fused and the proxy mesh come from marching cubes, which shares each edge's vertex: no merge by position
     with section("mesh_policy"):
         if scene:

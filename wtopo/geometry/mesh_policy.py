@@ -22,6 +22,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
+from ..vertex_support import view_agreement
 from .components import face_components
 
 __all__ = ["crop_to_box", "crop_near_cameras", "supported_components", "supported_faces"]
@@ -129,50 +130,12 @@ def _crop_near(mesh: trimesh.Trimesh, centers: np.ndarray, near: float) -> tuple
     return _keep_faces(mesh, ~drop), int(drop.sum())
 
 
-def _vertex_agreement(vertices, camera, depth, tolerance: float | None = None):
-    """Boolean [V]: the vertex projects into ``camera``'s image onto a pixel where its depth map [H, W] (z-depth,
-    0 = none) agrees with the vertex's z-depth within ``tolerance`` (internal units; ``None``:
-    ``_DEPTH_TOLERANCE`` times the vertex's depth).
-
-    ``vertices`` [V, 3] and ``depth`` are NumPy arrays (the result is NumPy) or float64 torch tensors on one
-    device (the result is a torch tensor there): the same arithmetic as :meth:`~wtopo.Camera.project` in float64;
-    a camera with lens distortion takes its normalised coordinates through the host."""
-    if not isinstance(vertices, torch.Tensor):
-        uv, z = camera.project(vertices)
-        u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-        ok = (z > 0) & (u >= 0) & (v >= 0) & (u < camera.width) & (v < camera.height)
-        out = np.zeros(len(vertices), bool)
-        d = np.asarray(depth)[v[ok], u[ok]]
-        tol = _DEPTH_TOLERANCE * z[ok] if tolerance is None else tolerance
-        out[ok] = (d > 0) & (np.abs(d - z[ok]) <= tol)
-        return out
-    f64 = dict(dtype=torch.float64, device=vertices.device)
-    p = vertices @ torch.as_tensor(camera.R, **f64).T + torch.as_tensor(camera.t, **f64)
-    z = p[:, 2]
-    zs = torch.where(z.abs() < 1e-300, torch.full_like(z, 1e-300), z)
-    xy = p[:, :2] / zs[:, None]
-    if camera.distortion is not None:
-        xy = torch.as_tensor(camera.distort(xy.cpu().numpy()), **f64)
-    K = camera.K
-    u = torch.floor(K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2])
-    v = torch.floor(K[1, 1] * xy[:, 1] + K[1, 2])
-    ok = (z > 0) & (u >= 0) & (v >= 0) & (u < camera.width) & (v < camera.height)
-    # every index in range (the pixels off the image read pixel 0, then fail ``ok``): no boolean indexing, so no
-    # host synchronisation
-    flat = torch.where(ok, v * camera.width + u, torch.zeros_like(u)).long()
-    d = depth.reshape(-1)[flat]
-    tol = _DEPTH_TOLERANCE * z if tolerance is None else tolerance
-    return ok & (d > 0) & ((d - z).abs() <= tol)
-
-
 def _device_views(verts: np.ndarray, depths, device):
-    """``(verts, depths, device)``: on a CUDA ``device`` the vertices and each depth map as float64 tensors there;
-    otherwise (``None``, the CPU) the NumPy arrays and ``None``: on a CPU NumPy projects 2-3x faster than torch
-    (``benchmarks/mesh_policy.md``)."""
-    if device is None or torch.device(device).type != "cuda":
-        return verts, depths, None
-    return (torch.as_tensor(verts, dtype=torch.float64, device=device),
-            [torch.as_tensor(np.asarray(d), dtype=torch.float64, device=device) for d in depths], device)
+    """``(verts, depths)``: the vertices as a float64 tensor and each depth map as a tensor on ``device`` (``None``:
+    the CPU), for :func:`~wtopo.vertex_support.view_agreement`."""
+    dev = torch.device("cpu" if device is None else device)
+    return (torch.as_tensor(verts, dtype=torch.float64, device=dev),
+            [torch.as_tensor(np.asarray(d), device=dev) for d in depths])
 
 
 def supported_components(mesh: trimesh.Trimesh, cameras: Sequence, depths: Sequence[np.ndarray], *,
@@ -191,8 +154,8 @@ def supported_components(mesh: trimesh.Trimesh, cameras: Sequence, depths: Seque
         mesh: the mesh, internal frame.
         cameras: training cameras, internal frame.
         depths: their rendered z-depth maps [H, W] (0 where the surfels are not opaque).
-        device: the fit's torch device: on CUDA the projections run there (float64 torch), otherwise in NumPy on
-            the host (``None`` too). The same decisions either way (float64 both).
+        device: the fit's torch device, where the projections run (:func:`~wtopo.vertex_support.view_agreement`,
+            float64 on every device, so the same decisions); ``None``: the CPU.
 
     Returns:
         ``(mesh, info)``: the kept components, and counts with the largest dropped components'
@@ -209,26 +172,20 @@ def supported_components(mesh: trimesh.Trimesh, cameras: Sequence, depths: Seque
     vlabel[faces.reshape(-1)] = np.repeat(label, 3)
     used = vlabel >= 0
     vcount = np.bincount(vlabel[used], minlength=n_comp).astype(np.float64)
-    verts, depths, device = _device_views(np.asarray(mesh.vertices), depths, device)
-    views = np.zeros(n_comp, np.int64)
-    active = np.flatnonzero(used)
-    bincount = np.bincount
-    if device is not None:
-        vlabel, vcount, views, active = (torch.as_tensor(a, device=verts.device)
-                                         for a in (vlabel, vcount, views, active))
-        bincount = torch.bincount
+    verts, depths = _device_views(np.asarray(mesh.vertices), depths, device)
+    vlabel, vcount, views, active = (torch.as_tensor(a, device=verts.device)
+                                     for a in (vlabel, vcount, np.zeros(n_comp, np.int64), np.flatnonzero(used)))
     for cam, dep in zip(cameras, depths):
         # a component that has its _MIN_SUPPORT_VIEWS views is kept whatever the other views say: only
         # the undecided ones' vertices are projected (a 700k-face scene mesh over 204 views: 5.5 s ->
         # a few views' worth); the decision and the dropped components' counts are unchanged
         if len(active) == 0:
             break
-        agree = active[_vertex_agreement(verts[active], cam, dep)]
-        frac = bincount(vlabel[agree], minlength=n_comp) / vcount.clip(min=1.0)
+        agree = active[view_agreement(verts, active, cam, dep, relative=_DEPTH_TOLERANCE)]
+        frac = torch.bincount(vlabel[agree], minlength=n_comp) / vcount.clip(min=1.0)
         views += frac >= _SUPPORT_VERTEX_FRACTION
         active = active[views[vlabel[active]] < _MIN_SUPPORT_VIEWS]
-    if device is not None:
-        views = views.cpu().numpy()
+    views = views.cpu().numpy()
     keep = (views >= _MIN_SUPPORT_VIEWS) & (share >= _MIN_AREA_FRACTION)
     worst = np.argsort(-share)
     dropped = [{"area_share": round(float(share[c]), 6), "views": int(views[c])} for c in worst if not keep[c]]
@@ -262,8 +219,8 @@ def supported_faces(mesh: trimesh.Trimesh, cameras: Sequence, depths: Sequence[n
         min_region_area: unsupported faces go only as regions (faces joined through shared vertices) of at least
             this area [internal units^2]: a sheet goes, where a seen surface's few faces at a silhouette that
             coarse views miss stay (0: every unsupported face goes).
-        device: the fit's torch device: on CUDA the projections run there (float64 torch), otherwise in NumPy on
-            the host (``None`` too). The same decisions either way (float64 both).
+        device: the fit's torch device, where the projections run (:func:`~wtopo.vertex_support.view_agreement`,
+            float64 on every device, so the same decisions); ``None``: the CPU.
 
     Returns:
         ``(mesh, info)``: the kept faces (the input itself when all stay) and ``{"faces": before, "kept": after}``.
@@ -283,19 +240,16 @@ def supported_faces(mesh: trimesh.Trimesh, cameras: Sequence, depths: Sequence[n
     faces = np.asarray(mesh.faces)
     if len(faces) == 0:
         return mesh, {"faces": 0, "kept": 0}
-    verts, depths, device = _device_views(np.asarray(mesh.vertices), depths, device)
-    support = np.zeros(len(verts), np.int64)
-    active = np.flatnonzero(_used_vertices(faces, len(verts)))  # ascending
-    if device is not None:
-        support, active = torch.as_tensor(support, device=verts.device), torch.as_tensor(active, device=verts.device)
+    verts, depths = _device_views(np.asarray(mesh.vertices), depths, device)
+    support = torch.zeros(len(verts), dtype=torch.int64, device=verts.device)
+    active = torch.as_tensor(np.flatnonzero(_used_vertices(faces, len(verts))), device=verts.device)  # ascending
     for cam, dep in zip(cameras, depths):
         # a vertex with its min_views views is decided: only the others are projected (the result is unchanged)
         if len(active) == 0:
             break
-        support[active[_vertex_agreement(verts[active], cam, dep, tolerance)]] += 1
+        support[active[view_agreement(verts, active, cam, dep, tolerance=tolerance)]] += 1
         active = active[support[active] < min_views]
-    if device is not None:
-        support = support.cpu().numpy()
+    support = support.cpu().numpy()
     keep = support[faces].min(axis=1) >= min_views
     if min_region_area > 0 and not keep.all():
         drop = np.flatnonzero(~keep)
