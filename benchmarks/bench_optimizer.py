@@ -5,11 +5,16 @@ Builds the surfel parameters of a fit (means [N, 3], quaternions [N, 4], log sca
 [N, 1], SH DC [N, 1, 3] and the higher bands of degree 3 [N, 15, 3]), one group each with its own rate as the
 fit's, and times one step with fresh gradients, synchronised, for:
 
-* ``wtopo``: :class:`wtopo.fitting.adam.Adam` (multi-tensor operations per betas and eps);
+* ``wtopo``: :class:`wtopo.fitting.adam.Adam` (on CUDA one Warp kernel launch per parameter, on the CPU torch's
+  multi-tensor operations; non-finite gradients zeroed and flagged either way); on the CPU also ``kernel``, its CUDA
+  path (the Warp kernel) run on the CPU;
 * ``torch single-tensor``: ``torch.optim.Adam(foreach=False)``, the per-parameter update wtopo's class made
   before (the same operations, seven per parameter);
 * ``torch foreach`` and, on CUDA, ``torch fused``: ``torch.optim.Adam(foreach=True)`` and ``(fused=True)``,
-  the peers in the same process.
+  the peers in the same process;
+* ``foreach+checks``: the fit's optimizer section before its kernel: the finite checks around a multi-tensor step
+  (the gradients' norms, ``nan_to_num_`` of each, ``torch.optim.Adam(foreach=True)``, the parameters' norms),
+  where wtopo's step zeroes non-finite gradient elements and flags non-finite ones itself.
 
 Every optimiser updates its own copy of the parameters; the script checks that wtopo's copy equals torch's
 single-tensor copy after the timed steps.
@@ -27,6 +32,7 @@ import time
 
 import torch
 
+from wtopo.fitting import adam as adam_module
 from wtopo.fitting.adam import Adam
 
 _SHAPES = {"means": (3,), "quats": (4,), "log_scales": (2,), "opacity_logits": (1,), "sh_dc": (1, 3),
@@ -47,6 +53,35 @@ def _groups(params):
 def _sync(device):
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+
+
+class _Kernel:
+    """wtopo's Adam with its kernel path on the CPU too."""
+
+    def __init__(self, params):
+        self.opt = Adam(_groups(params), eps=1e-15)
+
+    def step(self):
+        adam_module._KERNEL_ON_CPU = True
+        try:
+            return self.opt.step()
+        finally:
+            adam_module._KERNEL_ON_CPU = False
+
+
+class _Checked:
+    """A step with the finite checks the fit's optimizer section made around its multi-tensor step."""
+
+    def __init__(self, opt, params):
+        self.opt, self.params = opt, params
+
+    def step(self):
+        grads = [p.grad for p in self.params]
+        finite = torch.isfinite(torch.stack(torch._foreach_norm(grads))).all()
+        for g in grads:
+            g.nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)
+        self.opt.step()
+        return torch.isfinite(torch.stack(torch._foreach_norm([p.detach() for p in self.params]))).all() & finite
 
 
 def _time(opt, params, grads, steps: int, device) -> float:
@@ -72,14 +107,18 @@ def main() -> None:
     args = ap.parse_args()
     device = torch.device(args.device)
     print(f"Adam step, {args.steps} synchronised steps each, median ms ({device}, torch {torch.__version__})")
-    print(f"{'surfels':>9} {'wtopo':>8} {'single':>8} {'foreach':>8} {'fused':>8}  wtopo / best torch")
+    print(f"{'surfels':>9} {'wtopo':>8} {'single':>8} {'foreach':>8} {'fused':>8} {'f+checks':>8}  wtopo / best torch"
+          "  wtopo / f+checks")
     for n in args.surfels:
         grads = [[torch.randn((n, *s), device=device) for s in _SHAPES.values()] for _ in range(4)]
         runs = {"wtopo": lambda ps: Adam(_groups(ps), eps=1e-15),
                 "single": lambda ps: torch.optim.Adam(_groups(ps), lr=0.0, eps=1e-15, foreach=False),
-                "foreach": lambda ps: torch.optim.Adam(_groups(ps), lr=0.0, eps=1e-15, foreach=True)}
+                "foreach": lambda ps: torch.optim.Adam(_groups(ps), lr=0.0, eps=1e-15, foreach=True),
+                "checked": lambda ps: _Checked(torch.optim.Adam(_groups(ps), lr=0.0, eps=1e-15, foreach=True), ps)}
         if device.type == "cuda":
             runs["fused"] = lambda ps: torch.optim.Adam(_groups(ps), lr=0.0, eps=1e-15, fused=True)
+        else:
+            runs["kernel"] = _Kernel
         ms, finals = {}, {}
         for name, make in runs.items():
             ps = _params(n, device)
@@ -89,9 +128,10 @@ def main() -> None:
             finals[name] = ps
         for a, b in zip(finals["wtopo"], finals["single"]):
             torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
-        best = min(v for k, v in ms.items() if k != "wtopo")
-        cells = " ".join(f"{ms.get(k, float('nan')):8.3f}" for k in ("wtopo", "single", "foreach", "fused"))
-        print(f"{n:9d} {cells}  {ms['wtopo'] / best:.2f}x")
+        best = min(v for k, v in ms.items() if k not in ("wtopo", "checked", "kernel"))
+        cells = " ".join(f"{ms.get(k, float('nan')):8.3f}" for k in ("wtopo", "single", "foreach", "fused", "checked"))
+        print(f"{n:9d} {cells}  {ms['wtopo'] / best:.2f}x  {ms['wtopo'] / ms['checked']:.2f}x"
+              + (f"  (kernel on the CPU: {ms['kernel']:.3f} ms)" if "kernel" in ms else ""))
 
 
 if __name__ == "__main__":

@@ -222,8 +222,9 @@ def window_costs_kernel(offset: int, strip: int, rows: wp.array4d(dtype=wp.vec3)
                     acc += wp.vec3d(rows[p, k, y + half, x])
                 if y - half - 1 >= 0:
                     acc -= wp.vec3d(rows[p, k, y - half - 1, x])
-            s0[k] = acc[0]
-            s1[k] = acc[1]
-            s2[k] = acc[2]
+            if strip > 1:  # kept for the next row (one row per thread on CUDA: nothing to keep)
+                s0[k] = acc[0]
+                s1[k] = acc[1]
+                s2[k] = acc[2]
             nccs[k] = _ncc(wp.vec3(acc), count, mr, vr, (bits >> k) & 1, min_texture)
         cost[p, y, x] = _best_mean(nccs, K, best)

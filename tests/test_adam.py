@@ -1,19 +1,33 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The fit's Adam (:mod:`wtopo.fitting.adam`) against ``torch.optim.Adam``: the same parameters after many
-steps with changing rates and gradients that skip a step, and state dicts that load both ways."""
+"""The fit's Adam (:mod:`wtopo.fitting.adam`, one Warp kernel launch per parameter) against ``torch.optim.Adam``:
+the same parameters after many steps with changing rates and gradients that skip a step (float32 and float64, on
+every device), non-finite gradients zeroed and flagged, non-finite results flagged, and state dicts that load both
+ways."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
+from wtopo.fitting import adam as adam_module
 from wtopo.fitting.adam import Adam
 
 
-def _groups(seed=0):
+@pytest.fixture(params=["auto", "kernel"])
+def path(request, monkeypatch):
+    """Adam's update as the device picks it (CUDA: the kernel; CPU: torch's multi-tensor operations), and the
+    kernel on every device."""
+    if request.param == "kernel":
+        monkeypatch.setattr(adam_module, "_KERNEL_ON_CPU", True)
+    return request.param
+
+
+def _groups(seed=0, dtype=torch.float32, device="cpu"):
     g = torch.Generator().manual_seed(seed)
-    return [{"params": [torch.randn(40, 3, generator=g).requires_grad_()], "lr": 1e-2, "name": "a"},
-            {"params": [torch.randn(40, generator=g).requires_grad_()], "lr": 5e-2, "name": "b"}]
+    return [{"params": [torch.randn(40, 3, generator=g, dtype=dtype).to(device).requires_grad_()], "lr": 1e-2,
+             "name": "a"},
+            {"params": [torch.randn(40, generator=g, dtype=dtype).to(device).requires_grad_()], "lr": 5e-2,
+             "name": "b"}]
 
 
 def _run(opt, groups, steps, seed=1, start=0):
@@ -24,14 +38,15 @@ def _run(opt, groups, steps, seed=1, start=0):
             if k % 7 == 3 and grp["name"] == "b":  # a step without a gradient for one group
                 p.grad = None
                 continue
-            p.grad = torch.randn(p.shape, generator=g) * (1 + k % 5)
+            p.grad = (torch.randn(p.shape, generator=g, dtype=p.dtype) * (1 + k % 5)).to(p.device)
         opt.param_groups[0]["lr"] = 1e-2 * 0.97 ** k  # a decaying rate, as the means'
         opt.step()
         opt.zero_grad(set_to_none=True)
 
 
-def test_matches_torch_adam():
-    ours, theirs = _groups(), _groups()
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_matches_torch_adam(device, dtype, path):
+    ours, theirs = _groups(dtype=dtype, device=device), _groups(dtype=dtype, device=device)
     start = [g["params"][0].detach().clone() for g in ours]
     a = Adam(ours, eps=1e-15)
     b = torch.optim.Adam(theirs, lr=0.0, eps=1e-15)
@@ -64,11 +79,40 @@ def test_state_dicts_load_both_ways(direction):
         torch.testing.assert_close(x["params"][0], y["params"][0], rtol=0, atol=1e-6)
 
 
+def test_non_finite_gradients_are_zeroed_and_flagged(device, path):
+    """A NaN or infinite gradient element updates as a zero gradient would, and the step's flag says so; a finite
+    step's flag is 0; a non-finite result is flagged; no gradient at all: no flag."""
+    ours, theirs = _groups(device=device), _groups(device=device)
+    a = Adam(ours)
+    b = torch.optim.Adam(theirs, lr=0.0)
+    for x, y in zip(ours, theirs):
+        y["lr"] = x["lr"]
+    bad = torch.randn(40, 3, generator=torch.Generator().manual_seed(2)).to(device)
+    bad[3, 1], bad[7, 0], bad[9, 2] = float("nan"), float("inf"), -float("inf")
+    ours[0]["params"][0].grad, theirs[0]["params"][0].grad = bad.clone(), torch.nan_to_num(bad, 0.0, 0.0, 0.0)
+    ours[1]["params"][0].grad = theirs[1]["params"][0].grad = None
+    flags = a.step()
+    b.step()
+    assert flags.tolist() == [1]
+    assert bool(torch.isfinite(ours[0]["params"][0].grad).all()) and float(ours[0]["params"][0].grad[3, 1]) == 0.0
+    torch.testing.assert_close(ours[0]["params"][0], theirs[0]["params"][0], rtol=0, atol=1e-6)
+    ours[0]["params"][0].grad = torch.ones(40, 3, device=device)
+    assert a.step().tolist() == [0]
+    with torch.no_grad():
+        ours[1]["params"][0][5] = float("inf")  # a parameter that is already infinite stays so
+    ours[1]["params"][0].grad = torch.ones(40, device=device)
+    assert a.step().tolist() == [1]
+    a.zero_grad()
+    assert a.step() is None
+
+
 def test_bad_arguments():
     with pytest.raises(ValueError, match="betas"):
         Adam(_groups(), betas=(1.0, 0.9))
     with pytest.raises(TypeError, match="floating-point"):
         Adam([{"params": [torch.zeros(3, dtype=torch.long)], "lr": 1.0, "name": "i"}])
+    with pytest.raises(ValueError, match="contiguous"):
+        Adam([{"params": [torch.zeros(3, 4).t()], "lr": 1.0, "name": "t"}])
     a = Adam(_groups())
     sd = a.state_dict()
     sd["param_groups"] = sd["param_groups"][:1]

@@ -21,7 +21,8 @@ from .kernels import plane_sweep as _k
 
 __all__ = ["LevelPlanes", "SweepReference", "plane_costs"]
 
-_CHUNK_BYTES = 256 * 2**20  # bytes of per-chunk arrays (samples, row sums, validity) held at once
+_CHUNK_BYTES = 256 * 2**20  # bytes of per-chunk arrays (samples, row sums, validity) held at once on the CPU ...
+_CUDA_CHUNK_BYTES = 2**30  # ... and on CUDA, where a chunk's launches must be long enough to hide the host's time
 _MIN_CHUNK = 256  # threads per CPU launch at least
 _CPU_STRIP = 16  # pixels of a row per CPU thread (window sums slide along it)
 
@@ -131,8 +132,8 @@ def plane_costs(reference: SweepReference, sources: torch.Tensor, params: torch.
     if P == 0:
         return cost
     per_plane = H * W * (4 * K + 12 * K + 4)  # samples, row sums and validity bits of one plane
-    chunk = max(1, min(P, _CHUNK_BYTES // per_plane))
     wdev = _bridge.warp_device(dev)
+    chunk = max(1, min(P, (_CHUNK_BYTES if wdev.is_cpu else _CUDA_CHUNK_BYTES) // per_plane))
     if level:
         height, rate, lo, hi, family = planes.camera_height, planes.rate, float(planes.lo), float(planes.hi), _k.LEVEL
     else:

@@ -2,8 +2,10 @@
 # .stage/dtu_raw, .stage/old = `git archive e77081a` (the tree before the sweep's and the support rules' kernels),
 # .stage/mvs_torch.py and .stage/mesh_policy_numpy.py): #60's initialisation and final mesh on the H200.
 #   1. the new kernels on CUDA against the CPU and the references (pytest where the machine has it);
-#   2. benchmarks/bench_mvs.py (DTU's 49 views, the Warp score against the torch one) and
-#      benchmarks/bench_mesh_policy.py --device cuda (the support kernel against e77081a's torch rules);
+#   2. benchmarks/bench_mvs.py (DTU's 49 views, the Warp score against the torch one),
+#      benchmarks/bench_mesh_policy.py --device cuda (the support kernel against e77081a's torch rules) and
+#      benchmarks/bench_optimizer.py (the Adam kernel with its finite checks against torch's Adams and the checks
+#      the fit made around its multi-tensor step);
 #   3. DTU at the CUDA default, profiled, this tree then the old one (RUNS, as p_all.sh), alone on the GPU.
 source lab/device/lease_env.sh
 t0=$(date +%s)
@@ -15,13 +17,14 @@ mkdir -p $OUT/s
 {
   if python3 -c "import pytest" 2>/dev/null; then
     timeout 150 python3 -m pytest -q -x tests/test_plane_sweep.py tests/test_vertex_support.py tests/test_mesh_policy.py \
-      tests/test_mvs.py 2>&1 | tail -n 5
+      tests/test_mvs.py tests/test_adam.py 2>&1 | tail -n 5
   else
     echo "no pytest here"
   fi
   timeout 120 python3 benchmarks/bench_mvs.py --device cuda --views 49 --data .stage/dtu_raw/dtu_scan24 --repeats 2 \
     --against .stage/mvs_torch.py
   timeout 150 python3 benchmarks/bench_mesh_policy.py --device cuda --against .stage/mesh_policy_numpy.py
+  timeout 60 python3 benchmarks/bench_optimizer.py --device cuda --surfels 100000 1000000
 } > $OUT/s/kernels.txt 2>&1
 cat $OUT/s/kernels.txt | cut -c1-160
 wait

@@ -4,7 +4,7 @@
 ``torch.optim.Optimizer.add_param_group`` is wrapped to disable TorchDynamo, and its first call imports
 ``torch._dynamo``: about 1.6 s on a 2-core CPU, paid by every fit for a compiler it never uses. This class is
 the update of ``torch.optim.Adam`` (no weight decay, no AMSGrad; the single-tensor path's operations in the
-same order, as torch's multi-tensor operations) with the parts of its interface the fit uses:
+same order, one Warp kernel launch per parameter: ``kernels/adam.py``) with the parts of its interface the fit uses:
 ``param_groups`` (one dict per group with ``"params"``, ``"lr"``, ``"name"``), ``state`` (per parameter
 ``"step"``, ``"exp_avg"``, ``"exp_avg_sq"``), :meth:`step`, :meth:`zero_grad`, and :meth:`state_dict` /
 :meth:`load_state_dict` in ``torch.optim.Adam``'s layout, so checkpoints written by either load into the
@@ -16,8 +16,15 @@ from __future__ import annotations
 import math
 
 import torch
+import warp as wp
+
+from .. import _bridge
+from ..kernels import adam as _k
 
 __all__ = ["Adam"]
+
+_CPU_STRIP = 256  # elements per CPU thread of the kernel
+_KERNEL_ON_CPU = False  # the CPU takes torch's multi-tensor path (Adam.step); the tests set this to run the kernel
 
 # what torch.optim.Adam's groups also hold (its defaults): written into state_dict() so that torch's Adam
 # loads it too; ignored on load
@@ -29,7 +36,7 @@ class Adam:
     """Adam over parameter groups (``[{"params": [tensor, ...], "lr": float, "name": str}, ...]``).
 
     Args:
-        groups: the parameter groups; every parameter a floating-point leaf tensor.
+        groups: the parameter groups; every parameter a contiguous float32 or float64 leaf tensor, all on one device.
         betas: the moments' decay rates.
         eps: added to the second moment's root (after bias correction), as ``torch.optim.Adam``.
     """
@@ -44,22 +51,31 @@ class Adam:
         self.param_groups: list[dict] = []
         for g in groups:
             params = list(g["params"])
-            if not all(isinstance(p, torch.Tensor) and p.is_floating_point() for p in params):
-                raise TypeError(f"group {g.get('name')!r}: params must be floating-point tensors")
+            if not all(isinstance(p, torch.Tensor) and p.dtype in (torch.float32, torch.float64) for p in params):
+                raise TypeError(f"group {g.get('name')!r}: params must be floating-point tensors (float32 or float64)")
+            if not all(p.is_contiguous() for p in params):
+                raise ValueError(f"group {g.get('name')!r}: params must be contiguous")
             self.param_groups.append({**self.defaults, **{k: v for k, v in g.items() if k != "params"},
                                       "params": params})
+        devices = {p.device for g in self.param_groups for p in g["params"]}
+        if len(devices) > 1:
+            raise ValueError(f"params must lie on one device, got {sorted(map(str, devices))}")
         self.state: dict[torch.Tensor, dict] = {}
+        self._flags: torch.Tensor | None = None
 
     @torch.no_grad()
-    def step(self) -> None:
-        """One update of every parameter that has a gradient.
+    def step(self) -> torch.Tensor | None:
+        """One update of every parameter that has a gradient, with no host synchronisation.
 
-        The parameters of every group with the same betas and eps are updated together by torch's multi-tensor
-        (``_foreach``) operations, each with its own step count and rate: on CUDA seven launches in all instead of
-        seven per parameter; on the CPU torch loops over the tensors itself (4x faster than from Python at 20k
-        surfels, ``benchmarks/bench_optimizer.py``).
+        A gradient's non-finite elements are zeroed first (in the gradient too). Returns a one-element int32 tensor
+        on the parameters' device: 1 when a gradient element was not finite or an updated element is not, else 0
+        (``None`` when no parameter has a gradient). The next step reuses it: copy what must outlive that.
+
+        On CUDA each parameter is one launch of ``kernels/adam.py`` (checks included); on the CPU torch's
+        multi-tensor operations over all of them, whose vectorised loops beat a Warp CPU kernel's scalar one 2-4x
+        (``benchmarks/bench_optimizer.py``). The same arithmetic (``tests/test_adam.py`` runs both).
         """
-        buckets: dict[tuple, list] = {}
+        items = []
         for g in self.param_groups:
             b1, b2 = g["betas"]
             lr, eps = float(g["lr"]), float(g["eps"])
@@ -72,20 +88,14 @@ class Adam:
                                           "exp_avg_sq": torch.zeros_like(p)}
                 st["step"] += 1
                 t = float(st["step"])
-                buckets.setdefault((b1, b2, eps, p.device, p.dtype), []).append(
-                    (p, p.grad, st, lr / (1 - b1 ** t), math.sqrt(1 - b2 ** t)))
-        for (b1, b2, eps, _, _), items in buckets.items():
-            params = [it[0] for it in items]
-            grads = [it[1] for it in items]
-            m = [it[2]["exp_avg"] for it in items]
-            v = [it[2]["exp_avg_sq"] for it in items]
-            torch._foreach_lerp_(m, grads, 1 - b1)
-            torch._foreach_mul_(v, b2)
-            torch._foreach_addcmul_(v, grads, grads, value=1 - b2)
-            denom = torch._foreach_sqrt(v)
-            torch._foreach_div_(denom, [it[4] for it in items])
-            torch._foreach_add_(denom, eps)
-            torch._foreach_addcdiv_(params, m, denom, [-it[3] for it in items])
+                items.append((p, st, b1, b2, eps, lr / (1 - b1 ** t), math.sqrt(1 - b2 ** t)))
+        if not items:
+            return None
+        dev = items[0][0].device
+        if self._flags is None or self._flags.device != dev:
+            self._flags = torch.zeros(1, dtype=torch.int32, device=dev)
+        (_update_kernel if dev.type == "cuda" or _KERNEL_ON_CPU else _update_foreach)(items, self._flags)
+        return self._flags
 
     def zero_grad(self, set_to_none: bool = True) -> None:
         """Drop (or zero) every parameter's gradient."""
@@ -130,3 +140,51 @@ class Adam:
                 self.state[p] = {"step": torch.as_tensor(st["step"], dtype=torch.float32).detach().clone().cpu(),
                                  **{k: st[k].detach().to(device=p.device, dtype=p.dtype, copy=True)
                                     for k in ("exp_avg", "exp_avg_sq")}}
+
+
+def _update_kernel(items: list, flags: torch.Tensor) -> None:
+    """:meth:`Adam.step`'s update, one ``kernels/adam.py`` launch per parameter (``items``: ``(param, state, b1,
+    b2, eps, step size, root correction)``)."""
+    flags.zero_()
+    dev = flags.device
+    wdev = _bridge.warp_device(dev)
+    wflags = _bridge.to_warp(flags)
+    strip = _CPU_STRIP if wdev.is_cpu else 1
+    with _bridge.torch_stream(wdev, dev):
+        for p, st, b1, b2, eps, step_size, root in items:
+            if not p.grad.is_contiguous() or p.grad.dtype != p.dtype:
+                p.grad = p.grad.to(p.dtype).contiguous()
+            for k in ("exp_avg", "exp_avg_sq"):
+                if not st[k].is_contiguous():
+                    st[k] = st[k].contiguous()
+            s = wp.float64 if p.dtype == torch.float64 else wp.float32
+            arrays = [_bridge.to_warp(x.view(-1)) for x in (p.detach(), p.grad, st["exp_avg"], st["exp_avg_sq"])]
+            _bridge.launch_split(_k.adam_step_kernel, -(-p.numel() // strip),
+                                 [strip, *arrays, s(1 - b1), s(b2), s(1 - b2), s(step_size), s(root), s(eps)],
+                                 [wflags], device=wdev, min_chunk=64)
+
+
+def _update_foreach(items: list, flags: torch.Tensor) -> None:
+    """:meth:`Adam.step`'s update by torch's multi-tensor operations, parameters of the same betas, eps and dtype
+    together (the single-tensor path's operations in the same order, per-parameter rates as scalar lists)."""
+    grads = [it[0].grad for it in items]
+    bad = ~torch.isfinite(torch.stack(torch._foreach_norm(grads))).all()
+    for g in grads:
+        g.nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)
+    buckets: dict[tuple, list] = {}
+    for it in items:
+        buckets.setdefault((it[2], it[3], it[4], it[0].dtype), []).append(it)
+    for (b1, b2, eps, _), group in buckets.items():
+        params = [it[0] for it in group]
+        grads = [it[0].grad for it in group]
+        m = [it[1]["exp_avg"] for it in group]
+        v = [it[1]["exp_avg_sq"] for it in group]
+        torch._foreach_lerp_(m, grads, 1 - b1)
+        torch._foreach_mul_(v, b2)
+        torch._foreach_addcmul_(v, grads, grads, value=1 - b2)
+        denom = torch._foreach_sqrt(v)
+        torch._foreach_div_(denom, [it[6] for it in group])
+        torch._foreach_add_(denom, eps)
+        torch._foreach_addcdiv_(params, m, denom, [-it[5] for it in group])
+    bad |= ~torch.isfinite(torch.stack(torch._foreach_norm([it[0].detach() for it in items]))).all()
+    flags.copy_(bad.view(1))

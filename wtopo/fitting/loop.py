@@ -320,22 +320,19 @@ class FitRun:
             return
         with self.timers("backward"):
             total.backward()
-        grads = [p.grad for p in self.surfels.params.values() if p.grad is not None]
         with self.timers("optimizer"):
             # whether this step is finite is a device flag, read with the next iteration's losses (no host read
-            # here); its gradients are zeroed where not finite, so that the next forward never sees a non-finite
-            # parameter before the flag sends the fit back to its last good state
-            finite = torch.isfinite(torch.stack(torch._foreach_norm(grads))).all() if grads else None
-            for g in grads:
-                g.nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)
+            # here); the optimiser zeroes a gradient's non-finite elements before its update, so that the next
+            # forward never sees a non-finite parameter before the flag sends the fit back to its last good state
             self._update_lr()
             before = self.surfels.means.detach().clone() if self.background is not None else None
-            self.opt.step()
+            flags = self.opt.step()
+            dev = self.surfels.means.device
+            finite = torch.ones((), dtype=torch.bool, device=dev) if flags is None else flags[0] == 0
             if self.background is not None:
                 contract_steps(self.surfels.means, before, self.background.step_scale(before))
-            values = [p.detach() for p in self.surfels.params.values()]
-            params = torch.isfinite(torch.stack(torch._foreach_norm(values))).all()
-            self._unverified = params if finite is None else params & finite
+                finite = finite & torch.isfinite(self.surfels.means.detach()).all()
+            self._unverified = finite
         with self.timers("statistics"):
             self.strategy.step_post_backward(self.surfels, info)
         self.opt.zero_grad(set_to_none=True)
