@@ -13,12 +13,14 @@ from wtopo.fitting import adam as adam_module
 from wtopo.fitting.adam import Adam
 
 
-@pytest.fixture(params=["auto", "kernel"])
+@pytest.fixture(params=["auto", "kernel", "kernel-one-per-thread"])
 def path(request, monkeypatch):
-    """Adam's update as the device picks it (CUDA: the kernel; CPU: torch's multi-tensor operations), and the
-    kernel on every device."""
-    if request.param == "kernel":
+    """Adam's update as the device picks it (CUDA: the kernel; CPU: torch's multi-tensor operations), the kernel on
+    every device, and the kernel with one element a thread (CUDA's layout) on the CPU too."""
+    if request.param.startswith("kernel"):
         monkeypatch.setattr(adam_module, "_KERNEL_ON_CPU", True)
+    if request.param == "kernel-one-per-thread":
+        monkeypatch.setattr(adam_module, "_CPU_STRIP", 1)
     return request.param
 
 

@@ -167,7 +167,9 @@ def test_image_smaller_than_the_window_matches_the_reference(device):
     torch.testing.assert_close(cost.double()[held], want[held], atol=COST_ATOL, rtol=0)
 
 
-def test_chunks_and_cpu_threads_give_the_same_costs(plane, monkeypatch):
+def test_chunks_strips_and_cpu_threads_give_the_same_costs(plane, monkeypatch):
+    """Chunks of planes, CPU threads and strips change nothing; one pixel a thread (CUDA's layout, no sliding
+    sums) agrees within the sums' round-off."""
     import wtopo.plane_sweep as ps
 
     cams = plane.cameras
@@ -179,6 +181,9 @@ def test_chunks_and_cpu_threads_give_the_same_costs(plane, monkeypatch):
     monkeypatch.setattr(ps, "_CHUNK_BYTES", 5 * 96 * 72 * 64)  # a few planes per chunk, the last one short
     split = plane_costs(reference, sources, params, planes, half=HALF, best=2, min_texture=MIN_TEXTURE)
     assert torch.equal(one, split)
+    monkeypatch.setattr(ps, "_CPU_STRIP", 1)
+    single = plane_costs(reference, sources, params, planes, half=HALF, best=2, min_texture=MIN_TEXTURE)
+    torch.testing.assert_close(single, one, atol=1e-5, rtol=0)
 
 
 def test_bad_arguments_are_named(plane):

@@ -44,6 +44,22 @@ def test_matches_the_numpy_projection_on_a_sphere(device, lens):
         np.testing.assert_array_equal(got.cpu().numpy(), want)
 
 
+def test_one_vertex_a_thread_gives_the_same(monkeypatch):
+    """CUDA's layout (one vertex a thread) run on the CPU: the same answers as the CPU's strips."""
+    import wtopo.vertex_support as vs
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    cam = _view()
+    r = raycast_mesh(torch.as_tensor(sphere.vertices, dtype=torch.float32),
+                     torch.as_tensor(sphere.faces, dtype=torch.int32), [cam])
+    depth = torch.where(r.mask[0], r.depth[0], torch.zeros_like(r.depth[0]))
+    verts = torch.as_tensor(sphere.vertices)
+    idx = torch.arange(len(verts)).flip(0)
+    strips = view_agreement(verts, idx, cam, depth)
+    monkeypatch.setattr(vs, "_CPU_STRIP", 1)
+    assert strips.any() and torch.equal(view_agreement(verts, idx, cam, depth), strips)
+
+
 def test_stiff_vertices_do_not_agree(device):
     cam = _view()
     depth = torch.full((cam.height, cam.width), 1.0, dtype=torch.float64, device=device)
