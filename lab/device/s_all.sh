@@ -9,11 +9,12 @@
 #   3. DTU at the CUDA default, profiled, this tree then the old one (RUNS, as p_all.sh), alone on the GPU.
 source lab/device/lease_env.sh
 t0=$(date +%s)
-lease_install || exit 1
-python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-cache-dir --target $S/old_site .stage/old \
-  > $S/old_install.log 2>&1 || { tail -5 $S/old_install.log; exit 1; }
+# a second call on the warm machine (RUNS=old) skips what the first one did
+[ -f $S/s_installed ] || { lease_install || exit 1; touch $S/s_installed; }
+[ -d $S/old_site/wtopo ] || python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-cache-dir \
+  --target $S/old_site .stage/old > $S/old_install.log 2>&1 || { tail -5 $S/old_install.log; exit 1; }
 mkdir -p $OUT/s
-{
+[ -f $S/s_kernels.txt ] || {
   if python3 -c "import pytest" 2>/dev/null; then
     timeout 150 python3 -m pytest -q -x tests/test_plane_sweep.py tests/test_vertex_support.py tests/test_mesh_policy.py \
       tests/test_mvs.py tests/test_adam.py 2>&1 | tail -n 5
@@ -24,7 +25,8 @@ mkdir -p $OUT/s
     --against .stage/mvs_torch.py
   timeout 150 python3 benchmarks/bench_mesh_policy.py --device cuda --against .stage/mesh_policy_numpy.py
   timeout 60 python3 benchmarks/bench_optimizer.py --device cuda --surfels 100000 1000000
-} > $OUT/s/kernels.txt 2>&1
+} > $S/s_kernels.txt 2>&1
+cp $S/s_kernels.txt $OUT/s/kernels.txt
 cat $OUT/s/kernels.txt | cut -c1-160
 # after the benchmarks, which it would share the GPU with (its stereo is the new sweep)
 [ -f $S/exch/dtu_scan24/meta.json ] || python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 $S/exch/dtu_scan24 \
