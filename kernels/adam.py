@@ -6,11 +6,12 @@ element is zeroed (``nan_to_num`` to 0) and raises ``flags[0]``; the moments and
 ``torch.optim.Adam`` updates them (no weight decay, no AMSGrad) in the order of its operations::
 
     m = m + (1 - b1) (g - m)               # lerp
-    v = b2 v + (1 - b2) g g                # mul, addcmul
+    v = b2 v + ((1 - b2) g) g              # mul, addcmul
     p = p - step_size m / (sqrt(v) / root_correction + eps)
 
-with ``step_size = lr / (1 - b1^t)`` and ``root_correction = sqrt(1 - b2^t)``; an updated element that is not
-finite raises ``flags[0]`` too. A thread takes a strip of elements (1 on CUDA; on the CPU a thread's set-up costs
+with ``step_size = lr / (1 - b1^t)`` and ``root_correction = sqrt(1 - b2^t)``; an updated element, or either of its
+moments, that is not finite raises ``flags[0]`` too (a huge finite gradient whose square overflows the second
+moment). A thread takes a strip of elements (1 on CUDA; on the CPU a thread's set-up costs
 more than an element). Threads write disjoint elements (``flags`` only ever receives 1), so a CPU launch may be
 split across threads.
 """
@@ -38,10 +39,10 @@ def adam_step_kernel(offset: int, strip: int, param: wp.array(dtype=Any), grad: 
             flags[0] = 1
         m = exp_avg[i]
         m = m + one_minus_b1 * (g - m)
-        v = exp_avg_sq[i] * b2 + one_minus_b2 * (g * g)
+        v = exp_avg_sq[i] * b2 + (one_minus_b2 * g) * g  # addcmul's order: g * g alone overflows sooner
         p = param[i] - step_size * (m / (wp.sqrt(v) / root_correction + eps))
         exp_avg[i] = m
         exp_avg_sq[i] = v
         param[i] = p
-        if not wp.isfinite(p):
+        if not (wp.isfinite(p) and wp.isfinite(v) and wp.isfinite(m)):
             flags[0] = 1

@@ -19,9 +19,10 @@ CUDA, more on the CPU where a thread's set-up is a good part of a pixel's time):
   ``cov / sqrt(var_s var_r + 1e-12)`` per source (moments over the window's in-image pixels, -1 where the centre
   does not count or the source window is untextured), and the mean of the best ``best`` of them.
 
-A strip's sums start at its first pixel and slide along it, in float64: the variance of a nearly flat window
-(``E[s^2] - E[s]^2``) would otherwise carry a float32 sliding sum's round-off into the NCC. Nothing here is
-differentiated.
+A strip's sums start at its first pixel and slide along it, accumulated in float64: the variance of a nearly flat
+window (``E[s^2] - E[s]^2``) would otherwise carry a float32 sliding sum's round-off into the NCC; one pixel a
+thread (CUDA) sums directly in float32. The NCC itself is formed in float32 from the sums (so it may pass +-1 by
+round-off). Nothing here is differentiated.
 """
 
 import warp as wp
@@ -132,8 +133,8 @@ def _moments(s: float, r: float):
 def window_rows_kernel(offset: int, strip: int, warped: wp.array4d(dtype=wp.float32),
                        gray: wp.array2d(dtype=wp.float32), half: int, rows: wp.array4d(dtype=wp.vec3)):
     """Thread ``offset + tid`` = ``(p, k, y, strip of x)`` of ``rows`` [P, K, H, W]: ``(sum s, sum s^2, sum s r)``
-    over the in-image pixels ``(y, x - half .. x + half)``, summed at the strip's first pixel and slid from there
-    (a pixel enters and one leaves per step) in float64."""
+    over the in-image pixels ``(y, x - half .. x + half)``: with one pixel a thread a float32 sum; else summed at
+    the strip's first pixel and slid from there (a pixel enters and one leaves per step) in float64."""
     i = offset + wp.tid()
     K = rows.shape[1]
     H = rows.shape[2]
@@ -143,6 +144,13 @@ def window_rows_kernel(offset: int, strip: int, warped: wp.array4d(dtype=wp.floa
     y = (i // n) % H
     k = (i // (n * H)) % K
     p = i // (n * H * K)
+    if strip == 1:  # CUDA: one pixel a thread, a direct float32 sum (float64 is slow on most GPUs)
+        acc32 = wp.vec3(0.0)
+        for xx in range(wp.max(x0 - half, 0), wp.min(x0 + half + 1, W)):
+            s = warped[p, k, y, xx]
+            acc32 += wp.vec3(s, s * s, s * gray[y, xx])
+        rows[p, k, y, x0] = acc32
+        return
     acc = wp.vec3d(0.0)
     for xx in range(wp.max(x0 - half, 0), wp.min(x0 + half + 1, W)):
         acc += _moments(warped[p, k, y, xx], gray[y, xx])
@@ -191,8 +199,9 @@ def window_costs_kernel(offset: int, strip: int, rows: wp.array4d(dtype=wp.vec3)
                         mean: wp.array2d(dtype=wp.float32), var: wp.array2d(dtype=wp.float32), half: int, best: int,
                         min_texture: float, cost: wp.array3d(dtype=wp.float32)):
     """Thread ``offset + tid`` = ``(p, strip of y, x)`` of ``cost`` [P, H, W]: the mean of the ``best`` largest
-    source NCCs of the window centred at ``(y, x)`` (``mean``, ``var``: the reference window's moments). Each
-    source's column sums of ``rows`` start at the strip's first row and slide down it in float64."""
+    source NCCs of the window centred at ``(y, x)`` (``mean``, ``var``: the reference window's moments). With one
+    row a thread each source's column sum of ``rows`` is a float32 sum; else it starts at the strip's first row and
+    slides down it in float64."""
     i = offset + wp.tid()
     K = rows.shape[1]
     H = cost.shape[1]
@@ -212,6 +221,12 @@ def window_costs_kernel(offset: int, strip: int, rows: wp.array4d(dtype=wp.vec3)
         mr = mean[y, x]
         vr = var[y, x]
         for k in range(K):
+            if strip == 1:  # CUDA: one row a thread, a direct float32 sum (float64 is slow on most GPUs)
+                acc32 = wp.vec3(0.0)
+                for yy in range(wp.max(y - half, 0), wp.min(y + half + 1, H)):
+                    acc32 += rows[p, k, yy, x]
+                nccs[k] = _ncc(acc32, count, mr, vr, (bits >> k) & 1, min_texture)
+                continue
             acc = wp.vec3d(s0[k], s1[k], s2[k])
             if y == y0:
                 acc = wp.vec3d(0.0)
@@ -222,9 +237,8 @@ def window_costs_kernel(offset: int, strip: int, rows: wp.array4d(dtype=wp.vec3)
                     acc += wp.vec3d(rows[p, k, y + half, x])
                 if y - half - 1 >= 0:
                     acc -= wp.vec3d(rows[p, k, y - half - 1, x])
-            if strip > 1:  # kept for the next row (one row per thread on CUDA: nothing to keep)
-                s0[k] = acc[0]
-                s1[k] = acc[1]
-                s2[k] = acc[2]
+            s0[k] = acc[0]
+            s1[k] = acc[1]
+            s2[k] = acc[2]
             nccs[k] = _ncc(wp.vec3(acc), count, mr, vr, (bits >> k) & 1, min_texture)
         cost[p, y, x] = _best_mean(nccs, K, best)

@@ -104,6 +104,12 @@ def test_non_finite_gradients_are_zeroed_and_flagged(device, path):
         ours[1]["params"][0][5] = float("inf")  # a parameter that is already infinite stays so
     ours[1]["params"][0].grad = torch.ones(40, device=device)
     assert a.step().tolist() == [1]
+    with torch.no_grad():
+        ours[1]["params"][0][5] = 0.0
+    ours[1]["params"][0].grad = torch.ones(40, device=device)
+    assert a.step().tolist() == [0]
+    ours[0]["params"][0].grad = torch.full((40, 3), 1e25, device=device)  # finite, but its square's moment is not
+    assert a.step().tolist() == [1]
     a.zero_grad()
     assert a.step() is None
 

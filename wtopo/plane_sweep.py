@@ -113,9 +113,9 @@ def plane_costs(reference: SweepReference, sources: torch.Tensor, params: torch.
         min_texture: a source window whose grey-level variance is at most this scores -1.
 
     Returns:
-        ``[P, H, W]`` float32 in [-1, 1]. A source scores -1 where the window's centre lands behind it, outside
-        its image, at a depth that is not positive (a level plane's outside ``[lo, hi]``), or on an untextured
-        window; the reference's own texture is not tested here. Not differentiable.
+        ``[P, H, W]`` float32 in [-1, 1] (up to round-off). A source scores -1 where the window's centre lands
+        behind it, outside its image, at a depth that is not positive (a level plane's outside ``[lo, hi]``), or on
+        an untextured window; the reference's own texture is not tested here. Not differentiable.
 
     Raises:
         TypeError: non-tensors or another dtype than float32.

@@ -5,7 +5,8 @@ The final mesh's support rules (:func:`wtopo.geometry.mesh_policy.supported_comp
 :func:`~wtopo.geometry.mesh_policy.supported_faces`) ask, view after view, which of the still undecided vertices
 project onto a pixel whose depth agrees with theirs. This is one launch per view over those vertices, in float64
 like the NumPy formulation it replaces (``tests/reference/vertex_support.py``), so the decisions are the same on
-every device. Nothing here is differentiated.
+every device but for a vertex within a rounding of a pixel's edge or of the tolerance (a CUDA compiler may fuse
+a multiply and an add). Nothing here is differentiated.
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ def view_agreement(vertices: torch.Tensor, index: torch.Tensor, camera: Camera, 
 
     Args:
         vertices: ``[V, 3]`` float64, the camera's frame of reference (world units).
-        index: ``[A]`` int64, the vertices to test (any order, repeats allowed), each in ``[0, V)``.
+        index: ``[A]`` int64, the vertices to test (any order, repeats allowed), each in ``[0, V)`` (checked, with a
+            host synchronisation, except under :func:`wtopo._validate.trusted_values`).
         camera: the view (pinhole with skew, and OpenCV distortion when it has one).
         depth: ``[H, W]`` float32 or float64 z-depth map of the camera's size (0: no surface), on ``vertices``'
             device.

@@ -68,8 +68,10 @@ class Adam:
         """One update of every parameter that has a gradient, with no host synchronisation.
 
         A gradient's non-finite elements are zeroed first (in the gradient too). Returns a one-element int32 tensor
-        on the parameters' device: 1 when a gradient element was not finite or an updated element is not, else 0
-        (``None`` when no parameter has a gradient). The next step reuses it: copy what must outlive that.
+        on the parameters' device: 1 when a gradient element was not finite or an updated element or moment is
+        not, else 0 (``None`` when no parameter has a gradient); the CPU's path also raises it when a gradient's
+        or a parameter's norm overflows (both flag absurd values, at slightly different sizes). The next step reuses
+        it: copy what must outlive that.
 
         On CUDA each parameter is one launch of ``kernels/adam.py`` (checks included); on the CPU torch's
         multi-tensor operations over all of them, whose vectorised loops beat a Warp CPU kernel's scalar one 2-4x
@@ -186,5 +188,7 @@ def _update_foreach(items: list, flags: torch.Tensor) -> None:
         torch._foreach_div_(denom, [it[6] for it in group])
         torch._foreach_add_(denom, eps)
         torch._foreach_addcdiv_(params, m, denom, [-it[5] for it in group])
-    bad |= ~torch.isfinite(torch.stack(torch._foreach_norm([it[0].detach() for it in items]))).all()
+    # a finite gradient's first moment stays finite; the second may overflow (its square)
+    bad |= ~torch.isfinite(torch.stack(torch._foreach_norm([t for it in items for t in (
+        it[0].detach(), it[1]["exp_avg_sq"])]))).all()
     flags.copy_(bad.view(1))
