@@ -177,8 +177,8 @@ class RuntimeConfig:
     """Seed of torch, NumPy and every random choice of the fit."""
     max_surfels: int | None = _f(None, POSITIVE)
     """Hard cap on the surfel count; ``None``: the plan's (CPU 40,000, CUDA 400,000)."""
-    checkpoint_every: int = _f(200, COUNT)
-    """Iterations between checkpoints (0: only at stage ends, on interruption and every 2 minutes)."""
+    checkpoint_every: int = _f(1000, COUNT)
+    """Iterations between checkpoints (0: only every 2 minutes, when the iterations end or are interrupted)."""
     eval_every: int = _f(200, COUNT)
     """Iterations between history records (losses, and metrics when ground truth exists)."""
     eval_views: int = _f(4, COUNT)
