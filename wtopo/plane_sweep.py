@@ -24,7 +24,7 @@ __all__ = ["LevelPlanes", "SweepReference", "plane_costs"]
 _CHUNK_BYTES = 256 * 2**20  # bytes of per-chunk arrays (samples, row sums, validity) held at once on the CPU ...
 _CUDA_CHUNK_BYTES = 2**30  # ... and on CUDA, where a chunk's launches must be long enough to hide the host's time
 _MIN_CHUNK = 256  # threads per CPU launch at least
-_CPU_STRIP = 16  # pixels of a row per CPU thread (window sums slide along it)
+_CPU_STRIP = 64  # pixels of a row (or column) per CPU thread, whose window sums slide along it: 6 % faster than 16
 
 
 class SweepReference(NamedTuple):
