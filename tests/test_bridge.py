@@ -222,3 +222,22 @@ def test_outputs_in_torch_memory_match_and_are_freed_with_their_graph(device):
         assert storage() is None
     finally:
         gc.enable()
+
+
+def test_to_warp_views_non_contiguous_tensors_by_value(device):
+    """An expanded gradient (a sum's), a transposed and a sliced tensor are viewed through a contiguous copy that the
+    view keeps alive: the same values, as scalars and as vectors."""
+    import gc
+
+    base = torch.arange(24, dtype=torch.float32, device=device).reshape(4, 6)
+    cases = [torch.full((), 2.5, device=device).expand(5, 3), base.t(), base[:, ::2]]
+    for t in cases:
+        assert not t.is_contiguous()
+        want = t.cpu().numpy().copy()
+        arr = _bridge.to_warp(t)
+        del t
+        gc.collect()
+        np.testing.assert_array_equal(arr.numpy(), want)
+    vec = _bridge.to_warp(torch.ones((), device=device).expand(7, 3), wp.vec3)
+    assert vec.shape == (7,) and vec.dtype == wp.vec3
+    np.testing.assert_array_equal(vec.numpy(), np.ones((7, 3), np.float32))
