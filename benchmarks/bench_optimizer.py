@@ -5,16 +5,15 @@ Builds the surfel parameters of a fit (means [N, 3], quaternions [N, 4], log sca
 [N, 1], SH DC [N, 1, 3] and the higher bands of degree 3 [N, 15, 3]), one group each with its own rate as the
 fit's, and times one step with fresh gradients, synchronised, for:
 
-* ``wtopo``: :class:`wtopo.fitting.adam.Adam` (on CUDA one Warp kernel launch per parameter, on the CPU torch's
-  multi-tensor operations; non-finite gradients zeroed and flagged either way); on the CPU also ``kernel``, its CUDA
-  path (the Warp kernel) run on the CPU;
+* ``wtopo``: :class:`wtopo.fitting.adam.Adam` (torch's multi-tensor operations; non-finite gradients zeroed and
+  flagged);
 * ``torch single-tensor``: ``torch.optim.Adam(foreach=False)``, the per-parameter update wtopo's class made
   before (the same operations, seven per parameter);
 * ``torch foreach`` and, on CUDA, ``torch fused``: ``torch.optim.Adam(foreach=True)`` and ``(fused=True)``,
   the peers in the same process;
-* ``foreach+checks``: the fit's optimizer section before its kernel: the finite checks around a multi-tensor step
-  (the gradients' norms, ``nan_to_num_`` of each, ``torch.optim.Adam(foreach=True)``, the parameters' norms),
-  where wtopo's step zeroes non-finite gradient elements and flags non-finite ones itself.
+* ``foreach+checks``: the fit's optimizer section before the checks moved into the step: the checks around a
+  multi-tensor step (the gradients' norms, ``nan_to_num_`` of each, ``torch.optim.Adam(foreach=True)``, the
+  parameters' norms), where wtopo's step zeroes non-finite gradient elements and flags non-finite ones itself.
 
 Every optimiser updates its own copy of the parameters; the script checks that wtopo's copy equals torch's
 single-tensor copy after the timed steps.
@@ -32,7 +31,6 @@ import time
 
 import torch
 
-from wtopo.fitting import adam as adam_module
 from wtopo.fitting.adam import Adam
 
 _SHAPES = {"means": (3,), "quats": (4,), "log_scales": (2,), "opacity_logits": (1,), "sh_dc": (1, 3),
@@ -53,20 +51,6 @@ def _groups(params):
 def _sync(device):
     if device.type == "cuda":
         torch.cuda.synchronize(device)
-
-
-class _Kernel:
-    """wtopo's Adam with its kernel path on the CPU too."""
-
-    def __init__(self, params):
-        self.opt = Adam(_groups(params), eps=1e-15)
-
-    def step(self):
-        adam_module._KERNEL_ON_CPU = True
-        try:
-            return self.opt.step()
-        finally:
-            adam_module._KERNEL_ON_CPU = False
 
 
 class _Checked:
@@ -117,8 +101,6 @@ def main() -> None:
                 "checked": lambda ps: _Checked(torch.optim.Adam(_groups(ps), lr=0.0, eps=1e-15, foreach=True), ps)}
         if device.type == "cuda":
             runs["fused"] = lambda ps: torch.optim.Adam(_groups(ps), lr=0.0, eps=1e-15, fused=True)
-        else:
-            runs["kernel"] = _Kernel
         ms, finals = {}, {}
         for name, make in runs.items():
             ps = _params(n, device)
@@ -128,10 +110,9 @@ def main() -> None:
             finals[name] = ps
         for a, b in zip(finals["wtopo"], finals["single"]):
             torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
-        best = min(v for k, v in ms.items() if k not in ("wtopo", "checked", "kernel"))
+        best = min(v for k, v in ms.items() if k not in ("wtopo", "checked"))
         cells = " ".join(f"{ms.get(k, float('nan')):8.3f}" for k in ("wtopo", "single", "foreach", "fused", "checked"))
-        print(f"{n:9d} {cells}  {ms['wtopo'] / best:.2f}x  {ms['wtopo'] / ms['checked']:.2f}x"
-              + (f"  (kernel on the CPU: {ms['kernel']:.3f} ms)" if "kernel" in ms else ""))
+        print(f"{n:9d} {cells}  {ms['wtopo'] / best:.2f}x  {ms['wtopo'] / ms['checked']:.2f}x")
 
 
 if __name__ == "__main__":

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The fit's Adam (:mod:`wtopo.fitting.adam`, one Warp kernel launch per parameter) against ``torch.optim.Adam``:
+"""The fit's Adam (:mod:`wtopo.fitting.adam`) against ``torch.optim.Adam``:
 the same parameters after many steps with changing rates and gradients that skip a step (float32 and float64, on
 every device), non-finite gradients zeroed and flagged, non-finite results flagged, and state dicts that load both
 ways."""
@@ -9,19 +9,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from wtopo.fitting import adam as adam_module
 from wtopo.fitting.adam import Adam
-
-
-@pytest.fixture(params=["auto", "kernel", "kernel-one-per-thread"])
-def path(request, monkeypatch):
-    """Adam's update as the device picks it (CUDA: the kernel; CPU: torch's multi-tensor operations), the kernel on
-    every device, and the kernel with one element a thread (CUDA's layout) on the CPU too."""
-    if request.param.startswith("kernel"):
-        monkeypatch.setattr(adam_module, "_KERNEL_ON_CPU", True)
-    if request.param == "kernel-one-per-thread":
-        monkeypatch.setattr(adam_module, "_CPU_STRIP", 1)
-    return request.param
 
 
 def _groups(seed=0, dtype=torch.float32, device="cpu"):
@@ -47,7 +35,7 @@ def _run(opt, groups, steps, seed=1, start=0):
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_matches_torch_adam(device, dtype, path):
+def test_matches_torch_adam(device, dtype):
     ours, theirs = _groups(dtype=dtype, device=device), _groups(dtype=dtype, device=device)
     start = [g["params"][0].detach().clone() for g in ours]
     a = Adam(ours, eps=1e-15)
@@ -81,7 +69,7 @@ def test_state_dicts_load_both_ways(direction):
         torch.testing.assert_close(x["params"][0], y["params"][0], rtol=0, atol=1e-6)
 
 
-def test_non_finite_gradients_are_zeroed_and_flagged(device, path):
+def test_non_finite_gradients_are_zeroed_and_flagged(device):
     """A NaN or infinite gradient element updates as a zero gradient would, and the step's flag says so; a finite
     step's flag is 0; a non-finite result is flagged; no gradient at all: no flag."""
     ours, theirs = _groups(device=device), _groups(device=device)

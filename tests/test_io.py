@@ -404,34 +404,6 @@ def test_timeline_empty_mesh_and_no_surfels(tmp_path):
     assert [(len(s.faces), s.num_surfels) for s in tl.samples] == [(0, 0), (20, 3)]
 
 
-def test_timeline_mesh_normals_given_or_computed(tmp_path, device):
-    """A mesh's normals given to the writer (the fit computes them on its GPU, ``vertex_normals``) are the ones it
-    computes itself (area-weighted, +z for an unused vertex); they are written as given; bad ones are named."""
-    import torch
-
-    from wtopo.fitting._timeline import vertex_normals
-    from wtopo.io._usd_common import _vertex_normals
-
-    m = trimesh.creation.icosphere(subdivisions=2)
-    verts = np.concatenate([m.vertices * [1.0, 2.0, 0.5], [[5.0, 5.0, 5.0]]])  # stretched, one unused vertex
-    mine = vertex_normals(torch.as_tensor(verts, device=device), torch.as_tensor(m.faces, device=device)).cpu()
-    np.testing.assert_allclose(mine.numpy(), _vertex_normals(verts, m.faces), atol=1e-6)
-    assert mine[-1].tolist() == [0.0, 0.0, 1.0]
-    w = TimelineWriter(tmp_path / "t.usdc")
-    given = np.tile([[1.0, 0.0, 0.0]], (len(verts), 1))
-    w.add_sample(0, mesh_verts=verts, mesh_faces=m.faces, mesh_normals=given)
-    with pytest.raises(ValueError, match="mesh_normals"):
-        w.add_sample(1, mesh_verts=verts, mesh_faces=m.faces, mesh_normals=given[:5])
-    with pytest.raises(ValueError, match="mesh_normals"):
-        w.add_sample(1, mesh_normals=given)
-    w.close()
-    from pxr import Usd
-
-    stage = Usd.Stage.Open(str(tmp_path / "t.usdc"))
-    normals = [a for p in stage.Traverse() for a in p.GetAttributes() if a.GetName() == "normals"]
-    assert any(np.allclose(np.asarray(a.Get(0.0)), given) for a in normals if a.Get(0.0) is not None)
-
-
 def test_timeline_rejects_bad_samples(tmp_path):
     """Reject decreasing iterations, NaN vertices, out-of-range faces and partial surfel arrays."""
     w = TimelineWriter(tmp_path / "t.usdc")

@@ -14,7 +14,7 @@ t0=$(date +%s)
 [ -d $S/old_site/wtopo ] || python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-cache-dir \
   --target $S/old_site .stage/old > $S/old_install.log 2>&1 || { tail -5 $S/old_install.log; exit 1; }
 mkdir -p $OUT/s
-[ -f $S/s_kernels.txt ] || {
+[ -n "$SKIP_BENCH" ] || [ -f $S/s_kernels.txt ] || {  # SKIP_BENCH=1: the profiles alone
   if python3 -c "import pytest" 2>/dev/null; then
     timeout 150 python3 -m pytest -q -x tests/test_plane_sweep.py tests/test_vertex_support.py tests/test_mesh_policy.py \
       tests/test_mvs.py tests/test_adam.py 2>&1 | tail -n 5
@@ -26,8 +26,8 @@ mkdir -p $OUT/s
   timeout 150 python3 benchmarks/bench_mesh_policy.py --device cuda --against .stage/mesh_policy_numpy.py
   timeout 60 python3 benchmarks/bench_optimizer.py --device cuda --surfels 100000 1000000
 } > $S/s_kernels.txt 2>&1
-cp $S/s_kernels.txt $OUT/s/kernels.txt
-cat $OUT/s/kernels.txt | cut -c1-160
+cp $S/s_kernels.txt $OUT/s/kernels.txt 2>/dev/null
+cat $OUT/s/kernels.txt 2>/dev/null | cut -c1-160
 # after the benchmarks, which it would share the GPU with (its stereo is the new sweep)
 [ -f $S/exch/dtu_scan24/meta.json ] || python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 $S/exch/dtu_scan24 \
   --name dtu_scan24 > $S/exch_dtu.log 2>&1

@@ -8,29 +8,12 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import torch
 import trimesh
 
 from .proxy import ProxyResult
 from .surfels import Surfels
 
-__all__ = ["FitTimeline", "vertex_normals"]
-
-
-def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """Area-weighted unit vertex normals [V, 3] float32 of a mesh (verts [V, 3], faces [F, 3]) on its device, +z for a
-    vertex no face uses: :class:`~wtopo.io.TimelineWriter`'s own normals, computed where the mesh is (a 400k-face
-    proxy mesh's take tens of ms in NumPy on the host, every sample)."""
-    v = verts.detach().double()
-    f = faces.long()
-    a = v[f[:, 0]]
-    fn = torch.cross(v[f[:, 1]] - a, v[f[:, 2]] - a, dim=1)  # length: twice the area
-    n = torch.zeros_like(v)
-    for k in range(3):
-        n.index_add_(0, f[:, k], fn)
-    length = n.norm(dim=1, keepdim=True)
-    up = torch.tensor([0.0, 0.0, 1.0], dtype=v.dtype, device=v.device)
-    return torch.where(length > 0, n / length.clamp_min(1e-300), up).float()
+__all__ = ["FitTimeline"]
 
 
 class FitTimeline:
@@ -67,8 +50,6 @@ class FitTimeline:
         if proxy_mesh is not None:
             kw = {"mesh_verts": sim.to_world(proxy_mesh.verts.detach().cpu().double().numpy()),
                   "mesh_faces": proxy_mesh.faces.cpu().numpy()}
-            if proxy_mesh.verts.is_cuda:  # a scale and a shift to the caller's frame: the same unit normals
-                kw["mesh_normals"] = vertex_normals(proxy_mesh.verts, proxy_mesh.faces).cpu().numpy()
         with self.timers("timeline"):
             self.writer.add_sample(it, means=sim.to_world(s.means.detach().cpu().double().numpy()),
                                    quats=s.quats.detach().cpu().numpy(),

@@ -4,7 +4,7 @@
 ``torch.optim.Optimizer.add_param_group`` is wrapped to disable TorchDynamo, and its first call imports
 ``torch._dynamo``: about 1.6 s on a 2-core CPU, paid by every fit for a compiler it never uses. This class is
 the update of ``torch.optim.Adam`` (no weight decay, no AMSGrad; the single-tensor path's operations in the
-same order, one Warp kernel launch per parameter: ``kernels/adam.py``) with the parts of its interface the fit uses:
+same order, as torch's multi-tensor operations) with the parts of its interface the fit uses:
 ``param_groups`` (one dict per group with ``"params"``, ``"lr"``, ``"name"``), ``state`` (per parameter
 ``"step"``, ``"exp_avg"``, ``"exp_avg_sq"``), :meth:`step`, :meth:`zero_grad`, and :meth:`state_dict` /
 :meth:`load_state_dict` in ``torch.optim.Adam``'s layout, so checkpoints written by either load into the
@@ -16,15 +16,8 @@ from __future__ import annotations
 import math
 
 import torch
-import warp as wp
-
-from .. import _bridge
-from ..kernels import adam as _k
 
 __all__ = ["Adam"]
-
-_CPU_STRIP = 256  # elements per CPU thread of the kernel
-_KERNEL_ON_CPU = False  # the CPU takes torch's multi-tensor path (Adam.step); the tests set this to run the kernel
 
 # what torch.optim.Adam's groups also hold (its defaults): written into state_dict() so that torch's Adam
 # loads it too; ignored on load
@@ -68,14 +61,12 @@ class Adam:
         """One update of every parameter that has a gradient, with no host synchronisation.
 
         A gradient's non-finite elements are zeroed first (in the gradient too). Returns a one-element int32 tensor
-        on the parameters' device: 1 when a gradient element was not finite or an updated element or moment is
-        not, else 0 (``None`` when no parameter has a gradient); the CPU's path also raises it when a gradient's
-        or a parameter's norm overflows (both flag absurd values, at slightly different sizes). The next step reuses
-        it: copy what must outlive that.
+        on the parameters' device: 1 when a gradient was not finite or an updated parameter or second moment is not
+        (by their norms, so an overflowing norm of absurd values counts too), else 0 (``None`` when no parameter has a
+        gradient). The next step reuses it: copy what must outlive that.
 
-        On CUDA each parameter is one launch of ``kernels/adam.py`` (checks included); on the CPU torch's
-        multi-tensor operations over all of them, whose vectorised loops beat a Warp CPU kernel's scalar one 2-4x
-        (``benchmarks/bench_optimizer.py``). The same arithmetic (``tests/test_adam.py`` runs both).
+        The parameters of the same betas, eps and dtype are updated together by torch's multi-tensor (``_foreach``)
+        operations, each with its own step count and rate (``benchmarks/bench_optimizer.py``).
         """
         items = []
         for g in self.param_groups:
@@ -96,7 +87,7 @@ class Adam:
         dev = items[0][0].device
         if self._flags is None or self._flags.device != dev:
             self._flags = torch.zeros(1, dtype=torch.int32, device=dev)
-        (_update_kernel if dev.type == "cuda" or _KERNEL_ON_CPU else _update_foreach)(items, self._flags)
+        _update(items, self._flags)
         return self._flags
 
     def zero_grad(self, set_to_none: bool = True) -> None:
@@ -144,31 +135,11 @@ class Adam:
                                     for k in ("exp_avg", "exp_avg_sq")}}
 
 
-def _update_kernel(items: list, flags: torch.Tensor) -> None:
-    """:meth:`Adam.step`'s update, one ``kernels/adam.py`` launch per parameter (``items``: ``(param, state, b1,
-    b2, eps, step size, root correction)``)."""
-    flags.zero_()
-    dev = flags.device
-    wdev = _bridge.warp_device(dev)
-    wflags = _bridge.to_warp(flags)
-    strip = _CPU_STRIP if wdev.is_cpu else 1
-    with _bridge.torch_stream(wdev, dev):
-        for p, st, b1, b2, eps, step_size, root in items:
-            if not p.grad.is_contiguous() or p.grad.dtype != p.dtype:
-                p.grad = p.grad.to(p.dtype).contiguous()
-            for k in ("exp_avg", "exp_avg_sq"):
-                if not st[k].is_contiguous():
-                    st[k] = st[k].contiguous()
-            s = wp.float64 if p.dtype == torch.float64 else wp.float32
-            arrays = [_bridge.to_warp(x.view(-1)) for x in (p.detach(), p.grad, st["exp_avg"], st["exp_avg_sq"])]
-            _bridge.launch_split(_k.adam_step_kernel, -(-p.numel() // strip),
-                                 [strip, *arrays, s(1 - b1), s(b2), s(1 - b2), s(step_size), s(root), s(eps)],
-                                 [wflags], device=wdev, min_chunk=64)
-
-
-def _update_foreach(items: list, flags: torch.Tensor) -> None:
+def _update(items: list, flags: torch.Tensor) -> None:
     """:meth:`Adam.step`'s update by torch's multi-tensor operations, parameters of the same betas, eps and dtype
-    together (the single-tensor path's operations in the same order, per-parameter rates as scalar lists)."""
+    together (the single-tensor path's operations in the same order, per-parameter rates as scalar lists; ``items``:
+    ``(param, state, b1, b2, eps, step size, root correction)``), with the checks: ``flags`` [1] int32 becomes 1 when
+    a gradient was not finite (its non-finite elements are zeroed first) or a parameter or second moment is not."""
     grads = [it[0].grad for it in items]
     bad = ~torch.isfinite(torch.stack(torch._foreach_norm(grads))).all()
     for g in grads:

@@ -318,7 +318,7 @@ class TimelineWriter:
 
     def add_sample(self, iteration: int, *, mesh_verts=None, mesh_faces=None, means=None, quats=None, scales=None,
                    opacities=None, colors_or_sh=None, point_weight=None, distance_to_mesh=None,
-                   events=None, mesh_normals=None) -> None:
+                   events=None) -> None:
         """Record the state at ``iteration`` (time code = iteration; must increase).
 
         Pass the mesh (``mesh_verts`` and ``mesh_faces``) and/or the surfels (``means``, ``quats``,
@@ -338,8 +338,6 @@ class TimelineWriter:
             distance_to_mesh: unsigned distance from each surfel centre to the proxy mesh [N]
                 (default 0).
             events: :class:`SurfelEvent` flags per surfel [N] int (default 0).
-            mesh_normals: unit vertex normals of the mesh [V, 3] (default: area-weighted from its faces, computed
-                here; a caller whose mesh is on a GPU computes them faster there).
 
         Raises:
             TypeError, ValueError: bad shapes, non-finite values, a non-increasing iteration, or
@@ -360,10 +358,6 @@ class TimelineWriter:
         if any(a is None for a in surf) and not all(a is None for a in surf):
             raise ValueError("means, quats, scales, opacities and colors_or_sh must be given together")
         mesh = None if mesh_verts is None else _mesh_arrays(mesh_verts, mesh_faces, "mesh_")
-        if mesh_normals is not None:
-            if mesh is None:
-                raise ValueError("mesh_normals needs the mesh (mesh_verts and mesh_faces)")
-            mesh = (*mesh, as_array("mesh_normals", mesh_normals, shape=(len(mesh[0]), 3)))
         s = extras = None
         if means is not None:
             s = surfel_arrays(means, quats, scales, opacities, colors_or_sh)
@@ -394,12 +388,12 @@ class TimelineWriter:
                 if f"mesh.{key}" in self._tracks:
                     self._tracks[f"mesh.{key}"].unchanged(t)
             return
-        verts, faces = mesh[:2]
+        verts, faces = mesh
         tr = self._tracks
         tr["mesh.points"].set(verts, t)
         tr["mesh.counts"].set(np.full(len(faces), 3, np.int32), t)
         tr["mesh.indices"].set(faces, t)
-        tr["mesh.normals"].set(mesh[2] if len(mesh) > 2 else _vertex_normals(verts, faces), t)
+        tr["mesh.normals"].set(_vertex_normals(verts, faces), t)
         tr["mesh.extent"].set(_extent(verts), t)
 
     def _write_surfels(self, s, extras, t: float) -> None:
