@@ -54,16 +54,15 @@ class Adam:
         if len(devices) > 1:
             raise ValueError(f"params must lie on one device, got {sorted(map(str, devices))}")
         self.state: dict[torch.Tensor, dict] = {}
-        self._flags: torch.Tensor | None = None
 
     @torch.no_grad()
     def step(self) -> torch.Tensor | None:
         """One update of every parameter that has a gradient, with no host synchronisation.
 
-        A gradient's non-finite elements are zeroed first (in the gradient too). Returns a one-element int32 tensor
-        on the parameters' device: 1 when a gradient was not finite or an updated parameter or second moment is not
-        (by their norms, so an overflowing norm of absurd values counts too), else 0 (``None`` when no parameter has a
-        gradient). The next step reuses it: copy what must outlive that.
+        A gradient's non-finite elements are zeroed first (in the gradient too). Returns a 0-dim bool tensor on the
+        parameters' device, ``True`` when every gradient and updated parameter was finite by their norms (an
+        overflowing norm of absurd values counts as not finite, so a gradient large enough to overflow the second
+        moment does), or ``None`` when no parameter has a gradient.
 
         The parameters of the same betas, eps and dtype are updated together by torch's multi-tensor (``_foreach``)
         operations, each with its own step count and rate (``benchmarks/bench_optimizer.py``).
@@ -84,11 +83,7 @@ class Adam:
                 items.append((p, st, b1, b2, eps, lr / (1 - b1 ** t), math.sqrt(1 - b2 ** t)))
         if not items:
             return None
-        dev = items[0][0].device
-        if self._flags is None or self._flags.device != dev:
-            self._flags = torch.zeros(1, dtype=torch.int32, device=dev)
-        _update(items, self._flags)
-        return self._flags
+        return _update(items)
 
     def zero_grad(self, set_to_none: bool = True) -> None:
         """Drop (or zero) every parameter's gradient."""
@@ -135,13 +130,12 @@ class Adam:
                                     for k in ("exp_avg", "exp_avg_sq")}}
 
 
-def _update(items: list, flags: torch.Tensor) -> None:
+def _update(items: list) -> torch.Tensor:
     """:meth:`Adam.step`'s update by torch's multi-tensor operations, parameters of the same betas, eps and dtype
     together (the single-tensor path's operations in the same order, per-parameter rates as scalar lists; ``items``:
-    ``(param, state, b1, b2, eps, step size, root correction)``), with the checks: ``flags`` [1] int32 becomes 1 when
-    a gradient was not finite (its non-finite elements are zeroed first) or a parameter or second moment is not."""
+    ``(param, state, b1, b2, eps, step size, root correction)``), with the checks; returns whether all was finite."""
     grads = [it[0].grad for it in items]
-    bad = ~torch.isfinite(torch.stack(torch._foreach_norm(grads))).all()
+    finite = torch.isfinite(torch.stack(torch._foreach_norm(grads))).all()
     for g in grads:
         g.nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)
     buckets: dict[tuple, list] = {}
@@ -159,7 +153,4 @@ def _update(items: list, flags: torch.Tensor) -> None:
         torch._foreach_div_(denom, [it[6] for it in group])
         torch._foreach_add_(denom, eps)
         torch._foreach_addcdiv_(params, m, denom, [-it[5] for it in group])
-    # a finite gradient's first moment stays finite; the second may overflow (its square)
-    bad |= ~torch.isfinite(torch.stack(torch._foreach_norm([t for it in items for t in (
-        it[0].detach(), it[1]["exp_avg_sq"])]))).all()
-    flags.copy_(bad.view(1))
+    return torch.isfinite(torch.stack(torch._foreach_norm([it[0].detach() for it in items]))).all() & finite

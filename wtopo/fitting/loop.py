@@ -326,9 +326,9 @@ class FitRun:
             # forward never sees a non-finite parameter before the flag sends the fit back to its last good state
             self._update_lr()
             before = self.surfels.means.detach().clone() if self.background is not None else None
-            flags = self.opt.step()
-            dev = self.surfels.means.device
-            finite = torch.ones((), dtype=torch.bool, device=dev) if flags is None else flags[0] == 0
+            finite = self.opt.step()
+            if finite is None:
+                finite = torch.ones((), dtype=torch.bool, device=self.surfels.means.device)
             if self.background is not None:
                 contract_steps(self.surfels.means, before, self.background.step_scale(before))
                 finite = finite & torch.isfinite(self.surfels.means.detach()).all()
