@@ -30,14 +30,13 @@ from __future__ import annotations
 import argparse
 import contextlib
 import cProfile
-import importlib.util
 import io
 import pstats
-import sys
 import time
 
 import torch
 import warp as wp
+from _from_tests import load_file  # beside this script
 
 from wtopo import _bridge
 from wtopo.metrics import ssim
@@ -91,10 +90,7 @@ def _bridge_from(path: str | None):
     if path is None:
         yield
         return
-    spec = importlib.util.spec_from_file_location("_bridge_against", path)
-    other = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = other  # its dataclasses look their module up
-    spec.loader.exec_module(other)
+    other = load_file(path, "wtopo._bridge_against")  # in the package: its relative imports resolve
     kept = _bridge.apply
     _bridge.apply = other.apply
     try:

@@ -26,14 +26,12 @@ depth maps; timed in one process, each step beside the trimesh operation it repl
 from __future__ import annotations
 
 import argparse
-import importlib.util
-import sys
 import time
 
 import numpy as np
 import torch
 import trimesh
-from _from_tests import load  # beside this script
+from _from_tests import load, load_file  # beside this script
 
 from wtopo import Camera
 from wtopo.fitting.tsdf import _FAN_MAX_EDGES, cleanup_mesh, fill_boundary_loops, repair_mesh
@@ -49,15 +47,6 @@ from wtopo.geometry.mesh_policy import (
 from wtopo.geometry.winding import orient_faces
 from wtopo.ops import raycast_mesh
 from wtopo.vertex_support import view_agreement
-
-
-def _module(path: str):
-    """Another version of ``wtopo/geometry/mesh_policy.py``, loaded as a sibling so its relative imports resolve."""
-    spec = importlib.util.spec_from_file_location("wtopo.geometry._mesh_policy_against", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _timed(fn):
@@ -126,7 +115,7 @@ def main(argv=None) -> None:
     t_old, _ = _timed(lambda: [view_agreement_numpy(verts, c, d) for c, d in zip(cams, depths)])
     t_new, _ = _timed(lambda: [view_agreement(vt, every, c, d).sum().item() for c, d in zip(cams, dt)])
     rows.append((f"support projections, kernel on {a.device} (old: NumPy)", t_new, t_old))
-    old = _module(a.against) if a.against else None
+    old = load_file(a.against, "wtopo.geometry._mesh_policy_against") if a.against else None
     old_dev = a.device if torch.device(a.device).type == "cuda" else None
     tol = 2.0 * 2.5 / 512  # the fit's: two fusion voxels of a 512-voxel box around both spheres
     for name, new_fn, old_fn in (

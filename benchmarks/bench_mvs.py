@@ -19,13 +19,12 @@ Commands (the figures go to benchmarks/gpu.md by hand)::
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import os
-import sys
 import time
 
 import numpy as np
 import torch
+from _from_tests import load_file  # beside this script
 
 from wtopo.geometry import mvs
 
@@ -40,14 +39,6 @@ def _scene(views: int, scale: float, data: str = DTU):
     if scale > 1:
         scene = scene.downscaled(scale)
     return scene.cameras[:views], scene.images[:views]
-
-
-def _module(path: str):
-    spec = importlib.util.spec_from_file_location("wtopo.geometry._mvs_against", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses look their module up there
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _time(mod, cams, images, device: str, repeats: int) -> tuple[float, int]:
@@ -81,7 +72,8 @@ def main(argv=None) -> None:
     print(f"{len(cams)} views of {cams[0].width} x {cams[0].height}, device {a.device}", flush=True)
     rows = [("wtopo.geometry.mvs", *_time(mvs, cams, images, a.device, a.repeats))]
     if a.against:
-        rows.append((os.path.basename(a.against), *_time(_module(a.against), cams, images, a.device, a.repeats)))
+        other = load_file(a.against, "wtopo.geometry._mvs_against")
+        rows.append((os.path.basename(a.against), *_time(other, cams, images, a.device, a.repeats)))
     print(f"{'module':<28} {'s':>8} {'points':>9} {'ratio':>7}")
     for name, s, n in rows:
         print(f"{name:<28} {s:8.2f} {n:9d} {s / rows[0][1]:7.2f}")
