@@ -131,7 +131,10 @@ class TorchCam:
 
     def project(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """World points [..., 3] -> pixel u, v (continuous, centres at +0.5) and z-depth."""
-        p = x @ self.R.T + self.t
+        return self.project_camera(x @ self.R.T + self.t)
+
+    def project_camera(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Points in this camera's frame [..., 3] -> pixel u, v (continuous, centres at +0.5) and z-depth."""
         z = p[..., 2]
         zs = torch.where(z.abs() < 1e-12, 1e-12, z)
         xn, yn = p[..., 0] / zs, p[..., 1] / zs
@@ -144,6 +147,10 @@ class TorchCam:
         u = self.K[0, 0] * xn + self.K[0, 1] * yn + self.K[0, 2]
         v = self.K[1, 1] * yn + self.K[1, 2]
         return u, v, z
+
+    def grid(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """Pixel coordinates -> ``grid_sample`` coordinates (align_corners=False)."""
+        return torch.stack([u / self.W * 2 - 1, v / self.H * 2 - 1], dim=-1)
 
 
 class TorchCams:
