@@ -241,3 +241,56 @@ def test_to_warp_views_non_contiguous_tensors_by_value(device):
     vec = _bridge.to_warp(torch.ones((), device=device).expand(7, 3), wp.vec3)
     assert vec.shape == (7,) and vec.dtype == wp.vec3
     np.testing.assert_array_equal(vec.numpy(), np.ones((7, 3), np.float32))
+
+
+@pytest.mark.parametrize("dtype,shape,wdt", [(torch.float32, (7, 3), wp.vec3), (torch.float64, (2, 5), wp.float64),
+                                             (torch.int32, (11,), wp.int32), (torch.float32, (4, 3, 2), wp.vec2)])
+def test_to_warp_view_has_every_attribute_of_warps_constructor(device, dtype, shape, wdt):
+    """The direct path's views (:func:`wtopo._views._view`, a template's attributes with the tensor's address) are
+    Warp's constructor's arrays attribute for attribute (a Warp upgrade that adds state to arrays fails here), and
+    two tensors of one shape get distinct views of their own memory."""
+    from wtopo import _views
+
+    a = torch.arange(int(np.prod(shape)), device=device).to(dtype).reshape(shape)
+    b = a + 1
+    va, vb = _bridge.to_warp(a, wdt), _bridge.to_warp(b, wdt)
+    ref = wp.array(ptr=a.data_ptr(), dtype=wdt, shape=va.shape, device=_views._view_device(a.device))
+    got, want = dict(vars(va)), dict(vars(ref))
+    got.pop("_tensor")
+    assert got.keys() == want.keys()
+    for k in want:
+        assert got[k] == want[k] if k != "device" else got[k] is want[k], k
+    assert va.ptr == a.data_ptr() and vb.ptr == b.data_ptr() and va.ctype is None
+    np.testing.assert_array_equal(va.numpy().reshape(-1), a.cpu().numpy().reshape(-1))
+    np.testing.assert_array_equal(vb.numpy().reshape(-1), b.cpu().numpy().reshape(-1))
+
+
+@wp.kernel
+def _affine_kernel(a: float, k: int, v: wp.vec2, x: wp.array[float], out: wp.array[float]):
+    i = wp.tid()
+    out[i] = a * x[i] + float(k) + v[0] * float(i) + v[1]
+
+
+def test_replayed_launches_set_every_changed_argument_and_dimension(device, monkeypatch):
+    """``_bridge.launch`` replays a kept launch command (no tape recording it): every later call with new arrays,
+    scalars, a vector and another dimension computes what ``wp.launch`` computes, launches recorded on an active tape
+    still go through ``wp.launch`` (so the tape differentiates them), and a command is kept per argument types."""
+    monkeypatch.setattr(_bridge, "_commands", {})
+    rng = np.random.default_rng(0)
+    for n, a, k, v in ((5, 2.0, 1, (0.5, -1.0)), (5, -3.0, 4, (0.0, 2.0)), (9, 0.25, -2, (1.5, 0.5)),
+                       (9, 0.25, -2, (1.5, 0.5))):
+        x = wp.array(rng.standard_normal(n).astype(np.float32), device=device)
+        out = wp.zeros(n, dtype=float, device=device)
+        ref = wp.zeros(n, dtype=float, device=device)
+        _bridge.launch(_affine_kernel, n, [a, k, wp.vec2(*v), x], [out], device=device, record_tape=False)
+        wp.launch(_affine_kernel, n, [a, k, wp.vec2(*v), x], [ref], device=device)
+        np.testing.assert_array_equal(out.numpy(), ref.numpy())
+    assert len(_bridge._commands) == 1
+    x = wp.array(np.arange(4.0, dtype=np.float32), device=device, requires_grad=True)
+    out = wp.zeros(4, dtype=float, device=device, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        _bridge.launch(_affine_kernel, 4, [3.0, 0, wp.vec2(0.0, 0.0), x], [out], device=device)
+    tape.backward(grads={out: wp.ones(4, dtype=float, device=device)})
+    np.testing.assert_array_equal(x.grad.numpy(), np.full(4, 3.0))
+    assert len(_bridge._commands) == 1

@@ -34,7 +34,9 @@ each launch on one thread but releases the GIL, so on a 2-core CPU this gives ab
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
+import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -308,6 +310,11 @@ def _get_pool(n: int) -> ThreadPoolExecutor:
 _overloads: dict = {}
 # False: :func:`launch` leaves the overload lookup to Warp at every launch (kept for comparison in benchmarks)
 RESOLVE_OVERLOADS = True
+# False: :func:`launch` calls ``wp.launch`` every time instead of replaying a kept launch command (for comparison)
+REPLAY_LAUNCHES = True
+_commands: dict = {}
+_COMMANDS_MAX = 4096  # kept launch commands (kernel, device, thread, argument types); cleared when full
+_SCALARS = (int, float)
 
 
 def _arg_key(a) -> object:
@@ -329,10 +336,64 @@ def resolve(kernel, args: Sequence) -> wp.Kernel:
     return k
 
 
+def _replay(kernel, dim, args: list, device) -> None:
+    """Launch ``kernel`` on ``args`` by replaying the launch command kept for its argument types on this device and
+    thread (:class:`warp.Launch`), with only the changed dimensions and arguments set.
+
+    The first launch of a kernel for some argument types goes through ``wp.launch`` (its checks, its overload, its
+    module load) and keeps the command. Later ones set each array argument from its cached descriptor and each
+    ``int`` or ``float`` in place; other values (vectors, structs) go through Warp's packing. The argument types
+    are part of the key, so every later launch passes the checks the first one passed. About a third of the host
+    time of ``wp.launch`` (``lab/host_raster.py``); the kernels and their arguments are the same.
+    """
+    device = wp.get_device(device)
+    key = (kernel, device.alias, threading.get_ident(), *map(_arg_key, args))
+    cmd = _commands.get(key)
+    if cmd is None:
+        if len(_commands) >= _COMMANDS_MAX:
+            _commands.clear()
+        k = resolve(kernel, args)
+        n_in = len(args)
+        cmd = wp.launch(k, dim=dim, inputs=args, device=device, record_tape=False, record_cmd=True)
+        if cmd is None:  # no module to run (an empty launch): nothing to keep
+            return
+        cmd.fwd_args = None  # kept for Warp's CPU graph capture only; it would keep the last arguments alive
+        cmd._wtopo_dim = dim  # noqa: SLF001
+        cmd._wtopo_n = n_in  # noqa: SLF001
+        _commands[key] = cmd
+        cmd.launch()
+        return
+    if dim != cmd._wtopo_dim:  # noqa: SLF001
+        cmd.set_dim(dim)
+        cmd._wtopo_dim = dim  # noqa: SLF001
+    params, addr = cmd.params, cmd.params_addr
+    for i, a in enumerate(args, 1):
+        if type(a) is wp.array:
+            c = a.ctype or a.__ctype__()
+            if params[i] is not c:
+                params[i] = c
+                if addr:
+                    addr[i] = ctypes.c_void_p(ctypes.addressof(c))
+        elif type(a) in _SCALARS:
+            params[i].__init__(a)
+        else:
+            cmd.set_param_at_index(i - 1, a)
+    cmd.launch()
+
+
 def launch(kernel, dim, inputs: Sequence = (), outputs: Sequence = (), **kwargs) -> None:
     """``wp.launch(kernel, dim, inputs, outputs, **kwargs)`` with a generic kernel's overload resolved by
-    :func:`resolve` (same kernel, same results; what changes is the host time of the launch)."""
+    :func:`resolve` (same kernel, same results; what changes is the host time of the launch). A launch that no
+    tape records (``record_tape=False`` or no active tape) with no option but ``device`` replays a kept launch
+    command (:func:`_replay`)."""
+    if (REPLAY_LAUNCHES and kwargs.keys() <= _REPLAY_KWARGS
+            and (not kwargs.get("record_tape", True) or active_tape() is None)):
+        _replay(kernel, dim, [*inputs, *outputs], kwargs.get("device"))
+        return
     wp.launch(resolve(kernel, (*inputs, *outputs)), dim=dim, inputs=inputs, outputs=outputs, **kwargs)
+
+
+_REPLAY_KWARGS = frozenset({"device", "record_tape"})
 
 
 def launch_split(kernel, dim: int, inputs: list, outputs: list | None = None, *, device, min_chunk: int = 4096,
