@@ -27,6 +27,7 @@ class Count(TorchDispatchMode):
         super().__init__()
         self.ops = collections.Counter()
         self.sites = collections.Counter()
+        self.backward_ops = collections.Counter()
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         name = str(func.overloadpacket.__name__)
@@ -37,6 +38,8 @@ class Count(TorchDispatchMode):
                 site = f"{fr.filename.split('/wtopo/')[-1]}:{fr.lineno} {fr.name}"
                 break
         self.sites[site] += 1
+        if site.startswith("fitting/loop.py") and "_step" in site:
+            self.backward_ops[name] += 1
         return func(*args, **(kwargs or {}))
 
 
@@ -62,6 +65,8 @@ def main() -> None:
         print(f"\n== iteration {self.it} ({stage.value}): {sum(c.ops.values())} torch ops")
         for site, k in c.sites.most_common(a.top):
             print(f"{k:5d}  {site}")
+        bwd = ", ".join(f"{op} {k}" for op, k in c.backward_ops.most_common(40))
+        print(f"-- in the backward (autograd engine): {bwd}")
         print("-- by op")
         print(", ".join(f"{op} {k}" for op, k in c.ops.most_common(40)))
         sys.stdout.flush()

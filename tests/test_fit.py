@@ -263,6 +263,42 @@ def test_non_finite_gradients_are_survived_without_a_second_host_read(tiny, monk
         fit(tiny, _config(20, 0), progress=False)
 
 
+def test_periodic_snapshots_read_nothing_and_keep_only_verified_steps(tiny, monkeypatch):
+    """With a snapshot after every step, none of them reads the device (no settle: the state waits for the next
+    iteration's one read to be verified), and a step whose gradients are NaN never becomes the last good state:
+    the fit goes back to the state before it and finishes with the same failures as without snapshots."""
+    real = fit_objective.photometric
+    calls = {"n": 0}
+
+    def flaky(pred, target, dssim):
+        calls["n"] += 1
+        out = real(pred, target, dssim)
+        return _NaNGradient.apply(out) if calls["n"] in (5, 7, 11) else out
+
+    settles, restored = [], []
+    real_settle, real_restore = fit_loop.FitRun.settle, fit_loop.FitRun._restore
+
+    def settle(self):
+        settles.append(self.it)
+        real_settle(self)
+
+    def restore(self):
+        restored.append({k: v.clone() for k, v in self.last_good[0].items() if isinstance(v, torch.Tensor)})
+        real_restore(self)
+
+    monkeypatch.setattr(fit_objective, "photometric", flaky)
+    monkeypatch.setattr(fit_loop, "_SNAPSHOT_EVERY", 1)
+    monkeypatch.setattr(fit_loop.FitRun, "settle", settle)
+    monkeypatch.setattr(fit_loop.FitRun, "_restore", restore)
+    res = fit(tiny, _config(20, 0), progress=False)
+    assert res.report["non_finite_steps"] == 3 and res.report["status"] == "completed"
+    assert set(settles) <= {0, 10, 20}, settles  # the start, densification and the stage's end: no snapshot
+    assert len(restored) == 3
+    # two failures in a row go back to the same verified state: the failed step's own snapshot was dropped
+    assert all(torch.equal(restored[0][k], restored[1][k]) for k in restored[0])
+    assert all(torch.isfinite(p).all() for p in res.surfels.params.values())
+
+
 def test_late_opacity_reset_is_skipped(tiny, monkeypatch):
     """A reset with fewer than 100 warm-up iterations left is skipped and recorded; an early one runs."""
     from wtopo.fitting import _strategy as strategy

@@ -146,6 +146,7 @@ class FitRun:
         # whether the last step's gradients and parameters are finite: a device flag read with the next
         # iteration's losses (one host read per iteration), or by settle() before the state is used
         self._unverified: torch.Tensor | None = None
+        self._pending_good: tuple[dict, dict] | None = None  # a snapshot of the unverified step (_snapshot_unread)
         self.objective = Objective(cfg, self.train, render=self.render, mask_weight=float(cfg.losses.mask),
                                    warmup_end=self.warmup_end, timers=self.timers,
                                    roi_center=self.plan.layout.roi_center,
@@ -201,6 +202,14 @@ class FitRun:
         self.settle()
         self.last_good = (self.surfels.state_dict(self.device), copy.deepcopy(self.opt.state_dict()))
 
+    def _snapshot_unread(self) -> None:
+        """The periodic snapshot without a host read: the state is copied now and becomes the last good one when
+        the next read finds this step finite (:meth:`_verdict`); a step already known good is kept at once."""
+        if self._unverified is None:
+            self.snapshot()
+            return
+        self._pending_good = (self.surfels.state_dict(self.device), copy.deepcopy(self.opt.state_dict()))
+
     def settle(self) -> None:
         """Read whether the last step left finite gradients and parameters (one host read when a step is
         unverified); a non-finite step is a failure and the last good state comes back."""
@@ -211,8 +220,11 @@ class FitRun:
     def _verdict(self, finite: bool) -> bool:
         """Act on the last step's flag once read: a finite step ends a run of failures, a non-finite one is a
         failure (the last good state comes back). Returns ``finite``."""
+        pending, self._pending_good = self._pending_good, None
         if finite:
             self.failures = 0
+            if pending is not None:
+                self.last_good = pending
         else:
             self._failure("step", {})
         return finite
@@ -275,6 +287,7 @@ class FitRun:
     # -- one iteration ---------------------------------------------------------------------------------
     def _failure(self, why: str, terms: dict[str, float]) -> None:
         self._unverified = None
+        self._pending_good = None
         self.failures += 1
         self.total_failures += 1
         self.record("non_finite", why=why, terms=terms)
@@ -338,7 +351,7 @@ class FitRun:
         self.opt.zero_grad(set_to_none=True)
         self.loss_log.add(terms, first=self.loss_log.count == 0 and not self.history)
         if self.it % _SNAPSHOT_EVERY == 0:
-            self.snapshot()
+            self._snapshot_unread()
 
     # -- stages ------------------------------------------------------------------------------------------
     def _iterate(self, stage: Stage, start: int, end: int) -> None:
