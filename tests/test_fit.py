@@ -461,3 +461,32 @@ def test_final_grid_is_twice_as_fine_where_the_coevolution_found_thin_parts(tiny
     run = FitRun(tiny, explicit, None, progress=False)
     run.coevolution_info = {"thin_share": 0.5, "resolution": 48, "limit": 0.15}
     assert run._final_config().final.resolution == 40
+
+
+def test_the_loop_freezes_the_heap_only_for_its_stages_and_never_someone_elses(tiny):
+    """A fit's stages run with the objects alive at their start frozen out of the collector's generations and
+    leave nothing frozen; a caller's own frozen objects stay frozen (the loop then freezes nothing)."""
+    import gc
+
+    seen = []
+    real = fit_loop._freeze_heap
+
+    def spy():
+        froze = real()
+        seen.append((froze, gc.get_freeze_count() > 0))
+        return froze
+
+    import unittest.mock as mock
+
+    with mock.patch.object(fit_loop, "_freeze_heap", spy):
+        fit(tiny, _config(6, 0), progress=False)
+        assert seen and all(froze and frozen for froze, frozen in seen)
+        assert gc.get_freeze_count() == 0
+        seen.clear()
+        gc.freeze()
+        try:
+            fit(tiny, _config(6, 0), progress=False)
+            assert seen and not any(froze for froze, _ in seen)
+            assert gc.get_freeze_count() > 0  # still the caller's (fewer: some of its objects were freed)
+        finally:
+            gc.unfreeze()

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import gc
 import math
 import time
 from collections import defaultdict
@@ -53,6 +54,18 @@ _SNAPSHOT_EVERY = 25  # iterations between in-memory "last good" snapshots
 FINAL_THIN_SHARE = 0.10  # thin share above which the final TSDF grid is twice as fine (design/decisions.md)
 MAX_CONSECUTIVE_FAILURES = 20  # non-finite steps in a row after which the fit aborts (with a checkpoint)
 _SH_REST_LR = 5e-4  # learning rate of the higher SH bands: 1/20 of the DC rate, as 3DGS
+
+
+def _freeze_heap() -> bool:
+    """Take every object alive now out of the garbage collector's generations for a stage's loop (``gc.freeze``;
+    the caller calls ``gc.unfreeze`` after it): its full collections then scan what the loop makes, not the scene,
+    the modules and the caches (on a 2-core CPU one took 150 ms at the 415k objects of a small fit). Nothing is
+    frozen when something else froze objects already (unfreezing would release theirs too). Returns whether it
+    froze."""
+    if gc.get_freeze_count():
+        return False
+    gc.freeze()
+    return True
 
 
 class FitAborted(RuntimeError):
@@ -357,6 +370,7 @@ class FitRun:
     def _iterate(self, stage: Stage, start: int, end: int) -> None:
         rt = self.cfg.runtime
         bar = StageBar(self.progress, stage.value, start, end, self.it)
+        frozen = _freeze_heap()
         try:
             while self.it < end and not self.stop.requested:
                 with trusted_values():  # the fit's own tensors, checked by its guards after every step
@@ -378,6 +392,8 @@ class FitRun:
                 bar.update(self.it, self._bar_status)
             self.settle()
         finally:
+            if frozen:
+                gc.unfreeze()
             bar.close()
 
     def _bar_status(self) -> dict:
