@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Can the fit's per-pixel loss terms run as CUDA graphs, and what does it save? (#60's loop, a lab experiment.)
+"""Whether the fit's per-pixel loss terms run as CUDA graphs, and what it saves (#60's loop; a lab experiment).
 
 DTU's views are 384 x 384: the loss terms' kernels take tens of microseconds and their section (2.3 ms an
 iteration) is host time: torch operations, Warp launches, autograd nodes. Here the late-stage terms of
