@@ -294,3 +294,23 @@ def test_replayed_launches_set_every_changed_argument_and_dimension(device, monk
     tape.backward(grads={out: wp.ones(4, dtype=float, device=device)})
     np.testing.assert_array_equal(x.grad.numpy(), np.full(4, 3.0))
     assert len(_bridge._commands) == 1
+
+
+def test_empty_group_carves_aligned_disjoint_arrays_and_zeroed_gradients(device):
+    """:func:`_bridge.empty_group` gives one array per type, each of the asked shape at a multiple of 256 bytes into one
+    allocation, disjoint from the others (writing one leaves the rest as they were), gradients zeroed and
+    likewise disjoint, and outputs that go back to torch as views; mixed scalar types fall back to one each."""
+    n = 37
+    arrs = _bridge.empty_group(n, (wp.vec3, wp.vec2, wp.float32, wp.vec3), device, requires_grad=True)
+    assert [a.shape for a in arrs] == [(n,)] * 4 and [a.dtype for a in arrs] == [wp.vec3, wp.vec2, wp.float32, wp.vec3]
+    assert all((a.ptr - arrs[0].ptr) % 256 == 0 and (a.grad.ptr - arrs[0].grad.ptr) % 256 == 0 for a in arrs)
+    for k, a in enumerate(arrs):
+        _bridge.as_torch(a).fill_(float(k))
+        assert torch.count_nonzero(wp.to_torch(a.grad)) == 0
+    for k, a in enumerate(arrs):
+        assert torch.all(_bridge.as_torch(a) == float(k)), k
+    ends = sorted((a.ptr, a.ptr + a.capacity) for a in arrs) + sorted((a.grad.ptr, a.grad.ptr + a.grad.capacity)
+                                                                      for a in arrs)
+    assert all(e0 <= s1 for (_, e0), (s1, _) in zip(ends[:4], ends[1:4]))
+    mixed = _bridge.empty_group((2, 3), (wp.float32, wp.int32), device)
+    assert [a.shape for a in mixed] == [(2, 3)] * 2 and mixed[1].dtype == wp.int32

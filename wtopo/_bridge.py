@@ -45,7 +45,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from ._views import _ensure_init, as_torch, empty, float_dtype, to_warp, vec_dtype
+from ._views import _ensure_init, as_torch, empty, empty_group, float_dtype, to_warp, vec_dtype
 
 __all__ = [
     "WarpOp",
@@ -54,6 +54,7 @@ __all__ = [
     "warp_device",
     "to_warp",
     "empty",
+    "empty_group",
     "as_torch",
     "launch",
     "launch_split",

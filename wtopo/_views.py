@@ -157,6 +157,51 @@ def empty(shape, dtype, device, requires_grad: bool = False, zero: bool = False)
     return arr
 
 
+_GROUP_ALIGN = 256  # bytes: every array of a group starts this far apart (torch's CUDA blocks are 512-aligned)
+
+
+def empty_group(shape, dtypes, device, requires_grad: bool = False) -> list[wp.array]:
+    """One :func:`empty` array of ``shape`` per type of ``dtypes`` (float32 or float64 scalars and vectors of one
+    scalar type), all carved from one torch allocation, each at a multiple of 256 bytes into it; with
+    ``requires_grad`` their gradient arrays likewise from one zeroed allocation. Two allocations and one fill where
+    :func:`empty` makes one of each per array: the rasterizer's eight per-surfel arrays and their gradients took
+    sixteen. Other types (ints mixed in, structs) or an empty shape: one :func:`empty` each.
+    """
+    if not isinstance(device, wp.Device):
+        device = wp.get_device(device)
+    shape = tuple(int(x) for x in shape) if hasattr(shape, "__len__") else (int(shape),)
+    scalar = getattr(dtypes[0], "_wp_scalar_type_", dtypes[0])
+    ts = _TORCH_OF.get(scalar)
+    if ts is None or not all(shape) or any(getattr(t, "_wp_scalar_type_", t) is not scalar for t in dtypes):
+        return [empty(shape, t, device, requires_grad=requires_grad) for t in dtypes]
+    tdev = _torch_devices.get(id(device))
+    if tdev is None:
+        tdev = _torch_devices[id(device)] = torch.device(wp.device_to_torch(device))
+    size = 1
+    for x in shape:
+        size *= x
+    item = torch.empty((), dtype=ts).element_size()
+    align = _GROUP_ALIGN // item
+    lens, offs, total = [], [], 0
+    for t in dtypes:
+        k = size * (getattr(t, "_length_", None) or 1)
+        offs.append(total)
+        lens.append(k)
+        total += -(-k // align) * align
+    base = torch.empty(total, dtype=ts, device=tdev)
+    grads = torch.zeros(total, dtype=ts, device=tdev) if requires_grad else None
+    out = []
+    for t, o, k in zip(dtypes, offs, lens):
+        full = shape + tuple(getattr(t, "_shape_", ()))
+        v = base[o:o + k].view(full)
+        arr = to_warp(v, t)
+        arr._wtopo_tensor = v  # noqa: SLF001 - the tensor apply() returns for this output
+        if grads is not None:
+            arr.grad = to_warp(grads[o:o + k].view(full), t)
+        out.append(arr)
+    return out
+
+
 def as_torch(a: wp.array) -> torch.Tensor:
     """The torch tensor of an op's output: a view of the one :func:`empty` allocated it in, else ``wp.to_torch``'s.
 

@@ -122,7 +122,7 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
     def run(means, quats, scales, opacities, sh, means2d):
         n = means.shape[0]
         with section("rasterize_forward"):
-            prep = [_bridge.empty(n, t, wdev, requires_grad=True) for t in (v3, v3, v3, v3, v3, v2, s, v3)]
+            prep = _bridge.empty_group(n, (v3, v3, v3, v3, v3, v2, s, v3), wdev, requires_grad=True)
             uax, vax, nrm, auv, nrm_face, m2, zc, color = prep
             _bridge.launch_split(_k.prepare_surfels_kernel, n, [means, quats, scales, sh, cam_rec, sh_degree], prep,
                                  device=wdev, record_tape=True)
