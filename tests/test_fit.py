@@ -469,7 +469,7 @@ def test_the_loop_freezes_the_heap_only_for_its_stages_and_never_someone_elses(t
     import gc
 
     seen = []
-    real = fit_loop._freeze_heap
+    real = fit_loop.freeze_heap
 
     def spy():
         froze = real()
@@ -478,7 +478,7 @@ def test_the_loop_freezes_the_heap_only_for_its_stages_and_never_someone_elses(t
 
     import unittest.mock as mock
 
-    with mock.patch.object(fit_loop, "_freeze_heap", spy):
+    with mock.patch.object(fit_loop, "freeze_heap", spy):
         fit(tiny, _config(6, 0), progress=False)
         assert seen and all(froze and frozen for froze, frozen in seen)
         assert gc.get_freeze_count() == 0

@@ -1,14 +1,16 @@
 # SPDX-License-Identifier: Apache-2.0
-"""What a running fit shows and how it is stopped: tqdm bars per stage, SIGINT / SIGTERM handling."""
+"""What a running fit shows, how it is stopped and how its stages hold the heap: tqdm bars per stage, SIGINT /
+SIGTERM handling, the collector's generations frozen for a stage's loop."""
 
 from __future__ import annotations
 
 import contextlib
+import gc
 import signal
 import threading
 from collections.abc import Callable, Iterator
 
-__all__ = ["StageBar", "StopRequest"]
+__all__ = ["StageBar", "StopRequest", "freeze_heap"]
 
 _POSTFIX_EVERY = 10  # iterations between progress-bar postfix refreshes (a string format per refresh)
 
@@ -84,3 +86,15 @@ class StopRequest:
         finally:
             for sig, h in old.items():
                 signal.signal(sig, h)
+
+
+def freeze_heap() -> bool:
+    """Take every object alive now out of the garbage collector's generations for a stage's loop (``gc.freeze``;
+    the caller calls ``gc.unfreeze`` after it): its full collections then scan what the loop makes, not the scene,
+    the modules and the caches (on a 2-core CPU one took 150 ms at the 415k objects of a small fit). Nothing is
+    frozen when something else froze objects already (unfreezing would release theirs too). Returns whether it
+    froze."""
+    if gc.get_freeze_count():
+        return False
+    gc.freeze()
+    return True

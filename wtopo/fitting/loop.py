@@ -29,7 +29,7 @@ from .._validate import trusted_values
 from . import presets as _presets
 from ._final_mesh import final_mesh
 from ._init_surfels import INIT_OPACITY, MIN_MVS_POINTS, initial_surfels, stereo_points
-from ._progress import StageBar, StopRequest
+from ._progress import StageBar, StopRequest, freeze_heap
 from ._reinit import tsdf_reinit
 from ._strategy import DensityStrategy, StepInfo
 from ._timeline import FitTimeline
@@ -54,18 +54,6 @@ _SNAPSHOT_EVERY = 25  # iterations between in-memory "last good" snapshots
 FINAL_THIN_SHARE = 0.10  # thin share above which the final TSDF grid is twice as fine (design/decisions.md)
 MAX_CONSECUTIVE_FAILURES = 20  # non-finite steps in a row after which the fit aborts (with a checkpoint)
 _SH_REST_LR = 5e-4  # learning rate of the higher SH bands: 1/20 of the DC rate, as 3DGS
-
-
-def _freeze_heap() -> bool:
-    """Take every object alive now out of the garbage collector's generations for a stage's loop (``gc.freeze``;
-    the caller calls ``gc.unfreeze`` after it): its full collections then scan what the loop makes, not the scene,
-    the modules and the caches (on a 2-core CPU one took 150 ms at the 415k objects of a small fit). Nothing is
-    frozen when something else froze objects already (unfreezing would release theirs too). Returns whether it
-    froze."""
-    if gc.get_freeze_count():
-        return False
-    gc.freeze()
-    return True
 
 
 class FitAborted(RuntimeError):
@@ -370,7 +358,7 @@ class FitRun:
     def _iterate(self, stage: Stage, start: int, end: int) -> None:
         rt = self.cfg.runtime
         bar = StageBar(self.progress, stage.value, start, end, self.it)
-        frozen = _freeze_heap()
+        frozen = freeze_heap()
         try:
             while self.it < end and not self.stop.requested:
                 with trusted_values():  # the fit's own tensors, checked by its guards after every step
