@@ -127,13 +127,16 @@ def _clip_from_host(near: float, far: float, device) -> torch.Tensor:
 def _default_clip_device(means: torch.Tensor, camera: Camera, config: RasterConfig) -> torch.Tensor:
     """:func:`_default_clip` with both planes defaulted, computed on the device without a host sync.
 
-    Same values: ``torch.median`` is the lower middle of the positive depths, as ``torch.nanmedian`` is of
-    the depths with the others set to NaN (NaN when there are none: then 1, as the host path); the products
-    are taken in float64 as the host path does. Eight operations on the device.
+    Same values: ``torch.median`` is the lower middle of the sorted positive depths, picked here by
+    index from a sort that sends the others to ``+inf``; the products are taken in float64 as the
+    host path does.
     """
     n = means.shape[0]
     if n == 0:
         return _clip_from_host(config.near_fraction, config.far_multiple, means.device)
     z = _centre_depths(means, camera)
-    zref = torch.nanmedian(torch.where(z > 0, z, math.nan)).nan_to_num(1.0).double().view(1)
+    pos = z > 0
+    k = pos.sum()
+    zs = torch.where(pos, z, torch.full_like(z, math.inf)).sort().values
+    zref = torch.where(k > 0, zs.gather(0, ((k - 1).clamp_min(0) // 2).view(1)), torch.ones_like(zs[:1])).double()
     return torch.cat([zref * config.near_fraction, zref * config.far_multiple])
