@@ -12,7 +12,7 @@ from fit_configs import small_fit_config
 from wtopo import Scene, scenes
 from wtopo.fitting import FitAborted, FitConfig, fit
 from wtopo.fitting import loop as fit_loop
-from wtopo.fitting import objective as fit_objective
+from wtopo.fitting import pixel_terms as fit_pixel_terms
 from wtopo.fitting.checkpoint import list_checkpoints
 from wtopo.fitting.evaluate import geometry_metrics
 from wtopo.fitting.plan import make_plan
@@ -204,7 +204,7 @@ def test_a_longer_coevolution_with_the_warmups_decay_horizon_branches_from_it(ti
 
 def test_injected_nan_is_survived_and_persistent_nan_aborts(tiny, tmp_path, monkeypatch):
     """Skip two NaN steps and finish; abort with a checkpoint when every step is NaN."""
-    real = fit_objective.photometric
+    real = fit_pixel_terms.photometric
     calls = {"n": 0}
 
     def flaky(pred, target, dssim):
@@ -212,13 +212,13 @@ def test_injected_nan_is_survived_and_persistent_nan_aborts(tiny, tmp_path, monk
         out = real(pred, target, dssim)
         return out * float("nan") if calls["n"] in (5, 6) else out
 
-    monkeypatch.setattr(fit_objective, "photometric", flaky)
+    monkeypatch.setattr(fit_pixel_terms, "photometric", flaky)
     res = fit(tiny, _config(20, 0), progress=False)
     assert res.report["non_finite_steps"] == 2 and res.report["status"] == "completed"
     assert all(torch.isfinite(p).all() for p in res.surfels.params.values())
     assert math.isfinite(float(np.asarray(res.mesh.vertices).sum()))
 
-    monkeypatch.setattr(fit_objective, "photometric", lambda p, t, d: real(p, t, d) * float("nan"))
+    monkeypatch.setattr(fit_pixel_terms, "photometric", lambda p, t, d: real(p, t, d) * float("nan"))
     cfg = _config(20, 0)
     monkeypatch.setattr(fit_loop, "MAX_CONSECUTIVE_FAILURES", 3)
     with pytest.raises(FitAborted, match="3 consecutive"):
@@ -242,7 +242,7 @@ def test_non_finite_gradients_are_survived_without_a_second_host_read(tiny, monk
     """A step with finite losses and NaN gradients is found with the next iteration's one read: the fit goes
     back to its last good state, never renders a non-finite parameter, and finishes; NaN gradients on every
     step abort after MAX_CONSECUTIVE_FAILURES."""
-    real = fit_objective.photometric
+    real = fit_pixel_terms.photometric
     calls = {"n": 0}
 
     def flaky(pred, target, dssim):
@@ -251,13 +251,13 @@ def test_non_finite_gradients_are_survived_without_a_second_host_read(tiny, monk
         out = real(pred, target, dssim)
         return _NaNGradient.apply(out) if calls["n"] in (5, 9) else out
 
-    monkeypatch.setattr(fit_objective, "photometric", flaky)
+    monkeypatch.setattr(fit_pixel_terms, "photometric", flaky)
     res = fit(tiny, _config(20, 0), progress=False)
     assert res.report["non_finite_steps"] == 2 and res.report["status"] == "completed"
     assert [e["why"] for e in res.report["events"] if e["event"] == "non_finite"] == ["step", "step"]
     assert all(torch.isfinite(p).all() for p in res.surfels.params.values())
 
-    monkeypatch.setattr(fit_objective, "photometric", lambda p, t, d: _NaNGradient.apply(real(p, t, d)))
+    monkeypatch.setattr(fit_pixel_terms, "photometric", lambda p, t, d: _NaNGradient.apply(real(p, t, d)))
     monkeypatch.setattr(fit_loop, "MAX_CONSECUTIVE_FAILURES", 3)
     with pytest.raises(FitAborted, match="3 consecutive"):
         fit(tiny, _config(20, 0), progress=False)
@@ -267,7 +267,7 @@ def test_periodic_snapshots_read_nothing_and_keep_only_verified_steps(tiny, monk
     """With a snapshot after every step, none of them reads the device (no settle: the state waits for the next
     iteration's one read to be verified), and a step whose gradients are NaN never becomes the last good state:
     the fit goes back to the state before it and finishes with the same failures as without snapshots."""
-    real = fit_objective.photometric
+    real = fit_pixel_terms.photometric
     calls = {"n": 0}
 
     def flaky(pred, target, dssim):
@@ -286,7 +286,7 @@ def test_periodic_snapshots_read_nothing_and_keep_only_verified_steps(tiny, monk
         restored.append({k: v.clone() for k, v in self.last_good[0].items() if isinstance(v, torch.Tensor)})
         real_restore(self)
 
-    monkeypatch.setattr(fit_objective, "photometric", flaky)
+    monkeypatch.setattr(fit_pixel_terms, "photometric", flaky)
     monkeypatch.setattr(fit_loop, "_SNAPSHOT_EVERY", 1)
     monkeypatch.setattr(fit_loop.FitRun, "settle", settle)
     monkeypatch.setattr(fit_loop.FitRun, "_restore", restore)

@@ -179,7 +179,9 @@ def _on_torch_stream(wdev, device):
     """Scope Warp to ``wdev`` and, on CUDA, to torch's current stream on ``device``."""
     with wp.ScopedDevice(wdev):
         if wdev.is_cuda:
-            with wp.ScopedStream(_warp_stream(device)):
+            # entering waits for Warp's previous stream (work Warp queued outside any scope), except while torch
+            # captures a CUDA graph on this stream: a capture may not wait for work outside it, and none is there
+            with wp.ScopedStream(_warp_stream(device), sync_enter=not torch.cuda.is_current_stream_capturing()):
                 yield
         else:
             yield

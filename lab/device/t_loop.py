@@ -54,6 +54,7 @@ def main() -> None:
     ap.add_argument("--top", type=int, default=45)
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--quick", action="store_true", help="windows at iterations 10-40 (a check of the script)")
+    ap.add_argument("--full", action="store_true", help="run the fit to its end (final mesh, evaluation)")
     a = ap.parse_args()
     global WINDOWS
     if a.quick:
@@ -66,7 +67,8 @@ def main() -> None:
 
     cfg = FitConfig()
     stop = max(w[2] for w in WINDOWS) + 1
-    for item in [*a.set, f"runtime.device={a.device}", f"runtime.stop_at={stop}", "runtime.usd_every=0"]:
+    extra = [] if a.full else [f"runtime.stop_at={stop}", "runtime.usd_every=0"]
+    for item in [*a.set, f"runtime.device={a.device}", *extra]:
         _apply_set(cfg, item)
     scene = load(a.exchange).scene()
     results: dict = {}
@@ -133,7 +135,8 @@ def main() -> None:
     L.FitRun._step = step
     t0 = time.perf_counter()
     res = wtopo.fit(scene, cfg, out_dir=a.out, progress=False)
-    print(f"fit {time.perf_counter() - t0:.1f} s, {res.report.get('iterations')} iterations")
+    print(f"fit {time.perf_counter() - t0:.1f} s, {res.report.get('iterations')} iterations, psnr "
+          f"{res.report.get('psnr')}, status {res.report.get('status')}")
     for key, r in results.items():
         print(f"\n==== {key}")
         print(json.dumps({k: v for k, v in r.items() if not isinstance(v, (str, list))}))

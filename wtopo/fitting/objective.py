@@ -10,26 +10,16 @@ from collections import defaultdict
 
 import torch
 
-from ..depth_normals import depth_normals
 from .config import FitConfig, stage_iteration
-from .losses import (
-    distortion,
-    mask_loss,
-    mesh_depth_loss,
-    mesh_normal_loss,
-    normal_consistency,
-    photometric,
-    scale_regularizer,
-)
+from .losses import mesh_depth_loss, mesh_normal_loss, scale_regularizer
 from .multiview import MultiViewNCC
+from .pixel_terms import ALPHA_COVERED, PixelTerms, TermSet
 from .proxy import ProxyMesh, ProxyResult
 from .stages import ROI_EXTENT, Renderer, Stage
 from .surfels import Surfels
 
 __all__ = ["Objective", "Terms", "LossLog"]
 
-ALPHA_COVERED = 0.5
-"""A pixel is covered by the surfels when their rendered opacity reaches this."""
 _DEPTH_EPS = 1e-4  # log-depth clamp, internal units (1e-4 of the unit cube)
 _LOSS_EMA = 0.9  # smoothing of the loss shown on the progress bar
 _DSSIM = 0.2  # weight of D-SSIM in the photometric term (1 - w) L1 + w (1 - SSIM): 3DGS's and 2DGS's value
@@ -100,6 +90,7 @@ class Objective:
         self.timers = timers
         self.mesh_every = max(1, int(mesh_every))
         self.mesh_terms = True
+        self.pixel_terms = PixelTerms()
 
     def __call__(self, stage: Stage, it: int, vi: int, surfels: Surfels, proxy: ProxyMesh, *,
                  defer_count: bool = False) -> Terms:
@@ -113,18 +104,16 @@ class Objective:
             out = self.render(s, cam, defer_count=defer_count)
         L: dict[str, torch.Tensor] = {}
         with T("losses"):
-            L["photo"] = photometric(out.rgb, img, _DSSIM)
             covered = out.alpha.detach() >= ALPHA_COVERED
-            if self.train.masks is not None and self.mask_weight > 0:
-                m = self.train.masks[vi]
-                L["mask"] = self.mask_weight * mask_loss(out.alpha, m.to(out.alpha.dtype))
             late = stage != Stage.WARMUP
-            if lc.normal > 0 and (late or it >= stage_iteration(_NORMAL_START, self.warmup_end)):
-                o, d = cam.pixel_rays(out.alpha.device)
-                dn, dmask = depth_normals(out.median_depth, o, d, covered)
-                L["normal"] = lc.normal * normal_consistency(out.normal, dn, out.alpha, dmask)
-            if lc.distortion > 0 and (late or it >= stage_iteration(_DISTORTION_START, self.warmup_end)):
-                L["distortion"] = lc.distortion * distortion(out.distortion)
+            masked = self.train.masks is not None and self.mask_weight > 0
+            normal_on = lc.normal > 0 and (late or it >= stage_iteration(_NORMAL_START, self.warmup_end))
+            ts = TermSet(_DSSIM, mask=self.mask_weight if masked else 0.0, normal=lc.normal if normal_on else 0.0,
+                         distortion=lc.distortion if lc.distortion > 0 and (
+                             late or it >= stage_iteration(_DISTORTION_START, self.warmup_end)) else 0.0)
+            values = self.pixel_terms(ts, out, img, self.train.masks[vi] if masked else None,
+                                      cam.pixel_rays(out.alpha.device) if normal_on else None)
+            L.update(zip(ts.names, values.unbind()))
             mv = self.multiview
             mv_on = late or it >= stage_iteration(_MULTIVIEW_START, self.warmup_end)
             if mv is not None and mv_on and mv.has_neighbours(vi):

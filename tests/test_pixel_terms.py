@@ -1,0 +1,107 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The per-pixel loss terms (``wtopo.fitting.pixel_terms``): the terms of the losses module, eager or replayed as
+CUDA graphs, with the same values and gradients; a set whose capture fails runs eagerly."""
+
+from __future__ import annotations
+
+import itertools
+import types
+
+import pytest
+import torch
+
+import wtopo
+from wtopo.depth_normals import depth_normals
+from wtopo.fitting import pixel_terms as P
+from wtopo.fitting.losses import distortion, mask_loss, normal_consistency, photometric
+
+H, W = 24, 32
+
+
+def _view(device, seed: int):
+    g = torch.Generator().manual_seed(seed)
+
+    def t(*shape, lo=0.0, hi=1.0):
+        return (torch.rand(*shape, generator=g) * (hi - lo) + lo).to(device)
+
+    render = types.SimpleNamespace(rgb=t(H, W, 3).requires_grad_(), alpha=t(H, W, lo=0.05, hi=0.95).requires_grad_(),
+                                   normal=torch.nn.functional.normalize(t(H, W, 3, lo=-1.0), dim=-1).requires_grad_(),
+                                   distortion=t(H, W, hi=0.01).requires_grad_(), median_depth=t(H, W, lo=2.5, hi=3.5))
+    cam = wtopo.Camera.look_at([0, 0, -3.0], [0, 0, 0], [0, -1, 0], fov_x=0.7, width=W, height=H)
+    return render, t(H, W, 3), t(H, W) > 0.3, cam.pixel_rays(device)
+
+
+def _direct(ts, render, image, mask, rays):
+    """The terms as the objective wrote them before they were one function."""
+    out = [photometric(render.rgb, image, ts.dssim)]
+    if ts.mask:
+        out.append(ts.mask * mask_loss(render.alpha, mask.to(render.alpha.dtype)))
+    if ts.normal:
+        covered = render.alpha.detach() >= P.ALPHA_COVERED
+        dn, dmask = depth_normals(render.median_depth, *rays, covered)
+        out.append(ts.normal * normal_consistency(render.normal, dn, render.alpha, dmask))
+    if ts.distortion:
+        out.append(ts.distortion * distortion(render.distortion))
+    return torch.stack(out)
+
+
+def _grads(values, render):
+    leaves = (render.rgb, render.alpha, render.normal, render.distortion)
+    gs = torch.autograd.grad(values.sum(), leaves, allow_unused=True)
+    return [torch.zeros_like(x) if g is None else g for g, x in zip(gs, leaves)]
+
+
+SETS = [P.TermSet(0.2, mask=m, normal=n, distortion=d)
+        for m, n, d in itertools.product((0.0, 0.5), (0.0, 0.05), (0.0, 100.0))]
+
+
+@pytest.mark.parametrize("ts", SETS, ids=lambda ts: "+".join(ts.names))
+def test_terms_equal_the_losses_modules_terms_with_their_gradients(device, ts, monkeypatch):
+    """Eagerly, every set of terms gives the losses module's values, in :attr:`TermSet.names`' order, and the same
+    gradients w.r.t. every rendered image."""
+    monkeypatch.setattr(P, "GRAPHS", False)
+    render, image, mask, rays = _view(device, 0)
+    got = P.PixelTerms()(ts, render, image, mask, rays)
+    want = _direct(ts, render, image, mask, rays)
+    assert got.shape == (len(ts.names),)
+    torch.testing.assert_close(got, want, rtol=0, atol=0)
+    for a, b in zip(_grads(got, render), _grads(want, render)):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")
+@pytest.mark.parametrize("ts", [SETS[0], SETS[-1], P.TermSet(0.2, normal=0.05)], ids=lambda ts: "+".join(ts.names))
+def test_graphed_terms_replay_the_eager_ones_on_new_views(ts):
+    """On CUDA the terms are captured once per set and size and replayed: over views the capture never saw,
+    values and gradients equal the eager terms', and a second set gets its own graph."""
+    from conftest import CUDA_DEVICE
+
+    terms = P.PixelTerms()
+    for seed in range(3):
+        render, image, mask, rays = _view(CUDA_DEVICE, seed)
+        got = terms(ts, render, image, mask, rays)
+        want = _direct(ts, render, image, mask, rays)
+        torch.testing.assert_close(got, want, rtol=1e-6, atol=0)
+        for a, b in zip(_grads(got, render), _grads(want, render)):
+            torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-9)
+    assert len(terms._graphs) == 1 and not terms.failures  # noqa: SLF001
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")
+def test_a_failed_capture_leaves_the_set_eager_and_says_why(monkeypatch):
+    """A capture that raises leaves its set eager for good, with a warning and the reason in ``failures``."""
+    from conftest import CUDA_DEVICE
+
+    def broken(*a, **k):
+        raise RuntimeError("no graphs here")
+
+    monkeypatch.setattr(torch.cuda, "make_graphed_callables", broken)
+    terms = P.PixelTerms()
+    ts = SETS[-1]
+    render, image, mask, rays = _view(CUDA_DEVICE, 0)
+    with pytest.warns(RuntimeWarning, match="no graphs here"):
+        got = terms(ts, render, image, mask, rays)
+    torch.testing.assert_close(got, _direct(ts, render, image, mask, rays), rtol=0, atol=0)
+    assert list(terms.failures.values()) == ["RuntimeError: no graphs here"]
+    render, image, mask, rays = _view(CUDA_DEVICE, 1)
+    torch.testing.assert_close(terms(ts, render, image, mask, rays), _direct(ts, render, image, mask, rays))

@@ -1,0 +1,153 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The per-pixel loss terms of one view (photometric, mask, normal consistency, distortion) as one function of the
+rendered images, replayed on CUDA as CUDA graphs.
+
+At a fit's image sizes these terms' kernels take tens of microseconds and their cost is the host's: about sixty
+torch operations, four Warp ops and their autograd nodes, 3.0 ms an iteration forward and backward on the H200 at
+384 x 384 px. ``torch.cuda.make_graphed_callables`` captures them once per set of terms and image size as a
+forward and a backward graph (the Warp ops launch on torch's capture stream); a replay copies the inputs into the
+graph's buffers and costs 0.25 ms (``lab/graph_losses.py``: the same losses, the same gradients bit for bit). The
+multi-view, scale and mesh terms stay eager: they draw random pixels, or depend on the surfel count or on the
+proxy mesh.
+
+A capture that fails, or whose first replay differs from the eager terms, leaves that set of terms eager for the
+rest of the fit (:attr:`PixelTerms.failures` says why). On the CPU the terms always run eagerly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import torch
+
+from ..depth_normals import depth_normals
+from .losses import distortion, mask_loss, normal_consistency, photometric
+
+__all__ = ["PixelTerms", "TermSet", "GRAPHS", "ALPHA_COVERED"]
+
+GRAPHS = True
+"""False: the terms run eagerly on CUDA too (for comparison in benchmarks and tests)."""
+ALPHA_COVERED = 0.5
+"""A pixel is covered by the surfels when their rendered opacity reaches this."""
+_CHECK_RTOL = 1e-5  # a first replay farther than this from the eager terms leaves the set eager
+
+
+@dataclasses.dataclass(frozen=True)
+class TermSet:
+    """Which per-pixel terms apply, with their weights (a graph is captured per set and image size).
+
+    Attributes:
+        dssim: weight of D-SSIM in the photometric term.
+        mask: weight of the mask term (0: none).
+        normal: weight of the normal-consistency term (0: none).
+        distortion: weight of the distortion term (0: none).
+    """
+
+    dssim: float
+    mask: float = 0.0
+    normal: float = 0.0
+    distortion: float = 0.0
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The terms' names in the order of :meth:`PixelTerms.__call__`'s result."""
+        return ("photo", *(n for n in ("mask", "normal", "distortion") if getattr(self, n) > 0))
+
+
+def _inputs(ts: TermSet, render, image, mask, rays) -> tuple[torch.Tensor, ...]:
+    """The tensors the terms read, differentiable ones first: rgb, [alpha], [normal], [distortion], image,
+    [mask], [median depth, ray origins, ray directions]."""
+    diff = [render.rgb]
+    if ts.mask > 0 or ts.normal > 0:
+        diff.append(render.alpha)
+    if ts.normal > 0:
+        diff.append(render.normal)
+    if ts.distortion > 0:
+        diff.append(render.distortion)
+    const = [image]
+    if ts.mask > 0:
+        const.append(mask.to(render.alpha.dtype))
+    if ts.normal > 0:
+        const += [render.median_depth.detach(), *rays]
+    return (*diff, *const)
+
+
+def _terms_fn(ts: TermSet):
+    """The terms as a function of :func:`_inputs`' tensors, returning their weighted values stacked [k]."""
+
+    def terms(*args):
+        it = iter(args)
+        rgb = next(it)
+        alpha = next(it) if ts.mask > 0 or ts.normal > 0 else None
+        normal = next(it) if ts.normal > 0 else None
+        dist = next(it) if ts.distortion > 0 else None
+        image = next(it)
+        mask = next(it) if ts.mask > 0 else None
+        out = [photometric(rgb, image, ts.dssim)]
+        if ts.mask > 0:
+            out.append(ts.mask * mask_loss(alpha, mask))
+        if ts.normal > 0:
+            median, o, d = next(it), next(it), next(it)
+            dn, dmask = depth_normals(median, o, d, alpha.detach() >= ALPHA_COVERED)
+            out.append(ts.normal * normal_consistency(normal, dn, alpha, dmask))
+        if ts.distortion > 0:
+            out.append(ts.distortion * distortion(dist))
+        return torch.stack(out)
+
+    return terms
+
+
+class PixelTerms:
+    """The per-pixel terms of a fit's views, graphed on CUDA (:data:`GRAPHS`).
+
+    Attributes:
+        failures: ``{description of the set: why it runs eagerly}`` for the sets whose graph failed.
+    """
+
+    def __init__(self):
+        self._graphs: dict = {}
+        self.failures: dict[str, str] = {}
+
+    def __call__(self, ts: TermSet, render, image: torch.Tensor, mask: torch.Tensor | None,
+                 rays: tuple[torch.Tensor, torch.Tensor] | None) -> torch.Tensor:
+        """The weighted terms of ``ts`` [len(ts.names)], differentiable w.r.t. the render's images.
+
+        Args:
+            ts: the terms and weights.
+            render: the rasterizer's output of the view (``rgb``, ``alpha``, ``normal``, ``distortion``,
+                ``median_depth``).
+            image: the view's photograph [H, W, 3].
+            mask: the view's object mask [H, W] (bool or float), needed when ``ts.mask > 0``.
+            rays: the view's ``(origins, directions)`` [H, W, 3] (:meth:`wtopo.Camera.pixel_rays`), needed when
+                ``ts.normal > 0``.
+        """
+        args = _inputs(ts, render, image, mask, rays)
+        rgb = render.rgb
+        if not (GRAPHS and rgb.is_cuda and torch.is_grad_enabled()):
+            return _terms_fn(ts)(*args)
+        key = (ts, tuple(rgb.shape), rgb.dtype, rgb.device, tuple(a.requires_grad for a in args))
+        fn = self._graphs.get(key)
+        if fn is None:
+            fn = self._graphs[key] = self._capture(ts, key, args)
+        return fn(*args)
+
+    def _capture(self, ts: TermSet, key, args):
+        """A graphed version of the terms for ``key``, checked against the eager terms on ``args``; the eager
+        function when capturing fails or disagrees."""
+        eager = _terms_fn(ts)
+        samples = tuple(a.detach().clone().requires_grad_(a.requires_grad) for a in args)
+        try:
+            graphed = torch.cuda.make_graphed_callables(eager, samples, num_warmup_iters=3)
+            with torch.no_grad():
+                want = eager(*args)
+            got = graphed(*(a.detach() for a in args)).detach()
+            if not torch.allclose(got, want, rtol=_CHECK_RTOL, atol=0.0):
+                raise RuntimeError(f"a replay gave {got.tolist()} where the eager terms give {want.tolist()}")
+        except Exception as e:  # noqa: BLE001 - any failure of the capture leaves this set eager
+            why = f"{type(e).__name__}: {e}"
+            self.failures[f"{ts.names} at {tuple(key[1])}"] = why
+            warnings.warn(f"wtopo: the loss terms {ts.names} run eagerly on this device: {why}", RuntimeWarning,
+                          stacklevel=3)
+            return eager
+        return graphed
