@@ -57,6 +57,7 @@ __all__ = [
     "empty_group",
     "as_torch",
     "launch",
+    "launch_adjoint",
     "launch_split",
     "cpu_threads",
     "float_dtype",
@@ -339,7 +340,7 @@ def resolve(kernel, args: Sequence) -> wp.Kernel:
     return k
 
 
-def _replay(kernel, dim, args: list, device) -> None:
+def _replay(kernel, dim, args: list, device, adj_args: list | None = None) -> None:
     """Launch ``kernel`` on ``args`` by replaying the launch command kept for its argument types on this device and
     thread (:class:`warp.Launch`), with only the changed dimensions and arguments set.
 
@@ -350,19 +351,19 @@ def _replay(kernel, dim, args: list, device) -> None:
     time of ``wp.launch`` (``lab/host_raster.py``); the kernels and their arguments are the same.
     """
     device = wp.get_device(device)
-    key = (kernel, device.alias, threading.get_ident(), *map(_arg_key, args))
+    adjoint = adj_args is not None
+    key = (kernel, device.alias, threading.get_ident(), adjoint, *map(_arg_key, args))
     cmd = _commands.get(key)
     if cmd is None:
         if len(_commands) >= _COMMANDS_MAX:
             _commands.clear()
         k = resolve(kernel, args)
-        n_in = len(args)
-        cmd = wp.launch(k, dim=dim, inputs=args, device=device, record_tape=False, record_cmd=True)
+        cmd = wp.launch(k, dim=dim, inputs=args, adj_inputs=adj_args or [], adjoint=adjoint, device=device,
+                        record_tape=False, record_cmd=True)
         if cmd is None:  # no module to run (an empty launch): nothing to keep
             return
-        cmd.fwd_args = None  # kept for Warp's CPU graph capture only; it would keep the last arguments alive
+        cmd.fwd_args = cmd.adj_args = None  # kept for Warp's CPU graph capture only; they keep the last arguments alive
         cmd._wtopo_dim = dim  # noqa: SLF001
-        cmd._wtopo_n = n_in  # noqa: SLF001
         _commands[key] = cmd
         cmd.launch()
         return
@@ -370,7 +371,8 @@ def _replay(kernel, dim, args: list, device) -> None:
         cmd.set_dim(dim)
         cmd._wtopo_dim = dim  # noqa: SLF001
     params, addr = cmd.params, cmd.params_addr
-    for i, a in enumerate(args, 1):
+    n = len(args)
+    for i, a in enumerate(args if not adjoint else [*args, *adj_args], 1):
         if type(a) is wp.array:
             c = a.ctype or a.__ctype__()
             if params[i] is not c:
@@ -379,9 +381,27 @@ def _replay(kernel, dim, args: list, device) -> None:
                     addr[i] = ctypes.c_void_p(ctypes.addressof(c))
         elif type(a) in _SCALARS:
             params[i].__init__(a)
-        else:
+        elif i <= n:
             cmd.set_param_at_index(i - 1, a)
+        else:  # the adjoint half: a null array (None), a struct's or vector's adjoint
+            cmd.set_param_at_index(i - 1 - n, a, adjoint=True)
     cmd.launch()
+
+
+def launch_adjoint(kernel, dim, args: Sequence, adj_args: Sequence, *, device) -> None:
+    """The adjoint of ``kernel`` (Warp autodiff) over ``dim`` threads: ``args`` its arguments as the forward launch
+    had them (inputs then outputs), ``adj_args`` their adjoints in the same order (an array's gradient or ``None``,
+    a zero record for a struct, 0 for an int). What ``warp.Tape.backward`` launches for a recorded launch, from a
+    kept launch command (:func:`_replay`) and without the tape's bookkeeping; for ops that register it with
+    :meth:`warp.Tape.record_func`."""
+    args, adj_args = list(args), list(adj_args)
+    if len(adj_args) != len(args):
+        raise RuntimeError(f"launch_adjoint: {len(args)} arguments but {len(adj_args)} adjoints")
+    if REPLAY_LAUNCHES:
+        _replay(kernel, dim, args, device, adj_args)
+        return
+    wp.launch(resolve(kernel, args), dim=dim, inputs=args, adj_inputs=adj_args, adjoint=True, device=device,
+              record_tape=False)
 
 
 def launch(kernel, dim, inputs: Sequence = (), outputs: Sequence = (), **kwargs) -> None:

@@ -124,8 +124,18 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
         with section("rasterize_forward"):
             prep = _bridge.empty_group(n, (v3, v3, v3, v3, v3, v2, s, v3), wdev, requires_grad=True)
             uax, vax, nrm, auv, nrm_face, m2, zc, color = prep
-            _bridge.launch_split(_k.prepare_surfels_kernel, n, [means, quats, scales, sh, cam_rec, sh_degree], prep,
-                                 device=wdev, record_tape=True)
+            prep_in = [means, quats, scales, sh, cam_rec, sh_degree]
+            _bridge.launch_split(_k.prepare_surfels_kernel, n, prep_in, prep, device=wdev)
+            tape = _bridge.active_tape()
+            if tape is not None and n > 0:
+                # Warp autodiff's adjoint of the preparation (replayed after the pixel adjoint below, which writes
+                # the gradients it reads); the camera gets none: a zero record, no gradient array for its clip
+                def prep_backward():
+                    with section("rasterize_backward"):
+                        adj = [0, *(a.grad for a in prep_in[:4]), type(cam_rec)(), 0, *(p.grad for p in prep)]
+                        _bridge.launch_adjoint(_k.prepare_surfels_kernel, n, [0, *prep_in, *prep], adj, device=wdev)
+
+                tape.record_func(prep_backward, [a for a in (*prep_in[:4], *prep) if a.grad is not None])
             outs = [_bridge.empty((h, w), t, wdev, requires_grad=True) for t in (v3, s, s, s, v3, s)]
             rgb, alpha, depth, median, normal, dist = outs
             t_final = _bridge.empty((h, w), s, wdev)
@@ -186,7 +196,6 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
                 if workers > 1:
                     _bridge.launch_split(_kbwd.reduce_gradients_kernel, n, bufs, targets, device=wdev)
 
-        tape = _bridge.active_tape()
         if tape is not None and n > 0:  # N = 0: nothing to differentiate (empty arrays have no grad buffer)
             tape.record_func(backward, [*outs, *prep, *(a for a in (opacities, means2d) if a.requires_grad)])
         return (*outs, visibility)
