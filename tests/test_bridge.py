@@ -314,3 +314,30 @@ def test_empty_group_carves_aligned_disjoint_arrays_and_zeroed_gradients(device)
     assert all(e0 <= s1 for (_, e0), (s1, _) in zip(ends[:4], ends[1:4]))
     mixed = _bridge.empty_group((2, 3), (wp.float32, wp.int32), device)
     assert [a.shape for a in mixed] == [(2, 3)] * 2 and mixed[1].dtype == wp.int32
+
+
+@pytest.mark.parametrize("replay", [True, False])
+def test_launch_adjoint_gives_the_tapes_gradients(device, replay, monkeypatch):
+    """``_bridge.launch_adjoint`` launches what ``warp.Tape.backward`` launches for a recorded launch: the same input
+    gradients, accumulated into the given arrays, with a null adjoint for an input without one, on a second call with
+    other arrays and scalars too (the kept command's arguments all set again)."""
+    monkeypatch.setattr(_bridge, "REPLAY_LAUNCHES", replay)
+    monkeypatch.setattr(_bridge, "_commands", {})
+    rng = np.random.default_rng(1)
+    for n, a in ((6, 2.0), (9, -0.5)):
+        x = wp.array(rng.standard_normal(n).astype(np.float32), device=device, requires_grad=True)
+        out = wp.zeros(n, dtype=float, device=device, requires_grad=True)
+        seed = wp.array(rng.standard_normal(n).astype(np.float32), device=device)
+        tape = wp.Tape()
+        with tape:
+            wp.launch(_affine_kernel, n, [a, 3, wp.vec2(0.5, 1.0), x], [out], device=device)
+        tape.backward(grads={out: seed})
+        want = x.grad.numpy().copy()
+        gx = wp.zeros(n, dtype=float, device=device)
+        _bridge.launch_adjoint(_affine_kernel, n, [a, 3, wp.vec2(0.5, 1.0), x, out], [0.0, 0, wp.vec2(), gx, seed],
+                               device=device)
+        np.testing.assert_allclose(gx.numpy(), want, rtol=1e-6)
+        np.testing.assert_allclose(want, a * seed.numpy(), rtol=1e-6)
+        _bridge.launch_adjoint(_affine_kernel, n, [a, 3, wp.vec2(0.5, 1.0), x, out], [0.0, 0, wp.vec2(), None, seed],
+                               device=device)  # no gradient wanted for x: a null adjoint, nothing written
+        np.testing.assert_allclose(gx.numpy(), want, rtol=1e-6)
