@@ -105,3 +105,15 @@ def test_a_failed_capture_leaves_the_set_eager_and_says_why(monkeypatch):
     assert list(terms.failures.values()) == ["RuntimeError: no graphs here"]
     render, image, mask, rays = _view(CUDA_DEVICE, 1)
     torch.testing.assert_close(terms(ts, render, image, mask, rays), _direct(ts, render, image, mask, rays))
+
+
+@pytest.mark.parametrize("ts", SETS, ids=lambda ts: "+".join(ts.names))
+def test_every_differentiable_input_of_a_set_gets_a_gradient(ts):
+    """What a graph's capture needs (``torch.cuda.make_graphed_callables`` differentiates every input that requires
+    a gradient and fails on one the terms do not use, as on the H200 for the normal term without the mask's): each
+    set's inputs require gradients exactly where its terms differentiate them."""
+    render, image, mask, rays = _view("cpu", 0)
+    args = P._inputs(ts, render, image, mask, rays)  # noqa: SLF001
+    diff = [a for a in args if a.requires_grad]
+    grads = torch.autograd.grad(P._terms_fn(ts)(*args).sum(), diff, allow_unused=False)  # noqa: SLF001
+    assert all(g is not None and torch.count_nonzero(g) > 0 for g in grads)

@@ -11,7 +11,11 @@ multi-view, scale and mesh terms stay eager: they draw random pixels, or depend 
 proxy mesh.
 
 A capture that fails, or whose first replay differs from the eager terms, leaves that set of terms eager for the
-rest of the fit (:attr:`PixelTerms.failures` says why). On the CPU the terms always run eagerly.
+rest of the fit (:attr:`PixelTerms.failures` says why). On the CPU the terms always run eagerly. Captures run under
+:func:`wtopo._validate.trusted_values` (a value check's host read would invalidate them), and each set's inputs
+require gradients exactly where its terms differentiate them (the capture differentiates every such input).
+Limitation: a capture the device invalidates part-way can leave torch's CUDA random generator unusable in the
+process; none of the fit's sets does (H200, lease ``u``).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import warnings
 
 import torch
 
+from .._validate import trusted_values
 from ..depth_normals import depth_normals
 from .losses import distortion, mask_loss, normal_consistency, photometric
 
@@ -56,11 +61,15 @@ class TermSet:
 
 
 def _inputs(ts: TermSet, render, image, mask, rays) -> tuple[torch.Tensor, ...]:
-    """The tensors the terms read, differentiable ones first: rgb, [alpha], [normal], [distortion], image,
-    [mask], [median depth, ray origins, ray directions]."""
+    """The tensors the terms read: rgb, [alpha], [normal], [distortion], image, [mask], [median depth, ray origins,
+    ray directions]. Each is differentiable exactly when a term differentiates it (a graph's backward takes the
+    gradient of every input that requires one): the opacity only through the mask term (the normal term reads its
+    value), the depth never (the depth normals are a fixed target)."""
     diff = [render.rgb]
-    if ts.mask > 0 or ts.normal > 0:
+    if ts.mask > 0:
         diff.append(render.alpha)
+    elif ts.normal > 0:
+        diff.append(render.alpha.detach())
     if ts.normal > 0:
         diff.append(render.normal)
     if ts.distortion > 0:
@@ -129,7 +138,10 @@ class PixelTerms:
         key = (ts, tuple(rgb.shape), rgb.dtype, rgb.device, tuple(a.requires_grad for a in args))
         fn = self._graphs.get(key)
         if fn is None:
-            fn = self._graphs[key] = self._capture(ts, key, args)
+            # the fit's own values (its guards check them): the ops' value checks read the device, which a capture
+            # cannot hold (it would be invalidated)
+            with trusted_values():
+                fn = self._graphs[key] = self._capture(ts, key, args)
         return fn(*args)
 
     def _capture(self, ts: TermSet, key, args):
