@@ -15,7 +15,7 @@ rest of the fit (:attr:`PixelTerms.failures` says why). On the CPU the terms alw
 :func:`wtopo._validate.trusted_values` (a value check's host read would invalidate them), and each set's inputs
 require gradients exactly where its terms differentiate them (the capture differentiates every such input).
 Limitation: a capture the device invalidates part-way can leave torch's CUDA random generator unusable in the
-process; none of the fit's sets does (H200, lease ``u``).
+process (on the H200 the lab's capture of all four terms and the fit's of the photometric term succeeded).
 """
 
 from __future__ import annotations
