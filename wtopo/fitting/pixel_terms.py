@@ -159,7 +159,7 @@ class PixelTerms:
             with torch.no_grad():
                 want = eager(*args)
             got = graphed(*(a.detach() for a in args)).detach()
-            if not torch.allclose(got, want, rtol=_CHECK_RTOL, atol=0.0):
+            if not torch.allclose(got, want, rtol=_CHECK_RTOL, atol=0.0, equal_nan=True):  # a non-finite step too
                 raise RuntimeError(f"a replay gave {got.tolist()} where the eager terms give {want.tolist()}")
         except Exception as e:  # noqa: BLE001 - any failure of the capture leaves this set eager
             why = f"{type(e).__name__}: {e}"
