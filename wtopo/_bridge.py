@@ -319,6 +319,7 @@ REPLAY_LAUNCHES = True
 _commands: dict = {}
 _COMMANDS_MAX = 4096  # kept launch commands (kernel, device, thread, argument types); cleared when full
 _SCALARS = (int, float)
+_REPLAY_KWARGS = frozenset({"device", "record_tape"})  # the options a replayed launch takes
 
 
 def _arg_key(a) -> object:
@@ -414,9 +415,6 @@ def launch(kernel, dim, inputs: Sequence = (), outputs: Sequence = (), **kwargs)
         _replay(kernel, dim, [*inputs, *outputs], kwargs.get("device"))
         return
     wp.launch(resolve(kernel, (*inputs, *outputs)), dim=dim, inputs=inputs, outputs=outputs, **kwargs)
-
-
-_REPLAY_KWARGS = frozenset({"device", "record_tape"})
 
 
 def launch_split(kernel, dim: int, inputs: list, outputs: list | None = None, *, device, min_chunk: int = 4096,

@@ -128,6 +128,14 @@ _TORCH_OF = {v: k for k, v in _SCALAR.items()}
 _torch_devices: dict = {}
 
 
+def _torch_device(device: wp.Device) -> torch.device:
+    """The torch device of a Warp device (Warp's devices are long-lived singletons, and not hashable: kept by id)."""
+    tdev = _torch_devices.get(id(device))
+    if tdev is None:
+        tdev = _torch_devices[id(device)] = torch.device(wp.device_to_torch(device))
+    return tdev
+
+
 def empty(shape, dtype, device, requires_grad: bool = False, zero: bool = False) -> wp.array:
     """``wp.empty`` (``zero``: ``wp.zeros``) whose memory torch's caching allocator owns.
 
@@ -145,9 +153,7 @@ def empty(shape, dtype, device, requires_grad: bool = False, zero: bool = False)
     if ts is None or not all(shape):
         make = wp.zeros if zero else wp.empty
         return make(shape, dtype=dtype, device=device, requires_grad=requires_grad)
-    tdev = _torch_devices.get(id(device))  # Warp's devices are long-lived singletons, and not hashable
-    if tdev is None:
-        tdev = _torch_devices[id(device)] = torch.device(wp.device_to_torch(device))
+    tdev = _torch_device(device)
     full = shape + tuple(getattr(dtype, "_shape_", ()))
     t = torch.zeros(full, dtype=ts, device=tdev) if zero else torch.empty(full, dtype=ts, device=tdev)
     arr = to_warp(t, dtype)
@@ -174,14 +180,11 @@ def empty_group(shape, dtypes, device, requires_grad: bool = False) -> list[wp.a
     ts = _TORCH_OF.get(scalar)
     if ts is None or not all(shape) or any(getattr(t, "_wp_scalar_type_", t) is not scalar for t in dtypes):
         return [empty(shape, t, device, requires_grad=requires_grad) for t in dtypes]
-    tdev = _torch_devices.get(id(device))
-    if tdev is None:
-        tdev = _torch_devices[id(device)] = torch.device(wp.device_to_torch(device))
+    tdev = _torch_device(device)
     size = 1
     for x in shape:
         size *= x
-    item = torch.empty((), dtype=ts).element_size()
-    align = _GROUP_ALIGN // item
+    align = _GROUP_ALIGN // ts.itemsize
     lens, offs, total = [], [], 0
     for t in dtypes:
         k = size * (getattr(t, "_length_", None) or 1)

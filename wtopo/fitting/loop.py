@@ -201,7 +201,11 @@ class FitRun:
         known to be finite is checked first). Parameters and moments are copied on the fit's device (the live
         ones change in place; a checkpoint moves them to the host when it writes)."""
         self.settle()
-        self.last_good = (self.surfels.state_dict(self.device), copy.deepcopy(self.opt.state_dict()))
+        self.last_good = self._state_copy()
+
+    def _state_copy(self) -> tuple[dict, dict]:
+        """Copies of the surfels' and the optimiser's state, on the fit's device."""
+        return self.surfels.state_dict(self.device), copy.deepcopy(self.opt.state_dict())
 
     def _snapshot_unread(self) -> None:
         """The periodic snapshot without a host read: the state is copied now and becomes the last good one when
@@ -209,7 +213,7 @@ class FitRun:
         if self._unverified is None:
             self.snapshot()
             return
-        self._pending_good = (self.surfels.state_dict(self.device), copy.deepcopy(self.opt.state_dict()))
+        self._pending_good = self._state_copy()
 
     def settle(self) -> None:
         """Read whether the last step left finite gradients and parameters (one host read when a step is
