@@ -466,19 +466,20 @@ def test_final_grid_is_twice_as_fine_where_the_coevolution_found_thin_parts(tiny
 def test_the_loop_freezes_the_heap_only_for_its_stages_and_never_someone_elses(tiny):
     """A fit's stages run with the objects alive at their start frozen out of the collector's generations and
     leave nothing frozen; a caller's own frozen objects stay frozen (the loop then freezes nothing)."""
+    import contextlib
     import gc
-
-    seen = []
-    real = fit_loop.freeze_heap
-
-    def spy():
-        froze = real()
-        seen.append((froze, gc.get_freeze_count() > 0))
-        return froze
-
     import unittest.mock as mock
 
-    with mock.patch.object(fit_loop, "freeze_heap", spy):
+    seen = []
+    real = fit_loop.frozen_heap
+
+    @contextlib.contextmanager
+    def spy():
+        with real() as froze:
+            seen.append((froze, gc.get_freeze_count() > 0))
+            yield froze
+
+    with mock.patch.object(fit_loop, "frozen_heap", spy):
         fit(tiny, _config(6, 0), progress=False)
         assert seen and all(froze and frozen for froze, frozen in seen)
         assert gc.get_freeze_count() == 0

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import gc
 import math
 import time
 from collections import defaultdict
@@ -29,7 +28,7 @@ from .._validate import trusted_values
 from . import presets as _presets
 from ._final_mesh import final_mesh
 from ._init_surfels import INIT_OPACITY, MIN_MVS_POINTS, initial_surfels, stereo_points
-from ._progress import StageBar, StopRequest, freeze_heap
+from ._progress import StageBar, StopRequest, frozen_heap
 from ._reinit import tsdf_reinit
 from ._strategy import DensityStrategy, StepInfo
 from ._timeline import FitTimeline
@@ -362,30 +361,28 @@ class FitRun:
     def _iterate(self, stage: Stage, start: int, end: int) -> None:
         rt = self.cfg.runtime
         bar = StageBar(self.progress, stage.value, start, end, self.it)
-        frozen = freeze_heap()
         try:
-            while self.it < end and not self.stop.requested:
-                with trusted_values():  # the fit's own tensors, checked by its guards after every step
-                    if self.strategy.step_pre_forward(stage, self.it, self.surfels, self.proxy):
+            with frozen_heap():
+                while self.it < end and not self.stop.requested:
+                    with trusted_values():  # the fit's own tensors, checked by its guards after every step
+                        if self.strategy.step_pre_forward(stage, self.it, self.surfels, self.proxy):
+                            self.snapshot()
+                        self._step(stage)
+                    if self.strategy.step_end(stage, self.it, self.surfels):
                         self.snapshot()
-                    self._step(stage)
-                if self.strategy.step_end(stage, self.it, self.surfels):
-                    self.snapshot()
-                self.it += 1
-                if self.timeline is not None and self.it % self.timeline.every == 0:
-                    self.settle()
-                    self.timeline.sample(self.it, self.surfels, self.proxy_mesh)
-                if rt.eval_every and self.it % rt.eval_every == 0:
-                    self.settle()
-                    self._evaluate(stage)
-                self.checkpoints.maybe_save()
-                if rt.stop_at is not None and self.it >= rt.stop_at:
-                    self.stop.request()
-                bar.update(self.it, self._bar_status)
-            self.settle()
+                    self.it += 1
+                    if self.timeline is not None and self.it % self.timeline.every == 0:
+                        self.settle()
+                        self.timeline.sample(self.it, self.surfels, self.proxy_mesh)
+                    if rt.eval_every and self.it % rt.eval_every == 0:
+                        self.settle()
+                        self._evaluate(stage)
+                    self.checkpoints.maybe_save()
+                    if rt.stop_at is not None and self.it >= rt.stop_at:
+                        self.stop.request()
+                    bar.update(self.it, self._bar_status)
+                self.settle()
         finally:
-            if frozen:
-                gc.unfreeze()
             bar.close()
 
     def _bar_status(self) -> dict:
