@@ -107,12 +107,12 @@ class Objective:
             covered = out.alpha.detach() >= ALPHA_COVERED
             late = stage != Stage.WARMUP
             masked = self.train.masks is not None and self.mask_weight > 0
-            normal_on = lc.normal > 0 and (late or it >= stage_iteration(_NORMAL_START, self.warmup_end))
+            normal_on = late or it >= stage_iteration(_NORMAL_START, self.warmup_end)
+            dist_on = late or it >= stage_iteration(_DISTORTION_START, self.warmup_end)
             ts = TermSet(_DSSIM, mask=self.mask_weight if masked else 0.0, normal=lc.normal if normal_on else 0.0,
-                         distortion=lc.distortion if lc.distortion > 0 and (
-                             late or it >= stage_iteration(_DISTORTION_START, self.warmup_end)) else 0.0)
+                         distortion=lc.distortion if dist_on else 0.0)
             values = self.pixel_terms(ts, out, img, self.train.masks[vi] if masked else None,
-                                      cam.pixel_rays(out.alpha.device) if normal_on else None)
+                                      cam.pixel_rays(out.alpha.device) if ts.normal > 0 else None)
             L.update(zip(ts.names, values.unbind()))
             mv = self.multiview
             mv_on = late or it >= stage_iteration(_MULTIVIEW_START, self.warmup_end)
