@@ -1,0 +1,42 @@
+# Lease step v (after the p1, p2 and p3 + gl + small/whl staging calls; carry .stage/usd, .stage/dtu_raw and
+# .stage/base = `git archive` of f9f59e3): the graphed loss terms' CUDA tests, then DTU at the CUDA default as a
+# user runs it (benchmarks/peers/run_wtopo.py: wall time images to mesh, peak memory, masked held-out PSNR), once
+# plain and once with runtime.profile=true (the per-stage table), then t_loop.py's windows (wall per iteration).
+# V_STEPS picks the steps (default "tests fit profile loop"; "base" adds f9f59e3's plain fit).
+source lab/device/lease_env.sh
+t0=$(date +%s)
+[ -f $S/t_installed ] || { lease_install || exit 1; touch $S/t_installed; }
+mkdir -p $OUT/v
+[ -f $S/exch/dtu_scan24/meta.json ] || python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 $S/exch/dtu_scan24 \
+  --name dtu_scan24 > $S/exch_dtu.log 2>&1
+echo "installed and exported after $(( $(date +%s) - t0 )) s"
+R=$PWD
+summary() { python3 - "$1" <<'PY'
+import json, sys
+r = json.load(open(sys.argv[1] + "/run.json"))
+print({k: r.get(k) for k in ("wall_s", "peak_gpu_bytes", "iterations", "surfels", "own_report")})
+PY
+}
+for step in ${V_STEPS:-tests fit profile loop}; do
+  case $step in
+  tests) (cd /tmp && timeout 150 python3 -m pytest -q -p no:cacheprovider \
+      $R/tests/test_pixel_terms.py 2>&1 | tail -n 4
+    timeout 150 python3 -m pytest -q -p no:cacheprovider $R/tests/test_bridge.py $R/tests/test_cuda_equality.py \
+      2>&1 | tail -n 4) ;;
+  fit|profile) a=(); [ $step = profile ] && a=(--set runtime.profile=true)
+    (cd /tmp && timeout 200 python3 $R/benchmarks/peers/run_wtopo.py $S/exch/dtu_scan24 $S/res/v_$step "${a[@]}" \
+      > $OUT/v/$step.txt 2>&1); echo "$step rc=$?"
+    cp $S/res/v_$step/run.json $OUT/v/run_$step.json 2>/dev/null; summary $S/res/v_$step
+    cp $S/res/v_$step/run/report.json $OUT/v/report_$step.json 2>/dev/null
+    grep -i "warn\|error\|psnr" $OUT/v/$step.txt | cut -c1-300 | head -n 12; tail -n 45 $OUT/v/$step.txt | cut -c1-200 ;;
+  base) [ -d $S/base_site/wtopo ] || python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-cache-dir \
+      --target $S/base_site .stage/base > $S/base_install.log 2>&1 || { tail -5 $S/base_install.log; continue; }
+    (cd /tmp && PYTHONPATH=$S/base_site:$PYTHONPATH timeout 250 python3 $R/benchmarks/peers/run_wtopo.py \
+      $S/exch/dtu_scan24 $S/res/v_base > $OUT/v/base.txt 2>&1); echo "base rc=$?"
+    cp $S/res/v_base/run.json $OUT/v/run_base.json 2>/dev/null; summary $S/res/v_base; tail -n 5 $OUT/v/base.txt | cut -c1-200 ;;
+  loop) (cd /tmp && timeout 200 python3 $R/lab/device/t_loop.py $S/exch/dtu_scan24 --out $S/res/v_loop \
+      > $OUT/v/loop.txt 2>&1); echo "loop rc=$?"
+    grep "^== \|^fit \|Warning" $OUT/v/loop.txt | cut -c1-300 ;;
+  esac
+  echo "$step done after $(( $(date +%s) - t0 )) s"
+done
