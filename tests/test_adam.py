@@ -114,3 +114,60 @@ def test_bad_arguments():
     sd["param_groups"] = sd["param_groups"][:1]
     with pytest.raises(ValueError, match="do not match|does not match"):
         a.load_state_dict(sd)
+
+
+def _graph_modes(device):
+    """(label, setup) pairs for the update's graph path: emulated (its fixed buffers and device rates, run without a
+    capture) on every device, captured on CUDA."""
+    modes = [("emulated", lambda a: setattr(a, "_emulate", True))]
+    if str(device).startswith("cuda"):
+        modes.append(("captured", lambda a: None))
+    return modes
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_graph_path_matches_the_eager_update(device, dtype, monkeypatch):
+    """The graph's update (rates as device tensors, divided as torch's capturable Adam does; gradients copied into
+    fixed buffers) follows the eager one over many steps, through a step without one group's gradient (another
+    graph), a parameter replaced as a densification step replaces it (a new graph, its first step eager) and a rate
+    that changes at every step; each parameter's gradient is the step's cleaned buffer afterwards."""
+    import wtopo.fitting.adam as adam_mod
+
+    for label, setup in _graph_modes(device):
+        ours, ref = _groups(dtype=dtype, device=device), _groups(dtype=dtype, device=device)
+        a, b = Adam(ours, eps=1e-15), Adam(ref, eps=1e-15)
+        setup(a)
+        monkeypatch.setattr(adam_mod, "GRAPHS", True)
+        b._emulate = False
+        _run(a, ours, 30)
+        monkeypatch.setattr(adam_mod, "GRAPHS", False)  # the reference runs eagerly on CUDA too
+        _run(b, ref, 30)
+        monkeypatch.setattr(adam_mod, "GRAPHS", True)
+        assert a.graph_failure is None, label
+        assert len(a._graphs) == 2, label  # with and without group b's gradient
+        for opt, groups in ((a, ours), (b, ref)):  # a densification step: a longer parameter and moments
+            grp, p = groups[0], groups[0]["params"][0]
+            st = opt.state.pop(p)
+            new = torch.cat([p.detach(), p.detach()[:5]]).requires_grad_()
+            opt.state[new] = {"step": st["step"], **{k: torch.cat([st[k], st[k][:5]]) for k in ("exp_avg",
+                                                                                                "exp_avg_sq")}}
+            grp["params"][0] = opt.param_groups[0]["params"][0] = new
+        _run(a, ours, 30, start=30)
+        monkeypatch.setattr(adam_mod, "GRAPHS", False)
+        _run(b, ref, 30, start=30)
+        monkeypatch.setattr(adam_mod, "GRAPHS", True)
+        tol = 1e-6 if dtype == torch.float32 else 1e-12
+        for x, y in zip(ours, ref):
+            torch.testing.assert_close(x["params"][0], y["params"][0], rtol=0, atol=tol, msg=label)
+            torch.testing.assert_close(a.state[x["params"][0]]["exp_avg"], b.state[y["params"][0]]["exp_avg"],
+                                       rtol=0, atol=tol, msg=label)
+        p = ours[0]["params"][0]
+        bad = torch.ones_like(p)
+        bad[2, 1] = float("nan")
+        p.grad = bad
+        finite = a.step()
+        assert not bool(finite), label
+        assert p.grad is not bad and float(p.grad[2, 1]) == 0.0 and bool(torch.isfinite(p.grad).all()), label
+        p.grad = torch.ones_like(p)
+        ours[1]["params"][0].grad = torch.ones_like(ours[1]["params"][0])
+        assert bool(a.step()), label

@@ -21,8 +21,9 @@ for step in ${V_STEPS:-tests fit profile loop}; do
   case $step in
   tests) (cd /tmp && timeout 150 python3 -m pytest -q -p no:cacheprovider \
       $R/tests/test_pixel_terms.py 2>&1 | tail -n 4
-    timeout 150 python3 -m pytest -q -p no:cacheprovider $R/tests/test_bridge.py $R/tests/test_cuda_equality.py \
-      2>&1 | tail -n 4) ;;
+    timeout 150 python3 -m pytest -q -p no:cacheprovider $R/tests/test_adam.py $R/tests/test_bridge.py \
+      $R/tests/test_cuda_equality.py 2>&1 | tail -n 6
+    timeout 60 python3 $R/benchmarks/bench_optimizer.py --device cuda --surfels 53000 1000000 2>&1 | tail -n 4) ;;
   fit|profile) a=(); [ $step = profile ] && a=(--set runtime.profile=true)
     (cd /tmp && timeout 200 python3 $R/benchmarks/peers/run_wtopo.py $S/exch/dtu_scan24 $S/res/v_$step "${a[@]}" \
       > $OUT/v/$step.txt 2>&1); echo "$step rc=$?"
