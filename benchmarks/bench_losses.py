@@ -27,7 +27,8 @@ sets torch's threads (1 measures the work without the stalls of a shared machine
     .venv/bin/python benchmarks/bench_losses.py --quick --threads 1
 
 On a GPU (#60's goal: every per-pixel loss together at most 1 ms an iteration at 800 x 600; a 700 px square
-bunny has 490k pixels, 800 x 600 has 480k), every time synchronised so that it includes the kernels::
+bunny has 490k pixels, 800 x 600 has 480k), every time synchronised so that it includes the kernels, and the
+section also with the per-pixel terms eager (:data:`wtopo.fitting.pixel_terms.GRAPHS` off)::
 
     python benchmarks/bench_losses.py --device cuda --resolution 700 --views 16
 """
@@ -151,6 +152,13 @@ def main() -> None:
     rows = {}
     rows["losses section (forward)"] = _time(lambda: section(False), args.repeats) / n
     rows["losses forward + backward"] = _time(lambda: section(True), args.repeats) / n
+    if s.means.is_cuda:  # the same with the per-pixel terms eager (wtopo.fitting.pixel_terms.GRAPHS off)
+        from wtopo.fitting import pixel_terms
+        pixel_terms.GRAPHS = False
+        rows["losses forward + backward, terms eager"] = _time(lambda: section(True), args.repeats) / n
+        pixel_terms.GRAPHS = True
+        failed = obj.pixel_terms.failures
+        print(f"graphed sets: {len(obj.pixel_terms._graphs) - len(failed)}, failed: {failed}")  # noqa: SLF001
     print(f"terms: {', '.join(names)}")
     for k, v in rows.items():
         print(f"  {k:40s} {1000 * v:8.2f} ms/it")

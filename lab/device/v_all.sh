@@ -2,7 +2,8 @@
 # .stage/base = `git archive` of f9f59e3): the graphed loss terms' CUDA tests, then DTU at the CUDA default as a
 # user runs it (benchmarks/peers/run_wtopo.py: wall time images to mesh, peak memory, masked held-out PSNR), once
 # plain and once with runtime.profile=true (the per-stage table), then t_loop.py's windows (wall per iteration).
-# V_STEPS picks the steps (default "tests fit profile loop"; "base" adds f9f59e3's plain fit).
+# V_STEPS picks the steps (default "tests fit profile loop"; "losses": bench_losses.py at 700 px, graphed and eager;
+# "base": f9f59e3's plain fit).
 source lab/device/lease_env.sh
 t0=$(date +%s)
 [ -f $S/t_installed ] || { lease_install || exit 1; touch $S/t_installed; }
@@ -30,6 +31,8 @@ for step in ${V_STEPS:-tests fit profile loop}; do
     cp $S/res/v_$step/run.json $OUT/v/run_$step.json 2>/dev/null; summary $S/res/v_$step
     cp $S/res/v_$step/run/report.json $OUT/v/report_$step.json 2>/dev/null
     grep -i "warn\|error\|psnr" $OUT/v/$step.txt | cut -c1-300 | head -n 12; tail -n 45 $OUT/v/$step.txt | cut -c1-200 ;;
+  losses) (cd $R/benchmarks && timeout 200 python3 bench_losses.py --device cuda --resolution 700 --views 16 \
+      --section-only 2>&1 | tail -n 8) ;;
   base) [ -d $S/base_site/wtopo ] || python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-cache-dir \
       --target $S/base_site .stage/base > $S/base_install.log 2>&1 || { tail -5 $S/base_install.log; continue; }
     (cd /tmp && PYTHONPATH=$S/base_site:$PYTHONPATH timeout 250 python3 $R/benchmarks/peers/run_wtopo.py \

@@ -36,6 +36,7 @@ backward, on the fit's device; the torch formulation it replaced is ``tests/refe
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -45,7 +46,7 @@ from ..camera import Camera
 from ..geometry.mvs import TorchCams, gray, select_neighbours
 from ..multiview_ncc import ReferenceWindows, source_params, window_ncc_costs
 
-__all__ = ["MultiViewNCC"]
+__all__ = ["MultiViewNCC", "Windows", "ncc_loss"]
 
 _MAX_COST = 0.9  # windows whose best 1 - NCC reaches this carry no loss (PGSR: ncc < 0.9)
 _MIN_STD = 0.01  # reference windows with a grey-level std below this (of [0, 1]) carry no loss
@@ -53,6 +54,36 @@ _NCC_EPS = 1e-6
 _DRAWN_NEIGHBOURS = 2  # neighbours scored per iteration; each window keeps its better one
 _GRAZING = 0.05  # |cos| between a patch ray and the plane normal below which the window is dropped
 _ALPHA_COVERED = 0.5  # windows whose centre the surfels cover less than this carry no loss
+
+
+class Windows(NamedTuple):
+    """What one call of the term scores (drawn by :meth:`MultiViewNCC.draw`, on the fit's device).
+
+    Attributes:
+        py: window centre rows ``[P]`` int64.
+        px: window centre columns ``[P]`` int64.
+        reference: the reference view's :class:`~wtopo.multiview_ncc.ReferenceWindows`.
+        images: the drawn neighbours' grey images, one or two ``[Hs, Ws]``.
+        params: their rows seen from the reference view ``[len(images), 23]``.
+        half: half the window side [pixels].
+    """
+
+    py: torch.Tensor
+    px: torch.Tensor
+    reference: ReferenceWindows
+    images: tuple
+    params: torch.Tensor
+    half: int
+
+
+def ncc_loss(depth: torch.Tensor, normal: torch.Tensor, alpha: torch.Tensor, w: Windows) -> torch.Tensor:
+    """The term's value for the windows ``w`` of a rendered view: the mean best ``1 - NCC`` of the windows that
+    count and correlate (a scalar; 0 when none does), differentiable in ``depth`` [H, W] and ``normal``
+    [H, W, 3]; ``alpha`` [H, W] by value. No host synchronisation (the fit replays it in a CUDA graph)."""
+    best, ok = window_ncc_costs(depth, normal, alpha, w.py, w.px, w.reference, w.images, w.params, half=w.half,
+                                min_std=_MIN_STD, grazing=_GRAZING, alpha_min=_ALPHA_COVERED, eps=_NCC_EPS)
+    keep = ok * (best.detach() < _MAX_COST)
+    return (best * keep).sum() / keep.sum().clamp_min(1.0)
 
 
 class MultiViewNCC:
@@ -203,9 +234,29 @@ class MultiViewNCC:
         out[py, px] = (oka > 0) & (okb > 0) & (ca < _MAX_COST) & (cb - ca > margin)
         return out
 
+    def draw(self, it: int, vi: int, device: torch.device) -> Windows | None:
+        """The windows of training view ``vi`` scored at iteration ``it`` (pixels drawn on ``device`` by a
+        generator there seeded from ``it``, neighbours drawn likewise), or ``None`` when the view has no neighbour
+        or is too small for a window. No host synchronisation."""
+        ref = self._cam(vi, device)
+        H, W, h = ref.H, ref.W, self.half
+        if 2 * h >= H or 2 * h >= W or not self.neighbours[vi]:
+            return None
+        seed = self.seed * 1_000_003 + it
+        g = self._generators.get(device)
+        if g is None:
+            g = self._generators[device] = torch.Generator(device)
+        g.manual_seed(seed)
+        count = self.count(H, W)
+        py = torch.randint(h, H - h, (count,), generator=g, device=device)
+        px = torch.randint(h, W - h, (count,), generator=g, device=device)
+        images, params = self._sources(vi, self._pick(vi, seed), device)
+        return Windows(py, px, self._view_stats(vi, device), tuple(images), params, h)
+
     def __call__(self, it: int, vi: int, median_depth: torch.Tensor, normal: torch.Tensor,
                  alpha: torch.Tensor) -> torch.Tensor:
-        """The term for training view ``vi`` at iteration ``it`` (a scalar tensor, 0 when nothing counts).
+        """The term for training view ``vi`` at iteration ``it`` (a scalar tensor, 0 when nothing counts):
+        :func:`ncc_loss` of :meth:`draw`'s windows.
 
         Args:
             it: iteration (seeds the draws).
@@ -214,19 +265,7 @@ class MultiViewNCC:
             normal: rendered alpha-weighted world normal ``[H, W, 3]`` (differentiable).
             alpha: rendered opacity ``[H, W]`` (only its value is used).
         """
-        dev = median_depth.device
-        ref = self._cam(vi, dev)
-        H, W, h = ref.H, ref.W, self.half
-        if 2 * h >= H or 2 * h >= W or not self.neighbours[vi]:
+        w = self.draw(it, vi, median_depth.device)
+        if w is None:
             return median_depth.sum() * 0.0
-        seed = self.seed * 1_000_003 + it
-        g = self._generators.get(dev)
-        if g is None:
-            g = self._generators[dev] = torch.Generator(dev)
-        g.manual_seed(seed)
-        count = self.count(H, W)
-        py = torch.randint(h, H - h, (count,), generator=g, device=dev)
-        px = torch.randint(h, W - h, (count,), generator=g, device=dev)
-        best, ok = self._plane_costs(vi, py, px, median_depth, normal, alpha, self._pick(vi, seed))
-        w = ok * (best.detach() < _MAX_COST)
-        return (best * w).sum() / w.sum().clamp_min(1.0)
+        return ncc_loss(median_depth, normal, alpha, w)

@@ -109,15 +109,20 @@ class Objective:
             masked = self.train.masks is not None and self.mask_weight > 0
             normal_on = late or it >= stage_iteration(_NORMAL_START, self.warmup_end)
             dist_on = late or it >= stage_iteration(_DISTORTION_START, self.warmup_end)
-            ts = TermSet(_DSSIM, mask=self.mask_weight if masked else 0.0, normal=lc.normal if normal_on else 0.0,
-                         distortion=lc.distortion if dist_on else 0.0)
-            values = self.pixel_terms(ts, out, img, self.train.masks[vi] if masked else None,
-                                      cam.pixel_rays(out.alpha.device) if ts.normal > 0 else None)
-            L.update(zip(ts.names, values.unbind()))
             mv = self.multiview
-            mv_on = late or it >= stage_iteration(_MULTIVIEW_START, self.warmup_end)
-            if mv is not None and mv_on and mv.has_neighbours(vi):
-                L["multiview"] = lc.multiview * mv(it, vi, out.median_depth, out.normal, out.alpha)
+            mv_on = (mv is not None and mv.has_neighbours(vi)
+                     and (late or it >= stage_iteration(_MULTIVIEW_START, self.warmup_end)))
+            windows = mv.draw(it, vi, out.alpha.device) if mv_on else None
+            ts = TermSet(_DSSIM, mask=self.mask_weight if masked else 0.0, normal=lc.normal if normal_on else 0.0,
+                         distortion=lc.distortion if dist_on else 0.0,
+                         multiview=lc.multiview if windows is not None else 0.0,
+                         sources=len(windows.images) if windows is not None else 0,
+                         half=windows.half if windows is not None else 0)
+            values = self.pixel_terms(ts, out, img, self.train.masks[vi] if masked else None,
+                                      cam.pixel_rays(out.alpha.device) if ts.normal > 0 else None, windows)
+            L.update(zip(ts.names, values.unbind()))
+            if mv_on and windows is None:  # a view too small for a window: the term is there, and zero
+                L["multiview"] = out.median_depth.sum() * 0.0
             if lc.scale > 0:
                 L["scale"] = lc.scale * scale_regularizer(s.scales, _MAX_ANISOTROPY)
         terms = Terms(L, out, covered)

@@ -1,14 +1,15 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The per-pixel loss terms of one view (photometric, mask, normal consistency, distortion) as one function of the
-rendered images, replayed on CUDA as CUDA graphs.
+"""The per-pixel loss terms of one view (photometric, mask, normal consistency, distortion, multi-view NCC) as one
+function of the rendered images, replayed on CUDA as CUDA graphs.
 
 At a fit's image sizes these terms' kernels take tens of microseconds and their cost is the host's: about sixty
 torch operations, four Warp ops and their autograd nodes, 3.0 ms an iteration forward and backward on the H200 at
 384 x 384 px. ``torch.cuda.make_graphed_callables`` captures them once per set of terms and image size as a
 forward and a backward graph (the Warp ops launch on torch's capture stream); a replay copies the inputs into the
 graph's buffers and costs 0.25 ms (``lab/graph_losses.py``: the same losses, the same gradients bit for bit). The
-multi-view, scale and mesh terms stay eager: they draw random pixels, or depend on the surfel count or on the
-proxy mesh.
+multi-view term's windows (random pixels, drawn neighbours: :meth:`~wtopo.fitting.multiview.MultiViewNCC.draw`) are
+drawn eagerly and enter the graph as inputs. The scale and mesh terms stay eager: they depend on the surfel count
+or on the proxy mesh.
 
 A capture that fails, or whose first replay differs from the eager terms, leaves that set of terms eager for the
 rest of the fit (:attr:`PixelTerms.failures` says why). On the CPU the terms always run eagerly. Captures run under
@@ -27,7 +28,9 @@ import torch
 
 from .._validate import trusted_values
 from ..depth_normals import depth_normals
+from ..multiview_ncc import ReferenceWindows
 from .losses import distortion, mask_loss, normal_consistency, photometric
+from .multiview import Windows, ncc_loss
 
 __all__ = ["PixelTerms", "TermSet", "GRAPHS", "ALPHA_COVERED"]
 
@@ -47,61 +50,82 @@ class TermSet:
         mask: weight of the mask term (0: none).
         normal: weight of the normal-consistency term (0: none).
         distortion: weight of the distortion term (0: none).
+        multiview: weight of the multi-view NCC term (0: none).
+        sources: the multi-view term's drawn neighbours (one or two; 0 without the term).
+        half: the multi-view term's half window side [pixels].
     """
 
     dssim: float
     mask: float = 0.0
     normal: float = 0.0
     distortion: float = 0.0
+    multiview: float = 0.0
+    sources: int = 0
+    half: int = 0
 
     @property
     def names(self) -> tuple[str, ...]:
         """The terms' names in the order of :meth:`PixelTerms.__call__`'s result."""
-        return ("photo", *(n for n in ("mask", "normal", "distortion") if getattr(self, n) > 0))
+        return ("photo", *(n for n in ("mask", "normal", "distortion", "multiview") if getattr(self, n) > 0))
 
 
-def _inputs(ts: TermSet, render, image, mask, rays) -> tuple[torch.Tensor, ...]:
-    """The tensors the terms read: rgb, [alpha], [normal], [distortion], image, [mask], [median depth, ray origins,
-    ray directions]. Each is differentiable exactly when a term differentiates it (a graph's backward takes the
-    gradient of every input that requires one): the opacity only through the mask term (the normal term reads its
-    value), the depth never (the depth normals are a fixed target)."""
+def _inputs(ts: TermSet, render, image, mask, rays, windows: Windows | None) -> tuple[torch.Tensor, ...]:
+    """The tensors the terms read: rgb, [alpha], [normal], [distortion], [median depth], image, [mask], [median
+    depth, ray origins, ray directions], [the multi-view windows' tensors]. Each is differentiable exactly when a
+    term differentiates it (a graph's backward takes the gradient of every input that requires one): the opacity
+    only through the mask term (the others read its value), the depth only through the multi-view term (the depth
+    normals are a fixed target)."""
+    mv = ts.multiview > 0
     diff = [render.rgb]
     if ts.mask > 0:
         diff.append(render.alpha)
-    elif ts.normal > 0:
+    elif ts.normal > 0 or mv:
         diff.append(render.alpha.detach())
-    if ts.normal > 0:
+    if ts.normal > 0 or mv:
         diff.append(render.normal)
     if ts.distortion > 0:
         diff.append(render.distortion)
+    if mv:
+        diff.append(render.median_depth)
     const = [image]
     if ts.mask > 0:
         const.append(mask.to(render.alpha.dtype))
     if ts.normal > 0:
-        const += [render.median_depth.detach(), *rays]
+        const += [*([] if mv else [render.median_depth.detach()]), *rays]
+    if mv:
+        const += [windows.py, windows.px, *windows.reference, *windows.images, windows.params]
     return (*diff, *const)
 
 
 def _terms_fn(ts: TermSet):
     """The terms as a function of :func:`_inputs`' tensors, returning their weighted values stacked [k]."""
+    mv = ts.multiview > 0
 
     def terms(*args):
         it = iter(args)
         rgb = next(it)
-        alpha = next(it) if ts.mask > 0 or ts.normal > 0 else None
-        normal = next(it) if ts.normal > 0 else None
+        alpha = next(it) if ts.mask > 0 or ts.normal > 0 or mv else None
+        normal = next(it) if ts.normal > 0 or mv else None
         dist = next(it) if ts.distortion > 0 else None
+        depth = next(it) if mv else None
         image = next(it)
         mask = next(it) if ts.mask > 0 else None
         out = [photometric(rgb, image, ts.dssim)]
         if ts.mask > 0:
             out.append(ts.mask * mask_loss(alpha, mask))
         if ts.normal > 0:
-            median, o, d = next(it), next(it), next(it)
+            median = depth.detach() if mv else next(it)
+            o, d = next(it), next(it)
             dn, dmask = depth_normals(median, o, d, alpha.detach() >= ALPHA_COVERED)
             out.append(ts.normal * normal_consistency(normal, dn, alpha, dmask))
         if ts.distortion > 0:
             out.append(ts.distortion * distortion(dist))
+        if mv:
+            py, px = next(it), next(it)
+            ref = ReferenceWindows(*(next(it) for _ in ReferenceWindows._fields))
+            images = tuple(next(it) for _ in range(ts.sources))
+            w = Windows(py, px, ref, images, next(it), ts.half)
+            out.append(ts.multiview * ncc_loss(depth, normal, alpha, w))
         return torch.stack(out)
 
     return terms
@@ -119,7 +143,7 @@ class PixelTerms:
         self.failures: dict[str, str] = {}
 
     def __call__(self, ts: TermSet, render, image: torch.Tensor, mask: torch.Tensor | None,
-                 rays: tuple[torch.Tensor, torch.Tensor] | None) -> torch.Tensor:
+                 rays: tuple[torch.Tensor, torch.Tensor] | None, windows: Windows | None = None) -> torch.Tensor:
         """The weighted terms of ``ts`` [len(ts.names)], differentiable w.r.t. the render's images.
 
         Args:
@@ -130,12 +154,17 @@ class PixelTerms:
             mask: the view's object mask [H, W] (bool or float), needed when ``ts.mask > 0``.
             rays: the view's ``(origins, directions)`` [H, W, 3] (:meth:`wtopo.Camera.pixel_rays`), needed when
                 ``ts.normal > 0``.
+            windows: the multi-view term's windows (:meth:`~wtopo.fitting.multiview.MultiViewNCC.draw`), needed
+                when ``ts.multiview > 0`` (``ts.sources`` images, ``ts.half`` their half side).
         """
-        args = _inputs(ts, render, image, mask, rays)
+        if ts.multiview > 0 and (windows is None or len(windows.images) != ts.sources or windows.half != ts.half):
+            raise ValueError(f"the multi-view term of {ts} needs windows of {ts.sources} images and half side "
+                             f"{ts.half}, got {None if windows is None else (len(windows.images), windows.half)}")
+        args = _inputs(ts, render, image, mask, rays, windows)
         rgb = render.rgb
         if not (GRAPHS and rgb.is_cuda and torch.is_grad_enabled()):
             return _terms_fn(ts)(*args)
-        key = (ts, tuple(rgb.shape), rgb.dtype, rgb.device, tuple(a.requires_grad for a in args))
+        key = (ts, tuple(tuple(a.shape) for a in args), rgb.dtype, rgb.device, tuple(a.requires_grad for a in args))
         fn = self._graphs.get(key)
         if fn is None:
             # the fit's own values (its guards check them): the ops' value checks read the device, which a capture
@@ -163,7 +192,7 @@ class PixelTerms:
                 raise RuntimeError(f"a replay gave {got.tolist()} where the eager terms give {want.tolist()}")
         except Exception as e:  # noqa: BLE001 - any failure of the capture leaves this set eager
             why = f"{type(e).__name__}: {e}"
-            self.failures[f"{ts.names} at {tuple(key[1])}"] = why
+            self.failures[f"{ts.names} at {tuple(key[1][0])}"] = why
             warnings.warn(f"wtopo: the loss terms {ts.names} run eagerly on this device: {why}", RuntimeWarning,
                           stacklevel=3)
             return eager
