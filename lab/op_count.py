@@ -3,7 +3,7 @@
 warm-up and one co-evolution step of a small CPU fit): where the loop's host time per iteration is spent on
 CUDA, where every torch operation costs several microseconds of Python and dispatch.
 
-    .venv/bin/python lab/op_count.py [--scene bunny] [--at 40 70] [--set KEY=VALUE ...]
+    .venv/bin/python lab/op_count.py [--scene bunny] [--at 40 70] [--only OP] [--set KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -23,8 +23,9 @@ from wtopo.fitting import loop as L
 
 
 class Count(TorchDispatchMode):
-    def __init__(self):
+    def __init__(self, only: str | None = None):
         super().__init__()
+        self.only = only
         self.ops = collections.Counter()
         self.sites = collections.Counter()
         self.backward_ops = collections.Counter()
@@ -32,6 +33,8 @@ class Count(TorchDispatchMode):
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         name = str(func.overloadpacket.__name__)
         self.ops[name] += 1
+        if self.only and name != self.only:
+            return func(*args, **(kwargs or {}))
         site = "?"
         for fr in reversed(traceback.extract_stack(limit=40)[:-1]):
             if "/wtopo/" in fr.filename and "_python_dispatch" not in fr.filename:
@@ -49,6 +52,7 @@ def main() -> None:
     ap.add_argument("--at", type=int, nargs="+", default=[40, 70])
     ap.add_argument("--top", type=int, default=60)
     ap.add_argument("--set", action="append", default=[])
+    ap.add_argument("--only", default=None, help="sites of this op alone (e.g. detach)")
     a = ap.parse_args()
     scene = wtopo.scenes.load(a.scene)
     cfg = FitConfig()
@@ -60,7 +64,7 @@ def main() -> None:
     def step(self, stage):
         if self.it not in a.at:
             return orig(self, stage)
-        with Count() as c:
+        with Count(a.only) as c:
             r = orig(self, stage)
         print(f"\n== iteration {self.it} ({stage.value}): {sum(c.ops.values())} torch ops")
         for site, k in c.sites.most_common(a.top):

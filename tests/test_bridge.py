@@ -259,8 +259,14 @@ def test_to_warp_view_has_every_attribute_of_warps_constructor(device, dtype, sh
     got.pop("_tensor")
     assert got.keys() == want.keys()
     for k in want:
-        assert got[k] == want[k] if k != "device" else got[k] is want[k], k
-    assert va.ptr == a.data_ptr() and vb.ptr == b.data_ptr() and va.ctype is None
+        if k != "ctype":  # made beforehand here, at the first launch by Warp
+            assert got[k] == want[k] if k != "device" else got[k] is want[k], k
+    assert va.ptr == a.data_ptr() and vb.ptr == b.data_ptr() and want["ctype"] is None
+    assert bytes(va.__ctype__()) == bytes(ref.__ctype__())  # the kernel descriptor a launch passes
+    assert bytes(vb.__ctype__()) != bytes(va.__ctype__()) and vb.__ctype__().data == b.data_ptr()
+    va.grad = _bridge.to_warp(torch.zeros_like(a), wdt)  # a gradient attached: Warp rebuilds the descriptor
+    ref.grad = wp.array(ptr=va.grad.ptr, dtype=wdt, shape=va.shape, device=_views._view_device(a.device))
+    assert bytes(va.__ctype__()) == bytes(ref.__ctype__()) and va.__ctype__().grad == va.grad.ptr
     np.testing.assert_array_equal(va.numpy().reshape(-1), a.cpu().numpy().reshape(-1))
     np.testing.assert_array_equal(vb.numpy().reshape(-1), b.cpu().numpy().reshape(-1))
 
