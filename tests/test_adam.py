@@ -171,3 +171,29 @@ def test_graph_path_matches_the_eager_update(device, dtype, monkeypatch):
         p.grad = torch.ones_like(p)
         ours[1]["params"][0].grad = torch.ones_like(ours[1]["params"][0])
         assert bool(a.step()), label
+
+
+def test_a_graph_that_disagrees_with_the_eager_update_is_dropped(device, monkeypatch):
+    """A graph whose first replay differs from the eager update of the same state (here an emulated graph with a
+    wrong second-moment rate) is not used again: the step keeps the eager result, warns and says why, and the
+    steps after it run eagerly, to the parameters of the eager optimiser."""
+    import wtopo.fitting.adam as adam_mod
+
+    def wrong_body(self):
+        for bucket in self.buckets:
+            bucket[-1][1].mul_(2.0)  # every root correction doubled
+        return good_body(self)
+
+    good_body = adam_mod._StepGraph._body
+    monkeypatch.setattr(adam_mod._StepGraph, "_body", wrong_body)
+    ours, ref = _groups(device=device), _groups(device=device)
+    a, b = Adam(ours, eps=1e-15), Adam(ref, eps=1e-15)
+    a._emulate = True
+    with pytest.warns(RuntimeWarning, match="differs from the eager update") as caught:
+        _run(a, ours, 12)
+    assert len(caught) == 1
+    monkeypatch.setattr(adam_mod, "GRAPHS", False)
+    _run(b, ref, 12)
+    assert "differs" in a.graph_failure and not a._graphs
+    for x, y in zip(ours, ref):
+        torch.testing.assert_close(x["params"][0], y["params"][0], rtol=0, atol=1e-6)

@@ -26,6 +26,7 @@ __all__ = ["Adam", "GRAPHS"]
 GRAPHS = True
 """False: the update runs eagerly on CUDA too (benchmarks, tests)."""
 _GRAPHS_KEPT = 2  # captured updates kept per optimiser (the current tensors' and the one before)
+_CHECK_RTOL, _CHECK_ATOL = 1e-4, 1e-6  # a graph's first replay farther than this from the eager update is not used
 
 # what torch.optim.Adam's groups also hold (its defaults): written into state_dict() so that torch's Adam
 # loads it too; ignored on load
@@ -80,8 +81,9 @@ class Adam:
         a CUDA graph captured per set of parameters and moments (a new one after a densification step, whose first
         update runs eagerly): the rates travel in a device tensor, the gradients are copied into the graph's
         buffers, and each parameter's ``grad`` becomes that buffer (with its non-finite elements zeroed), valid
-        until the next step. A capture that fails leaves the update eager, with a warning
-        (:attr:`graph_failure`).
+        until the next step. A graph's first replay is checked against the eager update of a copy of the state
+        (one host read per capture). A capture that fails or a replay that disagrees leaves the update eager, with
+        a warning (:attr:`graph_failure`).
         """
         items = []
         for g in self.param_groups:
@@ -99,7 +101,7 @@ class Adam:
                 items.append((p, st, b1, b2, eps, lr / (1 - b1 ** t), math.sqrt(1 - b2 ** t)))
         if not items:
             return None
-        if not (self._emulate or (GRAPHS and items[0][0].is_cuda and self.graph_failure is None)):
+        if self.graph_failure is not None or not (self._emulate or (GRAPHS and items[0][0].is_cuda)):
             return _update(items)
         key = tuple((it[0].data_ptr(), it[1]["exp_avg"].data_ptr(), it[1]["exp_avg_sq"].data_ptr(),
                      tuple(it[0].shape), it[0].dtype, it[2], it[3], it[4]) for it in items)
@@ -116,7 +118,36 @@ class Adam:
                 warnings.warn(f"wtopo: Adam's update runs eagerly on this device: {self.graph_failure}",
                               RuntimeWarning, stacklevel=2)
             return out
+        if not graph.checked:
+            return self._checked(graph, items)
         return graph(items)
+
+    def _checked(self, graph: _StepGraph, items: list) -> torch.Tensor:
+        """A graph's first replay, against the eager update of copies of the same state (a host read, once per
+        capture); a disagreement leaves the update eager from here on, with the eager result kept."""
+        before = [(it[0].detach().clone(), it[1]["exp_avg"].clone(), it[1]["exp_avg_sq"].clone(),
+                   it[0].grad.clone()) for it in items]
+        got = graph(items)
+        ref = []
+        for it, (p, m, v, g) in zip(items, before):
+            p.grad = g
+            ref.append((p, {"step": it[1]["step"], "exp_avg": m, "exp_avg_sq": v}, *it[2:]))
+        want = _update(ref)
+        pairs = [(a, b) for it, r in zip(items, ref)
+                 for a, b in ((it[0], r[0]), (it[1]["exp_avg"], r[1]["exp_avg"]),
+                              (it[1]["exp_avg_sq"], r[1]["exp_avg_sq"]))]
+        if bool(got) == bool(want) and all(torch.allclose(a, b, rtol=_CHECK_RTOL, atol=_CHECK_ATOL, equal_nan=True)
+                                           for a, b in pairs):
+            graph.checked = True
+            return got
+        worst = max(float((a.detach() - b).abs().max()) for a, b in pairs)
+        for a, b in pairs:
+            a.detach().copy_(b)
+        self._graphs.clear()
+        self.graph_failure = f"a replay differs from the eager update (largest difference {worst:.3g})"
+        warnings.warn(f"wtopo: Adam's update runs eagerly on this device: {self.graph_failure}", RuntimeWarning,
+                      stacklevel=3)
+        return want
 
     def zero_grad(self, set_to_none: bool = True) -> None:
         """Drop (or zero) every parameter's gradient."""
@@ -217,6 +248,7 @@ class _StepGraph:
         self.params = [it[0] for it in items]
         self.pinned = dev.type == "cuda"
         self.graph = None
+        self.checked = False  # whether a replay was compared with the eager update
         if not capture:
             return
         graph = torch.cuda.CUDAGraph()
