@@ -91,6 +91,24 @@ def _view(ptr: int, dtype, shape: tuple, device: torch.device) -> wp.array:
     return arr
 
 
+_plans: dict = {}  # (torch dtype, Warp dtype, shape) -> the direct path's (Warp dtype, view shape), or False
+
+
+def _direct_plan(tdtype, dtype, shape: tuple):
+    """What :func:`to_warp`'s direct path makes of a contiguous tensor: ``(Warp dtype, view shape)``, or ``None``
+    where it does not apply (an unknown or empty tensor, a vector type that does not fit its last dimensions)."""
+    scalar = _SCALAR.get(tdtype)
+    if scalar is None or not all(shape):
+        return None
+    if dtype is None or dtype is scalar:
+        return scalar, shape
+    want = getattr(dtype, "_shape_", None)
+    k = 0 if want is None else len(want)
+    if k == 0 or getattr(dtype, "_wp_scalar_type_", None) is not scalar or shape[-k:] != tuple(want):
+        return None
+    return dtype, shape[:-k] or (1,)
+
+
 def to_warp(t: torch.Tensor, dtype=None) -> wp.array:
     """View a tensor as a Warp array without copying (the tensor is made contiguous first).
 
@@ -102,25 +120,20 @@ def to_warp(t: torch.Tensor, dtype=None) -> wp.array:
     gradient of a sum or a mean, a transpose) takes it through its contiguous copy, which the view keeps alive
     (8 against 15 us for a [64, 64, 3] expanded gradient as ``vec3``).
     """
-    _ensure_init()
+    key = (t.dtype, dtype, t.shape)
+    plan = _plans.get(key)
+    if plan is None:
+        _ensure_init()
+        if len(_plans) >= _TEMPLATES_MAX:
+            _plans.clear()
+        plan = _plans[key] = _direct_plan(t.dtype, dtype, tuple(t.shape)) or False
+    if plan and t.is_contiguous():
+        arr = _view(t.data_ptr(), plan[0], plan[1], t.device)
+        # keeps the storage alive, as wp.from_torch does; a tensor with a history through a detached alias (the view
+        # must not hold its graph), any other as it is (a detach costs a torch operation, ~150 an iteration)
+        arr._tensor = t if t.grad_fn is None else t.detach()  # noqa: SLF001
+        return arr
     scalar = _SCALAR.get(t.dtype)
-    if scalar is not None and t.is_contiguous() and t.numel() > 0:
-        shape = tuple(t.shape)
-        if dtype is None:
-            dtype = scalar
-        elif dtype is not scalar:  # a vector type of this scalar consumes the last dimensions; anything else below
-            want = getattr(dtype, "_shape_", None)
-            k = 0 if want is None else len(want)
-            if k == 0 or getattr(dtype, "_wp_scalar_type_", None) is not scalar or shape[-k:] != tuple(want):
-                shape = None
-            else:
-                shape = shape[:-k] or (1,)
-        if shape is not None:
-            arr = _view(t.data_ptr(), dtype, shape, t.device)
-            # keeps the storage alive, as wp.from_torch does; a tensor with a history through a detached alias (the view
-            # must not hold its graph), any other as it is (a detach costs a torch operation, ~150 an iteration)
-            arr._tensor = t if t.grad_fn is None else t.detach()  # noqa: SLF001
-            return arr
     if scalar is not None and t.numel() > 0 and not t.is_contiguous():
         # an upstream gradient of a sum or mean is an expanded scalar: its contiguous copy takes the direct path
         return to_warp(t.detach().contiguous(), dtype)
