@@ -8,11 +8,11 @@ in :mod:`.rasterize_backward`, reverse traversal with the saved final transmitta
 ``enable_backward=False``.
 
 Kernel arguments are records (``@wp.struct``, one type per float dtype, see
-:func:`~.rasterize_records.float_structs`): ``cam`` a :class:`~.rasterize_records.CameraRecord`
-(everything the kernels read per view) and ``geo`` an array of :class:`~.rasterize_records.SurfelRecord`
-(what the pixel kernels test per surfel, written by :func:`pack_surfels_kernel`). Both are inputs
-only: nothing is differentiated w.r.t. the camera. The records and the float32 / float64 overload
-declarations are in :mod:`.rasterize_records`.
+:func:`~.rasterize_records.float_structs`): ``cams`` a one-element array of
+:class:`~.rasterize_records.CameraRecord` in device memory (everything the kernels read per view) and ``geo``
+an array of :class:`~.rasterize_records.SurfelRecord` (what the pixel kernels test per surfel, written by
+:func:`pack_surfels_kernel`). Both are inputs only: nothing is differentiated w.r.t. the camera. The records
+and the float32 / float64 overload declarations are in :mod:`.rasterize_records`.
 
 Per-surfel quantities the pixel kernels read (written by :func:`prepare_surfels_kernel`):
 ``uax = t_u / s_u`` and ``vax = t_v / s_v`` (tangent axes divided by the scales, so the local
@@ -124,7 +124,7 @@ def prepare_surfels_kernel(
     quats: wp.array[Any],
     scales: wp.array[Any],
     sh: wp.array2d[Any],
-    cam: Any,
+    cams: wp.array[Any],
     sh_degree: int,
     uax: wp.array[Any],
     vax: wp.array[Any],
@@ -136,6 +136,7 @@ def prepare_surfels_kernel(
     color: wp.array[Any],
 ):
     """Per-surfel frame, projected centre, depth and colour (differentiated by Warp autodiff)."""
+    cam = cams[0]
     i = wp.tid() + offset
     p = means[i]
     f_ref = p[0]
@@ -157,7 +158,7 @@ def prepare_surfels_kernel(
         nrm_face[i] = n
     pc = cam_point(cam, p)
     zc[i] = pc[2]
-    if pc[2] > cam.clip[0]:
+    if pc[2] > cam.near:
         m2[i] = project_pixel(cam, pc)
     else:
         m2[i] = wp.vector(type(f_ref)(0.0), type(f_ref)(0.0))  # culled by the near plane; never read
@@ -280,7 +281,7 @@ def render_forward_kernel(
     tile_end: wp.array[wp.int32],
     ids: wp.array[wp.int32],
     rays: wp.array2d[Any],
-    cam: Any,
+    cams: wp.array[Any],
     geo: wp.array[Any],
     nrm_face: wp.array[Any],
     color: wp.array[Any],
@@ -307,6 +308,7 @@ def render_forward_kernel(
     With ``coop`` (CUDA) the 32 pixels of a warp walk the list together until every one of them has
     stopped, and the visibility counts are summed over the warp before one atomic add per surfel.
     """
+    cam = cams[0]
     tile, px, py = pixel_tile_coords(wp.tid() + offset, tile_size, tiles_x)
     # pixels past the image edge (partial tiles) still walk with their warp, writing nothing
     inside = px < rgb.shape[1] and py < rgb.shape[0]
@@ -314,8 +316,8 @@ def render_forward_kernel(
     py = wp.min(py, rgb.shape[0] - 1)
     d = rays[py, px]
     f_ref = d[0]
-    near = cam.clip[0]
-    far = cam.clip[1]
+    near = cam.near
+    far = cam.far
     pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
     zero = type(f_ref)(0.0)
     T = type(f_ref)(1.0)

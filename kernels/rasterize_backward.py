@@ -29,7 +29,7 @@ def render_backward_kernel(
     tile_start: wp.array[wp.int32],
     ids: wp.array[wp.int32],
     rays: wp.array2d[Any],
-    cam: Any,
+    cams: wp.array[Any],
     geo: wp.array[Any],
     nrm_face: wp.array[Any],
     color: wp.array[Any],
@@ -73,6 +73,7 @@ def render_backward_kernel(
     summed over the warp before one atomic add (:func:`warp_add_vec`); without it (CPU) each pixel
     walks from its own ``last`` and adds its own terms. Same per-pixel arithmetic either way.
     """
+    cam = cams[0]
     tile, px, py = pixel_tile_coords(wp.tid() + offset, tile_size, tiles_x)
     # pixels past the image edge (partial tiles) still walk with their warp, contributing nothing
     inside = px < t_final.shape[1] and py < t_final.shape[0]
@@ -86,8 +87,8 @@ def render_backward_kernel(
     f_ref = d[0]
     zero = type(f_ref)(0.0)
     one = type(f_ref)(1.0)
-    near = cam.clip[0]
-    far = cam.clip[1]
+    near = cam.near
+    far = cam.far
     pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
     T = t_final[py, px]
     acc = one - T

@@ -117,7 +117,7 @@ def bin_surfels_kernel(
     quats: wp.array[Any],
     scales: wp.array[Any],
     opacities: wp.array[Any],
-    cam: Any,
+    cams: wp.array[Any],
     colx_min: wp.array[wp.float64],
     colx_max: wp.array[wp.float64],
     rowy_min: wp.array[wp.float64],
@@ -142,6 +142,7 @@ def bin_surfels_kernel(
     (``kernels/rasterize_tiles.py``) visit only its pixels. ``zc`` is the centre's z-depth, ``+inf``
     for a culled surfel (the depth order of the binning's sort keys).
     """
+    cam = cams[0]
     i = wp.tid() + offset
     width = cam.width
     height = cam.height
@@ -156,7 +157,7 @@ def bin_surfels_kernel(
     zc[i] = type(x0c)(wp.inf)
     pc_op = cam_point(cam, p)
     op = wp.float64(opacities[i])
-    near = wp.float64(cam.clip[0])
+    near = wp.float64(cam.near)
     pcz = wp.float64(pc_op[2])
     if op < wp.float64(ALPHA_MIN) or not (pcz > near):
         return

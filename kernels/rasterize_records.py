@@ -42,22 +42,24 @@ def float_structs(template: type) -> dict:
 
 
 class CameraRecord:
-    """Per-view constants of the rasterizer kernels (op dtype; ``wtopo.rasterize._camera._camera_record``).
+    """Per-view constants of the rasterizer kernels (op dtype; ``wtopo.rasterize._camera._camera_record``), read
+    from a one-element array in device memory (``cams[0]``): the clip planes are computed on the device and written
+    into it, and a CUDA graph of the rasterizer can take a view's record as an input.
 
     Attributes:
+        near: the near plane (z-depth, world units; contributions in front of it are skipped).
+        far: the far value of the distortion depth mapping (world units).
         R: world-to-camera rotation, camera = ``R world + t``.
         t: world-to-camera translation [world units].
         center: camera centre in world coordinates [world units].
         fx, fy, cx, cy, skew: pinhole intrinsics [pixels] (``K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]]``).
         k1, k2, p1, p2, k3: OpenCV distortion coefficients (0 without distortion).
-        clip: ``[near, far]`` on the device, shape [2]: ``near`` is the near plane (z-depth, world
-            units; contributions in front of it are skipped), ``far`` the far value of the distortion
-            depth mapping (world units). An array rather than two scalars so that the scene-relative
-            defaults are computed on the device without a host synchronisation.
         filter_inv_sq: ``1 / filter_sigma^2`` of the screen-space low-pass [1/px^2].
         width, height: image size [pixels].
     """
 
+    near: "s"
+    far: "s"
     R: "m33"
     t: "v3"
     center: "v3"
@@ -71,7 +73,6 @@ class CameraRecord:
     p1: "s"
     p2: "s"
     k3: "s"
-    clip: "s_array"
     filter_inv_sq: "s"
     width: "int"
     height: "int"
@@ -117,7 +118,7 @@ _VEC_LEN = {
            "sums", "g_rgb", "g_normal", "d_uax", "d_vax", "d_nrm", "d_auv", "d_nrm_face", "d_color", "g_uax", "g_vax",
            "g_nrm", "g_auv", "g_nrm_face", "g_color"],
     "v4": ["quats", "agg"],
-    "cam": ["cam"],
+    "cam": ["cam", "cams"],
     "rec": ["geo"],
 }
 _ROLE = {name: kind for kind, names in _VEC_LEN.items() for name in names}

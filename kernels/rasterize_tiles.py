@@ -50,7 +50,7 @@ def render_forward_tiles_kernel(
     ids: wp.array[wp.int32],
     prect: wp.array[wp.vec4i],
     rays: wp.array2d[Any],
-    cam: Any,
+    cams: wp.array[Any],
     geo: wp.array[Any],
     nrm_face: wp.array[Any],
     color: wp.array[Any],
@@ -77,6 +77,7 @@ def render_forward_tiles_kernel(
     depth sums, ``normal``, ``distortion``, ``median`` and ``median_idx`` their running values,
     ``last`` the end of the pixel's walk and ``done`` whether it has stopped (scratch).
     """
+    cam = cams[0]
     tile = worker_tile(wp.tid(), worker, workers, chunk)
     x0, x1, y0, y1 = tile_box(tile, tile_size, tiles_x, rgb.shape[0], rgb.shape[1])
     start = tile_start[tile]
@@ -84,8 +85,8 @@ def render_forward_tiles_kernel(
     f_ref = cam.fx
     zero = type(f_ref)(0.0)
     one = type(f_ref)(1.0)
-    near = cam.clip[0]
-    far = cam.clip[1]
+    near = cam.near
+    far = cam.far
     fis = cam.filter_inv_sq
     for py in range(y0, y1):
         for px in range(x0, x1):
@@ -174,7 +175,7 @@ def render_backward_tiles_kernel(
     ids: wp.array[wp.int32],
     prect: wp.array[wp.vec4i],
     rays: wp.array2d[Any],
-    cam: Any,
+    cams: wp.array[Any],
     geo: wp.array[Any],
     nrm_face: wp.array[Any],
     color: wp.array[Any],
@@ -211,14 +212,15 @@ def render_backward_tiles_kernel(
     Scratch per pixel: ``run_t`` the transmittance, ``run_rg`` the suffix sum and ``agg`` the aggregate
     gradients ``(g_d, g_a, g_m1, g_m2)``.
     """
+    cam = cams[0]
     tile = worker_tile(wp.tid(), worker, workers, chunk)
     x0, x1, y0, y1 = tile_box(tile, tile_size, tiles_x, t_final.shape[0], t_final.shape[1])
     start = tile_start[tile]
     f_ref = cam.fx
     zero = type(f_ref)(0.0)
     one = type(f_ref)(1.0)
-    near = cam.clip[0]
-    far = cam.clip[1]
+    near = cam.near
+    far = cam.far
     fis = cam.filter_inv_sq
     fx = cam.fx
     fy = cam.fy

@@ -199,3 +199,23 @@ def test_opacity_one_is_clamped(device):
     assert abs(float(out.alpha.max()) - 0.99) < 1e-12
     out.rgb.sum().backward()
     assert bool(torch.isfinite(params[3].grad).all())
+
+
+def test_two_views_rendered_before_one_backward(device):
+    """Each render's backward reads the camera record of its own forward (a copy per call in device memory): two
+    views rendered, then one backward through both, give the sum of each view's own gradients."""
+    params = surfels(24, device=device)
+    cams = [camera(), wtopo.Camera.look_at([0.8, 0.3, -2.6], [0, 0, 0], [0, -1, 0], fov_x=0.9, width=37, height=29)]
+
+    def grads(views):
+        for p in params:
+            p.grad = None
+        outs = [rasterize_surfels(*params, c, sh_degree=2) for c in views]
+        sum((o.rgb * o.rgb).sum() + o.depth.sum() for o in outs).backward()
+        return [p.grad.clone() for p in params]
+
+    both = grads(cams)
+    alone = [grads([c]) for c in cams]
+    for g, a, b in zip(both, *alone):
+        assert float(a.abs().max()) > 0 and float(b.abs().max()) > 0
+        assert_close(g, a + b)

@@ -45,7 +45,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from ._views import _ensure_init, as_torch, empty, empty_group, float_dtype, to_warp, vec_dtype
+from ._views import _ensure_init, as_torch, empty, empty_group, float_dtype, struct_view, to_warp, vec_dtype
 
 __all__ = [
     "WarpOp",
@@ -55,6 +55,7 @@ __all__ = [
     "to_warp",
     "empty",
     "empty_group",
+    "struct_view",
     "as_torch",
     "launch",
     "launch_adjoint",

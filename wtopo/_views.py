@@ -147,6 +147,17 @@ def to_warp(t: torch.Tensor, dtype=None) -> wp.array:
     return wp.from_torch(t, dtype=dtype, requires_grad=False)
 
 
+def struct_view(t: torch.Tensor, dtype) -> wp.array:
+    """The bytes of ``t`` (a contiguous uint8 tensor) as a Warp array of the struct type ``dtype``, as many
+    records as fit whole; the view keeps ``t`` alive."""
+    if t.dtype != torch.uint8 or not t.is_contiguous():
+        raise TypeError(f"struct_view needs a contiguous uint8 tensor, got {t.dtype}")
+    n = t.numel() // wp.types.type_size_in_bytes(dtype)
+    arr = _view(t.data_ptr(), dtype, (n,), t.device)
+    arr._tensor = t  # noqa: SLF001
+    return arr
+
+
 _TORCH_OF = {v: k for k, v in _SCALAR.items()}
 _torch_devices: dict = {}
 

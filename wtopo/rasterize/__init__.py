@@ -149,7 +149,7 @@ def _render(means, quats, scales, opacities, colors_or_sh, camera: Camera, sh_de
     device = means.device
     wdev = _bridge.warp_device(device)
     rays, tables = _camera_tables(camera, device, dtype, config.tile_size)
-    cam_rec = _camera_record(camera, clip.to(dtype), dtype, config.filter_sigma)
+    cam_rec = _camera_record(camera, clip, dtype, config.filter_sigma)
     with _bridge.torch_stream(wdev, device):
         bins = _bin(means, quats, scales, opacities, cam_rec, tables, camera, config, wdev, defer_count=defer_count)
     needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (means, quats, scales, opacities,

@@ -4,6 +4,7 @@ kernels' camera record, and the default near / far planes (host median or on the
 
 from __future__ import annotations
 
+import ctypes
 import math
 
 import numpy as np
@@ -60,24 +61,42 @@ def _depth_row(camera: Camera, device, dtype) -> torch.Tensor:
                          lambda: torch.as_tensor(camera.R[2], dtype=dtype, device=device))
 
 
-def _camera_record(camera: Camera, clip: torch.Tensor, dtype, filter_sigma: float):
-    """Everything the kernels read per view, as a :class:`wtopo.kernels.rasterize.CameraRecord` of the op dtype.
+def _record_base(camera: Camera, device, dtype, filter_sigma: float) -> tuple[torch.Tensor, int]:
+    """The view's :class:`wtopo.kernels.rasterize.CameraRecord` as bytes on ``device`` (uint8 tensor, its clip
+    planes zero) and the byte offset of its ``near`` field (``far`` follows): made once per camera, device, dtype
+    and filter (cached on the camera: one host-to-device copy per view)."""
 
-    Values are computed in float64 on the host and rounded once to the op dtype when assigned;
-    ``clip`` ([near, far] of the op dtype on the device) is referenced, not copied.
+    def build():
+        rec = _k.CAMERA[wp.float64 if dtype == torch.float64 else wp.float32]()
+        fx, skew, cx = (float(v) for v in camera.K[0])
+        dist = camera.distortion if camera.distortion is not None else np.zeros(5)
+        rec.R = type(rec.R)(*(float(v) for v in camera.R.reshape(-1)))
+        rec.t = type(rec.t)(*(float(v) for v in camera.t))
+        rec.center = type(rec.center)(*(float(v) for v in camera.center))
+        rec.fx, rec.fy, rec.cx, rec.cy, rec.skew = fx, float(camera.K[1, 1]), cx, float(camera.K[1, 2]), skew
+        rec.k1, rec.k2, rec.p1, rec.p2, rec.k3 = (float(v) for v in dist)
+        rec.filter_inv_sq = 1.0 / float(filter_sigma) ** 2
+        rec.width, rec.height = int(camera.width), int(camera.height)
+        c = rec.__ctype__()
+        raw = bytearray(ctypes.string_at(ctypes.addressof(c), ctypes.sizeof(c)))
+        return torch.frombuffer(raw, dtype=torch.uint8).to(device), type(c).near.offset
+
+    return camera.cached(("wtopo.rasterize.record", str(device), dtype, float(filter_sigma)), build)
+
+
+def _camera_record(camera: Camera, clip: torch.Tensor, dtype, filter_sigma: float) -> wp.array:
+    """Everything the kernels read per view: a one-element array of
+    :class:`wtopo.kernels.rasterize.CameraRecord` of the op dtype in ``clip``'s device memory (the kernels'
+    ``cams``), its own copy per call (an op's backward reads the record of its own forward).
+
+    Values are computed in float64 on the host and rounded once to the op dtype (once per view); ``clip``
+    ([near, far] float64 [2] on the device) is written into the copy on the device, no host synchronisation.
     """
-    rec = _k.CAMERA[wp.float64 if dtype == torch.float64 else wp.float32]()
-    fx, skew, cx = (float(v) for v in camera.K[0])
-    dist = camera.distortion if camera.distortion is not None else np.zeros(5)
-    rec.R = type(rec.R)(*(float(v) for v in camera.R.reshape(-1)))
-    rec.t = type(rec.t)(*(float(v) for v in camera.t))
-    rec.center = type(rec.center)(*(float(v) for v in camera.center))
-    rec.fx, rec.fy, rec.cx, rec.cy, rec.skew = fx, float(camera.K[1, 1]), cx, float(camera.K[1, 2]), skew
-    rec.k1, rec.k2, rec.p1, rec.p2, rec.k3 = (float(v) for v in dist)
-    rec.clip = _bridge.to_warp(clip)
-    rec.filter_inv_sq = 1.0 / float(filter_sigma) ** 2
-    rec.width, rec.height = int(camera.width), int(camera.height)
-    return rec
+    base, off = _record_base(camera, clip.device, dtype, filter_sigma)
+    blob = base.clone()
+    size = 8 if dtype == torch.float64 else 4
+    blob[off:off + 2 * size].view(dtype).copy_(clip)
+    return _bridge.struct_view(blob, _k.CAMERA[wp.float64 if dtype == torch.float64 else wp.float32])
 
 
 def _centre_depths(means: torch.Tensor, camera: Camera) -> torch.Tensor:

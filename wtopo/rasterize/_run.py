@@ -129,10 +129,10 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
             tape = _bridge.active_tape()
             if tape is not None and n > 0:
                 # Warp autodiff's adjoint of the preparation (replayed after the pixel adjoint below, which writes
-                # the gradients it reads); the camera gets none: a zero record, no gradient array for its clip
+                # the gradients it reads); the camera record gets none (no gradient array)
                 def prep_backward():
                     with section("rasterize_backward"):
-                        adj = [0, *(a.grad for a in prep_in[:4]), type(cam_rec)(), 0, *(p.grad for p in prep)]
+                        adj = [0, *(a.grad for a in prep_in[:4]), None, 0, *(p.grad for p in prep)]
                         _bridge.launch_adjoint(_k.prepare_surfels_kernel, n, [0, *prep_in, *prep], adj, device=wdev)
 
                 tape.record_func(prep_backward, [a for a in (*prep_in[:4], *prep) if a.grad is not None])
