@@ -101,3 +101,47 @@ def test_deferred_count_overflow_then_growth(device):
     # fewer surfels after more: same results as a fresh call with the larger buffers kept
     _assert_outputs_equal(_trusted(small, cam, defer_count=True),
                           rasterize_surfels(*small, cam, background=(0.1, 0.2, 0.3)), small)
+
+
+# -- the op as a function of tensors alone (what the fit's CUDA graph of it captures) ----------------
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_tensor_function_equals_trusted_path(device, dtype):
+    """``render_tensors`` (the camera as cached tensors, the sort sized for a given pair capacity, the count
+    returned) renders and differentiates as the deferred trusted path with the device clip, bit for bit on the CPU;
+    ``shift`` carries the screen-space gradient of ``means2d``; too small a capacity flags an overflow."""
+    from wtopo.rasterize import _binning
+    from wtopo.rasterize import _graphable as G
+
+    cam = camera()
+    cfg = RasterConfig()
+    params = surfels(300, dtype=dtype, device=device)
+    bg = torch.tensor([0.1, 0.2, 0.3], dtype=dtype, device=device)
+    ref = _trusted(params, cam, device_clip=True, defer_count=False)
+    bins_count = 0
+    rays, tables, row4, record = G.view_inputs(cam, torch.device(device), dtype, cfg)
+    for pairs in (100_000, 7):
+        shift = torch.zeros(300, 2, dtype=dtype, device=device, requires_grad=True)
+        outs = G.render_tensors(*params, shift, rays, tables, row4, record, size=G.Size(cam.width, cam.height),
+                                sh_degree=2, background=bg, config=cfg, pairs=pairs)
+        rgb, alpha, depth, median, normal, dist, vis, radii, m2, clip, overflow, count = outs
+        bins_count = int(count)
+        assert bool(overflow) == (pairs < bins_count)
+        if pairs < bins_count:
+            continue
+        got = dict(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist,
+                   visibility=vis, radii=radii)
+        for k, v in got.items():
+            torch.testing.assert_close(v, getattr(ref, k), rtol=0, atol=0, msg=k)
+        torch.testing.assert_close(m2, ref.means2d.detach(), rtol=0, atol=0)
+        torch.testing.assert_close(clip, ref.clip, rtol=0, atol=0)
+        g = torch.Generator().manual_seed(3)
+        ups = {k: torch.randn(getattr(ref, k).shape, generator=g, dtype=dtype).to(device) for k in IMAGES}
+        ga = torch.autograd.grad(sum((got[k] * u).sum() for k, u in ups.items()), [*params, shift])
+        gb = torch.autograd.grad(sum((getattr(ref, k) * u).sum() for k, u in ups.items()), [*params, ref.means2d])
+        tol = dict(rtol=1e-3, atol=1e-4) if rgb.is_cuda else dict(rtol=0, atol=0)
+        for x, y in zip(ga, gb):
+            assert float(y.abs().max()) > 0
+            torch.testing.assert_close(x, y, **tol)
+    _binning._capacities.clear()
+    assert bins_count > 7

@@ -45,7 +45,17 @@ import numpy as np
 import torch
 import warp as wp
 
-from ._views import _ensure_init, as_torch, empty, empty_group, float_dtype, struct_view, to_warp, vec_dtype
+from ._views import (
+    _ensure_init,
+    as_torch,
+    empty,
+    empty_group,
+    empty_struct,
+    float_dtype,
+    struct_view,
+    to_warp,
+    vec_dtype,
+)
 
 __all__ = [
     "WarpOp",
@@ -56,6 +66,7 @@ __all__ = [
     "empty",
     "empty_group",
     "struct_view",
+    "empty_struct",
     "as_torch",
     "launch",
     "launch_adjoint",

@@ -158,6 +158,15 @@ def struct_view(t: torch.Tensor, dtype) -> wp.array:
     return arr
 
 
+def empty_struct(n: int, dtype, device) -> wp.array:
+    """``wp.empty(n, dtype=dtype)`` of a struct type in torch's memory (uninitialised; a CUDA graph's capture may
+    allocate it, where Warp's own pool may not be used)."""
+    if not isinstance(device, wp.Device):
+        device = wp.get_device(device)
+    size = wp.types.type_size_in_bytes(dtype)
+    return struct_view(torch.empty(max(int(n), 0) * size, dtype=torch.uint8, device=_torch_device(device)), dtype)
+
+
 _TORCH_OF = {v: k for k, v in _SCALAR.items()}
 _torch_devices: dict = {}
 

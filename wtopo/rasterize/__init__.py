@@ -155,6 +155,17 @@ def _render(means, quats, scales, opacities, colors_or_sh, camera: Camera, sh_de
     needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (means, quats, scales, opacities,
                                                                            colors_or_sh))
     means2d = bins.means2d.clone().requires_grad_(needs_grad)
+    rgb, alpha, depth, median, normal, dist, vis = _apply_op(bins, rays, cam_rec, bg, means, quats, scales, opacities,
+                                                             colors_or_sh, means2d, sh_degree, camera, config, wdev)
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist,
+                        visibility=vis, radii=bins.radii, means2d=means2d, clip=clip, overflow=bins.overflow,
+                        _host_clip=host_clip)
+
+
+def _apply_op(bins, rays, cam_rec, bg: torch.Tensor, means, quats, scales, opacities, colors_or_sh, means2d,
+              sh_degree, camera, config: RasterConfig, wdev) -> tuple:
+    """The differentiable op on binned surfels: ``(rgb, alpha, depth, median, normal, distortion, visibility)``.
+    ``means2d`` only carries the screen-space gradient (its value is never read); ``camera``: its size."""
     if colors_or_sh.ndim == 2:
         sh = colors_or_sh.unsqueeze(1)
         deg = -1
@@ -162,8 +173,8 @@ def _render(means, quats, scales, opacities, colors_or_sh, camera: Camera, sh_de
         sh = colors_or_sh[:, : (sh_degree + 1) ** 2]
         deg = sh_degree
     v3 = _bridge.vec_dtype(means, 3)
-    bg_t = bg.reshape(1, 3)
-    run = _make_run(bins, rays, cam_rec, _bridge.to_warp(bg_t, v3), deg, camera, config, wdev, dtype)
+    run = _make_run(bins, rays, cam_rec, _bridge.to_warp(bg.reshape(1, 3), v3), deg, camera, config, wdev,
+                    means.dtype)
     op = _bridge.WarpOp(
         "rasterize_surfels", run,
         in_dtypes=(v3, _bridge.vec_dtype(means, 4), _bridge.vec_dtype(means, 2), _bridge.float_dtype(means), v3,
@@ -171,7 +182,4 @@ def _render(means, quats, scales, opacities, colors_or_sh, camera: Camera, sh_de
         differentiable_inputs=(True,) * 6,
         differentiable_outputs=(True,) * 6 + (False,),
     )
-    rgb, alpha, depth, median, normal, dist, vis = _bridge.apply(op, means, quats, scales, opacities, sh, means2d)
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist,
-                        visibility=vis, radii=bins.radii, means2d=means2d, clip=clip, overflow=bins.overflow,
-                        _host_clip=host_clip)
+    return _bridge.apply(op, means, quats, scales, opacities, sh, means2d)

@@ -29,6 +29,7 @@ class _Bins:
     cutoff: wp.array
     prect: wp.array
     overflow: torch.Tensor | None = None
+    count: torch.Tensor | None = None  # with ``pairs``: the view's pair count (int64 scalar on the device)
 
 
 _CAPACITY_HEADROOM = 1.25  # deferred path: sort buffers hold this times the largest recent pair count ...
@@ -96,13 +97,15 @@ def _pair_capacity(wdev) -> _PairCapacity:
 
 
 def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, config: RasterConfig, wdev, *,
-         defer_count: bool = False) -> _Bins:
+         defer_count: bool = False, pairs: int | None = None) -> _Bins:
     """Tile ranges and depth-sorted surfel ids per tile.
 
     With ``defer_count`` the sort buffers are sized from :class:`_PairCapacity` (counts of earlier
     calls) instead of this call's count, so nothing waits for the device; pairs beyond the capacity
     are dropped and ``overflow`` says so (a device flag). Without it the count is read (one host
-    sync) and the result is always complete.
+    sync) and the result is always complete. ``pairs`` (N > 0): sized for that many pairs as the deferred
+    path, the capacity left alone (its caller posts ``count``): what a CUDA graph of the op captures.
+    ``camera``: only its ``width`` and ``height`` are read.
     """
     n = means.shape[0]
     ts = config.tile_size
@@ -127,8 +130,13 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
                              device=wdev)
         counts_t = _bridge.as_torch(counts)
         csum = torch.cumsum(counts_t, 0, dtype=torch.int64)
-        defer = defer_count and n > 0
-        if defer:
+        defer = (defer_count or pairs is not None) and n > 0
+        count = None
+        if defer and pairs is not None:
+            total = int(pairs)
+            count = csum[-1]
+            overflow = count > total
+        elif defer:
             capacity.poll()
             if capacity.value == 0:  # host sync: once per device, the first count sizes the capacity
                 capacity.observe(int(csum[-1]), config.max_intersections)
@@ -175,4 +183,4 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
             _bridge.launch_split(_kb.tile_ranges_kernel, total, [keys, total, rank_bits], [tile_start, tile_end],
                                  device=wdev)
     return _Bins(tile_start, tile_end, values, _bridge.as_torch(radii), _bridge.as_torch(means2d), cutoff, prect,
-                 overflow)
+                 overflow, count)

@@ -21,10 +21,31 @@ def _camera_tables(camera: Camera, device, dtype, tile_size: int):
     """Rays [H, W, 3] and the normalised-coordinate range tables (cached on the camera).
 
     The tables are ``(colx_min, colx_max, rowy_min, rowy_max)`` per tile column / row, then the same
-    four per pixel column / row (the CPU tile kernels' pixel rectangles, ``kernels/rasterize_tiles.py``).
+    four per pixel column / row (the CPU tile kernels' pixel rectangles, ``kernels/rasterize_tiles.py``),
+    float64 views of one packed tensor (:func:`_packed_tables`).
     """
+    dirs, tables, _ = _camera_cached(camera, device, dtype, tile_size)
+    return dirs, tables
+
+
+def _camera_cached(camera: Camera, device, dtype, tile_size: int):
     return camera.cached(("wtopo.rasterize.tables", str(device), dtype, tile_size),
                          lambda: _build_camera_tables(camera, device, dtype, tile_size))
+
+
+def _packed_tables(camera: Camera, device, dtype, tile_size: int) -> torch.Tensor:
+    """The eight tables of :func:`_camera_tables` end to end in one float64 tensor on ``device`` (cached)."""
+    return _camera_cached(camera, device, dtype, tile_size)[2]
+
+
+def _table_views(packed: torch.Tensor, width: int, height: int, tile_size: int) -> tuple:
+    """The eight Warp views of a :func:`_packed_tables` tensor of a ``width x height`` view."""
+    tx, ty = -(-width // tile_size), -(-height // tile_size)
+    out, o = [], 0
+    for k in (tx, tx, ty, ty, width, width, height, height):
+        out.append(_bridge.to_warp(packed[o:o + k]))
+        o += k
+    return tuple(out)
 
 
 def _range_tables(x: np.ndarray, y: np.ndarray, size: int) -> tuple[np.ndarray, ...]:
@@ -44,21 +65,27 @@ def _range_tables(x: np.ndarray, y: np.ndarray, size: int) -> tuple[np.ndarray, 
 
 
 def _build_camera_tables(camera: Camera, device, dtype, tile_size: int):
-    """What :func:`_camera_tables` caches."""
+    """What :func:`_camera_cached` caches: the rays, the tables' views and their packed tensor."""
     _, dirs = camera.pixel_rays(device, dtype)
     d_cam = dirs.detach().cpu().double().numpy() @ camera.R.T
     x = d_cam[..., 0]
     y = d_cam[..., 1]
-    wdev = _bridge.warp_device(device)
-    tables = tuple(wp.array(a, dtype=wp.float64, device=wdev)
-                   for a in (*_range_tables(x, y, tile_size), *_range_tables(x, y, 1)))
-    return dirs, tables
+    packed = torch.as_tensor(np.concatenate([*_range_tables(x, y, tile_size), *_range_tables(x, y, 1)]),
+                             dtype=torch.float64).to(device)
+    return dirs, _table_views(packed, camera.width, camera.height, tile_size), packed
 
 
 def _depth_row(camera: Camera, device, dtype) -> torch.Tensor:
     """Third row of the world-to-camera rotation [3] on the device (cached on the camera: no copy per call)."""
     return camera.cached(("wtopo.rasterize.depth_row", str(device), dtype),
                          lambda: torch.as_tensor(camera.R[2], dtype=dtype, device=device))
+
+
+def _depth_row4(camera: Camera, device, dtype) -> torch.Tensor:
+    """:func:`_depth_row` and the translation's z [4] (op dtype, cached): a centre's z-depth is
+    ``means @ row[:3] + row[3]``, the camera as data (a CUDA graph's input)."""
+    return camera.cached(("wtopo.rasterize.depth_row4", str(device), dtype),
+                         lambda: torch.as_tensor([*camera.R[2], camera.t[2]], dtype=dtype, device=device))
 
 
 def _record_base(camera: Camera, device, dtype, filter_sigma: float) -> tuple[torch.Tensor, int]:
@@ -93,6 +120,11 @@ def _camera_record(camera: Camera, clip: torch.Tensor, dtype, filter_sigma: floa
     ([near, far] float64 [2] on the device) is written into the copy on the device, no host synchronisation.
     """
     base, off = _record_base(camera, clip.device, dtype, filter_sigma)
+    return _record_from_base(base, off, clip, dtype)
+
+
+def _record_from_base(base: torch.Tensor, off: int, clip: torch.Tensor, dtype) -> wp.array:
+    """A copy of a :func:`_record_base` with ``clip`` written at byte ``off``, as the kernels' ``cams``."""
     blob = base.clone()
     size = 8 if dtype == torch.float64 else 4
     blob[off:off + 2 * size].view(dtype).copy_(clip)
@@ -150,10 +182,17 @@ def _default_clip_device(means: torch.Tensor, camera: Camera, config: RasterConf
     index from a sort that sends the others to ``+inf``; the products are taken in float64 as the
     host path does.
     """
-    n = means.shape[0]
-    if n == 0:
+    if means.shape[0] == 0:
         return _clip_from_host(config.near_fraction, config.far_multiple, means.device)
-    z = _centre_depths(means, camera)
+    return _clip_of_depths(_centre_depths(means, camera), config)
+
+
+def _clip_from_row(means: torch.Tensor, row4: torch.Tensor, config: RasterConfig) -> torch.Tensor:
+    """:func:`_default_clip_device` with the camera as data (:func:`_depth_row4`; the same values), for N > 0."""
+    return _clip_of_depths(means.detach() @ row4[:3] + row4[3], config)
+
+
+def _clip_of_depths(z: torch.Tensor, config: RasterConfig) -> torch.Tensor:
     pos = z > 0
     k = pos.sum()
     zs = torch.where(pos, z, torch.full_like(z, math.inf)).sort().values

@@ -146,7 +146,7 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
             # one worker (CUDA): the kernel counts straight into the output, no per-worker buffer to sum
             vis_w = (visibility.reshape((1, n)) if workers == 1
                      else _bridge.empty((workers, n), wp.int32, wdev, zero=True))
-            geo = wp.empty(n, dtype=_k.SURFEL[s], device=wdev)
+            geo = _bridge.empty_struct(n, _k.SURFEL[s], wdev)
             _bridge.launch_split(_k.pack_surfels_kernel, n, [uax, vax, nrm, auv, m2, zc, bins.cutoff], [geo],
                                  device=wdev)
             surf = [geo, nrm_face, color, opacities, bg_wp, ts, tiles_x]
