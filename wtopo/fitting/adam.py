@@ -16,6 +16,7 @@ the host, and the eager update's ~25 multi-tensor operations cost about a millis
 
 from __future__ import annotations
 
+import gc
 import math
 import warnings
 
@@ -140,7 +141,7 @@ class Adam:
                                            for a, b in pairs):
             graph.checked = True
             return got
-        worst = max(float((a.detach() - b).abs().max()) for a, b in pairs)
+        worst = max((float((a.detach() - b).abs().max()) for a, b in pairs if a.numel()), default=0.0)
         for a, b in pairs:
             a.detach().copy_(b)
         self._graphs.clear()
@@ -254,12 +255,18 @@ class _StepGraph:
         graph = torch.cuda.CUDAGraph()
         side = torch.cuda.Stream(dev)
         side.wait_stream(torch.cuda.current_stream(dev))
-        with torch.cuda.device(dev), torch.cuda.stream(side):
-            graph.capture_begin()
-            try:
-                self.flag = self._body()
-            finally:
-                graph.capture_end()
+        collect = gc.isenabled()
+        gc.disable()  # a collection inside the capture could free a Warp array, a CUDA call that would invalidate it
+        try:
+            with torch.cuda.device(dev), torch.cuda.stream(side):
+                graph.capture_begin()
+                try:
+                    self.flag = self._body()
+                finally:
+                    graph.capture_end()
+        finally:
+            if collect:
+                gc.enable()
         torch.cuda.current_stream(dev).wait_stream(side)
         self.graph = graph
 

@@ -39,6 +39,7 @@ GRAPHS = True
 ALPHA_COVERED = 0.5
 """A pixel is covered by the surfels when their rendered opacity reaches this."""
 _CHECK_RTOL = 1e-5  # a first replay farther than this from the eager terms leaves the set eager
+_GRAPHS_KEPT = 16  # captured sets kept (a fit uses a few: the term sets of its stages at its views' sizes)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -167,6 +168,8 @@ class PixelTerms:
         key = (ts, tuple(tuple(a.shape) for a in args), rgb.dtype, rgb.device, tuple(a.requires_grad for a in args))
         fn = self._graphs.get(key)
         if fn is None:
+            if len(self._graphs) >= _GRAPHS_KEPT:  # views of many sizes: the oldest set's graphs go
+                self._graphs.pop(next(iter(self._graphs)))
             # the fit's own values (its guards check them): the ops' value checks read the device, which a capture
             # cannot hold (it would be invalidated)
             with trusted_values():
