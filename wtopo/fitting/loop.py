@@ -127,7 +127,7 @@ class FitRun:
         from ..rasterize import RasterConfig
 
         bg = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
-        self.render = Renderer(bg, RasterConfig(filter_sigma=cfg.filter_sigma))
+        self.render = Renderer(bg, RasterConfig(filter_sigma=cfg.filter_sigma), graphs=not cfg.runtime.profile)
         self.it = 0
         self.tsdf_done = False
         self.history: list[dict] = []

@@ -59,11 +59,13 @@ class Renderer:
         config: :class:`wtopo.rasterize.RasterConfig` of the fit.
     """
 
-    def __init__(self, background: torch.Tensor, config):
+    def __init__(self, background: torch.Tensor, config, *, graphs: bool = False):
         from ..rasterize._config import _validate_config
+        from .raster_graph import RasterGraphs
 
         self.background = background
         self.config = _validate_config(config)  # once: the per-call path does not check it again
+        self.graphs = RasterGraphs(background, self.config) if graphs else None
 
     def __call__(self, surfels: Surfels, camera, *, defer_count: bool = False):
         """:func:`wtopo.rasterize.rasterize_surfels` of ``surfels`` seen by ``camera`` (differentiable).
@@ -71,13 +73,18 @@ class Renderer:
         The fit's tensors are its own and checked by its guards, so the op's argument checks (host
         synchronisations on CUDA) are skipped. ``defer_count``: size the binning from earlier
         calls without reading this call's count; the caller checks ``overflow`` of the output and
-        renders again (without it) when set.
+        renders again (without it) when set. With ``graphs`` (the fit on CUDA, not profiled) such a
+        render is a replay of a CUDA graph when it can be (:mod:`wtopo.fitting.raster_graph`).
         """
         from ..rasterize import _rasterize_trusted
 
         s = surfels
         # on CPU reading the count costs nothing and sorting only the real pairs is faster
         defer = defer_count and s.means.is_cuda
+        if defer and self.graphs is not None:
+            out = self.graphs(s, camera)
+            if out is not None:
+                return out
         return _rasterize_trusted(s.means, s.quats, s.scales, s.opacities, s.sh, camera, sh_degree=s.sh_degree,
                                   background=self.background, config=self.config, defer_count=defer)
 
