@@ -2,7 +2,7 @@
 # .stage/base = `git archive` of f9f59e3): the graphed loss terms' CUDA tests, then DTU at the CUDA default as a
 # user runs it (benchmarks/peers/run_wtopo.py: wall time images to mesh, peak memory, masked held-out PSNR), once
 # plain and once with runtime.profile=true (the per-stage table), then t_loop.py's windows (wall per iteration).
-# V_STEPS picks the steps (default "tests fit profile loop"; "losses": bench_losses.py at 700 px, graphed and eager;
+# V_STEPS picks the steps (default "tests fit eager profile loop"; "eager": the same fit with every CUDA graph off; "losses": bench_losses.py at 700 px, graphed and eager;
 # "base": f9f59e3's plain fit).
 source lab/device/lease_env.sh
 t0=$(date +%s)
@@ -18,10 +18,10 @@ r = json.load(open(sys.argv[1] + "/run.json"))
 print({k: r.get(k) for k in ("wall_s", "peak_gpu_bytes", "iterations", "surfels", "own_report")})
 PY
 }
-for step in ${V_STEPS:-tests fit profile loop}; do
+for step in ${V_STEPS:-tests fit eager profile loop}; do
   case $step in
-  tests) (cd /tmp && timeout 150 python3 -m pytest -q -p no:cacheprovider \
-      $R/tests/test_pixel_terms.py 2>&1 | tail -n 4
+  tests) (cd /tmp && timeout 200 python3 -m pytest -q -p no:cacheprovider \
+      $R/tests/test_pixel_terms.py $R/tests/test_raster_graph.py $R/tests/test_rasterize_paths.py 2>&1 | tail -n 6
     timeout 150 python3 -m pytest -q -p no:cacheprovider $R/tests/test_adam.py $R/tests/test_bridge.py \
       $R/tests/test_cuda_equality.py 2>&1 | tail -n 6
     timeout 60 python3 $R/benchmarks/bench_optimizer.py --device cuda --surfels 53000 1000000 2>&1 | tail -n 4) ;;
@@ -33,6 +33,9 @@ for step in ${V_STEPS:-tests fit profile loop}; do
     grep -i "warn\|error\|psnr" $OUT/v/$step.txt | cut -c1-300 | head -n 12; tail -n 45 $OUT/v/$step.txt | cut -c1-200 ;;
   losses) (cd $R/benchmarks && timeout 200 python3 bench_losses.py --device cuda --resolution 700 --views 16 \
       --section-only 2>&1 | tail -n 8) ;;
+  eager) (cd /tmp && timeout 200 python3 $R/lab/device/eager_fit.py $S/exch/dtu_scan24 $S/res/v_eager \
+      > $OUT/v/eager.txt 2>&1); echo "eager rc=$?"
+    cp $S/res/v_eager/run.json $OUT/v/run_eager.json 2>/dev/null; summary $S/res/v_eager; tail -n 5 $OUT/v/eager.txt ;;
   base) [ -d $S/base_site/wtopo ] || python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-cache-dir \
       --target $S/base_site .stage/base > $S/base_install.log 2>&1 || { tail -5 $S/base_install.log; continue; }
     (cd /tmp && PYTHONPATH=$S/base_site:$PYTHONPATH timeout 250 python3 $R/benchmarks/peers/run_wtopo.py \
