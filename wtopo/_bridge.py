@@ -67,6 +67,7 @@ __all__ = [
     "empty_group",
     "struct_view",
     "empty_struct",
+    "registered_capture",
     "as_torch",
     "launch",
     "launch_adjoint",
@@ -185,6 +186,23 @@ def _warp_stream(device) -> wp.Stream:
     if ws is None:
         ws = _streams[key] = wp.stream_from_torch(ts)
     return ws
+
+
+@contextlib.contextmanager
+def registered_capture(device: torch.device):
+    """While torch captures a CUDA graph on ``device``'s current stream, register that capture with Warp for the
+    scope (``wp.capture_begin(external=True)``): Warp's radix sort then takes its scratch memory inside the graph
+    (freed with it) instead of a cache that a later, larger eager sort frees under the graph, or a buffer leaked
+    per capture with a warning. A no-op when nothing is being captured."""
+    if device.type != "cuda" or not torch.cuda.is_current_stream_capturing():
+        yield
+        return
+    ws = _warp_stream(device)
+    wp.capture_begin(stream=ws, external=True, capture_mode=wp.CaptureMode.GLOBAL)
+    try:
+        yield
+    finally:
+        wp.capture_end(stream=ws)
 
 
 @contextlib.contextmanager

@@ -82,12 +82,19 @@ _capacities: dict[str, _PairCapacity] = {}
 _iotas: dict[str, wp.array] = {}
 
 
+_iotas_outgrown: list = []
+
+
 def _iota(n: int, wdev) -> wp.array:
-    """``0, 1, ..., n - 1`` (int32) on ``wdev``: a view of a kept array, grown when too short (never written)."""
+    """``0, 1, ..., n - 1`` (int32) on ``wdev``: a view of a kept array, grown when too short (never written).
+    An outgrown array is kept too: a CUDA graph captured with it reads it where it is."""
     key = str(wdev)
     a = _iotas.get(key)
     if a is None or a.shape[0] < n:
-        a = wp.array(np.arange(max(n, 1024), dtype=np.int32), dtype=wp.int32, device=wdev)
+        if a is not None:
+            _iotas_outgrown.append(a)
+        a = wp.array(np.arange(max(n, 1024, 2 * (0 if a is None else a.shape[0])), dtype=np.int32), dtype=wp.int32,
+                     device=wdev)
         _iotas[key] = a
     return a[:n]
 

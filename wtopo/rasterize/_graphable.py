@@ -88,11 +88,12 @@ def render_tensors(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tenso
 
     device, dtype = means.device, means.dtype
     wdev = _bridge.warp_device(device)
-    clip = _clip_from_row(means, row4, config)
-    cam_rec = _record_from_base(record, record_offset(dtype), clip, dtype)
-    views = _table_views(tables, size.width, size.height, config.tile_size)
-    with _bridge.torch_stream(wdev, device):
-        bins = _bin(means, quats, scales, opacities, cam_rec, views, size, config, wdev, pairs=pairs)
-    outs = _apply_op(bins, rays, cam_rec, background.detach(), means, quats, scales, opacities, sh, shift,
-                     sh_degree, size, config, wdev)
+    with _bridge.registered_capture(device):  # Warp's sorts take their scratch inside a graph being captured
+        clip = _clip_from_row(means, row4, config)
+        cam_rec = _record_from_base(record, record_offset(dtype), clip, dtype)
+        views = _table_views(tables, size.width, size.height, config.tile_size)
+        with _bridge.torch_stream(wdev, device):
+            bins = _bin(means, quats, scales, opacities, cam_rec, views, size, config, wdev, pairs=pairs)
+        outs = _apply_op(bins, rays, cam_rec, background.detach(), means, quats, scales, opacities, sh, shift,
+                         sh_degree, size, config, wdev)
     return (*outs, bins.radii, bins.means2d, clip, bins.overflow, bins.count)
