@@ -149,3 +149,53 @@ def test_the_fit_renderer_replays_deferred_renders():
     assert r.graphs.failure is None and r.graphs.captures == 1
     assert out.means2d.requires_grad and float(out.means2d.abs().max()) == 0.0  # the gradient carrier
     _binning._capacities.clear()
+
+
+def test_a_replay_with_wrong_gradients_turns_the_graphs_off(device):
+    """The first replay's gradients are checked too: a stand-in with the right images and doubled image gradients is
+    not used."""
+    cfg = RasterConfig()
+    bg = torch.zeros(3, device=device)
+
+    def wrong_backward(fn, samples, num_warmup_iters=0):
+        def replay(*args):
+            out = list(fn(*args))
+            out[0] = out[0].detach() + (out[0] - out[0].detach()) * 2.0  # the same values, twice the gradient
+            return tuple(out)
+        return replay
+
+    _binning._capacities.clear()
+    s = _surfels(200, device)
+    _eager(s, camera(), bg, cfg)
+    if str(device).startswith("cuda"):
+        torch.cuda.synchronize()
+    graphs = RG.RasterGraphs(bg, cfg, make=wrong_backward)
+    with pytest.warns(RuntimeWarning, match="gradient of input 0 of a replay differs"):
+        assert graphs(s, camera()) is None
+    _binning._capacities.clear()
+
+
+def test_captures_on_most_renders_turn_the_graphs_off(device, monkeypatch):
+    """Renders that need a new capture nearly every time (here a surfel count that changes at every call) turn the
+    graphs off once the captures outnumber one in twenty renders."""
+    monkeypatch.setattr(RG, "_CHURN_CALLS", 5)
+    cfg = RasterConfig()
+    bg = torch.zeros(3, device=device)
+    _binning._capacities.clear()
+    graphs = RG.RasterGraphs(bg, cfg, make=_emulate)
+    with pytest.warns(RuntimeWarning, match="captures in"):
+        for k in range(8):
+            s = _surfels(100 + k, device, seed=k)
+            _eager(s, camera(), bg, cfg)
+            if str(device).startswith("cuda"):
+                torch.cuda.synchronize()
+            out = graphs(s, camera())
+            if graphs.failure is not None:
+                break
+    assert out is None and "captures in" in graphs.failure and k == 5
+    _binning._capacities.clear()
+
+
+def test_the_sorted_capacity_rounds_up_by_steps_of_sqrt2():
+    assert RG._pairs(1000, 10**9) == 1024 and RG._pairs(1024, 10**9) == 1024 and RG._pairs(1025, 10**9) == 1449
+    assert RG._pairs(5000, 4096) == 4096 and RG._pairs(1, 10) == 1

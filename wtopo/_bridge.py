@@ -33,6 +33,7 @@ each launch on one thread but releases the GIL, so on a 2-core CPU this gives ab
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import ctypes
 import os
@@ -188,21 +189,34 @@ def _warp_stream(device) -> wp.Stream:
     return ws
 
 
+_captured: collections.deque = collections.deque(maxlen=256)  # Warp's handles of registered captures (see below)
+
+
 @contextlib.contextmanager
 def registered_capture(device: torch.device):
     """While torch captures a CUDA graph on ``device``'s current stream, register that capture with Warp for the
     scope (``wp.capture_begin(external=True)``): Warp's radix sort then takes its scratch memory inside the graph
     (freed with it) instead of a cache that a later, larger eager sort frees under the graph, or a buffer leaked
-    per capture with a warning. A no-op when nothing is being captured."""
+    per capture with a warning, and Warp retains the modules the capture launches (its handle is kept). A no-op
+    when nothing is being captured, or inside a scope that registered the capture already."""
     if device.type != "cuda" or not torch.cuda.is_current_stream_capturing():
         yield
         return
     ws = _warp_stream(device)
+    if ws.device.captures.get(ws) is not None:
+        yield
+        return
     wp.capture_begin(stream=ws, external=True, capture_mode=wp.CaptureMode.GLOBAL)
+    ok = False
     try:
         yield
+        ok = True
     finally:
-        wp.capture_end(stream=ws)
+        try:
+            _captured.append(wp.capture_end(stream=ws))
+        except Exception:
+            if ok:  # an error of the scope itself takes precedence
+                raise
 
 
 @contextlib.contextmanager
@@ -284,7 +298,7 @@ class _WarpFunction(torch.autograd.Function):
         # against it, so a copy or zero issued outside this scope could read or clear the
         # gradients while the backward kernels are still running (seen on an H200 as partially
         # accumulated gradients).
-        with _on_torch_stream(ctx.wdev, ctx.torch_device):
+        with _on_torch_stream(ctx.wdev, ctx.torch_device), registered_capture(ctx.torch_device):
             if ctx.handed:
                 # a second backward of the same graph (retain_graph, gradcheck): fresh input gradients, and every
                 # other gradient buffer the first one wrote zeroed; never a buffer already handed to torch, which

@@ -7,20 +7,28 @@ sorts, a dozen launches, allocations, the autograd bridge, the surfels' activati
 the camera included, so one capture serves every view of a size: ``torch.cuda.make_graphed_callables`` captures
 the activations (``exp`` of the log scales, ``sigmoid`` of the opacity logits, the SH bands joined) and the render
 as a forward and a backward graph per surfel count, pair capacity, image size and SH layout, and replays them
-until a density step changes the count (every hundred iterations at most; the previous graphs are dropped).
+until a density step changes the count (every hundred iterations at most; the oldest graphs are dropped first). The
+capacity a graph sorts for is the pair capacity rounded up to a step of a factor sqrt(2), so that the capacity's
+small moves do not each capture again.
 
 What stays eager around a replay: the view's inputs (cached tensors, copied into the graph's buffers), a zero
 ``shift`` [N, 2] whose gradient is the screen-space statistic (``RenderOutput.means2d``: here the zeros, not the
 projected centres, which the fit never reads), and the pair count posted to the capacity. The outputs are the
-graph's buffers, valid until the next replay (the fit reads them within the iteration).
+graph's buffers, valid until the next replay (the fit reads them within the iteration); so are the gradients a
+replay's backward hands to the parameters (torch takes them as the parameters' ``.grad`` without a copy, and the
+next forward replay zeroes them: the fit drops its gradients after each step, and Adam copies them first).
 
-A capture that raises, or whose first replay differs from the eager function on the same inputs, turns the graphs
-off for the rest of the fit, with a warning (:attr:`RasterGraphs.failure`). Off on the CPU and under
-``runtime.profile`` (whose sections synchronise, which a capture cannot hold).
+A capture or replay that raises, a first replay whose images or gradients differ from the eager function's on the
+same inputs, or captures more frequent than one per twenty renders (views of many sizes, a pair capacity that
+swings), turn the graphs off for the rest of the fit, with a warning (:attr:`RasterGraphs.failure`). Off on the CPU
+and under ``runtime.profile`` (whose sections synchronise, which a capture cannot hold).
 """
 
 from __future__ import annotations
 
+import contextlib
+import gc
+import math
 import warnings
 
 import torch
@@ -35,9 +43,16 @@ __all__ = ["RasterGraphs", "GRAPHS"]
 
 GRAPHS = True
 """False: the fit renders eagerly on CUDA too (benchmarks, tests)."""
-_KEPT = 2  # captured renders kept (the current surfel count's, and the one before)
-_CHECK_RTOL, _CHECK_ATOL = 1e-5, 1e-6  # a first replay farther than this from the eager render turns graphs off
+_KEPT = 4  # captured renders kept (views of two sizes, the current surfel count's and the one before)
+_CHECK_RTOL, _CHECK_ATOL = 1e-5, 1e-6  # a first replay's images farther than this from the eager render's: off
+_CHECK_GRAD_RTOL, _CHECK_GRAD_ATOL = 1e-3, 1e-5  # ... and its gradients (CUDA sums them with float atomics)
 _WARMUP = 2  # eager forward + backward runs before a capture (torch's side stream, the samples' copies)
+_CHURN_CALLS, _CHURN_RATE = 200, 0.05  # after this many renders, more captures than this per render: off
+
+
+def _pairs(capacity: int, limit: int) -> int:
+    """The pair capacity a graph sorts for: ``capacity`` rounded up to a power of sqrt(2), at most ``limit``."""
+    return min(int(limit), max(int(capacity), math.ceil(2 ** (math.ceil(2 * math.log2(max(capacity, 1))) / 2))))
 
 
 def _function(size: Size, sh_degree: int, background: torch.Tensor, config: RasterConfig, pairs: int):
@@ -73,6 +88,7 @@ class RasterGraphs:
         self._graphs: dict = {}
         self.failure: str | None = None
         self.captures = 0
+        self.calls = 0
 
     def __call__(self, surfels: Surfels, camera) -> RenderOutput | None:
         """The render of ``camera``'s view of ``surfels`` from a replay (``RenderOutput`` with ``overflow`` set as
@@ -87,49 +103,85 @@ class RasterGraphs:
         capacity.poll()
         if capacity.value == 0:  # the first deferred render measures it
             return None
+        self.calls += 1
+        if self.calls > _CHURN_CALLS and self.captures > _CHURN_RATE * self.calls:
+            self._off(f"{self.captures} captures in {self.calls} renders (views of many sizes, or a pair count that "
+                      f"swings)")
+            return None
         dtype, device = means.dtype, means.device
+        pairs = _pairs(capacity.value, self.config.max_intersections)
         shift = torch.zeros(means.shape[0], 2, dtype=dtype, device=device, requires_grad=True)
         args = (means, p["quats"], p["log_scales"], p["opacity_logits"], p["sh_dc"], p["sh_rest"], shift,
                 *view_inputs(camera, device, dtype, self.config))
         size = Size(camera.width, camera.height)
-        key = (size, capacity.value, dtype, device, tuple(tuple(a.shape) for a in args),
-               tuple(a.requires_grad for a in args))
-        graphed = self._graphs.get(key)
-        if graphed is None:
-            graphed = self._capture(key, args, _function(size, surfels.sh_degree, self.background, self.config,
-                                                         capacity.value))
+        key = (size, pairs, dtype, device, tuple(tuple(a.shape) for a in args), tuple(a.requires_grad for a in args))
+        with _on_device(device):
+            graphed = self._graphs.get(key)
             if graphed is None:
+                graphed = self._capture(key, args, _function(size, surfels.sh_degree, self.background, self.config,
+                                                             pairs))
+                if graphed is None:
+                    return None
+            try:
+                rgb, alpha, depth, median, normal, dist, vis, radii, _, clip, overflow, count = graphed(*args)
+            except Exception as e:  # noqa: BLE001 - a replay that fails leaves this render and the rest eager
+                self._off(f"a replay failed: {type(e).__name__}: {e}")
                 return None
-        rgb, alpha, depth, median, normal, dist, vis, radii, _, clip, overflow, count = graphed(*args)
         capacity.post(count, self.config.max_intersections)
         return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist,
                             visibility=vis, radii=radii, means2d=shift, clip=clip, overflow=overflow)
 
+    def _off(self, why: str) -> None:
+        self.failure = why
+        self._graphs.clear()
+        warnings.warn(f"wtopo: the fit's renders run eagerly on this device: {why}", RuntimeWarning, stacklevel=4)
+
     def _capture(self, key, args: tuple, fn):
-        """``fn`` captured for ``key`` and checked against itself run eagerly on ``args``; ``None`` (graphs off)
-        when the capture raises or disagrees."""
+        """``fn`` captured for ``key`` and checked against itself run eagerly on ``args`` (images and gradients);
+        ``None`` (graphs off) when the capture raises or disagrees. The oldest graphs go first (their memory)."""
+        while len(self._graphs) >= _KEPT:
+            self._graphs.pop(next(iter(self._graphs)))
         make = self._make or torch.cuda.make_graphed_callables
         samples = tuple(a.detach().clone().requires_grad_(a.requires_grad) for a in args)
+        collect = gc.isenabled()
+        gc.disable()  # a collection inside a capture could free a Warp array: a CUDA call that invalidates it
         try:
             with trusted_values(), warnings.catch_warnings():
                 # the warm-up differentiates the samples (leaves made on the default stream) on torch's side stream
                 warnings.filterwarnings("ignore", message="The AccumulateGrad node's stream does not match")
                 graphed = make(fn, samples, num_warmup_iters=_WARMUP)
-                with torch.no_grad():
-                    want = fn(*args)
-                    got = graphed(*(a.detach() for a in args))
-                    for k, (a, b) in enumerate(zip(got, want)):
-                        if not torch.allclose(a.double(), b.double(), rtol=_CHECK_RTOL, atol=_CHECK_ATOL):
-                            raise RuntimeError(f"output {k} of a replay differs from the eager render by "
-                                               f"{float((a.double() - b.double()).abs().max()):.3g}")
+                _check(graphed, fn, args)
         except Exception as e:  # noqa: BLE001 - any failure leaves the renders eager
-            self.failure = f"{type(e).__name__}: {e}"
-            self._graphs.clear()
-            warnings.warn(f"wtopo: the fit's renders run eagerly on this device: {self.failure}", RuntimeWarning,
-                          stacklevel=3)
+            self._off(f"{type(e).__name__}: {e}")
             return None
-        while len(self._graphs) >= _KEPT:
-            self._graphs.pop(next(iter(self._graphs)))
+        finally:
+            if collect:
+                gc.enable()
         self._graphs[key] = graphed
         self.captures += 1
         return graphed
+
+
+def _check(graphed, fn, args: tuple) -> None:
+    """Raise unless a replay of ``graphed`` on ``args`` gives ``fn``'s outputs and the gradients of a fixed scalar
+    of its images w.r.t. the inputs that require them."""
+    diff = [a for a in args if a.requires_grad]
+    got, want = graphed(*args), fn(*args)
+    for k, (a, b) in enumerate(zip(got, want)):
+        if not torch.allclose(a.detach().double(), b.detach().double(), rtol=_CHECK_RTOL, atol=_CHECK_ATOL,
+                              equal_nan=True):
+            raise RuntimeError(f"output {k} of a replay differs from the eager render by "
+                               f"{float((a.detach().double() - b.detach().double()).abs().max()):.3g}")
+    g = torch.Generator().manual_seed(0)
+    weights = [torch.rand(got[k].shape, generator=g, dtype=got[k].dtype).to(got[k].device) for k in range(6)]
+    grads = [torch.autograd.grad(sum((o[k] * w).sum() for k, w in enumerate(weights)), diff, allow_unused=True)
+             for o in (got, want)]
+    for k, (a, b) in enumerate(zip(*grads)):
+        if (a is None) != (b is None) or (a is not None and not torch.allclose(
+                a, b, rtol=_CHECK_GRAD_RTOL, atol=_CHECK_GRAD_ATOL * max(1.0, float(b.abs().max())), equal_nan=True)):
+            raise RuntimeError(f"the gradient of input {k} of a replay differs from the eager render's")
+
+
+def _on_device(device: torch.device):
+    """``torch.cuda.device(device)`` on CUDA (a capture checks torch's current device), else nothing."""
+    return torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext()
