@@ -318,6 +318,7 @@ def render_forward_kernel(
     f_ref = d[0]
     near = cam.near
     far = cam.far
+    fis = cam.filter_inv_sq
     pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
     zero = type(f_ref)(0.0)
     T = type(f_ref)(1.0)
@@ -344,8 +345,8 @@ def render_forward_kernel(
             hit = False
             if not done:
                 g = geo[i]
-                if not surely_outside(d, g, pix, cam.filter_inv_sq):
-                    rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam.filter_inv_sq)
+                if not surely_outside(d, g, pix, fis):
+                    rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, fis)
                     if not (rho > g.cutoff):  # else alpha < 1/255 for sure: skip the exp
                         a = wp.min(type(f_ref)(ALPHA_MAX), opacity[i] * wp.exp(type(f_ref)(-0.5) * rho))
                         if not (a < type(f_ref)(ALPHA_MIN) or z < near):

@@ -73,7 +73,6 @@ def render_backward_kernel(
     summed over the warp before one atomic add (:func:`warp_add_vec`); without it (CPU) each pixel
     walks from its own ``last`` and adds its own terms. Same per-pixel arithmetic either way.
     """
-    cam = cams[0]
     tile, px, py = pixel_tile_coords(wp.tid() + offset, tile_size, tiles_x)
     # pixels past the image edge (partial tiles) still walk with their warp, contributing nothing
     inside = px < t_final.shape[1] and py < t_final.shape[0]
@@ -87,8 +86,9 @@ def render_backward_kernel(
     f_ref = d[0]
     zero = type(f_ref)(0.0)
     one = type(f_ref)(1.0)
-    near = cam.near
-    far = cam.far
+    near = cams[0].near
+    far = cams[0].far
+    fis = cams[0].filter_inv_sq
     pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
     T = t_final[py, px]
     acc = one - T
@@ -109,10 +109,10 @@ def render_backward_kernel(
     g_m2 = gdist * acc
     rg = T * wp.dot(gc, background[0])
     # camera rotation rows and inverse intrinsics for the screen-shift gradient
-    fx = cam.fx
-    fy = cam.fy
-    sk = cam.skew
-    R = cam.R
+    fx = cams[0].fx
+    fy = cams[0].fy
+    sk = cams[0].skew
+    R = cams[0].R
     z3 = wp.vector(zero, zero, zero)
     z2 = wp.vector(zero, zero)
     lane = lane_id(coop)
@@ -136,8 +136,8 @@ def render_backward_kernel(
             c_nrm = z3
             c_m2 = z2
             c_zc = zero
-            if k < end and not surely_outside(d, g, pix, cam.filter_inv_sq):
-                rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, cam.filter_inv_sq)
+            if k < end and not surely_outside(d, g, pix, fis):
+                rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, fis)
                 if not (rho > g.cutoff):
                     op = opacity[i]
                     G = wp.exp(type(f_ref)(-0.5) * rho)
@@ -180,7 +180,7 @@ def render_backward_kernel(
                             c_shift = wp.vector(-gcx / fx, gcx * sk / (fx * fy) - gcy / fy)
                         else:
                             diff = pix - g.m2
-                            c_m2 = (type(f_ref)(-2.0) * cam.filter_inv_sq * g_rho) * diff
+                            c_m2 = (type(f_ref)(-2.0) * fis * g_rho) * diff
                             c_shift = c_m2
                             c_zc = gz
             # warp-uniform from here: every lane of the warp takes the same branches
