@@ -41,6 +41,17 @@ def _eager(s, cam, bg, cfg):
                               background=bg, config=cfg, defer_count=True, device_clip=True)
 
 
+def _measured(device, n=200):
+    """Surfels whose pair count the capacity has seen (an eager deferred render, settled), as a fit's first render
+    leaves it."""
+    _binning._capacities.clear()
+    s = _surfels(n, device)
+    _eager(s, camera(), torch.zeros(3, device=device), RasterConfig())
+    if str(device).startswith("cuda"):
+        torch.cuda.synchronize()
+    return s
+
+
 def _compare(got, want, s, tol):
     for k in (*IMAGES, "visibility", "radii", "clip"):
         torch.testing.assert_close(getattr(got, k), getattr(want, k), **tol, msg=k)
@@ -105,11 +116,7 @@ def test_a_render_that_disagrees_turns_the_graphs_off(device, monkeypatch):
             return tuple(out)
         return replay
 
-    _binning._capacities.clear()
-    s = _surfels(200, device)
-    _eager(s, camera(), bg, cfg)
-    if str(device).startswith("cuda"):
-        torch.cuda.synchronize()
+    s = _measured(device)
     graphs = RG.RasterGraphs(bg, cfg, make=wrong)
     with pytest.warns(RuntimeWarning, match="output 0 of a replay differs"):
         assert graphs(s, camera()) is None
@@ -164,11 +171,7 @@ def test_a_replay_with_wrong_gradients_turns_the_graphs_off(device):
             return tuple(out)
         return replay
 
-    _binning._capacities.clear()
-    s = _surfels(200, device)
-    _eager(s, camera(), bg, cfg)
-    if str(device).startswith("cuda"):
-        torch.cuda.synchronize()
+    s = _measured(device)
     graphs = RG.RasterGraphs(bg, cfg, make=wrong_backward)
     with pytest.warns(RuntimeWarning, match="gradient of input 0 of a replay differs"):
         assert graphs(s, camera()) is None
