@@ -3,8 +3,9 @@
 # user runs it (benchmarks/peers/run_wtopo.py: wall time images to mesh, peak memory, masked held-out PSNR), once
 # plain and once with runtime.profile=true (the per-stage table), then t_loop.py's windows (wall per iteration).
 # A call holds 600 s: split the steps over calls, e.g. V_STEPS="tests fit", then "eager profile", then "loop"
-# (the first call also installs, exports DTU and compiles the kernels). V_STEPS picks the steps (default "tests fit eager profile loop"; "eager": the same fit with every CUDA graph off; "losses": bench_losses.py at 700 px, graphed and eager;
-# "base": f9f59e3's plain fit).
+# (the first call also installs, exports DTU and compiles the kernels). V_STEPS picks the steps (default
+# "tests fit eager profile loop"; "eager": the same fit with every CUDA graph off; "losses": bench_losses.py at
+# 700 px, graphed and eager; "base": f9f59e3's plain fit).
 source lab/device/lease_env.sh
 t0=$(date +%s)
 [ -f $S/t_installed ] || { lease_install || exit 1; touch $S/t_installed; }
