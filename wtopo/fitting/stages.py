@@ -79,12 +79,12 @@ class Renderer:
         from ..rasterize import _rasterize_trusted
 
         s = surfels
-        # on CPU reading the count costs nothing and sorting only the real pairs is faster
-        defer = defer_count and s.means.is_cuda
-        if defer and self.graphs is not None:
+        if defer_count and self.graphs is not None:  # a replay where the graphs can (on CUDA), else None
             out = self.graphs(s, camera)
             if out is not None:
                 return out
+        # on CPU reading the count costs nothing and sorting only the real pairs is faster
+        defer = defer_count and s.means.is_cuda
         return _rasterize_trusted(s.means, s.quats, s.scales, s.opacities, s.sh, camera, sh_degree=s.sh_degree,
                                   background=self.background, config=self.config, defer_count=defer)
 
