@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
 """A whole fit through the CUDA-graph paths with their captures emulated (the functions themselves stand in for
-their graphs), on any device: the render replays, Adam's graph update and the graphed per-pixel terms follow the
+their graphs), on any device: the render replays, Adam's graph update and the per-pixel terms' graphs follow the
 fit through density steps, the re-initialisation and the co-evolution, and the fit ends as the eager one does."""
 
 from __future__ import annotations
@@ -9,6 +9,7 @@ import wtopo
 from wtopo.cli import _apply_set
 from wtopo.fitting import FitConfig
 from wtopo.fitting import adam as adam_mod
+from wtopo.fitting import pixel_terms as PT
 from wtopo.fitting import raster_graph as RG
 from wtopo.rasterize import _binning
 
@@ -26,8 +27,8 @@ def _fit():
 
 def test_a_fit_through_the_emulated_graphs_ends_as_the_eager_fit(monkeypatch):
     eager = _fit()
-    graphs, adams = [], []
-    init_graphs, init_adam = RG.RasterGraphs.__init__, adam_mod.Adam.__init__
+    graphs, adams, terms = [], [], []
+    init_graphs, init_adam, init_terms = RG.RasterGraphs.__init__, adam_mod.Adam.__init__, PT.PixelTerms.__init__
 
     def make(fn, samples, num_warmup_iters=0):
         return fn
@@ -41,13 +42,19 @@ def test_a_fit_through_the_emulated_graphs_ends_as_the_eager_fit(monkeypatch):
         self._emulate = True
         adams.append(self)
 
+    def terms_init(self, *, make=None):
+        init_terms(self, make=_make)
+        terms.append(self)
+
     _make = make
+    monkeypatch.setattr(PT.PixelTerms, "__init__", terms_init)
     monkeypatch.setattr(RG.RasterGraphs, "__init__", graphs_init)
     monkeypatch.setattr(adam_mod.Adam, "__init__", adam_init)
     emulated = _fit()
     g = graphs[0]
     assert g.failure is None and g.captures >= 2 and g.calls > 50, (g.failure, g.captures, g.calls)
     assert adams and all(a.graph_failure is None for a in adams) and any(a._graphs for a in adams)
+    assert terms and not terms[0].failures and len(terms[0]._graphs) >= 2  # the term sets of the stages
     assert emulated.report["iterations"] == eager.report["iterations"]
     assert len(emulated.surfels) == len(eager.surfels)
     # the same fit up to float rounding (Adam's graph divides where the eager update multiplies; the re-initialisation

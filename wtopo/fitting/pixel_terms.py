@@ -135,11 +135,16 @@ def _terms_fn(ts: TermSet):
 class PixelTerms:
     """The per-pixel terms of a fit's views, graphed on CUDA (:data:`GRAPHS`).
 
+    Args:
+        make: what captures the terms (``torch.cuda.make_graphed_callables``'s signature); tests pass one that returns
+            the function itself, so that everything but the capture runs on any device.
+
     Attributes:
         failures: ``{description of the set: why it runs eagerly}`` for the sets whose graph failed.
     """
 
-    def __init__(self):
+    def __init__(self, *, make=None):
+        self._make = make
         self._graphs: dict = {}
         self.failures: dict[str, str] = {}
 
@@ -163,7 +168,7 @@ class PixelTerms:
                              f"{ts.half}, got {None if windows is None else (len(windows.images), windows.half)}")
         args = _inputs(ts, render, image, mask, rays, windows)
         rgb = render.rgb
-        if not (GRAPHS and rgb.is_cuda and torch.is_grad_enabled()):
+        if not (GRAPHS and (rgb.is_cuda or self._make is not None) and torch.is_grad_enabled()):
             return _terms_fn(ts)(*args)
         key = (ts, tuple(tuple(a.shape) for a in args), rgb.dtype, rgb.device, tuple(a.requires_grad for a in args))
         fn = self._graphs.get(key)
@@ -187,7 +192,7 @@ class PixelTerms:
                 # sample copies (leaves made on the default stream) on torch's side stream; the fit's inputs are no
                 # leaves, so nothing of it recurs
                 warnings.filterwarnings("ignore", message="The AccumulateGrad node's stream does not match")
-                graphed = torch.cuda.make_graphed_callables(eager, samples, num_warmup_iters=3)
+                graphed = (self._make or torch.cuda.make_graphed_callables)(eager, samples, num_warmup_iters=3)
             with torch.no_grad():
                 want = eager(*args)
             got = graphed(*(a.detach() for a in args)).detach()
