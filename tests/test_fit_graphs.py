@@ -5,6 +5,8 @@ fit through density steps, the re-initialisation and the co-evolution, and the f
 
 from __future__ import annotations
 
+import pytest
+
 import wtopo
 from wtopo.cli import _apply_set
 from wtopo.fitting import FitConfig
@@ -17,16 +19,18 @@ _SETTINGS = ["runtime.device=cpu", "runtime.usd_every=0", "runtime.image_scale=0
              "coevolution.iterations=30", "runtime.eval_every=0"]
 
 
-def _fit():
+def _fit(scene: str):
     cfg = FitConfig()
     for item in _SETTINGS:
         _apply_set(cfg, item)
     _binning._capacities.clear()
-    return wtopo.fit(wtopo.scenes.load("bunny"), cfg, progress=False)
+    return wtopo.fit(wtopo.scenes.load(scene), cfg, progress=False)
 
 
-def test_a_fit_through_the_emulated_graphs_ends_as_the_eager_fit(monkeypatch):
-    eager = _fit()
+@pytest.mark.parametrize("scene", ["bunny", "bunny_env"])
+def test_a_fit_through_the_emulated_graphs_ends_as_the_eager_fit(monkeypatch, scene):
+    """An object with masks and a scene with a background and the multi-view term."""
+    eager = _fit(scene)
     graphs, adams, terms = [], [], []
     init_graphs, init_adam, init_terms = RG.RasterGraphs.__init__, adam_mod.Adam.__init__, PT.PixelTerms.__init__
 
@@ -50,7 +54,7 @@ def test_a_fit_through_the_emulated_graphs_ends_as_the_eager_fit(monkeypatch):
     monkeypatch.setattr(PT.PixelTerms, "__init__", terms_init)
     monkeypatch.setattr(RG.RasterGraphs, "__init__", graphs_init)
     monkeypatch.setattr(adam_mod.Adam, "__init__", adam_init)
-    emulated = _fit()
+    emulated = _fit(scene)
     g = graphs[0]
     assert g.failure is None and g.captures >= 2 and g.calls > 50, (g.failure, g.captures, g.calls)
     assert adams and all(a.graph_failure is None for a in adams) and any(a._graphs for a in adams)
