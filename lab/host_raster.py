@@ -3,7 +3,7 @@
 cost next to nothing: the Python, dispatch and launch overhead that bounds a CUDA fit's forward at 100k surfels.
 Prints ms per forward and per backward, then cProfile's own time per function.
 
-    WTOPO_NUM_THREADS=1 .venv/bin/python lab/host_raster.py [--device cpu] [--n 200] [--px 32] [--calls 300]
+    WTOPO_NUM_THREADS=1 .venv/bin/python lab/host_raster.py [--device cpu] [--n 200] [--px 32] [--calls 300] [--graph]
 """
 
 from __future__ import annotations
@@ -26,6 +26,8 @@ def main() -> None:
     ap.add_argument("--px", type=int, default=32)
     ap.add_argument("--calls", type=int, default=300)
     ap.add_argument("--top", type=int, default=35)
+    ap.add_argument("--graph", action="store_true", help="the fit's replayed render (wtopo.fitting.raster_graph; on "
+                    "the CPU with the capture emulated) of the same surfels")
     a = ap.parse_args()
     dev = torch.device(a.device)
     g = torch.Generator().manual_seed(0)
@@ -40,9 +42,24 @@ def main() -> None:
     cfg = R.RasterConfig()
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
 
+    graphs = None
+    if a.graph:
+        from wtopo.fitting.raster_graph import RasterGraphs
+        from wtopo.fitting.surfels import Surfels
+
+        s = Surfels(means=means, quats=quats, log_scales=scales.log(), opacity_logits=torch.logit(opac),
+                    sh_dc=sh[:, :1], sh_rest=sh[:, 1:])
+        graphs = RasterGraphs(bg, cfg, make=None if dev.type == "cuda" else (lambda fn, samples, **kw: fn))
+        R._rasterize_trusted(s.means, s.quats, s.scales, s.opacities, s.sh, cam, sh_degree=3, background=bg,
+                             config=cfg, defer_count=False)  # measures the pair capacity
+
     def fwd():
-        out = R._rasterize_trusted(means, quats, scales, opac, sh, cam, sh_degree=3, background=bg, config=cfg,
-                                   defer_count=True)
+        if graphs is not None:
+            out = graphs(s, cam)
+            assert out is not None, graphs.failure
+        else:
+            out = R._rasterize_trusted(means, quats, scales, opac, sh, cam, sh_degree=3, background=bg, config=cfg,
+                                       defer_count=True)
         return (out.rgb.sum() + out.alpha.sum() + out.depth.sum() + out.median_depth.sum() + out.normal.sum()
                 + out.distortion.sum())
 

@@ -4,7 +4,8 @@
 # plain and once with runtime.profile=true (the per-stage table), then t_loop.py's windows (wall per iteration).
 # A call holds 600 s: split the steps over calls, e.g. V_STEPS="tests fit", then "eager profile", then "loop"
 # (the first call also installs, exports DTU and compiles the kernels). V_STEPS picks the steps (default
-# "tests fit eager profile loop"; "eager": the same fit with every CUDA graph off; "losses": bench_losses.py at
+# "tests fit eager profile loop"; "eager": the same fit with every CUDA graph off; "host": the render's host time
+# at 100k surfels, 800 px, eager and replayed (lab/host_raster.py); "losses": bench_losses.py at
 # 700 px, graphed and eager; "base": f9f59e3's plain fit).
 source lab/device/lease_env.sh
 t0=$(date +%s)
@@ -33,6 +34,8 @@ for step in ${V_STEPS:-tests fit eager profile loop}; do
     cp $S/res/v_$step/run.json $OUT/v/run_$step.json 2>/dev/null; summary $S/res/v_$step
     cp $S/res/v_$step/run/report.json $OUT/v/report_$step.json 2>/dev/null
     grep -i "warn\|error\|psnr" $OUT/v/$step.txt | cut -c1-300 | head -n 12; tail -n 45 $OUT/v/$step.txt | cut -c1-200 ;;
+  host) for g in "" --graph; do (cd /tmp && timeout 120 python3 $R/lab/host_raster.py --device cuda --n 100000 \
+      --px 800 --calls 100 --top 12 $g 2>&1 | head -n 14); done ;;
   losses) (cd $R/benchmarks && timeout 200 python3 bench_losses.py --device cuda --resolution 700 --views 16 \
       --section-only 2>&1 | tail -n 8) ;;
   eager) (cd /tmp && timeout 200 python3 $R/lab/device/eager_fit.py $S/exch/dtu_scan24 $S/res/v_eager \
