@@ -25,9 +25,12 @@ list in step so that per-surfel gradients and visibility counts are summed over 
 Modules (private; import from ``wtopo.rasterize``):
 
 * ``_config``: :class:`RasterConfig`, :class:`RenderOutput` and the argument checks;
-* ``_camera``: pixel rays, tile tables, the kernels' camera record and the default clip planes;
+* ``_camera``: pixel rays, tile tables, the kernels' camera record (a one-element array in device memory, a copy
+  per call) and the default clip planes;
 * ``_binning``: tile binning and depth sort, and the deferred path's pair capacity;
-* ``_run``: the forward and backward launches of the differentiable op (CPU tile workers).
+* ``_run``: the forward and backward launches of the differentiable op (CPU tile workers);
+* ``_graphable``: the fit's render as a function of tensors alone, the camera included (its CUDA graphs:
+  :mod:`wtopo.fitting.raster_graph`).
 """
 
 from __future__ import annotations
