@@ -45,7 +45,7 @@ GRAPHS = True
 """False: the fit renders eagerly on CUDA too (benchmarks, tests)."""
 _KEPT = 4  # captured renders kept (views of two sizes, the current surfel count's and the one before)
 _CHECK_RTOL, _CHECK_ATOL = 1e-5, 1e-6  # a first replay's images farther than this from the eager render's: off
-_CHECK_GRAD_RTOL, _CHECK_GRAD_ATOL = 1e-3, 1e-5  # ... and its gradients (CUDA sums them with float atomics)
+_CHECK_GRAD_REL, _CHECK_GRAD_ABS = 1e-3, 1e-9  # ... and its gradients, relative to each one's largest entry
 _WARMUP = 2  # eager forward + backward runs before a capture (torch's side stream, the samples' copies)
 _CHURN_CALLS, _CHURN_RATE = 200, 0.05  # after this many renders, more captures than this per render: off
 
@@ -181,9 +181,13 @@ def _check(graphed, fn, args: tuple) -> None:
             if (a is None) != (b is None):
                 raise RuntimeError(f"the gradient of input {k} of a replay is missing or extra")
             continue
-        scale = max(1.0, float(b.abs().max()))
-        if not torch.allclose(a, b, rtol=_CHECK_GRAD_RTOL, atol=_CHECK_GRAD_ATOL * scale, equal_nan=True):
-            raise RuntimeError(f"the gradient of input {k} of a replay differs from the eager render's")
+        # normwise: CUDA sums a gradient's terms with float atomics in a varying order, so an entry that nearly
+        # cancels differs from run to run by a small fraction of the largest one
+        same_nan = bool(torch.equal(torch.isnan(a), torch.isnan(b)))
+        worst, scale = float((a - b).abs().nan_to_num(0.0).max()), float(b.abs().nan_to_num(0.0).max())
+        if not (same_nan and worst <= _CHECK_GRAD_REL * scale + _CHECK_GRAD_ABS):
+            raise RuntimeError(f"the gradient of input {k} of a replay differs from the eager render's by {worst:.3g} "
+                               f"(largest entry {scale:.3g})")
 
 
 def _on_device(device: torch.device):
