@@ -83,7 +83,7 @@ class Adam:
         update runs eagerly): the rates travel in a device tensor, the gradients are copied into the graph's
         buffers, and each parameter's ``grad`` becomes that buffer (with its non-finite elements zeroed), valid
         until the next step. A graph's first replay is checked against the eager update of a copy of the state
-        (one host read per capture). A capture that fails or a replay that disagrees leaves the update eager, with
+        (host reads once per capture). A capture that fails or a replay that disagrees leaves the update eager, with
         a warning (:attr:`graph_failure`).
         """
         items = []
@@ -124,7 +124,7 @@ class Adam:
         return graph(items)
 
     def _checked(self, graph: _StepGraph, items: list) -> torch.Tensor:
-        """A graph's first replay, against the eager update of copies of the same state (a host read, once per
+        """A graph's first replay, against the eager update of copies of the same state (host reads, once per
         capture); a disagreement leaves the update eager from here on, with the eager result kept."""
         before = [(it[0].detach().clone(), it[1]["exp_avg"].clone(), it[1]["exp_avg_sq"].clone(),
                    it[0].grad.clone()) for it in items]
