@@ -6,7 +6,7 @@ fit through density steps, the re-initialisation and the co-evolution, and the f
 from __future__ import annotations
 
 import pytest
-import torch
+from graph_standins import static_buffers
 
 import wtopo
 from wtopo.cli import _apply_set
@@ -18,56 +18,6 @@ from wtopo.rasterize import _binning
 
 _SETTINGS = ["runtime.device=cpu", "runtime.usd_every=0", "runtime.image_scale=0.25", "warmup.iterations=60",
              "coevolution.iterations=30", "runtime.eval_every=0"]
-
-
-def static_buffers(fn, samples, num_warmup_iters=0):
-    """A stand-in for ``torch.cuda.make_graphed_callables`` with its buffer semantics and no capture: inputs are
-    copied into fixed buffers, outputs copied into fixed buffers that the next call overwrites (and returned as
-    aliases of them), input gradients copied into fixed buffers zeroed at the next call (as a replay's gradient
-    buffers are, by the forward graph). A caller that reads an output or a gradient after the next call sees
-    another call's values, as it would on a GPU."""
-    static_in = [x.detach().clone() for x in samples]
-    state: dict = {}
-
-    class Replay(torch.autograd.Function):
-        @staticmethod
-        def forward(ctx, *inputs):
-            for buf, x in zip(static_in, inputs):
-                buf.copy_(x.detach())
-            for g in state.get("grads", ()):
-                if g is not None:
-                    g.zero_()
-            with torch.enable_grad():
-                leaves = [buf.detach().requires_grad_(x.requires_grad) for buf, x in zip(static_in, samples)]
-                outs = fn(*leaves)
-            state["single"] = isinstance(outs, torch.Tensor)
-            outs = (outs,) if state["single"] else tuple(outs)
-            if "outs" not in state:
-                state["outs"] = [o.detach().clone() for o in outs]
-            for buf, o in zip(state["outs"], outs):
-                buf.copy_(o.detach())
-            ctx.leaves, ctx.outs = leaves, outs
-            return tuple(buf.detach() for buf in state["outs"])
-
-        @staticmethod
-        def backward(ctx, *grads):
-            pairs = [(o, g) for o, g in zip(ctx.outs, grads) if o.requires_grad and g is not None]
-            diff = [leaf for leaf in ctx.leaves if leaf.requires_grad]
-            got = torch.autograd.grad([o for o, _ in pairs], diff, [g for _, g in pairs], allow_unused=True)
-            it = iter(got)
-            out = [next(it) if leaf.requires_grad else None for leaf in ctx.leaves]
-            if "grads" not in state:
-                state["grads"] = [None if g is None else torch.zeros_like(g) for g in out]
-            for buf, g in zip(state["grads"], out):
-                if buf is not None and g is not None:
-                    buf.copy_(g)
-            return tuple(None if buf is None else buf.detach() for buf in state["grads"])
-
-    def replay(*args):
-        out = Replay.apply(*args)
-        return out[0] if state["single"] else out
-
-    return replay
 
 
 def _fit(scene: str):

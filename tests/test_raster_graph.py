@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from graph_standins import static_buffers
 from raster_cases import IMAGES, camera
 
 import wtopo
@@ -70,7 +71,7 @@ def _compare(got, want, s, tol):
 
 
 def _modes(device):
-    modes = [("emulated", _emulate)]
+    modes = [("emulated", _emulate), ("static buffers", static_buffers)]
     if str(device).startswith("cuda"):
         modes.append(("captured", None))
     return modes
