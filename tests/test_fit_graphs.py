@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
-"""A whole fit through the CUDA-graph paths with their captures emulated (the functions themselves stand in for
-their graphs), on any device: the render replays, Adam's graph update and the per-pixel terms' graphs follow the
+"""A whole fit through the CUDA-graph paths with their captures emulated (a stand-in with
+``make_graphed_callables``' buffer semantics, ``tests/graph_standins.py``; Adam's graph without a capture), on any
+device: the render replays, Adam's graph update and the per-pixel terms' graphs follow the
 fit through density steps, the re-initialisation and the co-evolution, and the fit ends as the eager one does."""
 
 from __future__ import annotations
@@ -35,10 +36,8 @@ def test_a_fit_through_the_emulated_graphs_ends_as_the_eager_fit(monkeypatch, sc
     graphs, adams, terms = [], [], []
     init_graphs, init_adam, init_terms = RG.RasterGraphs.__init__, adam_mod.Adam.__init__, PT.PixelTerms.__init__
 
-    make = static_buffers
-
     def graphs_init(self, background, config, *, make=None):
-        init_graphs(self, background, config, make=_make)
+        init_graphs(self, background, config, make=static_buffers)
         graphs.append(self)
 
     def adam_init(self, *a, **kw):
@@ -47,10 +46,9 @@ def test_a_fit_through_the_emulated_graphs_ends_as_the_eager_fit(monkeypatch, sc
         adams.append(self)
 
     def terms_init(self, *, make=None):
-        init_terms(self, make=_make)
+        init_terms(self, make=static_buffers)
         terms.append(self)
 
-    _make = make
     monkeypatch.setattr(PT.PixelTerms, "__init__", terms_init)
     monkeypatch.setattr(RG.RasterGraphs, "__init__", graphs_init)
     monkeypatch.setattr(adam_mod.Adam, "__init__", adam_init)
