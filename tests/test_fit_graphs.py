@@ -63,3 +63,24 @@ def test_a_fit_through_the_emulated_graphs_ends_as_the_eager_fit(monkeypatch, sc
     # then samples a slightly different mesh, so the surfels are compared by what they render)
     assert abs(emulated.report["psnr"] - eager.report["psnr"]) < 0.2, (emulated.report["psnr"], eager.report["psnr"])
     print("held-out PSNR", emulated.report["psnr"], eager.report["psnr"], "captures", g.captures, "renders", g.calls)
+
+
+def test_replays_that_overflow_are_rendered_again_eagerly(monkeypatch):
+    """With graphs sorting for too few pairs every replay flags an overflow, and the loop renders that view again
+    eagerly with the exact count: the fit ends as the eager one does."""
+    eager = _fit("bunny")
+    graphs = []
+    init_graphs = RG.RasterGraphs.__init__
+
+    def graphs_init(self, background, config, *, make=None):
+        init_graphs(self, background, config, make=static_buffers)
+        graphs.append(self)
+
+    monkeypatch.setattr(RG.RasterGraphs, "__init__", graphs_init)
+    monkeypatch.setattr(RG, "_pairs", lambda capacity, limit: 64)
+    overflowed = _fit("bunny")
+    g = graphs[0]
+    assert g.failure is None and g.calls > 50 and g.captures >= 1
+    assert overflowed.report["iterations"] == eager.report["iterations"]
+    assert abs(overflowed.report["psnr"] - eager.report["psnr"]) < 1e-3, (overflowed.report["psnr"],
+                                                                          eager.report["psnr"])
