@@ -16,11 +16,12 @@ the host, and the eager update's ~25 multi-tensor operations cost about a millis
 
 from __future__ import annotations
 
-import gc
 import math
 import warnings
 
 import torch
+
+from ._graphs import collector_off
 
 __all__ = ["Adam", "GRAPHS"]
 
@@ -255,18 +256,12 @@ class _StepGraph:
         graph = torch.cuda.CUDAGraph()
         side = torch.cuda.Stream(dev)
         side.wait_stream(torch.cuda.current_stream(dev))
-        collect = gc.isenabled()
-        gc.disable()  # a collection inside the capture could free a Warp array, a CUDA call that would invalidate it
-        try:
-            with torch.cuda.device(dev), torch.cuda.stream(side):
-                graph.capture_begin()
-                try:
-                    self.flag = self._body()
-                finally:
-                    graph.capture_end()
-        finally:
-            if collect:
-                gc.enable()
+        with collector_off(), torch.cuda.device(dev), torch.cuda.stream(side):
+            graph.capture_begin()
+            try:
+                self.flag = self._body()
+            finally:
+                graph.capture_end()
         torch.cuda.current_stream(dev).wait_stream(side)
         self.graph = graph
 

@@ -12,9 +12,9 @@ drawn eagerly and enter the graph as inputs. The scale and mesh terms stay eager
 or on the proxy mesh.
 
 A capture that fails, or whose first replay differs from the eager terms, leaves that set of terms eager for the
-rest of the fit (:attr:`PixelTerms.failures` says why). On the CPU the terms always run eagerly. Captures run under
-:func:`wtopo._validate.trusted_values` (a value check's host read would invalidate them), and each set's inputs
-require gradients exactly where its terms differentiate them (the capture differentiates every such input).
+rest of the fit (:attr:`PixelTerms.failures` says why). On the CPU the terms always run eagerly. Captures
+(``_graphs.make_graphed``) run with the fit's values trusted and the collector off, and each set's inputs require
+gradients exactly where its terms differentiate them (the capture differentiates every such input).
 Limitation: a capture the device invalidates part-way can leave torch's CUDA random generator unusable in the
 process (on the H200 the lab's capture of all four terms and the fit's of the photometric term succeeded).
 """
@@ -26,9 +26,9 @@ import warnings
 
 import torch
 
-from .._validate import trusted_values
 from ..depth_normals import depth_normals
 from ..multiview_ncc import ReferenceWindows
+from ._graphs import make_graphed
 from .losses import distortion, mask_loss, normal_consistency, photometric
 from .multiview import Windows, ncc_loss
 
@@ -175,24 +175,15 @@ class PixelTerms:
         if fn is None:
             if len(self._graphs) >= _GRAPHS_KEPT:  # views of many sizes: the oldest set's graphs go
                 self._graphs.pop(next(iter(self._graphs)))
-            # the fit's own values (its guards check them): the ops' value checks read the device, which a capture
-            # cannot hold (it would be invalidated)
-            with trusted_values():
-                fn = self._graphs[key] = self._capture(ts, key, args)
+            fn = self._graphs[key] = self._capture(ts, key, args)
         return fn(*args)
 
     def _capture(self, ts: TermSet, key, args):
         """A graphed version of the terms for ``key``, checked against the eager terms on ``args``; the eager
         function when capturing fails or disagrees."""
         eager = _terms_fn(ts)
-        samples = tuple(a.detach().clone().requires_grad_(a.requires_grad) for a in args)
         try:
-            with warnings.catch_warnings():
-                # seen once per process on the H200 when the first set was captured: the warm-up differentiates the
-                # sample copies (leaves made on the default stream) on torch's side stream; the fit's inputs are no
-                # leaves, so nothing of it recurs
-                warnings.filterwarnings("ignore", message="The AccumulateGrad node's stream does not match")
-                graphed = (self._make or torch.cuda.make_graphed_callables)(eager, samples, num_warmup_iters=3)
+            graphed = make_graphed(eager, args, warmup=3, make=self._make)
             with torch.no_grad():
                 want = eager(*args)
             got = graphed(*(a.detach() for a in args)).detach()

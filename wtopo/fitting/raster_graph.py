@@ -27,7 +27,6 @@ and under ``runtime.profile`` (whose sections synchronise, which a capture canno
 from __future__ import annotations
 
 import contextlib
-import gc
 import math
 import warnings
 
@@ -37,6 +36,7 @@ from .. import _bridge
 from .._validate import trusted_values
 from ..rasterize import RasterConfig, RenderOutput, _binning
 from ..rasterize._graphable import Size, render_tensors, view_inputs
+from ._graphs import make_graphed
 from .surfels import Surfels
 
 __all__ = ["RasterGraphs", "GRAPHS"]
@@ -141,22 +141,13 @@ class RasterGraphs:
         ``None`` (graphs off) when the capture raises or disagrees. The oldest graphs go first (their memory)."""
         while len(self._graphs) >= _KEPT:
             self._graphs.pop(next(iter(self._graphs)))
-        make = self._make or torch.cuda.make_graphed_callables
-        samples = tuple(a.detach().clone().requires_grad_(a.requires_grad) for a in args)
-        collect = gc.isenabled()
-        gc.disable()  # a collection inside a capture could free a Warp array: a CUDA call that invalidates it
         try:
-            with trusted_values(), warnings.catch_warnings():
-                # the warm-up differentiates the samples (leaves made on the default stream) on torch's side stream
-                warnings.filterwarnings("ignore", message="The AccumulateGrad node's stream does not match")
-                graphed = make(fn, samples, num_warmup_iters=_WARMUP)
+            graphed = make_graphed(fn, args, warmup=_WARMUP, make=self._make)
+            with trusted_values():
                 _check(graphed, fn, args)
         except Exception as e:  # noqa: BLE001 - any failure leaves the renders eager
             self._off(f"{type(e).__name__}: {e}")
             return None
-        finally:
-            if collect:
-                gc.enable()
         self._graphs[key] = graphed
         self.captures += 1
         return graphed
