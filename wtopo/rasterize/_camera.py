@@ -75,26 +75,24 @@ def _build_camera_tables(camera: Camera, device, dtype, tile_size: int):
     return dirs, _table_views(packed, camera.width, camera.height, tile_size), packed
 
 
-def _depth_row(camera: Camera, device, dtype) -> torch.Tensor:
-    """Third row of the world-to-camera rotation [3] on the device (cached on the camera: no copy per call)."""
-    return camera.cached(("wtopo.rasterize.depth_row", str(device), dtype),
-                         lambda: torch.as_tensor(camera.R[2], dtype=dtype, device=device))
-
-
 def _depth_row4(camera: Camera, device, dtype) -> torch.Tensor:
-    """:func:`_depth_row` and the translation's z [4] (op dtype, cached): a centre's z-depth is
-    ``means @ row[:3] + row[3]``, the camera as data (a CUDA graph's input)."""
+    """Third row of the world-to-camera rotation and the translation's z [4] (op dtype, on the device, cached on the
+    camera: no copy per call): a centre's z-depth is ``means @ row[:3] + row[3]``."""
     return camera.cached(("wtopo.rasterize.depth_row4", str(device), dtype),
                          lambda: torch.as_tensor([*camera.R[2], camera.t[2]], dtype=dtype, device=device))
 
 
-def _record_base(camera: Camera, device, dtype, filter_sigma: float) -> tuple[torch.Tensor, int]:
-    """The view's :class:`wtopo.kernels.rasterize.CameraRecord` as bytes on ``device`` (uint8 tensor, its clip
-    planes zero) and the byte offset of its ``near`` field (``far`` follows): made once per camera, device, dtype
-    and filter (cached on the camera: one host-to-device copy per view)."""
+def _record_type(dtype):
+    """The :class:`wtopo.kernels.rasterize.CameraRecord` struct of the op dtype."""
+    return _k.CAMERA[wp.float64 if dtype == torch.float64 else wp.float32]
+
+
+def _record_base(camera: Camera, device, dtype, filter_sigma: float) -> torch.Tensor:
+    """The view's camera record as bytes on ``device`` (uint8 tensor, its clip planes zero): made once per camera,
+    device, dtype and filter (cached on the camera: one host-to-device copy per view)."""
 
     def build():
-        rec = _k.CAMERA[wp.float64 if dtype == torch.float64 else wp.float32]()
+        rec = _record_type(dtype)()
         fx, skew, cx = (float(v) for v in camera.K[0])
         dist = camera.distortion if camera.distortion is not None else np.zeros(5)
         rec.R = type(rec.R)(*(float(v) for v in camera.R.reshape(-1)))
@@ -105,8 +103,8 @@ def _record_base(camera: Camera, device, dtype, filter_sigma: float) -> tuple[to
         rec.filter_inv_sq = 1.0 / float(filter_sigma) ** 2
         rec.width, rec.height = int(camera.width), int(camera.height)
         c = rec.__ctype__()
-        raw = bytearray(ctypes.string_at(ctypes.addressof(c), ctypes.sizeof(c)))
-        return torch.frombuffer(raw, dtype=torch.uint8).to(device), type(c).near.offset
+        return torch.frombuffer(bytearray(ctypes.string_at(ctypes.addressof(c), ctypes.sizeof(c))),
+                                dtype=torch.uint8).to(device)
 
     return camera.cached(("wtopo.rasterize.record", str(device), dtype, float(filter_sigma)), build)
 
@@ -119,16 +117,17 @@ def _camera_record(camera: Camera, clip: torch.Tensor, dtype, filter_sigma: floa
     Values are computed in float64 on the host and rounded once to the op dtype (once per view); ``clip``
     ([near, far] float64 [2] on the device) is written into the copy on the device, no host synchronisation.
     """
-    base, off = _record_base(camera, clip.device, dtype, filter_sigma)
-    return _record_from_base(base, off, clip, dtype)
+    return _record_from_base(_record_base(camera, clip.device, dtype, filter_sigma), clip, dtype)
 
 
-def _record_from_base(base: torch.Tensor, off: int, clip: torch.Tensor, dtype) -> wp.array:
-    """A copy of a :func:`_record_base` with ``clip`` written at byte ``off``, as the kernels' ``cams``."""
+def _record_from_base(base: torch.Tensor, clip: torch.Tensor, dtype) -> wp.array:
+    """A copy of a :func:`_record_base` with ``clip`` written into its ``near`` and ``far`` fields (adjacent), as
+    the kernels' ``cams``."""
+    rec_type = _record_type(dtype)
     blob = base.clone()
-    size = 8 if dtype == torch.float64 else 4
-    blob[off:off + 2 * size].view(dtype).copy_(clip)
-    return _bridge.struct_view(blob, _k.CAMERA[wp.float64 if dtype == torch.float64 else wp.float32])
+    off = rec_type.ctype.near.offset
+    blob[off:off + 2 * dtype.itemsize].view(dtype).copy_(clip)
+    return _bridge.struct_view(blob, rec_type)
 
 
 def _centre_depths(means: torch.Tensor, camera: Camera) -> torch.Tensor:
@@ -146,7 +145,8 @@ def _centre_depths(means: torch.Tensor, camera: Camera) -> torch.Tensor:
         z += m[:, 2] * r[2]
         z += m.dtype.type(camera.t[2])
         return torch.from_numpy(z)
-    return means.detach() @ _depth_row(camera, means.device, means.dtype) + float(camera.t[2])
+    row = _depth_row4(camera, means.device, means.dtype)
+    return means.detach() @ row[:3] + row[3]
 
 
 def _default_clip(means: torch.Tensor, camera: Camera, near, far, config: RasterConfig):
@@ -184,15 +184,12 @@ def _default_clip_device(means: torch.Tensor, camera: Camera, config: RasterConf
     """
     if means.shape[0] == 0:
         return _clip_from_host(config.near_fraction, config.far_multiple, means.device)
-    return _clip_of_depths(_centre_depths(means, camera), config)
+    return _clip_from_row(means, _depth_row4(camera, means.device, means.dtype), config)
 
 
 def _clip_from_row(means: torch.Tensor, row4: torch.Tensor, config: RasterConfig) -> torch.Tensor:
-    """:func:`_default_clip_device` with the camera as data (:func:`_depth_row4`; the same values), for N > 0."""
-    return _clip_of_depths(means.detach() @ row4[:3] + row4[3], config)
-
-
-def _clip_of_depths(z: torch.Tensor, config: RasterConfig) -> torch.Tensor:
+    """:func:`_default_clip_device` of N > 0 surfels with the camera as data (:func:`_depth_row4`)."""
+    z = means.detach() @ row4[:3] + row4[3]
     pos = z > 0
     k = pos.sum()
     zs = torch.where(pos, z, torch.full_like(z, math.inf)).sort().values

@@ -14,11 +14,9 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-import warp as wp
 
 from .. import _bridge
 from ..camera import Camera
-from ..kernels import rasterize as _k
 from ._binning import _bin
 from ._camera import (
     _camera_tables,
@@ -39,18 +37,13 @@ class Size(NamedTuple):
     height: int
 
 
-def record_offset(dtype: torch.dtype) -> int:
-    """Byte offset of the clip planes in a camera record of the op dtype."""
-    return _k.CAMERA[wp.float64 if dtype == torch.float64 else wp.float32].ctype.near.offset
-
-
 def view_inputs(camera: Camera, device: torch.device, dtype: torch.dtype,
                 config: RasterConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(rays [H, W, 3], packed tables float64 [T], depth row [4], record bytes uint8 [B])`` of ``camera`` on
     ``device`` for :func:`render_tensors` (cached on the camera; nothing is copied per call)."""
     rays, _ = _camera_tables(camera, device, dtype, config.tile_size)
-    base, _ = _record_base(camera, device, dtype, config.filter_sigma)
-    return rays, _packed_tables(camera, device, dtype, config.tile_size), _depth_row4(camera, device, dtype), base
+    return (rays, _packed_tables(camera, device, dtype, config.tile_size), _depth_row4(camera, device, dtype),
+            _record_base(camera, device, dtype, config.filter_sigma))
 
 
 def render_tensors(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
@@ -90,7 +83,7 @@ def render_tensors(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tenso
     wdev = _bridge.warp_device(device)
     with _bridge.registered_capture(device):  # Warp's sorts take their scratch inside a graph being captured
         clip = _clip_from_row(means, row4, config)
-        cam_rec = _record_from_base(record, record_offset(dtype), clip, dtype)
+        cam_rec = _record_from_base(record, clip, dtype)
         views = _table_views(tables, size.width, size.height, config.tile_size)
         with _bridge.torch_stream(wdev, device):
             bins = _bin(means, quats, scales, opacities, cam_rec, views, size, config, wdev, pairs=pairs)
