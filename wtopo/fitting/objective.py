@@ -113,11 +113,10 @@ class Objective:
             mv_on = (mv is not None and mv.has_neighbours(vi)
                      and (late or it >= stage_iteration(_MULTIVIEW_START, self.warmup_end)))
             windows = mv.draw(it, vi, out.alpha.device) if mv_on else None
+            mv_terms = {} if windows is None else {"multiview": lc.multiview, "sources": len(windows.images),
+                                                   "half": windows.half}
             ts = TermSet(_DSSIM, mask=self.mask_weight if masked else 0.0, normal=lc.normal if normal_on else 0.0,
-                         distortion=lc.distortion if dist_on else 0.0,
-                         multiview=lc.multiview if windows is not None else 0.0,
-                         sources=len(windows.images) if windows is not None else 0,
-                         half=windows.half if windows is not None else 0)
+                         distortion=lc.distortion if dist_on else 0.0, **mv_terms)
             values = self.pixel_terms(ts, out, img, self.train.masks[vi] if masked else None,
                                       cam.pixel_rays(out.alpha.device) if ts.normal > 0 else None, windows)
             L.update(zip(ts.names, values.unbind()))
