@@ -80,10 +80,15 @@ def ncc_loss(depth: torch.Tensor, normal: torch.Tensor, alpha: torch.Tensor, w: 
     """The term's value for the windows ``w`` of a rendered view: the mean best ``1 - NCC`` of the windows that
     count and correlate (a scalar; 0 when none does), differentiable in ``depth`` [H, W] and ``normal``
     [H, W, 3]; ``alpha`` [H, W] by value. No host synchronisation (the fit replays it in a CUDA graph)."""
-    best, ok = window_ncc_costs(depth, normal, alpha, w.py, w.px, w.reference, w.images, w.params, half=w.half,
-                                min_std=_MIN_STD, grazing=_GRAZING, alpha_min=_ALPHA_COVERED, eps=_NCC_EPS)
+    best, ok = _window_costs(depth, normal, alpha, w)
     keep = ok * (best.detach() < _MAX_COST)
     return (best * keep).sum() / keep.sum().clamp_min(1.0)
+
+
+def _window_costs(depth, normal, alpha, w: Windows) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`window_ncc_costs` of the windows ``w`` with the term's thresholds: ``(cost [P], ok [P])``."""
+    return window_ncc_costs(depth, normal, alpha, w.py, w.px, w.reference, w.images, w.params, half=w.half,
+                            min_std=_MIN_STD, grazing=_GRAZING, alpha_min=_ALPHA_COVERED, eps=_NCC_EPS)
 
 
 class MultiViewNCC:
@@ -198,9 +203,8 @@ class MultiViewNCC:
         grazing, textured, ``alpha`` [H, W] at least one half): ``(cost [P], ok [P] 0/1)``. A neighbour that
         does not see a window scores 2; a window that does not count is not scored (2, no gradient)."""
         images, params = self._sources(vi, pick, depth.device)
-        return window_ncc_costs(depth, normal, alpha, py, px, self._view_stats(vi, depth.device), images, params,
-                                half=self.half, min_std=_MIN_STD, grazing=_GRAZING, alpha_min=_ALPHA_COVERED,
-                                eps=_NCC_EPS)
+        return _window_costs(depth, normal, alpha,
+                             Windows(py, px, self._view_stats(vi, depth.device), tuple(images), params, self.half))
 
     @torch.no_grad()
     def prefers(self, it: int, vi: int, depth_a: torch.Tensor, normal_a: torch.Tensor, depth_b: torch.Tensor,
