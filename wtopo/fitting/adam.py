@@ -219,11 +219,6 @@ def _update(items: list) -> torch.Tensor:
     return torch.isfinite(torch.stack(torch._foreach_norm([it[0].detach() for it in items]))).all() & finite
 
 
-def _rates(items: list) -> list[list[float]]:
-    """Per bucket of :func:`_buckets`, its parameters' ``[[-step size, ...], [root correction, ...]]``."""
-    return [[[-it[5] for it in group], [it[6] for it in group]] for group in _buckets(items).values()]
-
-
 def _buckets(items: list) -> dict[tuple, list]:
     buckets: dict[tuple, list] = {}
     for it in items:
@@ -242,9 +237,11 @@ class _StepGraph:
         self.grads = [torch.empty_like(it[0]) for it in items]
         index = {id(it): k for k, it in enumerate(items)}
         self.buckets = []
+        self.members = []  # per bucket, its items' positions in ``items`` (the order of its rates)
         for (b1, b2, eps, dtype), group in _buckets(items).items():
             rates = torch.ones(2, len(group), dtype=dtype, device=dev)
-            self.buckets.append(([it[0] for it in group], [self.grads[index[id(it)]] for it in group],
+            self.members.append([index[id(it)] for it in group])
+            self.buckets.append(([it[0] for it in group], [self.grads[k] for k in self.members[-1]],
                                  [it[1]["exp_avg"] for it in group], [it[1]["exp_avg_sq"] for it in group],
                                  b1, b2, eps, rates))
         self.params = [it[0] for it in items]
@@ -285,7 +282,8 @@ class _StepGraph:
         torch._foreach_copy_(self.grads, [it[0].grad for it in items])
         for it, g in zip(items, self.grads):
             it[0].grad = g
-        for bucket, r in zip(self.buckets, _rates(items)):
+        for bucket, members in zip(self.buckets, self.members):
+            r = [[-items[k][5] for k in members], [items[k][6] for k in members]]  # -step size, root correction
             # pinned: the copy does not wait for the device, and torch's host allocator keeps the block until it ran
             bucket[-1].copy_(torch.tensor(r, dtype=bucket[-1].dtype, pin_memory=self.pinned), non_blocking=True)
         if self.graph is None:
