@@ -1,6 +1,7 @@
 # Sourced by the lease scripts (f_all.sh, g_all.sh, f_score.sh): the stage folder, the harness's device script and
 # the environment the peers' runs need (site-packages, shims, unbuffered logs, the staged libGL).
 #   lease_install            usd-core, then device.sh install (Warp, Open3D, wheels, wtopo)
+#   lease_dtu                install once, export DTU scan24 from .stage/dtu_raw once
 #   lease_prepare SCENE...   export each scene (a name of export.py; dtu_scan24 from .stage/dtu_raw) in the
 #                            background while gsplat's JIT build runs, then wait for both
 S=/root/peers
@@ -14,6 +15,13 @@ lease_install() {
   STAGE=$S bash $D install 2>&1 | tail -3 || return 1
   [ -d "$S/gl/root" ] && export LD_LIBRARY_PATH=$S/gl/root/usr/lib/x86_64-linux-gnu
   return 0
+}
+
+lease_dtu() {
+  # install once per machine, export DTU from .stage/dtu_raw once (the t_, u_ and v_ steps)
+  [ -f $S/t_installed ] || { lease_install || return 1; touch $S/t_installed; }
+  [ -f $S/exch/dtu_scan24/meta.json ] || python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 \
+    $S/exch/dtu_scan24 --name dtu_scan24 > $S/exch_dtu.log 2>&1
 }
 
 lease_prepare() {

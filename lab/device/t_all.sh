@@ -4,12 +4,10 @@
 # at 100k surfels, 800 px), for each of RUNS (default "new base").
 source lab/device/lease_env.sh
 t0=$(date +%s)
-[ -f $S/t_installed ] || { lease_install || exit 1; touch $S/t_installed; }
+lease_dtu || exit 1
 [ -d $S/base_site/wtopo ] || python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-cache-dir \
   --target $S/base_site .stage/base > $S/base_install.log 2>&1 || { tail -5 $S/base_install.log; exit 1; }
 mkdir -p $OUT/t
-[ -f $S/exch/dtu_scan24/meta.json ] || python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 $S/exch/dtu_scan24 \
-  --name dtu_scan24 > $S/exch_dtu.log 2>&1
 tail -n 1 $S/exch_dtu.log
 echo "installed and exported after $(( $(date +%s) - t0 )) s"
 R=$PWD

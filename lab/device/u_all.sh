@@ -3,10 +3,8 @@
 # its end with lab/device/t_loop.py's windows (--full: wall per iteration, kernels, host profile; PSNR, time).
 source lab/device/lease_env.sh
 t0=$(date +%s)
-[ -f $S/t_installed ] || { lease_install || exit 1; touch $S/t_installed; }
+lease_dtu || exit 1
 mkdir -p $OUT/u
-[ -f $S/exch/dtu_scan24/meta.json ] || python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 $S/exch/dtu_scan24 \
-  --name dtu_scan24 > $S/exch_dtu.log 2>&1
 echo "installed and exported after $(( $(date +%s) - t0 )) s"
 R=$PWD
 (cd /tmp && timeout 150 python3 -m pytest -q -p no:cacheprovider $R/tests/test_pixel_terms.py $R/tests/test_bridge.py \

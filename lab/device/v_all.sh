@@ -9,10 +9,8 @@
 # 700 px, graphed and eager; "base": f9f59e3's plain fit).
 source lab/device/lease_env.sh
 t0=$(date +%s)
-[ -f $S/t_installed ] || { lease_install || exit 1; touch $S/t_installed; }
+lease_dtu || exit 1
 mkdir -p $OUT/v
-[ -f $S/exch/dtu_scan24/meta.json ] || python3 benchmarks/peers/export.py .stage/dtu_raw/dtu_scan24 $S/exch/dtu_scan24 \
-  --name dtu_scan24 > $S/exch_dtu.log 2>&1
 echo "installed and exported after $(( $(date +%s) - t0 )) s"
 R=$PWD
 summary() { python3 - "$1" <<'PY'
