@@ -73,6 +73,7 @@ def render_backward_kernel(
     summed over the warp before one atomic add (:func:`warp_add_vec`); without it (CPU) each pixel
     walks from its own ``last`` and adds its own terms. Same per-pixel arithmetic either way.
     """
+    cam = cams[0]
     tile, px, py = pixel_tile_coords(wp.tid() + offset, tile_size, tiles_x)
     # pixels past the image edge (partial tiles) still walk with their warp, contributing nothing
     inside = px < t_final.shape[1] and py < t_final.shape[0]
@@ -86,9 +87,9 @@ def render_backward_kernel(
     f_ref = d[0]
     zero = type(f_ref)(0.0)
     one = type(f_ref)(1.0)
-    near = cams[0].near
-    far = cams[0].far
-    fis = cams[0].filter_inv_sq
+    near = cam.near
+    far = cam.far
+    fis = cam.filter_inv_sq
     pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
     T = t_final[py, px]
     acc = one - T
@@ -109,10 +110,10 @@ def render_backward_kernel(
     g_m2 = gdist * acc
     rg = T * wp.dot(gc, background[0])
     # camera rotation rows and inverse intrinsics for the screen-shift gradient
-    fx = cams[0].fx
-    fy = cams[0].fy
-    sk = cams[0].skew
-    R = cams[0].R
+    fx = cam.fx
+    fy = cam.fy
+    sk = cam.skew
+    R = cam.R
     z3 = wp.vector(zero, zero, zero)
     z2 = wp.vector(zero, zero)
     lane = lane_id(coop)
