@@ -206,11 +206,13 @@ def _terms(run, outs, mrs, repeats: int) -> None:
         "mask": lambda o, v: L.mask_loss(o.alpha, train.masks[v].to(o.alpha.dtype)),
         "normal": normal,
         "distortion": lambda o, v: L.distortion(o.distortion),
-        f"multiview ({mv_count} px)": lambda o, v: mv(it, v, o.median_depth, o.normal, o.alpha),
-        f"multiview ({mv_count} px, torch ops)": lambda o, v: torch_loss(mv, it, v, o.median_depth, o.normal, o.alpha),
         "scale": lambda o, v: L.scale_regularizer(s.scales, O._MAX_ANISOTROPY),
         "mesh depth + normal": mesh_terms,
     }
+    if all(mv.has_neighbours(v) for v in views):  # a capture too sparse for neighbours has no multi-view term
+        terms[f"multiview ({mv_count} px)"] = lambda o, v: mv(it, v, o.median_depth, o.normal, o.alpha)
+        terms[f"multiview ({mv_count} px, torch ops)"] = lambda o, v: torch_loss(mv, it, v, o.median_depth, o.normal,
+                                                                                o.alpha)
     fwd, both = {}, {}
     for name, f in terms.items():
         def go(backward, f=f):
@@ -227,6 +229,8 @@ def _terms(run, outs, mrs, repeats: int) -> None:
     mv_name = f"multiview ({mv_count} px)"
     pairs = (("photo", "photo (torch L1 + SSIM)"), (mv_name, f"{mv_name[:-1]}, torch ops)"))
     for new, old in pairs:
+        if new not in fwd:
+            continue
         print(f"  {new} vs {old}: {fwd[old] / fwd[new]:.2f}x faster forward, {both[old] / both[new]:.2f}x fwd+bwd")
 
 

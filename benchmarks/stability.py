@@ -27,8 +27,9 @@ from pathlib import Path
 import torch
 
 HERE = Path(__file__).resolve().parent
-from _from_tests import load  # noqa: E402  (beside this script)
+from _from_tests import TESTS, load, load_file  # noqa: E402  (beside this script)
 
+load_file(TESTS / "fit_configs.py", "fit_configs")  # what test_stability.py imports from beside it
 CASES = load("test_stability.py").CASES  # the case builders and their expected outcomes
 
 __all__ = ["Outcome", "run_case", "markdown_table", "coverage_table", "main"]
