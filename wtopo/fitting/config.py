@@ -130,7 +130,8 @@ class TSDFConfig:
 
 @dataclass(kw_only=True)
 class CoevolutionConfig:
-    """Stage 4: surfels and proxy mesh co-evolve; the proxy is rebuilt and the mesh losses applied every iteration."""
+    """Stage 4: surfels and proxy mesh co-evolve; the proxy is rebuilt and the mesh losses applied every iteration
+    (every second one on the CPU at the ``fast`` and ``balanced`` presets)."""
 
     iterations: int | None = _f(None, COUNT)
     """Iterations; ``None``: the plan's budget (:func:`wtopo.fitting.plan.iteration_budget`)."""
@@ -192,7 +193,7 @@ class RuntimeConfig:
     profile: bool = False
     """Print and report the time per stage; on CUDA every timed section then synchronises the device."""
     image_scale: float | None = _f(None, Range(0.0, 1.0, lo_open=True))
-    """Train on images resized by this factor; ``None``: the plan's (longest side capped per device)."""
+    """Train on images resized by this factor; ``None``: the plan's (longest side capped per preset and device)."""
     stop_at: int | None = _f(None, COUNT)
     """Stop as if interrupted at this global iteration (time-boxed runs); resume with it cleared."""
     start_from: str | None = field(default=None, metadata={"pattern": r".+"})
@@ -245,7 +246,7 @@ class FitConfig:
     background: tuple[float, float, float] | None = _f(None, FRACTION)
     """RGB background colour behind the surfels, in [0, 1]; ``None``: the scene's, else black."""
     filter_sigma: float | None = _f(None, Range(*FILTER_SIGMA_RANGE))
-    """Screen-space low-pass of the surfel renderer [pixels] (:class:`wtopo.RasterConfig`); ``None``: the plan's
+    """Screen-space low-pass of the surfel renderer [pixels] (:class:`wtopo.ops.RasterConfig`); ``None``: the plan's
     (0.25 on CUDA, 0.35 on the CPU; 2DGS's is 0.71). Render fitted surfels with the plan's value
     (``FitResult.plan.filter_sigma``)."""
 

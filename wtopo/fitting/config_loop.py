@@ -56,7 +56,8 @@ class MeshConfig:
     """The differentiable proxy mesh (oriented points -> Poisson -> marching cubes)."""
 
     resolution: int | None = _f(None, Range(_GRID_MIN, _POISSON_MAX))
-    """Poisson grid nodes per side; ``None``: the plan's (CPU 64; CUDA 128-256 from the pixel footprint)."""
+    """Poisson grid nodes per side; ``None``: the plan's (CPU 64, 48 at ``fast``; CUDA 128-256, 128-192 at
+    ``fast``, from the pixel footprint)."""
     sigma: float = _f(1.0, RATE)
     """Spectral smoothing of the Poisson solve [grid cells] (0: none)."""
     samples_per_surfel: int = _f(5, (1, 5))
