@@ -7,7 +7,8 @@ from wtopo.fitting import FitConfig
 
 
 def small_fit_config(warmup: int, coevolution: int, *, points: int, grids: tuple[int, int, int],
-                     max_faces: int, density_every: int, eval_every: int, checkpoint_every: int = 0) -> FitConfig:
+                     max_faces: int, density_every: int, eval_every: int, checkpoint_every: int = 0,
+                     polish: int = 0) -> FitConfig:
     """A short CPU-sized fit: no opacity reset, no USD timeline, no progress bars.
 
     Args:
@@ -19,6 +20,7 @@ def small_fit_config(warmup: int, coevolution: int, *, points: int, grids: tuple
         density_every: ``densify.interval``, a cadence in iterations (3DGS's 100 is too slow here).
         eval_every: iterations between history records (0: only at stage ends).
         checkpoint_every: iterations between checkpoints (0: none on a cadence).
+        polish: iterations after the final mesh (0: none; tests/test_polish.py tests the stage).
     """
     cfg = FitConfig()
     cfg.warmup.iterations, cfg.coevolution.iterations = warmup, coevolution
@@ -31,6 +33,7 @@ def small_fit_config(warmup: int, coevolution: int, *, points: int, grids: tuple
     # sphere reads a thin share of 0.58) that the thin-part rule would turn them off for; test_thin_parts.py
     # tests the rule itself
     cfg.losses.mesh_thin_limit = 1.0
+    cfg.polish.iterations = polish
     cfg.runtime.eval_every = eval_every
     cfg.runtime.usd_every = 0
     cfg.runtime.checkpoint_every = checkpoint_every

@@ -100,6 +100,7 @@ def test_the_plan_is_typed_frozen_and_the_resolved_config_carries_its_decisions(
              "reinit_resolution": r.tsdf.resolution,
              "proxy_resolution": r.mesh.resolution, "final_resolution": r.final.resolution,
              "tsdf_reinit": r.tsdf.enabled, "mesh_loop": r.coevolution.enabled,
+             "polish_iterations": r.polish.iterations,
              "proxy_level_sigma": r.mesh.level_sigma, "proxy_clip": r.mesh.clip_to_region, "preset": r.preset,
              "densify_interval": r.densify.interval, "filter_sigma": r.filter_sigma}
     for name, value in pairs.items():

@@ -122,6 +122,8 @@ BAD = [
     ("optim.means_decay_iterations", 0, ValueError),
     ("optim.means_decay_iterations", 2.5, TypeError),
     ("coevolution.enabled", "yes", TypeError),
+    ("polish.iterations", -1, ValueError),
+    ("polish.iterations", 2.5, TypeError),
     ("final.resolution", 7, ValueError),
     ("final.watertight", None, TypeError),
     ("densify.enabled", "auto", TypeError),

@@ -58,6 +58,7 @@ from .config import (
     NormalFlip,
     OptimConfig,
     PoissonBox,
+    PolishConfig,
     Preset,
     RemovedFieldError,
     RuntimeConfig,
@@ -75,7 +76,7 @@ from .validate_config import validate_config
 
 __all__ = [
     "fit", "FitResult", "FitConfig", "FitAborted", "Plan", "Surfels", "InitConfig", "OptimConfig", "WarmupConfig",
-    "TSDFConfig", "CoevolutionConfig", "FinalConfig", "DensifyConfig", "LossConfig", "MeshConfig",
+    "TSDFConfig", "CoevolutionConfig", "PolishConfig", "FinalConfig", "DensifyConfig", "LossConfig", "MeshConfig",
     "RuntimeConfig", "NormalFlip", "DepthLoss", "InitSource", "PoissonBox", "Preset",
     "SceneKind", "RemovedFieldError",
     # for the code that drives fits (wtopo.chunks, the CLI)

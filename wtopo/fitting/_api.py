@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -16,7 +17,7 @@ from ..geometry.components import face_components
 from ..geometry.winding import is_closed
 from ..io._common import atomic_write
 from .checkpoint import versions
-from .config import FitConfig
+from .config import FitConfig, PolishConfig
 from .evaluate import geometry_metrics
 from .loop import FitRun
 from .plan import Plan
@@ -94,9 +95,14 @@ def _report(run: FitRun, mesh_world: trimesh.Trimesh, scene) -> dict:
     rep["scene_kind"] = run.cfg.kind.value
     if run.cfg.runtime.profile:
         rep["profile"] = run.timers.profile(time.perf_counter() - run.t_start)
-    for k in ("psnr", "ssim", "psnr_on", "image_metrics_on", "chamfer", "f_score", "accuracy", "completeness"):
+    # the surfels' figures from the last evaluation (after the polish, when one ran), the mesh's from the final one
+    made = next((r for r in reversed(run.history) if r.get("stage") == "final"), final)
+    for k in ("psnr", "ssim", "psnr_on", "image_metrics_on"):
         if k in final:
             rep[k] = final[k]
+    for k in ("chamfer", "f_score", "accuracy", "completeness"):
+        if k in made:
+            rep[k] = made[k]
     if getattr(scene, "gt_mesh", None) is not None and len(mesh_world.faces):
         g = geometry_metrics(mesh_world, scene.gt_mesh, seed=run.cfg.runtime.seed)
         rep["chamfer_world"] = g["chamfer"]
@@ -204,7 +210,7 @@ def fit_surfels(scene, config: FitConfig, *, out_dir: str | os.PathLike, progres
     """:func:`fit` without its final mesh: the surfels are the result (a chunk of :mod:`wtopo.chunks` whose
     mesh the merge re-fuses from the merged surfels, ``ChunkConfig.merge = "refuse"``).
 
-    Every stage but the final meshing runs as in :func:`fit` (resumable from the same checkpoints);
+    Every stage but the final meshing and the polish runs as in :func:`fit` (resumable from the same checkpoints);
     ``result.mesh`` is empty and ``out_dir`` gets the same files (``mesh.ply`` empty).
 
     Args:
@@ -216,6 +222,8 @@ def fit_surfels(scene, config: FitConfig, *, out_dir: str | os.PathLike, progres
     Returns:
         :class:`FitResult` with an empty ``mesh``.
     """
+    # no polish: the merge fuses its mesh from these surfels, which the mesh loop is to have shaped last
+    config = dataclasses.replace(config, polish=PolishConfig(iterations=0))
     run = _NoFinalMesh(scene, config, out_dir, progress)
     mesh = run.run()
     result = FitResult(mesh=mesh, surfels=run.surfels, plan=run.plan, history=run.history)

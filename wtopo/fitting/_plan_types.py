@@ -85,6 +85,8 @@ class Plan:
     """The TSDF re-initialisation runs (not on a scene whose proxy-mesh loop is off); ``tsdf.enabled``."""
     mesh_loop: bool
     """The proxy-mesh loop runs in the co-evolution; ``coevolution.enabled``."""
+    polish_iterations: int
+    """Photometric iterations after the final mesh (the surfels and their renders); ``polish.iterations``."""
     proxy_level_sigma: float
     """The proxy's zero level (0: global; > 0: local, in Poisson cells); ``mesh.level_sigma``."""
     proxy_clip: bool
@@ -125,6 +127,9 @@ class Plan:
                              + self.reasons.get("tsdf_reinit", "")),
             ("co-evolution", co),
             ("final mesh", f"TSDF fusion at {self.final_resolution} voxels, {self.mesh_policy}"),
+            ("polish", f"{self.polish_iterations} iterations on the photographs alone: "
+                       f"{self.reasons.get('polish_iterations', '')}" if self.polish_iterations else
+                       f"skipped: {self.reasons.get('polish_iterations', '')}"),
         ]
         lines = [f"wtopo fit plan ({kind} on {self.device}): preset {Preset(self.preset).value}, about "
                  f"{_duration(self.expected_seconds)}", "  stages:"]

@@ -120,7 +120,7 @@ class DensityStrategy:
         signs are set before the first proxy build). Returns whether it ran."""
         co = self.cfg.coevolution
         every = max(1, stage_iteration(_CORRESPONDENCE_FRACTION, co.iterations))
-        if stage == Stage.WARMUP or (it - self.warmup_end) % every != 0:
+        if stage != Stage.COEVOLUTION or (it - self.warmup_end) % every != 0:
             return False
         with self.timers("guidance"):
             self._mesh_guidance(surfels, proxy)

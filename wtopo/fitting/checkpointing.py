@@ -23,7 +23,8 @@ __all__ = ["Checkpointer", "CheckpointedRun", "AFTER_WARMUP", "DECAY_HORIZON", "
 KEEP_CHECKPOINTS = 2  # checkpoints kept on disk: the newest, and one to fall back on if it is corrupt
 CHECKPOINT_SECONDS = 120.0  # also checkpoint when this much wall-clock time passed since the last one
 
-AFTER_WARMUP = ("coevolution.enabled", "final.", "mesh.", "losses.mesh_", "densify.geometry_", "optim.means_restart")
+AFTER_WARMUP = ("coevolution.enabled", "final.", "polish.", "mesh.", "losses.mesh_", "densify.geometry_",
+                "optim.means_restart")
 """Configuration fields (dotted paths, or prefixes ending in ``.`` or ``_``) that act only after the warm-up:
 two fits that differ only in these share their warm-up, so one may start from the other's
 (``runtime.start_from``). Of ``runtime`` only :data:`RUNTIME_COMPARED` is compared. ``coevolution.iterations``

@@ -42,6 +42,7 @@ __all__ = [
     "WarmupConfig",
     "TSDFConfig",
     "CoevolutionConfig",
+    "PolishConfig",
     "FinalConfig",
     "DensifyConfig",
     "LossConfig",
@@ -141,6 +142,17 @@ class CoevolutionConfig:
 
 
 @dataclass(kw_only=True)
+class PolishConfig:
+    """Stage 6, after the final mesh: the surfels train on the photographs alone (no mesh terms, no density control),
+    releasing them from the proxy's pull for ``surfels.ply`` and the held-out renders; the mesh is the one made
+    before it."""
+
+    iterations: int | None = _f(None, COUNT)
+    """Iterations; ``None``: the plan's (after a proxy-mesh loop the preset's share of the co-evolution's: none at
+    ``fast``, half at ``balanced``, as many at ``best``; none without a loop)."""
+
+
+@dataclass(kw_only=True)
 class FinalConfig:
     """Stage 5: the returned mesh, TSDF fusion of the rendered surfel depth of every training view."""
 
@@ -226,6 +238,8 @@ class FitConfig:
     """Stage 4."""
     final: FinalConfig = field(default_factory=FinalConfig)
     """Stage 5."""
+    polish: PolishConfig = field(default_factory=PolishConfig)
+    """Stage 6."""
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     """Density control."""
     losses: LossConfig = field(default_factory=LossConfig)

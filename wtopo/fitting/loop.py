@@ -17,10 +17,8 @@ import copy
 import dataclasses
 import math
 import time
-from collections import defaultdict
 from pathlib import Path
 
-import numpy as np
 import torch
 import trimesh
 
@@ -30,11 +28,11 @@ from ._final_mesh import final_mesh
 from ._init_surfels import INIT_OPACITY, MIN_MVS_POINTS, initial_surfels, stereo_points
 from ._progress import StageBar, StopRequest, frozen_heap
 from ._reinit import tsdf_reinit
+from ._run_state import restore_run_state, run_state
 from ._strategy import DensityStrategy, StepInfo
 from ._timeline import FitTimeline
 from .adam import Adam
 from .background import BackgroundState, background_surfels, contract_steps, prune_near_cameras
-from .checkpoint import rng_state, set_rng_state
 from .checkpointing import Checkpointer
 from .config import FitConfig, InitSource, config_hash
 from .evaluate import Evaluator
@@ -138,6 +136,7 @@ class FitRun:
         self.proxy: ProxyMesh = ProxyMesh(cfg.mesh, clip=region_clip(cfg.mesh, self.plan.layout))
         self.proxy_mesh: ProxyResult | None = None
         self.tsdf_info: dict = {}
+        self.made_mesh: trimesh.Trimesh | None = None  # the final mesh (internal frame) once made, before the polish
         self.coevolution_info: dict = {}  # the thin-part rule's measure and decision (thin_parts)
         self.status = "running"
         self.surfels: Surfels | None = None
@@ -171,6 +170,11 @@ class FitRun:
     def total_iterations(self) -> int:
         """Iterations of warm-up plus co-evolution."""
         return self.warmup_end + int(self.cfg.coevolution.iterations)
+
+    @property
+    def polish_end(self) -> int:
+        """Iteration at which the polish after the final mesh ends (``polish.iterations`` after the co-evolution)."""
+        return self.total_iterations + int(self.cfg.polish.iterations or 0)
 
     def elapsed(self) -> float:
         """Wall seconds of this fit, including those before the checkpoint it resumed from."""
@@ -241,44 +245,12 @@ class FitRun:
 
     # -- checkpoints (written and read by the Checkpointer) ------------------------------------------
     def checkpoint_state(self) -> dict:
-        """The stored dictionary: the last good surfels and optimiser, loop state, RNGs, config. Its keys stay
-        stable so that checkpoints of earlier runs resume."""
-        good = self.last_good
-        return {
-            "surfels": good[0] if good is not None else self.surfels.state_dict(),
-            "optimizer": good[1] if good is not None else self.opt.state_dict(),
-            "iteration": self.it, "tsdf_done": self.tsdf_done, "history": self.history, "events": self.events,
-            "gap": self.strategy.gap, "loss_sums": dict(self.loss_log.sums), "loss_count": self.loss_log.count,
-            "elapsed": self.elapsed(), "timers": dict(self.timers.total), "rng": rng_state(),
-            "generator": self.gen.get_state(), "config_hash": self.hash, "config": self.cfg.to_dict(),
-            "normalization": {"scale": self.sim.scale, "translation": list(self.sim.translation)},
-            "proxy": {"box": None if self.proxy.box is None else [np.asarray(b).tolist() for b in self.proxy.box],
-                      "prior": self.proxy.prior},
-            "tsdf_info": self.tsdf_info, "coevolution_info": self.coevolution_info,
-            "total_failures": self.total_failures,
-        }
+        """The stored dictionary (:func:`~._run_state.run_state`)."""
+        return run_state(self)
 
     def restore_checkpoint(self, st: dict) -> None:
         """Load a stored dictionary (:meth:`checkpoint_state`) into this fit."""
-        self.set_surfels(Surfels.from_state_dict(st["surfels"], self.device), st["optimizer"])
-        self.it = int(st["iteration"])
-        self.tsdf_done = bool(st["tsdf_done"])
-        self.history = list(st["history"])
-        self.events = list(st["events"])
-        self.strategy.gap = float(st["gap"])
-        self.loss_log.sums = defaultdict(float, st["loss_sums"])
-        self.loss_log.count = int(st["loss_count"])
-        self.elapsed_before = float(st["elapsed"])
-        self.timers.total = defaultdict(float, st["timers"])
-        self.total_failures = int(st["total_failures"])
-        self.tsdf_info = dict(st["tsdf_info"])
-        self.coevolution_info = dict(st.get("coevolution_info", {}))  # absent before the thin-part rule
-        set_rng_state(st["rng"])
-        self.gen.set_state(st["generator"])
-        px = st["proxy"]
-        box = None if px["box"] is None else tuple(np.asarray(b) for b in px["box"])
-        clip = region_clip(self.cfg.mesh, self.plan.layout)
-        self.proxy = ProxyMesh(self.cfg.mesh, box=box, prior=px["prior"], clip=clip)
+        restore_run_state(self, st)
 
     def _update_lr(self) -> None:
         """Set the means' rate for this iteration."""
@@ -484,14 +456,24 @@ class FitRun:
             if not self.stop.requested and not self.tsdf_done and self.cfg.tsdf.enabled:
                 self._tsdf_reinit()
                 self._evaluate(Stage.TSDF)
-            if not self.stop.requested and self.warmup_end < self.total_iterations and self.it >= self.warmup_end:
+            if not self.stop.requested and self.warmup_end <= self.it < self.total_iterations:
                 self._thin_parts()
                 self._iterate(Stage.COEVOLUTION, self.warmup_end, self.total_iterations)
-            self.status = "interrupted" if self.stop.requested else "completed"
-            if self.it > 0:
+            if self.made_mesh is None:  # a fit resumed within its polish has its mesh from the checkpoint
+                if self.it > 0:
+                    self.checkpoints.save()
+                mesh = self._final_mesh()
+                self._evaluate(Stage.FINAL, mesh=mesh)
+                self.made_mesh = mesh
+            if not self.stop.requested and self.total_iterations <= self.it < self.polish_end:
+                # the surfels on the photographs alone (the objective's mesh terms and the strategy act only in
+                # the co-evolution); the mesh above stays the result, the surfels and the held-out PSNR move
+                self.proxy_mesh = None
+                self._iterate(Stage.POLISH, self.total_iterations, self.polish_end)
+                if self.history[-1]["iteration"] != self.it:  # not evaluated at this iteration already
+                    self._evaluate(Stage.POLISH)
                 self.checkpoints.save()
-            mesh = self._final_mesh()
-            self._evaluate(Stage.FINAL, mesh=mesh)
+            self.status = "interrupted" if self.stop.requested else "completed"
             if self.timeline is not None:
-                self.timeline.close(mesh)
-        return mesh
+                self.timeline.close(self.made_mesh)
+        return self.made_mesh

@@ -218,11 +218,6 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
              f"{w}x{h} images; longest side capped at {b.max_side} px by the {preset.value} preset on {device.type}",
              cfg.runtime.image_scale)
     _budget(plan, scene, cfg, device, layout, float(plan["image_scale"]))
-    per_view = h * w * float(plan["image_scale"]) ** 2
-    n_it = int(plan["warmup_iterations"]) + int(plan["coevolution_iterations"])
-    plan.set("expected_seconds", round(_presets.expected_seconds(preset, device, n_it, per_view)),
-             f"{n_it} iterations of {per_view / 1e3:.0f}k-pixel views at the {preset.value} preset's measured cost on "
-             f"{'one H200' if device.type == 'cuda' else f'{torch.get_num_threads()} CPU threads'} (a planning figure)")
 
     # -- held-out views
     plan.set("eval_views", n_eval, eval_why)
@@ -236,6 +231,21 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     else:
         loop, why = True, "object: proxy mesh rebuilt and supervising the surfels"
     plan.set("mesh_loop", loop, why, cfg.coevolution.enabled)
+    coevo_it = int(plan["coevolution_iterations"])
+    if plan["mesh_loop"] and b.polish > 0:
+        polish, why = round(b.polish * coevo_it), (
+            f"{b.polish:g} of the co-evolution's iterations ({preset.value}): the proxy's pull costs the surfels "
+            "held-out PSNR that training on the photographs alone gives back (the mesh is made before)")
+    elif plan["mesh_loop"]:
+        polish, why = 0, f"{preset.value}: none (the mesh is the result; the surfels stay as the loop left them)"
+    else:
+        polish, why = 0, "no proxy-mesh loop: the surfels were trained on the photographs alone"
+    plan.set("polish_iterations", polish, why, cfg.polish.iterations)
+    per_view = h * w * float(plan["image_scale"]) ** 2
+    n_it = int(plan["warmup_iterations"]) + coevo_it + int(plan["polish_iterations"])
+    plan.set("expected_seconds", round(_presets.expected_seconds(preset, device, n_it, per_view)),
+             f"{n_it} iterations of {per_view / 1e3:.0f}k-pixel views at the {preset.value} preset's measured cost on "
+             f"{'one H200' if device.type == 'cuda' else f'{torch.get_num_threads()} CPU threads'} (a planning figure)")
     if is_scene and not plan["mesh_loop"]:
         reinit, why = False, ("scene without the proxy-mesh loop: nothing would use a re-initialised scaffold, and "
                               "replacing the warm-up's surfels cost DTU scan24 6.0 dB held-out PSNR that the "
@@ -434,6 +444,7 @@ def resolve_config(cfg: FitConfig, plan: Plan) -> FitConfig:
     out.final.resolution = int(plan.final_resolution)
     out.tsdf.enabled = bool(plan.tsdf_reinit)
     out.coevolution.enabled = bool(plan.mesh_loop)
+    out.polish.iterations = int(plan.polish_iterations)
     out.mesh.level_sigma = float(plan.proxy_level_sigma)
     out.mesh.clip_to_region = bool(plan.proxy_clip)
     return out

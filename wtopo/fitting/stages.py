@@ -49,6 +49,8 @@ class Stage(str, enum.Enum):
     """Fit with the differentiable proxy mesh and mesh guidance."""
     FINAL = "final"
     """The returned mesh."""
+    POLISH = "polish"
+    """After the final mesh: photometric fit only (no mesh terms, guidance or density control)."""
 
 
 class Renderer:
