@@ -148,8 +148,8 @@ class PolishConfig:
     before it."""
 
     iterations: int | None = _f(None, COUNT)
-    """Iterations; ``None``: the plan's (after a proxy-mesh loop the preset's share of the co-evolution's: none at
-    ``fast``, half at ``balanced``, as many at ``best``; none without a loop)."""
+    """Iterations; ``None``: the plan's (after a proxy-mesh loop half the co-evolution's, none at ``fast``; none
+    without a loop)."""
 
 
 @dataclass(kw_only=True)

@@ -60,15 +60,16 @@ _REFERENCE_CORES = 2  # the CPU timings below were measured on 2 cores; more cor
 # outside the iterations (2026-12-04, benchmarks/gpu.md), the 64-view chair (262k-pixel views, the mesh loop) 127 s
 # (2026-12-03, benchmarks/peers.md): 13 ms an iteration plus 32 ms per megapixel of view; fast and best scale the
 # iterations and keep the rates until a GPU front is measured.
-# polish: the CPU balanced bunny (two seeds) gains 0.07-0.10 dB of held-out PSNR at 0.5, 0.15-0.17 at 1; the same
-# iterations with the loop on gain 0.01-0.05 (design/decisions.md, "Kept: a photometric polish").
+# polish: the CPU balanced bunny (two seeds) gains 0.07-0.10 dB of held-out PSNR at 0.5, 0.15-0.17 at 1 (the same
+# iterations with the loop on: 0.01-0.05); at best 0.09-0.10 at 0.25-0.5 and 0.05 at 1 (design/decisions.md,
+# "Kept: a photometric polish").
 _BUDGETS = {
     ("cpu", Preset.FAST): Budget((150, 150), 128, (48, 48), (64, 128), 6.0, 0.0, 3.3, mesh_every=2, polish=0.0),
     ("cpu", Preset.BALANCED): Budget((400, 400), 256, (64, 64), (96, 192), 9.0, 0.010, 3.0, mesh_every=2),
-    ("cpu", Preset.BEST): Budget((800, 800), 256, (64, 64), (96, 192), 9.0, 0.029, 2.2, polish=1.0),
+    ("cpu", Preset.BEST): Budget((800, 800), 256, (64, 64), (96, 192), 9.0, 0.029, 2.2),
     ("cuda", Preset.FAST): Budget((1500, 1000), 512, (128, 192), (192, 512), 12.0, 0.013, 0.032, polish=0.0),
     ("cuda", Preset.BALANCED): Budget((3000, 2000), 1024, (128, 256), (192, 768), 20.0, 0.013, 0.032),
-    ("cuda", Preset.BEST): Budget((6000, 4000), 1024, (128, 256), (192, 768), 20.0, 0.013, 0.032, polish=1.0),
+    ("cuda", Preset.BEST): Budget((6000, 4000), 1024, (128, 256), (192, 768), 20.0, 0.013, 0.032),
 }
 
 
