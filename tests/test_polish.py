@@ -92,3 +92,19 @@ def test_fit_surfels_does_not_polish(tiny, tmp_path):
     """A chunk's surfels are re-fused by the merge: they end as the mesh loop left them."""
     res = fit_surfels(tiny, _config(10), out_dir=tmp_path, progress=False)
     assert res.report["iterations"] == 42 and res.plan.polish_iterations == 0
+
+
+def test_a_default_polish_keeps_the_hash_of_earlier_versions(monkeypatch):
+    """Checkpoints written before the polish group existed resume: a configuration that leaves it to the plan hashes
+    as one without the group did; one that sets it hashes apart."""
+    from wtopo.fitting.config import config_hash
+
+    cfg = FitConfig()
+    cfg.runtime.seed = 3
+    h = config_hash(cfg)
+    to_dict = FitConfig.to_dict
+    monkeypatch.setattr(FitConfig, "to_dict", lambda self: {k: v for k, v in to_dict(self).items() if k != "polish"})
+    assert config_hash(cfg) == h
+    monkeypatch.undo()
+    cfg.polish.iterations = 5
+    assert config_hash(cfg) != h

@@ -330,6 +330,11 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+_LATER_GROUPS = {"polish": {"iterations": None}}
+"""Groups added after checkpoints were first written, with their default values: a configuration holding them at
+these values hashes as it did before them, so a run directory of an earlier version resumes."""
+
+
 def config_hash(cfg: FitConfig, *, ignore=("runtime",)) -> str:
     """SHA-256 (16 hex digits) of the configuration, without the groups in ``ignore``.
 
@@ -340,5 +345,8 @@ def config_hash(cfg: FitConfig, *, ignore=("runtime",)) -> str:
     seed = d["runtime"]["seed"]
     for k in ignore:
         d.pop(k, None)
+    for k, default in _LATER_GROUPS.items():  # at their defaults, groups added later leave earlier hashes as they were
+        if d.get(k) == default:
+            d.pop(k)
     d["seed"] = seed  # the seed changes the result even though it lives in ``runtime``
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
