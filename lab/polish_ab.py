@@ -27,6 +27,8 @@ def main():
     ap.add_argument("--set", action="append", default=[])
     ap.add_argument("--product", action="store_true", help="the default fit with the plan's own polish: held-out "
                     "PSNR at the final mesh and after the polish, and the polish's seconds")
+    ap.add_argument("--photo-only", action="store_true", help="the polish without the normal, distortion and "
+                    "multi-view terms (photometric, mask and scale terms only)")
     ap.add_argument("--keep-mesh", action="store_true", help="the control: the polish keeps the mesh terms and the "
                     "density control (the co-evolution goes on)")
     a = ap.parse_args()
@@ -66,6 +68,9 @@ def main():
     keys = ("psnr", "ssim", "chamfer", "f_score")
     print(json.dumps({"scene": a.scene, "seed": a.seed, "polish": 0, "s": round(time.perf_counter() - t0, 1),
                       **{k: rec.get(k) for k in keys}}), flush=True)
+    if a.photo_only:
+        run.cfg.losses.normal = run.cfg.losses.distortion = run.cfg.losses.multiview = 0.0
+        run.objective.multiview = None
     if not a.keep_mesh:
         run.objective.mesh_terms = False
         run.cfg.densify.geometry_prune = False
@@ -76,6 +81,7 @@ def main():
         run._iterate(Stage.COEVOLUTION, run.it, total + n)
         r = run._evaluate(Stage.FINAL)
         print(json.dumps({"scene": a.scene, "seed": a.seed, "polish": n, "keep_mesh": a.keep_mesh,
+                          "photo_only": a.photo_only,
                           "s": round(time.perf_counter() - t1, 1), **{k: r.get(k) for k in ("psnr", "ssim")},
                           "surfels": len(run.surfels)}), flush=True)
 

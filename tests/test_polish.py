@@ -49,12 +49,22 @@ def test_the_polish_moves_the_surfels_and_keeps_the_mesh(tiny):
     coevo = next(r for r in pol.history if r["stage"] == "coevolution")
     assert any(k.startswith("mesh_") for k in coevo["losses"])
     assert last["losses"] and not any(k.startswith("mesh_") for k in last["losses"])
+    # nor a geometric regulariser: the photometric, mask and scale terms only
+    assert {"normal", "distortion"} <= set(coevo["losses"]) and set(last["losses"]) <= {"photo", "mask", "scale", "total"}
     assert pol.plan.polish_iterations == 10 and "polish_iterations" in pol.plan.overrides
 
 
 def test_a_fit_interrupted_in_its_polish_resumes_with_its_mesh(tiny, tmp_path):
-    full = fit(tiny, _config(10), out_dir=tmp_path / "full", progress=False)
-    cfg = _config(10)
+    """The mesh made before the polish comes back from the checkpoint (vertex colours included: an open mesh
+    keeps the fusion's), and the history is the uninterrupted one's."""
+    def config():
+        cfg = _config(10)
+        cfg.final.watertight = False  # no Poisson re-mesh: the fused mesh with its colours is the result
+        return cfg
+
+    full = fit(tiny, config(), out_dir=tmp_path / "full", progress=False)
+    assert full.mesh.visual.kind == "vertex"
+    cfg = config()
     cfg.runtime.stop_at = 47
     part = fit(tiny, cfg, out_dir=tmp_path / "part", progress=False)
     assert part.report["status"] == "interrupted" and part.report["iterations"] == 47
@@ -64,7 +74,10 @@ def test_a_fit_interrupted_in_its_polish_resumes_with_its_mesh(tiny, tmp_path):
     assert resumed.report["status"] == "completed" and resumed.report["iterations"] == 52
     np.testing.assert_array_equal(resumed.mesh.faces, full.mesh.faces)
     np.testing.assert_allclose(resumed.mesh.vertices, full.mesh.vertices, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(resumed.mesh.visual.vertex_colors, full.mesh.visual.vertex_colors)
     assert resumed.report["chamfer"] == full.report["chamfer"]
+    assert [(r["iteration"], r["stage"]) for r in resumed.history] == [(r["iteration"], r["stage"])
+                                                                      for r in full.history]
     for k, v in full.surfels.params.items():
         torch.testing.assert_close(resumed.surfels.params[k], v, atol=RESUME_TOL, rtol=RESUME_TOL)
     # a completed fit resumed again does nothing more and returns the same mesh
@@ -89,9 +102,15 @@ def test_the_plan_polishes_only_after_a_proxy_mesh_loop(tiny):
 
 
 def test_fit_surfels_does_not_polish(tiny, tmp_path):
-    """A chunk's surfels are re-fused by the merge: they end as the mesh loop left them."""
-    res = fit_surfels(tiny, _config(10), out_dir=tmp_path, progress=False)
-    assert res.report["iterations"] == 42 and res.plan.polish_iterations == 0
+    """A chunk's surfels are re-fused by the merge: they end as the mesh loop left them. Its checkpoints carry the
+    configuration's own hash, so a directory that `fit` started resumes."""
+    cfg = _config(10)
+    cfg.runtime.stop_at = 20
+    fit(tiny, cfg, out_dir=tmp_path, progress=False)
+    cfg.runtime.stop_at = None
+    res = fit_surfels(tiny, cfg, out_dir=tmp_path, progress=False)
+    assert res.report["status"] == "completed" and res.report["iterations"] == 42 and res.plan.polish_iterations == 0
+    assert len(res.mesh.faces) == 0 and any(e["event"] == "resumed" for e in res.report["events"])
 
 
 def test_a_default_polish_keeps_the_hash_of_earlier_versions(monkeypatch):

@@ -212,7 +212,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("scene", help="dataset path (Blender, COLMAP, DTU, nerfstudio, or a folder of photos) or a built-in "
                    "name (wtopo scenes)")
     f.add_argument("--out", required=True, help="run directory (resumes when it holds checkpoints)")
-    f.add_argument("--iterations", type=int, help="total iterations, split evenly between warm-up and co-evolution")
+    f.add_argument("--iterations", type=int, help="warm-up and co-evolution iterations, split evenly (the plan's "
+                   "polish comes on top)")
     f.add_argument("--warmup", type=int, help="warm-up iterations")
     f.add_argument("--coevolution", type=int, help="co-evolution iterations")
     f.add_argument("--device", help="auto, cpu or cuda:N")

@@ -123,6 +123,8 @@ def chunk_fit_config(cfg, device: str, share: float, space: float = 1.0, budget:
     coevo = coevo if cfg.coevolution.iterations is None else cfg.coevolution.iterations
     c.warmup.iterations = max(1, round(share * warm)) if warm else 0
     c.coevolution.iterations = max(1, round(share * coevo)) if coevo else 0
+    if cfg.polish.iterations is not None:  # the plan's polish follows the chunk's co-evolution by itself
+        c.polish.iterations = round(share * cfg.polish.iterations)
     return c
 
 

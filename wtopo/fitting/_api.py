@@ -17,7 +17,7 @@ from ..geometry.components import face_components
 from ..geometry.winding import is_closed
 from ..io._common import atomic_write
 from .checkpoint import versions
-from .config import FitConfig, PolishConfig
+from .config import FitConfig, PolishConfig, config_hash
 from .evaluate import geometry_metrics
 from .loop import FitRun
 from .plan import Plan
@@ -143,8 +143,9 @@ def fit(scene, config: FitConfig | None = None, *, out_dir: str | os.PathLike | 
     Stages: initialisation (scene points or the cameras' common volume), photometric warm-up with
     density control, TSDF re-initialisation, co-evolution with the differentiable proxy mesh
     (oriented points -> Poisson -> marching cubes -> ray cast; mesh-depth and mesh-normal losses),
-    and a final TSDF fusion of rendered surfel depth. A stage plan decided from the scene says
-    which parts run and why (printed at the start, ``result.plan``).
+    a final TSDF fusion of rendered surfel depth and, after a proxy-mesh loop, a photometric polish
+    of the surfels (the mesh stays as made). A stage plan decided from the scene says which parts
+    run and why (printed at the start, ``result.plan``).
 
     With ``out_dir``, checkpoints are written atomically to ``out_dir/checkpoints`` and a run that
     finds checkpoints of the same configuration there resumes where it stopped. SIGINT / SIGTERM
@@ -205,6 +206,10 @@ class _NoFinalMesh(FitRun):
     def _final_mesh(self) -> trimesh.Trimesh:
         return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), process=False)
 
+    def restore_checkpoint(self, st: dict) -> None:
+        super().restore_checkpoint(st)
+        self.made_mesh = None  # a checkpoint of `fit` taken in its polish: these surfels have no mesh of their own
+
 
 def fit_surfels(scene, config: FitConfig, *, out_dir: str | os.PathLike, progress: bool = True) -> FitResult:
     """:func:`fit` without its final mesh: the surfels are the result (a chunk of :mod:`wtopo.chunks` whose
@@ -222,9 +227,10 @@ def fit_surfels(scene, config: FitConfig, *, out_dir: str | os.PathLike, progres
     Returns:
         :class:`FitResult` with an empty ``mesh``.
     """
-    # no polish: the merge fuses its mesh from these surfels, which the mesh loop is to have shaped last
-    config = dataclasses.replace(config, polish=PolishConfig(iterations=0))
-    run = _NoFinalMesh(scene, config, out_dir, progress)
+    # no polish: the merge fuses its mesh from these surfels, which the mesh loop is to have shaped last; the hash
+    # is the configuration's own, so a chunk directory of `fit` or of an earlier version resumes
+    run = _NoFinalMesh(scene, dataclasses.replace(config, polish=PolishConfig(iterations=0)), out_dir, progress)
+    run.hash = config_hash(config)
     mesh = run.run()
     result = FitResult(mesh=mesh, surfels=run.surfels, plan=run.plan, history=run.history)
     result.report = _report(run, mesh, scene)

@@ -34,8 +34,10 @@ def run_state(run) -> dict:
                   "prior": run.proxy.prior},
         "tsdf_info": run.tsdf_info, "coevolution_info": run.coevolution_info,
         "total_failures": run.total_failures,
-        "final_mesh": None if mesh is None else {"vertices": np.asarray(mesh.vertices, np.float64),
-                                                 "faces": np.asarray(mesh.faces, np.int32)},
+        "final_mesh": None if mesh is None else {
+            "vertices": np.asarray(mesh.vertices, np.float64), "faces": np.asarray(mesh.faces, np.int32),
+            "vertex_colors": (np.asarray(mesh.visual.vertex_colors, np.uint8) if mesh.visual.kind == "vertex"
+                              else None)},
     }
 
 
@@ -61,4 +63,5 @@ def restore_run_state(run, st: dict) -> None:
     clip = region_clip(run.cfg.mesh, run.plan.layout)
     run.proxy = ProxyMesh(run.cfg.mesh, box=box, prior=px["prior"], clip=clip)
     mesh = st.get("final_mesh")  # absent before the polish stage; None until the final mesh is made
-    run.made_mesh = None if mesh is None else trimesh.Trimesh(mesh["vertices"], mesh["faces"], process=False)
+    run.made_mesh = None if mesh is None else trimesh.Trimesh(mesh["vertices"], mesh["faces"], process=False,
+                                                              vertex_colors=mesh.get("vertex_colors"))

@@ -269,8 +269,9 @@ class FitConfig:
         """Settings matching the public TopoSurfel code (design/toposurfel.md) as far as wtopo supports them:
         a long separate initialisation, 1 point per surfel, Poisson without spectral smoothing on the
         initial mesh's box + 10 % at a fine grid with a surface prior, log1p depth loss weight 0.05 (not
-        debiased), mesh-normal weight 0, far-from-mesh prune disabled."""
+        debiased), mesh-normal weight 0, far-from-mesh prune disabled, no polish (that code has none)."""
         cfg = FitConfig()
+        cfg.polish.iterations = 0
         cfg.warmup.iterations = 15000
         cfg.mesh.samples_per_surfel = 1
         cfg.mesh.sigma = 0.0

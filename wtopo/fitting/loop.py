@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The fit loop: warm-up, TSDF re-initialisation, co-evolution with the proxy mesh, final mesh.
+"""The fit loop: warm-up, TSDF re-initialisation, co-evolution with the proxy mesh, final mesh, polish.
 
 :class:`FitRun` owns the state of one fit (surfels, optimiser, iteration, history, events) and
 drives the stages; its collaborators each do one thing: :class:`~.objective.Objective` (the loss
@@ -444,7 +444,8 @@ class FitRun:
                    "stage_times": {k: round(v, 3) for k, v in self.timers.total.items()},
                    "losses": self.loss_log.take(), "surfels": len(self.surfels),
                    "proxy_faces": 0 if self.proxy_mesh is None else self.proxy_mesh.num_faces}
-            rec.update(self.evaluator(self.surfels, mesh=mesh, proxy=self.proxy_mesh))
+            proxy = None if stage == Stage.POLISH else self.proxy_mesh  # the polish's surfels left the proxy
+            rec.update(self.evaluator(self.surfels, mesh=mesh, proxy=proxy))
         self.history.append(rec)
         return rec
 
@@ -468,11 +469,16 @@ class FitRun:
             if not self.stop.requested and self.total_iterations <= self.it < self.polish_end:
                 # the surfels on the photographs alone (the objective's mesh terms and the strategy act only in
                 # the co-evolution); the mesh above stays the result, the surfels and the held-out PSNR move
-                self.proxy_mesh = None
+                if self.it == self.total_iterations:
+                    self.snapshot()  # a failed step in the polish comes back to the surfels the mesh was made from
                 self._iterate(Stage.POLISH, self.total_iterations, self.polish_end)
+                stopped = self.stop.requested
+                if stopped:  # as in the other stages, the checkpoint holds no record of the stop
+                    self.checkpoints.save()
                 if self.history[-1]["iteration"] != self.it:  # not evaluated at this iteration already
                     self._evaluate(Stage.POLISH)
-                self.checkpoints.save()
+                if not stopped:
+                    self.checkpoints.save()
             self.status = "interrupted" if self.stop.requested else "completed"
             if self.timeline is not None:
                 self.timeline.close(self.made_mesh)

@@ -106,11 +106,13 @@ class Objective:
         with T("losses"):
             covered = out.alpha.detach() >= ALPHA_COVERED
             late = stage != Stage.WARMUP
+            # the polish (after the final mesh) fits the photographs alone: no geometric regulariser either
+            geometric = stage != Stage.POLISH
             masked = self.train.masks is not None and self.mask_weight > 0
-            normal_on = late or it >= stage_iteration(_NORMAL_START, self.warmup_end)
-            dist_on = late or it >= stage_iteration(_DISTORTION_START, self.warmup_end)
+            normal_on = geometric and (late or it >= stage_iteration(_NORMAL_START, self.warmup_end))
+            dist_on = geometric and (late or it >= stage_iteration(_DISTORTION_START, self.warmup_end))
             mv = self.multiview
-            mv_on = (mv is not None and mv.has_neighbours(vi)
+            mv_on = (geometric and mv is not None and mv.has_neighbours(vi)
                      and (late or it >= stage_iteration(_MULTIVIEW_START, self.warmup_end)))
             windows = mv.draw(it, vi, out.alpha.device) if mv_on else None
             mv_terms = {} if windows is None else {"multiview": lc.multiview, "sources": len(windows.images),
