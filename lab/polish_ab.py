@@ -27,6 +27,8 @@ def main():
     ap.add_argument("--set", action="append", default=[])
     ap.add_argument("--product", action="store_true", help="the default fit with the plan's own polish: held-out "
                     "PSNR at the final mesh and after the polish, and the polish's seconds")
+    ap.add_argument("--share", type=float, default=None, help="with --product: polish this share of the plan's "
+                    "co-evolution whatever the plan says (a scene, whose plan has no polish)")
     ap.add_argument("--photo-only", action="store_true", help="the polish without the normal, distortion and "
                     "multi-view terms (photometric, mask and scale terms only)")
     ap.add_argument("--keep-mesh", action="store_true", help="the control: the polish keeps the mesh terms and the "
@@ -53,6 +55,13 @@ def main():
     for item in ["runtime.device=cpu", "runtime.usd_every=0", f"runtime.seed={a.seed}", *own, *a.set]:
         _apply_set(cfg, item)
     if a.product:
+        if a.share is not None:
+            import torch
+
+            from wtopo.fitting.plan import make_plan
+
+            coevo = make_plan(scene.normalized(), cfg, torch.device("cpu")).coevolution_iterations
+            cfg.polish.iterations = round(a.share * coevo)
         res = wtopo.fit(scene, cfg, progress=False)
         final = next(r for r in res.history if r["stage"] == "final")
         last = res.history[-1]

@@ -239,7 +239,8 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     elif plan["mesh_loop"]:
         polish, why = 0, f"{preset.value}: none (the mesh is the result; the surfels stay as the loop left them)"
     else:
-        polish, why = 0, "no proxy-mesh loop: the surfels were trained on the photographs alone"
+        polish, why = 0, ("no proxy-mesh loop to release the surfels from (on unbounded scenes a polish lowered "
+                          "held-out PSNR: bunny_env 28.68 -> 28.50 dB, chair_env 29.93 -> 29.89 on the CPU)")
     plan.set("polish_iterations", polish, why, cfg.polish.iterations)
     per_view = h * w * float(plan["image_scale"]) ** 2
     n_it = int(plan["warmup_iterations"]) + coevo_it + int(plan["polish_iterations"])
