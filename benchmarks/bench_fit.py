@@ -38,6 +38,7 @@ import torch
 from wtopo import scenes
 from wtopo.fitting import FitConfig, fit
 from wtopo.fitting.evaluate import F_SCORE_TAU, geometry_metrics
+from wtopo.fitting.loop import _resolve_device
 from wtopo.fitting.plan import make_plan
 from wtopo.fitting.stages import TRUNCATION_VOXELS
 from wtopo.fitting.tsdf import auto_bounds, cleanup_mesh, fuse_depths
@@ -55,12 +56,6 @@ VARIANTS = {
 }
 
 
-def _device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda:0" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
 def gt_depth_peer(scene, device: str = "auto") -> dict:
     """TSDF fusion of the ground-truth depth maps of the training views (the upper bound), on the grid the
     default plan gives the fit's final mesh on ``device``."""
@@ -68,7 +63,7 @@ def gt_depth_peer(scene, device: str = "auto") -> dict:
     internal = scene.normalized()
     train = internal.split("train")
     t = time.perf_counter()
-    resolution = make_plan(internal, FitConfig(), _device(device)).final_resolution
+    resolution = make_plan(internal, FitConfig(), _resolve_device(device)).final_resolution
     b = auto_bounds(torch.as_tensor(np.asarray(internal.gt_mesh.vertices)), None,
                     resolution=resolution, truncation_voxels=TRUNCATION_VOXELS)
     mesh = fuse_depths(train.cameras, [d.cpu().numpy() for d in train.depths],

@@ -16,6 +16,16 @@ import torch
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
+def peers_split(path):
+    """DTU at ``path`` with the peers harness's split (every eighth view held out): ``(scene, held-out indices)``."""
+    import wtopo
+
+    scene = wtopo.load_scene(path)
+    n = len(scene.cameras)
+    test = list(range(0, n, 8))
+    return scene._replace(train_indices=[i for i in range(n) if i not in test], test_indices=test), test
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--data", default=os.path.join(HERE, "..", "..", "shared", "data", "dtu_scan24"))
@@ -32,10 +42,7 @@ def main():
     from wtopo.fitting.background import BackgroundState
     from wtopo.fitting.config import FitConfig
 
-    scene = wtopo.load_scene(a.data)
-    n = len(scene.cameras)
-    test = list(range(0, n, 8))
-    scene = scene._replace(train_indices=[i for i in range(n) if i not in test], test_indices=test)
+    scene, test = peers_split(a.data)
     cfg = FitConfig()
     for item in ["runtime.device=cpu", "runtime.usd_every=0", f"runtime.seed={a.seed}", *a.set]:
         _apply_set(cfg, item)

@@ -7,11 +7,14 @@ the peers' split (every 8th view held out), the held-out PSNR of every view at e
 import argparse
 import json
 import os
+import sys
 
 import numpy as np
 import torch
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+from dtu_view40 import peers_split  # noqa: E402  (beside this script)
 
 
 def main():
@@ -50,10 +53,7 @@ def main():
         return out
 
     evaluate.Evaluator.image_metrics = image_metrics
-    scene = wtopo.load_scene(a.data)
-    n = len(scene.cameras)
-    test = list(range(0, n, 8))
-    scene = scene._replace(train_indices=[i for i in range(n) if i not in test], test_indices=test)
+    scene, test = peers_split(a.data)
     cfg = FitConfig()
     for item in ["runtime.device=cpu", "runtime.usd_every=0", f"runtime.eval_every={a.eval_every}", *a.set]:
         _apply_set(cfg, item)

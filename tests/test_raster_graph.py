@@ -22,6 +22,17 @@ def _emulate(fn, samples, num_warmup_iters=0):  # torch.cuda.make_graphed_callab
     return fn
 
 
+def _altered_replay(change):
+    """A ``make`` whose replays return the function's outputs with output 0 (the image) passed through ``change``."""
+    def make(fn, samples, num_warmup_iters=0):
+        def replay(*args):
+            out = list(fn(*args))
+            out[0] = change(out[0])
+            return tuple(out)
+        return replay
+    return make
+
+
 def _surfels(n, device, seed=0, sh_rest=3):
     g = torch.Generator().manual_seed(seed)
     return Surfels(means=(torch.rand(n, 3, generator=g) - 0.5).to(device),
@@ -110,15 +121,8 @@ def test_a_render_that_disagrees_turns_the_graphs_off(device, monkeypatch):
     cfg = RasterConfig()
     bg = torch.zeros(3, device=device)
 
-    def wrong(fn, samples, num_warmup_iters=0):
-        def replay(*args):
-            out = list(fn(*args))
-            out[0] = out[0] + 0.01
-            return tuple(out)
-        return replay
-
     s = _measured(device)
-    graphs = RG.RasterGraphs(bg, cfg, make=wrong)
+    graphs = RG.RasterGraphs(bg, cfg, make=_altered_replay(lambda rgb: rgb + 0.01))
     with pytest.warns(RuntimeWarning, match="output 0 of a replay differs"):
         assert graphs(s, camera()) is None
     assert "differs" in graphs.failure
@@ -165,15 +169,9 @@ def test_a_replay_with_wrong_gradients_turns_the_graphs_off(device):
     cfg = RasterConfig()
     bg = torch.zeros(3, device=device)
 
-    def wrong_backward(fn, samples, num_warmup_iters=0):
-        def replay(*args):
-            out = list(fn(*args))
-            out[0] = out[0].detach() + (out[0] - out[0].detach()) * 2.0  # the same values, twice the gradient
-            return tuple(out)
-        return replay
-
     s = _measured(device)
-    graphs = RG.RasterGraphs(bg, cfg, make=wrong_backward)
+    twice = _altered_replay(lambda rgb: rgb.detach() + (rgb - rgb.detach()) * 2.0)  # same values, twice the gradient
+    graphs = RG.RasterGraphs(bg, cfg, make=twice)
     with pytest.warns(RuntimeWarning, match="gradient of input 0 of a replay differs"):
         assert graphs(s, camera()) is None
     _binning._capacities.clear()
