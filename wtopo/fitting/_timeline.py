@@ -1,10 +1,17 @@
 # SPDX-License-Identifier: Apache-2.0
 """The USD timeline of a fit: training cameras, surfels and proxy mesh every ``runtime.usd_every``
-iterations, and the final mesh, all in the caller's frame (``out_dir/timeline.usdc``)."""
+iterations, and the final mesh, all in the caller's frame (``out_dir/timeline.usdc``).
+
+The fit only copies each sample to the host; one worker thread converts it to the caller's frame and
+authors it into the stage while the fit goes on (at most one sample in flight, so at most one extra
+sample in host memory). An error in the worker is raised at the next :meth:`FitTimeline.sample` or at
+:meth:`FitTimeline.close`.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -17,14 +24,15 @@ __all__ = ["FitTimeline"]
 
 
 class FitTimeline:
-    """Writes the co-evolution of one fit to a USD timeline.
+    """Writes the co-evolution of one fit to a USD timeline, on a worker thread.
 
     Args:
         path: the ``.usdc`` file.
         every: iterations between samples (> 0).
         sim: the scene normalisation (:class:`wtopo.scene.Similarity`), internal -> caller's frame.
         cameras: training cameras, internal frame.
-        timers: the fit's section timers (``"timeline"``).
+        timers: the fit's section timers (``"timeline"``: the host copy, and the wait for the previous
+            sample when it is still being written).
     """
 
     def __init__(self, path: Path, every: int, sim, cameras: Sequence, timers):
@@ -35,6 +43,8 @@ class FitTimeline:
         self.timers = timers
         self.writer = TimelineWriter(path)
         self.writer.add_cameras([sim.to_world(c) for c in cameras])
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="wtopo-timeline")
+        self._pending: Future | None = None
 
     @classmethod
     def open(cls, out_dir: Path | None, every: int, sim, cameras: Sequence, timers) -> FitTimeline | None:
@@ -43,22 +53,43 @@ class FitTimeline:
             return None
         return cls(out_dir / "timeline.usdc", every, sim, cameras, timers)
 
-    def sample(self, it: int, surfels: Surfels, proxy_mesh: ProxyResult | None) -> None:
-        """Surfels (and the proxy mesh, when there is one) at time ``it``."""
-        s, sim = surfels, self.sim
-        kw = {}
-        if proxy_mesh is not None:
-            kw = {"mesh_verts": sim.to_world(proxy_mesh.verts.detach().cpu().double().numpy()),
-                  "mesh_faces": proxy_mesh.faces.cpu().numpy()}
-        with self.timers("timeline"):
-            self.writer.add_sample(it, means=sim.to_world(s.means.detach().cpu().double().numpy()),
-                                   quats=s.quats.detach().cpu().numpy(),
-                                   scales=sim.length_to_world(s.scales.detach().cpu().double().numpy()),
-                                   opacities=s.opacities.detach().cpu().numpy(),
-                                   colors_or_sh=s.sh.detach().cpu().numpy(), **kw)
+    def _wait(self) -> None:
+        """Wait for the sample in flight; re-raise its error."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            pending.result()
 
-    def close(self, mesh: trimesh.Trimesh) -> None:
-        """Add the final mesh (internal frame) and close the file."""
+    def sample(self, it: int, surfels: Surfels, proxy_mesh: ProxyResult | None) -> None:
+        """Surfels (and the proxy mesh, when there is one) at time ``it``: copied to the host now, written to
+        the stage on the worker thread."""
+        s = surfels
         with self.timers("timeline"):
-            self.writer.add_mesh("final", self.sim.to_world(np.asarray(mesh.vertices)), np.asarray(mesh.faces))
-            self.writer.close()
+            host = {"means": s.means.detach().cpu().numpy(), "quats": s.quats.detach().cpu().numpy(),
+                    "scales": s.scales.detach().cpu().numpy(), "opacities": s.opacities.detach().cpu().numpy(),
+                    "sh": s.sh.detach().cpu().numpy()}
+            if proxy_mesh is not None:
+                host["mesh_verts"] = proxy_mesh.verts.detach().cpu().numpy()
+                host["mesh_faces"] = proxy_mesh.faces.cpu().numpy()
+            self._wait()
+            self._pending = self._worker.submit(self._write, int(it), host)
+
+    def _write(self, it: int, host: dict) -> None:
+        sim = self.sim
+        kw = {}
+        if "mesh_verts" in host:
+            kw = {"mesh_verts": sim.to_world(host["mesh_verts"].astype(np.float64)), "mesh_faces": host["mesh_faces"]}
+        self.writer.add_sample(it, means=sim.to_world(host["means"].astype(np.float64)), quats=host["quats"],
+                               scales=sim.length_to_world(host["scales"].astype(np.float64)),
+                               opacities=host["opacities"], colors_or_sh=host["sh"], **kw)
+
+    def close(self, mesh: trimesh.Trimesh | None) -> None:
+        """Wait for the last sample, add the final mesh (internal frame; ``None``: none) and close the file."""
+        with self.timers("timeline"):
+            try:
+                self._wait()
+                if mesh is not None:
+                    self.writer.add_mesh("final", self.sim.to_world(np.asarray(mesh.vertices)),
+                                         np.asarray(mesh.faces))
+                self.writer.close()
+            finally:
+                self._worker.shutdown(wait=True)

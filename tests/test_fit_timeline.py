@@ -1,0 +1,64 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The fit's USD timeline (``runtime.usd_every``), written on a worker thread: every sample lands, in order,
+with the surfels and proxy mesh of its iteration in the caller's frame, and the final mesh is added."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+pytest.importorskip("pxr")
+
+sys.path.insert(0, str(Path(__file__).parent))
+from fit_configs import small_fit_config  # noqa: E402
+
+import wtopo  # noqa: E402
+from wtopo import scenes  # noqa: E402
+from wtopo.io import read_timeline  # noqa: E402
+from wtopo.scene import Similarity  # noqa: E402
+
+
+def _scene():
+    return scenes.from_mesh(trimesh.creation.icosphere(subdivisions=3), n_views=8, resolution=32, texture="coffee",
+                            seed=0)
+
+
+def test_fit_writes_every_sample_in_the_callers_frame(tmp_path):
+    from pxr import Usd, UsdGeom
+
+    cfg = small_fit_config(20, 20, points=400, grids=(32, 48, 32), max_faces=800, density_every=10, eval_every=0)
+    cfg.runtime.usd_every = 5
+    res = wtopo.fit(_scene(), cfg, out_dir=tmp_path / "run", progress=False)
+    path = tmp_path / "run" / "timeline.usdc"
+    tl = read_timeline(path)
+    assert tl.iterations == list(range(5, 41, 5))
+    # the proxy mesh appears once the co-evolution has one, and the final mesh is the result's (caller's frame)
+    assert all(len(s.faces) == 0 for s in tl.samples if s.iteration <= 20)
+    assert all(len(s.faces) > 0 for s in tl.samples if s.iteration > 20)
+    v, f = tl.meshes["final"]
+    np.testing.assert_array_equal(f, res.mesh.faces)
+    np.testing.assert_allclose(v, res.mesh.vertices, rtol=0, atol=1e-5)
+    # the last sample holds the fitted surfels (no polish here), mapped back to the caller's frame
+    assert tl.samples[-1].num_surfels == len(res.surfels)
+    sim = Similarity(**res.report["normalization"])
+    stage = Usd.Stage.Open(str(path))
+    pos = np.asarray(UsdGeom.PointInstancer(stage.GetPrimAtPath("/World/Surfels")).GetPositionsAttr().Get(40.0))
+    np.testing.assert_allclose(pos, sim.to_world(res.surfels.means.detach().cpu().double().numpy()), rtol=0,
+                               atol=1e-5)
+
+
+def test_a_failed_sample_is_raised_by_the_fit(tmp_path, monkeypatch):
+    from wtopo.io import TimelineWriter
+
+    def broken(self, iteration, **kw):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(TimelineWriter, "add_sample", broken)
+    cfg = small_fit_config(20, 0, points=400, grids=(32, 48, 32), max_faces=800, density_every=10, eval_every=0)
+    cfg.runtime.usd_every = 5
+    with pytest.raises(OSError, match="disk full"):
+        wtopo.fit(_scene(), cfg, out_dir=tmp_path / "run", progress=False)
