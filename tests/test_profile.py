@@ -20,7 +20,7 @@ _PATHS = {
     "proxy",
     "proxy/oriented_points", "proxy/poisson", "proxy/poisson/scatter", "proxy/marching_cubes", "raycast",
     "raycast/bvh_build", "tsdf", "tsdf/render_depths", "tsdf/tsdf_fusion", "tsdf/tsdf_fusion/tsdf_integrate",
-    "tsdf/tsdf_fusion/marching_cubes", "final", "final/tsdf_fusion", "evaluate", "checkpoint",
+    "tsdf/tsdf_fusion/marching_cubes", "final", "final/tsdf_fusion", "evaluate", "checkpoint", "outputs",
 }
 
 
@@ -98,7 +98,7 @@ def test_profiled_fit_reports_every_stage_within_the_wall_time(tiny, tmp_path, c
     for label in ("wtopo fit profile", "setup (plan", "render forward", "backward", "losses", "host read",
                   "optimizer", "density statistics", "density control",
                   "proxy mesh", "marching cubes", "BVH build", "TSDF re-initialisation", "TSDF fusion",
-                  "evaluation", "checkpoint", "outside any section"):
+                  "evaluation", "checkpoint", "report and output files", "outside any section"):
         assert label in out, label
     assert json.loads((tmp_path / "report.json").read_text())["profile"]["rows"] == prof["rows"]
     assert "profile" not in fit(tiny, small_fit_config(4, 0, points=100, grids=(16, 16, 16), max_faces=100,

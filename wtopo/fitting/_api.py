@@ -93,8 +93,6 @@ def _report(run: FitRun, mesh_world: trimesh.Trimesh, scene) -> dict:
         "events": run.events[-50:],
     }
     rep["scene_kind"] = run.cfg.kind.value
-    if run.cfg.runtime.profile:
-        rep["profile"] = run.timers.profile(time.perf_counter() - run.t_start)
     # the surfels' figures from the last evaluation (after the polish, when one ran), the mesh's from the final one
     made = next((r for r in reversed(run.history) if r.get("stage") == "final"), final)
     for k in ("psnr", "ssim", "psnr_on", "image_metrics_on"):
@@ -121,7 +119,24 @@ def summary_metrics(report: dict) -> str:
     return out
 
 
+def _finish(run: FitRun, mesh_int: trimesh.Trimesh, scene, out_dir) -> FitResult:
+    """The result in the caller's frame, its report and (with ``out_dir``) its files, timed as the ``"outputs"``
+    section; with ``runtime.profile`` the report's profile spans the whole fit, its files included."""
+    with run.timers("outputs"):
+        mesh = run.sim.to_world(mesh_int)
+        result = FitResult(mesh=mesh, surfels=run.surfels, plan=run.plan, history=run.history)
+        result.report = _report(run, mesh, scene)
+        if out_dir is not None:
+            _write_outputs(Path(out_dir), result, run)
+    if run.cfg.runtime.profile:
+        result.report["profile"] = run.timers.profile(time.perf_counter() - run.t_start)
+    if out_dir is not None:
+        _atomic_json(Path(out_dir) / "report.json", result.report)
+    return result
+
+
 def _write_outputs(out: Path, result: FitResult, run: FitRun) -> None:
+    """Every file of a run directory but ``report.json`` (:func:`_finish` writes it last)."""
     from ..io import export_mesh, write_surfels_ply
 
     out.mkdir(parents=True, exist_ok=True)
@@ -132,7 +147,6 @@ def _write_outputs(out: Path, result: FitResult, run: FitRun) -> None:
                       s.opacities.detach().cpu().numpy(), s.sh.detach().cpu().numpy())
     _atomic_json(out / "history.json", result.history)
     _atomic_json(out / "plan.json", result.plan.to_dict())
-    _atomic_json(out / "report.json", result.report)
     _atomic_json(out / "config.json", run.cfg.to_dict())
 
 
@@ -184,12 +198,7 @@ def fit(scene, config: FitConfig | None = None, *, out_dir: str | os.PathLike | 
         raise TypeError(f"config must be a wtopo.FitConfig or None, got {type(cfg).__name__}")
     validate_config(cfg)
     run = FitRun(scene, cfg, out_dir, progress)
-    mesh_int = run.run()
-    mesh = run.sim.to_world(mesh_int)
-    result = FitResult(mesh=mesh, surfels=run.surfels, plan=run.plan, history=run.history)
-    result.report = _report(run, mesh, scene)
-    if out_dir is not None:
-        _write_outputs(Path(out_dir), result, run)
+    result = _finish(run, run.run(), scene, out_dir)
     if progress and cfg.runtime.progress:
         r = result.report
         line = (f"wtopo fit {r['status']}: {r['iterations']} iterations, {r['elapsed_s']:.1f} s, "
@@ -231,8 +240,4 @@ def fit_surfels(scene, config: FitConfig, *, out_dir: str | os.PathLike, progres
     # is the configuration's own, so a chunk directory of `fit` or of an earlier version resumes
     run = _NoFinalMesh(scene, dataclasses.replace(config, polish=PolishConfig(iterations=0)), out_dir, progress)
     run.hash = config_hash(config)
-    mesh = run.run()
-    result = FitResult(mesh=mesh, surfels=run.surfels, plan=run.plan, history=run.history)
-    result.report = _report(run, mesh, scene)
-    _write_outputs(Path(out_dir), result, run)
-    return result
+    return _finish(run, run.run(), scene, out_dir)

@@ -3,7 +3,8 @@
 
 :class:`Timers` opens the fit's top-level sections (``wtopo._profile.section``): ``render``,
 ``losses``, ``backward``, ``optimizer``, ``densify``, ``guidance``, ``proxy``, ``raycast``,
-``tsdf``, ``final``, ``evaluate``, ``checkpoint``, ``timeline``. The ops open theirs inside
+``tsdf``, ``final``, ``evaluate``, ``checkpoint``, ``timeline``, ``outputs`` (the report and the run
+directory's files). The ops open theirs inside
 (``rasterize_*``, ``oriented_points``, ``poisson`` / ``scatter``, ``marching_cubes``,
 ``bvh_build``, ``render_depths``, ``tsdf_fusion`` / ``tsdf_blocks`` / ``tsdf_integrate``). It
 always keeps the self time per name (``report["stage_times_s"]``, history records, checkpoints)
@@ -57,11 +58,12 @@ LABELS = {
     "evaluate": "evaluation",
     "checkpoint": "checkpoint",
     "timeline": "USD timeline",
+    "outputs": "report and output files",
 }
 """What the table calls each section (sections without an entry show their name)."""
 
 ORDER = ("setup", "init", "render", "losses", "read", "backward", "optimizer", "statistics", "densify", "guidance",
-         "proxy", "raycast", "tsdf", "final", "evaluate", "checkpoint", "timeline")
+         "proxy", "raycast", "tsdf", "final", "evaluate", "checkpoint", "timeline", "outputs")
 """Order of the top-level rows (the loop's order); nested rows follow by time."""
 
 
