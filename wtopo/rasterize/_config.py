@@ -124,6 +124,26 @@ def _validate_config(config: RasterConfig | None) -> RasterConfig:
     return config
 
 
+def _check_values(means, quats, scales, opacities, colors_or_sh) -> None:
+    """Finite surfel tensors, scales >= 0 and opacities in [0, 1], by one host read of seven reductions (a NaN or
+    inf makes a sum non-finite); the indexed search that names the first bad value runs only when one fails."""
+    tensors = {"means": means, "quats": quats, "scales": scales, "opacities": opacities,
+               "colors_or_sh": colors_or_sh}
+    d = {k: t.detach() for k, t in tensors.items()}
+    lo, hi = torch.aminmax(d["opacities"])
+    # host sync: validation only, one read for every check
+    *sums, smin, olo, ohi = torch.stack([t.sum() for t in d.values()] + [d["scales"].min(), lo, hi]).tolist()
+    for (nm, t), total in zip(d.items(), sums):
+        if not math.isfinite(total):  # a huge finite tensor can overflow its sum: require_finite decides
+            require_finite(nm, t)
+    if smin < 0:
+        idx = [int(v) for v in torch.nonzero(d["scales"] < 0)[0].tolist()]
+        raise ValueError(f"scales must be >= 0, got {scales[tuple(idx)].item()} at index {idx}")
+    if olo < 0 or ohi > 1:
+        idx = int(torch.nonzero((d["opacities"] < 0) | (d["opacities"] > 1))[0])
+        raise ValueError(f"opacities must lie in [0, 1], got {opacities[idx].item()} at index [{idx}]")
+
+
 def _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, background, near, far, config):
     if not isinstance(camera, Camera):
         raise TypeError(f"camera must be a wtopo.Camera, got {type(camera).__name__}")
@@ -158,19 +178,8 @@ def _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, 
             raise TypeError(f"{nm} must have the dtype of means ({dtype}), got {t.dtype}")
     device = require_same_device(means=means, quats=quats, scales=scales, opacities=opacities,
                                  colors_or_sh=colors_or_sh)
-    for nm, t in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
-                  ("colors_or_sh", colors_or_sh)):
-        # one reduction first (a NaN/inf makes the sum non-finite); the indexed search only when it is
-        if t.numel() and not bool(torch.isfinite(t.detach().sum())):  # host sync: validation only
-            require_finite(nm, t.detach())
     if n:
-        if float(scales.detach().min()) < 0:  # host sync: validation only
-            idx = [int(v) for v in torch.nonzero(scales.detach() < 0)[0].tolist()]
-            raise ValueError(f"scales must be >= 0, got {scales[tuple(idx)].item()} at index {idx}")
-        lo, hi = torch.aminmax(opacities.detach())
-        if float(lo) < 0 or float(hi) > 1:  # host sync: validation only
-            idx = int(torch.nonzero((opacities.detach() < 0) | (opacities.detach() > 1))[0])
-            raise ValueError(f"opacities must lie in [0, 1], got {opacities[idx].item()} at index [{idx}]")
+        _check_values(means, quats, scales, opacities, colors_or_sh)
     if background is None:
         bg = torch.zeros(3, dtype=dtype, device=device)
     else:
