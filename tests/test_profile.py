@@ -2,6 +2,7 @@
 """``runtime.profile`` / ``wtopo fit --profile``: the per-stage time table of a fit (wtopo.fitting.profiling)."""
 
 import json
+import time
 
 import pytest
 import torch
@@ -103,6 +104,29 @@ def test_profiled_fit_reports_every_stage_within_the_wall_time(tiny, tmp_path, c
     assert json.loads((tmp_path / "report.json").read_text())["profile"]["rows"] == prof["rows"]
     assert "profile" not in fit(tiny, small_fit_config(4, 0, points=100, grids=(16, 16, 16), max_faces=100,
                                                        density_every=10, eval_every=0), progress=False).report
+
+
+def test_waits_before_top_level_sections_are_their_own_row():
+    """Time a top-level section's start synchronisation apart (once: the nested sections' are inside it), so that
+    the profile's "outside any section" is host time and the table names the profile's own waits."""
+    calls = []
+
+    def sync():
+        calls.append(1)
+        time.sleep(0.01)
+
+    t = Timers(sync=sync)
+    t0 = time.perf_counter()
+    for _ in range(3):
+        with t("outer"), section("inner"):
+            pass
+    p = t.profile(time.perf_counter() - t0)
+    assert len(calls) == 3 * 4  # a start (timed apart) and an end per top-level section, a start and end per nested
+    # three timed-apart waits; the sections hold the other nine (sleeps only ever run long)
+    assert p["sync_s"] >= 0.03 and p["sections_s"] >= 0.09
+    assert abs(p["sections_s"] + p["sync_s"] + p["outside_s"] - p["wall_s"]) < 5e-3  # each rounded to 1 ms
+    assert "waits before sections (profile)" in format_profile(p)
+    assert "waits before" not in format_profile(Timers().profile(1.0))
 
 
 def test_cli_profile_flag_sets_runtime_profile():

@@ -30,7 +30,7 @@ import contextvars
 import time
 from collections.abc import Callable, Iterator
 
-__all__ = ["section"]
+__all__ = ["section", "in_section"]
 
 
 class _Collector:
@@ -46,9 +46,15 @@ class _Collector:
 _ACTIVE: contextvars.ContextVar[_Collector | None] = contextvars.ContextVar("wtopo_profile", default=None)
 
 
+def in_section() -> bool:
+    """Whether a collecting section is open in this context."""
+    return _ACTIVE.get() is not None
+
+
 @contextlib.contextmanager
 def section(name: str, add: Callable[[str, float], None] | None = None, *, sync: Callable[[], None] | None = None,
-            record: Callable[[tuple[str, ...], float, float], None] | None = None) -> Iterator[None]:
+            record: Callable[[tuple[str, ...], float, float], None] | None = None,
+            synced: bool = False) -> Iterator[None]:
     """Time the enclosed block as ``name`` (self time, seconds) when a collector is active.
 
     Args:
@@ -60,6 +66,7 @@ def section(name: str, add: Callable[[str, float], None] | None = None, *, sync:
             (a device synchronisation).
         record: with ``add``, ``record(path, self_seconds, seconds)`` at the end of this section and of
             every one nested in it; ``path`` names the open sections from the outermost to this one.
+        synced: with ``add``, the caller synchronised just before: this section skips its start ``sync``.
     """
     col = _ACTIVE.get()
     token = None
@@ -69,7 +76,7 @@ def section(name: str, add: Callable[[str, float], None] | None = None, *, sync:
             return
         col = _Collector(add, sync, record)
         token = _ACTIVE.set(col)
-    if col.sync is not None:
+    if col.sync is not None and not (synced and token is not None):
         col.sync()
     col.child_time.append(0.0)
     col.names.append(name)

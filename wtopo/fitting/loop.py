@@ -136,6 +136,7 @@ class FitRun:
         self.proxy: ProxyMesh = ProxyMesh(cfg.mesh, clip=region_clip(cfg.mesh, self.plan.layout))
         self.proxy_mesh: ProxyResult | None = None
         self.tsdf_info: dict = {}
+        self._epoch_order: tuple[int, list[int]] = (-1, [])  # (epoch, its view order): see _view
         self.made_mesh: trimesh.Trimesh | None = None  # the final mesh (internal frame) once made, before the polish
         self.coevolution_info: dict = {}  # the thin-part rule's measure and decision (thin_parts)
         self.status = "running"
@@ -185,10 +186,14 @@ class FitRun:
         self.events.append({"iteration": self.it, "event": event, **fields})
 
     def _view(self, it: int) -> int:
+        """The training view of iteration ``it``: each epoch a permutation of the views seeded by the epoch (a
+        function of ``it`` alone, so a resumed fit draws the same views); the epoch's order is kept."""
         n = len(self.train.cameras)
         epoch, k = divmod(it, n)
-        g = torch.Generator().manual_seed(self.cfg.runtime.seed * 1_000_003 + epoch)
-        return int(torch.randperm(n, generator=g)[k])
+        if self._epoch_order[0] != epoch:
+            g = torch.Generator().manual_seed(self.cfg.runtime.seed * 1_000_003 + epoch)
+            self._epoch_order = (epoch, torch.randperm(n, generator=g).tolist())
+        return self._epoch_order[1][k]
 
     # -- optimiser ---------------------------------------------------------------------------------
     def set_surfels(self, surfels: Surfels, opt_state: dict | None = None) -> None:

@@ -14,15 +14,19 @@ the wall time; :func:`format_profile` prints it.
 
 With ``sync`` (``runtime.profile`` on CUDA: ``torch.cuda.synchronize``) every section waits for
 the device at its start and end, so each is charged its own kernels; without it no section
-synchronises (the fit's default: no host synchronisation is added).
+synchronises (the fit's default: no host synchronisation is added). The wait at a top-level section's start
+(the device finishing what was queued outside any section, and the synchronisation's own cost, which an
+unprofiled fit does not pay) is its own row, so "outside any section" is host time.
 """
 
 from __future__ import annotations
 
+import contextlib
+import time
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
-from .._profile import section
+from .._profile import in_section, section
 
 __all__ = ["Timers", "format_profile"]
 
@@ -81,6 +85,7 @@ class Timers:
 
     def __init__(self, sync: Callable[[], None] | None = None):
         self.sync = sync
+        self.sync_s = 0.0  # the waits of the top-level sections' start synchronisations (profiling's own cost)
         self.total: dict[str, float] = defaultdict(float)
         self.paths: dict[tuple[str, ...], list] = {}
 
@@ -93,16 +98,26 @@ class Timers:
         row[1] += self_seconds
         row[2] += 1
 
-    def __call__(self, name: str):
-        """A context manager timing the block as section ``name`` (nested sections are subtracted)."""
-        return section(name, add=self._add, sync=self.sync, record=self._record)
+    @contextlib.contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        """A context manager timing the block as section ``name`` (nested sections are subtracted). With ``sync``,
+        a top-level section's start synchronisation is timed apart (:attr:`sync_s`): it waits for what was queued
+        before the section, and only a profiled fit pays it."""
+        synced = self.sync is not None and not in_section()
+        if synced:
+            t = time.perf_counter()
+            self.sync()
+            self.sync_s += time.perf_counter() - t
+        with section(name, add=self._add, sync=self.sync, record=self._record, synced=synced):
+            yield
 
     def profile(self, wall: float) -> dict:
         """The profile of this process's sections against ``wall`` seconds, JSON-ready.
 
         Returns:
-            ``{"wall_s", "synchronized", "sections_s", "outside_s", "rows"}``: ``sections_s`` sums
-            the top-level sections (nested ones are inside them), ``outside_s`` is the rest of the
+            ``{"wall_s", "synchronized", "sections_s", "sync_s", "outside_s", "rows"}``: ``sections_s``
+            sums the top-level sections (nested ones are inside them), ``sync_s`` the top-level sections'
+            start synchronisations (:attr:`sync_s`: the profile's own cost), ``outside_s`` is the rest of the
             wall time; ``rows`` in table order, each ``{"path", "label", "depth", "total_s", "self_s",
             "calls", "ms_per_call", "percent_wall"}`` (``path`` joins the names with ``/``).
         """
@@ -125,7 +140,7 @@ class Timers:
             visit(top)
         inside = sum(self.paths[p][0] for p in children[()])
         return {"wall_s": round(wall, 3), "synchronized": self.sync is not None, "sections_s": round(inside, 3),
-                "outside_s": round(wall - inside, 3), "rows": rows}
+                "sync_s": round(self.sync_s, 3), "outside_s": round(wall - inside - self.sync_s, 3), "rows": rows}
 
 
 def format_profile(profile: dict) -> str:
@@ -139,6 +154,10 @@ def format_profile(profile: dict) -> str:
         lines.append(f"  {label:<34} {r['total_s']:9.3f} {r['self_s']:9.3f} {r['calls']:7d} {r['ms_per_call']:9.2f} "
                      f"{r['percent_wall']:7.1f}")
     wall = profile["wall_s"]
-    for label, s in (("all sections", profile["sections_s"]), ("outside any section", profile["outside_s"])):
+    totals = [("all sections", profile["sections_s"])]
+    if profile.get("synchronized"):
+        totals.append(("waits before sections (profile)", profile.get("sync_s", 0.0)))
+    totals.append(("outside any section", profile["outside_s"]))
+    for label, s in totals:
         lines.append(f"  {label:<34} {s:9.3f} {'':>9} {'':>7} {'':>9} {100 * s / wall if wall > 0 else 0.0:7.1f}")
     return "\n".join(lines)
