@@ -5,6 +5,8 @@ with the surfels and proxy mesh of its iteration in the caller's frame, and the 
 from __future__ import annotations
 
 import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +53,36 @@ def test_fit_writes_every_sample_in_the_callers_frame(tmp_path):
                                atol=1e-5)
 
 
+def test_each_sample_holds_its_iterations_surfels_while_the_fit_goes_on(tmp_path, monkeypatch):
+    """A slow writer lags behind the fit: each sample still holds the surfels of the iteration it was taken at (the
+    host copy is the fit's own, never the parameters the optimiser keeps changing)."""
+    from pxr import Usd, UsdGeom
+
+    from wtopo.fitting import _timeline
+
+    taken = {}
+    sample, write = _timeline.FitTimeline.sample, _timeline.FitTimeline._write
+
+    def keep(self, it, surfels, proxy_mesh):
+        taken[it] = self.sim.to_world(surfels.means.detach().cpu().double().numpy().copy())
+        sample(self, it, surfels, proxy_mesh)
+
+    def slow(self, it, host):
+        time.sleep(0.1)  # the fit runs several iterations before the worker reads the sample
+        write(self, it, host)
+
+    monkeypatch.setattr(_timeline.FitTimeline, "sample", keep)
+    monkeypatch.setattr(_timeline.FitTimeline, "_write", slow)
+    cfg = small_fit_config(30, 0, points=400, grids=(32, 48, 32), max_faces=800, density_every=100, eval_every=0)
+    cfg.runtime.usd_every = 3
+    wtopo.fit(_scene(), cfg, out_dir=tmp_path / "run", progress=False)
+    stage = Usd.Stage.Open(str(tmp_path / "run" / "timeline.usdc"))
+    attr = UsdGeom.PointInstancer(stage.GetPrimAtPath("/World/Surfels")).GetPositionsAttr()
+    assert sorted(taken) == list(range(3, 31, 3))
+    for it, means in taken.items():
+        np.testing.assert_allclose(np.asarray(attr.Get(float(it))), means, rtol=0, atol=1e-5, err_msg=str(it))
+
+
 def test_a_failed_sample_is_raised_by_the_fit(tmp_path, monkeypatch):
     from wtopo.io import TimelineWriter
 
@@ -62,3 +94,5 @@ def test_a_failed_sample_is_raised_by_the_fit(tmp_path, monkeypatch):
     cfg.runtime.usd_every = 5
     with pytest.raises(OSError, match="disk full"):
         wtopo.fit(_scene(), cfg, out_dir=tmp_path / "run", progress=False)
+    # the failed fit stopped its writer's thread
+    assert not [t for t in threading.enumerate() if t.name.startswith("wtopo-timeline")]

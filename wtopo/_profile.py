@@ -14,8 +14,9 @@ the fit's ``"raycast"`` excludes the ``"bvh_build"`` inside it, ``"poisson"`` ex
 A collector may also take ``record(path, self_seconds, seconds)``, called at every section's end
 with the names of the open sections from the outermost (a call tree: ``("tsdf", "tsdf_fusion",
 "marching_cubes")`` is not the proxy's ``("proxy", "marching_cubes")``), and ``sync()``, called
-at every section's start and end: the fit's ``runtime.profile`` passes ``torch.cuda.synchronize``
-so that on CUDA each section is charged its own kernels. Without ``sync`` no section synchronises.
+at every section's start and end (but the start of one opened with ``synced``, whose caller
+synchronised): the fit's ``runtime.profile`` passes ``torch.cuda.synchronize`` so that on CUDA
+each section is charged its own kernels. Without ``sync`` no section synchronises.
 
 Limitations:
     Wall-clock host time: without ``sync``, kernels still running when a section ends on CUDA are

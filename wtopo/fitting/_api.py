@@ -121,7 +121,8 @@ def summary_metrics(report: dict) -> str:
 
 def _finish(run: FitRun, mesh_int: trimesh.Trimesh, scene, out_dir) -> FitResult:
     """The result in the caller's frame, its report and (with ``out_dir``) its files, timed as the ``"outputs"``
-    section; with ``runtime.profile`` the report's profile spans the whole fit, its files included."""
+    section; with ``runtime.profile`` the report's profile spans the whole fit, every file but ``report.json``
+    itself included (the report's ``stage_times_s`` is taken inside that section, without it)."""
     with run.timers("outputs"):
         mesh = run.sim.to_world(mesh_int)
         result = FitResult(mesh=mesh, surfels=run.surfels, plan=run.plan, history=run.history)

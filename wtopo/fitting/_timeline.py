@@ -5,22 +5,32 @@ iterations, and the final mesh, all in the caller's frame (``out_dir/timeline.us
 The fit only copies each sample to the host; one worker thread converts it to the caller's frame and
 authors it into the stage while the fit goes on (at most one sample in flight, so at most one extra
 sample in host memory). An error in the worker is raised at the next :meth:`FitTimeline.sample` or at
-:meth:`FitTimeline.close`.
+:meth:`FitTimeline.close`. The profile charges the worker's time to no section: on the CPU it slows whatever
+section runs beside it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
+import torch
 import trimesh
 
 from .proxy import ProxyResult
 from .surfels import Surfels
 
-__all__ = ["FitTimeline"]
+__all__ = ["FitTimeline", "aborted_on_failure"]
+
+
+def _copy(t: torch.Tensor) -> np.ndarray:
+    """A host copy of ``t`` that the fit's later in-place updates cannot reach (on the CPU ``.cpu()`` would return
+    the parameter's own memory, which the worker reads while the optimiser changes it)."""
+    t = t.detach()
+    return (t.clone() if t.device.type == "cpu" else t.cpu()).numpy()
 
 
 class FitTimeline:
@@ -64,12 +74,11 @@ class FitTimeline:
         the stage on the worker thread."""
         s = surfels
         with self.timers("timeline"):
-            host = {"means": s.means.detach().cpu().numpy(), "quats": s.quats.detach().cpu().numpy(),
-                    "scales": s.scales.detach().cpu().numpy(), "opacities": s.opacities.detach().cpu().numpy(),
-                    "sh": s.sh.detach().cpu().numpy()}
+            host = {"means": _copy(s.means), "quats": _copy(s.quats), "scales": _copy(s.scales),
+                    "opacities": _copy(s.opacities), "sh": _copy(s.sh)}
             if proxy_mesh is not None:
-                host["mesh_verts"] = proxy_mesh.verts.detach().cpu().numpy()
-                host["mesh_faces"] = proxy_mesh.faces.cpu().numpy()
+                host["mesh_verts"] = _copy(proxy_mesh.verts)
+                host["mesh_faces"] = _copy(proxy_mesh.faces)
             self._wait()
             self._pending = self._worker.submit(self._write, int(it), host)
 
@@ -82,6 +91,12 @@ class FitTimeline:
                                scales=sim.length_to_world(host["scales"].astype(np.float64)),
                                opacities=host["opacities"], colors_or_sh=host["sh"], **kw)
 
+    def abort(self) -> None:
+        """Stop the worker after a failed fit: a sample not yet started is dropped, one in flight finishes, its
+        error is not raised (the fit's own is on its way); the file keeps what the last :meth:`close` wrote."""
+        self._pending = None
+        self._worker.shutdown(wait=True, cancel_futures=True)
+
     def close(self, mesh: trimesh.Trimesh | None) -> None:
         """Wait for the last sample, add the final mesh (internal frame; ``None``: none) and close the file."""
         with self.timers("timeline"):
@@ -93,3 +108,16 @@ class FitTimeline:
                 self.writer.close()
             finally:
                 self._worker.shutdown(wait=True)
+
+
+@contextlib.contextmanager
+def aborted_on_failure(timeline: Callable[[], FitTimeline | None]) -> Iterator[None]:
+    """Around a fit: when it raises, stop the worker of its timeline (``timeline()``, opened inside the block;
+    ``None``: none) with :meth:`FitTimeline.abort`; a fit that ends closes the timeline itself."""
+    try:
+        yield
+    except BaseException:
+        tl = timeline()
+        if tl is not None:
+            tl.abort()
+        raise

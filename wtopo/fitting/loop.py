@@ -30,7 +30,7 @@ from ._progress import StageBar, StopRequest, frozen_heap
 from ._reinit import tsdf_reinit
 from ._run_state import restore_run_state, run_state
 from ._strategy import DensityStrategy, StepInfo
-from ._timeline import FitTimeline
+from ._timeline import FitTimeline, aborted_on_failure
 from .adam import Adam
 from .background import BackgroundState, background_surfels, contract_steps, prune_near_cameras
 from .checkpointing import Checkpointer
@@ -456,7 +456,7 @@ class FitRun:
 
     def run(self) -> trimesh.Trimesh:
         """Run (or resume) every stage; returns the final mesh in the internal frame."""
-        with self.stop.installed():
+        with self.stop.installed(), aborted_on_failure(lambda: self.timeline):
             self._start()
             self._iterate(Stage.WARMUP, 0, self.warmup_end)
             if not self.stop.requested and not self.tsdf_done and self.cfg.tsdf.enabled:

@@ -123,6 +123,7 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     out = _render(*args, host_clip=host, defer_count=cuda)
     if out.overflow is not None:
         if bool(out.overflow):  # host sync: the one read after the forward
+            out = None  # the incomplete render and its graph go before the exact one is made
             out = _render(*args, host_clip=host, defer_count=False)
         out.overflow = None
     return out

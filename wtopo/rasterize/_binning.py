@@ -147,7 +147,9 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
             capacity.poll()
             if capacity.value == 0:  # host sync: once per device, the first count sizes the capacity
                 capacity.observe(int(csum[-1]), config.max_intersections)
-            total = capacity.value  # pairs sorted: the real ones, then padding keys after every tile
+            # pairs sorted: the real ones, then padding keys after every tile (the capacity another call's larger
+            # budget grew is cut to this call's: more pairs than that are an overflow, and the exact count raises)
+            total = min(capacity.value, config.max_intersections)
             overflow = csum[-1] > total
             capacity.post(csum[-1], config.max_intersections)
         else:
