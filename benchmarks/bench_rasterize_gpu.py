@@ -6,8 +6,8 @@ What is timed (median of ``--repeats`` after ``--warmup`` calls; the first calls
 kernels, minutes on a machine without a kernel cache):
 
 1. Rasterizer, ``--res`` x ``--res`` pixels, one camera, ``--sizes`` random surfels (SH degree 3), float32:
-   wtopo's public :func:`wtopo.ops.rasterize_surfels` (argument checks in one host read; on CUDA the pair
-   count deferred and its overflow read once at the end), wtopo's fit path
+   wtopo's public :func:`wtopo.ops.rasterize_surfels` (argument checks in one host read, the default near
+   plane's median and the exact pair count: host synchronisations), wtopo's fit path
    ``wtopo.rasterize._rasterize_trusted`` with ``defer_count`` (no host synchronisation; also with Warp's own
    overload lookup at every launch, ``warp_lookup``), and,
    when ``import gsplat`` works, gsplat's ``rasterization_2dgs`` on the same surfels and camera

@@ -103,28 +103,6 @@ def test_deferred_count_overflow_then_growth(device):
                           rasterize_surfels(*small, cam, background=(0.1, 0.2, 0.3)), small)
 
 
-def test_public_path_is_complete_when_the_kept_capacity_is_short(device):
-    """On CUDA the public path sizes its sort from earlier calls and reads one overflow flag after the forward: a
-    view with more pairs than the kept capacity is rendered again with its exact count (the CPU reads the count)."""
-    from wtopo import _bridge
-    from wtopo.rasterize import _binning
-
-    _binning._capacities.clear()
-    cam = camera()
-    big = surfels(800, dtype=torch.float32, device=device, seed=1)
-    ref = rasterize_surfels(*big, cam, background=(0.1, 0.2, 0.3))
-    cap = _binning._pair_capacity(_bridge.warp_device(device))
-    _settle(cap, device)
-    cap.value = 64  # as if earlier views had been tiny
-    if torch.device(device).type == "cuda":
-        assert bool(_trusted(big, cam, defer_count=True).overflow)  # what the public path meets, and renders again
-        _settle(cap, device)
-        cap.value = 64
-    out = rasterize_surfels(*big, cam, background=(0.1, 0.2, 0.3))
-    assert out.overflow is None
-    _assert_outputs_equal(out, ref, big)
-
-
 def test_a_smaller_pair_budget_than_the_kept_capacity_is_no_error(device):
     """A deferred call whose ``max_intersections`` is below the capacity an earlier call with a larger budget grew
     renders (its buffers cut to its own budget), equal to the exact count's render."""

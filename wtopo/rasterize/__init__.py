@@ -80,7 +80,7 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
         sh_degree: SH degree 0..3 (default: from K); must be None for [N, 3] colours.
         background: RGB [3] composited behind (not differentiable; default black).
         near: near plane (z-depth, world units). Default: ``config.near_fraction`` times the
-            median z-depth of the centres in front of the camera (scale-free; computed on the device on CUDA).
+            median z-depth of the centres in front of the camera (scale-free; a host sync).
             Surfels with centre depth <= near are culled.
         far: far value of the distortion mapping (default ``config.far_multiple`` times that
             median); it does not cull.
@@ -111,22 +111,9 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     """
     config, sh_degree, bg, device = _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree,
                                               background, near, far, config)
-    cuda = device.type == "cuda"
-    if cuda and near is None and far is None:  # the scene-relative planes on the device: no read
-        clip, host = _default_clip_device(means, camera, config), None
-    else:
-        host = _default_clip(means, camera, near, far, config)
-        clip = _clip_from_host(*host, device)
-    args = (means, quats, scales, opacities, colors_or_sh, camera, sh_degree, bg, clip, config)
-    # on CUDA the pair count is not read mid-call: the buffers are sized from earlier calls and one read at the end,
-    # once the whole forward is queued, says whether they held every pair (else the exact count renders it again)
-    out = _render(*args, host_clip=host, defer_count=cuda)
-    if out.overflow is not None:
-        if bool(out.overflow):  # host sync: the one read after the forward
-            out = None  # the incomplete render and its graph go before the exact one is made
-            out = _render(*args, host_clip=host, defer_count=False)
-        out.overflow = None
-    return out
+    near, far = _default_clip(means, camera, near, far, config)
+    return _render(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, bg,
+                   _clip_from_host(near, far, device), config, host_clip=(near, far), defer_count=False)
 
 
 def _rasterize_trusted(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
