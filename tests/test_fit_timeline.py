@@ -8,9 +8,11 @@ import sys
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 
 pytest.importorskip("pxr")
@@ -96,3 +98,45 @@ def test_a_failed_sample_is_raised_by_the_fit(tmp_path, monkeypatch):
         wtopo.fit(_scene(), cfg, out_dir=tmp_path / "run", progress=False)
     # the failed fit stopped its writer's thread
     assert not [t for t in threading.enumerate() if t.name.startswith("wtopo-timeline")]
+
+
+def test_samples_leave_the_device_as_the_writer_keeps_them(tmp_path):
+    """Above the writer's surfel budget the fit sends the writer's own strided subset, and only the SH's DC term:
+    the file is the one the writer makes of the whole arrays."""
+    from pxr import Usd, UsdGeom
+
+    from wtopo.fitting._timeline import FitTimeline
+    from wtopo.fitting.profiling import Timers
+    from wtopo.io import TimelineWriter
+
+    g = torch.Generator().manual_seed(0)
+    n = 20
+    s = SimpleNamespace(means=torch.rand(n, 3, generator=g), quats=torch.randn(n, 4, generator=g),
+                        scales=torch.rand(n, 2, generator=g) * 0.1, opacities=torch.rand(n, generator=g),
+                        sh=torch.randn(n, 16, 3, generator=g) * 0.2)
+    sim = Similarity(2.0, (0.1, -0.2, 0.3))
+    cams = _scene().cameras[:2]
+    tl = FitTimeline(tmp_path / "fit.usdc", 1, sim, cams, Timers())
+    tl.writer.max_surfels = 7
+    tl.sample(1, s, None)
+    tl.close(None)
+    ref = TimelineWriter(tmp_path / "ref.usdc", max_surfels=7)
+    ref.add_cameras([sim.to_world(c) for c in cams])
+    ref.add_sample(1, means=sim.to_world(s.means.double().numpy()), quats=s.quats.numpy(),
+                   scales=sim.length_to_world(s.scales.double().numpy()), opacities=s.opacities.numpy(),
+                   colors_or_sh=s.sh.numpy())
+    ref.close()
+    a, b = (Usd.Stage.Open(str(tmp_path / f)) for f in ("fit.usdc", "ref.usdc"))
+    positions = UsdGeom.PointInstancer(a.GetPrimAtPath("/World/Surfels")).GetPositionsAttr().Get(1.0)
+    assert len(positions) == 7
+    compared = 0
+    for prim in a.Traverse():  # every sampled attribute of every prim (the instancer's, the splats' when written)
+        for attr in prim.GetAttributes():
+            if attr.GetNumTimeSamples() == 0:
+                continue
+            other = b.GetPrimAtPath(prim.GetPath()).GetAttribute(attr.GetName())
+            np.testing.assert_allclose(np.asarray(attr.Get(1.0), dtype=np.float64),
+                                       np.asarray(other.Get(1.0), dtype=np.float64), rtol=1e-6, atol=1e-7,
+                                       err_msg=str(attr.GetPath()))
+            compared += 1
+    assert compared >= 8

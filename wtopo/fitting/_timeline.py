@@ -74,8 +74,18 @@ class FitTimeline:
         the stage on the worker thread."""
         s = surfels
         with self.timers("timeline"):
-            host = {"means": _copy(s.means), "quats": _copy(s.quats), "scales": _copy(s.scales),
-                    "opacities": _copy(s.opacities), "sh": _copy(s.sh)}
+            # only what the writer keeps leaves the device: its strided subset above its max_surfels (the same
+            # indices it takes itself) and the SH's DC term (its splats keep degree 0, its instancer's colour is DC)
+            n, keep = s.means.shape[0], self.writer.max_surfels
+            idx = None
+            if n > keep:
+                idx = torch.from_numpy(np.linspace(0, n - 1, keep).round().astype(np.int64)).to(s.means.device)
+
+            def take(t: torch.Tensor) -> np.ndarray:
+                return _copy(t if idx is None else t.detach()[idx])
+
+            host = {"means": take(s.means), "quats": take(s.quats), "scales": take(s.scales),
+                    "opacities": take(s.opacities), "sh": take(s.sh[:, :1])}
             if proxy_mesh is not None:
                 host["mesh_verts"] = _copy(proxy_mesh.verts)
                 host["mesh_faces"] = _copy(proxy_mesh.faces)
