@@ -21,7 +21,7 @@ _PATHS = {
     "proxy",
     "proxy/oriented_points", "proxy/poisson", "proxy/poisson/scatter", "proxy/marching_cubes", "raycast",
     "raycast/bvh_build", "tsdf", "tsdf/render_depths", "tsdf/tsdf_fusion", "tsdf/tsdf_fusion/tsdf_integrate",
-    "tsdf/tsdf_fusion/marching_cubes", "final", "final/tsdf_fusion", "evaluate", "checkpoint", "outputs",
+    "tsdf/tsdf_fusion/marching_cubes", "final", "final/tsdf_fusion", "evaluate", "checkpoint", "outputs", "release",
 }
 
 
@@ -97,7 +97,7 @@ def test_profiled_fit_reports_every_stage_within_the_wall_time(tiny, tmp_path, c
     assert prof["synchronized"] is device.startswith("cuda")  # the CPU has nothing to synchronise
     out = capsys.readouterr().out
     for label in ("wtopo fit profile", "setup (plan", "render forward", "backward", "losses", "host read",
-                  "optimizer", "density statistics", "density control",
+                  "optimizer", "density statistics", "freeing the step's buffers", "density control",
                   "proxy mesh", "marching cubes", "BVH build", "TSDF re-initialisation", "TSDF fusion",
                   "evaluation", "checkpoint", "report and output files", "outside any section"):
         assert label in out, label

@@ -329,10 +329,12 @@ class FitRun:
             self._unverified = finite
         with self.timers("statistics"):
             self.strategy.step_post_backward(self.surfels, info)
-        self.opt.zero_grad(set_to_none=True)
         self.loss_log.add(terms, first=self.loss_log.count == 0 and not self.history)
         if self.it % _SNAPSHOT_EVERY == 0:
             self._snapshot_unread()
+        with self.timers("release"):  # the step's gradients, images and render buffers are freed here
+            self.opt.zero_grad(set_to_none=True)
+            del t, info, stacked, total
 
     # -- stages ------------------------------------------------------------------------------------------
     def _iterate(self, stage: Stage, start: int, end: int) -> None:

@@ -2,7 +2,8 @@
 """Where a fit spends its time: the fit's section timers and the ``runtime.profile`` table.
 
 :class:`Timers` opens the fit's top-level sections (``wtopo._profile.section``): ``render``,
-``losses``, ``backward``, ``optimizer``, ``densify``, ``guidance``, ``proxy``, ``raycast``,
+``losses``, ``backward``, ``optimizer``, ``statistics``, ``release`` (the step's gradients and buffers freed),
+``densify``, ``guidance``, ``proxy``, ``raycast``,
 ``tsdf``, ``final``, ``evaluate``, ``checkpoint``, ``timeline``, ``outputs`` (the report and the run
 directory's files). The ops open theirs inside
 (``rasterize_*``, ``oriented_points``, ``poisson`` / ``scatter``, ``marching_cubes``,
@@ -43,6 +44,7 @@ LABELS = {
     "optimizer": "optimizer",
     "read": "host read (losses, flags)",
     "statistics": "density statistics",
+    "release": "freeing the step's buffers",
     "densify": "density control",
     "guidance": "mesh guidance",
     "proxy": "proxy mesh",
@@ -66,8 +68,8 @@ LABELS = {
 }
 """What the table calls each section (sections without an entry show their name)."""
 
-ORDER = ("setup", "init", "render", "losses", "read", "backward", "optimizer", "statistics", "densify", "guidance",
-         "proxy", "raycast", "tsdf", "final", "evaluate", "checkpoint", "timeline", "outputs")
+ORDER = ("setup", "init", "render", "losses", "read", "backward", "optimizer", "statistics", "release", "densify",
+         "guidance", "proxy", "raycast", "tsdf", "final", "evaluate", "checkpoint", "timeline", "outputs")
 """Order of the top-level rows (the loop's order); nested rows follow by time."""
 
 
