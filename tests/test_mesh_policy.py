@@ -557,7 +557,7 @@ def test_support_rules_decide_the_same_on_every_device_as_the_numpy_projection(d
 def test_keep_faces_and_face_areas_match_trimesh():
     """The policy's own face selection and areas give what trimesh's copy / update_faces /
     remove_unreferenced_vertices and ``area_faces`` give: the same vertices, faces, vertex colours and metadata."""
-    from wtopo.geometry.mesh_policy import _face_areas, _keep_faces
+    from wtopo.geometry.mesh_policy import _face_areas, keep_faces
 
     mesh = trimesh.creation.icosphere(subdivisions=3)
     mesh = trimesh.Trimesh(mesh.vertices * [1.0, 2.0, 0.5], mesh.faces, process=False)
@@ -568,7 +568,7 @@ def test_keep_faces_and_face_areas_match_trimesh():
     ref = mesh.copy()
     ref.update_faces(keep)
     ref.remove_unreferenced_vertices()
-    out = _keep_faces(mesh, keep)
+    out = keep_faces(mesh, keep)
     assert np.array_equal(out.vertices, ref.vertices) and np.array_equal(out.faces, ref.faces)
     assert np.array_equal(out.visual.vertex_colors, ref.visual.vertex_colors)
     assert out.metadata["closed"] is True and len(mesh.faces) == 1280  # the input is unchanged
@@ -576,10 +576,30 @@ def test_keep_faces_and_face_areas_match_trimesh():
     some = np.flatnonzero(keep)
     np.testing.assert_allclose(_face_areas(mesh, some), mesh.area_faces[some], rtol=1e-12, atol=0)
     plain = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)  # no colours: none made up
-    assert _keep_faces(plain, keep).visual.kind is None
+    assert keep_faces(plain, keep).visual.kind is None
     faced = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False,
                             face_colors=rng.integers(0, 256, (len(mesh.faces), 4), dtype=np.uint8))
     ref = faced.copy()
     ref.update_faces(keep)
     ref.remove_unreferenced_vertices()
-    assert np.array_equal(_keep_faces(faced, keep).visual.face_colors, ref.visual.face_colors)
+    assert np.array_equal(keep_faces(faced, keep).visual.face_colors, ref.visual.face_colors)
+
+
+def test_cleanup_without_weld_matches_trimesh():
+    """``cleanup_mesh(weld=False)`` keeps what trimesh's copy, ``update_faces`` and ``remove_unreferenced_vertices``
+    keep: the faces that repeat no index, their vertices in order, the vertex colours; the input is unchanged."""
+    from wtopo.fitting.tsdf import cleanup_mesh
+
+    rng = np.random.default_rng(4)
+    v = rng.random((60, 3))
+    f = rng.integers(0, 50, (90, 3))  # vertices 50-59 unused; some faces repeat an index
+    f[::7, 1] = f[::7, 0]
+    cols = rng.integers(0, 255, (60, 4), dtype=np.uint8)
+    raw = trimesh.Trimesh(v, f, vertex_colors=cols, process=False)
+    ref = raw.copy()
+    ref.update_faces((f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2]))
+    ref.remove_unreferenced_vertices()
+    out = cleanup_mesh(raw, largest_component=False, repair=False, weld=False)
+    assert np.array_equal(out.faces, ref.faces) and np.array_equal(out.vertices, ref.vertices)
+    assert np.array_equal(out.visual.vertex_colors, ref.visual.vertex_colors)
+    assert len(raw.faces) == 90 and len(raw.vertices) == 60  # the input is left as it was

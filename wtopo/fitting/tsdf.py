@@ -20,6 +20,7 @@ import trimesh
 
 from .._profile import section
 from ..camera import Camera
+from ..geometry.mesh_policy import keep_faces
 from ..geometry.winding import boundary_edges, is_closed, orient_faces
 from ..scene import NORMALIZATION_MARGIN
 from .surfels import Surfels
@@ -164,14 +165,14 @@ def cleanup_mesh(mesh: trimesh.Trimesh, *, largest_component: bool = True, repai
     already): vertices are not merged by position and only faces that repeat a vertex index go. At fine grids
     (768^3) float32 rounds edge vertices a few 1e-5 cells from a grid node onto it; merging those by position
     collapsed faces into non-manifold edges and left the Poisson re-mesh of a GPU fit open."""
-    mesh = mesh.copy()
     if weld:
+        mesh = mesh.copy()
         mesh.merge_vertices()
         mesh.update_faces(mesh.nondegenerate_faces())
-    else:
-        f = mesh.faces
-        mesh.update_faces((f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2]))
-    mesh.remove_unreferenced_vertices()
+        mesh.remove_unreferenced_vertices()
+    else:  # a new mesh of the faces that repeat no index and their vertices (trimesh's copy and cache: 0.3 s at 1M)
+        f = np.asarray(mesh.faces)
+        mesh = keep_faces(mesh, (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2]))
     if largest_component and len(mesh.faces):
         parts = mesh.split(only_watertight=False)
         if len(parts) > 1:
