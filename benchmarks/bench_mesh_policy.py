@@ -39,7 +39,7 @@ from wtopo.geometry.components import face_components
 from wtopo.geometry.mesh_policy import (
     _crop_near,
     _face_areas,
-    _keep_faces,
+    keep_faces,
     crop_near_cameras,
     supported_components,
     supported_faces,
@@ -137,7 +137,7 @@ def main(argv=None) -> None:
         out.remove_unreferenced_vertices()
         return out.area_faces
 
-    t_new, _ = _timed(lambda: _face_areas(_keep_faces(mesh, keep)))
+    t_new, _ = _timed(lambda: _face_areas(keep_faces(mesh, keep)))
     t_old, _ = _timed(_trimesh_keep)
     rows.append(("keep 90 % of the faces, with areas (old: trimesh's copy)", t_new, t_old))
     holed = np.asarray(mesh.faces)[np.setdiff1d(np.arange(len(mesh.faces)),
