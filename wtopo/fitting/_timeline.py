@@ -103,7 +103,8 @@ class FitTimeline:
 
     def abort(self) -> None:
         """Stop the worker after a failed fit: a sample not yet started is dropped, one in flight finishes, its
-        error is not raised (the fit's own is on its way); the file keeps what the last :meth:`close` wrote."""
+        error is not raised (the fit's own is on its way). Nothing is written: the file is written only at
+        :meth:`close`."""
         self._pending = None
         self._worker.shutdown(wait=True, cancel_futures=True)
 
