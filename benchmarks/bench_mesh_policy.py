@@ -39,8 +39,8 @@ from wtopo.geometry.components import face_components
 from wtopo.geometry.mesh_policy import (
     _crop_near,
     _face_areas,
-    keep_faces,
     crop_near_cameras,
+    keep_faces,
     supported_components,
     supported_faces,
 )
