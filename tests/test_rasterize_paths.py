@@ -10,11 +10,11 @@ from wtopo.ops import RasterConfig, rasterize_surfels
 
 # -- the fit's trusted path: no validation, device-side clip defaults, deferred pair count -----------
 
-def _trusted(params, cam, **kw):
+def _trusted(params, cam, config=None, **kw):
     from wtopo.rasterize import _rasterize_trusted
 
     bg = torch.tensor([0.1, 0.2, 0.3], dtype=params[0].dtype, device=params[0].device)
-    return _rasterize_trusted(*params, cam, sh_degree=None, background=bg, config=RasterConfig(), **kw)
+    return _rasterize_trusted(*params, cam, sh_degree=None, background=bg, config=config or RasterConfig(), **kw)
 
 
 def _assert_outputs_equal(a, b, params):
@@ -107,18 +107,17 @@ def test_a_smaller_pair_budget_than_the_kept_capacity_is_no_error(device):
     """A deferred call whose ``max_intersections`` is below the capacity an earlier call with a larger budget grew
     renders (its buffers cut to its own budget), equal to the exact count's render."""
     from wtopo import _bridge
-    from wtopo.rasterize import _binning, _rasterize_trusted
+    from wtopo.rasterize import _binning
 
     _binning._capacities.clear()
     cam = camera()
     params = surfels(40, dtype=torch.float32, device=device, scale=(0.01, 0.03))
-    bg = torch.tensor([0.1, 0.2, 0.3], device=device)
     cfg = RasterConfig(max_intersections=5000)
-    _rasterize_trusted(*params, cam, sh_degree=None, background=bg, config=cfg, defer_count=True)  # sizes it
+    _trusted(params, cam, config=cfg, defer_count=True)  # sizes the capacity
     cap = _binning._pair_capacity(_bridge.warp_device(device))
     _settle(cap, device)
     cap.value = 20_000  # grown by a call with a larger budget
-    out = _rasterize_trusted(*params, cam, sh_degree=None, background=bg, config=cfg, defer_count=True)
+    out = _trusted(params, cam, config=cfg, defer_count=True)
     assert not bool(out.overflow)
     _assert_outputs_equal(out, rasterize_surfels(*params, cam, background=(0.1, 0.2, 0.3), config=cfg), params)
 

@@ -127,9 +127,8 @@ def _validate_config(config: RasterConfig | None) -> RasterConfig:
 def _check_values(means, quats, scales, opacities, colors_or_sh) -> None:
     """Finite surfel tensors, scales >= 0 and opacities in [0, 1], by one host read of seven reductions (a NaN or
     inf makes a sum non-finite); the indexed search that names the first bad value runs only when one fails."""
-    tensors = {"means": means, "quats": quats, "scales": scales, "opacities": opacities,
-               "colors_or_sh": colors_or_sh}
-    d = {k: t.detach() for k, t in tensors.items()}
+    d = {k: t.detach() for k, t in (("means", means), ("quats", quats), ("scales", scales),
+                                     ("opacities", opacities), ("colors_or_sh", colors_or_sh))}
     lo, hi = torch.aminmax(d["opacities"])
     # host sync: validation only, one read for every check
     *sums, smin, olo, ohi = torch.stack([t.sum() for t in d.values()] + [d["scales"].min(), lo, hi]).tolist()
