@@ -1,12 +1,11 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The fit's USD timeline (``runtime.usd_every``), written on a worker thread: every sample lands, in order,
-with the surfels and proxy mesh of its iteration in the caller's frame, and the final mesh is added."""
+"""The fit's USD timeline (``runtime.usd_every``), written by a writer process: every sample lands, in order,
+with the surfels and proxy mesh of its iteration in the caller's frame, and the final mesh is added; the writer's
+errors reach the fit and a failed fit leaves no writer behind."""
 
 from __future__ import annotations
 
 import sys
-import threading
-import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -56,25 +55,20 @@ def test_fit_writes_every_sample_in_the_callers_frame(tmp_path):
 
 
 def test_each_sample_holds_its_iterations_surfels_while_the_fit_goes_on(tmp_path, monkeypatch):
-    """A slow writer lags behind the fit: each sample still holds the surfels of the iteration it was taken at (the
-    host copy is the fit's own, never the parameters the optimiser keeps changing)."""
+    """The writer lags behind the fit: each sample still holds the surfels of the iteration it was taken at (on the
+    CPU the host copy is the parameters' own memory, which the optimiser changes right after the hand-over)."""
     from pxr import Usd, UsdGeom
 
     from wtopo.fitting import _timeline
 
     taken = {}
-    sample, write = _timeline.FitTimeline.sample, _timeline.FitTimeline._write
+    sample = _timeline.FitTimeline.sample
 
     def keep(self, it, surfels, proxy_mesh):
         taken[it] = self.sim.to_world(surfels.means.detach().cpu().double().numpy().copy())
         sample(self, it, surfels, proxy_mesh)
 
-    def slow(self, it, host):
-        time.sleep(0.1)  # the fit runs several iterations before the worker reads the sample
-        write(self, it, host)
-
     monkeypatch.setattr(_timeline.FitTimeline, "sample", keep)
-    monkeypatch.setattr(_timeline.FitTimeline, "_write", slow)
     cfg = small_fit_config(30, 0, points=400, grids=(32, 48, 32), max_faces=800, density_every=100, eval_every=0)
     cfg.runtime.usd_every = 3
     wtopo.fit(_scene(), cfg, out_dir=tmp_path / "run", progress=False)
@@ -85,19 +79,54 @@ def test_each_sample_holds_its_iterations_surfels_while_the_fit_goes_on(tmp_path
         np.testing.assert_allclose(np.asarray(attr.Get(float(it))), means, rtol=0, atol=1e-5, err_msg=str(it))
 
 
-def test_a_failed_sample_is_raised_by_the_fit(tmp_path, monkeypatch):
-    from wtopo.io import TimelineWriter
+def test_a_writer_that_dies_is_raised_by_the_fit(tmp_path, monkeypatch):
+    from wtopo.fitting import _timeline
+    from wtopo.io._timeline_process import TimelineWriterError
 
-    def broken(self, iteration, **kw):
-        raise OSError("disk full")
+    writers = []
+    sample = _timeline.FitTimeline.sample
 
-    monkeypatch.setattr(TimelineWriter, "add_sample", broken)
+    def kill_after_two(self, it, surfels, proxy_mesh):
+        writers.append(self.writer)
+        if it == 10:
+            self.writer._proc.kill()
+            self.writer._proc.wait()
+        sample(self, it, surfels, proxy_mesh)
+
+    monkeypatch.setattr(_timeline.FitTimeline, "sample", kill_after_two)
     cfg = small_fit_config(20, 0, points=400, grids=(32, 48, 32), max_faces=800, density_every=10, eval_every=0)
     cfg.runtime.usd_every = 5
-    with pytest.raises(OSError, match="disk full"):
+    with pytest.raises(TimelineWriterError, match="exit code"):
         wtopo.fit(_scene(), cfg, out_dir=tmp_path / "run", progress=False)
-    # the failed fit stopped its writer's thread
-    assert not [t for t in threading.enumerate() if t.name.startswith("wtopo-timeline")]
+    assert writers and writers[-1]._proc.poll() is not None
+    assert not (tmp_path / "run" / "timeline.usdc").exists()
+
+
+def test_the_writers_error_is_raised_by_the_fit_and_a_failed_fit_ends_the_writer(tmp_path, monkeypatch):
+    from wtopo.fitting import _timeline
+
+    # the file's place is taken by a folder: the writer's atomic rename fails at the end, in the child
+    (tmp_path / "run" / "timeline.usdc").mkdir(parents=True)
+    cfg = small_fit_config(10, 0, points=400, grids=(32, 48, 32), max_faces=800, density_every=10, eval_every=0)
+    cfg.runtime.usd_every = 5
+    with pytest.raises(OSError) as info:
+        wtopo.fit(_scene(), cfg, out_dir=tmp_path / "run", progress=False)
+    assert "writer process" in "".join(getattr(info.value, "__notes__", []))
+
+    # a fit that fails for its own reasons ends its writer and raises its own error
+    writers = []
+    sample = _timeline.FitTimeline.sample
+
+    def fail(self, it, surfels, proxy_mesh):
+        writers.append(self.writer)
+        sample(self, it, surfels, proxy_mesh)
+        raise KeyError("the fit's own error")
+
+    monkeypatch.setattr(_timeline.FitTimeline, "sample", fail)
+    with pytest.raises(KeyError, match="own error"):
+        wtopo.fit(_scene(), cfg, out_dir=tmp_path / "run2", progress=False)
+    assert writers and writers[0]._proc.poll() is not None
+    assert not (tmp_path / "run2" / "timeline.usdc").exists()
 
 
 def test_samples_leave_the_device_as_the_writer_keeps_them(tmp_path):
@@ -116,8 +145,7 @@ def test_samples_leave_the_device_as_the_writer_keeps_them(tmp_path):
                         sh=torch.randn(n, 16, 3, generator=g) * 0.2)
     sim = Similarity(2.0, (0.1, -0.2, 0.3))
     cams = _scene().cameras[:2]
-    tl = FitTimeline(tmp_path / "fit.usdc", 1, sim, cams, Timers())
-    tl.writer.max_surfels = 7
+    tl = FitTimeline(tmp_path / "fit.usdc", 1, sim, cams, Timers(), max_surfels=7)
     tl.sample(1, s, None)
     tl.close(None)
     ref = TimelineWriter(tmp_path / "ref.usdc", max_surfels=7)
@@ -140,3 +168,41 @@ def test_samples_leave_the_device_as_the_writer_keeps_them(tmp_path):
                                        err_msg=str(attr.GetPath()))
             compared += 1
     assert compared >= 8
+
+
+def test_the_writer_process_makes_the_writers_calls_and_raises_its_errors(tmp_path):
+    from wtopo.io import TimelineWriter
+    from wtopo.io._timeline_process import TimelineProcess
+
+    g = np.random.default_rng(0)
+    arrays = [{"means": g.random((30, 3)), "quats": g.standard_normal((30, 4)), "scales": g.random((30, 2)) * 0.1,
+               "opacities": g.random(30), "colors_or_sh": g.random((30, 3))} for _ in range(3)]
+    verts, faces = g.random((4, 3)), np.array([[0, 1, 2], [0, 2, 3]])
+    proc, ref = TimelineProcess(tmp_path / "a.usdc", max_surfels=20), TimelineWriter(tmp_path / "b.usdc",
+                                                                                      max_surfels=20)
+    for w in (proc, ref):
+        for it, a in enumerate(arrays, 1):
+            w.add_sample(it * 10, mesh_verts=verts * it, mesh_faces=faces, **a)
+        w.add_mesh("final", verts, faces)
+    stats, want = proc.close(), ref.close()
+    assert (stats.samples, stats.bytes) == (want.samples, want.bytes)
+    a, b = read_timeline(tmp_path / "a.usdc"), read_timeline(tmp_path / "b.usdc")
+    assert a.iterations == b.iterations == [10, 20, 30]
+    for sa, sb in zip(a.samples, b.samples, strict=True):
+        np.testing.assert_array_equal(sa.verts, sb.verts)
+        assert sa.num_surfels == sb.num_surfels == 20
+
+    # an argument error surfaces at the next call or at close, with the child's traceback; nothing is written
+    bad = TimelineProcess(tmp_path / "c.usdc")
+    bad.add_sample(5, means=arrays[0]["means"])  # the writer wants every surfel array together
+    with pytest.raises(ValueError, match="given together") as info:
+        bad.close()
+    assert "add_sample" in info.value.__notes__[0]
+    assert not (tmp_path / "c.usdc").exists()
+    # abort ends the child and writes nothing
+    gone = TimelineProcess(tmp_path / "d.usdc")
+    gone.add_sample(1, **arrays[0])
+    gone.abort()
+    assert gone._proc.poll() is not None and not (tmp_path / "d.usdc").exists()
+    with pytest.raises(RuntimeError, match="closed"):
+        gone.add_sample(2, **arrays[1])

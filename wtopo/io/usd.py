@@ -117,8 +117,11 @@ class TimelineWriter:
         The whole stage is kept in memory until written (see the module docstring for sizes).
     """
 
+    MAX_SURFELS = 50_000
+    """The default ``max_surfels``."""
+
     def __init__(self, path: str | os.PathLike, *, up_axis: str = "Y", meters_per_unit: float = 1.0,
-                 time_codes_per_second: float = 100.0, max_surfels: int = 50_000, splats: bool = True,
+                 time_codes_per_second: float = 100.0, max_surfels: int = MAX_SURFELS, splats: bool = True,
                  splat_sh_degree: int | None = 0):
         Gf, Sdf, Usd, UsdGeom, Vt = _pxr()
         self.path = os.fspath(path)
