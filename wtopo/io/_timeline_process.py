@@ -8,11 +8,13 @@ process authors on a core of its own: the caller only pickles each call's argume
 The child is a ``python -c`` that imports this module from the caller's ``wtopo`` package and serves. It is
 started with :mod:`subprocess` (not :mod:`multiprocessing`, whose spawn re-runs an unguarded user script), in a
 session of its own (a Ctrl-C in the terminal reaches the fit, which stops and closes the timeline, not the
-writer), with no CUDA device visible (it never touches the GPU). It reads the calls on a thread of its own into a
-queue of :data:`_QUEUE` calls, so a caller blocks only while the child is that far behind. An error in the child
-ends it: the caller raises it (same type where it can be rebuilt, the child's traceback as a note) at its next
-call or at :meth:`TimelineProcess.close`. Nothing is written before ``close`` (the writer writes atomically); a
-child whose caller went away without closing writes nothing.
+writer), with no CUDA device visible (it never touches the GPU). Each call is pickled to a file of a private
+folder and its number sent down a pipe; the child, single-threaded, loads the file, makes the call and answers
+with a line. The data never waits in a pipe for a reader that is busy authoring (through a 64-KB pipe a 16-MB
+sample took hundreds of hand-offs, each waiting for the child's GIL), and the caller blocks only while
+:data:`_QUEUE` calls are unanswered. An error in the child ends it: the caller raises it (same type where it can
+be rebuilt, the child's traceback as a note) at its next call or at :meth:`TimelineProcess.close`. Nothing is
+written before ``close`` (the writer writes atomically); a child whose caller went away writes nothing.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from __future__ import annotations
 import contextlib
 import os
 import pickle
-import queue
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -45,7 +47,7 @@ def _child_env() -> dict:
 
 # the child's command: this wtopo package first on its path (not whatever ``wtopo`` the working folder holds)
 _CHILD = ("import sys; sys.path.insert(0, {root!r}); from wtopo.io._timeline_process import _serve; "
-          "_serve(sys.stdin.buffer, sys.argv[1])")
+          "_serve(sys.argv[1])")
 
 
 class TimelineProcess:
@@ -63,14 +65,18 @@ class TimelineProcess:
         from .usd import TimelineWriter
 
         self.max_surfels = int(writer_kwargs.get("max_surfels", TimelineWriter.MAX_SURFELS))
-        fd, self._error_path = tempfile.mkstemp(prefix="wtopo-timeline-", suffix=".err")
-        os.close(fd)
-        self._stderr = tempfile.TemporaryFile()  # noqa: SIM115 - the child's stderr, read and closed by _finish
+        self._dir = tempfile.mkdtemp(prefix="wtopo-timeline-")
+        self._error_path = os.path.join(self._dir, "status")
+        self._stderr = open(os.path.join(self._dir, "stderr"), "w+b")  # noqa: SIM115 - read and closed by _finish
         root = str(Path(__file__).resolve().parents[2])  # the folder holding this wtopo package
-        self._proc = subprocess.Popen([sys.executable, "-c", _CHILD.format(root=root), self._error_path],
-                                      stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=self._stderr,
+        self._proc = subprocess.Popen([sys.executable, "-c", _CHILD.format(root=root), self._dir],
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._stderr,
                                       env=_child_env(), start_new_session=True)
         self._done = False
+        self._calls = 0
+        self._free = threading.Semaphore(_QUEUE)  # calls the child may still take before the caller waits
+        self._child_ended = False
+        threading.Thread(target=self._answers, daemon=True, name="wtopo-timeline-answers").start()
         self._send("open", os.fspath(path), **writer_kwargs)
 
     def add_cameras(self, cameras, **kwargs) -> None:
@@ -97,15 +103,30 @@ class TimelineProcess:
             self._proc.wait()
             self._cleanup()
 
+    def _answers(self) -> None:
+        """The caller's thread that counts the child's answers (one line per call made); at its end (the child's),
+        it frees every waiting caller."""
+        for _ in self._proc.stdout:
+            self._free.release()
+        self._child_ended = True
+        for _ in range(_QUEUE + 1):
+            self._free.release()
+
     def _send(self, name: str, *args, **kwargs) -> None:
         if self._done:
             raise RuntimeError("the timeline writer is closed")
-        if self._proc.poll() is not None:  # the child ended early: its error
+        self._free.acquire()
+        if self._child_ended or self._proc.poll() is not None:  # the child ended early: its error
+            self._proc.wait()
             self._finish()
+        self._calls += 1
+        call = os.path.join(self._dir, f"{self._calls}.call")
+        with open(call, "wb") as f:  # read by the child only once its number is sent
+            pickle.dump((name, args, kwargs), f, protocol=pickle.HIGHEST_PROTOCOL)
         try:
-            pickle.dump((name, args, kwargs), self._proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+            self._proc.stdin.write(f"{self._calls}\n".encode())
             self._proc.stdin.flush()
-        except (BrokenPipeError, OSError):
+        except OSError:  # a broken pipe: the child ended
             self._proc.wait()
             self._finish()
             raise
@@ -113,8 +134,10 @@ class TimelineProcess:
     def _finish(self):
         """The child has ended: its result (``close``'s stats), or its error raised."""
         try:
-            with open(self._error_path, "rb") as f:
-                blob = f.read()
+            blob = b""
+            if os.path.exists(self._error_path):
+                with open(self._error_path, "rb") as f:
+                    blob = f.read()
             self._stderr.seek(0)
             err = self._stderr.read().decode(errors="replace")
         finally:
@@ -137,36 +160,20 @@ class TimelineProcess:
             with contextlib.suppress(OSError):
                 self._proc.stdin.close()
         self._stderr.close()
-        with contextlib.suppress(OSError):
-            os.unlink(self._error_path)
+        shutil.rmtree(self._dir, ignore_errors=True)
 
 
-def _serve(stream, error_path: str) -> None:
-    """The child: read calls from ``stream`` on a reader thread, make them on a writer, report to ``error_path``."""
-    calls: queue.Queue = queue.Queue(maxsize=_QUEUE)
-
-    def read() -> None:
-        while True:
-            try:
-                call = pickle.load(stream)
-            except EOFError:
-                call = None
-            except BaseException as exc:  # noqa: BLE001 - a broken message ends the child with its error
-                call = ("_error", (exc, traceback.format_exc()), {})
-            calls.put(call)
-            if call is None or call[0] in ("close", "_error"):
-                return
-
-    threading.Thread(target=read, daemon=True, name="wtopo-timeline-reader").start()
+def _serve(folder: str) -> None:
+    """The child: for each call number read from stdin, load ``folder/N.call``, make the call on a writer and answer
+    with a line on stdout; the result of ``close`` or the first error goes to ``folder/status``."""
     writer = None
+    status = None
     try:
-        while True:
-            call = calls.get()
-            if call is None:  # the caller went away without closing: write nothing
-                return
-            name, args, kwargs = call
-            if name == "_error":
-                raise args[0]
+        for line in sys.stdin:
+            path = os.path.join(folder, f"{int(line)}.call")
+            with open(path, "rb") as f:
+                name, args, kwargs = pickle.load(f)
+            os.unlink(path)
             if name == "open":
                 from .usd import TimelineWriter
 
@@ -176,15 +183,18 @@ def _serve(stream, error_path: str) -> None:
                 break
             else:
                 getattr(writer, name)(*args, **kwargs)
+            sys.stdout.write("\n")
+            sys.stdout.flush()
+        else:  # the caller went away without closing: write nothing
+            return
     except BaseException as exc:  # noqa: BLE001 - every error goes back to the caller
         text = traceback.format_exc()
         try:
-            status = ("error", exc, text)
-            blob = pickle.dumps(status)
+            blob = pickle.dumps(("error", exc, text))
         except Exception:  # noqa: BLE001 - an exception that does not pickle goes back as its text
             blob = pickle.dumps(("error", None, text))
-        with open(error_path, "wb") as f:
+        with open(os.path.join(folder, "status"), "wb") as f:
             f.write(blob)
         sys.exit(1)
-    with open(error_path, "wb") as f:
+    with open(os.path.join(folder, "status"), "wb") as f:
         f.write(pickle.dumps(status))
