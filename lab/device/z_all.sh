@@ -3,7 +3,9 @@
 # losses (bench_losses.py, 700 px), then gsplat's JIT build and the rasterizer against gsplat's
 # rasterization_2dgs at 100k and 1M surfels, 800 px (bench_rasterize_gpu.py). Z_STEPS picks the steps (also tests: the public
 # rasterize path's and the timeline's tests on CUDA; fit:
-# the plain fit; loop: t_loop.py's windows; mesh: the profiled fit's mesh.ply, gzipped, into $OUT/v).
+# the plain fit; loop: t_loop.py's windows; mesh: the profiled fit's mesh.ply, gzipped, into $OUT/v; capture:
+# lab/capture_cost.py, a render graph's recapture by part; gil: lab/timeline_gil.py, the timeline's writer beside a
+# loop bound by its host).
 source lab/device/lease_env.sh
 t0=$(date +%s)
 lease_dtu || exit 1
@@ -14,6 +16,8 @@ for step in ${Z_STEPS:-profile losses raster}; do
   fit|profile|losses|host|loop) V_STEPS=$step bash lab/device/v_all.sh 2>&1 | grep -v "^installed" ;;
   tests) (cd /tmp && timeout 200 python3 -m pytest -q -p no:cacheprovider $R/tests/test_rasterize_paths.py \
       $R/tests/test_rasterize.py $R/tests/test_fit_timeline.py 2>&1 | tail -n 6) ;;
+  capture) (cd /tmp && timeout 150 python3 $R/lab/capture_cost.py 2>&1 | tail -n 8) ;;
+  gil) (cd /tmp && timeout 150 python3 $R/lab/timeline_gil.py 2>&1 | tail -n 4) ;;
   mesh) gzip -c $S/res/v_profile/run/mesh.ply > $OUT/v/mesh_profile.ply.gz; ls -la $OUT/v ;;
   raster) MAX_JOBS=14 STAGE=$S timeout 400 bash $D build 2>&1 | grep -i gsplat | tail -n 3
     echo "gsplat built after $(( $(date +%s) - t0 )) s"
