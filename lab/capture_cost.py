@@ -29,7 +29,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=4)
     ap.add_argument("--grow", type=int, default=3000)
     a = ap.parse_args()
-    dev = torch.device("cuda")
+    dev = torch.device("cuda", torch.cuda.current_device())
     g = torch.Generator().manual_seed(0)
     cam = wtopo.Camera.look_at([0, 0, -3.0], [0, 0, 0], [0, -1, 0], fov_x=0.7, width=800, height=600)
     bg = torch.zeros(3, device=dev)

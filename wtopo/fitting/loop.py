@@ -370,7 +370,10 @@ class FitRun:
                 "elapsed": f"{self.elapsed():.0f}s"}
 
     def _start(self) -> None:
-        """Resume from the run directory's checkpoints, or draw the initial surfels; open the timeline."""
+        """Open the timeline (its writer process starts while the rest goes on), then resume from the run
+        directory's checkpoints or draw the initial surfels."""
+        self.timeline = FitTimeline.open(self.out_dir, self.cfg.runtime.usd_every, self.sim, self.train.cameras,
+                                         self.timers)
         resumed = self.checkpoints.resume()
         if not resumed:
             with self.timers("init"):
@@ -393,8 +396,6 @@ class FitRun:
             print(self.plan)
             if resumed:
                 print(f"resuming at iteration {self.it}")
-        self.timeline = FitTimeline.open(self.out_dir, self.cfg.runtime.usd_every, self.sim, self.train.cameras,
-                                         self.timers)
 
     def _tsdf_reinit(self) -> None:
         with self.timers("tsdf"):

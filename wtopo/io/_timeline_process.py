@@ -11,14 +11,16 @@ session of its own (a Ctrl-C in the terminal reaches the fit, which stops and cl
 writer), with no CUDA device visible (it never touches the GPU). Each call is pickled to a file of a private
 folder and its number sent down a pipe; the child, single-threaded, loads the file, makes the call and answers
 with a line. The data never waits in a pipe for a reader that is busy authoring (through a 64-KB pipe a 16-MB
-sample took hundreds of hand-offs, each waiting for the child's GIL), and the caller blocks only while
-:data:`_QUEUE` calls are unanswered. An error in the child ends it: the caller raises it (same type where it can
+sample took hundreds of hand-offs, each waiting for the child's GIL), and the caller blocks only while the calls
+the child has not answered hold more than :data:`_UNANSWERED_BYTES` (the child's start, a few seconds of imports,
+is covered: the first samples wait as files). An error in the child ends it: the caller raises it (same type where it can
 be rebuilt, the child's traceback as a note) at its next call or at :meth:`TimelineProcess.close`. Nothing is
 written before ``close`` (the writer writes atomically); a child whose caller went away writes nothing.
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import os
 import pickle
@@ -32,7 +34,7 @@ from pathlib import Path
 
 __all__ = ["TimelineProcess", "TimelineWriterError"]
 
-_QUEUE = 2  # calls the child holds read but not yet authored
+_UNANSWERED_BYTES = 256 << 20  # pickled calls the child has not answered yet, above which a caller waits
 
 
 class TimelineWriterError(RuntimeError):
@@ -74,7 +76,9 @@ class TimelineProcess:
                                       env=_child_env(), start_new_session=True)
         self._done = False
         self._calls = 0
-        self._free = threading.Semaphore(_QUEUE)  # calls the child may still take before the caller waits
+        self._sizes: collections.deque = collections.deque()  # bytes of each unanswered call, oldest first
+        self._unanswered = 0
+        self._answered = threading.Condition()
         self._child_ended = False
         threading.Thread(target=self._answers, daemon=True, name="wtopo-timeline-answers").start()
         self._send("open", os.fspath(path), **writer_kwargs)
@@ -107,15 +111,20 @@ class TimelineProcess:
         """The caller's thread that counts the child's answers (one line per call made); at its end (the child's),
         it frees every waiting caller."""
         for _ in self._proc.stdout:
-            self._free.release()
-        self._child_ended = True
-        for _ in range(_QUEUE + 1):
-            self._free.release()
+            with self._answered:
+                if self._sizes:
+                    self._unanswered -= self._sizes.popleft()
+                self._answered.notify_all()
+        with self._answered:
+            self._child_ended = True
+            self._answered.notify_all()
 
     def _send(self, name: str, *args, **kwargs) -> None:
         if self._done:
             raise RuntimeError("the timeline writer is closed")
-        self._free.acquire()
+        with self._answered:
+            while self._unanswered > _UNANSWERED_BYTES and not self._child_ended:
+                self._answered.wait()
         if self._child_ended or self._proc.poll() is not None:  # the child ended early: its error
             self._proc.wait()
             self._finish()
@@ -123,6 +132,10 @@ class TimelineProcess:
         call = os.path.join(self._dir, f"{self._calls}.call")
         with open(call, "wb") as f:  # read by the child only once its number is sent
             pickle.dump((name, args, kwargs), f, protocol=pickle.HIGHEST_PROTOCOL)
+            size = f.tell()
+        with self._answered:
+            self._sizes.append(size)
+            self._unanswered += size
         try:
             self._proc.stdin.write(f"{self._calls}\n".encode())
             self._proc.stdin.flush()
