@@ -14,8 +14,8 @@ with a line. The data never waits in a pipe for a reader that is busy authoring 
 sample took hundreds of hand-offs, each waiting for the child's GIL), and the caller blocks only while the calls
 the child has not answered hold more than :data:`_UNANSWERED_BYTES` (the child's start, a few seconds of imports,
 is covered: the first samples wait as files). An error in the child ends it: the caller raises it (same type
-where it can be rebuilt, the child's traceback as a note) at its next call or at :meth:`TimelineProcess.close`. Nothing is
-written before ``close`` (the writer writes atomically); a child whose caller went away writes nothing.
+where it can be rebuilt, the child's traceback as a note) at its next call or at :meth:`TimelineProcess.close`.
+Nothing is written before ``close`` (the writer writes atomically); a child whose caller went away writes nothing.
 """
 
 from __future__ import annotations
