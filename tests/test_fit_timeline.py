@@ -206,3 +206,11 @@ def test_the_writer_process_makes_the_writers_calls_and_raises_its_errors(tmp_pa
     assert gone._proc.poll() is not None and not (tmp_path / "d.usdc").exists()
     with pytest.raises(RuntimeError, match="closed"):
         gone.add_sample(2, **arrays[1])
+
+
+def test_a_writer_that_cannot_start_says_how_to_fit_without_a_timeline(tmp_path, monkeypatch):
+    from wtopo.io._timeline_process import TimelineProcess, TimelineWriterError
+
+    monkeypatch.setattr("sys.executable", str(tmp_path / "no-python-here"))
+    with pytest.raises(TimelineWriterError, match="usd_every=0"):
+        TimelineProcess(tmp_path / "a.usdc")

@@ -38,7 +38,8 @@ _UNANSWERED_BYTES = 256 << 20  # pickled calls the child has not answered yet, a
 
 
 class TimelineWriterError(RuntimeError):
-    """The timeline's writer process ended without saying why (killed, or an error that could not be sent back)."""
+    """The timeline's writer process could not start, or ended without saying why (killed, or an error that could
+    not be sent back)."""
 
 
 def _child_env() -> dict:
@@ -71,9 +72,15 @@ class TimelineProcess:
         self._error_path = os.path.join(self._dir, "status")
         self._stderr = open(os.path.join(self._dir, "stderr"), "w+b")  # noqa: SIM115 - read and closed by _finish
         root = str(Path(__file__).resolve().parents[2])  # the folder holding this wtopo package
-        self._proc = subprocess.Popen([sys.executable, "-c", _CHILD.format(root=root), self._dir],
-                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._stderr,
-                                      env=_child_env(), start_new_session=True)
+        try:
+            self._proc = subprocess.Popen([sys.executable, "-c", _CHILD.format(root=root), self._dir],
+                                          stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._stderr,
+                                          env=_child_env(), start_new_session=True)
+        except OSError as e:
+            self._stderr.close()
+            shutil.rmtree(self._dir, ignore_errors=True)
+            raise TimelineWriterError(f"could not start the timeline's writer process ({sys.executable!r}): {e}; "
+                                      f"a fit runs without a timeline with runtime.usd_every=0") from e
         self._done = False
         self._calls = 0
         self._sizes: collections.deque = collections.deque()  # bytes of each unanswered call, oldest first
