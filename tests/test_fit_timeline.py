@@ -6,6 +6,7 @@ errors reach the fit and a failed fit leaves no writer behind."""
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -214,3 +215,38 @@ def test_a_writer_that_cannot_start_says_how_to_fit_without_a_timeline(tmp_path,
     monkeypatch.setattr("sys.executable", str(tmp_path / "no-python-here"))
     with pytest.raises(TimelineWriterError, match="usd_every=0"):
         TimelineProcess(tmp_path / "a.usdc")
+
+
+def test_the_writer_process_survives_prints_and_a_caller_that_goes_away(tmp_path, monkeypatch):
+    """Whatever the child prints (a site hook, an import's greeting) does not count as an answer; a caller that dies
+    without closing leaves neither the file nor the call folder."""
+    import os
+
+    from wtopo.io._timeline_process import TimelineProcess
+
+    hook = tmp_path / "site"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text("print('hello from a site hook')\nprint('and another line')\n")
+    monkeypatch.setenv("PYTHONPATH", str(hook) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    g = np.random.default_rng(1)
+    a = {"means": g.random((8, 3)), "quats": g.standard_normal((8, 4)), "scales": g.random((8, 2)) * 0.1,
+         "opacities": g.random(8), "colors_or_sh": g.random((8, 3))}
+    p = TimelineProcess(tmp_path / "a.usdc")
+    p.add_sample(1, **dict(a, means=a["means"] + 1))
+    # nothing is unanswered only once the child has made both calls (the hook's lines are no answers)
+    deadline = time.monotonic() + 60
+    while p._unanswered and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert p._unanswered == 0 and not [f for f in os.listdir(p._dir) if f.endswith(".call")]
+    for it in (2, 3):
+        p.add_sample(it, **dict(a, means=a["means"] + it))  # a sample equal to the last is not authored again
+    assert p.close().samples == 3
+    assert read_timeline(tmp_path / "a.usdc").iterations == [1, 2, 3]
+
+    gone = TimelineProcess(tmp_path / "b.usdc")
+    gone.add_sample(1, **a)
+    folder = gone._dir
+    gone._proc.stdin.close()  # the caller's end of the pipe goes, as when its process dies
+    gone._proc.wait(timeout=60)
+    assert not os.path.exists(folder) and not (tmp_path / "b.usdc").exists()
+    gone.abort()

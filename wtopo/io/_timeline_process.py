@@ -10,12 +10,13 @@ started with :mod:`subprocess` (not :mod:`multiprocessing`, whose spawn re-runs 
 session of its own (a Ctrl-C in the terminal reaches the fit, which stops and closes the timeline, not the
 writer), with no CUDA device visible (it never touches the GPU). Each call is pickled to a file of a private
 folder and its number sent down a pipe; the child, single-threaded, loads the file, makes the call and answers
-with a line. The data never waits in a pipe for a reader that is busy authoring (through a 64-KB pipe a 16-MB
-sample took hundreds of hand-offs, each waiting for the child's GIL), and the caller blocks only while the calls
-the child has not answered hold more than :data:`_UNANSWERED_BYTES` (the child's start, a few seconds of imports,
-is covered: the first samples wait as files). An error in the child ends it: the caller raises it (same type
-where it can be rebuilt, the child's traceback as a note) at its next call or at :meth:`TimelineProcess.close`.
-Nothing is written before ``close`` (the writer writes atomically); a child whose caller went away writes nothing.
+with a line on a pipe of its own (what it prints goes to its stderr file). The data never waits in a pipe for a
+reader that is busy authoring (through a 64-KB pipe a 16-MB sample took hundreds of hand-offs, each waiting for
+the child's GIL), and the caller blocks only while the calls the child has not answered hold more than
+:data:`_UNANSWERED_BYTES` (the child's start, a few seconds of imports, is covered: the first samples wait as
+files). An error in the child ends it: the caller raises it (same type where it can be rebuilt, the child's
+traceback as a note) at its next call or at :meth:`TimelineProcess.close`. Nothing is written before ``close``
+(the writer writes atomically); a child whose caller went away writes nothing and removes the folder.
 """
 
 from __future__ import annotations
@@ -48,9 +49,10 @@ def _child_env() -> dict:
     return env
 
 
-# the child's command: this wtopo package first on its path (not whatever ``wtopo`` the working folder holds)
-_CHILD = ("import sys; sys.path.insert(0, {root!r}); from wtopo.io._timeline_process import _serve; "
-          "_serve(sys.argv[1])")
+# the child's command: this wtopo package first on its path (not whatever ``wtopo`` the working folder holds); its
+# answers go to a pipe of their own (argv[2]), so nothing it prints (a site hook, an import's greeting) counts as one
+_CHILD = ("import os, sys; sys.path.insert(0, {root!r}); from wtopo.io._timeline_process import _serve; "
+          "_serve(sys.argv[1], os.fdopen(int(sys.argv[2]), 'w'))")
 
 
 class TimelineProcess:
@@ -72,15 +74,20 @@ class TimelineProcess:
         self._error_path = os.path.join(self._dir, "status")
         self._stderr = open(os.path.join(self._dir, "stderr"), "w+b")  # noqa: SIM115 - read and closed by _finish
         root = str(Path(__file__).resolve().parents[2])  # the folder holding this wtopo package
+        read_end, write_end = os.pipe()
         try:
-            self._proc = subprocess.Popen([sys.executable, "-c", _CHILD.format(root=root), self._dir],
-                                          stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._stderr,
-                                          env=_child_env(), start_new_session=True)
+            self._proc = subprocess.Popen([sys.executable, "-c", _CHILD.format(root=root), self._dir, str(write_end)],
+                                          stdin=subprocess.PIPE, stdout=self._stderr, stderr=self._stderr,
+                                          pass_fds=(write_end,), env=_child_env(), start_new_session=True)
         except OSError as e:
+            os.close(read_end)
             self._stderr.close()
             shutil.rmtree(self._dir, ignore_errors=True)
             raise TimelineWriterError(f"could not start the timeline's writer process ({sys.executable!r}): {e}; "
                                       f"a fit runs without a timeline with runtime.usd_every=0") from e
+        finally:
+            os.close(write_end)  # the child's copy is the only writer: its end is the answers' end of file
+        self._answers_pipe = os.fdopen(read_end, "rb")
         self._done = False
         self._calls = 0
         self._sizes: collections.deque = collections.deque()  # bytes of each unanswered call, oldest first
@@ -117,11 +124,12 @@ class TimelineProcess:
     def _answers(self) -> None:
         """The caller's thread that counts the child's answers (one line per call made); at its end (the child's),
         it frees every waiting caller."""
-        for _ in self._proc.stdout:
+        for _ in self._answers_pipe:
             with self._answered:
                 if self._sizes:
                     self._unanswered -= self._sizes.popleft()
                 self._answered.notify_all()
+        self._answers_pipe.close()
         with self._answered:
             self._child_ended = True
             self._answered.notify_all()
@@ -183,9 +191,10 @@ class TimelineProcess:
         shutil.rmtree(self._dir, ignore_errors=True)
 
 
-def _serve(folder: str) -> None:
+def _serve(folder: str, answers) -> None:
     """The child: for each call number read from stdin, load ``folder/N.call``, make the call on a writer and answer
-    with a line on stdout; the result of ``close`` or the first error goes to ``folder/status``."""
+    with a line on ``answers`` (a text stream); the result of ``close`` or the first error goes to
+    ``folder/status``. A caller that goes away without closing leaves nothing: no file, no folder."""
     writer = None
     status = None
     try:
@@ -203,9 +212,10 @@ def _serve(folder: str) -> None:
                 break
             else:
                 getattr(writer, name)(*args, **kwargs)
-            sys.stdout.write("\n")
-            sys.stdout.flush()
-        else:  # the caller went away without closing: write nothing
+            answers.write("\n")
+            answers.flush()
+        else:  # the caller went away without closing: write nothing, leave nothing
+            shutil.rmtree(folder, ignore_errors=True)
             return
     except BaseException as exc:  # noqa: BLE001 - every error goes back to the caller
         text = traceback.format_exc()
