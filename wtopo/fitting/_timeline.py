@@ -4,13 +4,15 @@ iterations, and the final mesh, all in the caller's frame (``out_dir/timeline.us
 
 The fit copies each sample to the host, in the caller's frame, and hands it to a writer in a child process
 (:class:`wtopo.io._timeline_process.TimelineProcess`), which authors it on a core of its own while the fit goes
-on: a loop bound by its host's Python does not share the GIL with the authoring. An error in the writer is raised
-at the next :meth:`FitTimeline.sample` or at :meth:`FitTimeline.close`.
+on: a loop bound by its host's Python does not share the GIL with the authoring. The timeline is optional output:
+when its writer fails (it cannot start, dies, or raises), the fit warns once, records why
+(:attr:`FitTimeline.failure`) and goes on without it; no ``timeline.usdc`` is written.
 """
 
 from __future__ import annotations
 
 import contextlib
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
@@ -48,13 +50,26 @@ class FitTimeline:
         self.every = int(every)
         self.sim = sim
         self.timers = timers
+        self.failure: str | None = None
+        """Why the timeline stopped (``None`` while it is written)."""
+        self.writer = None
         kw = {} if max_surfels is None else {"max_surfels": int(max_surfels)}
-        self.writer = TimelineProcess(path, **kw)
-        try:
+        with self._guard("the start"):
+            self.writer = TimelineProcess(path, **kw)
             self.writer.add_cameras([sim.to_world(c) for c in cameras])
-        except BaseException:
-            self.writer.abort()
-            raise
+
+    @contextlib.contextmanager
+    def _guard(self, when: str) -> Iterator[None]:
+        """A writer's error inside the block stops the timeline with a warning; the fit's own errors pass."""
+        try:
+            yield
+        except Exception as e:  # noqa: BLE001 - any failure of the optional output
+            self.failure = f"{type(e).__name__} at {when}: {e}"
+            if self.writer is not None:
+                self.writer.abort()
+            self.writer = None
+            warnings.warn(f"wtopo: the USD timeline stopped ({self.failure}); the fit goes on without it and writes "
+                          f"no timeline.usdc", RuntimeWarning, stacklevel=4)
 
     @classmethod
     def open(cls, out_dir: Path | None, every: int, sim, cameras: Sequence, timers) -> FitTimeline | None:
@@ -66,8 +81,10 @@ class FitTimeline:
     def sample(self, it: int, surfels: Surfels, proxy_mesh: ProxyResult | None) -> None:
         """Surfels (and the proxy mesh, when there is one) at time ``it``: copied to the host and handed to the
         writer now, authored while the fit goes on."""
+        if self.writer is None:
+            return
         s = surfels
-        with self.timers("timeline"):
+        with self.timers("timeline"), self._guard(f"iteration {it}"):
             # only what the writer keeps leaves the device: its strided subset above its max_surfels (the same
             # indices it takes itself) and the SH's DC term (its splats keep degree 0, its instancer's colour is DC)
             n, keep = s.means.shape[0], self.writer.max_surfels
@@ -90,18 +107,22 @@ class FitTimeline:
     def abort(self) -> None:
         """End the writer after a failed fit; nothing is written (the file is written only at :meth:`close`), and
         no error of the writer is raised (the fit's own is on its way)."""
-        self.writer.abort()
+        if self.writer is not None:
+            self.writer.abort()
 
     def close(self, mesh: trimesh.Trimesh | None) -> None:
         """Add the final mesh (internal frame; ``None``: none), wait for the writer and close the file."""
-        with self.timers("timeline"):
+        if self.writer is None:
+            return
+        with self.timers("timeline"), self._guard("the end"):
             try:
                 if mesh is not None:
                     self.writer.add_mesh("final", self.sim.to_world(np.asarray(mesh.vertices)),
                                          np.asarray(mesh.faces))
                 self.writer.close()
             finally:
-                self.writer.abort()
+                if self.writer is not None:
+                    self.writer.abort()
 
 
 @contextlib.contextmanager

@@ -490,4 +490,6 @@ class FitRun:
             self.status = "interrupted" if self.stop.requested else "completed"
             if self.timeline is not None:
                 self.timeline.close(self.made_mesh)
+                if self.timeline.failure is not None:  # the fit went on without it (warned)
+                    self.record("timeline_failed", error=self.timeline.failure)
         return self.made_mesh
