@@ -219,7 +219,6 @@ class TimelineProcess:
             with contextlib.suppress(OSError):
                 os.unlink(call)
             raise
-        self._calls = number
         with pending.cond:
             pending.sizes.append(size)
             pending.unanswered += size
@@ -230,6 +229,14 @@ class TimelineProcess:
             self._proc.wait()
             self._finish()
             raise
+        except BaseException:  # interrupted before the number went out: the call was not made
+            with pending.cond:
+                pending.sizes.pop()
+                pending.unanswered -= size
+            with contextlib.suppress(OSError):
+                os.unlink(call)
+            raise
+        self._calls = number
 
     def _finish(self):
         """The child has ended: its result (``close``'s stats), or its error raised."""
