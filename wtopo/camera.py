@@ -14,9 +14,12 @@ Conventions:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:  # torch is imported where rays are made: the USD writer's process reads cameras without it
+    import torch
 
 __all__ = ["Camera"]
 
@@ -182,14 +185,18 @@ class Camera:
             self._rays_cache[key] = build()
         return self._rays_cache[key]
 
-    def pixel_rays(self, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32):
+    def pixel_rays(self, device: torch.device | str = "cpu", dtype: torch.dtype | None = None):
         """World-frame rays through every pixel centre.
 
         Returns:
-            ``(origins, directions)``, each [H, W, 3] of ``dtype`` on ``device``. Directions are
-            *not* unit length: their camera-z component is 1, so the ray parameter of a hit is its
-            z-depth in this camera. Cached per (device, dtype).
+            ``(origins, directions)``, each [H, W, 3] of ``dtype`` (default ``torch.float32``) on
+            ``device``. Directions are *not* unit length: their camera-z component is 1, so the ray
+            parameter of a hit is its z-depth in this camera. Cached per (device, dtype).
         """
+        import torch
+
+        dtype = torch.float32 if dtype is None else dtype
+
         def build():
             d_world = self.pixel_directions_camera() @ self.R  # == (R^T d)^T
             o = np.broadcast_to(self.center, d_world.shape)
