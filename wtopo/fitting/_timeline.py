@@ -60,7 +60,9 @@ class FitTimeline:
 
     @contextlib.contextmanager
     def _guard(self, when: str) -> Iterator[None]:
-        """A writer's error inside the block stops the timeline with a warning; the fit's own errors pass."""
+        """An error inside the block (the writer's, or the sample's host copy) stops the timeline with a warning and
+        the fit goes on; ``KeyboardInterrupt`` and ``SystemExit`` pass. A device error met in the host copy is the
+        fit's as well, and the fit's next step raises it."""
         try:
             yield
         except Exception as e:  # noqa: BLE001 - any failure of the optional output
