@@ -48,9 +48,7 @@ no interior faces. Variants (``--variants``; ``wtopo fit --set`` overrides):
 * ``restart`` / ``restart_no_loop`` and ``no_restart`` / ``no_restart_no_loop``: the co-evolution's means
   restarted at 1e-4 (``optim.means_restart=0.0625``, the CUDA plan's since ``gpu_restart``; the CPU's plan has
   none, and at 800 + 800 this one changes nothing: the single decay stands at 1.6e-4 there), or not (the CUDA
-  default of ``gpu_flat_tail``); all share the default's warm-up. ``thin_probe64``: the thin-part probe at 64^3
-  (``losses.mesh_thin_probe=64``); where it fires a restart is off (``gpu_restart`` measured it with the restart
-  as ``restart_rule``).
+  default of ``gpu_flat_tail``); all share the default's warm-up.
 
 ``--seeds 0 1`` fits every scene and variant once per seed (``runtime.seed``: initial surfels and
 view order; the scenes stay the same) and adds a table of each variant against ``no_loop`` on the
@@ -145,11 +143,9 @@ VARIANTS = {
     # geometry-aware density's two halves apart
     "no_geo_prune": ("densify.geometry_prune=false",),
     "no_geo_spawn": ("densify.geometry_densify=false",),
-    # options measured once without pairing (hard.md gpu_sparse3, gpu_reinit512, gpu_view_support, gpu_support2)
-    "robust_behind3": ("losses.mesh_depth_robust=3", "losses.mesh_depth_robust_behind=true"),
+    # measured once without pairing (hard.md gpu_reinit512; the batch's other options, a robust depth term, view and
+    # voxel support rules and the thin-part probe, were rejected and their fields removed: design/decisions.md)
     "proxy128": ("mesh.resolution=128",),
-    "view_support2": ("losses.mesh_view_support=2",),
-    "support2": ("mesh.support_voxels=2",),
     # the GPU settings before gpu_flat_tail (3,000 + 1,000, the means' decay over all 4,000): the CUDA default's
     # warm-up has the same decay horizon, so both branch from it (hard.md gpu_coevo2k and gpu_flat_tail measured
     # 3,000 + 2,000 against them as coevo2k: the co-evolution doubled at this horizon, the default since)
@@ -164,7 +160,6 @@ VARIANTS = {
     "restart_no_loop": ("coevolution.enabled=false", "optim.means_restart=0.0625"),
     "no_restart": ("optim.means_restart=0",),
     "no_restart_no_loop": ("coevolution.enabled=false", "optim.means_restart=0"),
-    "thin_probe64": ("losses.mesh_thin_probe=64",),
 }
 
 

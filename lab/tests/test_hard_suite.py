@@ -26,7 +26,7 @@ def test_held_out_scenes_are_closed_with_their_loops(name, genus):
     import lab.heldout as th
 
     sdf, lower, upper = th.SCENES[name]
-    mesh = hs._sdf_mesh(sdf, lower, upper, 0.012)
+    mesh = hs.sdf_mesh(sdf, lower, upper, 0.012)
     assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
     assert len(mesh.split(only_watertight=False)) == 1
     assert 1 - mesh.euler_number // 2 == genus
