@@ -116,15 +116,11 @@ class FitTimeline:
         """Add the final mesh (internal frame; ``None``: none), wait for the writer and close the file."""
         if self.writer is None:
             return
+        # an interrupt here reaches the fit's aborted_on_failure, which ends the writer
         with self.timers("timeline"), self._guard("the end"):
-            try:
-                if mesh is not None:
-                    self.writer.add_mesh("final", self.sim.to_world(np.asarray(mesh.vertices)),
-                                         np.asarray(mesh.faces))
-                self.writer.close()
-            finally:
-                if self.writer is not None:
-                    self.writer.abort()
+            if mesh is not None:
+                self.writer.add_mesh("final", self.sim.to_world(np.asarray(mesh.vertices)), np.asarray(mesh.faces))
+            self.writer.close()
 
 
 @contextlib.contextmanager

@@ -93,7 +93,8 @@ def _count_answers(pipe, pending: _Pending) -> None:
 
 
 def _release(proc, folder: str, stderr) -> None:
-    """End ``proc`` and remove ``folder`` (a writer dropped without :meth:`TimelineProcess.close` or ``abort``)."""
+    """End ``proc`` (killed if it still runs), close its stdin and ``stderr``, remove ``folder``: a writer's end,
+    whether closed, aborted or dropped."""
     with contextlib.suppress(OSError):
         if proc.poll() is None:
             proc.kill()
@@ -189,8 +190,6 @@ class TimelineProcess:
     def abort(self) -> None:
         """End the child now; nothing is written. Safe to call more than once and after :meth:`close`."""
         if not self._done:
-            self._proc.kill()
-            self._proc.wait()
             self._cleanup()
 
     def _send(self, name: str, *args, **kwargs) -> None:
@@ -210,14 +209,12 @@ class TimelineProcess:
             with open(call, "wb") as f:  # read by the child only once its number is sent
                 pickle.dump((name, args, kwargs), f, protocol=pickle.HIGHEST_PROTOCOL)
                 size = f.tell()
-        except OSError as e:
+        except BaseException as e:
             with contextlib.suppress(OSError):
                 os.unlink(call)
-            raise TimelineWriterError(f"could not hand the timeline's {name} call to its writer process through "
-                                      f"{self._dir}: {e}; {_ADVICE}") from e
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.unlink(call)
+            if isinstance(e, OSError):
+                raise TimelineWriterError(f"could not hand the timeline's {name} call to its writer process through "
+                                          f"{self._dir}: {e}; {_ADVICE}") from e
             raise
         with pending.cond:
             pending.sizes.append(size)
@@ -273,13 +270,9 @@ class TimelineProcess:
                                   + (f":\n{err}" if err.strip() else ""))
 
     def _cleanup(self) -> None:
+        """The child ended (killed first if it still runs), the folder removed: the finalizer's work, run now."""
         self._done = True
-        self._finalizer.detach()
-        if self._proc.stdin and not self._proc.stdin.closed:
-            with contextlib.suppress(OSError):
-                self._proc.stdin.close()
-        self._stderr.close()
-        shutil.rmtree(self._dir, ignore_errors=True)
+        self._finalizer()
 
 
 class _CallerGone(Exception):
@@ -326,11 +319,10 @@ def _serve(folder: str, answers) -> None:
         text = traceback.format_exc()
         try:  # the exception itself where it comes back whole, else its text alone
             pickle.loads(pickle.dumps(exc))
-            blob = pickle.dumps(("error", exc, text))
+            status = ("error", exc, text)
         except Exception:  # noqa: BLE001
-            blob = pickle.dumps(("error", None, text))
-        with open(os.path.join(folder, "status"), "wb") as f:
-            f.write(blob)
-        sys.exit(1)
+            status = ("error", None, text)
     with open(os.path.join(folder, "status"), "wb") as f:
         f.write(pickle.dumps(status))
+    if status[0] == "error":
+        sys.exit(1)
