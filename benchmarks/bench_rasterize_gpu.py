@@ -6,8 +6,10 @@ What is timed (median of ``--repeats`` after ``--warmup`` calls; the first calls
 kernels, minutes on a machine without a kernel cache):
 
 1. Rasterizer, ``--res`` x ``--res`` pixels, one camera, ``--sizes`` random surfels (SH degree 3), float32:
-   wtopo's public :func:`wtopo.ops.rasterize_surfels` (argument checks in one host read, the default near
-   plane's median and the exact pair count: host synchronisations), wtopo's fit path
+   wtopo's public :func:`wtopo.ops.rasterize_surfels` as a user's loop calls it (argument checks in one host
+   read; after two calls of the same shape a CUDA graph's replay and one read of its pair count), the same
+   with replays off (``wtopo_public_eager``: the checks, the default near plane's median and the exact pair
+   count, host synchronisations each), wtopo's fit path
    ``wtopo.rasterize._rasterize_trusted`` with ``defer_count`` (no host synchronisation; also with Warp's own
    overload lookup at every launch, ``warp_lookup``), and,
    when ``import gsplat`` works, gsplat's ``rasterization_2dgs`` on the same surfels and camera
@@ -77,6 +79,14 @@ def make_surfels(n: int, device, seed: int = 0):
 def wtopo_public(params, cam):
     out = R.rasterize_surfels(*params, cam)
     return {k: getattr(out, k) for k in IMAGES}
+
+
+def wtopo_public_eager(params, cam):
+    saved, R._replay.REPLAY = R._replay.REPLAY, False
+    try:
+        return wtopo_public(params, cam)
+    finally:
+        R._replay.REPLAY = saved
 
 
 def make_wtopo_fit_path(cam):
@@ -244,6 +254,7 @@ def bench_rasterizer(args, device) -> list[dict]:
                "coverage_wtopo": float((ref.alpha > 0).float().mean())}
         fit_render, last = make_wtopo_fit_path(cam)
         impls = {"wtopo_public": (lambda p: wtopo_public(p, cam), (params,), params),
+                 "wtopo_public_eager": (lambda p: wtopo_public_eager(p, cam), (params,), params),
                  "wtopo_fit_path": (fit_render, (params,), params),
                  "wtopo_fit_per_pixel": (kernel_mode(fit_render, False, 1), (params,), params),
                  "wtopo_fit_no_batch": (kernel_mode(fit_render, True, 1), (params,), params),
@@ -315,8 +326,8 @@ def print_rasterizer(rows) -> None:
     print(f"{'N':>9} {'impl':<20} {'fwd':>8} {'fwd+bwd':>8} {'fwd pipe':>9} {'f+b pipe':>9} {'host fwd':>9} "
           f"{'peak MB':>8}")
     for r in rows:
-        for name in ("wtopo_public", "wtopo_fit_path", "wtopo_fit_per_pixel", "wtopo_fit_no_batch",
-                     "wtopo_fit_warp_lookup", "gsplat_2dgs"):
+        for name in ("wtopo_public", "wtopo_public_eager", "wtopo_fit_path", "wtopo_fit_per_pixel",
+                     "wtopo_fit_no_batch", "wtopo_fit_warp_lookup", "gsplat_2dgs"):
             if name not in r:
                 continue
             t = r[name]
@@ -325,8 +336,8 @@ def print_rasterizer(rows) -> None:
                   f"{t['forward']['host_ms']:9.2f} {t['torch_peak_mb']:8.0f}")
         if "gsplat_2dgs" in r:
             g = r["gsplat_2dgs"]
-            for name in ("wtopo_public", "wtopo_fit_path", "wtopo_fit_per_pixel", "wtopo_fit_no_batch",
-                         "wtopo_fit_warp_lookup"):
+            for name in ("wtopo_public", "wtopo_public_eager", "wtopo_fit_path", "wtopo_fit_per_pixel",
+                         "wtopo_fit_no_batch", "wtopo_fit_warp_lookup"):
                 t = r[name]
                 ratios = [t[k]["ms"] / g[k]["ms"] for k in ("forward", "forward_backward", "forward_pipelined",
                                                             "forward_backward_pipelined")]

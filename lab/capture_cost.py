@@ -19,8 +19,10 @@ import torch
 
 import wtopo
 import wtopo.rasterize as R
-from wtopo.fitting import _graphs, raster_graph
+from wtopo import _graphs
+from wtopo.fitting import raster_graph
 from wtopo.fitting.surfels import Surfels
+from wtopo.rasterize._graphable import check_replay
 
 
 def main() -> None:
@@ -67,7 +69,7 @@ def main() -> None:
         later = iterate(graphs, s, 10)
         capacity = R._binning._pair_capacity(wtopo._bridge.warp_device(dev)).value  # noqa: SLF001
         fn = raster_graph._function(raster_graph.Size(cam.width, cam.height), 3, bg, cfg,
-                                    raster_graph._pairs(capacity, cfg.max_intersections))
+                                    raster_graph.pair_budget(capacity, cfg.max_intersections))
         p = s.params
         shift = torch.zeros(n, 2, device=dev, requires_grad=True)
         args = (p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["sh_dc"], p["sh_rest"], shift,
@@ -79,7 +81,7 @@ def main() -> None:
             _, make_kept = timed(lambda: _graphs.make_graphed(fn, args, warmup=raster_graph._WARMUP))
         finally:
             torch.cuda.empty_cache = keep
-        _, check = timed(lambda: raster_graph._check(graphed, fn, args))
+        _, check = timed(lambda: check_replay(graphed, fn, args))
         print(f"n={n}: capture + check {whole:.1f} ms (first 10 iterations after it {first:.2f} ms each, then "
               f"{later:.2f}); make_graphed {make:.1f} ms, with the cache kept {make_kept:.1f}; check {check:.1f} ms",
               flush=True)

@@ -77,7 +77,7 @@ def test_replays_that_overflow_are_rendered_again_eagerly(monkeypatch):
         graphs.append(self)
 
     monkeypatch.setattr(RG.RasterGraphs, "__init__", graphs_init)
-    monkeypatch.setattr(RG, "_pairs", lambda capacity, limit: 64)
+    monkeypatch.setattr(RG, "pair_budget", lambda capacity, limit: 64)
     overflowed = _fit("bunny")
     g = graphs[0]
     assert g.failure is None and g.calls > 50 and g.captures >= 1

@@ -199,5 +199,6 @@ def test_captures_on_most_renders_turn_the_graphs_off(device, monkeypatch):
 
 
 def test_the_sorted_capacity_rounds_up_by_steps_of_sqrt2():
-    assert RG._pairs(1000, 10**9) == 1024 and RG._pairs(1024, 10**9) == 1024 and RG._pairs(1025, 10**9) == 1449
-    assert RG._pairs(5000, 4096) == 4096 and RG._pairs(1, 10) == 1
+    budget = RG.pair_budget
+    assert budget(1000, 10**9) == 1024 and budget(1024, 10**9) == 1024 and budget(1025, 10**9) == 1449
+    assert budget(5000, 4096) == 4096 and budget(1, 10) == 1

@@ -15,7 +15,7 @@ for step in ${Z_STEPS:-profile losses raster}; do
   case $step in
   fit|profile|losses|host|loop) V_STEPS=$step bash lab/device/v_all.sh 2>&1 | grep -v "^installed" ;;
   tests) (cd /tmp && timeout 200 python3 -m pytest -q -p no:cacheprovider $R/tests/test_rasterize_paths.py \
-      $R/tests/test_rasterize.py $R/tests/test_fit_timeline.py 2>&1 | tail -n 6) ;;
+      $R/tests/test_rasterize.py $R/tests/test_fit_timeline.py $R/tests/test_rasterize_replay.py 2>&1 | tail -n 6) ;;
   capture) (cd /tmp && timeout 150 python3 $R/lab/capture_cost.py 2>&1 | tail -n 8) ;;
   gil) (cd /tmp && timeout 150 python3 $R/lab/timeline_gil.py 2>&1 | tail -n 4) ;;
   mesh) gzip -c $S/res/v_profile/run/mesh.ply > $OUT/v/mesh_profile.ply.gz; ls -la $OUT/v ;;

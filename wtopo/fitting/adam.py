@@ -21,7 +21,7 @@ import warnings
 
 import torch
 
-from ._graphs import collector_off
+from .._graphs import collector_off
 
 __all__ = ["Adam", "GRAPHS"]
 

@@ -26,9 +26,9 @@ import warnings
 
 import torch
 
+from .._graphs import make_graphed
 from ..depth_normals import depth_normals
 from ..multiview_ncc import ReferenceWindows
-from ._graphs import make_graphed
 from .losses import distortion, mask_loss, normal_consistency, photometric
 from .multiview import Windows, ncc_loss
 

@@ -27,16 +27,15 @@ and under ``runtime.profile`` (whose sections synchronise, which a capture canno
 from __future__ import annotations
 
 import contextlib
-import math
 import warnings
 
 import torch
 
 from .. import _bridge
+from .._graphs import make_graphed
 from .._validate import trusted_values
 from ..rasterize import RasterConfig, RenderOutput, _binning
-from ..rasterize._graphable import Size, render_tensors, view_inputs
-from ._graphs import make_graphed
+from ..rasterize._graphable import Size, check_replay, pair_budget, render_tensors, view_inputs
 from .surfels import Surfels
 
 __all__ = ["RasterGraphs", "GRAPHS"]
@@ -44,15 +43,8 @@ __all__ = ["RasterGraphs", "GRAPHS"]
 GRAPHS = True
 """False: the fit renders eagerly on CUDA too (benchmarks, tests)."""
 _KEPT = 4  # captured renders kept (views of two sizes, the current surfel count's and the one before)
-_CHECK_RTOL, _CHECK_ATOL = 1e-5, 1e-6  # a first replay's images farther than this from the eager render's: off
-_CHECK_GRAD_REL, _CHECK_GRAD_ABS = 1e-3, 1e-9  # ... and its gradients, relative to each one's largest entry
 _WARMUP = 2  # eager forward + backward runs before a capture (torch's side stream, the samples' copies)
 _CHURN_CALLS, _CHURN_RATE = 200, 0.05  # after this many renders, more captures than this per render: off
-
-
-def _pairs(capacity: int, limit: int) -> int:
-    """The pair capacity a graph sorts for: ``capacity`` rounded up to a power of sqrt(2), at most ``limit``."""
-    return min(int(limit), max(int(capacity), math.ceil(2 ** (math.ceil(2 * math.log2(max(capacity, 1))) / 2))))
 
 
 def _function(size: Size, sh_degree: int, background: torch.Tensor, config: RasterConfig, pairs: int):
@@ -109,7 +101,7 @@ class RasterGraphs:
                       f"swings)")
             return None
         dtype, device = means.dtype, means.device
-        pairs = _pairs(capacity.value, self.config.max_intersections)
+        pairs = pair_budget(capacity.value, self.config.max_intersections)
         shift = torch.zeros(means.shape[0], 2, dtype=dtype, device=device, requires_grad=True)
         args = (means, p["quats"], p["log_scales"], p["opacity_logits"], p["sh_dc"], p["sh_rest"], shift,
                 *view_inputs(camera, device, dtype, self.config))
@@ -144,41 +136,13 @@ class RasterGraphs:
         try:
             graphed = make_graphed(fn, args, warmup=_WARMUP, make=self._make)
             with trusted_values():
-                _check(graphed, fn, args)
+                check_replay(graphed, fn, args)
         except Exception as e:  # noqa: BLE001 - any failure leaves the renders eager
             self._off(f"{type(e).__name__}: {e}")
             return None
         self._graphs[key] = graphed
         self.captures += 1
         return graphed
-
-
-def _check(graphed, fn, args: tuple) -> None:
-    """Raise unless a replay of ``graphed`` on ``args`` gives ``fn``'s outputs and the gradients of a fixed scalar
-    of its images w.r.t. the inputs that require them."""
-    diff = [a for a in args if a.requires_grad]
-    got, want = graphed(*args), fn(*args)
-    for k, (a, b) in enumerate(zip(got, want)):
-        if not torch.allclose(a.detach().double(), b.detach().double(), rtol=_CHECK_RTOL, atol=_CHECK_ATOL,
-                              equal_nan=True):
-            raise RuntimeError(f"output {k} of a replay differs from the eager render by "
-                               f"{float((a.detach().double() - b.detach().double()).abs().max()):.3g}")
-    g = torch.Generator().manual_seed(0)
-    weights = [torch.rand(got[k].shape, generator=g, dtype=got[k].dtype).to(got[k].device) for k in range(6)]
-    grads = [torch.autograd.grad(sum((o[k] * w).sum() for k, w in enumerate(weights)), diff, allow_unused=True)
-             for o in (got, want)]
-    for k, (a, b) in enumerate(zip(*grads)):
-        if a is None or b is None or not b.numel():  # an empty input ([N, 0, 3] SH bands of degree 0) included
-            if (a is None) != (b is None):
-                raise RuntimeError(f"the gradient of input {k} of a replay is missing or extra")
-            continue
-        # normwise: CUDA sums a gradient's terms with float atomics in a varying order, so an entry that nearly
-        # cancels differs from run to run by a small fraction of the largest one
-        same_nan = bool(torch.equal(torch.isnan(a), torch.isnan(b)))
-        worst, scale = float((a - b).abs().nan_to_num(0.0).max()), float(b.abs().nan_to_num(0.0).max())
-        if not (same_nan and worst <= _CHECK_GRAD_REL * scale + _CHECK_GRAD_ABS):
-            raise RuntimeError(f"the gradient of input {k} of a replay differs from the eager render's by {worst:.3g} "
-                               f"(largest entry {scale:.3g})")
 
 
 def _on_device(device: torch.device):

@@ -29,8 +29,9 @@ Modules (private; import from ``wtopo.rasterize``):
   per call) and the default clip planes;
 * ``_binning``: tile binning and depth sort, and the deferred path's pair capacity;
 * ``_run``: the forward and backward launches of the differentiable op (CPU tile workers);
-* ``_graphable``: the fit's render as a function of tensors alone, the camera included (its CUDA graphs:
-  :mod:`wtopo.fitting.raster_graph`).
+* ``_graphable``: the render as a function of tensors alone, the camera included (the CUDA graphs of the fit,
+  :mod:`wtopo.fitting.raster_graph`, and of repeated public calls);
+* ``_replay``: repeated calls of :func:`rasterize_surfels` of one shape replayed as CUDA graphs.
 """
 
 from __future__ import annotations
@@ -41,10 +42,11 @@ import torch
 
 from .. import _bridge
 from ..camera import Camera
+from . import _replay
 from ._binning import _bin
 from ._camera import _camera_record, _camera_tables, _clip_from_host, _default_clip, _default_clip_device
 from ._config import FILTER_SIGMA_RANGE, RasterConfig, RenderOutput, _validate
-from ._run import _make_run
+from ._run import _apply_op
 
 __all__ = ["RasterConfig", "RenderOutput", "rasterize_surfels", "FILTER_SIGMA_RANGE"]
 
@@ -99,6 +101,13 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
             outside [0, 1], invalid near/far/sh_degree, or more tile intersections than
             ``config.max_intersections``.
 
+    Repeated calls:
+        On CUDA, after two calls of one shape (surfel count, colour layout, image size, settings, which inputs
+        require grad) with both clip planes defaulted, that shape's op is captured as a CUDA graph and later calls
+        replay it: the same values, two host reads a call (the argument checks, then the pair count), outputs
+        and gradients that are the caller's own copies. A call made while an earlier replay of its shape still
+        awaits its backward renders eagerly. ``wtopo.rasterize._replay`` has the details.
+
     Limitations:
         The compositing order is per tile by centre depth (as 2DGS), not per pixel. A surfel
         whose disk reaches the camera plane is binned to every tile. Lens models whose
@@ -111,9 +120,15 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     """
     config, sh_degree, bg, device = _validate(means, quats, scales, opacities, colors_or_sh, camera, sh_degree,
                                               background, near, far, config)
-    near, far = _default_clip(means, camera, near, far, config)
-    return _render(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, bg,
-                   _clip_from_host(near, far, device), config, host_clip=(near, far), defer_count=False)
+
+    def eager(near=near, far=far) -> RenderOutput:
+        near, far = _default_clip(means, camera, near, far, config)
+        return _render(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, bg,
+                       _clip_from_host(near, far, device), config, host_clip=(near, far), defer_count=False)
+
+    if near is None and far is None:  # repeated calls of one shape replay a CUDA graph (``_replay``)
+        return _replay.render(means, quats, scales, opacities, colors_or_sh, camera, sh_degree, bg, config, eager)
+    return eager()
 
 
 def _rasterize_trusted(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
@@ -162,27 +177,4 @@ def _render(means, quats, scales, opacities, colors_or_sh, camera: Camera, sh_de
                                                              colors_or_sh, means2d, sh_degree, camera, config, wdev)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist,
                         visibility=vis, radii=bins.radii, means2d=means2d, clip=clip, overflow=bins.overflow,
-                        _host_clip=host_clip)
-
-
-def _apply_op(bins, rays, cam_rec, bg: torch.Tensor, means, quats, scales, opacities, colors_or_sh, means2d,
-              sh_degree, camera, config: RasterConfig, wdev) -> tuple:
-    """The differentiable op on binned surfels: ``(rgb, alpha, depth, median, normal, distortion, visibility)``.
-    ``means2d`` only carries the screen-space gradient (its value is never read); ``camera``: its size."""
-    if colors_or_sh.ndim == 2:
-        sh = colors_or_sh.unsqueeze(1)
-        deg = -1
-    else:
-        sh = colors_or_sh[:, : (sh_degree + 1) ** 2]
-        deg = sh_degree
-    v3 = _bridge.vec_dtype(means, 3)
-    run = _make_run(bins, rays, cam_rec, _bridge.to_warp(bg.reshape(1, 3), v3), deg, camera, config, wdev,
-                    means.dtype)
-    op = _bridge.WarpOp(
-        "rasterize_surfels", run,
-        in_dtypes=(v3, _bridge.vec_dtype(means, 4), _bridge.vec_dtype(means, 2), _bridge.float_dtype(means), v3,
-                   _bridge.vec_dtype(means, 2)),
-        differentiable_inputs=(True,) * 6,
-        differentiable_outputs=(True,) * 6 + (False,),
-    )
-    return _bridge.apply(op, means, quats, scales, opacities, sh, means2d)
+                        _host_clip=host_clip, _pairs=bins.exact)

@@ -30,6 +30,7 @@ class _Bins:
     prect: wp.array
     overflow: torch.Tensor | None = None
     count: torch.Tensor | None = None  # with ``pairs``: the view's pair count (int64 scalar on the device)
+    exact: int | None = None  # without deferring: the pair count read (the buffers' size)
 
 
 _CAPACITY_HEADROOM = 1.25  # deferred path: sort buffers hold this times the largest recent pair count ...
@@ -192,4 +193,4 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
             _bridge.launch_split(_kb.tile_ranges_kernel, total, [keys, total, rank_bits], [tile_start, tile_end],
                                  device=wdev)
     return _Bins(tile_start, tile_end, values, _bridge.as_torch(radii), _bridge.as_torch(means2d), cutoff, prect,
-                 overflow, count)
+                 overflow, count, None if defer else total)

@@ -86,6 +86,7 @@ class RenderOutput:
     clip: torch.Tensor
     overflow: torch.Tensor | None = None
     _host_clip: tuple[float, float] | None = field(default=None, repr=False)
+    _pairs: int | None = field(default=None, repr=False)  # the (tile, surfel) pairs sorted, where read
 
     @property
     def near(self) -> float:

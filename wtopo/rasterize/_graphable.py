@@ -1,16 +1,18 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The fit's rasterizer as a function of tensors alone, the camera included: what a CUDA graph of the op captures
-(``wtopo.fitting.raster_graph``).
+"""The rasterizer as a function of tensors alone, the camera included: what a CUDA graph of the op captures (the
+fit's, ``wtopo.fitting.raster_graph``, and repeated public calls', ``wtopo.rasterize._replay``).
 
 :func:`view_inputs` gives a view's camera as four cached tensors (pixel rays, the packed tile tables, the depth
 row and the kernels' camera record without its clip planes); :func:`render_tensors` renders from them what
 ``_rasterize_trusted(..., defer_count=True)`` renders, with the sort sized for a given number of (tile, surfel)
 pairs and no host read or host-side state: the clip planes and the record are made on the device, the pair count
-comes back as a tensor for the caller to post to the capacity.
+comes back as a tensor for the caller to post to the capacity. :func:`pair_budget` rounds a pair count to the
+size a capture sorts for; :func:`check_replay` compares a capture's first replay with its function run eagerly.
 """
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -28,6 +30,10 @@ from ._camera import (
     _table_views,
 )
 from ._config import RasterConfig
+from ._run import _apply_op
+
+_CHECK_RTOL, _CHECK_ATOL = 1e-5, 1e-6  # a first replay's images farther than this from the eager render's: off
+_CHECK_GRAD_REL, _CHECK_GRAD_ABS = 1e-3, 1e-9  # ... and its gradients, relative to each one's largest entry
 
 
 class Size(NamedTuple):
@@ -77,8 +83,6 @@ def render_tensors(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tenso
         scalar), all on the device; the same values as ``_rasterize_trusted`` with ``defer_count`` at that
         capacity.
     """
-    from . import _apply_op
-
     device, dtype = means.device, means.dtype
     wdev = _bridge.warp_device(device)
     with _bridge.registered_capture(device):  # Warp's sorts take their scratch inside a graph being captured
@@ -90,3 +94,36 @@ def render_tensors(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tenso
         outs = _apply_op(bins, rays, cam_rec, background.detach(), means, quats, scales, opacities, sh, shift,
                          sh_degree, size, config, wdev)
     return (*outs, bins.radii, bins.means2d, clip, bins.overflow, bins.count)
+
+
+def pair_budget(capacity: int, limit: int) -> int:
+    """The pair capacity a graph sorts for: ``capacity`` rounded up to a power of sqrt(2), at most ``limit``."""
+    return min(int(limit), max(int(capacity), math.ceil(2 ** (math.ceil(2 * math.log2(max(capacity, 1))) / 2))))
+
+
+def check_replay(graphed, fn, args: tuple) -> None:
+    """Raise unless a replay of ``graphed`` on ``args`` gives ``fn``'s outputs and the gradients of a fixed scalar
+    of its images w.r.t. the inputs that require them."""
+    diff = [a for a in args if a.requires_grad]
+    got, want = graphed(*args), fn(*args)
+    for k, (a, b) in enumerate(zip(got, want)):
+        if not torch.allclose(a.detach().double(), b.detach().double(), rtol=_CHECK_RTOL, atol=_CHECK_ATOL,
+                              equal_nan=True):
+            raise RuntimeError(f"output {k} of a replay differs from the eager render by "
+                               f"{float((a.detach().double() - b.detach().double()).abs().max()):.3g}")
+    g = torch.Generator().manual_seed(0)
+    weights = [torch.rand(got[k].shape, generator=g, dtype=got[k].dtype).to(got[k].device) for k in range(6)]
+    grads = [torch.autograd.grad(sum((o[k] * w).sum() for k, w in enumerate(weights)), diff, allow_unused=True)
+             for o in (got, want)]
+    for k, (a, b) in enumerate(zip(*grads)):
+        if a is None or b is None or not b.numel():  # an empty input ([N, 0, 3] SH bands of degree 0) included
+            if (a is None) != (b is None):
+                raise RuntimeError(f"the gradient of input {k} of a replay is missing or extra")
+            continue
+        # normwise: CUDA sums a gradient's terms with float atomics in a varying order, so an entry that nearly
+        # cancels differs from run to run by a small fraction of the largest one
+        same_nan = bool(torch.equal(torch.isnan(a), torch.isnan(b)))
+        worst, scale = float((a - b).abs().nan_to_num(0.0).max()), float(b.abs().nan_to_num(0.0).max())
+        if not (same_nan and worst <= _CHECK_GRAD_REL * scale + _CHECK_GRAD_ABS):
+            raise RuntimeError(f"the gradient of input {k} of a replay differs from the eager render's by {worst:.3g} "
+                               f"(largest entry {scale:.3g})")

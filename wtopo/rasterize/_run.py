@@ -18,6 +18,7 @@ from ..kernels import rasterize_backward as _kbwd
 from ..kernels import rasterize_binning as _kb
 from ..kernels import rasterize_tiles as _kt
 from ._binning import _Bins
+from ._config import RasterConfig
 
 # CUDA: the 32 pixels of a warp composite in step and sum their per-surfel gradients and visibility
 # counts before one atomic add (kernels/rasterize.py, "warp-cooperative helpers"); False restores one
@@ -201,3 +202,26 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
         return (*outs, visibility)
 
     return run
+
+
+def _apply_op(bins, rays, cam_rec, bg: torch.Tensor, means, quats, scales, opacities, colors_or_sh, means2d,
+              sh_degree, camera, config: RasterConfig, wdev) -> tuple:
+    """The differentiable op on binned surfels: ``(rgb, alpha, depth, median, normal, distortion, visibility)``.
+    ``means2d`` only carries the screen-space gradient (its value is never read); ``camera``: its size."""
+    if colors_or_sh.ndim == 2:
+        sh = colors_or_sh.unsqueeze(1)
+        deg = -1
+    else:
+        sh = colors_or_sh[:, : (sh_degree + 1) ** 2]
+        deg = sh_degree
+    v3 = _bridge.vec_dtype(means, 3)
+    run = _make_run(bins, rays, cam_rec, _bridge.to_warp(bg.reshape(1, 3), v3), deg, camera, config, wdev,
+                    means.dtype)
+    op = _bridge.WarpOp(
+        "rasterize_surfels", run,
+        in_dtypes=(v3, _bridge.vec_dtype(means, 4), _bridge.vec_dtype(means, 2), _bridge.float_dtype(means), v3,
+                   _bridge.vec_dtype(means, 2)),
+        differentiable_inputs=(True,) * 6,
+        differentiable_outputs=(True,) * 6 + (False,),
+    )
+    return _bridge.apply(op, means, quats, scales, opacities, sh, means2d)

@@ -1,5 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""What every CUDA-graph capture of the fit needs (the per-pixel terms, the render, Adam's update)."""
+"""What every CUDA-graph capture needs: the fit's (the per-pixel terms, the render, Adam's update) and the public
+rasterizer's replays (``wtopo.rasterize._replay``)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from collections.abc import Iterator
 
 import torch
 
-from .._validate import trusted_values
+from ._validate import trusted_values
 
 __all__ = ["collector_off", "make_graphed"]
 
@@ -30,10 +31,10 @@ def collector_off() -> Iterator[None]:
 
 def make_graphed(fn, args: tuple, *, warmup: int, make=None):
     """``torch.cuda.make_graphed_callables(fn, samples, num_warmup_iters=warmup)`` on copies of ``args`` (each
-    requiring a gradient where its original does; ``make``: a stand-in of that signature, for tests), with the fit's
-    values trusted (an op's value check reads the device, which a capture cannot hold) and the collector off.
-    torch's warning that the warm-up differentiates the copies (leaves made on the default stream) on its side
-    stream is silenced: the fit's own inputs are no such leaves."""
+    requiring a gradient where its original does; ``make``: a stand-in of that signature, for tests), with values
+    trusted (an op's value check reads the device, which a capture cannot hold) and the collector off. torch's
+    warning that the warm-up differentiates the copies (leaves made on the default stream) on its side stream is
+    silenced: the copies are the capture's own, never a caller's leaves."""
     samples = tuple(a.detach().clone().requires_grad_(a.requires_grad) for a in args)
     with collector_off(), trusted_values(), warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="The AccumulateGrad node's stream does not match")

@@ -1,0 +1,263 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Repeated public calls replayed as CUDA graphs (``wtopo.rasterize._replay``): on the CPU with a stand-in for the
+capture that keeps a graph's buffer semantics (outputs and gradients in fixed buffers the next call overwrites),
+on CUDA captured. A replayed call equals the eager one (images, per-surfel outputs, clip planes, the projected
+centres and every gradient, ``means2d``'s included); what a caller holds survives the next call; a second render
+before the first one's backward, a view with more pairs than the graph sorts for, a failed capture, explicit clip
+planes and a profiled section all render eagerly."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from graph_standins import static_buffers
+from raster_cases import IMAGES, camera, surfels
+
+from wtopo._profile import section
+from wtopo.ops import RasterConfig, rasterize_surfels
+from wtopo.rasterize import _replay
+
+
+@pytest.fixture(autouse=True)
+def _fresh(device, monkeypatch):
+    """Replays on, no shape known; on the CPU the capture is the buffer-keeping stand-in."""
+    _replay.reset()
+    monkeypatch.setattr(_replay, "_MAKE", None if str(device).startswith("cuda") else static_buffers)
+    yield
+    _replay.reset()
+
+
+BG = (0.1, 0.2, 0.3)
+
+
+def _eager(params, cam, background=BG, **kw):
+    saved = _replay.REPLAY
+    _replay.REPLAY = False
+    try:
+        return rasterize_surfels(*params, cam, background=background, **kw)
+    finally:
+        _replay.REPLAY = saved
+
+
+def _tol(out):
+    # CUDA sums gradients with float atomics in a varying order; the CPU's sums are ordered
+    return dict(rtol=1e-3, atol=1e-4) if out.rgb.is_cuda else dict(rtol=0, atol=0)
+
+
+def _snapshot(out, params, seed=3):
+    """The outputs and the gradients of a fixed weighting of the images (``means2d``'s included) of ``out``,
+    as copies; the gradients are left in the leaves' ``.grad``."""
+    for p in params:
+        p.grad = None
+    g = torch.Generator().manual_seed(seed)
+    ups = {k: torch.randn(getattr(out, k).shape, generator=g, dtype=out.rgb.dtype).to(out.rgb.device)
+           for k in IMAGES}
+    sum((getattr(out, k) * u).sum() for k, u in ups.items()).backward()
+    snap = {k: getattr(out, k).detach().clone() for k in (*IMAGES, "visibility", "radii", "clip")}
+    snap["means2d"] = out.means2d.detach().clone()
+    snap["near_far"] = (out.near, out.far)
+    snap["grads"] = [p.grad.clone() for p in (*params, out.means2d)]
+    return snap
+
+
+def _assert_same(a, b, tol):
+    for k in (*IMAGES, "visibility", "radii", "clip", "means2d"):
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+    assert a["near_far"] == b["near_far"]
+    for x, y in zip(a["grads"], b["grads"]):
+        torch.testing.assert_close(x, y, **tol)
+
+
+def _shape():
+    (shape,) = _replay._shapes.values()
+    return shape
+
+
+@pytest.mark.parametrize("sh", [9, 0], ids=["sh", "rgb"])
+def test_replayed_calls_equal_eager_calls(device, sh):
+    """The first EAGER_CALLS calls render eagerly, then a capture; every later call replays and equals the eager
+    render of its own values, gradients and the screen-space gradient included."""
+    cam = camera()
+    params = surfels(300, dtype=torch.float32, device=device, sh=sh)
+    for k in range(_replay.EAGER_CALLS + 3):
+        with torch.no_grad():
+            params[0].add_(0.002)  # each call its own values, as a training loop's steps
+        out = rasterize_surfels(*params, cam, background=BG)
+        got = _snapshot(out, params)
+        want = _snapshot(_eager(params, cam), params)
+        _assert_same(got, want, _tol(out))
+        assert _shape().replays == max(0, k + 1 - _replay.EAGER_CALLS)
+    assert _replay.failure is None
+
+
+def test_forward_without_gradients_replays(device):
+    cam = camera()
+    params = surfels(300, dtype=torch.float32, device=device)
+    with torch.no_grad():
+        for _ in range(_replay.EAGER_CALLS + 2):
+            out = rasterize_surfels(*params, cam, background=BG)
+        want = _eager(params, cam)
+    assert _shape().replays == 2
+    for k in (*IMAGES, "visibility", "radii", "means2d"):
+        torch.testing.assert_close(getattr(out, k), getattr(want, k), rtol=0, atol=0, msg=k)
+    assert not out.rgb.requires_grad and not out.means2d.requires_grad
+
+
+def test_what_a_caller_holds_survives_the_next_call(device):
+    """A replay's images and the gradients it left in ``.grad`` are the caller's, not the graph's buffers."""
+    cam = camera()
+    params = surfels(300, dtype=torch.float32, device=device)
+    for _ in range(_replay.EAGER_CALLS):
+        rasterize_surfels(*params, cam, background=BG)
+    out = rasterize_surfels(*params, cam, background=BG)
+    held = {k: getattr(out, k) for k in (*IMAGES, "visibility", "radii", "means2d")}
+    copies = {k: v.detach().clone() for k, v in held.items()}
+    out.rgb.sum().backward()
+    grads = [p.grad for p in params] + [out.means2d.grad]
+    grad_copies = [g.clone() for g in grads]
+    with torch.no_grad():
+        moved = [p + 0.002 * torch.rand_like(p) for p in params]  # scales stay > 0, opacities < 1
+    moved = [m.requires_grad_(True) for m in moved]
+    nxt = rasterize_surfels(*moved, cam, background=BG)
+    (nxt.alpha * 3.0).sum().backward()
+    assert _shape().replays == 2
+    for k, v in held.items():
+        torch.testing.assert_close(v.detach(), copies[k], rtol=0, atol=0, msg=k)
+    for g, c in zip(grads, grad_copies):
+        torch.testing.assert_close(g, c, rtol=0, atol=0)
+
+
+def test_a_render_before_the_last_ones_backward_is_eager(device):
+    """Two renders of one shape, one loss: the second renders eagerly (a replay would overwrite what the first
+    one's backward reads), and the gradients are those of two eager renders."""
+    cam = camera()
+    other = camera()
+    params = surfels(300, dtype=torch.float32, device=device)
+    for _ in range(_replay.EAGER_CALLS):
+        rasterize_surfels(*params, cam, background=BG)
+    a = rasterize_surfels(*params, cam, background=BG)
+    b = rasterize_surfels(*params, other, background=(0.5, 0.5, 0.5))
+    assert _shape().replays == 1
+    (a.rgb.sum() + 2.0 * b.depth.sum()).backward()
+    got = [p.grad.clone() for p in params]
+    for p in params:
+        p.grad = None
+    ea, eb = _eager(params, cam), _eager(params, other, background=(0.5, 0.5, 0.5))
+    (ea.rgb.sum() + 2.0 * eb.depth.sum()).backward()
+    for x, p in zip(got, params):
+        torch.testing.assert_close(x, p.grad, **_tol(a))
+    # once the backward has run, the shape replays again
+    rasterize_surfels(*params, cam, background=BG)
+    assert _shape().replays == 2
+
+
+def test_a_dropped_render_frees_the_shape(device):
+    """Outputs dropped without a backward do not hold the shape eager."""
+    cam = camera()
+    params = surfels(300, dtype=torch.float32, device=device)
+    for _ in range(_replay.EAGER_CALLS + 1):
+        out = rasterize_surfels(*params, cam, background=BG)
+    del out
+    rasterize_surfels(*params, cam, background=BG)
+    assert _shape().replays == 2
+
+
+def test_more_pairs_than_the_graph_sorts_for_render_exactly(device):
+    """A view whose pair count outgrows the capture renders again eagerly (exact), and the shape is captured again
+    for the larger count."""
+    cam = camera()
+    params = surfels(300, dtype=torch.float32, device=device, scale=(0.01, 0.03))
+    for _ in range(_replay.EAGER_CALLS):
+        rasterize_surfels(*params, cam, background=BG)
+    small = _shape().most_pairs
+    with torch.no_grad():
+        params[2].mul_(8.0)  # larger disks: more tiles each
+    out = rasterize_surfels(*params, cam, background=BG)
+    assert _shape().replays == 0 and _shape().most_pairs > small
+    _assert_same(_snapshot(out, params), _snapshot(_eager(params, cam), params), _tol(out))
+    out = rasterize_surfels(*params, cam, background=BG)  # the new capture's first replay
+    assert _shape().replays == 1
+    _assert_same(_snapshot(out, params), _snapshot(_eager(params, cam), params), _tol(out))
+
+
+def test_a_capture_that_fails_turns_replays_off_with_a_warning(device, monkeypatch):
+    def broken(fn, samples, num_warmup_iters=0):
+        raise RuntimeError("no capture here")
+
+    monkeypatch.setattr(_replay, "_MAKE", broken)
+    cam = camera()
+    params = surfels(300, dtype=torch.float32, device=device)
+    with pytest.warns(RuntimeWarning, match="no capture here"):
+        for _ in range(_replay.EAGER_CALLS):
+            rasterize_surfels(*params, cam, background=BG)
+    assert "no capture here" in _replay.failure
+    out = rasterize_surfels(*params, cam, background=BG)
+    _assert_same(_snapshot(out, params), _snapshot(_eager(params, cam), params), _tol(out))
+    assert not _replay._shapes
+
+
+def test_a_replay_that_disagrees_turns_replays_off(device, monkeypatch):
+    def altered(fn, samples, num_warmup_iters=0):
+        replay = static_buffers(fn, samples)
+        return lambda *a: (replay(*a)[0] + 1e-3, *replay(*a)[1:])
+
+    monkeypatch.setattr(_replay, "_MAKE", altered)
+    cam = camera()
+    params = surfels(300, dtype=torch.float32, device=device)
+    with pytest.warns(RuntimeWarning, match="output 0 of a replay differs"):
+        for _ in range(_replay.EAGER_CALLS):
+            rasterize_surfels(*params, cam, background=BG)
+    assert _replay.failure is not None
+
+
+@pytest.mark.parametrize("case", ["explicit-clip", "profiled", "inference-mode", "replay-off"])
+def test_calls_that_never_replay(device, case, monkeypatch):
+    cam = camera()
+    params = surfels(300, dtype=torch.float32, device=device)
+    kw = {"near": 0.5, "far": 10.0} if case == "explicit-clip" else {}
+    if case == "replay-off":
+        monkeypatch.setattr(_replay, "REPLAY", False)
+    for _ in range(_replay.EAGER_CALLS + 2):
+        if case == "profiled":
+            with section("outer", add=lambda name, dt: None):
+                rasterize_surfels(*params, cam, background=BG, **kw)
+        elif case == "inference-mode":
+            with torch.inference_mode():
+                rasterize_surfels(*params, cam, background=BG, **kw)
+        else:
+            rasterize_surfels(*params, cam, background=BG, **kw)
+    assert all(s.graphed is None and s.replays == 0 for s in _replay._shapes.values())
+
+
+def test_only_the_newest_shapes_keep_their_captures(device):
+    cam = camera()
+    sizes = (100, 120, 140)
+    for n in sizes:
+        params = surfels(n, dtype=torch.float32, device=device)
+        for _ in range(_replay.EAGER_CALLS):
+            rasterize_surfels(*params, cam, background=BG)
+    captured = [key[2] for key, s in _replay._shapes.items() if s.graphed is not None]
+    assert captured == list(sizes[-_replay._KEPT:])
+
+
+def test_bad_input_still_raises_before_a_replay(device):
+    cam = camera()
+    params = surfels(300, dtype=torch.float32, device=device)
+    for _ in range(_replay.EAGER_CALLS):
+        rasterize_surfels(*params, cam, background=BG)
+    with torch.no_grad():
+        params[3][7] = 1.5
+    with pytest.raises(ValueError, match="opacities"):
+        rasterize_surfels(*params, cam, background=BG)
+
+
+def test_replays_keep_the_settings_apart(device):
+    """Another configuration or image size is another shape, captured and replayed on its own."""
+    params = surfels(300, dtype=torch.float32, device=device)
+    for cfg in (RasterConfig(), RasterConfig(tile_size=16)):
+        for cam in (camera(), camera(41, 23)):
+            for _ in range(_replay.EAGER_CALLS + 1):
+                out = rasterize_surfels(*params, cam, background=BG, config=cfg)
+            assert next(reversed(_replay._shapes.values())).replays == 1
+            want = _eager(params, cam, config=cfg)
+            torch.testing.assert_close(out.rgb, want.rgb, rtol=0, atol=0)

@@ -1,0 +1,214 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Repeated calls of :func:`wtopo.rasterize.rasterize_surfels` of one shape, replayed on CUDA as CUDA graphs.
+
+A training loop renders the same number of surfels at the same image size with the same settings many times
+over, and below about a million surfels the host side of one eager call (binning, two sorts, a dozen launches,
+the autograd bridge) takes longer than its kernels (``benchmarks/gpu.md``). After :data:`EAGER_CALLS` exact calls
+of one shape, the op (:func:`wtopo.rasterize._graphable.render_tensors`: the clip planes computed on the device,
+the sort sized for the largest pair count seen, rounded up to a power of sqrt(2)) is captured with
+``torch.cuda.make_graphed_callables``, and later calls of that shape replay it:
+
+* each call still checks its arguments first, with the eager path's one host read;
+* after the replay one host read fetches the pair count, its overflow flag and the clip planes: a view with more
+  (tile, surfel) pairs than the graph sorts for renders again eagerly (exact; the next capture of that shape is
+  sized for it);
+* the images and per-surfel outputs are copies of the graph's buffers and the gradients that reach the inputs
+  (``means2d`` included) are copies too, so nothing a caller holds changes at the next call;
+* while the outputs of a replay that can be differentiated are alive and its backward has not run, calls of that
+  shape render eagerly: another replay would overwrite what that backward reads.
+
+Same values as the eager path (the deferred sort orders the real pairs as the exact one; the device's clip
+planes are the host's), checked once per capture: a capture that raises, or whose first replay's images or
+gradients differ from the captured function run eagerly, turns replays off for the process with a
+``RuntimeWarning``. Replays are used only on CUDA, with both clip planes defaulted, at least one surfel, outside a
+profiled section, inference mode and a caller's own stream capture. :data:`REPLAY` = ``False`` turns them off.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import warnings
+import weakref
+from collections import OrderedDict
+from collections.abc import Callable
+
+import torch
+
+from .._graphs import make_graphed
+from .._profile import in_section
+from .._validate import trusted_values
+from ._config import RasterConfig, RenderOutput
+from ._graphable import Size, check_replay, pair_budget, render_tensors, view_inputs
+
+REPLAY = True
+"""False: every call of :func:`rasterize_surfels` renders eagerly (tests, benchmarks)."""
+EAGER_CALLS = 2
+"""Exact calls of one shape before it is captured (a shape called once or twice never pays for a capture)."""
+_KEPT = 2  # captured shapes kept (the oldest is dropped first: its memory)
+_WARMUP = 2  # eager runs of the captured function before the capture
+_IMAGES = 6  # rgb, alpha, depth, median, normal, distortion
+_MAKE = None  # tests: a stand-in of torch.cuda.make_graphed_callables (with it, replays run on any device)
+
+
+class _Pending:
+    """Held by a replay's autograd graph until its backward has run (see the module's docstring)."""
+
+    done = False
+
+
+class _CopyGrads(torch.autograd.Function):
+    """The identity on the inputs of a replay; their gradients, which are the graph's buffers, leave as copies."""
+
+    @staticmethod
+    def forward(ctx, pending: _Pending, *xs: torch.Tensor):
+        ctx.pending = pending
+        return tuple(x.view_as(x) for x in xs)
+
+    @staticmethod
+    def backward(ctx, *grads):
+        ctx.pending.done = True
+        return (None, *(None if g is None else g.clone() for g in grads))
+
+
+@dataclasses.dataclass
+class _Shape:
+    """What is known of one shape of call: its exact calls, the most pairs seen and its capture."""
+
+    calls: int = 0
+    most_pairs: int = 0
+    graphed: Callable | None = None
+    background: torch.Tensor | None = None  # the buffer the graph reads the background from
+    pending: weakref.ref | None = None  # the last differentiable replay's _Pending
+    replays: int = 0
+
+
+_shapes: OrderedDict = OrderedDict()
+failure: str | None = None
+"""Why replays are off for this process (``None`` while they are on)."""
+
+
+def render(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+           colors_or_sh: torch.Tensor, camera, sh_degree: int | None, bg: torch.Tensor, config: RasterConfig,
+           eager: Callable[[], RenderOutput]) -> RenderOutput:
+    """The render of a checked call with both clip planes defaulted: a replay where one serves, else ``eager()``
+    (the exact path), counted towards a capture of the call's shape."""
+    inputs = (means, quats, scales, opacities, colors_or_sh)
+    if (not REPLAY or failure is not None or not (means.is_cuda or _MAKE is not None) or means.shape[0] == 0
+            or in_section() or torch.is_inference_mode_enabled()
+            or (means.is_cuda and torch.cuda.is_current_stream_capturing())):
+        return eager()
+    key = (means.device, means.dtype, means.shape[0], tuple(colors_or_sh.shape), sh_degree, camera.width,
+           camera.height, dataclasses.astuple(config), tuple(t.requires_grad for t in inputs))
+    shape = _shapes.get(key)
+    if shape is None:
+        shape = _shapes[key] = _Shape()
+    _shapes.move_to_end(key)
+    if shape.graphed is not None and not _pending(shape):
+        out = _replay(shape, inputs, camera, sh_degree, bg, config)
+        if out is not None:
+            return out
+    out = eager()
+    shape.calls += 1
+    shape.most_pairs = max(shape.most_pairs, out._pairs or 0)  # noqa: SLF001
+    if shape.graphed is None and shape.calls >= EAGER_CALLS and shape.most_pairs > 0 and failure is None:
+        _capture(shape, inputs, camera, sh_degree, bg, config)
+    return out
+
+
+def _pending(shape: _Shape) -> bool:
+    pending = shape.pending() if shape.pending is not None else None
+    return pending is not None and not pending.done
+
+
+def _function(size: Size, sh_degree: int | None, background: torch.Tensor, config: RasterConfig, pairs: int):
+    def render_op(means, quats, scales, opacities, colors_or_sh, shift, rays, tables, row4, record):
+        return render_tensors(means, quats, scales, opacities, colors_or_sh, shift, rays, tables, row4, record,
+                              size=size, sh_degree=sh_degree, background=background, config=config, pairs=pairs)
+
+    return render_op
+
+
+def _capture(shape: _Shape, inputs: tuple, camera, sh_degree, bg: torch.Tensor, config: RasterConfig) -> None:
+    """Capture the call's shape for the largest pair count seen, checked against the function run eagerly."""
+    while len(_shapes) > _KEPT:  # drop the oldest captures (never the shape being captured: it is the newest)
+        oldest = _shapes[next(iter(_shapes))]
+        if oldest.graphed is None:
+            _shapes.popitem(last=False)
+            continue
+        oldest.graphed = oldest.background = None
+        _shapes.popitem(last=False)
+    means = inputs[0]
+    background = bg.detach().clone()
+    fn = _function(Size(camera.width, camera.height), sh_degree, background, config,
+                   pair_budget(shape.most_pairs, config.max_intersections))
+    shift = torch.zeros(means.shape[0], 2, dtype=means.dtype, device=means.device, requires_grad=True)
+    args = (*inputs, shift, *view_inputs(camera, means.device, means.dtype, config))
+    try:
+        with _on_device(means.device), torch.enable_grad():
+            graphed = make_graphed(fn, args, warmup=_WARMUP, make=_MAKE)
+            with trusted_values():
+                check_replay(graphed, fn, args)
+    except Exception as e:  # noqa: BLE001 - any failure leaves every call eager
+        _off(f"{type(e).__name__}: {e}")
+        return
+    shape.graphed, shape.background = graphed, background
+
+
+def _replay(shape: _Shape, inputs: tuple, camera, sh_degree, bg: torch.Tensor,
+            config: RasterConfig) -> RenderOutput | None:
+    """One replay of ``shape``'s graph; ``None`` where the view had more pairs than it sorts for."""
+    means = inputs[0]
+    n, dtype, device = means.shape[0], means.dtype, means.device
+    grad = torch.is_grad_enabled() and any(t.requires_grad for t in inputs)
+    shift = torch.zeros(n, 2, dtype=dtype, device=device, requires_grad=grad)
+    ins = (*inputs, shift)
+    pending = None
+    if grad:
+        pending = _Pending()
+        wanted = [k for k, t in enumerate(ins) if t.requires_grad]
+        copied = _CopyGrads.apply(pending, *(ins[k] for k in wanted))
+        ins = list(ins)
+        for k, t in zip(wanted, copied):
+            ins[k] = t
+    try:
+        with _on_device(device):
+            shape.background.copy_(bg)
+            outs = shape.graphed(*ins, *view_inputs(camera, device, dtype, config))
+    except Exception as e:  # noqa: BLE001 - a replay that fails leaves this call and the rest eager
+        _off(f"a replay failed: {type(e).__name__}: {e}")
+        return None
+    images, (vis, radii, centres, clip, overflow, count) = outs[:_IMAGES], outs[_IMAGES:]
+    # one host read: the overflow flag, the pair count and the clip planes
+    over, pairs, near, far = torch.stack([overflow.double(), count.double(), clip[0], clip[1]]).tolist()
+    if over:
+        shape.most_pairs = max(shape.most_pairs, int(pairs))
+        shape.graphed = shape.background = None  # captured again for the larger count after the eager call
+        return None
+    if pending is not None:
+        shape.pending = weakref.ref(pending)
+    shape.replays += 1
+    with torch.no_grad():
+        shift.copy_(centres)  # the projected centres, as the eager path's means2d (its value is never read)
+    rgb, alpha, depth, median, normal, dist = (o.clone() for o in images)
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist,
+                        visibility=vis.clone(), radii=radii.clone(), means2d=shift,
+                        clip=clip.clone(), _host_clip=(near, far), _pairs=int(pairs))
+
+
+def _on_device(device: torch.device):
+    return torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext()
+
+
+def _off(why: str) -> None:
+    global failure
+    failure = why
+    _shapes.clear()
+    warnings.warn(f"wtopo: rasterize_surfels renders eagerly from now on: {why}", RuntimeWarning, stacklevel=4)
+
+
+def reset() -> None:
+    """Forget every shape and capture, and turn replays back on (tests)."""
+    global failure
+    failure = None
+    _shapes.clear()
