@@ -22,7 +22,7 @@ for step in ${Z_STEPS:-profile losses raster}; do
   raster) MAX_JOBS=14 STAGE=$S timeout 400 bash $D build 2>&1 | grep -i gsplat | tail -n 3
     echo "gsplat built after $(( $(date +%s) - t0 )) s"
     mkdir -p $OUT/r
-    (cd /tmp && timeout 240 python3 $R/benchmarks/bench_rasterize_gpu.py --device cuda:0 --only rasterizer loss \
+    (cd /tmp && timeout 240 python3 $R/benchmarks/bench_rasterize_gpu.py --device cuda:0 --only rasterizer loss --profile \
       --out $OUT/r 2>&1 | tail -n 40) ;;
   esac
   echo "$step done after $(( $(date +%s) - t0 )) s"
