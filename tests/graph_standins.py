@@ -54,3 +54,45 @@ def static_buffers(fn, samples, num_warmup_iters=0):
         return out[0] if state["single"] else out
 
     return replay
+
+
+def latest_state(fn, samples, num_warmup_iters=0):
+    """A stand-in for ``torch.cuda.make_graphed_callables`` whose backward, as a replayed backward graph does,
+    reads the state the latest forward left (its inputs and intermediate values), whichever forward the gradient
+    belongs to; outputs and input gradients in fixed buffers as :func:`static_buffers`. A second forward before
+    an earlier one's backward gives that backward the later forward's gradients, as on a GPU."""
+    static_in = [x.detach().clone() for x in samples]
+    state: dict = {}
+
+    class Replay(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, *inputs):
+            for buf, x in zip(static_in, inputs):
+                buf.copy_(x.detach())
+            with torch.enable_grad():
+                leaves = [buf.detach().requires_grad_(x.requires_grad) for buf, x in zip(static_in, samples)]
+                outs = tuple(fn(*leaves))
+            state["leaves"], state["outs"] = leaves, outs
+            if "out_bufs" not in state:
+                state["out_bufs"] = [o.detach().clone() for o in outs]
+            for buf, o in zip(state["out_bufs"], outs):
+                buf.copy_(o.detach())
+            return tuple(buf.detach() for buf in state["out_bufs"])
+
+        @staticmethod
+        @torch.autograd.function.once_differentiable
+        def backward(ctx, *grads):
+            leaves, outs = state["leaves"], state["outs"]
+            pairs = [(o, g) for o, g in zip(outs, grads) if o.requires_grad and g is not None]
+            diff = [leaf for leaf in leaves if leaf.requires_grad]
+            got = iter(torch.autograd.grad([o for o, _ in pairs], diff, [g for _, g in pairs], retain_graph=True,
+                                           allow_unused=True))
+            out = [next(got) if leaf.requires_grad else None for leaf in leaves]
+            if "grad_bufs" not in state:
+                state["grad_bufs"] = [None if g is None else torch.zeros_like(g) for g in out]
+            for buf, g in zip(state["grad_bufs"], out):
+                if buf is not None:
+                    buf.copy_(g if g is not None else torch.zeros_like(buf))
+            return tuple(None if buf is None else buf.detach() for buf in state["grad_bufs"])
+
+    return lambda *args: Replay.apply(*args)

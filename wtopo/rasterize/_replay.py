@@ -14,14 +14,18 @@ the sort sized for the largest pair count seen, rounded up to a power of sqrt(2)
   sized for it);
 * the images and per-surfel outputs are copies of the graph's buffers and the gradients that reach the inputs
   (``means2d`` included) are copies too, so nothing a caller holds changes at the next call;
-* while the outputs of a replay that can be differentiated are alive and its backward has not run, calls of that
-  shape render eagerly: another replay would overwrite what that backward reads.
+* while a differentiable replay's autograd graph can still be differentiated (its outputs alive and no backward
+  through it yet, or a backward with ``retain_graph=True``), calls of that shape render eagerly: another replay would
+  overwrite what that backward reads. A second backward through a replay's graph raises, as the eager path's does.
 
 Same values as the eager path (the deferred sort orders the real pairs as the exact one; the device's clip
 planes are the host's), checked once per capture: a capture that raises, or whose first replay's images or
 gradients differ from the captured function run eagerly, turns replays off for the process with a
-``RuntimeWarning``. Replays are used only on CUDA, with both clip planes defaulted, at least one surfel, outside a
-profiled section, inference mode and a caller's own stream capture. :data:`REPLAY` = ``False`` turns them off.
+``RuntimeWarning``; a capture that raises (out of memory, another thread's CUDA call during it) leaves that shape
+eager with a warning. At most :data:`KEPT` shapes keep a capture (their memory pools; the least recently used one
+is dropped first, and a dropped shape needs twice as many exact calls before its next capture). Replays are used
+only on CUDA, with both clip planes defaulted, at least one surfel, outside a profiled section, autocast, inference
+mode and a caller's own stream capture. :data:`REPLAY` = ``False`` turns them off.
 """
 
 from __future__ import annotations
@@ -45,30 +49,30 @@ REPLAY = True
 """False: every call of :func:`rasterize_surfels` renders eagerly (tests, benchmarks)."""
 EAGER_CALLS = 2
 """Exact calls of one shape before it is captured (a shape called once or twice never pays for a capture)."""
-_KEPT = 2  # captured shapes kept (the oldest is dropped first: its memory)
+KEPT = 3
+"""Shapes that keep a capture at once."""
+_KNOWN = 64  # shapes whose exact calls are counted (the least recently called is forgotten first)
 _WARMUP = 2  # eager runs of the captured function before the capture
 _IMAGES = 6  # rgb, alpha, depth, median, normal, distortion
 _MAKE = None  # tests: a stand-in of torch.cuda.make_graphed_callables (with it, replays run on any device)
 
 
-class _Pending:
-    """Held by a replay's autograd graph until its backward has run (see the module's docstring)."""
-
-    done = False
-
-
 class _CopyGrads(torch.autograd.Function):
-    """The identity on the inputs of a replay; their gradients, which are the graph's buffers, leave as copies."""
+    """The identity on the inputs of a replay; their gradients, which are the graph's buffers, leave as copies.
+
+    Its node saves an empty tensor: while the node is alive and that tensor is not freed (no backward through it
+    yet, or one with ``retain_graph``), the replay may still be differentiated (:func:`_pending`), and a second
+    backward without ``retain_graph`` raises here as the eager op's does."""
 
     @staticmethod
-    def forward(ctx, pending: _Pending, *xs: torch.Tensor):
-        ctx.pending = pending
+    def forward(ctx, *xs: torch.Tensor):
+        ctx.save_for_backward(xs[0].new_empty(0))
         return tuple(x.view_as(x) for x in xs)
 
     @staticmethod
     def backward(ctx, *grads):
-        ctx.pending.done = True
-        return (None, *(None if g is None else g.clone() for g in grads))
+        ctx.saved_tensors  # noqa: B018 - raises after the graph was freed (a second backward)
+        return tuple(None if g is None else g.clone() for g in grads)
 
 
 @dataclasses.dataclass
@@ -79,8 +83,10 @@ class _Shape:
     most_pairs: int = 0
     graphed: Callable | None = None
     background: torch.Tensor | None = None  # the buffer the graph reads the background from
-    pending: weakref.ref | None = None  # the last differentiable replay's _Pending
+    pending: weakref.ref | None = None  # the last differentiable replay's _CopyGrads node
     replays: int = 0
+    needed: int = EAGER_CALLS  # exact calls before a capture (doubled each time the capture is dropped)
+    failed: bool = False  # a capture of this shape raised: it stays eager
 
 
 _shapes: OrderedDict = OrderedDict()
@@ -95,7 +101,7 @@ def render(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opaci
     (the exact path), counted towards a capture of the call's shape."""
     inputs = (means, quats, scales, opacities, colors_or_sh)
     if (not REPLAY or failure is not None or not (means.is_cuda or _MAKE is not None) or means.shape[0] == 0
-            or in_section() or torch.is_inference_mode_enabled()
+            or in_section() or torch.is_inference_mode_enabled() or torch.is_autocast_enabled(means.device.type)
             or (means.is_cuda and torch.cuda.is_current_stream_capturing())):
         return eager()
     key = (means.device, means.dtype, means.shape[0], tuple(colors_or_sh.shape), sh_degree, camera.width,
@@ -103,6 +109,7 @@ def render(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opaci
     shape = _shapes.get(key)
     if shape is None:
         shape = _shapes[key] = _Shape()
+        _forget()
     _shapes.move_to_end(key)
     if shape.graphed is not None and not _pending(shape):
         out = _replay(shape, inputs, camera, sh_degree, bg, config)
@@ -111,14 +118,37 @@ def render(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opaci
     out = eager()
     shape.calls += 1
     shape.most_pairs = max(shape.most_pairs, out._pairs or 0)  # noqa: SLF001
-    if shape.graphed is None and shape.calls >= EAGER_CALLS and shape.most_pairs > 0 and failure is None:
+    if (shape.graphed is None and not shape.failed and shape.calls >= shape.needed and shape.most_pairs > 0
+            and failure is None):
         _capture(shape, inputs, camera, sh_degree, bg, config)
     return out
 
 
 def _pending(shape: _Shape) -> bool:
-    pending = shape.pending() if shape.pending is not None else None
-    return pending is not None and not pending.done
+    """Whether the last differentiable replay of ``shape`` may still be differentiated."""
+    node = shape.pending() if shape.pending is not None else None
+    if node is None:
+        return False
+    try:
+        node.saved_tensors  # noqa: B018 - raises once a backward freed the replay's graph
+    except RuntimeError:
+        return False
+    return True
+
+
+def _forget() -> None:
+    """Forget the least recently called shapes beyond :data:`_KNOWN` (their captures too)."""
+    while len(_shapes) > _KNOWN:
+        _shapes.popitem(last=False)
+
+
+def _drop_oldest_capture() -> None:
+    """Make room for one more capture: the least recently called captured shape drops its graph."""
+    captured = [s for s in _shapes.values() if s.graphed is not None]
+    while len(captured) >= KEPT:
+        old = captured.pop(0)
+        old.graphed = old.background = old.pending = None
+        old.calls, old.needed = 0, 2 * old.needed
 
 
 def _function(size: Size, sh_degree: int | None, background: torch.Tensor, config: RasterConfig, pairs: int):
@@ -131,27 +161,28 @@ def _function(size: Size, sh_degree: int | None, background: torch.Tensor, confi
 
 def _capture(shape: _Shape, inputs: tuple, camera, sh_degree, bg: torch.Tensor, config: RasterConfig) -> None:
     """Capture the call's shape for the largest pair count seen, checked against the function run eagerly."""
-    while len(_shapes) > _KEPT:  # drop the oldest captures (never the shape being captured: it is the newest)
-        oldest = _shapes[next(iter(_shapes))]
-        if oldest.graphed is None:
-            _shapes.popitem(last=False)
-            continue
-        oldest.graphed = oldest.background = None
-        _shapes.popitem(last=False)
+    _drop_oldest_capture()
     means = inputs[0]
     background = bg.detach().clone()
     fn = _function(Size(camera.width, camera.height), sh_degree, background, config,
                    pair_budget(shape.most_pairs, config.max_intersections))
     shift = torch.zeros(means.shape[0], 2, dtype=means.dtype, device=means.device, requires_grad=True)
     args = (*inputs, shift, *view_inputs(camera, means.device, means.dtype, config))
-    try:
-        with _on_device(means.device), torch.enable_grad():
+    with _on_device(means.device), torch.enable_grad():
+        try:
             graphed = make_graphed(fn, args, warmup=_WARMUP, make=_MAKE)
+        except Exception as e:  # noqa: BLE001 - this shape stays eager
+            shape.failed = True
+            warnings.warn(f"wtopo: rasterize_surfels renders this shape ({means.shape[0]} surfels, "
+                          f"{camera.width}x{camera.height}) eagerly: its capture raised {type(e).__name__}: {e}",
+                          RuntimeWarning, stacklevel=4)
+            return
+        try:
             with trusted_values():
                 check_replay(graphed, fn, args)
-    except Exception as e:  # noqa: BLE001 - any failure leaves every call eager
-        _off(f"{type(e).__name__}: {e}")
-        return
+        except Exception as e:  # noqa: BLE001 - a replay that disagrees leaves every call eager
+            _off(f"{type(e).__name__}: {e}")
+            return
     shape.graphed, shape.background = graphed, background
 
 
@@ -163,11 +194,11 @@ def _replay(shape: _Shape, inputs: tuple, camera, sh_degree, bg: torch.Tensor,
     grad = torch.is_grad_enabled() and any(t.requires_grad for t in inputs)
     shift = torch.zeros(n, 2, dtype=dtype, device=device, requires_grad=grad)
     ins = (*inputs, shift)
-    pending = None
+    node = None
     if grad:
-        pending = _Pending()
         wanted = [k for k, t in enumerate(ins) if t.requires_grad]
-        copied = _CopyGrads.apply(pending, *(ins[k] for k in wanted))
+        copied = _CopyGrads.apply(*(ins[k] for k in wanted))
+        node = copied[0].grad_fn
         ins = list(ins)
         for k, t in zip(wanted, copied):
             ins[k] = t
@@ -182,18 +213,19 @@ def _replay(shape: _Shape, inputs: tuple, camera, sh_degree, bg: torch.Tensor,
     # one host read: the overflow flag, the pair count and the clip planes
     over, pairs, near, far = torch.stack([overflow.double(), count.double(), clip[0], clip[1]]).tolist()
     if over:
-        shape.most_pairs = max(shape.most_pairs, int(pairs))
-        shape.graphed = shape.background = None  # captured again for the larger count after the eager call
+        if pairs <= config.max_intersections:  # more than that: the eager call raises
+            shape.most_pairs = max(shape.most_pairs, int(pairs))
+        shape.graphed = shape.background = shape.pending = None  # captured again after the eager call
         return None
-    if pending is not None:
-        shape.pending = weakref.ref(pending)
+    if node is not None:
+        shape.pending = weakref.ref(node)
     shape.replays += 1
     with torch.no_grad():
         shift.copy_(centres)  # the projected centres, as the eager path's means2d (its value is never read)
     rgb, alpha, depth, median, normal, dist = (o.clone() for o in images)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist,
                         visibility=vis.clone(), radii=radii.clone(), means2d=shift,
-                        clip=clip.clone(), _host_clip=(near, far), _pairs=int(pairs))
+                        clip=clip.detach().clone(), _host_clip=(near, far), _pairs=int(pairs))
 
 
 def _on_device(device: torch.device):
