@@ -47,6 +47,7 @@ class FitTimeline:
     def __init__(self, path: Path, every: int, sim, cameras: Sequence, timers, *, max_surfels: int | None = None):
         from ..io._timeline_process import TimelineProcess
 
+        self.path = Path(path)
         self.every = int(every)
         self.sim = sim
         self.timers = timers
@@ -79,6 +80,14 @@ class FitTimeline:
         if out_dir is None or not every:
             return None
         return cls(out_dir / "timeline.usdc", every, sim, cameras, timers)
+
+    def carry_over(self, it: int) -> None:
+        """A resumed fit at iteration ``it``: the samples up to ``it`` of the timeline its earlier run wrote (where
+        that run ended and wrote one) go first in this one, so that the file keeps the whole fit."""
+        if self.writer is None or not self.path.exists():
+            return
+        with self.timers("timeline"), self._guard("the resume"):
+            self.writer.carry_over(self.path, it)
 
     def sample(self, it: int, surfels: Surfels, proxy_mesh: ProxyResult | None) -> None:
         """Surfels (and the proxy mesh, when there is one) at time ``it``: copied to the host and handed to the

@@ -375,6 +375,8 @@ class FitRun:
         self.timeline = FitTimeline.open(self.out_dir, self.cfg.runtime.usd_every, self.sim, self.train.cameras,
                                          self.timers)
         resumed = self.checkpoints.resume()
+        if resumed and self.timeline is not None:
+            self.timeline.carry_over(self.it)
         if not resumed:
             with self.timers("init"):
                 stereo = (stereo_points(self.train, self.plan.layout, self.device)

@@ -109,11 +109,11 @@ def _release(proc, folder: str, stderr) -> None:
 class TimelineProcess:
     """A :class:`~wtopo.io.TimelineWriter` of ``path`` (its keyword arguments in ``writer_kwargs``) in a child
     process. The same calls (:meth:`add_cameras`, :meth:`add_sample`, :meth:`add_mesh`, :meth:`close`) with the
-    same arguments, checked by the writer in the child: an argument error is raised at the next call or at
-    ``close``, not at the call that made it. Arrays are copied (pickled) when the call is made, so the caller may
-    change them right after (torch tensors: pass NumPy arrays; the child sees no CUDA device). :meth:`abort` ends
-    the child and writes nothing; so does dropping the object. Also a context manager (``close`` on success,
-    ``abort`` on an error).
+    same arguments, and :meth:`carry_over` (an earlier file's samples), checked by the writer in the child: an
+    argument error is raised at the next call or at ``close``, not at the call that made it. Arrays are copied
+    (pickled) when the call is made, so the caller may change them right after (torch tensors: pass NumPy arrays;
+    the child sees no CUDA device). :meth:`abort` ends the child and writes nothing; so does dropping the object.
+    Also a context manager (``close`` on success, ``abort`` on an error).
 
     Attributes:
         max_surfels: the writer's ``max_surfels`` (surfels per sample above which it writes a strided subset).
@@ -178,6 +178,12 @@ class TimelineProcess:
 
     def add_mesh(self, name: str, verts, faces, **kwargs) -> None:
         self._send("add_mesh", name, verts, faces, **kwargs)
+
+    def carry_over(self, path: str | os.PathLike, until: int) -> None:
+        """Author the samples of an earlier timeline file at iterations up to ``until`` (a resumed fit's, before its
+        own samples; :func:`wtopo.io._usd_read.earlier_samples`). The file is read before anything is written, so
+        it may be the one this writer will replace."""
+        self._send("carry_over", os.fspath(path), int(until))
 
     def close(self):
         """Author what is left, write the file (atomically) and end the child. Returns the writer's
@@ -307,6 +313,11 @@ def _serve(folder: str, answers) -> None:
             elif name == "close":
                 status = ("ok", writer.close())
                 break
+            elif name == "carry_over":
+                from ._usd_read import earlier_samples
+
+                for iteration, arrays in earlier_samples(*args):
+                    writer.add_sample(iteration, **arrays)
             else:
                 getattr(writer, name)(*args, **kwargs)
             answer()

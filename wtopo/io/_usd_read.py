@@ -12,7 +12,7 @@ from ._common import normalize_quats, rgb_to_sh_dc
 from ._usd_camera import read_cameras
 from ._usd_common import HAS_SPLAT_SCHEMA, TimelineVerificationError, _all_times, _pxr, _UsdVol
 
-__all__ = ["Timeline", "TimelineSample", "read_timeline", "read_surfels", "mesh_at"]
+__all__ = ["Timeline", "TimelineSample", "read_timeline", "read_surfels", "mesh_at", "earlier_samples"]
 
 
 def _check_finite(what: str, value) -> None:
@@ -200,11 +200,44 @@ def _sample_time(times: list[float], iteration: int | None, what: str) -> float:
     return before[-1]
 
 
-def read_surfels(path: str | os.PathLike, iteration: int | None = None):
+def earlier_samples(path: str | os.PathLike, until: int):
+    """The samples of a timeline written by :class:`TimelineWriter` at iterations up to ``until``, as
+    :meth:`TimelineWriter.add_sample`'s arguments: ``(iteration, kwargs)`` ascending, the surfels at every time
+    anything was sampled (:func:`read_surfels`' arrays; SH keep the file's degree) and the proxy mesh from its first
+    sample on. A resumed fit's writer authors them before its own (``wtopo.io._timeline_process``).
+
+    Raises:
+        FileNotFoundError: no file at ``path``.
+        ValueError: ``path`` is not a USD stage.
+    """
+    _, _, Usd, UsdGeom, _ = _pxr()
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(path)
+    stage = Usd.Stage.Open(path)
+    if stage is None:
+        raise ValueError(f"{path} is not a USD stage")
+    prims = [stage.GetPrimAtPath(p) for p in ("/World/ProxyMesh", "/World/Surfels", "/World/Splats")]
+    proxy = UsdGeom.Mesh(prims[0]) if prims[0] and prims[0].IsA(UsdGeom.Mesh) else None
+    mesh_times = _all_times([proxy.GetPointsAttr(), proxy.GetFaceVertexIndicesAttr()]) if proxy is not None else []
+    times = _all_times([a for p in prims if p for a in p.GetAttributes()])
+    surfel_times = _all_times([p.GetAttribute("positions") for p in prims[1:] if p])
+    for t in (t for t in times if t <= until):
+        kwargs = {}
+        if surfel_times and t >= surfel_times[0]:
+            s = read_surfels(path, int(round(t)), stage=stage)
+            kwargs.update(means=s.means, quats=s.quats, scales=s.scales, opacities=s.opacities, colors_or_sh=s.sh)
+        if mesh_times and t >= mesh_times[0]:
+            kwargs["mesh_verts"], kwargs["mesh_faces"] = _read_mesh(proxy, Usd.TimeCode(t))
+        yield int(round(t)), kwargs
+
+
+def read_surfels(path: str | os.PathLike, iteration: int | None = None, *, stage=None):
     """The surfels of a timeline at ``iteration`` (latest sample at or before it; last when ``None``).
 
     Reads ``/World/Splats`` (full SH) when present, else the point instancer (colour from
-    ``displayColor`` as the SH DC term).  Decimated samples return the written subset.
+    ``displayColor`` as the SH DC term).  Decimated samples return the written subset. ``stage``: the file's
+    stage, opened already (``path`` then names it in errors).
 
     Returns:
         :class:`wtopo.io.SurfelArrays`.
@@ -212,7 +245,8 @@ def read_surfels(path: str | os.PathLike, iteration: int | None = None):
     from .ply import SurfelArrays
 
     _, _, Usd, UsdGeom, _ = _pxr()
-    stage = Usd.Stage.Open(os.fspath(path))
+    if stage is None:
+        stage = Usd.Stage.Open(os.fspath(path))
     splat = stage.GetPrimAtPath("/World/Splats")
     inst = stage.GetPrimAtPath("/World/Surfels")
     src = splat if splat and splat.GetAttribute("positions").GetNumTimeSamples() else inst
