@@ -146,6 +146,16 @@ def _read_mesh(mesh, t) -> tuple[np.ndarray, np.ndarray]:
     return verts, np.asarray(tris, np.int32).reshape(-1, 3)
 
 
+def _open_stage(Usd, path: str):
+    """The USD stage of the file at ``path``: FileNotFoundError without one, ValueError where it is no stage."""
+    if not os.path.exists(path):
+        raise FileNotFoundError(path)
+    stage = Usd.Stage.Open(path)
+    if stage is None:
+        raise ValueError(f"{path} is not a USD stage")
+    return stage
+
+
 def read_timeline(path: str | os.PathLike) -> Timeline:
     """Read a timeline written by :class:`TimelineWriter`: per-sample proxy meshes, static meshes, cameras.
 
@@ -154,11 +164,7 @@ def read_timeline(path: str | os.PathLike) -> Timeline:
     """
     _, Sdf, Usd, UsdGeom, _ = _pxr()
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise FileNotFoundError(path)
-    stage = Usd.Stage.Open(path)
-    if stage is None:
-        raise ValueError(f"{path} is not a USD stage")
+    stage = _open_stage(Usd, path)
     proxy = stage.GetPrimAtPath("/World/ProxyMesh")
     proxy = UsdGeom.Mesh(proxy) if proxy and proxy.IsA(UsdGeom.Mesh) else None
     inst = stage.GetPrimAtPath("/World/Surfels")
@@ -212,11 +218,7 @@ def earlier_samples(path: str | os.PathLike, until: int):
     """
     _, _, Usd, UsdGeom, _ = _pxr()
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise FileNotFoundError(path)
-    stage = Usd.Stage.Open(path)
-    if stage is None:
-        raise ValueError(f"{path} is not a USD stage")
+    stage = _open_stage(Usd, path)
     prims = [stage.GetPrimAtPath(p) for p in ("/World/ProxyMesh", "/World/Surfels", "/World/Splats")]
     proxy = UsdGeom.Mesh(prims[0]) if prims[0] and prims[0].IsA(UsdGeom.Mesh) else None
     mesh_times = _all_times([proxy.GetPointsAttr(), proxy.GetFaceVertexIndicesAttr()]) if proxy is not None else []
