@@ -26,3 +26,13 @@ DEVICES = _devices()
 def device(request):
     """Each test taking ``device`` runs on CPU and, when available, on CUDA."""
     return request.param
+
+
+@pytest.fixture(autouse=True)
+def _fresh_replays():
+    """Each test starts with no shape of :func:`rasterize_surfels` known to its CUDA-graph replays, so that a test
+    that changes a kernel setting between calls never meets a replay captured by an earlier test."""
+    from wtopo.rasterize import _replay
+
+    _replay.reset()
+    yield
