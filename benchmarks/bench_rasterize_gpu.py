@@ -8,8 +8,8 @@ kernels, minutes on a machine without a kernel cache):
 1. Rasterizer, ``--res`` x ``--res`` pixels, one camera, ``--sizes`` random surfels (SH degree 3), float32:
    wtopo's public :func:`wtopo.ops.rasterize_surfels` as a user's loop calls it (argument checks in one host
    read; after two calls of the same shape a CUDA graph's replay and one read of its pair count), the same
-   with replays off (``wtopo_public_eager``: the checks, the default near plane's median and the exact pair
-   count, host synchronisations each), wtopo's fit path
+   with replays off (``wtopo_public_eager``, ``RasterConfig(replay=False)``: the checks, the default near
+   plane's median and the exact pair count, host synchronisations each), wtopo's fit path
    ``wtopo.rasterize._rasterize_trusted`` with ``defer_count`` (no host synchronisation; also with Warp's own
    overload lookup at every launch, ``warp_lookup``), and,
    when ``import gsplat`` works, gsplat's ``rasterization_2dgs`` on the same surfels and camera
@@ -82,11 +82,8 @@ def wtopo_public(params, cam):
 
 
 def wtopo_public_eager(params, cam):
-    saved, R._replay.REPLAY = R._replay.REPLAY, False
-    try:
-        return wtopo_public(params, cam)
-    finally:
-        R._replay.REPLAY = saved
+    out = R.rasterize_surfels(*params, cam, config=R.RasterConfig(replay=False))
+    return {k: getattr(out, k) for k in IMAGES}
 
 
 def make_wtopo_fit_path(cam):

@@ -57,10 +57,11 @@ def static_buffers(fn, samples, num_warmup_iters=0):
 
 
 def latest_state(fn, samples, num_warmup_iters=0):
-    """A stand-in for ``torch.cuda.make_graphed_callables`` whose backward, as a replayed backward graph does,
-    reads the state the latest forward left (its inputs and intermediate values), whichever forward the gradient
-    belongs to; outputs and input gradients in fixed buffers as :func:`static_buffers`. A second forward before
-    an earlier one's backward gives that backward the later forward's gradients, as on a GPU."""
+    """A stand-in for ``torch.cuda.make_graphed_callables`` whose backward, as a replayed backward graph of the
+    rasterizer does, reads the state the latest forward left (its inputs and intermediate values), whichever
+    forward the gradient belongs to, and adds into input-gradient buffers that only a forward zeroes; outputs in
+    fixed buffers as :func:`static_buffers`. A second forward before an earlier one's backward gives that backward
+    the later forward's gradients, and a second backward after one forward doubles them, as on a GPU."""
     static_in = [x.detach().clone() for x in samples]
     state: dict = {}
 
@@ -73,6 +74,9 @@ def latest_state(fn, samples, num_warmup_iters=0):
                 leaves = [buf.detach().requires_grad_(x.requires_grad) for buf, x in zip(static_in, samples)]
                 outs = tuple(fn(*leaves))
             state["leaves"], state["outs"] = leaves, outs
+            for g in state.get("grad_bufs", ()):
+                if g is not None:
+                    g.zero_()
             if "out_bufs" not in state:
                 state["out_bufs"] = [o.detach().clone() for o in outs]
             for buf, o in zip(state["out_bufs"], outs):
@@ -91,8 +95,8 @@ def latest_state(fn, samples, num_warmup_iters=0):
             if "grad_bufs" not in state:
                 state["grad_bufs"] = [None if g is None else torch.zeros_like(g) for g in out]
             for buf, g in zip(state["grad_bufs"], out):
-                if buf is not None:
-                    buf.copy_(g if g is not None else torch.zeros_like(buf))
+                if buf is not None and g is not None:
+                    buf.add_(g)
             return tuple(None if buf is None else buf.detach() for buf in state["grad_bufs"])
 
     return lambda *args: Replay.apply(*args)

@@ -8,6 +8,8 @@ planes and a profiled section all render eagerly."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 from graph_standins import latest_state, static_buffers
@@ -30,13 +32,9 @@ def _fresh(device, monkeypatch):
 BG = (0.1, 0.2, 0.3)
 
 
-def _eager(params, cam, background=BG, **kw):
-    saved = _replay.REPLAY
-    _replay.REPLAY = False
-    try:
-        return rasterize_surfels(*params, cam, background=background, **kw)
-    finally:
-        _replay.REPLAY = saved
+def _eager(params, cam, background=BG, config=None):
+    config = dataclasses.replace(config or RasterConfig(), replay=False)
+    return rasterize_surfels(*params, cam, background=background, config=config)
 
 
 def _close_grads(a, b, cuda):
@@ -220,7 +218,7 @@ def test_calls_that_never_replay(device, case, monkeypatch):
     params = surfels(300, dtype=torch.float32, device=device)
     kw = {"near": 0.5, "far": 10.0} if case == "explicit-clip" else {}
     if case == "replay-off":
-        monkeypatch.setattr(_replay, "REPLAY", False)
+        kw = {"config": RasterConfig(replay=False)}
     for _ in range(_replay.EAGER_CALLS + 2):
         if case == "profiled":
             with section("outer", add=lambda name, dt: None):
@@ -297,40 +295,29 @@ def _captured(params, cam, make, monkeypatch):
     assert _shape().graphed is not None
 
 
-def test_a_retained_replay_keeps_its_shape_eager_until_freed(device, monkeypatch):
-    """A backward with retain_graph=True may be followed by another one: until then the shape renders eagerly (a
-    replay would give that backward its own state), and the second backward's gradients are the first's."""
-    cam = camera()
-    params = surfels(300, dtype=torch.float32, device=device)
-    if not str(device).startswith("cuda"):
-        _captured(params, cam, latest_state, monkeypatch)
-    else:
-        _captured(params, cam, None, monkeypatch)
-    a = rasterize_surfels(*params, cam, background=BG)
-    la = (a.rgb * 2.0).sum() + a.depth.sum()
-    first = torch.autograd.grad(la, params, retain_graph=True)
-    with torch.no_grad():
-        moved = [p + 0.001 for p in params]
-    b = rasterize_surfels(*[m.requires_grad_(True) for m in moved], cam, background=BG)
-    assert _shape().replays == 1  # b rendered eagerly
-    (b.alpha.sum()).backward()
-    second = torch.autograd.grad(la, params)
-    for x, y in zip(first, second):
-        _close_grads(x, y, a.rgb.is_cuda)
-    rasterize_surfels(*params, cam, background=BG)  # la's graph is freed: replays again
-    assert _shape().replays == 2
-
-
-def test_a_second_backward_through_a_replay_raises(device, monkeypatch):
+@pytest.mark.parametrize("retain", [True, False], ids=["retain-graph", "plain"])
+def test_a_replay_is_differentiated_once(device, retain, monkeypatch):
+    """The first backward gives the eager render's gradients and frees the shape for the next replay; a second
+    backward through the same replay raises (its graph would add into the gradient buffers again), with or without
+    retain_graph, and RasterConfig(replay=False) renders what can be differentiated twice."""
     cam = camera()
     params = surfels(300, dtype=torch.float32, device=device)
     _captured(params, cam, None if str(device).startswith("cuda") else latest_state, monkeypatch)
-    out = rasterize_surfels(*params, cam, background=BG)
-    loss = out.rgb.sum()
-    loss.backward()
-    rasterize_surfels(*params, cam, background=BG)
-    with pytest.raises(RuntimeError, match="second time|freed"):
-        loss.backward()
+    a = rasterize_surfels(*params, cam, background=BG)
+    la = (a.rgb * 2.0).sum() + a.depth.sum()
+    first = torch.autograd.grad(la, params, retain_graph=retain)
+    want = _eager(params, cam)
+    for x, y in zip(first, torch.autograd.grad((want.rgb * 2.0).sum() + want.depth.sum(), params)):
+        _close_grads(x, y, a.rgb.is_cuda)
+    rasterize_surfels(*params, cam, background=BG)  # the backward ran: the shape replays again
+    assert _shape().replays == 2
+    with pytest.raises(RuntimeError, match="differentiated once" if retain else "second time|freed|once"):
+        torch.autograd.grad(la, params)
+    e = _eager(params, cam)
+    le = (e.rgb * 2.0).sum() + e.depth.sum()
+    g1, g2 = torch.autograd.grad(le, params, retain_graph=True), torch.autograd.grad(le, params)
+    for x, y in zip(g1, g2):
+        _close_grads(x, y, e.rgb.is_cuda)
 
 
 @pytest.mark.parametrize("dtype", [torch.float64])
@@ -349,3 +336,9 @@ def test_some_inputs_requiring_grad(device, dtype, which, monkeypatch):
     for x, y in zip(ga, gb):
         _close_grads(x, y, out.rgb.is_cuda)
     assert all(params[k].grad is None for k in range(5))
+
+
+def test_the_replay_setting_is_checked(device):
+    params = surfels(30, dtype=torch.float32, device=device)
+    with pytest.raises(TypeError, match="config.replay must be a bool"):
+        rasterize_surfels(*params, camera(), config=RasterConfig(replay=1))

@@ -106,7 +106,8 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
         require grad) with both clip planes defaulted, that shape's op is captured as a CUDA graph and later calls
         replay it: the same values, two host reads a call (the argument checks, then the pair count), outputs
         and gradients that are the caller's own copies. A call made while an earlier replay of its shape still
-        awaits its backward renders eagerly. ``wtopo.rasterize._replay`` has the details.
+        awaits its backward renders eagerly; a replayed render is differentiated once (a second backward raises;
+        ``RasterConfig(replay=False)`` renders every call eagerly). ``wtopo.rasterize._replay`` has the details.
 
     Limitations:
         The compositing order is per tile by centre depth (as 2DGS), not per pixel. A surfel

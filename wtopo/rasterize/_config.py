@@ -42,6 +42,9 @@ class RasterConfig:
     makes sub-pixel and edge-on surfels smaller dots: less silhouette halo and less pull of the
     front-most surfel on depth (``wtopo.fit`` uses 0.35), at the price of
     aliasing where surfels are sparser than pixels."""
+    replay: bool = True
+    """CUDA: repeated calls of one shape replay a CUDA graph (see :func:`rasterize_surfels`); ``False`` renders every
+    call eagerly (needed to differentiate one render twice)."""
 
 
 @dataclass
@@ -122,6 +125,8 @@ def _validate_config(config: RasterConfig | None) -> RasterConfig:
         raise ValueError(f"config.filter_sigma must be a number of pixels in [{lo}, {hi}], got {fs!r}")
     if not (isinstance(config.tiles_per_chunk, int) and config.tiles_per_chunk >= 0):
         raise ValueError(f"config.tiles_per_chunk must be an int >= 0, got {config.tiles_per_chunk!r}")
+    if not isinstance(config.replay, bool):
+        raise TypeError(f"config.replay must be a bool, got {config.replay!r}")
     return config
 
 

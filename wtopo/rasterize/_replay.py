@@ -14,9 +14,11 @@ the sort sized for the largest pair count seen, rounded up to a power of sqrt(2)
   sized for it);
 * the images and per-surfel outputs are copies of the graph's buffers and the gradients that reach the inputs
   (``means2d`` included) are copies too, so nothing a caller holds changes at the next call;
-* while a differentiable replay's autograd graph can still be differentiated (its outputs alive and no backward
-  through it yet, or a backward with ``retain_graph=True``), calls of that shape render eagerly: another replay would
-  overwrite what that backward reads. A second backward through a replay's graph raises, as the eager path's does.
+* while a differentiable replay's outputs are alive and no backward has run through them, calls of that shape
+  render eagerly: another replay would overwrite what that backward reads. A replay is differentiated once: its
+  backward graph adds into gradient buffers that only the next forward replay zeroes, so a second backward through
+  it (after ``retain_graph=True``) raises instead of returning doubled gradients; render with
+  ``RasterConfig(replay=False)`` to differentiate one render twice.
 
 Same values as the eager path (the deferred sort orders the real pairs as the exact one; the device's clip
 planes are the host's), checked once per capture: a capture that raises, or whose first replay's images or
@@ -25,7 +27,7 @@ gradients differ from the captured function run eagerly, turns replays off for t
 eager with a warning. At most :data:`KEPT` shapes keep a capture (their memory pools; the least recently used one
 is dropped first, and a dropped shape needs twice as many exact calls before its next capture). Replays are used
 only on CUDA, with both clip planes defaulted, at least one surfel, outside a profiled section, autocast, inference
-mode and a caller's own stream capture. :data:`REPLAY` = ``False`` turns them off.
+mode and a caller's own stream capture. ``RasterConfig(replay=False)`` turns them off.
 """
 
 from __future__ import annotations
@@ -45,8 +47,6 @@ from .._validate import trusted_values
 from ._config import RasterConfig, RenderOutput
 from ._graphable import Size, check_replay, pair_budget, render_tensors, view_inputs
 
-REPLAY = True
-"""False: every call of :func:`rasterize_surfels` renders eagerly (tests, benchmarks)."""
 EAGER_CALLS = 2
 """Exact calls of one shape before it is captured (a shape called once or twice never pays for a capture)."""
 KEPT = 3
@@ -60,18 +60,21 @@ _MAKE = None  # tests: a stand-in of torch.cuda.make_graphed_callables (with it,
 class _CopyGrads(torch.autograd.Function):
     """The identity on the inputs of a replay; their gradients, which are the graph's buffers, leave as copies.
 
-    Its node saves an empty tensor: while the node is alive and that tensor is not freed (no backward through it
-    yet, or one with ``retain_graph``), the replay may still be differentiated (:func:`_pending`), and a second
-    backward without ``retain_graph`` raises here as the eager op's does."""
+    While its node is alive and its backward has not run, the replay may still be differentiated
+    (:func:`_pending`). Its backward runs once: a second one raises (the replay's gradients would be doubled)."""
 
     @staticmethod
     def forward(ctx, *xs: torch.Tensor):
-        ctx.save_for_backward(xs[0].new_empty(0))
+        ctx.done = False
         return tuple(x.view_as(x) for x in xs)
 
     @staticmethod
     def backward(ctx, *grads):
-        ctx.saved_tensors  # noqa: B018 - raises after the graph was freed (a second backward)
+        if ctx.done:
+            raise RuntimeError("rasterize_surfels: a render replayed from a CUDA graph can be differentiated once (its "
+                               "graph adds into gradient buffers that only its next replay clears); render with "
+                               "RasterConfig(replay=False) to differentiate one render twice")
+        ctx.done = True
         return tuple(None if g is None else g.clone() for g in grads)
 
 
@@ -100,7 +103,8 @@ def render(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opaci
     """The render of a checked call with both clip planes defaulted: a replay where one serves, else ``eager()``
     (the exact path), counted towards a capture of the call's shape."""
     inputs = (means, quats, scales, opacities, colors_or_sh)
-    if (not REPLAY or failure is not None or not (means.is_cuda or _MAKE is not None) or means.shape[0] == 0
+    if (not config.replay or failure is not None or not (means.is_cuda or _MAKE is not None)
+            or means.shape[0] == 0
             or in_section() or torch.is_inference_mode_enabled() or torch.is_autocast_enabled(means.device.type)
             or (means.is_cuda and torch.cuda.is_current_stream_capturing())):
         return eager()
@@ -127,13 +131,7 @@ def render(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opaci
 def _pending(shape: _Shape) -> bool:
     """Whether the last differentiable replay of ``shape`` may still be differentiated."""
     node = shape.pending() if shape.pending is not None else None
-    if node is None:
-        return False
-    try:
-        node.saved_tensors  # noqa: B018 - raises once a backward freed the replay's graph
-    except RuntimeError:
-        return False
-    return True
+    return node is not None and not node.done
 
 
 def _forget() -> None:
