@@ -21,8 +21,8 @@ the sort sized for the largest pair count seen, rounded up to a power of sqrt(2)
   ``RasterConfig(replay=False)`` to differentiate one render twice.
 
 Same values as the eager path (the deferred sort orders the real pairs as the exact one; the device's clip
-planes are the host's), checked once per capture: a capture that raises, or whose first replay's images or
-gradients differ from the captured function run eagerly, turns replays off for the process with a
+planes are the host's), checked once per capture: a capture whose first replay's images or gradients differ from
+the captured function run eagerly turns replays off for the process, and a replay that raises does too, with a
 ``RuntimeWarning``; a capture that raises (out of memory, another thread's CUDA call during it) leaves that shape
 eager with a warning. At most :data:`KEPT` shapes keep a capture (their memory pools; the least recently used one
 is dropped first, and a dropped shape needs twice as many exact calls before its next capture). Replays are used
