@@ -231,7 +231,8 @@ def earlier_samples(path: str | os.PathLike, until: int):
             kwargs.update(means=s.means, quats=s.quats, scales=s.scales, opacities=s.opacities, colors_or_sh=s.sh)
         if mesh_times and t >= mesh_times[0]:
             kwargs["mesh_verts"], kwargs["mesh_faces"] = _read_mesh(proxy, Usd.TimeCode(t))
-        yield int(round(t)), kwargs
+        if kwargs:  # (a time with neither, before the first of both, carries nothing)
+            yield int(round(t)), kwargs
 
 
 def read_surfels(path: str | os.PathLike, iteration: int | None = None, *, stage=None):
