@@ -6,6 +6,16 @@ from __future__ import annotations
 import torch
 
 
+def _run_on(static_in, inputs, samples, fn):
+    """``inputs`` copied into the fixed buffers ``static_in`` and ``fn`` run on leaves of them (requiring grad as
+    ``samples`` do): ``(leaves, outputs)``."""
+    for buf, x in zip(static_in, inputs):
+        buf.copy_(x.detach())
+    with torch.enable_grad():
+        leaves = [buf.detach().requires_grad_(x.requires_grad) for buf, x in zip(static_in, samples)]
+        return leaves, fn(*leaves)
+
+
 def static_buffers(fn, samples, num_warmup_iters=0):
     """A stand-in for ``torch.cuda.make_graphed_callables`` with its buffer semantics and no capture: inputs are
     copied into fixed buffers, outputs copied into fixed buffers that the next call overwrites (and returned as
@@ -18,14 +28,10 @@ def static_buffers(fn, samples, num_warmup_iters=0):
     class Replay(torch.autograd.Function):
         @staticmethod
         def forward(ctx, *inputs):
-            for buf, x in zip(static_in, inputs):
-                buf.copy_(x.detach())
             for g in state.get("grads", ()):
                 if g is not None:
                     g.zero_()
-            with torch.enable_grad():
-                leaves = [buf.detach().requires_grad_(x.requires_grad) for buf, x in zip(static_in, samples)]
-                outs = fn(*leaves)
+            leaves, outs = _run_on(static_in, inputs, samples, fn)
             state["single"] = isinstance(outs, torch.Tensor)
             outs = (outs,) if state["single"] else tuple(outs)
             if "outs" not in state:
@@ -68,11 +74,8 @@ def latest_state(fn, samples, num_warmup_iters=0):
     class Replay(torch.autograd.Function):
         @staticmethod
         def forward(ctx, *inputs):
-            for buf, x in zip(static_in, inputs):
-                buf.copy_(x.detach())
-            with torch.enable_grad():
-                leaves = [buf.detach().requires_grad_(x.requires_grad) for buf, x in zip(static_in, samples)]
-                outs = tuple(fn(*leaves))
+            leaves, outs = _run_on(static_in, inputs, samples, fn)
+            outs = tuple(outs)
             state["leaves"], state["outs"] = leaves, outs
             for g in state.get("grad_bufs", ()):
                 if g is not None:

@@ -70,6 +70,13 @@ def _assert_same(a, b, cuda):
         _close_grads(x, y, cuda)
 
 
+def _first_calls(params, cam, make, monkeypatch):
+    """The exact calls before a capture, with ``make`` standing in for the capture (``None``: CUDA's own)."""
+    monkeypatch.setattr(_replay, "_MAKE", make)
+    for _ in range(_replay.EAGER_CALLS):
+        rasterize_surfels(*params, cam, background=BG)
+
+
 def _shape():
     (shape,) = _replay._shapes.values()
     return shape
@@ -186,12 +193,10 @@ def test_a_capture_that_raises_leaves_its_shape_eager_with_a_warning(device, mon
     def broken(fn, samples, num_warmup_iters=0):
         raise RuntimeError("no capture here")
 
-    monkeypatch.setattr(_replay, "_MAKE", broken)
     cam = camera()
     params = surfels(300, dtype=torch.float32, device=device)
     with pytest.warns(RuntimeWarning, match="no capture here"):
-        for _ in range(_replay.EAGER_CALLS):
-            rasterize_surfels(*params, cam, background=BG)
+        _first_calls(params, cam, broken, monkeypatch)
     assert _shape().failed and _replay.failure is None
     out = rasterize_surfels(*params, cam, background=BG)
     _assert_same(_snapshot(out, params), _snapshot(_eager(params, cam), params), out.rgb.is_cuda)
@@ -203,12 +208,10 @@ def test_a_replay_that_disagrees_turns_replays_off(device, monkeypatch):
         replay = static_buffers(fn, samples)
         return lambda *a: (replay(*a)[0] + 1e-3, *replay(*a)[1:])
 
-    monkeypatch.setattr(_replay, "_MAKE", altered)
     cam = camera()
     params = surfels(300, dtype=torch.float32, device=device)
     with pytest.warns(RuntimeWarning, match="output 0 of a replay differs"):
-        for _ in range(_replay.EAGER_CALLS):
-            rasterize_surfels(*params, cam, background=BG)
+        _first_calls(params, cam, altered, monkeypatch)
     assert _replay.failure is not None
 
 
@@ -289,9 +292,7 @@ def test_replays_keep_the_settings_apart(device):
 
 
 def _captured(params, cam, make, monkeypatch):
-    monkeypatch.setattr(_replay, "_MAKE", make)
-    for _ in range(_replay.EAGER_CALLS):
-        rasterize_surfels(*params, cam, background=BG)
+    _first_calls(params, cam, make, monkeypatch)
     assert _shape().graphed is not None
 
 

@@ -13,7 +13,7 @@ import torch
 
 from ._validate import trusted_values
 
-__all__ = ["collector_off", "make_graphed"]
+__all__ = ["collector_off", "make_graphed", "on_device"]
 
 
 @contextlib.contextmanager
@@ -39,3 +39,8 @@ def make_graphed(fn, args: tuple, *, warmup: int, make=None):
     with collector_off(), trusted_values(), warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="The AccumulateGrad node's stream does not match")
         return (make or torch.cuda.make_graphed_callables)(fn, samples, num_warmup_iters=warmup)
+
+
+def on_device(device: torch.device):
+    """``torch.cuda.device(device)`` on CUDA (a capture checks torch's current device), else nothing."""
+    return torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext()

@@ -26,13 +26,12 @@ and under ``runtime.profile`` (whose sections synchronise, which a capture canno
 
 from __future__ import annotations
 
-import contextlib
 import warnings
 
 import torch
 
 from .. import _bridge
-from .._graphs import make_graphed
+from .._graphs import make_graphed, on_device
 from .._validate import trusted_values
 from ..rasterize import RasterConfig, RenderOutput, _binning
 from ..rasterize._graphable import Size, check_replay, pair_budget, render_tensors, view_inputs
@@ -107,7 +106,7 @@ class RasterGraphs:
                 *view_inputs(camera, device, dtype, self.config))
         size = Size(camera.width, camera.height)
         key = (size, pairs, dtype, device, tuple(tuple(a.shape) for a in args), tuple(a.requires_grad for a in args))
-        with _on_device(device):
+        with on_device(device):
             graphed = self._graphs.get(key)
             if graphed is None:
                 graphed = self._capture(key, args, _function(size, surfels.sh_degree, self.background, self.config,
@@ -144,7 +143,3 @@ class RasterGraphs:
         self.captures += 1
         return graphed
 
-
-def _on_device(device: torch.device):
-    """``torch.cuda.device(device)`` on CUDA (a capture checks torch's current device), else nothing."""
-    return torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext()

@@ -32,7 +32,6 @@ mode and a caller's own stream capture. ``RasterConfig(replay=False)`` turns the
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import warnings
 import weakref
@@ -41,7 +40,7 @@ from collections.abc import Callable
 
 import torch
 
-from .._graphs import make_graphed
+from .._graphs import make_graphed, on_device
 from .._profile import in_section
 from .._validate import trusted_values
 from ._config import RasterConfig, RenderOutput
@@ -166,7 +165,7 @@ def _capture(shape: _Shape, inputs: tuple, camera, sh_degree, bg: torch.Tensor, 
                    pair_budget(shape.most_pairs, config.max_intersections))
     shift = torch.zeros(means.shape[0], 2, dtype=means.dtype, device=means.device, requires_grad=True)
     args = (*inputs, shift, *view_inputs(camera, means.device, means.dtype, config))
-    with _on_device(means.device), torch.enable_grad():
+    with on_device(means.device), torch.enable_grad():
         try:
             graphed = make_graphed(fn, args, warmup=_WARMUP, make=_MAKE)
         except Exception as e:  # noqa: BLE001 - this shape stays eager
@@ -201,7 +200,7 @@ def _replay(shape: _Shape, inputs: tuple, camera, sh_degree, bg: torch.Tensor,
         for k, t in zip(wanted, copied):
             ins[k] = t
     try:
-        with _on_device(device):
+        with on_device(device):
             shape.background.copy_(bg)
             outs = shape.graphed(*ins, *view_inputs(camera, device, dtype, config))
     except Exception as e:  # noqa: BLE001 - a replay that fails leaves this call and the rest eager
@@ -224,10 +223,6 @@ def _replay(shape: _Shape, inputs: tuple, camera, sh_degree, bg: torch.Tensor,
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, normal=normal, distortion=dist,
                         visibility=vis.clone(), radii=radii.clone(), means2d=shift,
                         clip=clip.detach().clone(), _host_clip=(near, far), _pairs=int(pairs))
-
-
-def _on_device(device: torch.device):
-    return torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext()
 
 
 def _off(why: str) -> None:
