@@ -256,6 +256,7 @@ def bench_rasterizer(args, device) -> list[dict]:
                  "wtopo_fit_per_pixel": (kernel_mode(fit_render, False, 1), (params,), params),
                  "wtopo_fit_no_batch": (kernel_mode(fit_render, True, 1), (params,), params),
                  "wtopo_fit_warp_lookup": (warp_lookup(fit_render), (params,), params)}
+        impls = {k: v for k, v in impls.items() if not args.impls or k in args.impls}
         if gsplat_version is not None:
             try:
                 leaves, viewmat, K = gsplat_inputs(params, cam, near)
@@ -335,6 +336,8 @@ def print_rasterizer(rows) -> None:
             g = r["gsplat_2dgs"]
             for name in ("wtopo_public", "wtopo_public_eager", "wtopo_fit_path", "wtopo_fit_per_pixel",
                          "wtopo_fit_no_batch", "wtopo_fit_warp_lookup"):
+                if name not in r:
+                    continue
                 t = r[name]
                 ratios = [t[k]["ms"] / g[k]["ms"] for k in ("forward", "forward_backward", "forward_pipelined",
                                                             "forward_backward_pipelined")]
@@ -504,6 +507,9 @@ def main() -> int:
     ap.add_argument("--step-surfels", type=int, default=150_000)
     ap.add_argument("--step-iters", type=int, default=50)
     ap.add_argument("--no-gsplat", action="store_true", help="do not time gsplat even when importable")
+    ap.add_argument("--impls", nargs="+", metavar="NAME",
+                    help="time only these of wtopo's rasterizer paths (wtopo_public, wtopo_fit_path, ...); "
+                         "gsplat_2dgs follows --no-gsplat")
     ap.add_argument("--profile", action="store_true",
                     help="rasterizer section: also print the CUDA kernel times of the fit path (both kernel modes) "
                          "and gsplat (torch.profiler)")

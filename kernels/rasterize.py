@@ -31,7 +31,7 @@ from .rasterize_records import CameraRecord as CameraRecord
 from .rasterize_records import SurfelRecord as SurfelRecord
 from .rasterize_records import declare_float_overloads
 from .rasterize_records import float_structs as float_structs
-from .rasterize_warp import fetch_batch, lane_id, warp_add_scalar, warp_any, warp_bcast
+from .rasterize_warp import fetch_batch, lane_id, warp_any, warp_bcast, warp_count
 from .rotation import quat_axes
 
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped (3DGS/2DGS convention)
@@ -306,7 +306,7 @@ def render_forward_kernel(
     """Front-to-back compositing of one pixel over its tile's depth-sorted surfel list.
 
     With ``coop`` (CUDA) the 32 pixels of a warp walk the list together until every one of them has
-    stopped, and the visibility counts are summed over the warp before one atomic add per surfel.
+    stopped, and a surfel's visibility count is one ballot over the warp and one atomic add.
     """
     cam = cams[0]
     tile, px, py = pixel_tile_coords(wp.tid() + offset, tile_size, tiles_x)
@@ -369,8 +369,7 @@ def render_forward_kernel(
                                 T = test_t
                                 end = k + 1
             if warp_any(hit, coop):
-                # int counts: plain add on CPU (one worker per buffer)
-                warp_add_scalar(visibility, worker, i, wp.where(hit, 1, 0), hit, coop)
+                warp_count(visibility, worker, i, hit, coop)
             j = j + 1
         kb = kb + nb
     if not inside:

@@ -13,7 +13,7 @@ import warp as wp
 
 from .rasterize import ALPHA_MAX, ALPHA_MIN, ndc_depth, pixel_tile_coords, splat_hit, surely_outside
 from .rasterize_records import declare_float_overloads
-from .rasterize_warp import fetch_batch, lane_id, warp_add_scalar, warp_add_vec, warp_any, warp_bcast, warp_max
+from .rasterize_warp import fetch_batch, lane_id, warp_add_grads, warp_any, warp_bcast, warp_max
 
 # Register cap of the CUDA backward pixel kernel: uncapped, nvcc gives its float32 version 167 registers,
 # one block of 256 threads per SM; at 128 two blocks fit and the kernel ran 1.24x faster (H100, 800x800,
@@ -69,8 +69,8 @@ def render_backward_kernel(
     and depth ``= D / A`` are differentiated through their aggregates.
 
     With ``coop`` (CUDA) the 32 pixels of a warp walk their tile's list together, from the warp's
-    largest ``last`` down, each pixel contributing only below its own, and each per-surfel gradient is
-    summed over the warp before one atomic add (:func:`warp_add_vec`); without it (CPU) each pixel
+    largest ``last`` down, each pixel contributing only below its own, and a surfel's 24 gradient values are
+    summed over the warp, then added with one atomic per value (:func:`warp_add_grads`); without it (CPU) each pixel
     walks from its own ``last`` and adds its own terms. Same per-pixel arithmetic either way.
     """
     cam = cams[0]
@@ -186,20 +186,9 @@ def render_backward_kernel(
                             c_zc = gz
             # warp-uniform from here: every lane of the warp takes the same branches
             if warp_any(hit, coop):
-                warp_add_vec(d_color, worker, i, c_color, hit, coop)
-                warp_add_vec(d_nrm_face, worker, i, c_nf, hit, coop)
-                warp_add_scalar(d_opacity, worker, i, c_op, hit, coop)
-                warp_add_vec(d_shift, worker, i, c_shift, hit, coop)
-                h3 = hit and b3
-                if warp_any(h3, coop):
-                    warp_add_vec(d_auv, worker, i, c_auv, h3, coop)
-                    warp_add_vec(d_uax, worker, i, c_uax, h3, coop)
-                    warp_add_vec(d_vax, worker, i, c_vax, h3, coop)
-                    warp_add_vec(d_nrm, worker, i, c_nrm, h3, coop)
-                h2 = hit and not b3
-                if warp_any(h2, coop):
-                    warp_add_vec(d_m2, worker, i, c_m2, h2, coop)
-                    warp_add_scalar(d_zc, worker, i, c_zc, h2, coop)
+                warp_add_grads(worker, i, c_color, c_nf, c_op, c_shift, c_auv, c_uax, c_vax, c_nrm, c_m2, c_zc,
+                               d_color, d_nrm_face, d_opacity, d_shift, d_auv, d_uax, d_vax, d_nrm, d_m2, d_zc,
+                               hit, b3, coop)
         kb = kb - nb
 
 

@@ -2,8 +2,9 @@
 """Warp-cooperative helpers of the rasterizer's CUDA pixel kernels (``kernels/rasterize.py``).
 
 With ``coop`` (CUDA launches), the 32 pixels of a warp walk their tile's list in step and the helpers
-act on the whole warp: a per-surfel sum over the warp and one atomic add by lane 0 instead of one per
-pixel (the pixels of a tile all hit the same surfels, so per-pixel atomics serialise). Without it
+act on the whole warp: a surfel's sums over the warp (a ballot for the visibility count, a transposed
+shuffle reduction for the 24 gradient values) and one atomic add per value instead of one per pixel (the
+pixels of a tile all hit the same surfels, so per-pixel atomics serialise). Without it
 (CPU, or CUDA for comparison) each acts on its own pixel. Native code: the warp intrinsics exist only
 in the CUDA build; the C++ build (CPU) is the per-pixel form.
 
@@ -104,33 +105,91 @@ def fetch_batch(ids: wp.array[wp.int32], k: int, step: int, nb: int, lane: int, 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
     if (coop) {
-        auto s = v;
-        for (int o = 16; o > 0; o >>= 1) s += __shfl_down_sync(0xffffffffu, s, o);
-        if ((threadIdx.x & 31) == 0) wp::atomic_add(dest, w, i, s);
+        const unsigned b = __ballot_sync(0xffffffffu, hit);
+        if ((threadIdx.x & 31) == 0) wp::atomic_add(dest, w, i, wp::int32(__popc(b)));
         return;
     }
 #endif
-    if (own) wp::atomic_add(dest, w, i, v);
+    if (hit) wp::atomic_add(dest, w, i, wp::int32(1));
 """)
-def warp_add_scalar(dest: wp.array2d[Any], w: int, i: int, v: Any, own: bool, coop: int):
-    """``dest[w, i] += v`` summed over the warp by lane 0 (``coop``: ``v`` is 0 on lanes without ``own``),
-    else added where ``own``."""
+def warp_count(dest: wp.array2d[wp.int32], w: int, i: int, hit: bool, coop: int):
+    """``dest[w, i] +=`` the number of lanes of the warp with ``hit`` (``coop``: one ballot, one atomic add by
+    lane 0), else 1 where ``hit``."""
     ...
+
+
+# The 24 gradient slots of one surfel in the backward pixel kernel, in the order of warp_add_grads' values:
+# colour 0-2, facing normal 3-5, opacity 6, screen shift 7-8, auv 9-11, uax 12-14, vax 15-17, normal 18-20,
+# projected centre 21-22, centre depth 23. The CUDA code below maps lane l to slot l.
+GRAD_SLOTS = 24
 
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
     if (coop) {
-        auto s = v;
-        for (unsigned c = 0; c < sizeof(v) / sizeof(v[0]); ++c) {
-            for (int o = 16; o > 0; o >>= 1) s[c] += __shfl_down_sync(0xffffffffu, s[c], o);
+        // Transposed reduction: at each of the five steps a lane keeps half of its slots and adds its partner's
+        // copy of them (one shuffle per kept slot), so the warp's 32 slots take 16 + 8 + 4 + 2 + 1 = 31 shuffles
+        // instead of 5 per slot, and lane l ends with the warp's sum of slot l.
+        using F = decltype(c_op);
+        F v[32] = {c_color[0], c_color[1], c_color[2], c_nf[0], c_nf[1], c_nf[2], c_op, c_shift[0], c_shift[1],
+                   c_auv[0], c_auv[1], c_auv[2], c_uax[0], c_uax[1], c_uax[2], c_vax[0], c_vax[1], c_vax[2],
+                   c_nrm[0], c_nrm[1], c_nrm[2], c_m2[0], c_m2[1], c_zc};
+        const unsigned lane = threadIdx.x & 31;
+#define WTOPO_HALVE(o)                                                            \
+        {                                                                         \
+            const bool up = (lane & (o)) != 0;                                    \
+            _Pragma("unroll") for (int k = 0; k < (o); ++k) {                     \
+                const F send = up ? v[k] : v[k + (o)];                            \
+                const F keep = up ? v[k + (o)] : v[k];                            \
+                v[k] = keep + __shfl_xor_sync(0xffffffffu, send, (o));            \
+            }                                                                     \
         }
-        if ((threadIdx.x & 31) == 0) wp::atomic_add(dest, w, i, s);
+        WTOPO_HALVE(16) WTOPO_HALVE(8) WTOPO_HALVE(4) WTOPO_HALVE(2) WTOPO_HALVE(1)
+#undef WTOPO_HALVE
+        const F s = v[0];
+        if (lane < 24 && s != F(0)) {
+            // one atomic add per lane, all slots in one instruction (no divergent branches: pointer selects)
+            F* p = reinterpret_cast<F*>(wp::address(d_color, w, i)) + lane;
+            if (lane >= 3) p = reinterpret_cast<F*>(wp::address(d_nrm_face, w, i)) + (lane - 3);
+            if (lane >= 6) p = reinterpret_cast<F*>(wp::address(d_opacity, w, i));
+            if (lane >= 7) p = reinterpret_cast<F*>(wp::address(d_shift, w, i)) + (lane - 7);
+            if (lane >= 9) p = reinterpret_cast<F*>(wp::address(d_auv, w, i)) + (lane - 9);
+            if (lane >= 12) p = reinterpret_cast<F*>(wp::address(d_uax, w, i)) + (lane - 12);
+            if (lane >= 15) p = reinterpret_cast<F*>(wp::address(d_vax, w, i)) + (lane - 15);
+            if (lane >= 18) p = reinterpret_cast<F*>(wp::address(d_nrm, w, i)) + (lane - 18);
+            if (lane >= 21) p = reinterpret_cast<F*>(wp::address(d_m2, w, i)) + (lane - 21);
+            if (lane >= 23) p = reinterpret_cast<F*>(wp::address(d_zc, w, i));
+            atomicAdd(p, s);
+        }
         return;
     }
 #endif
-    if (own) wp::atomic_add(dest, w, i, v);
+    if (!own) return;
+    wp::atomic_add(d_color, w, i, c_color);
+    wp::atomic_add(d_nrm_face, w, i, c_nf);
+    wp::atomic_add(d_opacity, w, i, c_op);
+    wp::atomic_add(d_shift, w, i, c_shift);
+    if (branch3d) {
+        wp::atomic_add(d_auv, w, i, c_auv);
+        wp::atomic_add(d_uax, w, i, c_uax);
+        wp::atomic_add(d_vax, w, i, c_vax);
+        wp::atomic_add(d_nrm, w, i, c_nrm);
+    } else {
+        wp::atomic_add(d_m2, w, i, c_m2);
+        wp::atomic_add(d_zc, w, i, c_zc);
+    }
 """)
-def warp_add_vec(dest: wp.array2d[Any], w: int, i: int, v: Any, own: bool, coop: int):
-    """:func:`warp_add_scalar` for a vector ``v``."""
+def warp_add_grads(w: int, i: int, c_color: Any, c_nf: Any, c_op: Any, c_shift: Any, c_auv: Any, c_uax: Any,
+                   c_vax: Any, c_nrm: Any, c_m2: Any, c_zc: Any, d_color: wp.array2d[Any], d_nrm_face: wp.array2d[Any],
+                   d_opacity: wp.array2d[Any], d_shift: wp.array2d[Any], d_auv: wp.array2d[Any],
+                   d_uax: wp.array2d[Any], d_vax: wp.array2d[Any], d_nrm: wp.array2d[Any], d_m2: wp.array2d[Any],
+                   d_zc: wp.array2d[Any], own: bool, branch3d: bool, coop: int):
+    """Add one surfel's gradient contributions (the ``c_*`` values, in the slots of ``GRAD_SLOTS``) into row ``w``,
+    entry ``i`` of the ``d_*`` buffers.
+
+    ``coop``: summed over the warp (lanes without a contribution pass zeros) by a transposed reduction, then one
+    atomic add per slot, each by its own lane, only of the sums that are not zero. Else, where ``own``: colour,
+    facing normal, opacity and shift always, the 3D branch's terms (``auv``, ``uax``, ``vax``, normal) where
+    ``branch3d``, the filter branch's (``m2``, ``zc``) where not.
+    """
     ...
