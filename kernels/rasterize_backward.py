@@ -58,7 +58,6 @@ def render_backward_kernel(
     d_zc: wp.array2d[Any],
     d_color: wp.array2d[Any],
     d_opacity: wp.array2d[Any],
-    d_shift: wp.array2d[Any],
 ):
     """Reverse traversal of one pixel: per-surfel gradients into this worker's buffers.
 
@@ -69,7 +68,7 @@ def render_backward_kernel(
     and depth ``= D / A`` are differentiated through their aggregates.
 
     With ``coop`` (CUDA) the 32 pixels of a warp walk their tile's list together, from the warp's
-    largest ``last`` down, each pixel contributing only below its own, and a surfel's 24 gradient values are
+    largest ``last`` down, each pixel contributing only below its own, and a surfel's 22 gradient values are
     summed over the warp, then added with one atomic per value (:func:`warp_add_grads`); without it (CPU) each pixel
     walks from its own ``last`` and adds its own terms. Same per-pixel arithmetic either way.
     """
@@ -109,11 +108,6 @@ def render_backward_kernel(
     g_m1 = type(f_ref)(-2.0) * gdist * s[1]
     g_m2 = gdist * acc
     rg = T * wp.dot(gc, background[0])
-    # camera rotation rows and inverse intrinsics for the screen-shift gradient
-    fx = cam.fx
-    fy = cam.fy
-    sk = cam.skew
-    R = cam.R
     z3 = wp.vector(zero, zero, zero)
     z2 = wp.vector(zero, zero)
     lane = lane_id(coop)
@@ -130,7 +124,6 @@ def render_backward_kernel(
             c_color = z3
             c_nf = z3
             c_op = zero
-            c_shift = z2
             c_auv = z3
             c_uax = z3
             c_vax = z3
@@ -174,21 +167,14 @@ def render_backward_kernel(
                             c_uax = (gu * t) * d
                             c_vax = (gv * t) * d
                             c_nrm = gdn * d
-                            gd = (gu * t) * g.U + (gv * t) * g.V + gdn * g.n
-                            # d' = d - R^T [Kinv2 shift, 0]  =>  dL/dshift = -Kinv2^T (R gd)[:2]
-                            gcx = R[0, 0] * gd[0] + R[0, 1] * gd[1] + R[0, 2] * gd[2]
-                            gcy = R[1, 0] * gd[0] + R[1, 1] * gd[1] + R[1, 2] * gd[2]
-                            c_shift = wp.vector(-gcx / fx, gcx * sk / (fx * fy) - gcy / fy)
                         else:
                             diff = pix - g.m2
                             c_m2 = (type(f_ref)(-2.0) * fis * g_rho) * diff
-                            c_shift = c_m2
                             c_zc = gz
             # warp-uniform from here: every lane of the warp takes the same branches
             if warp_any(hit, coop):
-                warp_add_grads(worker, i, c_color, c_nf, c_op, c_shift, c_auv, c_uax, c_vax, c_nrm, c_m2, c_zc,
-                               d_color, d_nrm_face, d_opacity, d_shift, d_auv, d_uax, d_vax, d_nrm, d_m2, d_zc,
-                               hit, b3, coop)
+                warp_add_grads(worker, i, c_color, c_nf, c_op, c_auv, c_uax, c_vax, c_nrm, c_m2, c_zc, d_color,
+                               d_nrm_face, d_opacity, d_auv, d_uax, d_vax, d_nrm, d_m2, d_zc, hit, b3, coop)
         kb = kb - nb
 
 
@@ -204,7 +190,6 @@ def reduce_gradients_kernel(
     d_zc: wp.array2d[Any],
     d_color: wp.array2d[Any],
     d_opacity: wp.array2d[Any],
-    d_shift: wp.array2d[Any],
     g_uax: wp.array[Any],
     g_vax: wp.array[Any],
     g_nrm: wp.array[Any],
@@ -214,7 +199,6 @@ def reduce_gradients_kernel(
     g_zc: wp.array[Any],
     g_color: wp.array[Any],
     g_opacity: wp.array[Any],
-    g_shift: wp.array[Any],
 ):
     """Sum the per-worker gradient buffers of one surfel into the tape's gradient arrays."""
     i = wp.tid() + offset
@@ -229,10 +213,43 @@ def reduce_gradients_kernel(
         g_color[i] = g_color[i] + d_color[w, i]
         if g_opacity.shape[0] > 0:
             g_opacity[i] = g_opacity[i] + d_opacity[w, i]
-        if g_shift.shape[0] > 0:
-            g_shift[i] = g_shift[i] + d_shift[w, i]
+
+
+@wp.kernel(enable_backward=False)
+def shift_gradient_kernel(
+    offset: int,
+    cams: wp.array[Any],
+    uax: wp.array[Any],
+    vax: wp.array[Any],
+    nrm: wp.array[Any],
+    g_uax: wp.array[Any],
+    g_vax: wp.array[Any],
+    g_nrm: wp.array[Any],
+    g_m2: wp.array[Any],
+    g_shift: wp.array[Any],
+):
+    """Add ``dL/dshift`` of each surfel from the pixel kernels' sums (run after them, before the preparation's
+    adjoint adds to ``g_m2``).
+
+    A shift moves the filter branch's centre (``pixel - (m2 + shift)``: the pixel kernels' ``g_m2`` is already its
+    gradient) and the object-space branch's rays (``d' = d - R^T [Kinv2 shift, 0]``, so
+    ``dL/dshift = -Kinv2^T (R gd)[:2]`` with ``gd = sum over pixels of dL/dd``). Per pixel
+    ``dL/dd = (gu t) U + (gv t) V + gdn n``, whose pixel factors the kernels already summed times ``d`` into
+    ``g_uax``, ``g_vax`` and ``g_nrm``; a ray's camera-z is 1 (``Camera.pixel_rays``), so the third row of ``R``
+    recovers each factor's sum: ``sum(gu t) = R[2] . g_uax``. One pass per surfel instead of a 2-vector per pixel.
+    """
+    i = wp.tid() + offset
+    cam = cams[0]
+    R = cam.R
+    r2 = wp.vector(R[2, 0], R[2, 1], R[2, 2])
+    gd = wp.dot(r2, g_uax[i]) * uax[i] + wp.dot(r2, g_vax[i]) * vax[i] + wp.dot(r2, g_nrm[i]) * nrm[i]
+    gcx = R[0, 0] * gd[0] + R[0, 1] * gd[1] + R[0, 2] * gd[2]
+    gcy = R[1, 0] * gd[0] + R[1, 1] * gd[1] + R[1, 2] * gd[2]
+    fx = cam.fx
+    fy = cam.fy
+    g_shift[i] = g_shift[i] + g_m2[i] + wp.vector(-gcx / fx, gcx * cam.skew / (fx * fy) - gcy / fy)
 
 
 # one compile of this module with every overload (see kernels/rasterize_records.py)
-for _kernel in (render_backward_kernel, reduce_gradients_kernel):
+for _kernel in (render_backward_kernel, reduce_gradients_kernel, shift_gradient_kernel):
     declare_float_overloads(_kernel)

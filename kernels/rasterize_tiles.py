@@ -205,7 +205,6 @@ def render_backward_tiles_kernel(
     d_zc: wp.array2d[Any],
     d_color: wp.array2d[Any],
     d_opacity: wp.array2d[Any],
-    d_shift: wp.array2d[Any],
 ):
     """Reverse traversal of one tile (:func:`~.rasterize_backward.render_backward_kernel`, surfel by surfel).
 
@@ -222,10 +221,6 @@ def render_backward_tiles_kernel(
     near = cam.near
     far = cam.far
     fis = cam.filter_inv_sq
-    fx = cam.fx
-    fy = cam.fy
-    sk = cam.skew
-    R = cam.R
     k_top = start
     for py in range(y0, y1):
         for px in range(x0, x1):
@@ -308,11 +303,6 @@ def render_backward_tiles_kernel(
                         gt = gz + gu * du + gv * dv
                         inv_dn = one / dn
                         gdn = gt * g.auv[2] * inv_dn * inv_dn
-                        gd = (gu * t) * g.U + (gv * t) * g.V + gdn * g.n
-                        # d' = d - R^T [Kinv2 shift, 0]  =>  dL/dshift = -Kinv2^T (R gd)[:2]
-                        gcx = R[0, 0] * gd[0] + R[0, 1] * gd[1] + R[0, 2] * gd[2]
-                        gcy = R[1, 0] * gd[0] + R[1, 1] * gd[1] + R[1, 2] * gd[2]
-                        d_shift[worker, i] = d_shift[worker, i] + wp.vector(-gcx / fx, gcx * sk / (fx * fy) - gcy / fy)
                         d_auv[worker, i] = d_auv[worker, i] + wp.vector(gu, gv, -gt * inv_dn)
                         d_uax[worker, i] = d_uax[worker, i] + (gu * t) * d
                         d_vax[worker, i] = d_vax[worker, i] + (gv * t) * d
@@ -320,7 +310,6 @@ def render_backward_tiles_kernel(
                     else:
                         diff = pix - g.m2
                         c_m2 = (type(f_ref)(-2.0) * fis * g_rho) * diff
-                        d_shift[worker, i] = d_shift[worker, i] + c_m2
                         d_m2[worker, i] = d_m2[worker, i] + c_m2
                         d_zc[worker, i] = d_zc[worker, i] + gz
         k -= 1

@@ -3,7 +3,7 @@
 
 With ``coop`` (CUDA launches), the 32 pixels of a warp walk their tile's list in step and the helpers
 act on the whole warp: a surfel's sums over the warp (a ballot for the visibility count, a transposed
-shuffle reduction for the 24 gradient values) and one atomic add per value instead of one per pixel (the
+shuffle reduction for the 22 gradient values) and one atomic add per value instead of one per pixel (the
 pixels of a tile all hit the same surfels, so per-pixel atomics serialise). Without it
 (CPU, or CUDA for comparison) each acts on its own pixel. Native code: the warp intrinsics exist only
 in the CUDA build; the C++ build (CPU) is the per-pixel form.
@@ -118,10 +118,10 @@ def warp_count(dest: wp.array2d[wp.int32], w: int, i: int, hit: bool, coop: int)
     ...
 
 
-# The 24 gradient slots of one surfel in the backward pixel kernel, in the order of warp_add_grads' values:
-# colour 0-2, facing normal 3-5, opacity 6, screen shift 7-8, auv 9-11, uax 12-14, vax 15-17, normal 18-20,
-# projected centre 21-22, centre depth 23. The CUDA code below maps lane l to slot l.
-GRAD_SLOTS = 24
+# The 22 gradient slots of one surfel in the backward pixel kernel, in the order of warp_add_grads' values:
+# colour 0-2, facing normal 3-5, opacity 6, auv 7-9, uax 10-12, vax 13-15, normal 16-18, projected centre 19-20,
+# centre depth 21. The CUDA code below maps lane l to slot l.
+GRAD_SLOTS = 22
 
 
 @wp.func_native("""
@@ -131,7 +131,7 @@ GRAD_SLOTS = 24
         // copy of them (one shuffle per kept slot), so the warp's 32 slots take 16 + 8 + 4 + 2 + 1 = 31 shuffles
         // instead of 5 per slot, and lane l ends with the warp's sum of slot l.
         using F = decltype(c_op);
-        F v[32] = {c_color[0], c_color[1], c_color[2], c_nf[0], c_nf[1], c_nf[2], c_op, c_shift[0], c_shift[1],
+        F v[32] = {c_color[0], c_color[1], c_color[2], c_nf[0], c_nf[1], c_nf[2], c_op,
                    c_auv[0], c_auv[1], c_auv[2], c_uax[0], c_uax[1], c_uax[2], c_vax[0], c_vax[1], c_vax[2],
                    c_nrm[0], c_nrm[1], c_nrm[2], c_m2[0], c_m2[1], c_zc};
         const unsigned lane = threadIdx.x & 31;
@@ -147,18 +147,17 @@ GRAD_SLOTS = 24
         WTOPO_HALVE(16) WTOPO_HALVE(8) WTOPO_HALVE(4) WTOPO_HALVE(2) WTOPO_HALVE(1)
 #undef WTOPO_HALVE
         const F s = v[0];
-        if (lane < 24 && s != F(0)) {
+        if (lane < 22 && s != F(0)) {
             // one atomic add per lane, all slots in one instruction (no divergent branches: pointer selects)
             F* p = reinterpret_cast<F*>(wp::address(d_color, w, i)) + lane;
             if (lane >= 3) p = reinterpret_cast<F*>(wp::address(d_nrm_face, w, i)) + (lane - 3);
             if (lane >= 6) p = reinterpret_cast<F*>(wp::address(d_opacity, w, i));
-            if (lane >= 7) p = reinterpret_cast<F*>(wp::address(d_shift, w, i)) + (lane - 7);
-            if (lane >= 9) p = reinterpret_cast<F*>(wp::address(d_auv, w, i)) + (lane - 9);
-            if (lane >= 12) p = reinterpret_cast<F*>(wp::address(d_uax, w, i)) + (lane - 12);
-            if (lane >= 15) p = reinterpret_cast<F*>(wp::address(d_vax, w, i)) + (lane - 15);
-            if (lane >= 18) p = reinterpret_cast<F*>(wp::address(d_nrm, w, i)) + (lane - 18);
-            if (lane >= 21) p = reinterpret_cast<F*>(wp::address(d_m2, w, i)) + (lane - 21);
-            if (lane >= 23) p = reinterpret_cast<F*>(wp::address(d_zc, w, i));
+            if (lane >= 7) p = reinterpret_cast<F*>(wp::address(d_auv, w, i)) + (lane - 7);
+            if (lane >= 10) p = reinterpret_cast<F*>(wp::address(d_uax, w, i)) + (lane - 10);
+            if (lane >= 13) p = reinterpret_cast<F*>(wp::address(d_vax, w, i)) + (lane - 13);
+            if (lane >= 16) p = reinterpret_cast<F*>(wp::address(d_nrm, w, i)) + (lane - 16);
+            if (lane >= 19) p = reinterpret_cast<F*>(wp::address(d_m2, w, i)) + (lane - 19);
+            if (lane >= 21) p = reinterpret_cast<F*>(wp::address(d_zc, w, i));
             atomicAdd(p, s);
         }
         return;
@@ -168,7 +167,6 @@ GRAD_SLOTS = 24
     wp::atomic_add(d_color, w, i, c_color);
     wp::atomic_add(d_nrm_face, w, i, c_nf);
     wp::atomic_add(d_opacity, w, i, c_op);
-    wp::atomic_add(d_shift, w, i, c_shift);
     if (branch3d) {
         wp::atomic_add(d_auv, w, i, c_auv);
         wp::atomic_add(d_uax, w, i, c_uax);
@@ -179,17 +177,17 @@ GRAD_SLOTS = 24
         wp::atomic_add(d_zc, w, i, c_zc);
     }
 """)
-def warp_add_grads(w: int, i: int, c_color: Any, c_nf: Any, c_op: Any, c_shift: Any, c_auv: Any, c_uax: Any,
-                   c_vax: Any, c_nrm: Any, c_m2: Any, c_zc: Any, d_color: wp.array2d[Any], d_nrm_face: wp.array2d[Any],
-                   d_opacity: wp.array2d[Any], d_shift: wp.array2d[Any], d_auv: wp.array2d[Any],
-                   d_uax: wp.array2d[Any], d_vax: wp.array2d[Any], d_nrm: wp.array2d[Any], d_m2: wp.array2d[Any],
-                   d_zc: wp.array2d[Any], own: bool, branch3d: bool, coop: int):
+def warp_add_grads(w: int, i: int, c_color: Any, c_nf: Any, c_op: Any, c_auv: Any, c_uax: Any, c_vax: Any,
+                   c_nrm: Any, c_m2: Any, c_zc: Any, d_color: wp.array2d[Any], d_nrm_face: wp.array2d[Any],
+                   d_opacity: wp.array2d[Any], d_auv: wp.array2d[Any], d_uax: wp.array2d[Any],
+                   d_vax: wp.array2d[Any], d_nrm: wp.array2d[Any], d_m2: wp.array2d[Any], d_zc: wp.array2d[Any],
+                   own: bool, branch3d: bool, coop: int):
     """Add one surfel's gradient contributions (the ``c_*`` values, in the slots of ``GRAD_SLOTS``) into row ``w``,
     entry ``i`` of the ``d_*`` buffers.
 
     ``coop``: summed over the warp (lanes without a contribution pass zeros) by a transposed reduction, then one
     atomic add per slot, each by its own lane, only of the sums that are not zero. Else, where ``own``: colour,
-    facing normal, opacity and shift always, the 3D branch's terms (``auv``, ``uax``, ``vax``, normal) where
+    facing normal and opacity always, the 3D branch's terms (``auv``, ``uax``, ``vax``, normal) where
     ``branch3d``, the filter branch's (``m2``, ``zc``) where not.
     """
     ...

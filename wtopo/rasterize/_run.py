@@ -167,15 +167,15 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
                 visibility = _bridge.empty(n, wp.int32, wdev)
                 _bridge.launch_split(_kb.sum_visibility_kernel, n, [vis_w], [visibility], device=wdev)
 
-        # gradient order: uax, vax, nrm, auv, nrm_face, m2, zc, color, opacity, shift
-        grad_types = (v3, v3, v3, v3, v3, v2, s, v3, s, v2)
+        # gradient order: uax, vax, nrm, auv, nrm_face, m2, zc, color, opacity
+        grad_types = (v3, v3, v3, v3, v3, v2, s, v3, s)
 
         def backward():
             with section("rasterize_backward"):
                 def grad_or_empty(a, t):
                     return a.grad if a.requires_grad else wp.zeros(0, dtype=t, device=wdev)
 
-                targets = [*(a.grad for a in prep), grad_or_empty(opacities, s), grad_or_empty(means2d, v2)]
+                targets = [*(a.grad for a in prep), grad_or_empty(opacities, s)]
                 if workers == 1:
                     # one worker (CUDA): accumulate straight into the tape's zeroed gradient arrays (same sums
                     # as a zeroed buffer added to them), no buffers to clear and no reduction launch
@@ -196,6 +196,11 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
                                   bufs, device=wdev, workers=workers, tiles_per_chunk=config.tiles_per_chunk)
                 if workers > 1:
                     _bridge.launch_split(_kbwd.reduce_gradients_kernel, n, bufs, targets, device=wdev)
+                if means2d.requires_grad:
+                    # the screen-space gradient from the pixel sums, before the preparation's adjoint adds to m2.grad
+                    _bridge.launch_split(_kbwd.shift_gradient_kernel, n,
+                                         [cam_rec, uax, vax, nrm, uax.grad, vax.grad, nrm.grad, m2.grad],
+                                         [means2d.grad], device=wdev)
 
         if tape is not None and n > 0:  # N = 0: nothing to differentiate (empty arrays have no grad buffer)
             tape.record_func(backward, [*outs, *prep, *(a for a in (opacities, means2d) if a.requires_grad)])
