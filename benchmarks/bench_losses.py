@@ -115,6 +115,8 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", help="the fit's device (cuda: every time includes the kernels)")
     ap.add_argument("--resolution", type=int, default=None, help="the bunny's image size in px (default 128)")
     ap.add_argument("--views", type=int, default=None, help="the bunny's view count (default 32)")
+    ap.add_argument("--kernels", type=int, default=0,
+                    help="CUDA: also list this many kernels of the section (forward + backward) by device time")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -162,9 +164,27 @@ def main() -> None:
     print(f"terms: {', '.join(names)}")
     for k, v in rows.items():
         print(f"  {k:40s} {1000 * v:8.2f} ms/it")
+    if args.kernels and s.means.is_cuda:
+        _kernels(lambda: section(True), n, args.kernels)
     if args.section_only:
         return
     _terms(run, outs, mrs, args.repeats)
+
+
+def _kernels(fn, n: int, top: int) -> None:
+    """The ``top`` kernels of ``fn()`` (``n`` iterations) by device time per iteration, from torch's profiler."""
+    from torch.profiler import ProfilerActivity, profile
+
+    _sync()
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        fn()
+        _sync()
+    rows = [(e.key, e.device_time_total, e.count) for e in prof.key_averages()
+            if e.device_time_total > 0]  # microseconds over the n iterations
+    rows.sort(key=lambda r: -r[1])
+    print(f"  device time of the section's kernels: {sum(r[1] for r in rows) / 1000 / n:.3f} ms/it")
+    for name, us, count in rows[:top]:
+        print(f"    {us / 1000 / n:7.3f} ms/it {count / n:5.1f}/it  {name[:90]}")
 
 
 def _terms(run, outs, mrs, repeats: int) -> None:

@@ -4,7 +4,8 @@
 # rasterization_2dgs at 100k and 1M surfels, 800 px (bench_rasterize_gpu.py). Z_STEPS picks the steps (also tests: the public
 # rasterize path's and the timeline's tests on CUDA; fit:
 # the plain fit; loop: t_loop.py's windows; mesh: the profiled fit's mesh.ply, gzipped, into $OUT/v; capture:
-# lab/capture_cost.py, a render graph's recapture by part; gil: lab/timeline_gil.py, the timeline's writer beside a
+# lab/capture_cost.py, a render graph's recapture by part; gaps: lab/outside_gaps.py, the profiled fit's host time
+# outside any section by pair of sections; gil: lab/timeline_gil.py, the timeline's writer beside a
 # loop bound by its host).
 source lab/device/lease_env.sh
 t0=$(date +%s)
@@ -16,6 +17,8 @@ for step in ${Z_STEPS:-profile losses raster}; do
   fit|profile|losses|host|loop) V_STEPS=$step bash lab/device/v_all.sh 2>&1 | grep -v "^installed" ;;
   tests) (cd /tmp && timeout 200 python3 -m pytest -q -p no:cacheprovider $R/tests/test_rasterize_paths.py \
       $R/tests/test_rasterize.py $R/tests/test_fit_timeline.py $R/tests/test_rasterize_replay.py 2>&1 | tail -n 6) ;;
+  gaps) (cd /tmp && timeout 200 python3 $R/lab/outside_gaps.py $S/exch/dtu_scan24 --stop-at ${Z_GAPS_AT:-5000} \
+      --device cuda 2>&1 | tail -n 25) ;;
   capture) (cd /tmp && timeout 150 python3 $R/lab/capture_cost.py 2>&1 | tail -n 8) ;;
   gil) (cd /tmp && timeout 150 python3 $R/lab/timeline_gil.py 2>&1 | tail -n 4) ;;
   mesh) gzip -c $S/res/v_profile/run/mesh.ply > $OUT/v/mesh_profile.ply.gz; ls -la $OUT/v ;;
