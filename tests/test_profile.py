@@ -54,6 +54,22 @@ def test_sections_sync_and_record_call_paths():
     assert "outer" in format_profile(p) and "inner" in format_profile(p)
 
 
+def test_a_section_left_by_an_exception_is_recorded_and_closed():
+    """An exception inside nested sections still records both, and no collector stays open after it."""
+    from wtopo._profile import in_section
+
+    t = Timers()
+    with pytest.raises(KeyError), t("outer"), section("inner"):
+        raise KeyError("x")
+    assert not in_section()
+    assert t.paths[("outer", "inner")][2] == 1 and t.paths[("outer",)][2] == 1
+    with section("alone"):  # no collector: times nothing
+        assert not in_section()
+    with t("again"):
+        assert in_section()
+    assert set(t.paths) == {("outer",), ("outer", "inner"), ("again",)}
+
+
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(
     not torch.cuda.is_available(), reason="needs CUDA"))])
 def test_only_a_profiled_cuda_fit_synchronises(tiny, device):

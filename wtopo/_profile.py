@@ -26,10 +26,10 @@ Limitations:
 
 from __future__ import annotations
 
-import contextlib
 import contextvars
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 
 __all__ = ["section", "in_section"]
 
@@ -52,11 +52,55 @@ def in_section() -> bool:
     return _ACTIVE.get() is not None
 
 
-@contextlib.contextmanager
+class _Section:
+    """One timed block (what :func:`section` returns): a plain context manager, a few microseconds a use."""
+
+    __slots__ = ("name", "add", "sync", "record", "synced", "col", "token", "t")
+
+    def __init__(self, name, add, sync, record, synced):
+        self.name, self.add, self.sync, self.record, self.synced = name, add, sync, record, synced
+
+    def __enter__(self) -> None:
+        col = _ACTIVE.get()
+        self.token = None
+        if col is None:
+            if self.add is None:
+                self.col = None
+                return
+            col = _Collector(self.add, self.sync, self.record)
+            self.token = _ACTIVE.set(col)
+        self.col = col
+        if col.sync is not None and not (self.synced and self.token is not None):
+            col.sync()
+        col.child_time.append(0.0)
+        col.names.append(self.name)
+        self.t = time.perf_counter()
+
+    def __exit__(self, *exc) -> bool:
+        col = self.col
+        if col is None:
+            return False
+        try:
+            if col.sync is not None:
+                col.sync()
+        finally:
+            dt = time.perf_counter() - self.t
+            nested = col.child_time.pop()
+            col.add(self.name, dt - nested)
+            if col.record is not None:
+                col.record(tuple(col.names), dt - nested, dt)
+            col.names.pop()
+            if col.child_time:
+                col.child_time[-1] += dt
+            if self.token is not None:
+                _ACTIVE.reset(self.token)
+        return False
+
+
 def section(name: str, add: Callable[[str, float], None] | None = None, *, sync: Callable[[], None] | None = None,
             record: Callable[[tuple[str, ...], float, float], None] | None = None,
-            synced: bool = False) -> Iterator[None]:
-    """Time the enclosed block as ``name`` (self time, seconds) when a collector is active.
+            synced: bool = False) -> AbstractContextManager[None]:
+    """A context manager timing the enclosed block as ``name`` (self time, seconds) when a collector is active.
 
     Args:
         name: section name.
@@ -69,31 +113,4 @@ def section(name: str, add: Callable[[str, float], None] | None = None, *, sync:
             every one nested in it; ``path`` names the open sections from the outermost to this one.
         synced: with ``add``, the caller synchronised just before: this section skips its start ``sync``.
     """
-    col = _ACTIVE.get()
-    token = None
-    if col is None:
-        if add is None:
-            yield
-            return
-        col = _Collector(add, sync, record)
-        token = _ACTIVE.set(col)
-    if col.sync is not None and not (synced and token is not None):
-        col.sync()
-    col.child_time.append(0.0)
-    col.names.append(name)
-    t = time.perf_counter()
-    try:
-        yield
-    finally:
-        if col.sync is not None:
-            col.sync()
-        dt = time.perf_counter() - t
-        nested = col.child_time.pop()
-        col.add(name, dt - nested)
-        if col.record is not None:
-            col.record(tuple(col.names), dt - nested, dt)
-        col.names.pop()
-        if col.child_time:
-            col.child_time[-1] += dt
-        if token is not None:
-            _ACTIVE.reset(token)
+    return _Section(name, add, sync, record, synced)

@@ -22,10 +22,10 @@ unprofiled fit does not pay) is its own row, so "outside any section" is host ti
 
 from __future__ import annotations
 
-import contextlib
 import time
 from collections import defaultdict
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 
 from .._profile import in_section, section
 
@@ -100,18 +100,17 @@ class Timers:
         row[1] += self_seconds
         row[2] += 1
 
-    @contextlib.contextmanager
-    def __call__(self, name: str) -> Iterator[None]:
+    def __call__(self, name: str) -> AbstractContextManager[None]:
         """A context manager timing the block as section ``name`` (nested sections are subtracted). With ``sync``,
         a top-level section's start synchronisation is timed apart (:attr:`sync_s`): it waits for what was queued
-        before the section, and only a profiled fit pays it."""
+        before the section, and only a profiled fit pays it. Use it at once in a ``with`` statement (the
+        synchronisation happens at this call)."""
         synced = self.sync is not None and not in_section()
         if synced:
             t = time.perf_counter()
             self.sync()
             self.sync_s += time.perf_counter() - t
-        with section(name, add=self._add, sync=self.sync, record=self._record, synced=synced):
-            yield
+        return section(name, add=self._add, sync=self.sync, record=self._record, synced=synced)
 
     def profile(self, wall: float) -> dict:
         """The profile of this process's sections against ``wall`` seconds, JSON-ready.
