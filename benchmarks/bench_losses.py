@@ -165,26 +165,13 @@ def main() -> None:
     for k, v in rows.items():
         print(f"  {k:40s} {1000 * v:8.2f} ms/it")
     if args.kernels and s.means.is_cuda:
-        _kernels(lambda: section(True), n, args.kernels)
+        from gpu_timing import profile_kernels  # beside this script
+
+        profile_kernels(lambda: section(True), f"the losses section, forward + backward, {n} views", calls=1,
+                        top=args.kernels, per=n)
     if args.section_only:
         return
     _terms(run, outs, mrs, args.repeats)
-
-
-def _kernels(fn, n: int, top: int) -> None:
-    """The ``top`` kernels of ``fn()`` (``n`` iterations) by device time per iteration, from torch's profiler."""
-    from torch.profiler import ProfilerActivity, profile
-
-    _sync()
-    with profile(activities=[ProfilerActivity.CUDA]) as prof:
-        fn()
-        _sync()
-    rows = [(e.key, e.device_time_total, e.count) for e in prof.key_averages()
-            if e.device_time_total > 0]  # microseconds over the n iterations
-    rows.sort(key=lambda r: -r[1])
-    print(f"  device time of the section's kernels: {sum(r[1] for r in rows) / 1000 / n:.3f} ms/it")
-    for name, us, count in rows[:top]:
-        print(f"    {us / 1000 / n:7.3f} ms/it {count / n:5.1f}/it  {name[:90]}")
 
 
 def _terms(run, outs, mrs, repeats: int) -> None:

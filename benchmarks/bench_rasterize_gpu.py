@@ -46,6 +46,7 @@ import traceback
 import torch
 import warp as wp
 from bench_rasterize import scene as cpu_scene  # noqa: E402
+from gpu_timing import cuda_event, profile_kernels, time_latency, time_pipelined  # noqa: E402
 
 import wtopo  # noqa: E402
 from wtopo import _bridge  # noqa: E402
@@ -167,45 +168,7 @@ def make_gsplat(cam, near: float, far: float):
     return render
 
 
-# -- timing ----------------------------------------------------------------------------------------------
-
-
-def _event():
-    return torch.cuda.Event(enable_timing=True)
-
-
-def time_latency(fn, warmup: int, repeats: int) -> dict:
-    """Each call from an idle device: median / min CUDA-event ms from before the call to its last kernel, host ms."""
-    for _ in range(warmup):
-        fn()
-    torch.cuda.synchronize()
-    dev, host = [], []
-    for _ in range(repeats):
-        e0, e1 = _event(), _event()
-        e0.record()
-        t0 = time.perf_counter()
-        fn()
-        t1 = time.perf_counter()
-        e1.record()
-        torch.cuda.synchronize()
-        dev.append(e0.elapsed_time(e1))
-        host.append(1e3 * (t1 - t0))
-    return {"ms": statistics.median(dev), "ms_min": min(dev), "host_ms": statistics.median(host)}
-
-
-def time_pipelined(fn, warmup: int, repeats: int) -> dict:
-    """``repeats`` calls back to back between two events (no synchronisation in between): ms per call."""
-    for _ in range(warmup):
-        fn()
-    torch.cuda.synchronize()
-    e0, e1 = _event(), _event()
-    e0.record()
-    t0 = time.perf_counter()
-    for _ in range(repeats):
-        fn()
-    e1.record()
-    torch.cuda.synchronize()
-    return {"ms": e0.elapsed_time(e1) / repeats, "wall_ms": 1e3 * (time.perf_counter() - t0) / repeats}
+# -- timing: gpu_timing.py -------------------------------------------------------------------------------
 
 
 def _weights(h: int, w: int, device, seed: int = 1) -> dict:
@@ -291,32 +254,6 @@ def bench_rasterizer(args, device) -> list[dict]:
         del params, ref
         torch.cuda.empty_cache()
     return rows
-
-
-def profile_kernels(fn, label: str, calls: int = 5, top: int = 8) -> list:
-    """CUDA kernel times of ``calls`` calls of ``fn`` (torch.profiler, CUPTI: Warp's kernels included), printed."""
-    from torch.profiler import ProfilerActivity, profile
-
-    fn()
-    torch.cuda.synchronize()
-    with profile(activities=[ProfilerActivity.CUDA]) as prof:
-        for _ in range(calls):
-            fn()
-        torch.cuda.synchronize()
-    rows = []
-    for e in prof.key_averages():
-        us = getattr(e, "device_time_total", None)
-        if us is None:
-            us = e.cuda_time_total
-        if us > 0:
-            rows.append((e.key, us / calls / 1e3, e.count // calls))
-    rows.sort(key=lambda r: -r[1])
-    total = sum(r[1] for r in rows)
-    print(f"\nkernel profile, {label}: {total:.3f} ms of kernels per call")
-    for key, ms, cnt in rows[:top]:
-        print(f"  {ms:8.3f} ms  x{cnt:<3} {key[:90]}")
-    return [{"kernel": k, "ms_per_call": ms, "launches_per_call": c} for k, ms, c in rows[:top]] + [
-        {"kernel": "total", "ms_per_call": total}]
 
 
 def print_rasterizer(rows) -> None:
@@ -424,7 +361,7 @@ def _step_path(path: str, args, device, cam) -> dict:
     wall = []
     vals = [float("nan"), 0.0]
     for it in range(args.warmup + args.step_iters):
-        ev = [_event() for _ in range(len(stages) + 1)]
+        ev = [cuda_event() for _ in range(len(stages) + 1)]
         t0 = time.perf_counter()
         ev[0].record()
         a = (params["means"], params["quats"], params["log_scales"].exp(), torch.sigmoid(params["opacity_logits"]),

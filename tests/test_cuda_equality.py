@@ -194,7 +194,7 @@ def test_raycast_and_closest_faces_equal_on_cuda():
 def test_final_poisson_remesh_on_cuda_matches_the_cpu():
     """The fit's final watertight re-mesh on the fit's device: the same closed surface as on the CPU (float32
     Poisson, cuFFT against pocketfft: the vertices agree to float32 rounding of the level set)."""
-    from test_mesh_policy import _open_sphere
+    from test_final_mesh_repair import _open_sphere
 
     from wtopo.fitting import FitConfig
     from wtopo.fitting._final_mesh import poisson_remesh
