@@ -34,8 +34,10 @@ bench() {  # out-folder, more arguments
 bench r --impls wtopo_public wtopo_fit_path
 [ -f .stage/gsplat_ext/ext.tgz ] || { tar czf $OUT/ext.tgz -C $GX . && ls -la $OUT/ext.tgz; }
 for p in ${RA_PATCHES:-}; do  # cumulative: each patch on the tree before it, the kernels copied into the install
-  patch -p1 < $p | tail -n 1 && cp kernels/*.py $S/site/wtopo/kernels/ && cp wtopo/*.py $S/site/wtopo/ \
-    && cp wtopo/rasterize/*.py $S/site/wtopo/rasterize/
+  # a patch that does not apply stops here: the benches after it would time the unpatched kernels
+  if command -v patch > /dev/null; then patch -p1 < $p > $S/patch.log 2>&1; else git apply $p > $S/patch.log 2>&1; fi \
+    || { echo "patch $p did not apply:"; tail -n 5 $S/patch.log; break; }
+  cp kernels/*.py $S/site/wtopo/kernels/ && cp wtopo/*.py $S/site/wtopo/ && cp wtopo/rasterize/*.py $S/site/wtopo/rasterize/
   RA_TAIL=14 bench r_$(basename $p .patch) --impls wtopo_fit_path
 done
 if [ -n "${RA_PATCHES:-}" ]; then  # the patched kernels' CUDA tests
