@@ -193,18 +193,29 @@ def splat_hit(d: Any, g: Any, pix: Any, fis: Any):
     the Gaussian exponent ``rho = min(rho3d, rho2d)``, the contribution's z-depth (intersection
     depth in the 3D branch, centre depth in the filter branch), which branch won, and the terms
     the adjoint reuses.
+
+    A pair that is surely outside, ``rho2d > cutoff`` and ``rho3d > cutoff`` (tested without a division, as
+    ``|(u, v)|^2 dn^2 > cutoff dn^2``), returns ``rho = RHO_BIG`` (above every cut-off) at once: most pairs of a
+    tile's list are, and forward and backward take the same decision, so skipping them changes nothing but time.
     """
     zc = g.zc
+    c = g.cutoff
     dx = pix[0] - g.m2[0]
     dy = pix[1] - g.m2[1]
     rho2d = fis * (dx * dx + dy * dy)
     du = d[0] * g.U[0] + d[1] * g.U[1] + d[2] * g.U[2]
     dv = d[0] * g.V[0] + d[1] * g.V[1] + d[2] * g.V[2]
     dn = d[0] * g.n[0] + d[1] * g.n[1] + d[2] * g.n[2]
+    zero = type(zc)(0.0)
+    if rho2d > c:
+        pu = g.auv[0] * dn - g.auv[2] * du
+        pv = g.auv[1] * dn - g.auv[2] * dv
+        if pu * pu + pv * pv > c * dn * dn:
+            return type(zc)(RHO_BIG), zc, False, zero, zero, zero, du, dv, dn
     rho3d = type(zc)(RHO_BIG)
-    t = type(zc)(0.0)
-    u = type(zc)(0.0)
-    v = type(zc)(0.0)
+    t = zero
+    u = zero
+    v = zero
     if wp.abs(dn) > type(zc)(PARALLEL_EPS):
         t = -g.auv[2] / dn
         u = g.auv[0] + t * du
@@ -219,26 +230,6 @@ def splat_hit(d: Any, g: Any, pix: Any, fis: Any):
         rho = rho3d
         z = t
     return rho, z, branch3d, u, v, t, du, dv, dn
-
-
-@wp.func
-def surely_outside(d: Any, g: Any, pix: Any, fis: Any):
-    """Division-free reject: ``rho2d > cutoff`` and ``rho3d > cutoff`` (as ``|(u, v)|^2 dn^2 > cutoff dn^2``).
-
-    Only pairs whose alpha is below 1/255 by the cut-off's margin are rejected, and forward and
-    backward take the same decision, so skipping them changes nothing but time.
-    """
-    c = g.cutoff
-    dx = pix[0] - g.m2[0]
-    dy = pix[1] - g.m2[1]
-    if fis * (dx * dx + dy * dy) <= c:
-        return False
-    du = d[0] * g.U[0] + d[1] * g.U[1] + d[2] * g.U[2]
-    dv = d[0] * g.V[0] + d[1] * g.V[1] + d[2] * g.V[2]
-    dn = d[0] * g.n[0] + d[1] * g.n[1] + d[2] * g.n[2]
-    pu = g.auv[0] * dn - g.auv[2] * du
-    pv = g.auv[1] * dn - g.auv[2] * dv
-    return pu * pu + pv * pv > c * dn * dn
 
 
 @wp.kernel(enable_backward=False)
@@ -345,29 +336,28 @@ def render_forward_kernel(
             hit = False
             if not done:
                 g = geo[i]
-                if not surely_outside(d, g, pix, fis):
-                    rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, fis)
-                    if not (rho > g.cutoff):  # else alpha < 1/255 for sure: skip the exp
-                        a = wp.min(type(f_ref)(ALPHA_MAX), opacity[i] * wp.exp(type(f_ref)(-0.5) * rho))
-                        if not (a < type(f_ref)(ALPHA_MIN) or z < near):
-                            test_t = T * (type(f_ref)(1.0) - a)
-                            if test_t < type(f_ref)(T_MIN):
-                                done = True
-                            else:
-                                hit = True
-                                w = a * T
-                                c = c + w * color[i]
-                                nacc = nacc + w * nrm_face[i]
-                                dsum = dsum + w * z
-                                m, dm = ndc_depth(z, near, far)
-                                dist = dist + w * (m * m * (type(f_ref)(1.0) - T) + m2s - type(f_ref)(2.0) * m * m1)
-                                m1 = m1 + w * m
-                                m2s = m2s + w * m * m
-                                if T > type(f_ref)(0.5):  # noqa: SIM300  T is the running transmittance
-                                    med = z
-                                    med_k = k
-                                T = test_t
-                                end = k + 1
+                rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, fis)
+                if not (rho > g.cutoff):  # else alpha < 1/255 for sure: skip the exp
+                    a = wp.min(type(f_ref)(ALPHA_MAX), opacity[i] * wp.exp(type(f_ref)(-0.5) * rho))
+                    if not (a < type(f_ref)(ALPHA_MIN) or z < near):
+                        test_t = T * (type(f_ref)(1.0) - a)
+                        if test_t < type(f_ref)(T_MIN):
+                            done = True
+                        else:
+                            hit = True
+                            w = a * T
+                            c = c + w * color[i]
+                            nacc = nacc + w * nrm_face[i]
+                            dsum = dsum + w * z
+                            m, dm = ndc_depth(z, near, far)
+                            dist = dist + w * (m * m * (type(f_ref)(1.0) - T) + m2s - type(f_ref)(2.0) * m * m1)
+                            m1 = m1 + w * m
+                            m2s = m2s + w * m * m
+                            if T > type(f_ref)(0.5):  # noqa: SIM300  T is the running transmittance
+                                med = z
+                                med_k = k
+                            T = test_t
+                            end = k + 1
             if warp_any(hit, coop):
                 warp_count(visibility, worker, i, hit, coop)
             j = j + 1

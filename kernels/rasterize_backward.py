@@ -11,7 +11,7 @@ from typing import Any
 
 import warp as wp
 
-from .rasterize import ALPHA_MAX, ALPHA_MIN, ndc_depth, pixel_tile_coords, splat_hit, surely_outside
+from .rasterize import ALPHA_MAX, ALPHA_MIN, ndc_depth, pixel_tile_coords, splat_hit
 from .rasterize_records import declare_float_overloads
 from .rasterize_warp import fetch_batch, lane_id, warp_add_grads, warp_any, warp_bcast, warp_max
 
@@ -130,7 +130,7 @@ def render_backward_kernel(
             c_nrm = z3
             c_m2 = z2
             c_zc = zero
-            if k < end and not surely_outside(d, g, pix, fis):
+            if k < end:
                 rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, fis)
                 if not (rho > g.cutoff):
                     op = opacity[i]
