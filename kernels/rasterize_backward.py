@@ -13,7 +13,18 @@ import warp as wp
 
 from .rasterize import ALPHA_MAX, ALPHA_MIN, ndc_depth, pixel_tile_coords, splat_hit
 from .rasterize_records import declare_float_overloads
-from .rasterize_warp import fetch_batch, lane_id, warp_add_grads, warp_any, warp_bcast, warp_max
+from .rasterize_warp import (
+    fetch_batch,
+    lane_id,
+    stage_batch,
+    staged_opacity,
+    staged_record,
+    staging_slab,
+    warp_add_grads,
+    warp_any,
+    warp_bcast,
+    warp_max,
+)
 
 # Register cap of the CUDA backward pixel kernel: uncapped, nvcc gives its float32 version 167 registers,
 # one block of 256 threads per SM; at 128 two blocks fit and the kernel ran 1.24x faster (H100, 800x800,
@@ -30,7 +41,7 @@ def render_backward_kernel(
     ids: wp.array[wp.int32],
     rays: wp.array2d[Any],
     cams: wp.array[Any],
-    geo: wp.array[Any],
+    geo4: wp.array2d[Any],
     nrm_face: wp.array[Any],
     color: wp.array[Any],
     opacity: wp.array[Any],
@@ -111,14 +122,16 @@ def render_backward_kernel(
     z3 = wp.vector(zero, zero, zero)
     z2 = wp.vector(zero, zero)
     lane = lane_id(coop)
+    slab = staging_slab(f_ref, coop)
     kb = warp_max(end, coop) - 1
     while kb >= start:
         nb = wp.min(batch, kb - start + 1)
-        mine = fetch_batch(ids, kb, -1, nb, lane, geo, opacity, color, nrm_face)
+        mine = fetch_batch(ids, kb, -1, nb, lane, color, nrm_face)
+        stage_batch(slab, geo4, opacity, mine, lane, nb, coop)
         for j in range(nb):
             k = kb - j
             i = warp_bcast(mine, j, coop)
-            g = geo[i]
+            U, V, n, auv, m2, zc, cut = staged_record(slab, geo4, i, j, coop)
             hit = False
             b3 = False
             c_color = z3
@@ -131,9 +144,9 @@ def render_backward_kernel(
             c_m2 = z2
             c_zc = zero
             if k < end:
-                rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, fis)
-                if not (rho > g.cutoff):
-                    op = opacity[i]
+                rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, U, V, n, auv, m2, zc, cut, pix, fis)
+                if not (rho > cut):
+                    op = staged_opacity(slab, geo4, opacity, i, j, coop)
                     G = wp.exp(type(f_ref)(-0.5) * rho)
                     raw = op * G
                     a = wp.min(type(f_ref)(ALPHA_MAX), raw)
@@ -162,13 +175,13 @@ def render_backward_kernel(
                             gv = type(f_ref)(2.0) * v * g_rho
                             gt = gz + gu * du + gv * dv
                             inv_dn = one / dn
-                            gdn = gt * g.auv[2] * inv_dn * inv_dn
+                            gdn = gt * auv[2] * inv_dn * inv_dn
                             c_auv = wp.vector(gu, gv, -gt * inv_dn)
                             c_uax = (gu * t) * d
                             c_vax = (gv * t) * d
                             c_nrm = gdn * d
                         else:
-                            diff = pix - g.m2
+                            diff = pix - m2
                             c_m2 = (type(f_ref)(-2.0) * fis * g_rho) * diff
                             c_zc = gz
             # warp-uniform from here: every lane of the warp takes the same branches
