@@ -114,6 +114,7 @@ _SLAB = f"""
 #if defined(__CUDA_ARCH__)
     if (coop) {{
         __shared__ __align__(16) unsigned char slab[{WARPS_PER_BLOCK} * 32 * (16 * sizeof(like) + 16)];
+        if (blockDim.x > {WARPS_PER_BLOCK} * 32) __trap();  // more warps than slabs: a launch with another block_dim
         return (wp::uint64)slab;
     }}
 #endif
