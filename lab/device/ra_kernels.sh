@@ -2,19 +2,23 @@
 # call (carry .stage/usd, and .stage/gsplat_ext where an earlier lease brought gsplat's build back): install, the
 # rasterizer's CUDA tests, gsplat (JIT build or the staged one), bench_rasterize_gpu.py --only rasterizer --profile
 # for wtopo's public and fit paths beside gsplat into $OUT/r, then the fit path again for each register cap of the
-# backward pixel kernel in RA_CAPS (the installed copy's BWD_MAX_REGS rewritten) into $OUT/r_cap<N>.
+# backward pixel kernel in RA_CAPS (the installed copy's BWD_MAX_REGS rewritten) into $OUT/r_cap<N>. RA_PATCHES:
+# patch files applied in turn before the caps, the fit path timed after each into $OUT/r_<patch name>.
 source lab/device/lease_env.sh
 t0=$(date +%s)
 lease_install || exit 1
 echo "installed after $(( $(date +%s) - t0 )) s"
 R=$PWD
-(cd /tmp && timeout ${RA_TEST_TIMEOUT:-240} python3 -m pytest -q -p no:cacheprovider -x \
-    $R/tests/test_rasterize_stability.py $R/tests/test_cuda_equality.py $R/tests/test_rasterize_paths.py \
-    $R/tests/test_rasterize_replay.py $R/tests/test_raster_graph.py $R/tests/test_rasterize.py 2>&1 | tail -n 15)
-echo "tests done after $(( $(date +%s) - t0 )) s"
 GX=${TORCH_EXTENSIONS_DIR:-$HOME/.cache/torch_extensions}
 [ -f .stage/gsplat_ext/ext.tgz ] && mkdir -p $GX && tar xzf .stage/gsplat_ext/ext.tgz -C $GX
-MAX_JOBS=14 STAGE=$S timeout 300 bash $D build 2>&1 | grep -i gsplat | tail -n 3
+# gsplat's build beside the tests (nvcc on the CPUs while the tests use the GPU)
+(MAX_JOBS=12 STAGE=$S timeout 300 bash $D build > $S/ra_build.log 2>&1) &
+(cd /tmp && timeout ${RA_TEST_TIMEOUT:-240} python3 -m pytest -q -p no:cacheprovider -x \
+    $R/tests/test_rasterize_stability.py $R/tests/test_cuda_equality.py $R/tests/test_rasterize_paths.py \
+    $R/tests/test_rasterize.py 2>&1 | tail -n 15)
+echo "tests done after $(( $(date +%s) - t0 )) s"
+wait
+grep -i gsplat $S/ra_build.log | tail -n 3
 tail -n 2 $S/logs/build_gsplat.log
 echo "gsplat ready after $(( $(date +%s) - t0 )) s"
 bench() {  # out-folder, more arguments
@@ -27,6 +31,17 @@ bench() {  # out-folder, more arguments
 }
 bench r --impls wtopo_public wtopo_fit_path
 [ -f .stage/gsplat_ext/ext.tgz ] || { tar czf $OUT/ext.tgz -C $GX . && ls -la $OUT/ext.tgz; }
+for p in ${RA_PATCHES:-}; do  # cumulative: each patch on the tree before it, the kernels copied into the install
+  patch -p1 < $p | tail -n 1 && cp kernels/*.py $S/site/wtopo/kernels/ && cp wtopo/*.py $S/site/wtopo/ \
+    && cp wtopo/rasterize/*.py $S/site/wtopo/rasterize/
+  RA_TAIL=14 bench r_$(basename $p .patch) --impls wtopo_fit_path
+done
+if [ -n "${RA_PATCHES:-}" ]; then  # the patched kernels' CUDA tests
+  (cd /tmp && timeout 200 python3 -m pytest -q -p no:cacheprovider -x $R/tests/test_rasterize_stability.py \
+      $R/tests/test_cuda_equality.py $R/tests/test_rasterize_paths.py -k "cooperative or rasterize or paths" 2>&1 \
+      | tail -n 8)
+  echo "patched tests done after $(( $(date +%s) - t0 )) s"
+fi
 K=$S/site/wtopo/kernels/rasterize_backward.py
 for cap in ${RA_CAPS:-}; do
   sed -i "s/^BWD_MAX_REGS = .*/BWD_MAX_REGS = $cap/" $K && grep -n "^BWD_MAX_REGS" $K
