@@ -31,7 +31,7 @@ SHIMS = r"""
 
 #define __CUDA_ARCH__ 900
 #define __shared__ static
-#define __align__(n) alignas(n)
+#define __align__(n) __attribute__((aligned(n)))
 #define CUDA_CALLABLE
 
 namespace wp {
