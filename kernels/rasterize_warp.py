@@ -112,19 +112,18 @@ _SLOT = "(4 * sizeof(geo4.data[0]) + 16)"  # bytes of one slot: the record, then
 
 _SLAB = f"""
 #if defined(__CUDA_ARCH__)
-    if (coop) {{
-        __shared__ __align__(16) unsigned char slab[{WARPS_PER_BLOCK} * 32 * (16 * sizeof(like) + 16)];
-        if (blockDim.x > {WARPS_PER_BLOCK} * 32) __trap();  // more warps than slabs: a launch with another block_dim
-        return (wp::uint64)slab;
-    }}
-#endif
+    __shared__ __align__(16) unsigned char slab[{WARPS_PER_BLOCK} * 32 * (16 * sizeof(like) + 16)];
+    if (blockDim.x > {WARPS_PER_BLOCK} * 32) __trap();  // more warps than slabs: a launch with another block_dim
+    return (wp::uint64)slab;
+#else
     return 0;
+#endif
 """
 
 
 @wp.func_native(_SLAB)
 def staging_slab(like: wp.float32, coop: int) -> wp.uint64:
-    """Address of this block's staging slab, sized for records of ``like``'s float type (CUDA ``coop``; else 0)."""
+    """Address of this block's staging slab, sized for records of ``like``'s float type (CUDA; 0 on the CPU)."""
     ...
 
 
@@ -136,64 +135,63 @@ def staging_slab(like: wp.float64, coop: int) -> wp.uint64:  # noqa: F811 - the 
 
 @wp.func_native(f"""
 #if defined(__CUDA_ARCH__)
-    if (coop) {{
-        unsigned char* dst = reinterpret_cast<unsigned char*>(slab) + ((threadIdx.x >> 5) * 32 + lane) * {_SLOT};
-        __syncwarp();  // the warp's reads of the previous batch are done
-        if (lane < nb) {{
-            const int4* src = reinterpret_cast<const int4*>(wp::address(geo4, mine, 0));
-            #pragma unroll
-            for (int q = 0; q < static_cast<int>(sizeof(geo4.data[0]) / 4); ++q) {{
-                reinterpret_cast<int4*>(dst)[q] = __ldg(src + q);
-            }}
-            auto* op = reinterpret_cast<decltype(opacity.data)>(dst + 4 * sizeof(geo4.data[0]));
-            *op = __ldg(wp::address(opacity, mine));
+    // coop: lane l fills slot l of its warp; else each thread (lane 0 of a batch of 1) fills its own slot
+    const unsigned slot = coop ? lane : (threadIdx.x & 31);
+    unsigned char* dst = reinterpret_cast<unsigned char*>(slab) + ((threadIdx.x >> 5) * 32 + slot) * {_SLOT};
+    if (coop) __syncwarp();  // the warp's reads of the previous batch are done
+    if (lane < nb) {{
+        const int4* src = reinterpret_cast<const int4*>(wp::address(geo4, mine, 0));
+        #pragma unroll
+        for (int q = 0; q < static_cast<int>(sizeof(geo4.data[0]) / 4); ++q) {{
+            reinterpret_cast<int4*>(dst)[q] = __ldg(src + q);
         }}
-        __syncwarp();
+        auto* op = reinterpret_cast<decltype(opacity.data)>(dst + 4 * sizeof(geo4.data[0]));
+        *op = __ldg(wp::address(opacity, mine));
     }}
+    if (coop) __syncwarp();
 #endif
 """)
 def stage_batch(slab: wp.uint64, geo4: wp.array2d[Any], opacity: wp.array[Any], mine: int, lane: int, nb: int,
                 coop: int):
-    """Lane ``lane < nb`` copies surfel ``mine``'s record and opacity into its slot (CUDA ``coop``; else nothing).
-    Warp-uniform: every lane calls it."""
+    """Lane ``lane < nb`` copies surfel ``mine``'s record and opacity into its slot (CUDA; nothing on the CPU).
+    ``coop``: warp-uniform, every lane calls it, slot ``lane``; else each thread stages its own surfel (``lane`` 0,
+    ``nb`` 1) in a slot of its own."""
     ...
 
 
-_SLOT_OF = "reinterpret_cast<unsigned char*>(slab) + ((threadIdx.x >> 5) * 32 + j) * " + _SLOT
+_SLOT_OF = ("(__builtin_assume(__isShared(reinterpret_cast<void*>(slab))), reinterpret_cast<unsigned char*>(slab))"
+            " + ((threadIdx.x >> 5) * 32 + (coop ? j : (threadIdx.x & 31))) * " + _SLOT)
 _QUAD32 = f"""
 #if defined(__CUDA_ARCH__)
-    if (coop) {{
-        const float4 v = reinterpret_cast<const float4*>({_SLOT_OF})[q];
-        return wp::vec4(v.x, v.y, v.z, v.w);
-    }}
-#endif
+    const float4 v = reinterpret_cast<const float4*>({_SLOT_OF})[q];
+    return wp::vec4(v.x, v.y, v.z, v.w);
+#else
     return wp::index(geo4, i, q);
+#endif
 """
 _QUAD64 = f"""
 #if defined(__CUDA_ARCH__)
-    if (coop) {{
-        const double2* p = reinterpret_cast<const double2*>({_SLOT_OF}) + 2 * q;
-        const double2 a = p[0];
-        const double2 b = p[1];
-        return wp::vec4d(a.x, a.y, b.x, b.y);
-    }}
-#endif
+    const double2* p = reinterpret_cast<const double2*>({_SLOT_OF}) + 2 * q;
+    const double2 a = p[0];
+    const double2 b = p[1];
+    return wp::vec4d(a.x, a.y, b.x, b.y);
+#else
     return wp::index(geo4, i, q);
+#endif
 """
 _OPACITY = f"""
 #if defined(__CUDA_ARCH__)
-    if (coop) {{
-        return *reinterpret_cast<decltype(opacity.data)>({_SLOT_OF.replace("geo4", "quad")}
-                                                              + 4 * sizeof(quad.data[0]));
-    }}
-#endif
+    return *reinterpret_cast<decltype(opacity.data)>({_SLOT_OF.replace("geo4", "quad")} + 4 * sizeof(quad.data[0]));
+#else
     return wp::index(opacity, i);
+#endif
 """
 
 
 @wp.func_native(_QUAD32)
 def staged_quad(slab: wp.uint64, geo4: wp.array2d[wp.vec4], i: int, j: int, q: int, coop: int) -> wp.vec4:
-    """Quad ``q`` of surfel ``i``'s record: from slot ``j`` of this warp (CUDA ``coop``) or ``geo4[i, q]``."""
+    """Quad ``q`` of surfel ``i``'s record: on CUDA from slot ``j`` of this warp (``coop``; else this thread's own
+    slot), on the CPU ``geo4[i, q]``."""
     ...
 
 
@@ -206,8 +204,8 @@ def staged_quad(slab: wp.uint64, geo4: wp.array2d[wp.vec4d], i: int, j: int, q: 
 @wp.func_native(_OPACITY)
 def staged_opacity(slab: wp.uint64, quad: wp.array2d[wp.vec4], opacity: wp.array[wp.float32], i: int, j: int,
                    coop: int) -> wp.float32:
-    """Surfel ``i``'s opacity: from slot ``j`` of this warp (CUDA ``coop``) or ``opacity[i]``. ``quad``: ``geo4``
-    (its type sizes the slot)."""
+    """Surfel ``i``'s opacity, from the slot :func:`staged_quad` reads (CUDA) or ``opacity[i]`` (CPU). ``quad``:
+    ``geo4`` (its type sizes the slot)."""
     ...
 
 

@@ -155,15 +155,18 @@ def _staging_driver(f: str, geo: np.ndarray, opacity: np.ndarray, batches: list[
                   f"    std::vector<{f}> out(32 * {nb} * 17);",
                   "    run_warp(3, [&](int l) {",
                   f"      const wp::uint64 slab = staging_slab({f}(0), {coop});",
-                  f"      const int mine = l < {nb} ? ids[l] : 0;",
-                  f"      stage_batch(slab, geo4, opacity, mine, l, {nb}, {coop});",
+                  # coop: lane l stages surfel l of the batch, then reads every surfel j from slot j; else each
+                  # thread stages its own (lane 0 of a batch of 1) and reads it at every step
+                  f"      const int mine = {coop} ? (l < {nb} ? ids[l] : 0) : ids[l % {nb}];",
+                  f"      stage_batch(slab, geo4, opacity, mine, {coop} ? l : 0, {coop} ? {nb} : 1, {coop});",
                   f"      for (int j = 0; j < {nb}; ++j) {{",
                   f"        {f}* o = &out[(l * {nb} + j) * 17];",
+                  f"        const int i = {coop} ? ids[j] : mine, jj = {coop} ? j : 0;",
                   "        for (int k = 0; k < 4; ++k) {",
-                  f"          const {q} v = staged_quad(slab, geo4, ids[j], j, k, {coop});",
+                  f"          const {q} v = staged_quad(slab, geo4, i, jj, k, {coop});",
                   "          for (int m = 0; m < 4; ++m) o[4 * k + m] = v[m];",
                   "        }",
-                  f"        o[16] = staged_opacity(slab, geo4, opacity, ids[j], j, {coop});",
+                  f"        o[16] = staged_opacity(slab, geo4, opacity, i, jj, {coop});",
                   "      }",
                   "    });",
                   f'    std::printf("batch{b}"); for (auto v : out) std::printf(" %.17g", double(v)); '
@@ -174,9 +177,9 @@ def _staging_driver(f: str, geo: np.ndarray, opacity: np.ndarray, batches: list[
 @pytest.mark.parametrize("coop", [1, 0])
 @pytest.mark.parametrize("f", ["float", "double"])
 def test_staged_records_are_the_batch_surfels(tmp_path, f, coop):
-    """Every lane reads, at step j, surfel ids[j]'s four quads and opacity: from its warp's shared slots after
-    ``stage_batch`` (``coop``, lanes past the batch staging nothing; a second batch overwrites the first), else
-    from the arrays."""
+    """With ``coop`` every lane reads, at step j, surfel ids[j]'s four quads and opacity from its warp's shared slots
+    after ``stage_batch`` (lanes past the batch stage nothing; a second batch overwrites the first); without it each
+    thread reads back the surfel it staged in its own slot."""
     rng = np.random.default_rng(9)
     dt = np.float32 if f == "float" else np.float64
     geo = rng.normal(size=(40, 16)).astype(dt)
@@ -200,6 +203,7 @@ def test_staged_records_are_the_batch_surfels(tmp_path, f, coop):
     for b, line in enumerate(res.stdout.splitlines()):
         ids = batches[b]
         got = np.array([float(x) for x in line.split()[1:]]).reshape(32, len(ids), 17)
-        want = np.concatenate([geo[ids], opacity[ids, None]], axis=1)
+        rec = np.concatenate([geo, opacity[:, None]], axis=1)
         for lane in range(32):
+            want = rec[ids] if coop else np.repeat(rec[ids[lane % len(ids)]][None], len(ids), axis=0)
             np.testing.assert_array_equal(got[lane], want, err_msg=f"batch {b}, lane {lane}")
