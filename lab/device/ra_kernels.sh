@@ -3,7 +3,9 @@
 # rasterizer's CUDA tests, gsplat (JIT build or the staged one), bench_rasterize_gpu.py --only rasterizer --profile
 # for wtopo's public and fit paths beside gsplat into $OUT/r, then the fit path again for each register cap of the
 # backward pixel kernel in RA_CAPS (the installed copy's BWD_MAX_REGS rewritten) into $OUT/r_cap<N>. RA_PATCHES:
-# patch files applied in turn before the caps, the fit path timed after each into $OUT/r_<patch name>.
+# patch files applied in turn before the caps, the fit path timed after each into $OUT/r_<patch name>; e.g. the
+# shared-memory staging of the branch kern: git diff main kern -- kernels wtopo > lab/device/ra_stage.patch, then
+# RA_PATCHES=lab/device/ra_stage.patch RA_REPEATS=5 bash lab/device/ra_kernels.sh (about 330 s of device time).
 source lab/device/lease_env.sh
 t0=$(date +%s)
 lease_install || exit 1
