@@ -351,10 +351,17 @@ def render_forward_kernel(
         while j < nb and warp_any(not done, coop):
             k = kb + j
             i = warp_bcast(mine, j, coop)
+            # the pair's test in one level of branches and the compositing in one more: Warp turns every
+            # assignment under nested ifs into a select per level for each loop-carried value, which kept old and
+            # new copies of all the accumulators live (120 registers against 86 so written, ptxas sm_90)
             hit = False
+            a = zero
+            z = zero
+            test_t = T
             if not done:
                 U, V, n, auv, m2, zc, cut = staged_record(slab, geo4, i, j, coop)
-                rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, U, V, n, auv, m2, zc, cut, pix, fis)
+                rho, zh, b3, u, v, t, du, dv, dn = splat_hit(d, U, V, n, auv, m2, zc, cut, pix, fis)
+                z = zh
                 if not (rho > cut):  # else alpha < 1/255 for sure: skip the exp
                     op = staged_opacity(slab, geo4, opacity, i, j, coop)
                     a = wp.min(type(f_ref)(ALPHA_MAX), op * wp.exp(type(f_ref)(-0.5) * rho))
@@ -364,19 +371,20 @@ def render_forward_kernel(
                             done = True
                         else:
                             hit = True
-                            w = a * T
-                            c = c + w * color[i]
-                            nacc = nacc + w * nrm_face[i]
-                            dsum = dsum + w * z
-                            m, dm = ndc_depth(z, near, far)
-                            dist = dist + w * (m * m * (type(f_ref)(1.0) - T) + m2s - type(f_ref)(2.0) * m * m1)
-                            m1 = m1 + w * m
-                            m2s = m2s + w * m * m
-                            if T > type(f_ref)(0.5):  # noqa: SIM300  T is the running transmittance
-                                med = z
-                                med_k = k
-                            T = test_t
-                            end = k + 1
+            if hit:
+                w = a * T
+                c = c + w * color[i]
+                nacc = nacc + w * nrm_face[i]
+                dsum = dsum + w * z
+                m, dm = ndc_depth(z, near, far)
+                dist = dist + w * (m * m * (type(f_ref)(1.0) - T) + m2s - type(f_ref)(2.0) * m * m1)
+                m1 = m1 + w * m
+                m2s = m2s + w * m * m
+                if T > type(f_ref)(0.5):  # noqa: SIM300  T is the running transmittance
+                    med = z
+                    med_k = k
+                T = test_t
+                end = k + 1
             if warp_any(hit, coop):
                 warp_count(visibility, worker, i, hit, coop)
             j = j + 1

@@ -132,8 +132,20 @@ def render_backward_kernel(
             k = kb - j
             i = warp_bcast(mine, j, coop)
             U, V, n, auv, m2, zc, cut = staged_record(slab, geo4, i, j, coop)
+            # the pair's test, then its terms, one level of branches each: Warp turns an assignment under nested
+            # ifs into a select per level for every value the loop carries (see the forward kernel)
+            rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, U, V, n, auv, m2, zc, cut, pix, fis)
             hit = False
-            b3 = False
+            op = zero
+            G = zero
+            raw = zero
+            a = zero
+            if k < end and not (rho > cut):
+                op = staged_opacity(slab, geo4, opacity, i, j, coop)
+                G = wp.exp(type(f_ref)(-0.5) * rho)
+                raw = op * G
+                a = wp.min(type(f_ref)(ALPHA_MAX), raw)
+                hit = a >= type(f_ref)(ALPHA_MIN) and z >= near
             c_color = z3
             c_nf = z3
             c_op = zero
@@ -143,47 +155,37 @@ def render_backward_kernel(
             c_nrm = z3
             c_m2 = z2
             c_zc = zero
-            if k < end:
-                rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, U, V, n, auv, m2, zc, cut, pix, fis)
-                if not (rho > cut):
-                    op = staged_opacity(slab, geo4, opacity, i, j, coop)
-                    G = wp.exp(type(f_ref)(-0.5) * rho)
-                    raw = op * G
-                    a = wp.min(type(f_ref)(ALPHA_MAX), raw)
-                    if a >= type(f_ref)(ALPHA_MIN) and z >= near:
-                        hit = True
-                        T = T / (one - a)
-                        w = a * T
-                        col = color[i]
-                        nf = nrm_face[i]
-                        m, dm = ndc_depth(z, near, far)
-                        gf = wp.dot(gc, col) + g_d * z + wp.dot(gn, nf) + g_a + g_m1 * m + g_m2 * m * m
-                        g_alpha_i = T * gf - rg / (one - a)
-                        rg = rg + w * gf
-                        c_color = w * gc
-                        c_nf = w * gn
-                        gz = w * (g_d + (g_m1 + type(f_ref)(2.0) * m * g_m2) * dm)
-                        if k == med_k:
-                            gz = gz + gmed
-                        g_raw = zero
-                        if raw < type(f_ref)(ALPHA_MAX):
-                            g_raw = g_alpha_i
-                        c_op = g_raw * G
-                        g_rho = type(f_ref)(-0.5) * G * op * g_raw
-                        if b3:
-                            gu = type(f_ref)(2.0) * u * g_rho
-                            gv = type(f_ref)(2.0) * v * g_rho
-                            gt = gz + gu * du + gv * dv
-                            inv_dn = one / dn
-                            gdn = gt * auv[2] * inv_dn * inv_dn
-                            c_auv = wp.vector(gu, gv, -gt * inv_dn)
-                            c_uax = (gu * t) * d
-                            c_vax = (gv * t) * d
-                            c_nrm = gdn * d
-                        else:
-                            diff = pix - m2
-                            c_m2 = (type(f_ref)(-2.0) * fis * g_rho) * diff
-                            c_zc = gz
+            if hit:
+                T = T / (one - a)
+                w = a * T
+                col = color[i]
+                nf = nrm_face[i]
+                m, dm = ndc_depth(z, near, far)
+                gf = wp.dot(gc, col) + g_d * z + wp.dot(gn, nf) + g_a + g_m1 * m + g_m2 * m * m
+                g_alpha_i = T * gf - rg / (one - a)
+                rg = rg + w * gf
+                c_color = w * gc
+                c_nf = w * gn
+                gz = w * (g_d + (g_m1 + type(f_ref)(2.0) * m * g_m2) * dm)
+                if k == med_k:
+                    gz = gz + gmed
+                g_raw = wp.where(raw < type(f_ref)(ALPHA_MAX), g_alpha_i, zero)
+                c_op = g_raw * G
+                g_rho = type(f_ref)(-0.5) * G * op * g_raw
+                if b3:
+                    gu = type(f_ref)(2.0) * u * g_rho
+                    gv = type(f_ref)(2.0) * v * g_rho
+                    gt = gz + gu * du + gv * dv
+                    inv_dn = one / dn
+                    gdn = gt * auv[2] * inv_dn * inv_dn
+                    c_auv = wp.vector(gu, gv, -gt * inv_dn)
+                    c_uax = (gu * t) * d
+                    c_vax = (gv * t) * d
+                    c_nrm = gdn * d
+                else:
+                    diff = pix - m2
+                    c_m2 = (type(f_ref)(-2.0) * fis * g_rho) * diff
+                    c_zc = gz
             # warp-uniform from here: every lane of the warp takes the same branches
             if warp_any(hit, coop):
                 warp_add_grads(worker, i, c_color, c_nf, c_op, c_auv, c_uax, c_vax, c_nrm, c_m2, c_zc, d_color,
