@@ -351,26 +351,24 @@ def render_forward_kernel(
         while j < nb and warp_any(not done, coop):
             k = kb + j
             i = warp_bcast(mine, j, coop)
-            # the pair's test in one level of branches and the compositing in one more: Warp turns every
-            # assignment under nested ifs into a select per level for each loop-carried value, which kept old and
-            # new copies of all the accumulators live (120 registers against 86 so written, ptxas sm_90)
-            hit = False
+            # flat branches: the pair's alpha in one level, its test as booleans, the compositing in one level.
+            # Warp turns every assignment under nested ifs into a select per level for each loop-carried value,
+            # which kept old and new copies of all the accumulators live (ptxas sm_90, float32: 120 registers
+            # nested, 80 so written: three blocks of 256 threads an SM instead of two)
             a = zero
             z = zero
-            test_t = T
             if not done:
                 U, V, n, auv, m2, zc, cut = staged_record(slab, geo4, i, j, coop)
                 rho, zh, b3, u, v, t, du, dv, dn = splat_hit(d, U, V, n, auv, m2, zc, cut, pix, fis)
                 z = zh
-                if not (rho > cut):  # else alpha < 1/255 for sure: skip the exp
+                if not (rho > cut):  # else alpha < 1/255 for sure: skip the exp (a = 0 fails the test below)
                     op = staged_opacity(slab, geo4, opacity, i, j, coop)
                     a = wp.min(type(f_ref)(ALPHA_MAX), op * wp.exp(type(f_ref)(-0.5) * rho))
-                    if not (a < type(f_ref)(ALPHA_MIN) or z < near):
-                        test_t = T * (type(f_ref)(1.0) - a)
-                        if test_t < type(f_ref)(T_MIN):
-                            done = True
-                        else:
-                            hit = True
+            ok = not done and not (a < type(f_ref)(ALPHA_MIN) or z < near)
+            test_t = T * (type(f_ref)(1.0) - a)
+            stop = ok and test_t < type(f_ref)(T_MIN)
+            hit = ok and not stop
+            done = done or stop
             if hit:
                 w = a * T
                 c = c + w * color[i]
