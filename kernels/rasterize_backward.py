@@ -33,6 +33,56 @@ from .rasterize_warp import (
 BWD_MAX_REGS = 128
 
 
+@wp.func
+def pair_adjoint(T: Any, rg: Any, a: Any, raw: Any, G: Any, op: Any, z: Any, col: Any, nf: Any, gc: Any, gn: Any,
+                 g_d: Any, g_a: Any, g_m1: Any, g_m2: Any, median: bool, gmed: Any, near: Any, far: Any, b3: bool,
+                 u: Any, v: Any, t: Any, du: Any, dv: Any, dn: Any, a_n: Any, d: Any, pix: Any, m2: Any, fis: Any):
+    """The adjoint of one (pixel, surfel) pair that contributed, walking back: both pixel backward kernels' terms.
+
+    ``T`` and ``rg`` are the pixel's transmittance after the surfel and suffix sum; ``a``, ``raw``, ``G``, ``op``,
+    ``z`` and ``b3, u, v, t, du, dv, dn`` the pair's alpha, unclamped alpha, Gaussian, opacity, depth and
+    :func:`~.rasterize.splat_hit` terms; ``col``, ``nf`` the surfel's colour and facing normal; ``gc``, ``gn`` and
+    ``g_d, g_a, g_m1, g_m2`` the pixel's upstream and aggregate gradients; ``median`` whether the surfel is the
+    pixel's median (``gmed`` its gradient); ``a_n`` the record's ``a.n``, ``m2`` its centre in pixels.
+
+    Returns ``(T_i, rg, c_color, c_nf, c_op, c_auv, c_uax, c_vax, c_nrm, c_m2, c_zc)``: the transmittance before the
+    surfel, the suffix sum with it, and its gradient terms (the 3D branch's or the filter's, the other zero).
+    """
+    one = type(T)(1.0)
+    zero = type(T)(0.0)
+    Ti = T / (one - a)
+    w = a * Ti
+    m, dm = ndc_depth(z, near, far)
+    gf = wp.dot(gc, col) + g_d * z + wp.dot(gn, nf) + g_a + g_m1 * m + g_m2 * m * m
+    g_alpha_i = Ti * gf - rg / (one - a)
+    gz = w * (g_d + (g_m1 + type(T)(2.0) * m * g_m2) * dm)
+    if median:
+        gz = gz + gmed
+    g_raw = wp.where(raw < type(T)(ALPHA_MAX), g_alpha_i, zero)
+    g_rho = type(T)(-0.5) * G * op * g_raw
+    z3 = wp.vector(zero, zero, zero)
+    c_auv = z3
+    c_uax = z3
+    c_vax = z3
+    c_nrm = z3
+    c_m2 = wp.vector(zero, zero)
+    c_zc = zero
+    if b3:
+        gu = type(T)(2.0) * u * g_rho
+        gv = type(T)(2.0) * v * g_rho
+        gt = gz + gu * du + gv * dv
+        inv_dn = one / dn
+        gdn = gt * a_n * inv_dn * inv_dn
+        c_auv = wp.vector(gu, gv, -gt * inv_dn)
+        c_uax = (gu * t) * d
+        c_vax = (gv * t) * d
+        c_nrm = gdn * d
+    else:
+        c_m2 = (type(T)(-2.0) * fis * g_rho) * (pix - m2)
+        c_zc = gz
+    return Ti, rg + w * gf, w * gc, w * gn, g_raw * G, c_auv, c_uax, c_vax, c_nrm, c_m2, c_zc
+
+
 @wp.kernel(enable_backward=False, cuda_max_registers=BWD_MAX_REGS)
 def render_backward_kernel(
     offset: int,
@@ -156,36 +206,9 @@ def render_backward_kernel(
             c_m2 = z2
             c_zc = zero
             if hit:
-                T = T / (one - a)
-                w = a * T
-                col = color[i]
-                nf = nrm_face[i]
-                m, dm = ndc_depth(z, near, far)
-                gf = wp.dot(gc, col) + g_d * z + wp.dot(gn, nf) + g_a + g_m1 * m + g_m2 * m * m
-                g_alpha_i = T * gf - rg / (one - a)
-                rg = rg + w * gf
-                c_color = w * gc
-                c_nf = w * gn
-                gz = w * (g_d + (g_m1 + type(f_ref)(2.0) * m * g_m2) * dm)
-                if k == med_k:
-                    gz = gz + gmed
-                g_raw = wp.where(raw < type(f_ref)(ALPHA_MAX), g_alpha_i, zero)
-                c_op = g_raw * G
-                g_rho = type(f_ref)(-0.5) * G * op * g_raw
-                if b3:
-                    gu = type(f_ref)(2.0) * u * g_rho
-                    gv = type(f_ref)(2.0) * v * g_rho
-                    gt = gz + gu * du + gv * dv
-                    inv_dn = one / dn
-                    gdn = gt * auv[2] * inv_dn * inv_dn
-                    c_auv = wp.vector(gu, gv, -gt * inv_dn)
-                    c_uax = (gu * t) * d
-                    c_vax = (gv * t) * d
-                    c_nrm = gdn * d
-                else:
-                    diff = pix - m2
-                    c_m2 = (type(f_ref)(-2.0) * fis * g_rho) * diff
-                    c_zc = gz
+                T, rg, c_color, c_nf, c_op, c_auv, c_uax, c_vax, c_nrm, c_m2, c_zc = pair_adjoint(
+                    T, rg, a, raw, G, op, z, color[i], nrm_face[i], gc, gn, g_d, g_a, g_m1, g_m2, k == med_k, gmed,
+                    near, far, b3, u, v, t, du, dv, dn, auv[2], d, pix, m2, fis)
             # warp-uniform from here: every lane of the warp takes the same branches
             if warp_any(hit, coop):
                 warp_add_grads(worker, i, c_color, c_nf, c_op, c_auv, c_uax, c_vax, c_nrm, c_m2, c_zc, d_color,

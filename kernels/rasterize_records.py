@@ -113,7 +113,7 @@ SURFEL = float_structs(SurfelRecord)
 _VEC_LEN = {
     "s": ["zc", "cutoff", "opacity", "opacities", "alpha", "depth", "median", "distortion", "t_final",
           "g_alpha", "g_depth", "g_median", "g_dist", "d_zc", "d_opacity", "g_zc", "g_opacity", "run_t", "run_rg"],
-    "v2": ["scales", "m2", "means2d", "d_m2", "d_shift", "g_m2", "g_shift"],
+    "v2": ["scales", "m2", "means2d", "d_m2", "g_m2", "g_shift"],
     "v3": ["means", "uax", "vax", "nrm", "auv", "nrm_face", "color", "background", "sh", "rays", "rgb", "normal",
            "sums", "g_rgb", "g_normal", "d_uax", "d_vax", "d_nrm", "d_auv", "d_nrm_face", "d_color", "g_uax", "g_vax",
            "g_nrm", "g_auv", "g_nrm_face", "g_color"],

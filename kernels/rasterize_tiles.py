@@ -21,6 +21,7 @@ from typing import Any
 import warp as wp
 
 from .rasterize import ALPHA_MAX, ALPHA_MIN, T_MIN, ndc_depth, record_hit
+from .rasterize_backward import pair_adjoint
 from .rasterize_records import declare_float_overloads
 
 wp.set_module_options({"enable_backward": False})
@@ -266,48 +267,23 @@ def render_backward_tiles_kernel(
                     if not (a >= type(f_ref)(ALPHA_MIN) and z >= near):
                         continue
                     ag = agg[py, px]
-                    g_d = ag[0]
-                    g_a = ag[1]
-                    g_m1 = ag[2]
-                    g_m2 = ag[3]
-                    gc = g_rgb[py, px]
-                    gn = g_normal[py, px]
-                    T = run_t[py, px] / (one - a)
+                    T, rg, c_color, c_nf, c_op, c_auv, c_uax, c_vax, c_nrm, c_m2, c_zc = pair_adjoint(
+                        run_t[py, px], run_rg[py, px], a, raw, G, op, z, col, nf, g_rgb[py, px], g_normal[py, px],
+                        ag[0], ag[1], ag[2], ag[3], k == median_idx[py, px], g_median[py, px], near, far, b3, u, v,
+                        t, du, dv, dn, g.auv[2], d, pix, g.m2, fis)
                     run_t[py, px] = T
-                    rg = run_rg[py, px]
-                    w = a * T
-                    m, dm = ndc_depth(z, near, far)
-                    gf = wp.dot(gc, col) + g_d * z + wp.dot(gn, nf) + g_a + g_m1 * m + g_m2 * m * m
-                    g_alpha_i = T * gf - rg / (one - a)
-                    run_rg[py, px] = rg + w * gf
-                    c_color = w * gc
-                    c_nf = w * gn
-                    gz = w * (g_d + (g_m1 + type(f_ref)(2.0) * m * g_m2) * dm)
-                    if k == median_idx[py, px]:
-                        gz = gz + g_median[py, px]
-                    g_raw = zero
-                    if raw < type(f_ref)(ALPHA_MAX):
-                        g_raw = g_alpha_i
-                    c_op = g_raw * G
-                    g_rho = type(f_ref)(-0.5) * G * op * g_raw
+                    run_rg[py, px] = rg
                     d_color[worker, i] = d_color[worker, i] + c_color
                     d_nrm_face[worker, i] = d_nrm_face[worker, i] + c_nf
                     d_opacity[worker, i] = d_opacity[worker, i] + c_op
                     if b3:
-                        gu = type(f_ref)(2.0) * u * g_rho
-                        gv = type(f_ref)(2.0) * v * g_rho
-                        gt = gz + gu * du + gv * dv
-                        inv_dn = one / dn
-                        gdn = gt * g.auv[2] * inv_dn * inv_dn
-                        d_auv[worker, i] = d_auv[worker, i] + wp.vector(gu, gv, -gt * inv_dn)
-                        d_uax[worker, i] = d_uax[worker, i] + (gu * t) * d
-                        d_vax[worker, i] = d_vax[worker, i] + (gv * t) * d
-                        d_nrm[worker, i] = d_nrm[worker, i] + gdn * d
+                        d_auv[worker, i] = d_auv[worker, i] + c_auv
+                        d_uax[worker, i] = d_uax[worker, i] + c_uax
+                        d_vax[worker, i] = d_vax[worker, i] + c_vax
+                        d_nrm[worker, i] = d_nrm[worker, i] + c_nrm
                     else:
-                        diff = pix - g.m2
-                        c_m2 = (type(f_ref)(-2.0) * fis * g_rho) * diff
                         d_m2[worker, i] = d_m2[worker, i] + c_m2
-                        d_zc[worker, i] = d_zc[worker, i] + gz
+                        d_zc[worker, i] = d_zc[worker, i] + c_zc
         k -= 1
 
 
