@@ -11,7 +11,8 @@ Kernel arguments are records (``@wp.struct``, one type per float dtype, see
 :func:`~.rasterize_records.float_structs`): ``cams`` a one-element array of
 :class:`~.rasterize_records.CameraRecord` in device memory (everything the kernels read per view) and ``geo``
 an array of :class:`~.rasterize_records.SurfelRecord` (what the pixel kernels test per surfel, written by
-:func:`pack_surfels_kernel`). Both are inputs only: nothing is differentiated w.r.t. the camera. The records
+:func:`pack_surfels_kernel`; the per-pixel kernels read it as ``geo4``, four 4-vectors a record, see
+:func:`~.rasterize_warp.staged_record`). Both are inputs only: nothing is differentiated w.r.t. the camera. The records
 and the float32 / float64 overload declarations are in :mod:`.rasterize_records`.
 
 Per-surfel quantities the pixel kernels read (written by :func:`prepare_surfels_kernel`):
@@ -31,7 +32,17 @@ from .rasterize_records import CameraRecord as CameraRecord
 from .rasterize_records import SurfelRecord as SurfelRecord
 from .rasterize_records import declare_float_overloads
 from .rasterize_records import float_structs as float_structs
-from .rasterize_warp import fetch_batch, lane_id, warp_any, warp_bcast, warp_count
+from .rasterize_warp import (
+    fetch_batch,
+    lane_id,
+    stage_batch,
+    staged_opacity,
+    staged_record,
+    staging_slab,
+    warp_any,
+    warp_bcast,
+    warp_count,
+)
 from .rotation import quat_axes
 
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped (3DGS/2DGS convention)
@@ -184,10 +195,11 @@ def pixel_tile_coords(g: int, tile_size: int, tiles_x: int):
 
 
 @wp.func
-def splat_hit(d: Any, g: Any, pix: Any, fis: Any):
-    """Ray-splat intersection and screen-space filter at one pixel for a :class:`SurfelRecord` ``g``.
+def splat_hit(d: Any, U: Any, V: Any, n: Any, auv: Any, m2: Any, zc: Any, c: Any, pix: Any, fis: Any):
+    """Ray-splat intersection and screen-space filter at one pixel for the fields of a :class:`SurfelRecord`
+    (``U``, ``V``, ``n``, ``auv``, ``m2``, ``zc`` and the cut-off ``c``).
 
-    With ``a = camera - centre`` and ``g.auv = (a.U, a.V, a.n)`` precomputed per surfel, the ray
+    With ``a = camera - centre`` and ``auv = (a.U, a.V, a.n)`` precomputed per surfel, the ray
     ``a + t d`` meets the plane at ``t = -a.n / d.n`` with local coordinates
     ``u = a.U + t d.U``, ``v = a.V + t d.V``. Returns ``(rho, z, branch3d, u, v, t, dU, dV, dn)``:
     the Gaussian exponent ``rho = min(rho3d, rho2d)``, the contribution's z-depth (intersection
@@ -198,18 +210,16 @@ def splat_hit(d: Any, g: Any, pix: Any, fis: Any):
     ``|(u, v)|^2 dn^2 > cutoff dn^2``), returns ``rho = RHO_BIG`` (above every cut-off) at once: most pairs of a
     tile's list are, and forward and backward take the same decision, so skipping them changes nothing but time.
     """
-    zc = g.zc
-    c = g.cutoff
-    dx = pix[0] - g.m2[0]
-    dy = pix[1] - g.m2[1]
+    dx = pix[0] - m2[0]
+    dy = pix[1] - m2[1]
     rho2d = fis * (dx * dx + dy * dy)
-    du = d[0] * g.U[0] + d[1] * g.U[1] + d[2] * g.U[2]
-    dv = d[0] * g.V[0] + d[1] * g.V[1] + d[2] * g.V[2]
-    dn = d[0] * g.n[0] + d[1] * g.n[1] + d[2] * g.n[2]
+    du = d[0] * U[0] + d[1] * U[1] + d[2] * U[2]
+    dv = d[0] * V[0] + d[1] * V[1] + d[2] * V[2]
+    dn = d[0] * n[0] + d[1] * n[1] + d[2] * n[2]
     zero = type(zc)(0.0)
     if rho2d > c:
-        pu = g.auv[0] * dn - g.auv[2] * du
-        pv = g.auv[1] * dn - g.auv[2] * dv
+        pu = auv[0] * dn - auv[2] * du
+        pv = auv[1] * dn - auv[2] * dv
         if pu * pu + pv * pv > c * dn * dn:
             return type(zc)(RHO_BIG), zc, False, zero, zero, zero, du, dv, dn
     rho3d = type(zc)(RHO_BIG)
@@ -217,9 +227,9 @@ def splat_hit(d: Any, g: Any, pix: Any, fis: Any):
     u = zero
     v = zero
     if wp.abs(dn) > type(zc)(PARALLEL_EPS):
-        t = -g.auv[2] / dn
-        u = g.auv[0] + t * du
-        v = g.auv[1] + t * dv
+        t = -auv[2] / dn
+        u = auv[0] + t * du
+        v = auv[1] + t * dv
         r = u * u + v * v
         if wp.isfinite(r):
             rho3d = r
@@ -258,6 +268,12 @@ def pack_surfels_kernel(
 
 
 @wp.func
+def record_hit(d: Any, g: Any, pix: Any, fis: Any):
+    """:func:`splat_hit` for a :class:`SurfelRecord` ``g``."""
+    return splat_hit(d, g.U, g.V, g.n, g.auv, g.m2, g.zc, g.cutoff, pix, fis)
+
+
+@wp.func
 def ndc_depth(z: Any, near: Any, far: Any):
     """2DGS distortion depth mapping ``far / (far - near) * (1 - near / z)`` and its derivative."""
     k = far / (far - near)
@@ -273,7 +289,7 @@ def render_forward_kernel(
     ids: wp.array[wp.int32],
     rays: wp.array2d[Any],
     cams: wp.array[Any],
-    geo: wp.array[Any],
+    geo4: wp.array2d[Any],
     nrm_face: wp.array[Any],
     color: wp.array[Any],
     opacity: wp.array[Any],
@@ -325,10 +341,12 @@ def render_forward_kernel(
     k_end = tile_end[tile]
     done = not inside
     lane = lane_id(coop)
+    slab = staging_slab(f_ref, coop)
     kb = tile_start[tile]
     while kb < k_end and warp_any(not done, coop):
         nb = wp.min(batch, k_end - kb)
-        mine = fetch_batch(ids, kb, 1, nb, lane, geo, opacity, color, nrm_face)
+        mine = fetch_batch(ids, kb, 1, nb, lane, color, nrm_face)
+        stage_batch(slab, geo4, opacity, mine, lane, nb, coop)
         j = int(0)
         while j < nb and warp_any(not done, coop):
             k = kb + j
@@ -340,11 +358,12 @@ def render_forward_kernel(
             a = zero
             z = zero
             if not done:
-                g = geo[i]
-                rho, zh, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, fis)
+                U, V, n, auv, m2, zc, cut = staged_record(slab, geo4, i, j, coop)
+                rho, zh, b3, u, v, t, du, dv, dn = splat_hit(d, U, V, n, auv, m2, zc, cut, pix, fis)
                 z = zh
-                if not (rho > g.cutoff):  # else alpha < 1/255 for sure: skip the exp (a = 0 fails the test below)
-                    a = wp.min(type(f_ref)(ALPHA_MAX), opacity[i] * wp.exp(type(f_ref)(-0.5) * rho))
+                if not (rho > cut):  # else alpha < 1/255 for sure: skip the exp (a = 0 fails the test below)
+                    op = staged_opacity(slab, geo4, opacity, i, j, coop)
+                    a = wp.min(type(f_ref)(ALPHA_MAX), op * wp.exp(type(f_ref)(-0.5) * rho))
             ok = not done and not (a < type(f_ref)(ALPHA_MIN) or z < near)
             test_t = T * (type(f_ref)(1.0) - a)
             stop = ok and test_t < type(f_ref)(T_MIN)

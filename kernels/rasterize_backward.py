@@ -13,7 +13,18 @@ import warp as wp
 
 from .rasterize import ALPHA_MAX, ALPHA_MIN, ndc_depth, pixel_tile_coords, splat_hit
 from .rasterize_records import declare_float_overloads
-from .rasterize_warp import fetch_batch, lane_id, warp_add_grads, warp_any, warp_bcast, warp_max
+from .rasterize_warp import (
+    fetch_batch,
+    lane_id,
+    stage_batch,
+    staged_opacity,
+    staged_record,
+    staging_slab,
+    warp_add_grads,
+    warp_any,
+    warp_bcast,
+    warp_max,
+)
 
 # Register cap of the CUDA backward pixel kernel: uncapped, nvcc gives its float32 version 167 registers,
 # one block of 256 threads per SM; at 128 two blocks fit and the kernel ran 1.24x faster (H100, 800x800,
@@ -80,7 +91,7 @@ def render_backward_kernel(
     ids: wp.array[wp.int32],
     rays: wp.array2d[Any],
     cams: wp.array[Any],
-    geo: wp.array[Any],
+    geo4: wp.array2d[Any],
     nrm_face: wp.array[Any],
     color: wp.array[Any],
     opacity: wp.array[Any],
@@ -161,24 +172,26 @@ def render_backward_kernel(
     z3 = wp.vector(zero, zero, zero)
     z2 = wp.vector(zero, zero)
     lane = lane_id(coop)
+    slab = staging_slab(f_ref, coop)
     kb = warp_max(end, coop) - 1
     while kb >= start:
         nb = wp.min(batch, kb - start + 1)
-        mine = fetch_batch(ids, kb, -1, nb, lane, geo, opacity, color, nrm_face)
+        mine = fetch_batch(ids, kb, -1, nb, lane, color, nrm_face)
+        stage_batch(slab, geo4, opacity, mine, lane, nb, coop)
         for j in range(nb):
             k = kb - j
             i = warp_bcast(mine, j, coop)
-            g = geo[i]
+            U, V, n, auv, m2, zc, cut = staged_record(slab, geo4, i, j, coop)
             # the pair's test, then its terms, one level of branches each: Warp turns an assignment under nested
             # ifs into a select per level for every value the loop carries (see the forward kernel)
-            rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, fis)
+            rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, U, V, n, auv, m2, zc, cut, pix, fis)
             hit = False
             op = zero
             G = zero
             raw = zero
             a = zero
-            if k < end and not (rho > g.cutoff):
-                op = opacity[i]
+            if k < end and not (rho > cut):
+                op = staged_opacity(slab, geo4, opacity, i, j, coop)
                 G = wp.exp(type(f_ref)(-0.5) * rho)
                 raw = op * G
                 a = wp.min(type(f_ref)(ALPHA_MAX), raw)
@@ -195,7 +208,7 @@ def render_backward_kernel(
             if hit:
                 T, rg, c_color, c_nf, c_op, c_auv, c_uax, c_vax, c_nrm, c_m2, c_zc = pair_adjoint(
                     T, rg, a, raw, G, op, z, color[i], nrm_face[i], gc, gn, g_d, g_a, g_m1, g_m2, k == med_k, gmed,
-                    near, far, b3, u, v, t, du, dv, dn, g.auv[2], d, pix, g.m2, fis)
+                    near, far, b3, u, v, t, du, dv, dn, auv[2], d, pix, m2, fis)
             # warp-uniform from here: every lane of the warp takes the same branches
             if warp_any(hit, coop):
                 warp_add_grads(worker, i, c_color, c_nf, c_op, c_auv, c_uax, c_vax, c_nrm, c_m2, c_zc, d_color,

@@ -117,7 +117,7 @@ _VEC_LEN = {
     "v3": ["means", "uax", "vax", "nrm", "auv", "nrm_face", "color", "background", "sh", "rays", "rgb", "normal",
            "sums", "g_rgb", "g_normal", "d_uax", "d_vax", "d_nrm", "d_auv", "d_nrm_face", "d_color", "g_uax", "g_vax",
            "g_nrm", "g_auv", "g_nrm_face", "g_color"],
-    "v4": ["quats", "agg"],
+    "v4": ["quats", "agg", "geo4"],
     "cam": ["cam", "cams"],
     "rec": ["geo"],
 }

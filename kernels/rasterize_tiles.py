@@ -10,7 +10,7 @@ the tile binning: no pixel outside it can pass the alpha threshold). Each pixel'
 arrays between surfels, which are the forward's outputs and saved state themselves.
 
 Same results bit for bit as the per-pixel kernels on the CPU: every pixel sees the surfels it can hit in
-the same order with the same arithmetic (:func:`~.rasterize.splat_hit`), a skipped pair changes nothing,
+the same order with the same arithmetic (:func:`~.rasterize.record_hit`), a skipped pair changes nothing,
 and each surfel's gradient terms are added to the worker's buffer in the same order (tiles in launch
 order, then pixels of the tile in row-major order: a surfel appears once in a tile's list).
 Compiled with ``enable_backward=False``; generic over float32 / float64.
@@ -20,7 +20,7 @@ from typing import Any
 
 import warp as wp
 
-from .rasterize import ALPHA_MAX, ALPHA_MIN, T_MIN, ndc_depth, splat_hit
+from .rasterize import ALPHA_MAX, ALPHA_MIN, T_MIN, ndc_depth, record_hit
 from .rasterize_backward import pair_adjoint
 from .rasterize_records import declare_float_overloads
 
@@ -119,7 +119,7 @@ def render_forward_tiles_kernel(
                         continue
                     d = rays[py, px]
                     pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
-                    rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, fis)
+                    rho, z, b3, u, v, t, du, dv, dn = record_hit(d, g, pix, fis)
                     if rho > g.cutoff:  # alpha < 1/255 for sure: skip the exp
                         continue
                     a = wp.min(type(f_ref)(ALPHA_MAX), op * wp.exp(type(f_ref)(-0.5) * rho))
@@ -258,7 +258,7 @@ def render_backward_tiles_kernel(
                         continue
                     d = rays[py, px]
                     pix = wp.vector(type(f_ref)(px) + type(f_ref)(0.5), type(f_ref)(py) + type(f_ref)(0.5))
-                    rho, z, b3, u, v, t, du, dv, dn = splat_hit(d, g, pix, fis)
+                    rho, z, b3, u, v, t, du, dv, dn = record_hit(d, g, pix, fis)
                     if rho > g.cutoff:
                         continue
                     G = wp.exp(type(f_ref)(-0.5) * rho)

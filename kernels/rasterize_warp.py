@@ -83,23 +83,148 @@ def prefetch(a: wp.array[Any], i: int):
 
 
 @wp.func
-def fetch_batch(ids: wp.array[wp.int32], k: int, step: int, nb: int, lane: int, geo: wp.array[Any],
-                opacity: wp.array[Any], color: wp.array[Any], nrm_face: wp.array[Any]):
-    """Lane ``j < nb`` reads ``ids[k + j * step]`` and prefetches that surfel's records; returns the id.
+def fetch_batch(ids: wp.array[wp.int32], k: int, step: int, nb: int, lane: int, color: wp.array[Any],
+                nrm_face: wp.array[Any]):
+    """Lane ``j < nb`` reads ``ids[k + j * step]`` and prefetches that surfel's colour and facing normal; returns
+    the id (:func:`stage_batch` then copies the batch's records into shared memory).
 
     The list is walked one surfel at a time, each step a chain of dependent loads (id, record, then
     opacity, colour, normal) that the warp waits for; fetching the next ``nb`` ids with one load per
-    lane and prefetching their records overlaps those latencies (the records of 1M surfels, 64 MB in
-    float32, do not fit the L2 cache).
+    lane overlaps those latencies (the records of 1M surfels, 64 MB in float32, do not fit the L2 cache).
     """
     mine = int(0)
     if lane < nb:
         mine = int(ids[k + lane * step])
-        prefetch(geo, mine)
-        prefetch(opacity, mine)
         prefetch(color, mine)
         prefetch(nrm_face, mine)
     return mine
+
+
+# -- per-warp staging of a batch's records in shared memory (CUDA) ------------------------------------------------
+# The kernels read each SurfelRecord as four 4-vectors (``geo4``, a [N, 4] view of the records: U, V, n and auv, m2,
+# zc and cutoff packed in field order). A slot of the staging slab holds one surfel's four quads and its opacity,
+# padded to 16 bytes; a block (256 threads, the launches' default) has 8 warps of 32 slots. Lane j of a warp copies
+# surfel j of the batch into its slot with 16-byte loads, then at each step every lane reads slot j of its warp
+# (one address: a broadcast) instead of the record's scalar loads from global memory and their address arithmetic.
+WARPS_PER_BLOCK = 8
+_SLOT = "(4 * sizeof(geo4.data[0]) + 16)"  # bytes of one slot: the record, then the opacity in 16 bytes
+
+
+_SLAB = f"""
+#if defined(__CUDA_ARCH__)
+    __shared__ __align__(16) unsigned char slab[{WARPS_PER_BLOCK} * 32 * (16 * sizeof(like) + 16)];
+    if (blockDim.x > {WARPS_PER_BLOCK} * 32) __trap();  // more warps than slabs: a launch with another block_dim
+    return (wp::uint64)slab;
+#else
+    return 0;
+#endif
+"""
+
+
+@wp.func_native(_SLAB)
+def staging_slab(like: wp.float32, coop: int) -> wp.uint64:
+    """Address of this block's staging slab, sized for records of ``like``'s float type (CUDA; 0 on the CPU)."""
+    ...
+
+
+@wp.func_native(_SLAB)
+def staging_slab(like: wp.float64, coop: int) -> wp.uint64:  # noqa: F811 - the float64 overload
+    """:func:`staging_slab` of float64 records."""
+    ...
+
+
+@wp.func_native(f"""
+#if defined(__CUDA_ARCH__)
+    // coop: lane l fills slot l of its warp; else each thread (lane 0 of a batch of 1) fills its own slot
+    const unsigned slot = coop ? lane : (threadIdx.x & 31);
+    unsigned char* dst = reinterpret_cast<unsigned char*>(slab) + ((threadIdx.x >> 5) * 32 + slot) * {_SLOT};
+    if (coop) __syncwarp();  // the warp's reads of the previous batch are done
+    if (lane < nb) {{
+        const int4* src = reinterpret_cast<const int4*>(wp::address(geo4, mine, 0));
+        #pragma unroll
+        for (int q = 0; q < static_cast<int>(sizeof(geo4.data[0]) / 4); ++q) {{
+            reinterpret_cast<int4*>(dst)[q] = __ldg(src + q);
+        }}
+        auto* op = reinterpret_cast<decltype(opacity.data)>(dst + 4 * sizeof(geo4.data[0]));
+        *op = __ldg(wp::address(opacity, mine));
+    }}
+    if (coop) __syncwarp();
+#endif
+""")
+def stage_batch(slab: wp.uint64, geo4: wp.array2d[Any], opacity: wp.array[Any], mine: int, lane: int, nb: int,
+                coop: int):
+    """Lane ``lane < nb`` copies surfel ``mine``'s record and opacity into its slot (CUDA; nothing on the CPU).
+    ``coop``: warp-uniform, every lane calls it, slot ``lane``; else each thread stages its own surfel (``lane`` 0,
+    ``nb`` 1) in a slot of its own."""
+    ...
+
+
+_SLOT_OF = ("(__builtin_assume(__isShared(reinterpret_cast<void*>(slab))), reinterpret_cast<unsigned char*>(slab))"
+            " + ((threadIdx.x >> 5) * 32 + (coop ? j : (threadIdx.x & 31))) * " + _SLOT)
+_QUAD32 = f"""
+#if defined(__CUDA_ARCH__)
+    const float4 v = reinterpret_cast<const float4*>({_SLOT_OF})[q];
+    return wp::vec4(v.x, v.y, v.z, v.w);
+#else
+    return wp::index(geo4, i, q);
+#endif
+"""
+_QUAD64 = f"""
+#if defined(__CUDA_ARCH__)
+    const double2* p = reinterpret_cast<const double2*>({_SLOT_OF}) + 2 * q;
+    const double2 a = p[0];
+    const double2 b = p[1];
+    return wp::vec4d(a.x, a.y, b.x, b.y);
+#else
+    return wp::index(geo4, i, q);
+#endif
+"""
+_OPACITY = f"""
+#if defined(__CUDA_ARCH__)
+    return *reinterpret_cast<decltype(opacity.data)>({_SLOT_OF.replace("geo4", "quad")} + 4 * sizeof(quad.data[0]));
+#else
+    return wp::index(opacity, i);
+#endif
+"""
+
+
+@wp.func_native(_QUAD32)
+def staged_quad(slab: wp.uint64, geo4: wp.array2d[wp.vec4], i: int, j: int, q: int, coop: int) -> wp.vec4:
+    """Quad ``q`` of surfel ``i``'s record: on CUDA from slot ``j`` of this warp (``coop``; else this thread's own
+    slot), on the CPU ``geo4[i, q]``."""
+    ...
+
+
+@wp.func_native(_QUAD64)
+def staged_quad(slab: wp.uint64, geo4: wp.array2d[wp.vec4d], i: int, j: int, q: int, coop: int) -> wp.vec4d:  # noqa: F811
+    """:func:`staged_quad` of float64 records."""
+    ...
+
+
+@wp.func_native(_OPACITY)
+def staged_opacity(slab: wp.uint64, quad: wp.array2d[wp.vec4], opacity: wp.array[wp.float32], i: int, j: int,
+                   coop: int) -> wp.float32:
+    """Surfel ``i``'s opacity, from the slot :func:`staged_quad` reads (CUDA) or ``opacity[i]`` (CPU). ``quad``:
+    ``geo4`` (its type sizes the slot)."""
+    ...
+
+
+@wp.func_native(_OPACITY)
+def staged_opacity(slab: wp.uint64, quad: wp.array2d[wp.vec4d], opacity: wp.array[wp.float64], i: int, j: int,  # noqa: F811
+                   coop: int) -> wp.float64:
+    """:func:`staged_opacity` of float64 records."""
+    ...
+
+
+@wp.func
+def staged_record(slab: wp.uint64, geo4: wp.array2d[Any], i: int, j: int, coop: int):
+    """Surfel ``i``'s record fields ``(U, V, n, auv, m2, zc, cutoff)`` from its four quads (staged, or ``geo4``)."""
+    q0 = staged_quad(slab, geo4, i, j, 0, coop)
+    q1 = staged_quad(slab, geo4, i, j, 1, coop)
+    q2 = staged_quad(slab, geo4, i, j, 2, coop)
+    q3 = staged_quad(slab, geo4, i, j, 3, coop)
+    return (wp.vector(q0[0], q0[1], q0[2]), wp.vector(q0[3], q1[0], q1[1]), wp.vector(q1[2], q1[3], q2[0]),
+            wp.vector(q2[1], q2[2], q2[3]), wp.vector(q3[0], q3[1]), q3[2], q3[3])
 
 
 @wp.func_native("""

@@ -31,7 +31,7 @@ SHIMS = r"""
 
 #define __CUDA_ARCH__ 900
 #define __shared__ static
-#define __align__(n) alignas(n)
+#define __align__(n) __attribute__((aligned(n)))
 #define CUDA_CALLABLE
 
 namespace wp {
@@ -100,6 +100,8 @@ unsigned __ballot_sync(unsigned, bool b) {
     return bits;
 }
 int __popc(unsigned x) { return __builtin_popcount(x); }
+#define __builtin_assume(x) ((void)0)
+#define __isShared(p) true
 [[noreturn]] void __trap() { std::abort(); }
 template <class T> void atomicAdd(T* p, T v) {
     std::lock_guard<std::mutex> g(wp::atomic_lock);

@@ -131,3 +131,79 @@ def test_warp_add_grads_and_count_sum_the_warp(tmp_path, f, coop):
     for name, w in want.items():
         np.testing.assert_allclose(got[name], w, rtol=rtol, atol=rtol, err_msg=name)
     assert np.count_nonzero(got["d_vax"]) == 2  # slot 13 (vax's first component) summed to zero: never added
+
+
+def _overload(fn, f: str):
+    """The float32 or float64 overload of a helper (``f``: its C++ float type)."""
+    if not fn.user_overloads:
+        return fn
+    tag = "f4" if f == "float" else "f8"
+    return next(o for sig, o in fn.user_overloads.items() if tag in sig)
+
+
+def _staging_driver(f: str, geo: np.ndarray, opacity: np.ndarray, batches: list[np.ndarray], coop: int) -> str:
+    n = geo.shape[0]
+    q = "wp::vec4" if f == "float" else "wp::vec4d"
+    lines = [f"static {f} GEO[{n} * 16] = {{" + ", ".join(repr(float(v)) for v in geo.reshape(-1)) + "};",
+             f"static {f} OPA[{n}] = {{" + ", ".join(repr(float(v)) for v in opacity) + "};", "int main() {",
+             f"  auto geo4 = view(reinterpret_cast<{q}*>(GEO), {n}, 4);",
+             f"  auto opacity = view(OPA, 1, {n}); opacity.strides[0] = sizeof({f});",
+             "  static int IDS[32];"]
+    for b, ids in enumerate(batches):
+        nb = len(ids)
+        lines += [f"  {{ const int ids[{nb}] = {{" + ", ".join(str(int(i)) for i in ids) + "};",
+                  f"    std::vector<{f}> out(32 * {nb} * 17);",
+                  "    run_warp(3, [&](int l) {",
+                  f"      const wp::uint64 slab = staging_slab({f}(0), {coop});",
+                  # coop: lane l stages surfel l of the batch, then reads every surfel j from slot j; else each
+                  # thread stages its own (lane 0 of a batch of 1) and reads it at every step
+                  f"      const int mine = {coop} ? (l < {nb} ? ids[l] : 0) : ids[l % {nb}];",
+                  f"      stage_batch(slab, geo4, opacity, mine, {coop} ? l : 0, {coop} ? {nb} : 1, {coop});",
+                  f"      for (int j = 0; j < {nb}; ++j) {{",
+                  f"        {f}* o = &out[(l * {nb} + j) * 17];",
+                  f"        const int i = {coop} ? ids[j] : mine, jj = {coop} ? j : 0;",
+                  "        for (int k = 0; k < 4; ++k) {",
+                  f"          const {q} v = staged_quad(slab, geo4, i, jj, k, {coop});",
+                  "          for (int m = 0; m < 4; ++m) o[4 * k + m] = v[m];",
+                  "        }",
+                  f"        o[16] = staged_opacity(slab, geo4, opacity, i, jj, {coop});",
+                  "      }",
+                  "    });",
+                  f'    std::printf("batch{b}"); for (auto v : out) std::printf(" %.17g", double(v)); '
+                  'std::printf("\\n"); }']
+    return "\n".join([*lines, "  return 0;", "}"])
+
+
+@pytest.mark.parametrize("coop", [1, 0])
+@pytest.mark.parametrize("f", ["float", "double"])
+def test_staged_records_are_the_batch_surfels(tmp_path, f, coop):
+    """With ``coop`` every lane reads, at step j, surfel ids[j]'s four quads and opacity from its warp's shared slots
+    after ``stage_batch`` (lanes past the batch stage nothing; a second batch overwrites the first); without it each
+    thread reads back the surfel it staged in its own slot."""
+    rng = np.random.default_rng(9)
+    dt = np.float32 if f == "float" else np.float64
+    geo = rng.normal(size=(40, 16)).astype(dt)
+    opacity = rng.random(40).astype(dt)
+    batches = [rng.choice(40, size=27, replace=False), rng.choice(40, size=32, replace=False)]
+    quads = "wp::array_t<wp::vec4>" if f == "float" else "wp::array_t<wp::vec4d>"
+    typed = {"slab": "wp::uint64", "geo4": quads, "quad": quads}
+
+    def cxx(name):
+        return typed.get(name) or _cxx_type(name, f)
+
+    funcs = []
+    for fn, ret in ((W.staging_slab, "wp::uint64"), (W.stage_batch, "void"),
+                    (W.staged_quad, "wp::vec4" if f == "float" else "wp::vec4d"), (W.staged_opacity, f)):
+        o = _overload(fn, f)
+        funcs.append(function_source(fn.key, o.native_snippet, ret, [(cxx(n), n) for n in o.input_types]))
+    exe = build("\n".join([SHIMS, *funcs, _staging_driver(f, geo, opacity, batches, coop)]), tmp_path / "stage")
+    if exe is None:
+        pytest.skip("no g++ to build the warp emulation")
+    res = subprocess.run([str(exe)], capture_output=True, text=True, timeout=60, check=True)
+    for b, line in enumerate(res.stdout.splitlines()):
+        ids = batches[b]
+        got = np.array([float(x) for x in line.split()[1:]]).reshape(32, len(ids), 17)
+        rec = np.concatenate([geo, opacity[:, None]], axis=1)
+        for lane in range(32):
+            want = rec[ids] if coop else np.repeat(rec[ids[lane % len(ids)]][None], len(ids), axis=0)
+            np.testing.assert_array_equal(got[lane], want, err_msg=f"batch {b}, lane {lane}")

@@ -158,6 +158,17 @@ def struct_view(t: torch.Tensor, dtype) -> wp.array:
     return arr
 
 
+def quad_view(records: wp.array, quad) -> wp.array:
+    """The records of a :func:`empty_struct` array as ``[N, 4]`` of ``quad`` (``wp.vec4`` or ``wp.vec4d``): the same
+    memory, four quads a record (the record's size must be four quads'); the view keeps it alive."""
+    if wp.types.type_size_in_bytes(records.dtype) != 4 * wp.types.type_size_in_bytes(quad):
+        raise TypeError(f"quad_view: a {records.dtype.__name__} record is not four {quad.__name__}")
+    t = records._tensor  # noqa: SLF001
+    arr = _view(t.data_ptr(), quad, (records.shape[0], 4), t.device)
+    arr._tensor = t  # noqa: SLF001
+    return arr
+
+
 def empty_struct(n: int, dtype, device) -> wp.array:
     """``wp.empty(n, dtype=dtype)`` of a struct type in torch's memory (uninitialised; a CUDA graph's capture may
     allocate it, where Warp's own pool may not be used)."""

@@ -158,7 +158,8 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
                                      [*outs, t_final, sums, last, median_idx, done, vis_w], device=wdev,
                                      workers=workers, tiles_per_chunk=config.tiles_per_chunk)
             else:
-                surf += [coop, batch]
+                # the pixel kernels read each record as four quads (kernels/rasterize_warp.py: staged in shared memory)
+                surf = [_bridge.quad_view(geo, v4), *surf[1:], coop, batch]
                 _launch_tiles(_k.render_forward_kernel, n_tiles, ts * ts,
                               [bins.tile_start, bins.tile_end, bins.ids, rays_wp, cam_rec, *surf],
                               [*outs, t_final, sums, last, median_idx, vis_w], device=wdev, workers=workers,
