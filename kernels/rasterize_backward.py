@@ -29,7 +29,8 @@ from .rasterize_warp import (
 # Register cap of the CUDA backward pixel kernel: uncapped, nvcc gives its float32 version 167 registers,
 # one block of 256 threads per SM; at 128 two blocks fit and the kernel ran 1.24x faster (H100, 800x800,
 # 100k and 1M surfels: 5.87 -> 4.70 ms, 11.26 -> 9.08 ms; 96: 5.16 / 10.06, 80: 5.02 / 10.04, 64: 8.80 /
-# 18.86). The forward (128 registers) ran slower capped (96: 1.79 / 3.57 ms against 1.64 / 3.28).
+# 18.86); the forward's cap is rasterize.FWD_MAX_REGS. Written with flat branches, the float32
+# kernel fits 128 without spilling.
 BWD_MAX_REGS = 128
 
 
