@@ -345,7 +345,7 @@ def render_forward_kernel(
     k_end = tile_end[tile]
     done = not inside
     lane = lane_id(coop)
-    slab = staging_slab(f_ref, coop)
+    slab = staging_slab(f_ref)
     kb = tile_start[tile]
     while kb < k_end and warp_any(not done, coop):
         nb = wp.min(batch, k_end - kb)

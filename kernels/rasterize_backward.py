@@ -173,7 +173,7 @@ def render_backward_kernel(
     z3 = wp.vector(zero, zero, zero)
     z2 = wp.vector(zero, zero)
     lane = lane_id(coop)
-    slab = staging_slab(f_ref, coop)
+    slab = staging_slab(f_ref)
     kb = warp_max(end, coop) - 1
     while kb >= start:
         nb = wp.min(batch, kb - start + 1)

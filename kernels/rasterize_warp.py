@@ -122,13 +122,13 @@ _SLAB = f"""
 
 
 @wp.func_native(_SLAB)
-def staging_slab(like: wp.float32, coop: int) -> wp.uint64:
+def staging_slab(like: wp.float32) -> wp.uint64:
     """Address of this block's staging slab, sized for records of ``like``'s float type (CUDA; 0 on the CPU)."""
     ...
 
 
 @wp.func_native(_SLAB)
-def staging_slab(like: wp.float64, coop: int) -> wp.uint64:  # noqa: F811 - the float64 overload
+def staging_slab(like: wp.float64) -> wp.uint64:  # noqa: F811 - the float64 overload
     """:func:`staging_slab` of float64 records."""
     ...
 

@@ -154,7 +154,7 @@ def _staging_driver(f: str, geo: np.ndarray, opacity: np.ndarray, batches: list[
         lines += [f"  {{ const int ids[{nb}] = {{" + ", ".join(str(int(i)) for i in ids) + "};",
                   f"    std::vector<{f}> out(32 * {nb} * 17);",
                   "    run_warp(3, [&](int l) {",
-                  f"      const wp::uint64 slab = staging_slab({f}(0), {coop});",
+                  f"      const wp::uint64 slab = staging_slab({f}(0));",
                   # coop: lane l stages surfel l of the batch, then reads every surfel j from slot j; else each
                   # thread stages its own (lane 0 of a batch of 1) and reads it at every step
                   f"      const int mine = {coop} ? (l < {nb} ? ids[l] : 0) : ids[l % {nb}];",
