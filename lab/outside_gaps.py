@@ -15,6 +15,7 @@ import argparse
 import contextlib
 import json
 import os
+import sys
 import tempfile
 import time
 from collections import defaultdict
@@ -57,7 +58,12 @@ def main() -> int:
     if a.device:
         set_field(cfg, "runtime.device", a.device)
     with tempfile.TemporaryDirectory() as out:
-        if os.path.exists(a.scene):
+        if os.path.exists(os.path.join(a.scene, "meta.json")):  # an exported exchange folder (benchmarks/peers)
+            sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "peers"))
+            from exchange import load
+
+            scene = load(a.scene).scene()
+        elif os.path.exists(a.scene):
             from wtopo.loaders import detect_format, load_scene
 
             scene = load_scene(a.scene, format=detect_format(a.scene))
