@@ -113,7 +113,8 @@ def test_profiled_fit_reports_every_stage_within_the_wall_time(tiny, tmp_path, c
     assert prof["synchronized"] is device.startswith("cuda")  # the CPU has nothing to synchronise
     out = capsys.readouterr().out
     for label in ("wtopo fit profile", "setup (plan", "render forward", "backward", "losses", "host read",
-                  "optimizer", "density statistics", "freeing the step's buffers", "density control",
+                  "optimizer", "density statistics", "last good state (copy)", "freeing the step's buffers",
+                  "density control",
                   "proxy mesh", "marching cubes", "BVH build", "TSDF re-initialisation", "TSDF fusion",
                   "evaluation", "checkpoint", "report and output files", "outside any section"):
         assert label in out, label

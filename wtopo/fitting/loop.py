@@ -296,6 +296,7 @@ class FitRun:
                     extra.append(t.render.overflow.double().view(1))
                 # host sync: the one read of an iteration (loss terms, coverage, the last step's finiteness, overflow)
                 stacked = torch.stack(list(t.losses.values()))  # the terms, once: read here, summed for backward
+                total = stacked.sum()  # one op, not one addition per term
                 read = torch.cat([stacked.detach().double(), *extra]).tolist()
             if self._unverified is not None:  # the last step: its failure discards this forward too
                 self._unverified = None
@@ -307,7 +308,6 @@ class FitRun:
             self.proxy_mesh = t.proxy
         nl = len(t.losses)
         self.strategy.step_pre_backward(info, read[nl:nl + 2])
-        total = stacked.sum()  # one op, not one addition per term
         terms = dict(zip(t.losses, read[:nl]))
         if not math.isfinite(sum(terms.values())):
             self._failure("loss", {k: v for k, v in terms.items() if not math.isfinite(v)})
@@ -331,7 +331,8 @@ class FitRun:
             self.strategy.step_post_backward(self.surfels, info)
         self.loss_log.add(terms, first=self.loss_log.count == 0 and not self.history)
         if self.it % _SNAPSHOT_EVERY == 0:
-            self._snapshot_unread()
+            with self.timers("snapshot"):
+                self._snapshot_unread()
         with self.timers("release"):  # the step's gradients, images and render buffers are freed here
             self.opt.zero_grad(set_to_none=True)
             del t, info, stacked, total
@@ -384,16 +385,16 @@ class FitRun:
                 s = initial_surfels(self.train, self.cfg.init, self.cfg.init.source,
                                     sh_degree=int(self.cfg.sh_degree), device=self.device, generator=self.gen,
                                     layout=self.plan.layout, stereo=stereo)
-            n_bg = int(self.cfg.init.background_points)
-            if n_bg > 0:  # the shells seed only where the stereo explained nothing
-                seen = None if stereo is None or len(stereo.points) < MIN_MVS_POINTS else stereo.points
-                bg = background_surfels(self.train, self.plan.layout, n_bg, sh_degree=s.sh_degree,
-                                        opacity=INIT_OPACITY, device=self.device, generator=self.gen,
-                                        covered_by=seen)
-                s.append(*bg.take(slice(None)))
-                if self.background is not None:  # nothing starts on a lens
-                    prune_near_cameras(s, self.background)
-            self.set_surfels(s)
+                n_bg = int(self.cfg.init.background_points)
+                if n_bg > 0:  # the shells seed only where the stereo explained nothing
+                    seen = None if stereo is None or len(stereo.points) < MIN_MVS_POINTS else stereo.points
+                    bg = background_surfels(self.train, self.plan.layout, n_bg, sh_degree=s.sh_degree,
+                                            opacity=INIT_OPACITY, device=self.device, generator=self.gen,
+                                            covered_by=seen)
+                    s.append(*bg.take(slice(None)))
+                    if self.background is not None:  # nothing starts on a lens
+                        prune_near_cameras(s, self.background)
+                self.set_surfels(s)
         if self.progress:
             print(self.plan)
             if resumed:

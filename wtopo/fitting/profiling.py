@@ -34,7 +34,7 @@ __all__ = ["Timers", "format_profile"]
 LABELS = {
     "render": "render forward",
     "setup": "setup (plan, scene on the device)",
-    "init": "initial surfels (stereo)",
+    "init": "initial surfels (stereo, shells)",
     "rasterize_binning": "binning",
     "rasterize_sort": "depth sort",
     "rasterize_forward": "rasterize",
@@ -45,6 +45,7 @@ LABELS = {
     "read": "host read (losses, flags)",
     "statistics": "density statistics",
     "release": "freeing the step's buffers",
+    "snapshot": "last good state (copy)",
     "densify": "density control",
     "guidance": "mesh guidance",
     "proxy": "proxy mesh",
@@ -68,8 +69,8 @@ LABELS = {
 }
 """What the table calls each section (sections without an entry show their name)."""
 
-ORDER = ("setup", "init", "render", "losses", "read", "backward", "optimizer", "statistics", "release", "densify",
-         "guidance", "proxy", "raycast", "tsdf", "final", "evaluate", "checkpoint", "timeline", "outputs")
+ORDER = ("setup", "init", "render", "losses", "read", "backward", "optimizer", "statistics", "snapshot", "release",
+         "densify", "guidance", "proxy", "raycast", "tsdf", "final", "evaluate", "checkpoint", "timeline", "outputs")
 """Order of the top-level rows (the loop's order); nested rows follow by time."""
 
 
