@@ -12,7 +12,8 @@ Bounds are computed in float64 whatever the op dtype. A surfel's footprint is th
 * the screen-space filter disk ``|pixel - centre|^2 / sigma^2 <= rr`` around the projected centre
   (``1 / sigma^2`` is the camera record's ``filter_inv_sq``).
 
-Sort keys are ``tile << rank_bits | depth rank`` (int32 when they fit in 31 bits, else int64).
+The pairs are written in the surfels' depth order and sorted by tile alone (int32 keys, a stable radix sort of
+the tile's bits), which keeps every tile's list front to back.
 
 Tile counts are therefore bounded by the number of tiles whatever the scale.
 """
@@ -235,30 +236,30 @@ def bin_surfels_kernel(
 @wp.kernel
 def emit_intersections_kernel(
     offset: int,
+    order: wp.array[wp.int32],
     rect: wp.array[wp.vec4i],
     offsets: wp.array[wp.int32],
-    rank: wp.array[wp.int64],
     tiles_x: int,
-    rank_bits: int,
     capacity: int,
-    keys: wp.array[Any],
+    keys: wp.array[wp.int32],
     values: wp.array[wp.int32],
 ):
-    """Write one ``(tile << rank_bits | depth rank, surfel)`` pair per tile a surfel's rectangle covers.
+    """Write one ``(tile, surfel)`` pair per tile a surfel's rectangle covers, the surfels in depth order.
 
-    ``keys`` is int32 when the key fits in 31 bits (fewer radix passes), int64 otherwise. Pairs at
-    or beyond ``capacity`` are dropped (the caller sized the buffers from an earlier count and
-    reports the overflow; the buffers hold ``2 * capacity`` entries for the radix sort).
+    Thread ``j`` takes surfel ``order[j]`` (the ``j``-th nearest) and writes from ``offsets[j]`` (the exclusive
+    sum of the tile counts in that order), so the pairs are laid out in depth order and a stable sort by tile
+    alone leaves each tile's list front to back. Pairs at or beyond ``capacity`` are dropped (the caller sized
+    the buffers from an earlier count and reports the overflow; the buffers hold ``2 * capacity`` entries for
+    the radix sort): with the surfels in depth order those are the farthest ones.
     """
-    i = wp.tid() + offset
+    j = wp.tid() + offset
+    i = order[j]
     r = rect[i]
-    k = offsets[i]
+    k = offsets[j]
     for ty in range(r[1], r[3]):
         for tx in range(r[0], r[2]):
             if k < capacity:
-                key = (wp.int64(ty * tiles_x + tx) << wp.int64(rank_bits)) | rank[i]
-                old = keys[k]
-                keys[k] = type(old)(key)
+                keys[k] = ty * tiles_x + tx
                 values[k] = i
             k += 1
 
@@ -266,37 +267,27 @@ def emit_intersections_kernel(
 @wp.kernel
 def tile_ranges_kernel(
     offset: int,
-    keys: wp.array[Any],
+    keys: wp.array[wp.int32],
     count: int,
-    rank_bits: int,
     tile_start: wp.array[wp.int32],
     tile_end: wp.array[wp.int32],
 ):
     """Start and end of each tile's run in the sorted intersection list (empty tiles stay 0, 0).
 
-    Keys whose tile is ``tile_start.shape[0]`` or more are padding (sorted after every real pair)
-    and are ignored.
+    Keys of ``tile_start.shape[0]`` or more are padding (sorted after every real pair) and are ignored.
     """
     k = wp.tid() + offset
-    sh = wp.int64(rank_bits)
-    tile = int(wp.int64(keys[k]) >> sh)
+    tile = keys[k]
     if tile >= tile_start.shape[0]:
         return
     if k == 0:  # noqa: SIM114  Warp's `or` does not short-circuit: it would read keys[-1]
         tile_start[tile] = k
-    elif int(wp.int64(keys[k - 1]) >> sh) != tile:
+    elif keys[k - 1] != tile:
         tile_start[tile] = k
     if k == count - 1:  # noqa: SIM114  Warp's `or` does not short-circuit: it would read keys[count]
         tile_end[tile] = k + 1
-    elif int(wp.int64(keys[k + 1]) >> sh) != tile:
+    elif keys[k + 1] != tile:
         tile_end[tile] = k + 1
-
-
-@wp.kernel
-def depth_ranks_kernel(offset: int, order: wp.array[wp.int32], rank: wp.array[wp.int64]):
-    """Depth rank of every surfel from the depth-sorted surfel ids: ``rank[order[j]] = j``."""
-    j = wp.tid() + offset
-    rank[order[j]] = wp.int64(j)
 
 
 @wp.kernel
@@ -311,6 +302,3 @@ def sum_visibility_kernel(offset: int, per_worker: wp.array2d[wp.int32], visibil
 
 # one compile of this module with every overload (see kernels/rasterize_records.py)
 declare_float_overloads(bin_surfels_kernel)
-for _key_type in (wp.int32, wp.int64):
-    wp.overload(emit_intersections_kernel, {"keys": wp.array(dtype=_key_type)})
-    wp.overload(tile_ranges_kernel, {"keys": wp.array(dtype=_key_type)})

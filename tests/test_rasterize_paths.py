@@ -2,6 +2,7 @@
 """The fit's trusted rasterize path against the public rasterize_surfels: no validation, near / far defaults
 computed on the device, and the deferred pair count with its overflow and capacity growth."""
 
+import numpy as np
 import pytest
 import torch
 from raster_cases import IMAGES, camera, surfels
@@ -120,6 +121,57 @@ def test_a_smaller_pair_budget_than_the_kept_capacity_is_no_error(device):
     out = _trusted(params, cam, config=cfg, defer_count=True)
     assert not bool(out.overflow)
     _assert_outputs_equal(out, rasterize_surfels(*params, cam, background=(0.1, 0.2, 0.3), config=cfg), params)
+
+
+def _tile_lists(params, cam, monkeypatch, **kw):
+    """Each tile's surfel list from the binning of one render (ids as numpy arrays, keyed by tile)."""
+    import wtopo.rasterize as R
+
+    got = {}
+
+    def spy(*a, **k):
+        got["bins"] = b = real(*a, **k)
+        return b
+
+    real = R._bin
+    monkeypatch.setattr(R, "_bin", spy)
+    _trusted(params, cam, **kw)
+    monkeypatch.setattr(R, "_bin", real)
+    b = got["bins"]
+    start, end = b.tile_start.numpy(), b.tile_end.numpy()
+    ids = b.ids.numpy()
+    return {t: ids[s:e] for t, (s, e) in enumerate(zip(start, end)) if e > s}
+
+
+def test_binning_lists_each_tile_front_to_back(device, monkeypatch):
+    """Every tile's list holds each surfel once, nearest first, ties in surfel order (the pairs are written in the
+    depth order and sorted stably by tile alone); the deferred count's lists, with their padding, are the same."""
+    from wtopo.rasterize import _binning
+
+    cam = camera()
+    params = [p.detach().clone() for p in surfels(300, dtype=torch.float64, seed=4)]
+    params[0][250:] = params[0][200:250]  # exact copies of 50 centres: equal depths
+    params = [p.to(device) for p in params]
+    _binning._capacities.clear()
+    exact = _tile_lists(params, cam, monkeypatch)
+    w2c = torch.as_tensor(cam.world_to_camera, dtype=torch.float64)
+    depth = (params[0].cpu() @ w2c[:3, :3].T + w2c[:3, 3])[:, 2].numpy()
+    assert len(exact) == 20 and sum(len(v) for v in exact.values()) > 1000  # 5 x 4 tiles of 8 px
+    ties = 0
+    for tile, ids in exact.items():
+        assert len(set(ids.tolist())) == len(ids), tile
+        d = depth[ids]
+        assert (np.diff(d) >= 0).all(), tile
+        same = np.diff(d) == 0
+        ties += int(same.sum())
+        assert (np.diff(ids)[same] > 0).all(), tile
+    assert ties > 0  # the copies share tiles
+    _binning._capacities.clear()
+    _trusted(params, cam, defer_count=True)  # sizes the capacity
+    deferred = _tile_lists(params, cam, monkeypatch, defer_count=True)
+    assert deferred.keys() == exact.keys()
+    for tile, ids in exact.items():
+        np.testing.assert_array_equal(deferred[tile], ids)
 
 
 # -- the op as a function of tensors alone (what the fit's CUDA graph of it captures) ----------------

@@ -6,8 +6,9 @@ Pipeline of :func:`rasterize_surfels` (kernels in ``kernels/rasterize.py``,
 
 1. validation (before any launch);
 2. binning (discrete, outside the tape): per-surfel tile rectangle from the footprint bound,
-   one ``(tile << rank_bits | depth rank, surfel)`` pair per covered tile (int32 keys when they
-   fit), Warp's stable radix sort, per-tile ranges;
+   the surfels' depth order (a radix sort of their centre depths), one ``(tile, surfel)`` pair per covered
+   tile written in that order, a stable radix sort of the pairs by tile (which keeps each tile front to
+   back), per-tile ranges;
 3. the differentiable op through :func:`wtopo._bridge.apply`: per-surfel preparation (frame,
    projected centre, SH colour; Warp autodiff), per-pixel front-to-back compositing, and the
    explicit reverse-traversal adjoint registered with :meth:`warp.Tape.record_func`.

@@ -137,24 +137,24 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
         _bridge.launch_split(_kb.bin_surfels_kernel, n, inputs, [rect, counts, radii, means2d, cutoff, prect, zc],
                              device=wdev)
         counts_t = _bridge.as_torch(counts)
-        csum = torch.cumsum(counts_t, 0, dtype=torch.int64)
+        pair_count = counts_t.sum(dtype=torch.int64)  # the offsets are summed later, in depth order
         defer = (defer_count or pairs is not None) and n > 0
         count = None
         if defer and pairs is not None:
             total = int(pairs)
-            count = csum[-1]
+            count = pair_count
             overflow = count > total
         elif defer:
             capacity.poll()
             if capacity.value == 0:  # host sync: once per device, the first count sizes the capacity
-                capacity.observe(int(csum[-1]), config.max_intersections)
+                capacity.observe(int(pair_count), config.max_intersections)
             # pairs sorted: the real ones, then padding keys after every tile (the capacity another call's larger
             # budget grew is cut to this call's: more pairs than that are an overflow, and the exact count raises)
             total = min(capacity.value, config.max_intersections)
-            overflow = csum[-1] > total
-            capacity.post(csum[-1], config.max_intersections)
+            overflow = pair_count > total
+            capacity.post(pair_count, config.max_intersections)
         else:
-            total = int(csum[-1]) if n else 0  # host sync: the intersection count sizes the sort buffers
+            total = int(pair_count) if n else 0  # host sync: the intersection count sizes the sort buffers
             if total <= config.max_intersections:
                 capacity.observe(total, config.max_intersections)
     if total > config.max_intersections:
@@ -163,34 +163,33 @@ def _bin(means, quats, scales, opacities, cam_rec, tables, camera: Camera, confi
                          f"tile_size, or prune/shrink large surfels")
     tile_start = _bridge.empty(n_tiles, wp.int32, wdev, zero=True)
     tile_end = _bridge.empty(n_tiles, wp.int32, wdev, zero=True)
-    rank_bits = max(1, (n - 1).bit_length())
     # deferred: one more tile value for the padding keys (tile n_tiles), sorted after every real pair
-    key_bits = rank_bits + max(1, (n_tiles if defer else n_tiles - 1).bit_length())
-    keys = _bridge.empty(max(2 * total, 1), wp.int32 if key_bits <= 31 else wp.int64, wdev)
+    key_bits = max(1, (n_tiles if defer else n_tiles - 1).bit_length())
+    keys = _bridge.empty(max(2 * total, 1), wp.int32, wdev)
     values = _bridge.empty(max(2 * total, 1), wp.int32, wdev)
     if total:
         with section("rasterize_sort"):
-            # depth rank of every surfel (Warp's stable radix sort on the centre z-depths the binning wrote)
+            # the surfels' depth order (Warp's stable radix sort on the centre z-depths the binning wrote)
             order = _bridge.empty(2 * n, wp.int32, wdev)
             wp.copy(order, _iota(n, wdev), count=n)
             wp.utils.radix_sort_pairs(zc, order, n)
-            rank = _bridge.empty(n, wp.int64, wdev)
-            _bridge.launch_split(_kb.depth_ranks_kernel, n, [order], [rank], device=wdev)
         with section("rasterize_binning"):
             if defer:
-                keys[:total].fill_(n_tiles << rank_bits)
-            offsets = csum - counts_t
+                keys[:total].fill_(n_tiles)
+            # each surfel's first pair: the tile counts summed in depth order
+            sorted_counts = torch.index_select(counts_t, 0, _bridge.as_torch(order)[:n])
+            offsets = torch.cumsum(sorted_counts, 0, dtype=torch.int64) - sorted_counts
             if defer:  # pairs past the capacity are dropped: keep the offsets (int32) at most there
                 offsets = offsets.clamp_max(total)
             offsets = offsets.to(torch.int32)
             _bridge.launch_split(_kb.emit_intersections_kernel, n,
-                                 [rect, _bridge.to_warp(offsets), rank, tiles_x, rank_bits, total],
-                                 [keys, values],
+                                 [order, rect, _bridge.to_warp(offsets), tiles_x, total], [keys, values],
                                  device=wdev)
         with section("rasterize_sort"):
+            # by tile alone: the sort is stable and the pairs were written front to back
             wp.utils.radix_sort_pairs(keys, values, total, end_bit=key_bits)
         with section("rasterize_binning"):
-            _bridge.launch_split(_kb.tile_ranges_kernel, total, [keys, total, rank_bits], [tile_start, tile_end],
+            _bridge.launch_split(_kb.tile_ranges_kernel, total, [keys, total], [tile_start, tile_end],
                                  device=wdev)
     return _Bins(tile_start, tile_end, values, _bridge.as_torch(radii), _bridge.as_torch(means2d), cutoff, prect,
                  overflow, count, None if defer else total)
