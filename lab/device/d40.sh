@@ -1,0 +1,38 @@
+# Lease step d40 (#59: DTU's held-out view 40 over seeds): after the p1, p2 and p3 + gl + small/whl staging calls,
+# carry .stage/usd and .stage/dtu_raw. Fits DTU scan24 at the CUDA default for every variant x seed side by side
+# on the one GPU (benchmarks/peers/run_wtopo.py, no timeline), scores each (score.py: whole-image PSNR per held-out
+# view) and prints one line per fit: the mean and view 40, then every view. Times are not meaningful (fits share
+# the GPU). VARIANTS: ";"-separated lists of --set items ("-" is the default), e.g.
+#   VARIANTS="-;losses.distortion=1000;tsdf.enabled=false" SEEDS="0 1 2" bash lab/device/d40.sh
+source lab/device/lease_env.sh
+t0=$(date +%s)
+R=$PWD
+lease_dtu || exit 1
+mkdir -p $OUT/d40 $S/res/d40
+IFS=';' read -ra vars <<< "${VARIANTS:--}"
+jobs=()
+for v in "${vars[@]}"; do
+  tag=default; [ "$v" = "-" ] || tag=$(echo "$v" | tr -c 'a-zA-Z0-9_=.\n' '_' | tr '=' '-')
+  for seed in ${SEEDS:-0 1}; do
+    d=$S/res/d40/${tag}_s$seed
+    a=(--set runtime.seed=$seed --set runtime.usd_every=0 --label "$v seed $seed")
+    [ "$v" = "-" ] || for item in $v; do a+=(--set "$item"); done
+    (cd /tmp && timeout ${FIT_TIMEOUT:-480} python3 $R/benchmarks/peers/run_wtopo.py $S/exch/dtu_scan24 $d "${a[@]}" \
+      > $d.log 2>&1; echo $? > $d.rc) &
+    jobs+=($d)
+  done
+done
+wait
+echo "fits done after $(( $(date +%s) - t0 )) s"
+for d in "${jobs[@]}"; do
+  [ "$(cat $d.rc)" = 0 ] || { echo "$d rc=$(cat $d.rc)"; tail -n 3 $d.log; continue; }
+  timeout 120 python3 benchmarks/peers/score.py $S/exch/dtu_scan24 $d --out $OUT/d40/rows.json > $d.score 2>&1 \
+    || tail -n 3 $d.score
+done
+python3 - $OUT/d40/rows.json <<'PY'
+import json, sys
+for r in json.load(open(sys.argv[1])):
+    v = r.get("psnr_views") or []
+    print(f"{r['system']:<40} mean {r['psnr']:.2f}  view 40 {v[5] if len(v) > 5 else float('nan'):.2f}  views {v}")
+PY
+echo "done after $(( $(date +%s) - t0 )) s"
