@@ -31,6 +31,8 @@ bunny has 490k pixels, 800 x 600 has 480k), every time synchronised so that it i
 section also with the per-pixel terms eager (:data:`wtopo.fitting.pixel_terms.GRAPHS` off)::
 
     python benchmarks/bench_losses.py --device cuda --resolution 700 --views 16
+
+``--pixel-terms`` times the section with those terms alone (no scale or mesh terms), as the goal counts them.
 """
 
 from __future__ import annotations
@@ -117,6 +119,8 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=None, help="the bunny's view count (default 32)")
     ap.add_argument("--kernels", type=int, default=0,
                     help="CUDA: also list this many kernels of the section (forward + backward) by device time")
+    ap.add_argument("--pixel-terms", action="store_true",
+                    help="the section with the per-pixel terms alone (#60's goal 3: no scale or mesh terms)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -138,6 +142,9 @@ def main() -> None:
           f"torch threads {torch.get_num_threads()}")
 
     proxy = _FixedProxy(mesh, mrs)
+    if args.pixel_terms:  # photometric, mask, normal, distortion and multi-view only
+        obj.cfg.losses.scale = 0.0
+        obj.mesh_terms = False
     obj.timers = Timers()
     obj.render = lambda surfels, cam, defer_count=False: outs[proxy.vi]
     it = run.warmup_end  # the co-evolution: every term on

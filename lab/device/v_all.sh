@@ -6,7 +6,8 @@
 # (the first call also installs, exports DTU and compiles the kernels). V_STEPS picks the steps (default
 # "tests fit eager profile loop"; "eager": the same fit with every CUDA graph off; "host": the render's host time
 # at 100k surfels, 800 px, eager and replayed (lab/host_raster.py); "losses": bench_losses.py at
-# 700 px, graphed and eager, each term, the section's kernels by device time; "base": f9f59e3's plain fit).
+# 700 px, graphed and eager, each term, the section's kernels by device time, then the per-pixel terms alone (#60's
+# goal 3); "base": f9f59e3's plain fit).
 source lab/device/lease_env.sh
 t0=$(date +%s)
 lease_dtu || exit 1
@@ -35,7 +36,9 @@ for step in ${V_STEPS:-tests fit eager profile loop}; do
   host) for g in "" --graph; do (cd /tmp && timeout 120 python3 $R/lab/host_raster.py --device cuda --n 100000 \
       --px 800 --calls 100 --top 12 $g 2>&1 | head -n 14); done ;;
   losses) (cd $R/benchmarks && timeout 200 python3 bench_losses.py --device cuda --resolution 700 --views 16 \
-      --kernels ${V_KERNELS:-20} 2>&1 | tail -n 50) ;;
+      --kernels ${V_KERNELS:-20} 2>&1 | tail -n 50
+    timeout 150 python3 bench_losses.py --device cuda --resolution 700 --views 16 --section-only --pixel-terms \
+      --kernels ${V_KERNELS:-20} 2>&1 | tail -n 28) ;;
   eager) (cd /tmp && timeout 200 python3 $R/lab/device/eager_fit.py $S/exch/dtu_scan24 $S/res/v_eager \
       > $OUT/v/eager.txt 2>&1); echo "eager rc=$?"
     cp $S/res/v_eager/run.json $OUT/v/run_eager.json 2>/dev/null; summary $S/res/v_eager; tail -n 5 $OUT/v/eager.txt ;;
