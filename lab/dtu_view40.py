@@ -32,6 +32,7 @@ def main():
     ap.add_argument("--out", default="/tmp/dtu_view40.png")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--set", action="append", default=[])
+    ap.add_argument("--save", default=None, help="also torch.save the fitted surfels (internal frame) to this path")
     a = ap.parse_args()
 
     from PIL import Image
@@ -49,6 +50,9 @@ def main():
     res = wtopo.fit(scene, cfg, progress=False)
     s = res.surfels
     inner = scene.normalized()
+    if a.save:
+        torch.save({"means": s.means, "quats": s.quats, "scales": s.scales, "opacities": s.opacities, "sh": s.sh,
+                    "sh_degree": s.sh_degree, "filter_sigma": res.plan.filter_sigma}, a.save)
     outside = BackgroundState(res.plan.layout, s.means.device).outside_roi(s.means)
     raster = ops.RasterConfig(filter_sigma=res.plan.filter_sigma)
     # the surfels that contribute to no pixel of any training view: no photograph supports them

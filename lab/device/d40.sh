@@ -1,9 +1,10 @@
 # Lease step d40 (#59: DTU's held-out view 40 over seeds): after the p1, p2 and p3 + gl + small/whl staging calls,
 # carry .stage/usd and .stage/dtu_raw. Fits DTU scan24 at the CUDA default for every variant x seed side by side
 # on the one GPU (benchmarks/peers/run_wtopo.py, no timeline), scores each (score.py: whole-image PSNR per held-out
-# view) and prints one line per fit: the mean and view 40, then every view. Times are not meaningful (fits share
+# view) and prints one line per fit: the mean and view 40, then every view; lab/train_psnr.py before it: every
+# training view's PSNR (are view 40's neighbours 38, 39 and 41 fitted?). Times are not meaningful (fits share
 # the GPU). VARIANTS: ";"-separated lists of --set items ("-" is the default), e.g.
-#   VARIANTS="-;losses.distortion=1000;tsdf.enabled=false" SEEDS="0 1 2" bash lab/device/d40.sh
+#   VARIANTS="-;losses.distortion=1000" SEEDS="0 1 2 3" bash lab/device/d40.sh
 source lab/device/lease_env.sh
 t0=$(date +%s)
 R=$PWD
@@ -29,6 +30,8 @@ for d in "${jobs[@]}"; do
   timeout 120 python3 benchmarks/peers/score.py $S/exch/dtu_scan24 $d --out $OUT/d40/rows.json > $d.score 2>&1 \
     || tail -n 3 $d.score
 done
+ok=(); for d in "${jobs[@]}"; do [ "$(cat $d.rc)" = 0 ] && ok+=($d); done
+[ ${#ok[@]} -gt 0 ] && timeout 200 python3 lab/train_psnr.py $S/exch/dtu_scan24 "${ok[@]}" 2>&1 | tail -n ${#ok[@]}
 python3 - $OUT/d40/rows.json <<'PY'
 import json, sys
 for r in json.load(open(sys.argv[1])):
