@@ -9,11 +9,13 @@ per view, and a picture of view 40: the photo, the three renders and their error
 import argparse
 import json
 import os
+import sys
 
 import numpy as np
 import torch
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
 
 
 def peers_split(path):
@@ -24,35 +26,6 @@ def peers_split(path):
     n = len(scene.cameras)
     test = list(range(0, n, 8))
     return scene._replace(train_indices=[i for i in range(n) if i not in test], test_indices=test), test
-
-
-def hard_views(power: float, seed: int) -> None:
-    """Patch the fit (this process only) to draw each iteration's training view with probability proportional to
-    its photometric loss's running average raised to ``power`` (every view starts at the largest average seen, so
-    each is drawn early), instead of one permutation of the views per epoch."""
-    import numpy as np
-
-    from wtopo.fitting import loop, objective
-
-    state = {"ema": {}, "view": None, "rng": np.random.default_rng(seed)}
-    real_add = objective.LossLog.add
-
-    def add(self, terms, *, first):
-        v = state["view"]
-        if v is not None and "photo" in terms:
-            old = state["ema"].get(v)
-            state["ema"][v] = terms["photo"] if old is None else 0.8 * old + 0.2 * terms["photo"]
-        return real_add(self, terms, first=first)
-
-    def view(self, it):
-        n = len(self.train.cameras)
-        top = max(state["ema"].values(), default=1.0)
-        w = np.array([state["ema"].get(i, top) for i in range(n)]) ** power
-        state["view"] = int(state["rng"].choice(n, p=w / w.sum()))
-        return state["view"]
-
-    objective.LossLog.add = add
-    loop.FitRun._view = view
 
 
 def main():
@@ -66,7 +39,9 @@ def main():
                     help="experiment: draw each iteration's view with probability ~ (its photometric loss EMA)^this")
     a = ap.parse_args()
     if a.hard_views:
-        hard_views(a.hard_views, a.seed)
+        from hard_views import install
+
+        install(a.hard_views, a.seed)
 
     from PIL import Image
 

@@ -1,0 +1,18 @@
+"""benchmarks/peers/run_wtopo.py with lab/hard_views.py installed first when HARD_VIEWS is set (its power): the same
+arguments, the same result folder (for lab/device/d40.sh)."""
+import os
+import sys
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(HERE, ".."))
+sys.path.insert(0, os.path.join(HERE, "..", "..", "benchmarks", "peers"))
+
+if __name__ == "__main__":
+    if os.environ.get("HARD_VIEWS"):
+        import hard_views
+
+        seed = next((int(a.split("=", 1)[1]) for a in sys.argv if a.startswith("runtime.seed=")), 0)
+        hard_views.install(float(os.environ["HARD_VIEWS"]), seed)
+    import run_wtopo
+
+    run_wtopo.main(sys.argv[1:])
