@@ -16,7 +16,8 @@ for step in ${Z_STEPS:-profile losses raster}; do
   case $step in
   fit|profile|losses|host|loop) V_STEPS=$step bash lab/device/v_all.sh 2>&1 | grep -v "^installed" ;;
   tests) (cd /tmp && timeout 200 python3 -m pytest -q -p no:cacheprovider $R/tests/test_rasterize_paths.py \
-      $R/tests/test_rasterize.py $R/tests/test_fit_timeline.py $R/tests/test_rasterize_replay.py 2>&1 | tail -n 6) ;;
+      $R/tests/test_rasterize.py $R/tests/test_fit_timeline.py $R/tests/test_rasterize_replay.py \
+      $R/tests/test_raster_graph.py $R/tests/test_fit_graphs.py 2>&1 | tail -n 6) ;;
   gaps) (cd /tmp && timeout 200 python3 $R/lab/outside_gaps.py $S/exch/dtu_scan24 --stop-at ${Z_GAPS_AT:-5000} \
       --device cuda 2>&1 | tail -n 25) ;;
   capture) (cd /tmp && timeout 150 python3 $R/lab/capture_cost.py 2>&1 | tail -n 8) ;;
