@@ -28,6 +28,22 @@ def peers_split(path):
     return scene._replace(train_indices=[i for i in range(n) if i not in test], test_indices=test), test
 
 
+def black_shells() -> None:
+    """Patch the fit (this process only) so that the background shells start black: their colour is otherwise the
+    pixel's each was seeded from, which behind an untextured near surface (DTU's white table) is that surface's."""
+    from wtopo.fitting import loop
+
+    real = loop.background_surfels
+
+    def shells(*args, **kw):
+        s = real(*args, **kw)
+        with torch.no_grad():
+            s.params["sh_dc"].fill_(-0.5 / 0.28209479177387814)  # RGB 0 through the SH's DC term
+        return s
+
+    loop.background_surfels = shells
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--data", default=os.path.join(HERE, "..", "..", "shared", "data", "dtu_scan24"))
@@ -37,7 +53,12 @@ def main():
     ap.add_argument("--save", default=None, help="also torch.save the fitted surfels (internal frame) to this path")
     ap.add_argument("--hard-views", type=float, default=0.0,
                     help="experiment: draw each iteration's view with probability ~ (its photometric loss EMA)^this")
+    ap.add_argument("--black-shells", action="store_true",
+                    help="experiment: the background shells start black (the scene's background) instead of the "
+                         "colour of the pixel each was seeded from")
     a = ap.parse_args()
+    if a.black_shells:
+        black_shells()
     if a.hard_views:
         from hard_views import install
 
