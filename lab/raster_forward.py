@@ -1,0 +1,74 @@
+# SPDX-License-Identifier: Apache-2.0
+"""#60 goal 2, forward alone: the public rasterize_surfels against gsplat's rasterization_2dgs at 100k and 1M
+surfels, 800 px (bench_rasterize_gpu.py's scene), with other tile sizes and prefetch batches, and the kernel
+table of each forward alone. Lab tool (nothing imports it): python lab/raster_forward.py [--sizes ...]."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "benchmarks"))
+
+import torch  # noqa: E402
+from bench_rasterize_gpu import gsplat_inputs, make_camera, make_gsplat, make_surfels  # noqa: E402
+from gpu_timing import profile_kernels, time_latency, time_pipelined  # noqa: E402
+
+from wtopo import rasterize as R  # noqa: E402
+from wtopo.rasterize import _run as K  # noqa: E402
+
+
+def variant(params, cam, tile: int, batch: int):
+    cfg = R.RasterConfig(tile_size=tile)
+
+    def fwd():
+        saved = K.PREFETCH_BATCH
+        K.PREFETCH_BATCH = batch
+        try:
+            with torch.no_grad():
+                R.rasterize_surfels(*params, cam, config=cfg)
+        finally:
+            K.PREFETCH_BATCH = saved
+
+    return fwd
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--sizes", type=int, nargs="+", default=[100_000, 1_000_000])
+    ap.add_argument("--res", type=int, default=800)
+    ap.add_argument("--profile", action="store_true")
+    args = ap.parse_args()
+    cam = make_camera(args.res, args.res)
+    for n in args.sizes:
+        params = make_surfels(n, "cuda:0")
+        ref = R.rasterize_surfels(*params, cam)
+        leaves, viewmat, Km = gsplat_inputs(params, cam, ref.near)
+        g = make_gsplat(cam, ref.near, ref.far)
+
+        def gfwd(g=g, a=(leaves, viewmat, Km)):
+            with torch.no_grad():
+                g(*a)
+
+        runs = {"gsplat": gfwd}
+        for tile in (8, 16):
+            for batch in (16, 32):
+                runs[f"tile {tile} batch {batch}"] = variant(params, cam, tile, batch)
+        base = None
+        print(f"\nN = {n}, {args.res} px, forward alone (ms)")
+        for name, fn in runs.items():
+            lat = time_latency(fn, 5, 30)["ms"]
+            pipe = time_pipelined(fn, 5, 30)["ms"]
+            base = base or (lat, pipe)
+            print(f"  {name:22s} {lat:7.3f} {pipe:7.3f}   {lat / base[0]:.2f}x {pipe / base[1]:.2f}x gsplat")
+        if args.profile:
+            profile_kernels(runs["tile 8 batch 32"], f"wtopo forward, N={n}", top=14)
+            profile_kernels(gfwd, f"gsplat forward, N={n}", top=10)
+        del params, ref, leaves, runs, gfwd
+        torch.cuda.empty_cache()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
