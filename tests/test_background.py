@@ -86,3 +86,47 @@ def test_no_background_surfels_asked_gives_none():
     scene, layout = _scene_and_layout(cam)
     assert background_surfels(scene, layout, 0, sh_degree=0, opacity=0.3, device=torch.device("cpu"),
                               generator=torch.Generator()) is None
+
+
+def test_unseen_shells_are_pruned_and_seen_or_inner_surfels_stay():
+    """A camera at z = 3 looks down -z at four opaque layers at z = 0.5 ... 0.35 inside the region of interest;
+    behind them a small shell outside the region (hidden), another beside the layers' opaque core (seen), and a
+    small inner surfel behind them (hidden, but inside). Their view directions come from a real render's
+    visibility: only the hidden shell goes."""
+    from wtopo.fitting import densify as dens
+    from wtopo.fitting.background import BackgroundState, prune_unseen
+    from wtopo.fitting.surfels import Surfels
+    from wtopo.rasterize import rasterize_surfels
+
+    cam = Camera.look_at([0.5, 0.5, 3.0], [0.5, 0.5, 0.5], [0.0, 1.0, 0.0], fov_x=0.8, width=W, height=H)
+    layers = [[0.5, 0.5, z] for z in (0.5, 0.45, 0.4, 0.35)]
+    pts = torch.tensor(layers + [[0.5, 0.5, -4.0],    # a shell straight behind them, outside the region: hidden
+                                 [-1.5, 0.5, -4.0],   # a shell 14 px beside their core: seen
+                                 [0.5, 0.5, 0.2]])    # inside the region, behind them: hidden but kept
+    n = len(pts)
+    cols = torch.rand(n, 3, generator=torch.Generator().manual_seed(3))
+    nrm = torch.tensor([[0.0, 0.0, 1.0]]).expand(n, 3)
+    scale = torch.tensor([0.3] * 4 + [0.05, 0.3, 0.02])
+    s = Surfels.from_points(pts, cols, scales=scale, normals=nrm, opacity=0.99)
+    out = rasterize_surfels(s.means, s.quats, s.scales, s.opacities, s.sh, cam)
+    visible = out.visibility > 0
+    assert visible.tolist() == [True] * 4 + [False, True, False], out.visibility
+    dens.accumulate_view_directions(s, torch.as_tensor(cam.center, dtype=torch.float32), visible)
+    layout = types.SimpleNamespace(roi_center=np.full(3, 0.5), roi_radius=0.5, roi_lower=np.zeros(3),
+                                   roi_upper=np.ones(3), camera_centers=cam.center[None], near=0.1)
+    state = BackgroundState(layout, torch.device("cpu"))
+    assert state.outside_roi(s.means).tolist() == [False] * 4 + [True, True, False]
+    assert prune_unseen(s, state) == 1
+    assert torch.allclose(s.means.detach(), pts[[0, 1, 2, 3, 5, 6]])
+    assert prune_unseen(s, state) == 0  # nothing left to prune
+
+
+def test_unseen_prune_never_removes_every_surfel():
+    from wtopo.fitting.background import BackgroundState, prune_unseen
+    from wtopo.fitting.surfels import Surfels
+
+    s = Surfels.from_points(torch.tensor([[5.0, 0.0, 0.0], [0.0, 6.0, 0.0]]), torch.full((2, 3), 0.5),
+                            scales=torch.tensor([0.1, 0.1]))
+    layout = types.SimpleNamespace(roi_center=np.zeros(3), roi_radius=0.5, roi_lower=-np.ones(3) / 2,
+                                   roi_upper=np.ones(3) / 2, camera_centers=np.array([[0.0, 0.0, 3.0]]), near=0.1)
+    assert prune_unseen(s, BackgroundState(layout, torch.device("cpu"))) == 0 and len(s) == 2

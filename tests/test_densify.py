@@ -231,7 +231,7 @@ def test_normals_to_quats_roundtrip():
     assert bool((cos > 1 - 1e-4).all())
 
 
-def _strategy(background, monkeypatch):
+def _strategy(background, monkeypatch, views=0):
     from wtopo.fitting import densify
     from wtopo.fitting._strategy import DensityStrategy
     from wtopo.fitting.config import FitConfig
@@ -243,7 +243,7 @@ def _strategy(background, monkeypatch):
     cfg.runtime.max_surfels = 100
     st = DensityStrategy(cfg, densify=True, warmup_end=400, generator=torch.Generator().manual_seed(0),
                          record=lambda name, **kw: events.append(name), timers=lambda name: _NullTimer(),
-                         background=background)
+                         background=background, views=views)
     st.gap = 0.0  # every pixel covered
     return st, events, Stage.WARMUP
 
@@ -274,6 +274,33 @@ def test_a_scene_densifies_by_gradient_although_its_background_leaves_no_gap(mon
         st.step_end(warmup, 200, s)
         assert (len(s) > 10) == grows, (background, len(s))
         assert ("densify" in events) == grows and ("densify_skipped" in events) != grows
+
+
+def test_a_scene_prunes_unseen_background_surfels_once_every_view_has_been_rendered_twice(monkeypatch):
+    """Surfels outside the region that no view has shown stay until two epochs of the 60 views have run (the
+    density step at 100 keeps them), then go (the step at 150); seen ones and unseen ones inside the region stay."""
+    import types
+
+    import numpy as np
+
+    from wtopo.fitting.background import BackgroundState
+
+    layout = types.SimpleNamespace(roi_center=np.full(3, 0.5), roi_radius=0.8, roi_lower=np.zeros(3),
+                                   roi_upper=np.ones(3), camera_centers=np.array([[0.5, 0.5, 5.0]]), near=0.05)
+    s, _ = _surfels(n=10)
+    with torch.no_grad():
+        s.means[6:] += torch.tensor([3.0, 0.0, 0.0])  # 6-9 outside the region
+    s.buffers["view_dirs"][[0, 1, 2, 6, 7]] = torch.tensor([0.0, 0.0, 1.0])  # seen: 0-2 inside, 6 and 7 outside
+    keep = s.means.detach()[[0, 1, 2, 3, 4, 5, 6, 7]].clone()
+    state = BackgroundState(layout, torch.device("cpu"))
+    st, events, warmup = _strategy(state, monkeypatch, views=60)
+    st.densify = False
+    st.cfg.densify.interval = 50
+    st.step_end(warmup, 100, s)
+    assert len(s) == 10 and "unseen_prune" not in events
+    st.step_end(warmup, 150, s)
+    assert len(s) == 8 and "unseen_prune" in events
+    assert torch.equal(s.means.detach(), keep)
 
 
 @pytest.mark.parametrize("warmup,interval", [(3000, 100), (1500, 100), (800, 100), (400, 50), (150, 18), (1000, 30),

@@ -4,7 +4,7 @@
 # view) and prints one line per fit: the mean and view 40, then every view; lab/train_psnr.py before it: every
 # training view's PSNR (are view 40's neighbours 38, 39 and 41 fitted?). Times are not meaningful (fits share
 # the GPU). VARIANTS: ";"-separated lists of --set items ("-" is the default; HARD_VIEWS=P installs
-# lab/hard_views.py with power P through lab/device/patched_run.py), e.g.
+# lab/hard_views.py with power P through lab/device/patched_run.py; UNSEEN=0 turns the unseen-background prune off), e.g.
 #   VARIANTS="-;HARD_VIEWS=1;losses.distortion=1000" SEEDS="0 1 2" bash lab/device/d40.sh
 source lab/device/lease_env.sh
 t0=$(date +%s)
@@ -17,11 +17,11 @@ for v in "${vars[@]}"; do
   tag=default; [ "$v" = "-" ] || tag=$(echo "$v" | tr -c 'a-zA-Z0-9_=.\n' '_' | tr '=' '-')
   for seed in ${SEEDS:-0 1}; do
     d=$S/res/d40/${tag}_s$seed
-    a=(--set runtime.seed=$seed --set runtime.usd_every=0 --label "$v seed $seed"); hv=
+    a=(--set runtime.seed=$seed --set runtime.usd_every=0 --label "$v seed $seed"); hv=; un=
     [ "$v" = "-" ] || for item in $v; do
-      case $item in HARD_VIEWS=*) hv=${item#HARD_VIEWS=} ;; *) a+=(--set "$item") ;; esac
+      case $item in HARD_VIEWS=*) hv=${item#HARD_VIEWS=} ;; UNSEEN=*) un=${item#UNSEEN=} ;; *) a+=(--set "$item") ;; esac
     done
-    (cd /tmp && HARD_VIEWS=$hv timeout ${FIT_TIMEOUT:-480} python3 $R/lab/device/patched_run.py $S/exch/dtu_scan24 $d \
+    (cd /tmp && HARD_VIEWS=$hv UNSEEN=$un timeout ${FIT_TIMEOUT:-480} python3 $R/lab/device/patched_run.py $S/exch/dtu_scan24 $d \
       "${a[@]}" > $d.log 2>&1; echo $? > $d.rc) &
     jobs+=($d)
   done

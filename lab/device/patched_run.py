@@ -1,5 +1,6 @@
-"""benchmarks/peers/run_wtopo.py with lab/hard_views.py installed first when HARD_VIEWS is set (its power): the same
-arguments, the same result folder (for lab/device/d40.sh)."""
+"""benchmarks/peers/run_wtopo.py with lab/hard_views.py installed first when HARD_VIEWS is set (its power), and
+without the unseen-background prune when UNSEEN=0: the same arguments, the same result folder (for
+lab/device/d40.sh)."""
 import os
 import sys
 
@@ -13,6 +14,10 @@ if __name__ == "__main__":
 
         seed = next((int(a.split("=", 1)[1]) for a in sys.argv if a.startswith("runtime.seed=")), 0)
         hard_views.install(float(os.environ["HARD_VIEWS"]), seed)
+    if os.environ.get("UNSEEN") == "0":
+        from wtopo.fitting import _strategy
+
+        _strategy.UNSEEN_AFTER_EPOCHS = 10**9
     import run_wtopo
 
     run_wtopo.main(sys.argv[1:])

@@ -22,7 +22,7 @@ from collections.abc import Callable, Sequence
 import torch
 
 from . import densify as dens
-from .background import BackgroundState, prune_near_cameras
+from .background import BackgroundState, prune_near_cameras, prune_unseen
 from .config import FitConfig, NormalFlip, stage_iteration
 from .plan import _DENSIFY_INTERVAL
 from .proxy import ProxyMesh
@@ -45,6 +45,7 @@ _CORRESPONDENCE_FRACTION = 0.5  # mesh guidance refreshes every this fraction of
 _SIGN_DISTANCE = 3.0  # mesh-guided signs: a proxy face nearer than this many in-plane sigmas of a surfel decides it
 _GEOMETRY_PRUNE_DISTANCE = 0.02  # geometry-aware prune: "far from the proxy", fraction of the scene extent
 _GEOMETRY_PRUNE_OPACITY = 0.3  # geometry-aware prune: "low opacity"
+UNSEEN_AFTER_EPOCHS = 2  # scenes: unseen background surfels are pruned once this many epochs of views have run
 
 
 @dataclasses.dataclass
@@ -101,7 +102,7 @@ class DensityStrategy:
     """
 
     def __init__(self, cfg: FitConfig, *, densify: bool, warmup_end: int, generator: torch.Generator,
-                 record: Record, timers: Callable, background: BackgroundState | None = None):
+                 record: Record, timers: Callable, background: BackgroundState | None = None, views: int = 0):
         self.cfg = cfg
         self.densify = densify
         self.warmup_end = warmup_end
@@ -113,6 +114,9 @@ class DensityStrategy:
         """Scenes: the region of interest and cameras; background surfels are spared by the
         geometry-aware prune, surfels on a lens are pruned at every density step, and clone/split
         runs by gradient alone (the background leaves no coverage gap to wait for)."""
+        self.views = views
+        """Training views: background surfels still unseen after :data:`UNSEEN_AFTER_EPOCHS` times as many
+        iterations are pruned at each density step."""
 
     # -- hooks ----------------------------------------------------------------------------------------
     def step_pre_forward(self, stage: Stage, it: int, surfels: Surfels, proxy: ProxyMesh) -> bool:
@@ -196,6 +200,11 @@ class DensityStrategy:
                 if near:
                     self.record("near_camera_prune", removed=near)
                 changed |= near > 0
+                if it >= UNSEEN_AFTER_EPOCHS * self.views:
+                    unseen = prune_unseen(surfels, self.background)
+                    if unseen:
+                        self.record("unseen_prune", removed=unseen)
+                    changed |= unseen > 0
             reset_every = max(1, stage_iteration(dc.opacity_reset_fraction, W)) if dc.opacity_reset_fraction else 0
             if reset_every and is_reset_step(it, reset_every, self._interval()) and it < DENSIFY_STOP * W:
                 if W - it >= _RESET_RECOVERY:

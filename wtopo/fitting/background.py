@@ -22,6 +22,11 @@ surfels from the start, at the distances it plausibly has, and keeps them there:
   a step proportional to distance in world space. Surfels in the region of interest move as before.
 * **Camera clearance.** Surfels whose centre comes within the layout's ``near`` distance of a
   camera centre are pruned at every density-control step: nothing may sit on the lens.
+* **Unseen shells go.** Once every training view has been rendered twice, surfels outside the region
+  of interest that no rendered view has shown (their accumulated view directions are still zero)
+  are pruned at every density-control step: no photograph constrains them, and a shell seeded behind
+  a near untextured surface keeps that surface's colour where a held-out view looks past its edge
+  (DTU scan24's view 40; ``design/decisions.md``, "unseen background shells").
 
 References:
     Barron et al., Mip-NeRF 360 (CVPR 2022), scene contraction; Huang et al., 2DGS (SIGGRAPH 2024)
@@ -37,7 +42,7 @@ from .scene_kind import SceneLayout
 from .surfels import Surfels
 
 __all__ = ["shell_radii", "uncovered_pixels", "background_surfels", "contract_steps", "prune_near_cameras",
-           "BackgroundState"]
+           "prune_unseen", "BackgroundState"]
 
 _SHELLS = 4  # shells between the first radius and the sky
 _FIRST_SHELL = 1.2  # first shell radius, times the farthest camera's distance from the region's centre
@@ -213,3 +218,13 @@ def prune_near_cameras(surfels: Surfels, state: BackgroundState) -> int:
     surfels.prune(~near)
     return k
 
+
+def prune_unseen(surfels: Surfels, state: BackgroundState) -> int:
+    """Remove the surfels outside the region of interest that no rendered view has shown yet (``view_dirs``, the
+    accumulated directions towards the cameras that saw them, all zero); returns how many (never all)."""
+    unseen = state.outside_roi(surfels.means) & (surfels.buffers["view_dirs"] == 0).all(dim=-1)
+    k = int(unseen.sum())
+    if k == 0 or k == len(surfels):
+        return 0
+    surfels.prune(~unseen)
+    return k

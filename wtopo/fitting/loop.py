@@ -155,7 +155,7 @@ class FitRun:
         self.background = BackgroundState(self.plan.layout, self.device) if self.plan.background_rule else None
         self.strategy = DensityStrategy(cfg, densify=bool(cfg.densify.enabled), warmup_end=self.warmup_end,
                                         generator=self.gen, record=self.record, timers=self.timers,
-                                        background=self.background)
+                                        background=self.background, views=len(self.train.cameras))
         self.evaluator = Evaluator(self.test, internal.gt_mesh, render=self.render, enabled=self.plan.gt_metrics,
                                    seed=cfg.runtime.seed, images=cfg.runtime.eval_metrics, held_out=held_out)
         self.checkpoints = Checkpointer(self, self.out_dir)
