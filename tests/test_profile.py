@@ -17,7 +17,8 @@ from wtopo.fitting.profiling import Timers, format_profile
 
 # what a user needs to see (issue 16): every stage of the loop and the proxy mesh's parts, as call paths
 _PATHS = {
-    "setup", "render", "render/rasterize_forward", "losses", "read", "backward", "optimizer", "statistics", "densify",
+    "setup", "init", "init/init_seed", "init/init_setup", "render", "render/rasterize_forward", "losses", "read",
+    "backward", "optimizer", "statistics", "densify",
     "proxy",
     "proxy/oriented_points", "proxy/poisson", "proxy/poisson/scatter", "proxy/marching_cubes", "raycast",
     "raycast/bvh_build", "tsdf", "tsdf/render_depths", "tsdf/tsdf_fusion", "tsdf/tsdf_fusion/tsdf_integrate",

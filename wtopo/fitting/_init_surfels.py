@@ -15,12 +15,14 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from .._profile import section
 from ..geometry.region import carve
-from .config import InitConfig, InitSource
+from .background import BackgroundState, background_surfels, prune_near_cameras
+from .config import FitConfig, InitConfig, InitSource
 from .surfels import Surfels
 
-__all__ = ["initial_surfels", "stereo_points", "common_volume_points", "projected_colors", "spread_subset",
-           "MIN_MVS_POINTS", "INIT_OPACITY"]
+__all__ = ["scene_surfels", "initial_surfels", "stereo_points", "common_volume_points", "projected_colors",
+           "spread_subset", "MIN_MVS_POINTS", "INIT_OPACITY"]
 
 INIT_OPACITY = 0.3
 """Opacity of every initial surfel (scene points, stereo, random and background ones), in (0, 1)."""
@@ -201,3 +203,25 @@ def initial_surfels(scene, cfg: InitConfig, source: InitSource | str, *, sh_degr
                                normals=None if normals is None else torch.as_tensor(normals, dtype=torch.float32,
                                                                                      device=device),
                                opacity=INIT_OPACITY, sh_degree=sh_degree, generator=generator)
+
+
+def scene_surfels(scene, cfg: FitConfig, layout, device: torch.device, generator: torch.Generator,
+                  background: BackgroundState | None) -> Surfels:
+    """The fit's initial surfels of ``scene`` (its training views): from ``cfg.init.source`` (plane-sweep stereo's
+    confirmed points for ``mvs``), plus ``cfg.init.background_points`` background shells seeded where the stereo
+    explained nothing, none of them within ``background``'s near distance of a camera. Profiled as "init_seed"
+    and "init_shells" (the stereo's own sections inside the first)."""
+    with section("init_seed"):
+        stereo = stereo_points(scene, layout, device) if cfg.init.source == InitSource.MVS else None
+        s = initial_surfels(scene, cfg.init, cfg.init.source, sh_degree=int(cfg.sh_degree), device=device,
+                            generator=generator, layout=layout, stereo=stereo)
+    n_bg = int(cfg.init.background_points)
+    if n_bg > 0:  # the shells seed only where the stereo explained nothing
+        with section("init_shells"):
+            seen = None if stereo is None or len(stereo.points) < MIN_MVS_POINTS else stereo.points
+            bg = background_surfels(scene, layout, n_bg, sh_degree=s.sh_degree, opacity=INIT_OPACITY, device=device,
+                                    generator=generator, covered_by=seen)
+            s.append(*bg.take(slice(None)))
+            if background is not None:  # nothing starts on a lens
+                prune_near_cameras(s, background)
+    return s

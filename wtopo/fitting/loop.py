@@ -22,19 +22,20 @@ from pathlib import Path
 import torch
 import trimesh
 
+from .._profile import section
 from .._validate import trusted_values
 from . import presets as _presets
 from ._final_mesh import final_mesh
-from ._init_surfels import INIT_OPACITY, MIN_MVS_POINTS, initial_surfels, stereo_points
+from ._init_surfels import scene_surfels
 from ._progress import StageBar, StopRequest, frozen_heap
 from ._reinit import tsdf_reinit
 from ._run_state import restore_run_state, run_state
 from ._strategy import DensityStrategy, StepInfo
 from ._timeline import FitTimeline, aborted_on_failure
 from .adam import Adam
-from .background import BackgroundState, background_surfels, contract_steps, prune_near_cameras
+from .background import BackgroundState, contract_steps
 from .checkpointing import Checkpointer
-from .config import FitConfig, InitSource, config_hash
+from .config import FitConfig, config_hash
 from .evaluate import Evaluator
 from .objective import LossLog, Objective
 from .plan import Plan, make_plan, resolve_config, split_views
@@ -380,21 +381,9 @@ class FitRun:
             self.timeline.carry_over(self.it)
         if not resumed:
             with self.timers("init"):
-                stereo = (stereo_points(self.train, self.plan.layout, self.device)
-                          if self.cfg.init.source == InitSource.MVS else None)
-                s = initial_surfels(self.train, self.cfg.init, self.cfg.init.source,
-                                    sh_degree=int(self.cfg.sh_degree), device=self.device, generator=self.gen,
-                                    layout=self.plan.layout, stereo=stereo)
-                n_bg = int(self.cfg.init.background_points)
-                if n_bg > 0:  # the shells seed only where the stereo explained nothing
-                    seen = None if stereo is None or len(stereo.points) < MIN_MVS_POINTS else stereo.points
-                    bg = background_surfels(self.train, self.plan.layout, n_bg, sh_degree=s.sh_degree,
-                                            opacity=INIT_OPACITY, device=self.device, generator=self.gen,
-                                            covered_by=seen)
-                    s.append(*bg.take(slice(None)))
-                    if self.background is not None:  # nothing starts on a lens
-                        prune_near_cameras(s, self.background)
-                self.set_surfels(s)
+                s = scene_surfels(self.train, self.cfg, self.plan.layout, self.device, self.gen, self.background)
+                with section("init_setup"):
+                    self.set_surfels(s)
         if self.progress:
             print(self.plan)
             if resumed:

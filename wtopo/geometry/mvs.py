@@ -41,6 +41,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .._profile import section
 from ..camera import Camera
 from ..multiview_ncc import source_params
 from ..plane_sweep import LevelPlanes, SweepReference, plane_costs
@@ -349,7 +350,7 @@ def plane_sweep_points(cameras: list[Camera], images: torch.Tensor, roi_lower: n
     up = capture_up(cameras)
     corners = np.array([[(lower, upper)[b >> a & 1][a] for a in range(3)] for b in range(8)])
     depths, level = [], []
-    with torch.no_grad():
+    with torch.no_grad(), section("stereo_sweep"):
         for i, ref in enumerate(tcams):
             if not nbrs[i]:
                 depths.append(torch.zeros(ref.H, ref.W, device=dev))
@@ -371,6 +372,7 @@ def plane_sweep_points(cameras: list[Camera], images: torch.Tensor, roi_lower: n
                 d = torch.where(won, d2, d)
             depths.append(d)
             level.append(won & (d > 0))
+    with section("stereo_confirm"):
         return confirmed_points(tcams, images, nbrs, depths, level, up)
 
 
