@@ -31,9 +31,9 @@ def peers_split(path):
 def black_shells() -> None:
     """Patch the fit (this process only) so that the background shells start black: their colour is otherwise the
     pixel's each was seeded from, which behind an untextured near surface (DTU's white table) is that surface's."""
-    from wtopo.fitting import loop
+    from wtopo.fitting import _init_surfels as init
 
-    real = loop.background_surfels
+    real = init.background_surfels
 
     def shells(*args, **kw):
         s = real(*args, **kw)
@@ -41,7 +41,7 @@ def black_shells() -> None:
             s.params["sh_dc"].fill_(-0.5 / 0.28209479177387814)  # RGB 0 through the SH's DC term
         return s
 
-    loop.background_surfels = shells
+    init.background_surfels = shells
 
 
 def main():

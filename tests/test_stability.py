@@ -152,7 +152,7 @@ def case_tiny_scales() -> str:
     """A fit from surfels whose scales are all 1e-8 (internal units) is finite."""
     from wtopo.fitting import loop
 
-    orig = loop.initial_surfels
+    orig = loop.scene_surfels
 
     def collapsed(*a, **kw):
         s = orig(*a, **kw)
@@ -160,11 +160,11 @@ def case_tiny_scales() -> str:
             s.params["log_scales"].fill_(math.log(1e-8))
         return s
 
-    loop.initial_surfels = collapsed
+    loop.scene_surfels = collapsed
     try:
         return _check_fit(_fit(sphere_scene(), tiny_config()))
     finally:
-        loop.initial_surfels = orig
+        loop.scene_surfels = orig
 
 
 def case_huge_lr() -> str:
