@@ -231,7 +231,7 @@ def test_normals_to_quats_roundtrip():
     assert bool((cos > 1 - 1e-4).all())
 
 
-def _strategy(background, monkeypatch, views=0):
+def _strategy(background, monkeypatch, views=None):
     from wtopo.fitting import densify
     from wtopo.fitting._strategy import DensityStrategy
     from wtopo.fitting.config import FitConfig
@@ -278,7 +278,7 @@ def test_a_scene_densifies_by_gradient_although_its_background_leaves_no_gap(mon
 
 def test_a_scene_prunes_unseen_background_surfels_once_every_view_has_been_rendered_twice(monkeypatch):
     """Surfels outside the region that no view has shown stay until two epochs of the 60 views have run (the
-    density step at 100 keeps them), then go (the step at 150); seen ones and unseen ones inside the region stay."""
+    density step at 100 keeps them), then go (the step at 120); seen ones and unseen ones inside the region stay."""
     import types
 
     import numpy as np
@@ -295,10 +295,10 @@ def test_a_scene_prunes_unseen_background_surfels_once_every_view_has_been_rende
     state = BackgroundState(layout, torch.device("cpu"))
     st, events, warmup = _strategy(state, monkeypatch, views=60)
     st.densify = False
-    st.cfg.densify.interval = 50
+    st.cfg.densify.interval = 20
     st.step_end(warmup, 100, s)
     assert len(s) == 10 and "unseen_prune" not in events
-    st.step_end(warmup, 150, s)
+    st.step_end(warmup, 120, s)
     assert len(s) == 8 and "unseen_prune" in events
     assert torch.equal(s.means.detach(), keep)
 

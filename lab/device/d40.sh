@@ -4,7 +4,8 @@
 # view) and prints one line per fit: the mean and view 40, then every view; lab/train_psnr.py before it: every
 # training view's PSNR (are view 40's neighbours 38, 39 and 41 fitted?). Times are not meaningful (fits share
 # the GPU). VARIANTS: ";"-separated lists of --set items ("-" is the default; HARD_VIEWS=P installs
-# lab/hard_views.py with power P through lab/device/patched_run.py; UNSEEN=0 turns the unseen-background prune off), e.g.
+# lab/hard_views.py with power P through lab/device/patched_run.py; UNSEEN=0 turns the unseen-background prune
+# off; with HARD_VIEWS it is off unless UNSEEN=1), e.g.
 #   VARIANTS="-;HARD_VIEWS=1;losses.distortion=1000" SEEDS="0 1 2" bash lab/device/d40.sh
 source lab/device/lease_env.sh
 t0=$(date +%s)

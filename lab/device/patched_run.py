@@ -14,7 +14,9 @@ if __name__ == "__main__":
 
         seed = next((int(a.split("=", 1)[1]) for a in sys.argv if a.startswith("runtime.seed=")), 0)
         hard_views.install(float(os.environ["HARD_VIEWS"]), seed)
-    if os.environ.get("UNSEEN") == "0":
+    # hard_views.py draws views with replacement, so two epochs of iterations need not show every view twice:
+    # the unseen-shell prune is off with it unless UNSEEN=1
+    if os.environ.get("UNSEEN") == "0" or (os.environ.get("HARD_VIEWS") and os.environ.get("UNSEEN") != "1"):
         from wtopo.fitting import _strategy
 
         _strategy.UNSEEN_AFTER_EPOCHS = 10**9

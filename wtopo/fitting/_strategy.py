@@ -102,7 +102,8 @@ class DensityStrategy:
     """
 
     def __init__(self, cfg: FitConfig, *, densify: bool, warmup_end: int, generator: torch.Generator,
-                 record: Record, timers: Callable, background: BackgroundState | None = None, views: int = 0):
+                 record: Record, timers: Callable, background: BackgroundState | None = None,
+                 views: int | None = None):
         self.cfg = cfg
         self.densify = densify
         self.warmup_end = warmup_end
@@ -116,7 +117,7 @@ class DensityStrategy:
         runs by gradient alone (the background leaves no coverage gap to wait for)."""
         self.views = views
         """Training views: background surfels still unseen after :data:`UNSEEN_AFTER_EPOCHS` times as many
-        iterations are pruned at each density step."""
+        iterations are pruned at each density step (``None``: never)."""
 
     # -- hooks ----------------------------------------------------------------------------------------
     def step_pre_forward(self, stage: Stage, it: int, surfels: Surfels, proxy: ProxyMesh) -> bool:
@@ -200,7 +201,7 @@ class DensityStrategy:
                 if near:
                     self.record("near_camera_prune", removed=near)
                 changed |= near > 0
-                if it >= UNSEEN_AFTER_EPOCHS * self.views:
+                if self.views is not None and it >= UNSEEN_AFTER_EPOCHS * self.views:
                     unseen = prune_unseen(surfels, self.background)
                     if unseen:
                         self.record("unseen_prune", removed=unseen)
