@@ -7,39 +7,59 @@
 # lab/hard_views.py with power P through lab/device/patched_run.py; UNSEEN=0 turns the unseen-background prune
 # off; with HARD_VIEWS it is off unless UNSEEN=1), e.g.
 #   VARIANTS="-;HARD_VIEWS=1;losses.distortion=1000" SEEDS="0 1 2" bash lab/device/d40.sh
+# SCENES="NAME ..." fits those scenes of benchmarks/peers/export.py instead, all side by side (each exported first if
+# missing; training-view PSNR for DTU only; the summary adds ROI F1), e.g. the unseen-shell prune on the unbounded
+# scenes:  SCENES="bunny_env chair_env mug_torus_env" VARIANTS="-;UNSEEN=0" SEEDS="0" bash lab/device/d40.sh
 source lab/device/lease_env.sh
 t0=$(date +%s)
 R=$PWD
 lease_dtu || exit 1
+for SC in ${SCENES:-dtu_scan24}; do
+  [ -f $S/exch/$SC/meta.json ] || python3 benchmarks/peers/export.py $SC $S/exch/$SC --name $SC > $S/exch_$SC.log 2>&1 &
+done
+wait
+for SC in ${SCENES:-dtu_scan24}; do [ -f $S/exch/$SC/meta.json ] || { tail -n 5 $S/exch_$SC.log; exit 1; }; done
+echo "exports ready after $(( $(date +%s) - t0 )) s"
 mkdir -p $OUT/d40 $S/res/d40
 IFS=';' read -ra vars <<< "${VARIANTS:--}"
 jobs=()
+for SC in ${SCENES:-dtu_scan24}; do
 for v in "${vars[@]}"; do
   tag=default; [ "$v" = "-" ] || tag=$(echo "$v" | tr -c 'a-zA-Z0-9_=.\n' '_' | tr '=' '-')
   for seed in ${SEEDS:-0 1}; do
-    d=$S/res/d40/${tag}_s$seed
+    d=$S/res/d40/${SC}_${tag}_s$seed
     a=(--set runtime.seed=$seed --set runtime.usd_every=0 --label "$v seed $seed"); hv=; un=
     [ "$v" = "-" ] || for item in $v; do
       case $item in HARD_VIEWS=*) hv=${item#HARD_VIEWS=} ;; UNSEEN=*) un=${item#UNSEEN=} ;; *) a+=(--set "$item") ;; esac
     done
-    (cd /tmp && HARD_VIEWS=$hv UNSEEN=$un timeout ${FIT_TIMEOUT:-480} python3 $R/lab/device/patched_run.py $S/exch/dtu_scan24 $d \
+    (cd /tmp && HARD_VIEWS=$hv UNSEEN=$un timeout ${FIT_TIMEOUT:-480} python3 $R/lab/device/patched_run.py $S/exch/$SC $d \
       "${a[@]}" > $d.log 2>&1; echo $? > $d.rc) &
+    echo $SC > $d.scene
     jobs+=($d)
   done
+done
 done
 wait
 echo "fits done after $(( $(date +%s) - t0 )) s"
 for d in "${jobs[@]}"; do
   [ "$(cat $d.rc)" = 0 ] || { echo "$d rc=$(cat $d.rc)"; tail -n 3 $d.log; continue; }
-  timeout 120 python3 benchmarks/peers/score.py $S/exch/dtu_scan24 $d --out $OUT/d40/rows.json > $d.score 2>&1 \
+  SC=$(cat $d.scene)
+  timeout 120 python3 benchmarks/peers/score.py $S/exch/$SC $d --out $OUT/d40/rows.json > $d.score 2>&1 \
     || tail -n 3 $d.score
 done
-ok=(); for d in "${jobs[@]}"; do [ "$(cat $d.rc)" = 0 ] && ok+=($d); done
+ok=(); for d in "${jobs[@]}"; do [ "$(cat $d.rc)" = 0 ] && [ "$(cat $d.scene)" = dtu_scan24 ] && ok+=($d); done
 [ ${#ok[@]} -gt 0 ] && timeout 200 python3 lab/train_psnr.py $S/exch/dtu_scan24 "${ok[@]}" 2>&1 | tail -n ${#ok[@]}
+for d in "${jobs[@]}"; do
+  python3 -c "import json, sys; ev = json.load(open(sys.argv[1] + '/run/report.json'))['events']
+u = [e['removed'] for e in ev if e.get('event') == 'unseen_prune']
+print(sys.argv[1], 'unseen shells pruned:', sum(u), 'in', len(u), 'density steps')" $d 2>/dev/null
+done
 python3 - $OUT/d40/rows.json <<'PY'
 import json, sys
 for r in json.load(open(sys.argv[1])):
     v = r.get("psnr_views") or []
-    print(f"{r['system']:<40} mean {r['psnr']:.2f}  view 40 {v[5] if len(v) > 5 else float('nan'):.2f}  views {v}")
+    f1 = f"  ROI F1 {r['roi_f1']:.3f}" if r.get("roi_f1") is not None else ""
+    print(f"{r['scene']} {r['system']:<40} mean {r['psnr']:.2f}{f1}  view 40 "
+          f"{v[5] if len(v) > 5 else float('nan'):.2f}  views {v}")
 PY
 echo "done after $(( $(date +%s) - t0 )) s"
