@@ -1,7 +1,9 @@
 # SPDX-License-Identifier: Apache-2.0
 """#60 goal 2, forward alone: the public rasterize_surfels against gsplat's rasterization_2dgs at 100k and 1M
 surfels, 800 px (bench_rasterize_gpu.py's scene), with other tile sizes and prefetch batches, and the kernel
-table of each forward alone. Lab tool (nothing imports it): python lab/raster_forward.py [--sizes ...]."""
+table of each forward alone. ``--rounds R`` then times gsplat and our default forward alternately R times (each
+round 30 calls of each, the order swapped every round) and prints the median ratio: one process's figure for the
+ratio, free of which runs first. Lab tool (nothing imports it): python lab/raster_forward.py [--sizes ...]."""
 
 from __future__ import annotations
 
@@ -39,6 +41,7 @@ def main() -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[100_000, 1_000_000])
     ap.add_argument("--res", type=int, default=800)
     ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--rounds", type=int, default=0)
     args = ap.parse_args()
     cam = make_camera(args.res, args.res)
     for n in args.sizes:
@@ -62,6 +65,16 @@ def main() -> int:
             pipe = time_pipelined(fn, 5, 30)["ms"]
             base = base or (lat, pipe)
             print(f"  {name:22s} {lat:7.3f} {pipe:7.3f}   {lat / base[0]:.2f}x {pipe / base[1]:.2f}x gsplat")
+        if args.rounds:
+            ours = runs["tile 8 batch 32"]
+            ratios = []
+            for r in range(args.rounds):
+                order = [("gsplat", gfwd), ("ours", ours)][:: 1 if r % 2 else -1]
+                got = {name: time_latency(fn, 3, 30)["ms"] for name, fn in order}
+                ratios.append(got["ours"] / got["gsplat"])
+            ratios.sort()
+            print(f"  alternating, {args.rounds} rounds: ours / gsplat median {ratios[len(ratios) // 2]:.3f}x "
+                  f"(min {ratios[0]:.3f}, max {ratios[-1]:.3f})")
         if args.profile:
             profile_kernels(runs["tile 8 batch 32"], f"wtopo forward, N={n}", top=14)
             profile_kernels(gfwd, f"gsplat forward, N={n}", top=10)
