@@ -59,7 +59,9 @@ _REFERENCE_CORES = 2  # the CPU timings below were measured on 2 cores; more cor
 # kernel cache): DTU at the balanced default (5,000 iterations of 137k-pixel views, no mesh loop) 101 s with 20 s
 # outside the iterations (2026-12-04, benchmarks/gpu.md), the 64-view chair (262k-pixel views, the mesh loop) 127 s
 # (2026-12-03, benchmarks/peers.md): 13 ms an iteration plus 32 ms per megapixel of view; fast and best scale the
-# iterations and keep the rates until a GPU front is measured.
+# iterations and keep the rates until a GPU front is measured. The CUDA rates date from before the GPU speed work:
+# DTU now takes 27 s on one H100 (2026-12-06, benchmarks/gpu.md), so they overstate a CUDA fit about fourfold
+# until a fit with the mesh loop is timed alone and they are measured again.
 # polish: the CPU balanced bunny (two seeds) gains 0.07-0.10 dB of held-out PSNR at 0.5, 0.15-0.17 at 1 (the same
 # iterations with the loop on: 0.01-0.05); at best 0.09-0.10 at 0.25-0.5 and 0.05 at 1 (design/decisions.md,
 # "Kept: a photometric polish").
