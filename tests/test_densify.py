@@ -303,6 +303,35 @@ def test_a_scene_prunes_unseen_background_surfels_once_every_view_has_been_rende
     assert torch.equal(s.means.detach(), keep)
 
 
+def test_a_rolled_back_step_postpones_the_unseen_prune_by_two_epochs(monkeypatch):
+    """A failed step at 110 restores the last good state (and its view directions): the prune that was due at 120
+    waits until 110 + 2 x 60 = 230."""
+    import types
+
+    import numpy as np
+
+    from wtopo.fitting.background import BackgroundState
+
+    layout = types.SimpleNamespace(roi_center=np.full(3, 0.5), roi_radius=0.8, roi_lower=np.zeros(3),
+                                   roi_upper=np.ones(3), camera_centers=np.array([[0.5, 0.5, 5.0]]), near=0.05)
+    s, _ = _surfels(n=10)
+    with torch.no_grad():
+        s.means[8:] += torch.tensor([3.0, 0.0, 0.0])  # 8 and 9 outside the region, unseen
+    s.buffers["view_dirs"][:8] = torch.tensor([0.0, 0.0, 1.0])
+    st, events, warmup = _strategy(BackgroundState(layout, torch.device("cpu")), monkeypatch, views=60)
+    st.densify = False
+    st.cfg.densify.interval = 20
+    st.rolled_back(110)
+    assert st.unseen_from == 230
+    for it in (120, 140, 160, 180, 200, 220):
+        st.step_end(warmup, it, s)
+    assert len(s) == 10 and "unseen_prune" not in events
+    st.step_end(warmup, 240, s)
+    assert len(s) == 8 and "unseen_prune" in events
+    st.rolled_back(10)  # an earlier failure never brings the gate forward
+    assert st.unseen_from == 230
+
+
 @pytest.mark.parametrize("warmup,interval", [(3000, 100), (1500, 100), (800, 100), (400, 50), (150, 18), (1000, 30),
                                              (1234, 37)])
 def test_opacity_resets_fall_on_the_density_step_nearest_each_intended_iteration(warmup, interval, monkeypatch):

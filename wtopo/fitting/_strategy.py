@@ -116,8 +116,17 @@ class DensityStrategy:
         geometry-aware prune, surfels on a lens are pruned at every density step, and clone/split
         runs by gradient alone (the background leaves no coverage gap to wait for)."""
         self.views = views
-        """Training views: background surfels still unseen after :data:`UNSEEN_AFTER_EPOCHS` times as many
-        iterations are pruned at each density step (``None``: never)."""
+        """Training views (``None``: unseen background surfels are never pruned)."""
+        self.unseen_from = None if views is None else UNSEEN_AFTER_EPOCHS * views
+        """From this iteration on, density steps prune the background surfels no view has shown: once every view
+        has been rendered :data:`UNSEEN_AFTER_EPOCHS` times (:meth:`rolled_back` moves it on)."""
+
+    def rolled_back(self, it: int) -> None:
+        """A failed step at ``it`` brought back the last good state, and with it the view directions gathered
+        before the snapshot: the unseen-surfel prune waits until every view has been rendered
+        :data:`UNSEEN_AFTER_EPOCHS` times more."""
+        if self.unseen_from is not None:
+            self.unseen_from = max(self.unseen_from, it + UNSEEN_AFTER_EPOCHS * self.views)
 
     # -- hooks ----------------------------------------------------------------------------------------
     def step_pre_forward(self, stage: Stage, it: int, surfels: Surfels, proxy: ProxyMesh) -> bool:
@@ -201,7 +210,7 @@ class DensityStrategy:
                 if near:
                     self.record("near_camera_prune", removed=near)
                 changed |= near > 0
-                if self.views is not None and it >= UNSEEN_AFTER_EPOCHS * self.views:
+                if self.unseen_from is not None and it >= self.unseen_from:
                     unseen = prune_unseen(surfels, self.background)
                     if unseen:
                         self.record("unseen_prune", removed=unseen)

@@ -275,6 +275,7 @@ class FitRun:
         self.record("non_finite", why=why, terms=terms)
         self.opt.zero_grad(set_to_none=True)
         self._restore()
+        self.strategy.rolled_back(self.it)
         if self.failures >= MAX_CONSECUTIVE_FAILURES:
             self.status = "aborted"
             path = self.checkpoints.save(force=True)
