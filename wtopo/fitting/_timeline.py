@@ -20,6 +20,7 @@ import numpy as np
 import torch
 import trimesh
 
+from .._profile import section
 from .proxy import ProxyResult
 from .surfels import Surfels
 
@@ -129,7 +130,8 @@ class FitTimeline:
         with self.timers("timeline"), self._guard("the end"):
             if mesh is not None:
                 self.writer.add_mesh("final", self.sim.to_world(np.asarray(mesh.vertices)), np.asarray(mesh.faces))
-            self.writer.close()
+            with section("timeline_wait"):
+                self.writer.close()
 
 
 @contextlib.contextmanager

@@ -70,6 +70,7 @@ LABELS = {
     "evaluate": "evaluation",
     "checkpoint": "checkpoint",
     "timeline": "USD timeline",
+    "timeline_wait": "the wait for its writer at the end",
     "outputs": "report and output files",
 }
 """What the table calls each section (sections without an entry show their name)."""
