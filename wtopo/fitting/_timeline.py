@@ -108,13 +108,16 @@ class FitTimeline:
                 return _host(t if idx is None else t.detach()[idx])
 
             sim = self.sim
-            kw = {}
-            if proxy_mesh is not None:
-                kw = {"mesh_verts": sim.to_world(_host(proxy_mesh.verts).astype(np.float64)),
-                      "mesh_faces": _host(proxy_mesh.faces)}
-            self.writer.add_sample(int(it), means=sim.to_world(take(s.means).astype(np.float64)), quats=take(s.quats),
-                                   scales=sim.length_to_world(take(s.scales).astype(np.float64)),
-                                   opacities=take(s.opacities), colors_or_sh=take(s.sh[:, :1]), **kw)
+            with section("timeline_copy"):
+                kw = {}
+                if proxy_mesh is not None:
+                    kw = {"mesh_verts": sim.to_world(_host(proxy_mesh.verts).astype(np.float64)),
+                          "mesh_faces": _host(proxy_mesh.faces)}
+                arrays = {"means": sim.to_world(take(s.means).astype(np.float64)), "quats": take(s.quats),
+                          "scales": sim.length_to_world(take(s.scales).astype(np.float64)),
+                          "opacities": take(s.opacities), "colors_or_sh": take(s.sh[:, :1]), **kw}
+            with section("timeline_send"):
+                self.writer.add_sample(int(it), **arrays)
 
     def abort(self) -> None:
         """End the writer after a failed fit; nothing is written (the file is written only at :meth:`close`), and

@@ -70,6 +70,8 @@ LABELS = {
     "evaluate": "evaluation",
     "checkpoint": "checkpoint",
     "timeline": "USD timeline",
+    "timeline_copy": "the samples' host copies",
+    "timeline_send": "their hand-over to the writer",
     "timeline_wait": "the wait for its writer at the end",
     "outputs": "report and output files",
 }
