@@ -91,8 +91,9 @@ def test_no_background_surfels_asked_gives_none():
 def test_unseen_shells_are_pruned_and_seen_or_inner_surfels_stay():
     """A camera at z = 3 looks down -z at four opaque layers at z = 0.5 ... 0.35 inside the region of interest;
     behind them a small shell outside the region (hidden), another beside the layers' opaque core (seen), and a
-    small inner surfel behind them (hidden, but inside). What a real render shows is noted as seen: only the
-    hidden shell goes, once its one early sighting is older than the window."""
+    small inner surfel behind them (hidden, but inside). Their view directions come from a real render's
+    visibility: only the hidden shell goes."""
+    from wtopo.fitting import densify as dens
     from wtopo.fitting.background import BackgroundState, prune_unseen
     from wtopo.fitting.surfels import Surfels
     from wtopo.rasterize import rasterize_surfels
@@ -110,16 +111,14 @@ def test_unseen_shells_are_pruned_and_seen_or_inner_surfels_stay():
     out = rasterize_surfels(s.means, s.quats, s.scales, s.opacities, s.sh, cam)
     visible = out.visibility > 0
     assert visible.tolist() == [True] * 4 + [False, True, False], out.visibility
-    s.buffers["seen_at"][4] = 3.0  # the hidden shell was shown once, early (before the layers covered it)
-    s.buffers["seen_at"].masked_fill_(visible, 50.0)  # what step_post_backward notes at iteration 50
+    dens.accumulate_view_directions(s, torch.as_tensor(cam.center, dtype=torch.float32), visible)
     layout = types.SimpleNamespace(roi_center=np.full(3, 0.5), roi_radius=0.5, roi_lower=np.zeros(3),
                                    roi_upper=np.ones(3), camera_centers=cam.center[None], near=0.1)
     state = BackgroundState(layout, torch.device("cpu"))
     assert state.outside_roi(s.means).tolist() == [False] * 4 + [True, True, False]
-    assert prune_unseen(s, state, since=2) == 0  # it was shown at 3
-    assert prune_unseen(s, state, since=10) == 1
+    assert prune_unseen(s, state) == 1
     assert torch.allclose(s.means.detach(), pts[[0, 1, 2, 3, 5, 6]])
-    assert prune_unseen(s, state, since=50) == 0  # the rest were shown at 50 or are inside
+    assert prune_unseen(s, state) == 0  # nothing left to prune
 
 
 def test_unseen_prune_never_removes_every_surfel():
@@ -130,4 +129,4 @@ def test_unseen_prune_never_removes_every_surfel():
                             scales=torch.tensor([0.1, 0.1]))
     layout = types.SimpleNamespace(roi_center=np.zeros(3), roi_radius=0.5, roi_lower=-np.ones(3) / 2,
                                    roi_upper=np.ones(3) / 2, camera_centers=np.array([[0.0, 0.0, 3.0]]), near=0.1)
-    assert prune_unseen(s, BackgroundState(layout, torch.device("cpu")), since=10) == 0 and len(s) == 2
+    assert prune_unseen(s, BackgroundState(layout, torch.device("cpu"))) == 0 and len(s) == 2

@@ -444,31 +444,3 @@ def test_resumed_scene_fit_keeps_the_clipped_proxy(room, tmp_path):
     for a, b in zip(again.proxy.clip, (again.plan.layout.roi_lower, again.plan.layout.roi_upper)):
         np.testing.assert_array_equal(a, b)
     assert again.proxy.cfg.level_sigma == first.proxy.cfg.level_sigma
-
-
-def test_a_checkpoint_from_before_the_unseen_prune_resumes_with_every_surfel_seen(room, tmp_path, monkeypatch):
-    """A checkpoint without ``seen_at`` buffers and ``unseen_from`` (written before the unseen-surfel prune)
-    resumes with every surfel counted as seen at the resumed iteration (none is pruned for want of a record) and
-    the strategy's own start of the prune."""
-    from wtopo.fitting import loop
-    from wtopo.fitting.loop import FitRun
-
-    real = loop.run_state
-
-    def old_format(run):
-        st = real(run)
-        del st["unseen_from"]
-        st["surfels"] = {**st["surfels"], "buffers": {k: v for k, v in st["surfels"]["buffers"].items()
-                                                     if k != "seen_at"}}
-        return st
-
-    monkeypatch.setattr(loop, "run_state", old_format)
-    cfg = _small(warmup=20, coevolution=10)
-    cfg.runtime.checkpoint_every = 2
-    cfg.runtime.stop_at = 12
-    FitRun(room, cfg, tmp_path, progress=False).run()
-    again = FitRun(room, cfg, tmp_path, progress=False)
-    again._start()
-    assert again.it == 12
-    assert bool((again.surfels.buffers["seen_at"] == 12.0).all())
-    assert again.strategy.unseen_from == 2 * len(again.train.cameras)

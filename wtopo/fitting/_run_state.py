@@ -46,8 +46,6 @@ def restore_run_state(run, st: dict) -> None:
     """Load a stored dictionary (:func:`run_state`) into ``run``."""
     run.set_surfels(Surfels.from_state_dict(st["surfels"], run.device), st["optimizer"])
     run.it = int(st["iteration"])
-    if "seen_at" not in st["surfels"].get("buffers", {}):  # a checkpoint from before it: every surfel counts as seen
-        run.surfels.buffers["seen_at"].fill_(float(run.it))
     run.tsdf_done = bool(st["tsdf_done"])
     run.history = list(st["history"])
     run.events = list(st["events"])

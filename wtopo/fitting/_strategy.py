@@ -45,7 +45,7 @@ _CORRESPONDENCE_FRACTION = 0.5  # mesh guidance refreshes every this fraction of
 _SIGN_DISTANCE = 3.0  # mesh-guided signs: a proxy face nearer than this many in-plane sigmas of a surfel decides it
 _GEOMETRY_PRUNE_DISTANCE = 0.02  # geometry-aware prune: "far from the proxy", fraction of the scene extent
 _GEOMETRY_PRUNE_OPACITY = 0.3  # geometry-aware prune: "low opacity"
-UNSEEN_AFTER_EPOCHS = 2  # scenes: background surfels no view has shown for this many epochs of views are pruned
+UNSEEN_AFTER_EPOCHS = 2  # scenes: unseen background surfels are pruned once this many epochs of views have run
 
 
 @dataclasses.dataclass
@@ -118,12 +118,12 @@ class DensityStrategy:
         self.views = views
         """Training views (``None``: unseen background surfels are never pruned)."""
         self.unseen_from = None if views is None else UNSEEN_AFTER_EPOCHS * views
-        """From this iteration on, density steps prune the background surfels that no view has shown in the last
-        :data:`UNSEEN_AFTER_EPOCHS` epochs of views (:meth:`rolled_back` moves it on)."""
+        """From this iteration on, density steps prune the background surfels no view has shown: once every view
+        has been rendered :data:`UNSEEN_AFTER_EPOCHS` times (:meth:`rolled_back` moves it on)."""
 
     def rolled_back(self, it: int) -> None:
-        """A failed step at ``it`` brought back the last good state, and with it the record of what the views
-        showed before the snapshot: the unseen-surfel prune waits until every view has been rendered
+        """A failed step at ``it`` brought back the last good state, and with it the view directions gathered
+        before the snapshot: the unseen-surfel prune waits until every view has been rendered
         :data:`UNSEEN_AFTER_EPOCHS` times more."""
         if self.unseen_from is not None:
             self.unseen_from = max(self.unseen_from, it + UNSEEN_AFTER_EPOCHS * self.views)
@@ -164,14 +164,11 @@ class DensityStrategy:
         gap = uncovered / max(1.0, total)
         self.gap = _GAP_EMA * self.gap + (1 - _GAP_EMA) * gap
 
-    def step_post_backward(self, surfels: Surfels, info: StepInfo, it: int | None = None) -> None:
-        """Accumulate screen-space gradients (warm-up) and view directions of the visible surfels, and note
-        iteration ``it`` as the last one that showed them (``None``: not noted)."""
+    def step_post_backward(self, surfels: Surfels, info: StepInfo) -> None:
+        """Accumulate screen-space gradients (warm-up) and view directions of the visible surfels."""
         out, cam = info.render, info.camera
         with torch.no_grad():
             visible = out.visibility > 0
-            if it is not None:
-                surfels.buffers["seen_at"].masked_fill_(visible, float(it))
             if info.stage == Stage.WARMUP and out.means2d.grad is not None:
                 dens.accumulate_gradients(surfels, out.means2d.grad, visible, cam.width, cam.height)
             dev = surfels.means.device  # the centre is copied to the device once per camera, not per step
@@ -214,7 +211,7 @@ class DensityStrategy:
                     self.record("near_camera_prune", removed=near)
                 changed |= near > 0
                 if self.unseen_from is not None and it >= self.unseen_from:
-                    unseen = prune_unseen(surfels, self.background, it - UNSEEN_AFTER_EPOCHS * self.views)
+                    unseen = prune_unseen(surfels, self.background)
                     if unseen:
                         self.record("unseen_prune", removed=unseen)
                     changed |= unseen > 0

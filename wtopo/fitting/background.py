@@ -22,10 +22,10 @@ surfels from the start, at the distances it plausibly has, and keeps them there:
   a step proportional to distance in world space. Surfels in the region of interest move as before.
 * **Camera clearance.** Surfels whose centre comes within the layout's ``near`` distance of a
   camera centre are pruned at every density-control step: nothing may sit on the lens.
-* **Unseen shells go.** At every density-control step, surfels outside the region of interest that no
-  rendered training view has shown for two epochs of views (``buffers["seen_at"]``) are pruned: no
-  photograph constrains them any more, and a shell seeded behind a near untextured surface (visible
-  until that surface filled in) keeps the surface's colour where a held-out view looks past its edge
+* **Unseen shells go.** Once every training view has been rendered twice, surfels outside the region
+  of interest that no rendered view has shown (their accumulated view directions are still zero)
+  are pruned at every density-control step: no photograph constrains them, and a shell seeded behind
+  a near untextured surface keeps that surface's colour where a held-out view looks past its edge
   (DTU scan24's view 40; ``design/decisions.md``, "unseen background shells").
 
 References:
@@ -219,10 +219,10 @@ def prune_near_cameras(surfels: Surfels, state: BackgroundState) -> int:
     return k
 
 
-def prune_unseen(surfels: Surfels, state: BackgroundState, since: int) -> int:
-    """Remove the surfels outside the region of interest that no rendered view has shown since iteration ``since``
-    (``buffers["seen_at"]``, the last iteration that did, below it); returns how many (never all)."""
-    unseen = state.outside_roi(surfels.means) & (surfels.buffers["seen_at"] < since)
+def prune_unseen(surfels: Surfels, state: BackgroundState) -> int:
+    """Remove the surfels outside the region of interest that no rendered view has shown yet (``view_dirs``, the
+    accumulated directions towards the cameras that saw them, all zero); returns how many (never all)."""
+    unseen = state.outside_roi(surfels.means) & (surfels.buffers["view_dirs"] == 0).all(dim=-1)
     k = int(unseen.sum())
     if k == 0 or k == len(surfels):
         return 0

@@ -330,7 +330,7 @@ class FitRun:
                 finite = finite & torch.isfinite(self.surfels.means.detach()).all()
             self._unverified = finite
         with self.timers("statistics"):
-            self.strategy.step_post_backward(self.surfels, info, self.it)
+            self.strategy.step_post_backward(self.surfels, info)
         self.loss_log.add(terms, first=self.loss_log.count == 0 and not self.history)
         if self.it % _SNAPSHOT_EVERY == 0:
             with self.timers("snapshot"):

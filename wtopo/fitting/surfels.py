@@ -24,7 +24,6 @@ _BUFFERS = {  # name -> (trailing shape, fill value)
     "grad_accum": ((), 0.0),
     "grad_count": ((), 0.0),
     "view_dirs": ((3,), 0.0),
-    "seen_at": ((), -1.0),  # the last iteration a rendered training view showed it (-1: none yet)
     "normal_sign": ((), 1.0),
     # 1 where ``normal_sign`` came from a mesh triangle when the surfel was made (the TSDF scaffold, the
     # proxy face it was spawned on): a sign refresh keeps it; 0: a near proxy face or the cameras decide
