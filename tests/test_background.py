@@ -94,7 +94,7 @@ def test_unseen_shells_are_pruned_and_seen_or_inner_surfels_stay():
     small inner surfel behind them (hidden, but inside). Their view directions come from a real render's
     visibility: only the hidden shell goes."""
     from wtopo.fitting import densify as dens
-    from wtopo.fitting.background import BackgroundState, prune_unseen
+    from wtopo.fitting.background import BackgroundState, prune_background
     from wtopo.fitting.surfels import Surfels
     from wtopo.rasterize import rasterize_surfels
 
@@ -116,17 +116,23 @@ def test_unseen_shells_are_pruned_and_seen_or_inner_surfels_stay():
                                    roi_upper=np.ones(3), camera_centers=cam.center[None], near=0.1)
     state = BackgroundState(layout, torch.device("cpu"))
     assert state.outside_roi(s.means).tolist() == [False] * 4 + [True, True, False]
-    assert prune_unseen(s, state) == 1
+    # and one on the lens, just behind the camera: unseen and outside too, but counted once, as near the camera
+    s.append(*Surfels.from_points(torch.tensor([[0.5, 0.5, 3.05]]), cols[:1], scales=torch.tensor([0.01]),
+                                  normals=nrm[:1], opacity=0.99).take(slice(None)))
+    assert prune_background(s, state) == (1, 0)  # without unseen: the lens only
+    s.append(*Surfels.from_points(torch.tensor([[0.5, 0.5, 3.05]]), cols[:1], scales=torch.tensor([0.01]),
+                                  normals=nrm[:1], opacity=0.99).take(slice(None)))
+    assert prune_background(s, state, unseen=True) == (1, 1)  # one prune for both
     assert torch.allclose(s.means.detach(), pts[[0, 1, 2, 3, 5, 6]])
-    assert prune_unseen(s, state) == 0  # nothing left to prune
+    assert prune_background(s, state, unseen=True) == (0, 0)  # nothing left to prune
 
 
 def test_unseen_prune_never_removes_every_surfel():
-    from wtopo.fitting.background import BackgroundState, prune_unseen
+    from wtopo.fitting.background import BackgroundState, prune_background
     from wtopo.fitting.surfels import Surfels
 
     s = Surfels.from_points(torch.tensor([[5.0, 0.0, 0.0], [0.0, 6.0, 0.0]]), torch.full((2, 3), 0.5),
                             scales=torch.tensor([0.1, 0.1]))
     layout = types.SimpleNamespace(roi_center=np.zeros(3), roi_radius=0.5, roi_lower=-np.ones(3) / 2,
                                    roi_upper=np.ones(3) / 2, camera_centers=np.array([[0.0, 0.0, 3.0]]), near=0.1)
-    assert prune_unseen(s, BackgroundState(layout, torch.device("cpu"))) == 0 and len(s) == 2
+    assert prune_background(s, BackgroundState(layout, torch.device("cpu")), unseen=True) == (0, 0) and len(s) == 2

@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from .._profile import section
 from ..geometry.region import carve
-from .background import BackgroundState, background_surfels, prune_near_cameras
+from .background import BackgroundState, background_surfels, prune_background
 from .config import FitConfig, InitConfig, InitSource
 from .surfels import Surfels
 
@@ -223,5 +223,5 @@ def scene_surfels(scene, cfg: FitConfig, layout, device: torch.device, generator
                                     generator=generator, covered_by=seen)
             s.append(*bg.take(slice(None)))
             if background is not None:  # nothing starts on a lens
-                prune_near_cameras(s, background)
+                prune_background(s, background)
     return s

@@ -22,7 +22,7 @@ from collections.abc import Callable, Sequence
 import torch
 
 from . import densify as dens
-from .background import BackgroundState, prune_near_cameras, prune_unseen
+from .background import BackgroundState, prune_background
 from .config import FitConfig, NormalFlip, stage_iteration
 from .plan import _DENSIFY_INTERVAL
 from .proxy import ProxyMesh
@@ -206,15 +206,13 @@ class DensityStrategy:
             removed = dens.prune_by_opacity(surfels, PRUNE_OPACITY)
             changed |= removed > 0
             if self.background is not None:
-                near = prune_near_cameras(surfels, self.background)
+                unseen_due = self.unseen_from is not None and it >= self.unseen_from
+                near, unseen = prune_background(surfels, self.background, unseen=unseen_due)
                 if near:
                     self.record("near_camera_prune", removed=near)
-                changed |= near > 0
-                if self.unseen_from is not None and it >= self.unseen_from:
-                    unseen = prune_unseen(surfels, self.background)
-                    if unseen:
-                        self.record("unseen_prune", removed=unseen)
-                    changed |= unseen > 0
+                if unseen:
+                    self.record("unseen_prune", removed=unseen)
+                changed |= near + unseen > 0
             reset_every = max(1, stage_iteration(dc.opacity_reset_fraction, W)) if dc.opacity_reset_fraction else 0
             if reset_every and is_reset_step(it, reset_every, self._interval()) and it < DENSIFY_STOP * W:
                 if W - it >= _RESET_RECOVERY:

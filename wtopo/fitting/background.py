@@ -41,8 +41,8 @@ import torch
 from .scene_kind import SceneLayout
 from .surfels import Surfels
 
-__all__ = ["shell_radii", "uncovered_pixels", "background_surfels", "contract_steps", "prune_near_cameras",
-           "prune_unseen", "BackgroundState"]
+__all__ = ["shell_radii", "uncovered_pixels", "background_surfels", "contract_steps", "prune_background",
+           "BackgroundState"]
 
 _SHELLS = 4  # shells between the first radius and the sky
 _FIRST_SHELL = 1.2  # first shell radius, times the farthest camera's distance from the region's centre
@@ -209,22 +209,20 @@ def contract_steps(means: torch.Tensor, before: torch.Tensor, scale: torch.Tenso
         means.copy_(before + scale[:, None] * (means - before))
 
 
-def prune_near_cameras(surfels: Surfels, state: BackgroundState) -> int:
-    """Remove surfels within ``near`` of a camera centre; returns how many (never all)."""
-    near = state.near_cameras(surfels.means)
-    k = int(near.sum())
-    if k == 0 or k == len(surfels):
-        return 0
-    surfels.prune(~near)
-    return k
-
-
-def prune_unseen(surfels: Surfels, state: BackgroundState) -> int:
-    """Remove the surfels outside the region of interest that no rendered view has shown yet (``view_dirs``, the
-    accumulated directions towards the cameras that saw them, all zero); returns how many (never all)."""
-    unseen = state.outside_roi(surfels.means) & (surfels.buffers["view_dirs"] == 0).all(dim=-1)
-    k = int(unseen.sum())
-    if k == 0 or k == len(surfels):
-        return 0
-    surfels.prune(~unseen)
-    return k
+def prune_background(surfels: Surfels, state: BackgroundState, *, unseen: bool = False) -> tuple[int, int]:
+    """Remove the surfels within ``near`` of a camera centre and, with ``unseen``, those outside the region of
+    interest that no rendered view has shown yet (``view_dirs``, the accumulated directions towards the cameras that
+    saw them, all zero), in one prune and one host read. Returns how many of each went (none when that would be
+    every surfel)."""
+    gone = near = state.near_cameras(surfels.means)
+    counts = [near.sum()]
+    if unseen:
+        never = ~near & state.outside_roi(surfels.means) & (surfels.buffers["view_dirs"] == 0).all(dim=-1)
+        gone = near | never
+        counts.append(never.sum())
+    counts = [int(c) for c in torch.stack(counts).tolist()]
+    k_near, k_never = counts[0], (counts[1] if unseen else 0)
+    if k_near + k_never in (0, len(surfels)):
+        return 0, 0
+    surfels.prune(~gone)
+    return k_near, k_never
