@@ -233,3 +233,16 @@ def test_region_of_interest_holds_a_thin_object():
     assert np.all(v >= lo) and np.all(v <= hi), (lo, hi, mesh.bounds)
     # tight: grown by no more than 15 % of the object's extent (1.6) on any side
     assert np.all(mesh.bounds[0] - lo <= 0.24) and np.all(hi - mesh.bounds[1] <= 0.24), (lo, hi)
+
+
+def test_pixel_directions_at_chosen_pixels_match_the_full_grid():
+    """Directions through chosen pixels (a skewed, distorted lens) are the full grid's at those pixels."""
+    K = np.array([[50.0, 0.7, 33.0], [0.0, 48.0, 23.0], [0.0, 0.0, 1.0]])
+    cam = Camera(K, np.eye(4), 64, 48, np.array([-0.3, 0.05, 0.002, -0.002, 0.0]))
+    full = cam.pixel_directions_camera()
+    rows, cols = np.array([[0, 47], [20, 5]]), np.array([[0, 63], [31, 60]])
+    got = cam.pixel_directions_camera(rows, cols)
+    assert got.shape == (2, 2, 3)
+    np.testing.assert_array_equal(got, full[rows, cols])
+    with pytest.raises(ValueError, match="rows and cols"):
+        cam.pixel_directions_camera(rows)

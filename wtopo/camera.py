@@ -168,9 +168,15 @@ class Camera:
         return xy
 
     # -- rays and projection ---------------------------------------------------------------
-    def pixel_directions_camera(self) -> np.ndarray:
-        """Per-pixel ray directions in camera axes [H, W, 3] float64, scaled so that z = 1."""
-        j, i = np.meshgrid(np.arange(self.width) + 0.5, np.arange(self.height) + 0.5)
+    def pixel_directions_camera(self, rows: np.ndarray | None = None, cols: np.ndarray | None = None) -> np.ndarray:
+        """Ray directions in camera axes, float64, scaled so that z = 1: through every pixel centre [H, W, 3], or
+        through the centres of the pixels at integer ``rows`` and ``cols`` (two arrays of one shape S) [*S, 3]."""
+        if (rows is None) != (cols is None):
+            raise ValueError("pixel_directions_camera needs both rows and cols, or neither")
+        if rows is None:
+            j, i = np.meshgrid(np.arange(self.width) + 0.5, np.arange(self.height) + 0.5)
+        else:
+            i, j = np.asarray(rows, np.float64) + 0.5, np.asarray(cols, np.float64) + 0.5
         fx, s, cx = self.K[0]
         fy, cy = self.K[1, 1], self.K[1, 2]
         y = (i - cy) / fy

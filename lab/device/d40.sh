@@ -5,11 +5,12 @@
 # training view's PSNR (are view 40's neighbours 38, 39 and 41 fitted?). Times are not meaningful (fits share
 # the GPU). VARIANTS: ";"-separated lists of --set items ("-" is the default; HARD_VIEWS=P installs
 # lab/hard_views.py with power P through lab/device/patched_run.py; UNSEEN=0 turns the unseen-background prune
-# off; with HARD_VIEWS it is off unless UNSEEN=1), e.g.
+# off; with HARD_VIEWS it is off unless UNSEEN=1; WINDOW=1 prunes with branch windowed's two-epoch window), e.g.
 #   VARIANTS="-;HARD_VIEWS=1;losses.distortion=1000" SEEDS="0 1 2" bash lab/device/d40.sh
 # SCENES="NAME ..." fits those scenes of benchmarks/peers/export.py instead, all side by side (each exported first if
 # missing; training-view PSNR for DTU only; the summary adds ROI F1), e.g. the unseen-shell prune on the unbounded
 # scenes:  SCENES="bunny_env chair_env mug_torus_env" VARIANTS="-;UNSEEN=0" SEEDS="0" bash lab/device/d40.sh
+# VARIANTS_<scene> and SEEDS_<scene> override VARIANTS and SEEDS for that scene.
 source lab/device/lease_env.sh
 t0=$(date +%s)
 R=$PWD
@@ -21,18 +22,19 @@ wait
 for SC in ${SCENES:-dtu_scan24}; do [ -f $S/exch/$SC/meta.json ] || { tail -n 5 $S/exch_$SC.log; exit 1; }; done
 echo "exports ready after $(( $(date +%s) - t0 )) s"
 mkdir -p $OUT/d40 $S/res/d40
-IFS=';' read -ra vars <<< "${VARIANTS:--}"
 jobs=()
 for SC in ${SCENES:-dtu_scan24}; do
+vv=VARIANTS_$SC; ss=SEEDS_$SC
+IFS=';' read -ra vars <<< "${!vv:-${VARIANTS:--}}"
 for v in "${vars[@]}"; do
   tag=default; [ "$v" = "-" ] || tag=$(echo "$v" | tr -c 'a-zA-Z0-9_=.\n' '_' | tr '=' '-')
-  for seed in ${SEEDS:-0 1}; do
+  for seed in ${!ss:-${SEEDS:-0 1}}; do
     d=$S/res/d40/${SC}_${tag}_s$seed
-    a=(--set runtime.seed=$seed --set runtime.usd_every=0 --label "$v seed $seed"); hv=; un=
+    a=(--set runtime.seed=$seed --set runtime.usd_every=0 --label "$v seed $seed"); hv=; un=; wi=
     [ "$v" = "-" ] || for item in $v; do
-      case $item in HARD_VIEWS=*) hv=${item#HARD_VIEWS=} ;; UNSEEN=*) un=${item#UNSEEN=} ;; *) a+=(--set "$item") ;; esac
+      case $item in HARD_VIEWS=*) hv=${item#HARD_VIEWS=} ;; UNSEEN=*) un=${item#UNSEEN=} ;; WINDOW=*) wi=${item#WINDOW=} ;; *) a+=(--set "$item") ;; esac
     done
-    (cd /tmp && HARD_VIEWS=$hv UNSEEN=$un timeout ${FIT_TIMEOUT:-480} python3 $R/lab/device/patched_run.py $S/exch/$SC $d \
+    (cd /tmp && HARD_VIEWS=$hv UNSEEN=$un WINDOW=$wi timeout ${FIT_TIMEOUT:-480} python3 $R/lab/device/patched_run.py $S/exch/$SC $d \
       "${a[@]}" > $d.log 2>&1; echo $? > $d.rc) &
     echo $SC > $d.scene
     jobs+=($d)

@@ -123,7 +123,6 @@ def background_surfels(scene, layout: SceneLayout, n: int, *, sh_degree: int, op
     radii = shell_radii(layout)
     c = layout.roi_center
     cams = scene.cameras
-    images = scene.images.detach().cpu().numpy()
     free = None
     if covered_by is not None and len(covered_by) > 0:
         free = [f.cpu().numpy() for f in uncovered_pixels(cams, covered_by, device, generator)]
@@ -144,8 +143,7 @@ def background_surfels(scene, layout: SceneLayout, n: int, *, sh_degree: int, op
         cam = cams[i]
         flat = np.flatnonzero(free[i])
         r_i, c_i = np.divmod(flat[np.minimum((pick[sel] * len(flat)).astype(np.int64), len(flat) - 1)], cam.width)
-        _, rays = cam.pixel_rays("cpu", torch.float64)  # cached per camera: world directions, camera z = 1
-        d = rays[r_i, c_i].numpy()
+        d = cam.pixel_directions_camera(r_i, c_i) @ cam.R  # world directions of these pixels alone
         d = d / np.linalg.norm(d, axis=1, keepdims=True)
         o = cam.center
         # far root of |o + t d - c| = r: every shell lies beyond every camera, so it exists and t > 0
@@ -154,7 +152,8 @@ def background_surfels(scene, layout: SceneLayout, n: int, *, sh_degree: int, op
         r = radii[shell[sel]]
         t = -b + np.sqrt(np.maximum(b * b - (oc @ oc - r * r), 0.0))
         pts[sel] = o + t[:, None] * d
-        cols[sel] = images[i][r_i, c_i]
+        cols[sel] = scene.images[i][torch.as_tensor(r_i).to(scene.images.device),
+                                    torch.as_tensor(c_i).to(scene.images.device)].detach().double().cpu().numpy()
         nrm[sel] = -d
         # pixel footprint at distance t along the ray: t / f
         scale[sel] = _FOOTPRINT_PIXELS * t / float(cam.K[0, 0])

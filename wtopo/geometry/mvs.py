@@ -127,8 +127,18 @@ class TorchCam:
         self.t = torch.as_tensor(cam.t, **kw)
         self.K = torch.as_tensor(cam.K, **kw)
         self.dist = None if cam.distortion is None else [float(x) for x in cam.distortion]
-        self.origin, self.dirs = cam.pixel_rays(device, dtype)  # [H, W, 3] each, dirs z = 1
+        self._device, self._dtype = device, dtype
         self.W, self.H = cam.width, cam.height
+
+    @property
+    def origin(self) -> torch.Tensor:
+        """Every pixel ray's origin [H, W, 3] (built on first use; a projection alone never needs it)."""
+        return self.cam.pixel_rays(self._device, self._dtype)[0]
+
+    @property
+    def dirs(self) -> torch.Tensor:
+        """Every pixel ray's direction [H, W, 3], camera z = 1 (built on first use, cached on the camera)."""
+        return self.cam.pixel_rays(self._device, self._dtype)[1]
 
     def project(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """World points [..., 3] -> pixel u, v (continuous, centres at +0.5) and z-depth."""
