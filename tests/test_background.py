@@ -88,51 +88,81 @@ def test_no_background_surfels_asked_gives_none():
                               generator=torch.Generator()) is None
 
 
-def test_unseen_shells_are_pruned_and_seen_or_inner_surfels_stay():
-    """A camera at z = 3 looks down -z at four opaque layers at z = 0.5 ... 0.35 inside the region of interest;
-    behind them a small shell outside the region (hidden), another beside the layers' opaque core (seen), and a
-    small inner surfel behind them (hidden, but inside). Their view directions come from a real render's
-    visibility: only the hidden shell goes."""
-    from wtopo.fitting import densify as dens
-    from wtopo.fitting.background import BackgroundState, prune_background
+def test_surfels_on_a_lens_are_pruned_and_the_rest_stay():
+    """A camera at z = 3 with near distance 0.1: a surfel 0.05 behind its centre goes, one 0.2 in front of it, one
+    inside the region and one far outside it stay; a set of surfels all on the lens is left whole."""
+    from wtopo.fitting.background import BackgroundState, prune_near_cameras
     from wtopo.fitting.surfels import Surfels
-    from wtopo.rasterize import rasterize_surfels
 
-    cam = Camera.look_at([0.5, 0.5, 3.0], [0.5, 0.5, 0.5], [0.0, 1.0, 0.0], fov_x=0.8, width=W, height=H)
-    layers = [[0.5, 0.5, z] for z in (0.5, 0.45, 0.4, 0.35)]
-    pts = torch.tensor(layers + [[0.5, 0.5, -4.0],    # a shell straight behind them, outside the region: hidden
-                                 [-1.5, 0.5, -4.0],   # a shell 14 px beside their core: seen
-                                 [0.5, 0.5, 0.2]])    # inside the region, behind them: hidden but kept
-    n = len(pts)
-    cols = torch.rand(n, 3, generator=torch.Generator().manual_seed(3))
-    nrm = torch.tensor([[0.0, 0.0, 1.0]]).expand(n, 3)
-    scale = torch.tensor([0.3] * 4 + [0.05, 0.3, 0.02])
-    s = Surfels.from_points(pts, cols, scales=scale, normals=nrm, opacity=0.99)
-    out = rasterize_surfels(s.means, s.quats, s.scales, s.opacities, s.sh, cam)
-    visible = out.visibility > 0
-    assert visible.tolist() == [True] * 4 + [False, True, False], out.visibility
-    dens.accumulate_view_directions(s, torch.as_tensor(cam.center, dtype=torch.float32), visible)
+    pts = torch.tensor([[0.5, 0.5, 0.5], [0.5, 0.5, 3.05], [0.5, 0.5, 2.8], [-4.0, 0.5, -4.0]])
+    s = Surfels.from_points(pts, torch.full((4, 3), 0.5), scales=torch.full((4,), 0.01))
     layout = types.SimpleNamespace(roi_center=np.full(3, 0.5), roi_radius=0.5, roi_lower=np.zeros(3),
-                                   roi_upper=np.ones(3), camera_centers=cam.center[None], near=0.1)
+                                   roi_upper=np.ones(3), camera_centers=np.array([[0.5, 0.5, 3.0]]), near=0.1)
     state = BackgroundState(layout, torch.device("cpu"))
-    assert state.outside_roi(s.means).tolist() == [False] * 4 + [True, True, False]
-    # and one on the lens, just behind the camera: unseen and outside too, but counted once, as near the camera
-    s.append(*Surfels.from_points(torch.tensor([[0.5, 0.5, 3.05]]), cols[:1], scales=torch.tensor([0.01]),
-                                  normals=nrm[:1], opacity=0.99).take(slice(None)))
-    assert prune_background(s, state) == (1, 0)  # without unseen: the lens only
-    s.append(*Surfels.from_points(torch.tensor([[0.5, 0.5, 3.05]]), cols[:1], scales=torch.tensor([0.01]),
-                                  normals=nrm[:1], opacity=0.99).take(slice(None)))
-    assert prune_background(s, state, unseen=True) == (1, 1)  # one prune for both
-    assert torch.allclose(s.means.detach(), pts[[0, 1, 2, 3, 5, 6]])
-    assert prune_background(s, state, unseen=True) == (0, 0)  # nothing left to prune
+    assert state.near_cameras(s.means).tolist() == [False, True, False, False]
+    assert prune_near_cameras(s, state) == 1
+    assert torch.equal(s.means.detach(), pts[[0, 2, 3]])
+    assert prune_near_cameras(s, state) == 0  # nothing left on the lens
+    lens = Surfels.from_points(pts[[1, 1]], torch.full((2, 3), 0.5), scales=torch.full((2,), 0.01))
+    assert prune_near_cameras(lens, state) == 0 and len(lens) == 2  # never every surfel
 
 
-def test_unseen_prune_never_removes_every_surfel():
-    from wtopo.fitting.background import BackgroundState, prune_background
-    from wtopo.fitting.surfels import Surfels
+def _half_flat_image(flat_side: str) -> torch.Tensor:
+    """[H, W, 3]: one half (``"left"`` or ``"right"``, 20 columns) flat grey, the other random texture."""
+    img = torch.rand(H, W, 3, generator=torch.Generator().manual_seed(4))
+    cols = slice(0, W // 2) if flat_side == "left" else slice(W // 2, W)
+    img[:, cols] = 0.6
+    return img
 
-    s = Surfels.from_points(torch.tensor([[5.0, 0.0, 0.0], [0.0, 6.0, 0.0]]), torch.full((2, 3), 0.5),
-                            scales=torch.tensor([0.1, 0.1]))
-    layout = types.SimpleNamespace(roi_center=np.zeros(3), roi_radius=0.5, roi_lower=-np.ones(3) / 2,
-                                   roi_upper=np.ones(3) / 2, camera_centers=np.array([[0.0, 0.0, 3.0]]), near=0.1)
-    assert prune_background(s, BackgroundState(layout, torch.device("cpu")), unseen=True) == (0, 0) and len(s) == 2
+
+def test_untextured_windows_are_the_sweeps_flat_ones():
+    from wtopo.geometry.mvs import untextured
+
+    assert bool(untextured(torch.full((H, W, 3), 0.3)).all())
+    assert not bool(untextured(torch.rand(H, W, 3, generator=torch.Generator().manual_seed(5))).any())
+    flat = untextured(_half_flat_image("left"))
+    assert bool(flat[:, :W // 2 - 3].all())  # windows (7 px) wholly in the flat half
+    assert not bool(flat[:, W // 2:].any())
+
+
+@pytest.mark.parametrize("free_side,wanted", [("left", False), ("right", True)])
+def test_shells_are_wanted_only_where_the_unexplained_pixels_hold_texture(free_side, wanted):
+    """The left half is flat: unexplained pixels there (windows wholly flat but for 3 columns) call for no shells;
+    unexplained textured pixels do."""
+    from wtopo.fitting.background import UNTEXTURED_SHARE, shells_wanted
+
+    img = _half_flat_image("left")
+    free = torch.zeros(H, W, dtype=torch.bool)
+    free[:, :W // 2] = free_side == "left"
+    free[:, W // 2:] = free_side == "right"
+    got, share = shells_wanted(img[None], [free])
+    want_share = (W // 2 - 3) / (W // 2) if free_side == "left" else 0.0
+    assert got == wanted and share == pytest.approx(want_share)
+    assert (share <= UNTEXTURED_SHARE) == wanted
+    assert shells_wanted(img[None], [torch.zeros(H, W, dtype=torch.bool)]) == (True, 0.0)  # nothing unexplained
+
+
+@pytest.mark.parametrize("flat_side,seeded", [("right", 0), ("left", 300)])
+def test_a_fit_seeds_shells_only_when_the_stereo_left_texture_unexplained(monkeypatch, flat_side, seeded):
+    """scene_surfels with the stereo explaining the left half: a flat right half gets no shells, a textured one
+    gets them all; either way the event says how many and the untextured share."""
+    from wtopo.fitting import _init_surfels
+    from wtopo.fitting.config import FitConfig, InitSource
+    from wtopo.geometry.mvs import MVSPoints
+
+    cam = _camera()
+    pts = _left_half_points(cam, W // 2)
+    monkeypatch.setattr(_init_surfels, "stereo_points",
+                        lambda *a: MVSPoints(pts, np.full_like(pts, 0.5), np.tile([0.0, 0.0, 1.0], (len(pts), 1)), 0.5))
+    scene = types.SimpleNamespace(cameras=[cam], images=_half_flat_image(flat_side)[None], points=None)
+    layout = types.SimpleNamespace(camera_centers=cam.center[None], roi_center=np.full(3, 0.5), roi_radius=0.5,
+                                   roi_lower=np.zeros(3), roi_upper=np.ones(3), near=0.01)
+    cfg = FitConfig()
+    cfg.init.source, cfg.init.num_points, cfg.init.background_points, cfg.sh_degree = InitSource.MVS, 200, 300, 0
+    events = []
+    s = _init_surfels.scene_surfels(scene, cfg, layout, torch.device("cpu"), torch.Generator().manual_seed(0), None,
+                                    lambda name, **kw: events.append((name, kw)))
+    assert len(s) == 200 + seeded
+    (name, kw), = events
+    assert name == "background_shells" and kw["seeded"] == seeded
+    assert (kw["untextured_share"] > 0.5) == (seeded == 0)

@@ -231,7 +231,7 @@ def test_normals_to_quats_roundtrip():
     assert bool((cos > 1 - 1e-4).all())
 
 
-def _strategy(background, monkeypatch, views=None):
+def _strategy(background, monkeypatch):
     from wtopo.fitting import densify
     from wtopo.fitting._strategy import DensityStrategy
     from wtopo.fitting.config import FitConfig
@@ -243,7 +243,7 @@ def _strategy(background, monkeypatch, views=None):
     cfg.runtime.max_surfels = 100
     st = DensityStrategy(cfg, densify=True, warmup_end=400, generator=torch.Generator().manual_seed(0),
                          record=lambda name, **kw: events.append(name), timers=lambda name: _NullTimer(),
-                         background=background, views=views)
+                         background=background)
     st.gap = 0.0  # every pixel covered
     return st, events, Stage.WARMUP
 
@@ -274,62 +274,6 @@ def test_a_scene_densifies_by_gradient_although_its_background_leaves_no_gap(mon
         st.step_end(warmup, 200, s)
         assert (len(s) > 10) == grows, (background, len(s))
         assert ("densify" in events) == grows and ("densify_skipped" in events) != grows
-
-
-def test_a_scene_prunes_unseen_background_surfels_once_every_view_has_been_rendered_twice(monkeypatch):
-    """Surfels outside the region that no view has shown stay until two epochs of the 60 views have run (the
-    density step at 100 keeps them), then go (the step at 120); seen ones and unseen ones inside the region stay."""
-    import types
-
-    import numpy as np
-
-    from wtopo.fitting.background import BackgroundState
-
-    layout = types.SimpleNamespace(roi_center=np.full(3, 0.5), roi_radius=0.8, roi_lower=np.zeros(3),
-                                   roi_upper=np.ones(3), camera_centers=np.array([[0.5, 0.5, 5.0]]), near=0.05)
-    s, _ = _surfels(n=10)
-    with torch.no_grad():
-        s.means[6:] += torch.tensor([3.0, 0.0, 0.0])  # 6-9 outside the region
-    s.buffers["view_dirs"][[0, 1, 2, 6, 7]] = torch.tensor([0.0, 0.0, 1.0])  # seen: 0-2 inside, 6 and 7 outside
-    keep = s.means.detach()[[0, 1, 2, 3, 4, 5, 6, 7]].clone()
-    state = BackgroundState(layout, torch.device("cpu"))
-    st, events, warmup = _strategy(state, monkeypatch, views=60)
-    st.densify = False
-    st.cfg.densify.interval = 20
-    st.step_end(warmup, 100, s)
-    assert len(s) == 10 and "unseen_prune" not in events
-    st.step_end(warmup, 120, s)
-    assert len(s) == 8 and "unseen_prune" in events
-    assert torch.equal(s.means.detach(), keep)
-
-
-def test_a_rolled_back_step_postpones_the_unseen_prune_by_two_epochs(monkeypatch):
-    """A failed step at 110 restores the last good state (and its view directions): the prune that was due at 120
-    waits until 110 + 2 x 60 = 230."""
-    import types
-
-    import numpy as np
-
-    from wtopo.fitting.background import BackgroundState
-
-    layout = types.SimpleNamespace(roi_center=np.full(3, 0.5), roi_radius=0.8, roi_lower=np.zeros(3),
-                                   roi_upper=np.ones(3), camera_centers=np.array([[0.5, 0.5, 5.0]]), near=0.05)
-    s, _ = _surfels(n=10)
-    with torch.no_grad():
-        s.means[8:] += torch.tensor([3.0, 0.0, 0.0])  # 8 and 9 outside the region, unseen
-    s.buffers["view_dirs"][:8] = torch.tensor([0.0, 0.0, 1.0])
-    st, events, warmup = _strategy(BackgroundState(layout, torch.device("cpu")), monkeypatch, views=60)
-    st.densify = False
-    st.cfg.densify.interval = 20
-    st.rolled_back(110)
-    assert st.unseen_from == 230
-    for it in (120, 140, 160, 180, 200, 220):
-        st.step_end(warmup, it, s)
-    assert len(s) == 10 and "unseen_prune" not in events
-    st.step_end(warmup, 240, s)
-    assert len(s) == 8 and "unseen_prune" in events
-    st.rolled_back(10)  # an earlier failure never brings the gate forward
-    assert st.unseen_from == 230
 
 
 @pytest.mark.parametrize("warmup,interval", [(3000, 100), (1500, 100), (800, 100), (400, 50), (150, 18), (1000, 30),

@@ -143,7 +143,7 @@ def _spread_subset_by_unique(points, n, generator):
 
 
 @pytest.mark.parametrize("layout", ["uniform", "layers", "lattice", "duplicates"])
-def test_spread_subset_matches_its_definition(layout):
+def test_spread_subset_matches_its_definition(layout, device):
     rng = np.random.default_rng(3)
     pts = rng.random((20000, 3)) * np.array([4.0, 1.0, 0.3]) - 2.0
     if layout == "layers":  # a few planes: many empty cells
@@ -153,7 +153,7 @@ def test_spread_subset_matches_its_definition(layout):
     elif layout == "duplicates":  # fewer distinct points than asked for
         pts = np.repeat(pts[:50], 400, axis=0)
     for n in (1, 37, 2000, 19999):
-        got = spread_subset(pts, n, torch.Generator().manual_seed(n))
+        got = spread_subset(pts, n, torch.Generator().manual_seed(n), device)
         want = _spread_subset_by_unique(pts, n, torch.Generator().manual_seed(n))
         assert np.array_equal(got, want), (layout, n)
 
@@ -195,3 +195,16 @@ def test_max_views_sweeps_an_even_subset(plane):
     for bad in (1, 2.5, True):
         with pytest.raises(ValueError, match="max_views"):
             plane_sweep_points(sc.cameras, sc.images, lo, hi, near=0.05, max_views=bad)
+
+
+def test_morton_code_interleaves_every_bit():
+    """Bit b of axis a lands on bit 3 b + a, for every bit of 21-bit coordinates (the bit loop is the reference)."""
+    from wtopo.fitting._init_surfels import _morton
+
+    rng = np.random.default_rng(7)
+    q = np.concatenate([rng.integers(0, 1 << 21, (500, 3)), [[0, 0, 0], [(1 << 21) - 1] * 3, [1, 0, 0], [0, 0, 1]]])
+    want = np.zeros(len(q), np.int64)
+    for b in range(21):
+        for a in range(3):
+            want |= ((q[:, a] >> b) & 1) << (3 * b + a)
+    assert np.array_equal(_morton(torch.as_tensor(q)).numpy(), want)

@@ -4,12 +4,11 @@
 # view) and prints one line per fit: the mean and view 40, then every view; lab/train_psnr.py before it: every
 # training view's PSNR (are view 40's neighbours 38, 39 and 41 fitted?). Times are not meaningful (fits share
 # the GPU). VARIANTS: ";"-separated lists of --set items ("-" is the default; HARD_VIEWS=P installs
-# lab/hard_views.py with power P through lab/device/patched_run.py; UNSEEN=0 turns the unseen-background prune
-# off; with HARD_VIEWS it is off unless UNSEEN=1; WINDOW=1 prunes with branch windowed's two-epoch window), e.g.
+# lab/hard_views.py with power P through lab/device/patched_run.py), e.g.
 #   VARIANTS="-;HARD_VIEWS=1;losses.distortion=1000" SEEDS="0 1 2" bash lab/device/d40.sh
 # SCENES="NAME ..." fits those scenes of benchmarks/peers/export.py instead, all side by side (each exported first if
-# missing; training-view PSNR for DTU only; the summary adds ROI F1), e.g. the unseen-shell prune on the unbounded
-# scenes:  SCENES="bunny_env chair_env mug_torus_env" VARIANTS="-;UNSEEN=0" SEEDS="0" bash lab/device/d40.sh
+# missing; training-view PSNR for DTU only; the summary adds ROI F1), e.g. the shells on the unbounded scenes:
+#   SCENES="bunny_env chair_env mug_torus_env" VARIANTS="-;init.background_points=0" SEEDS="0" bash lab/device/d40.sh
 # VARIANTS_<scene> and SEEDS_<scene> override VARIANTS and SEEDS for that scene.
 source lab/device/lease_env.sh
 t0=$(date +%s)
@@ -30,11 +29,11 @@ for v in "${vars[@]}"; do
   tag=default; [ "$v" = "-" ] || tag=$(echo "$v" | tr -c 'a-zA-Z0-9_=.\n' '_' | tr '=' '-')
   for seed in ${!ss:-${SEEDS:-0 1}}; do
     d=$S/res/d40/${SC}_${tag}_s$seed
-    a=(--set runtime.seed=$seed --set runtime.usd_every=0 --label "$v seed $seed"); hv=; un=; wi=
+    a=(--set runtime.seed=$seed --set runtime.usd_every=0 --label "$v seed $seed"); hv=
     [ "$v" = "-" ] || for item in $v; do
-      case $item in HARD_VIEWS=*) hv=${item#HARD_VIEWS=} ;; UNSEEN=*) un=${item#UNSEEN=} ;; WINDOW=*) wi=${item#WINDOW=} ;; *) a+=(--set "$item") ;; esac
+      case $item in HARD_VIEWS=*) hv=${item#HARD_VIEWS=} ;; *) a+=(--set "$item") ;; esac
     done
-    (cd /tmp && HARD_VIEWS=$hv UNSEEN=$un WINDOW=$wi timeout ${FIT_TIMEOUT:-480} python3 $R/lab/device/patched_run.py $S/exch/$SC $d \
+    (cd /tmp && HARD_VIEWS=$hv timeout ${FIT_TIMEOUT:-480} python3 $R/lab/device/patched_run.py $S/exch/$SC $d \
       "${a[@]}" > $d.log 2>&1; echo $? > $d.rc) &
     echo $SC > $d.scene
     jobs+=($d)
@@ -51,11 +50,6 @@ for d in "${jobs[@]}"; do
 done
 ok=(); for d in "${jobs[@]}"; do [ "$(cat $d.rc)" = 0 ] && [ "$(cat $d.scene)" = dtu_scan24 ] && ok+=($d); done
 [ ${#ok[@]} -gt 0 ] && timeout 200 python3 lab/train_psnr.py $S/exch/dtu_scan24 "${ok[@]}" 2>&1 | tail -n ${#ok[@]}
-for d in "${jobs[@]}"; do
-  python3 -c "import json, sys; ev = json.load(open(sys.argv[1] + '/run/report.json'))['events']
-u = [e['removed'] for e in ev if e.get('event') == 'unseen_prune']
-print(sys.argv[1], 'unseen shells pruned:', sum(u), 'in', len(u), 'density steps')" $d 2>/dev/null
-done
 python3 - $OUT/d40/rows.json <<'PY'
 import json, sys
 for r in json.load(open(sys.argv[1])):

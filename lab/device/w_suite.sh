@@ -5,9 +5,9 @@
 # then, within 30 s of each other, calls of `TAG=w SYSTEMS="gsplat wtopo wtopo_noloop" bash lab/device/w_wait.sh`
 # until it has scored every scene into $OUT/w/rows_SCENE.json. gsplat takes 10-16 minutes at 64 views of 512 px
 # beside other jobs: two or three scenes a lease (the default: the dense torus and the ten-view mug). SYSTEMS picks the
-# systems (default "gsplat wtopo wtopo_noloop"); the suite's scene still to run beside gsplat (2026-12-06): the dense
-# mug (torus, bowl, blob_flat and torus_sparse ran as SCENES="torus bowl blob_flat torus_sparse" SYSTEMS="gsplat wtopo"
-# in one call and two w_wait.sh calls: rows_2026-12-06w).
+# systems (default "gsplat wtopo wtopo_noloop"). Every scene of the suite has run beside gsplat: torus, bowl, blob_flat
+# and torus_sparse as SCENES="torus bowl blob_flat torus_sparse" SYSTEMS="gsplat wtopo" (rows_2026-12-06w), the dense
+# mug through lab/device/aa_all.sh (rows_2026-12-06aa).
 source lab/device/lease_env.sh
 t0=$(date +%s)
 SCENES=${SCENES:-torus mug_sparse}

@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from .._profile import section
 from ..geometry.region import carve
-from .background import BackgroundState, background_surfels, prune_background
+from .background import BackgroundState, background_surfels, prune_near_cameras, shells_wanted, uncovered_pixels
 from .config import FitConfig, InitConfig, InitSource
 from .surfels import Surfels
 
@@ -97,45 +97,56 @@ def projected_colors(scene, points: np.ndarray) -> np.ndarray:
 _SPREAD_BITS = 12  # the finest grid of spread_subset: 2**12 cells per side
 
 
-def _morton(q: np.ndarray, bits: int) -> np.ndarray:
-    """Interleaved bits of non-negative integer coordinates ``q`` [P, 3] of at most ``bits`` bits each, int64
-    [P]: the points of one cell of side ``2**s`` finest cells share the code's bits above ``3 * s``."""
-    code = np.zeros(len(q), np.int64)
-    for b in range(bits):
-        for a in range(3):
-            code |= ((q[:, a] >> b) & 1) << (3 * b + a)
+_MORTON_STEPS = ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F), (4, 0x10C30C30C30C30C3),
+                 (2, 0x1249249249249249))  # spreading 21 bits to every third bit: shift, then mask
+
+
+def _morton(q: torch.Tensor) -> torch.Tensor:
+    """Interleaved bits of non-negative integer coordinates ``q`` [P, 3] int64 of at most 21 bits each, int64 [P]
+    (bit ``b`` of axis ``a`` at bit ``3 b + a``): the points of one cell of side ``2**s`` finest cells share the
+    code's bits above ``3 * s``."""
+    code = torch.zeros(len(q), dtype=torch.int64, device=q.device)
+    for a in range(3):
+        x = q[:, a] & 0x1FFFFF
+        for shift, mask in _MORTON_STEPS:
+            x = (x | (x << shift)) & mask
+        code |= x << a
     return code
 
 
-def spread_subset(points: np.ndarray, n: int, generator: torch.Generator) -> np.ndarray:
+def spread_subset(points: np.ndarray, n: int, generator: torch.Generator,
+                  device: torch.device | str = "cpu") -> np.ndarray:
     """Indices of at most ``n`` of ``points`` [P, 3] spread evenly in space: one random point per
     cell of the coarsest grid that has at least ``n`` occupied cells (dense image regions would
     otherwise take the whole budget).
 
     The grids are the powers of two up to ``2**12`` cells per side over the points' bounding cube. One
     sort by Morton code serves every grid (a cell's points are contiguous in that order at every level),
-    so millions of stereo points take a second, not a minute."""
+    on ``device`` (the fit's: the millions of points of a GPU's stereo take milliseconds there, a second on
+    the host), with one host read for every level's cell count. ``generator`` (CPU) draws the same points on
+    any device."""
     if len(points) <= n:
         return np.arange(len(points))
-    lo = points.min(0)
-    span = float(np.ptp(points, axis=0).max()) or 1.0
-    order = torch.randperm(len(points), generator=generator).numpy()
+    dev = torch.device(device)
+    p = torch.as_tensor(np.asarray(points, np.float64)).to(dev)
+    lo = p.min(0).values
+    span = float((p.max(0).values - lo).max()) or 1.0
+    order = torch.randperm(len(p), generator=generator).to(dev)
     # finest-grid coordinates in [0, 2**12]: a coarser grid's are these shifted right, exactly, since
     # scaling by a power of two is exact in floating point (the top face's points sit in an extra cell)
-    q = np.floor((points[order] - lo) / span * (1 << _SPREAD_BITS)).astype(np.int64)
-    code = _morton(q, _SPREAD_BITS + 1)
-    by_code = np.argsort(code, kind="stable")
-    code = code[by_code]
-    for level in range(1, _SPREAD_BITS + 1):  # cells per side 2, 4, ..., 4096
-        prefix = code >> (3 * (_SPREAD_BITS - level))
-        starts = np.flatnonzero(np.r_[True, prefix[1:] != prefix[:-1]])
-        if len(starts) >= n:
-            break
-    first = np.minimum.reduceat(by_code, starts)  # each cell's first point in the random order
-    pick = order[np.sort(first)]
+    q = torch.floor((p[order] - lo) / span * (1 << _SPREAD_BITS)).long()
+    code, by_code = torch.sort(_morton(q), stable=True)
+    new_cell = [code[1:] >> (3 * (_SPREAD_BITS - level)) != code[:-1] >> (3 * (_SPREAD_BITS - level))
+                for level in range(1, _SPREAD_BITS + 1)]  # cells per side 2, 4, ..., 4096
+    cells = (torch.stack([c.sum() for c in new_cell]) + 1).tolist()
+    level = next((i for i, c in enumerate(cells) if c >= n), len(cells) - 1)
+    cell = torch.cumsum(torch.cat([new_cell[level].new_zeros(1), new_cell[level]]).long(), 0)
+    first = torch.full((cells[level],), len(p), dtype=torch.int64, device=dev).scatter_reduce_(
+        0, cell, by_code, "amin")  # each cell's first point in the random order
+    pick = order[torch.sort(first).values]
     if len(pick) > n:
-        pick = pick[torch.randperm(len(pick), generator=generator).numpy()[:n]]
-    return np.sort(pick)
+        pick = pick[torch.randperm(len(pick), generator=generator)[:n].to(dev)]
+    return np.sort(pick.cpu().numpy())
 
 
 def stereo_points(scene, layout, device):
@@ -151,7 +162,7 @@ def stereo_points(scene, layout, device):
     return plane_sweep_points(scene.cameras, scene.images, lo, hi, near=near, device=device, max_views=max_views)
 
 
-def _thinned_stereo(found, cfg: InitConfig, generator):
+def _thinned_stereo(found, cfg: InitConfig, generator, device: torch.device | str = "cpu"):
     """``(points, colours, normals)`` of ``found`` thinned to ``cfg.num_points``; ``None`` (with a warning)
     when too few depths are confirmed."""
     if len(found.points) < MIN_MVS_POINTS:
@@ -159,7 +170,7 @@ def _thinned_stereo(found, cfg: InitConfig, generator):
                       "too untextured; starting from random points in the cameras' common volume", RuntimeWarning,
                       stacklevel=3)
         return None
-    keep = spread_subset(found.points, int(cfg.num_points), generator)
+    keep = spread_subset(found.points, int(cfg.num_points), generator, device)
     return found.points[keep], found.colors[keep], found.normals[keep]
 
 
@@ -177,7 +188,8 @@ def initial_surfels(scene, cfg: InitConfig, source: InitSource | str, *, sh_degr
     normals = None
     thinned = None
     if source == InitSource.MVS:
-        thinned = _thinned_stereo(stereo_points(scene, layout, device) if stereo is None else stereo, cfg, generator)
+        thinned = _thinned_stereo(stereo_points(scene, layout, device) if stereo is None else stereo, cfg, generator,
+                                  device)
     if thinned is not None:
         pts, cols, normals = thinned
     elif source in (InitSource.MVS, InitSource.CAMERAS):
@@ -206,11 +218,13 @@ def initial_surfels(scene, cfg: InitConfig, source: InitSource | str, *, sh_degr
 
 
 def scene_surfels(scene, cfg: FitConfig, layout, device: torch.device, generator: torch.Generator,
-                  background: BackgroundState | None) -> Surfels:
+                  background: BackgroundState | None, record=None) -> Surfels:
     """The fit's initial surfels of ``scene`` (its training views): from ``cfg.init.source`` (plane-sweep stereo's
     confirmed points for ``mvs``), plus ``cfg.init.background_points`` background shells seeded where the stereo
-    explained nothing, none of them within ``background``'s near distance of a camera. Profiled as "init_seed"
-    and "init_shells" (the stereo's own sections inside the first)."""
+    explained nothing, unless most of those pixels are untextured (:func:`~.background.shells_wanted`), none of
+    them within ``background``'s near distance of a camera. ``record(event, **fields)`` (optional) receives a
+    "background_shells" event: the shells seeded and the untextured share. Profiled as "init_seed" and
+    "init_shells" (the stereo's own sections inside the first)."""
     with section("init_seed"):
         stereo = stereo_points(scene, layout, device) if cfg.init.source == InitSource.MVS else None
         s = initial_surfels(scene, cfg.init, cfg.init.source, sh_degree=int(cfg.sh_degree), device=device,
@@ -219,9 +233,15 @@ def scene_surfels(scene, cfg: FitConfig, layout, device: torch.device, generator
     if n_bg > 0:  # the shells seed only where the stereo explained nothing
         with section("init_shells"):
             seen = None if stereo is None or len(stereo.points) < MIN_MVS_POINTS else stereo.points
-            bg = background_surfels(scene, layout, n_bg, sh_degree=s.sh_degree, opacity=INIT_OPACITY, device=device,
-                                    generator=generator, covered_by=seen)
-            s.append(*bg.take(slice(None)))
-            if background is not None:  # nothing starts on a lens
-                prune_background(s, background)
+            free = None if seen is None else uncovered_pixels(scene.cameras, seen, device, generator)
+            wanted, share = (True, None) if free is None else shells_wanted(scene.images, free)
+            if wanted:
+                bg = background_surfels(scene, layout, n_bg, sh_degree=s.sh_degree, opacity=INIT_OPACITY,
+                                        device=device, generator=generator, free=free)
+                s.append(*bg.take(slice(None)))
+                if background is not None:  # nothing starts on a lens
+                    prune_near_cameras(s, background)
+            if record is not None:
+                record("background_shells", seeded=n_bg if wanted else 0,
+                       untextured_share=None if share is None else round(share, 4))
     return s

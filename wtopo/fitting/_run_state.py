@@ -26,7 +26,7 @@ def run_state(run) -> dict:
         "surfels": good[0] if good is not None else run.surfels.state_dict(),
         "optimizer": good[1] if good is not None else run.opt.state_dict(),
         "iteration": run.it, "tsdf_done": run.tsdf_done, "history": run.history, "events": run.events,
-        "gap": run.strategy.gap, "unseen_from": run.strategy.unseen_from, "loss_sums": dict(run.loss_log.sums),
+        "gap": run.strategy.gap, "loss_sums": dict(run.loss_log.sums),
         "loss_count": run.loss_log.count,
         "elapsed": run.elapsed(), "timers": dict(run.timers.total), "rng": rng_state(),
         "generator": run.gen.get_state(), "config_hash": run.hash, "config": run.cfg.to_dict(),
@@ -50,8 +50,6 @@ def restore_run_state(run, st: dict) -> None:
     run.history = list(st["history"])
     run.events = list(st["events"])
     run.strategy.gap = float(st["gap"])
-    if "unseen_from" in st:  # absent before the unseen-surfel prune: the strategy's own start stands
-        run.strategy.unseen_from = st["unseen_from"]
     run.loss_log.sums = defaultdict(float, st["loss_sums"])
     run.loss_log.count = int(st["loss_count"])
     run.elapsed_before = float(st["elapsed"])

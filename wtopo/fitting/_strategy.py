@@ -22,7 +22,7 @@ from collections.abc import Callable, Sequence
 import torch
 
 from . import densify as dens
-from .background import BackgroundState, prune_background
+from .background import BackgroundState, prune_near_cameras
 from .config import FitConfig, NormalFlip, stage_iteration
 from .plan import _DENSIFY_INTERVAL
 from .proxy import ProxyMesh
@@ -45,7 +45,6 @@ _CORRESPONDENCE_FRACTION = 0.5  # mesh guidance refreshes every this fraction of
 _SIGN_DISTANCE = 3.0  # mesh-guided signs: a proxy face nearer than this many in-plane sigmas of a surfel decides it
 _GEOMETRY_PRUNE_DISTANCE = 0.02  # geometry-aware prune: "far from the proxy", fraction of the scene extent
 _GEOMETRY_PRUNE_OPACITY = 0.3  # geometry-aware prune: "low opacity"
-UNSEEN_AFTER_EPOCHS = 2  # scenes: unseen background surfels are pruned once this many epochs of views have run
 
 
 @dataclasses.dataclass
@@ -102,8 +101,7 @@ class DensityStrategy:
     """
 
     def __init__(self, cfg: FitConfig, *, densify: bool, warmup_end: int, generator: torch.Generator,
-                 record: Record, timers: Callable, background: BackgroundState | None = None,
-                 views: int | None = None):
+                 record: Record, timers: Callable, background: BackgroundState | None = None):
         self.cfg = cfg
         self.densify = densify
         self.warmup_end = warmup_end
@@ -115,18 +113,6 @@ class DensityStrategy:
         """Scenes: the region of interest and cameras; background surfels are spared by the
         geometry-aware prune, surfels on a lens are pruned at every density step, and clone/split
         runs by gradient alone (the background leaves no coverage gap to wait for)."""
-        self.views = views
-        """Training views (``None``: unseen background surfels are never pruned)."""
-        self.unseen_from = None if views is None else UNSEEN_AFTER_EPOCHS * views
-        """From this iteration on, density steps prune the background surfels no view has shown: once every view
-        has been rendered :data:`UNSEEN_AFTER_EPOCHS` times (:meth:`rolled_back` moves it on)."""
-
-    def rolled_back(self, it: int) -> None:
-        """A failed step at ``it`` brought back the last good state, and with it the view directions gathered
-        before the snapshot: the unseen-surfel prune waits until every view has been rendered
-        :data:`UNSEEN_AFTER_EPOCHS` times more."""
-        if self.unseen_from is not None:
-            self.unseen_from = max(self.unseen_from, it + UNSEEN_AFTER_EPOCHS * self.views)
 
     # -- hooks ----------------------------------------------------------------------------------------
     def step_pre_forward(self, stage: Stage, it: int, surfels: Surfels, proxy: ProxyMesh) -> bool:
@@ -206,13 +192,10 @@ class DensityStrategy:
             removed = dens.prune_by_opacity(surfels, PRUNE_OPACITY)
             changed |= removed > 0
             if self.background is not None:
-                unseen_due = self.unseen_from is not None and it >= self.unseen_from
-                near, unseen = prune_background(surfels, self.background, unseen=unseen_due)
+                near = prune_near_cameras(surfels, self.background)
                 if near:
                     self.record("near_camera_prune", removed=near)
-                if unseen:
-                    self.record("unseen_prune", removed=unseen)
-                changed |= near + unseen > 0
+                changed |= near > 0
             reset_every = max(1, stage_iteration(dc.opacity_reset_fraction, W)) if dc.opacity_reset_fraction else 0
             if reset_every and is_reset_step(it, reset_every, self._interval()) and it < DENSIFY_STOP * W:
                 if W - it >= _RESET_RECOVERY:

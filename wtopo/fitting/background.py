@@ -15,6 +15,12 @@ surfels from the start, at the distances it plausibly has, and keeps them there:
   of a confirmed stereo point's projection in its view is left to that point (on DTU, shells
   seeded on the near table's pixels showed its white through the black backdrop of a held-out
   view; ``design/decisions.md``, "background shells").
+* **Only for a far scene.** A shell stands for texture the stereo saw but could not place inside the
+  region's depth range. When more than ``UNTEXTURED_SHARE`` of the pixels it left unexplained are
+  untextured (the sweep's own window test: they have no depth to find), they are near surfaces of
+  unknown depth and a backdrop, not a far scene, and no shells are seeded (:func:`shells_wanted`;
+  DTU scan24: 85 % untextured, a white table and a black backdrop; the unbounded test scenes
+  0-21 %).
 * **Contracted steps.** Adam moves every mean by about the learning rate per step whatever the
   gradient's size; a background surfel at distance ``r`` from the region's centre gets its step
   scaled by ``r / R`` (``R``: the region's radius), the Jacobian of the inverse of the
@@ -22,11 +28,6 @@ surfels from the start, at the distances it plausibly has, and keeps them there:
   a step proportional to distance in world space. Surfels in the region of interest move as before.
 * **Camera clearance.** Surfels whose centre comes within the layout's ``near`` distance of a
   camera centre are pruned at every density-control step: nothing may sit on the lens.
-* **Unseen shells go.** Once every training view has been rendered twice, surfels outside the region
-  of interest that no rendered view has shown (their accumulated view directions are still zero)
-  are pruned at every density-control step: no photograph constrains them, and a shell seeded behind
-  a near untextured surface keeps that surface's colour where a held-out view looks past its edge
-  (DTU scan24's view 40; ``design/decisions.md``, "unseen background shells").
 
 References:
     Barron et al., Mip-NeRF 360 (CVPR 2022), scene contraction; Huang et al., 2DGS (SIGGRAPH 2024)
@@ -41,8 +42,8 @@ import torch
 from .scene_kind import SceneLayout
 from .surfels import Surfels
 
-__all__ = ["shell_radii", "uncovered_pixels", "background_surfels", "contract_steps", "prune_background",
-           "BackgroundState"]
+__all__ = ["shell_radii", "uncovered_pixels", "shells_wanted", "background_surfels", "contract_steps",
+           "prune_near_cameras", "BackgroundState"]
 
 _SHELLS = 4  # shells between the first radius and the sky
 _FIRST_SHELL = 1.2  # first shell radius, times the farthest camera's distance from the region's centre
@@ -52,6 +53,7 @@ _MAX_STEP_SCALE = 100.0  # step scaling cap: beyond it a surfel is effectively a
 _ROI_GROWTH = 0.1  # "inside the region of interest" allows this fraction of its side around it
 _COVER_PIXELS = 2  # a confirmed stereo point explains the pixels within this many pixels of its projection
 _COVER_MAX_POINTS = 2_000_000  # more stereo points than this: a random subset marks the covered pixels
+UNTEXTURED_SHARE = 0.5  # no shells when more than this share of the stereo's unexplained pixels is untextured
 
 
 def shell_radii(layout: SceneLayout) -> np.ndarray:
@@ -98,9 +100,33 @@ def uncovered_pixels(cameras, points, device: torch.device | str = "cpu",
     return out
 
 
+def shells_wanted(images, free: list[torch.Tensor]) -> tuple[bool, float]:
+    """Whether the pixels the stereo left unexplained call for background shells, and the untextured share of them.
+
+    Args:
+        images: the training views' RGB images, each [H, W, 3] in [0, 1] (a [V, H, W, 3] tensor or a list).
+        free: :func:`uncovered_pixels` of those views, bool [H, W] each, on the images' device.
+
+    Returns:
+        ``(wanted, share)``: ``share`` of the free pixels whose stereo window is untextured
+        (:func:`wtopo.geometry.mvs.untextured`; 0 without free pixels), ``wanted`` while it is at most
+        :data:`UNTEXTURED_SHARE`.
+    """
+    from ..geometry.mvs import untextured
+
+    flat = total = 0
+    with torch.no_grad():
+        for img, f in zip(images, free):
+            f = f.to(img.device)
+            flat += int((untextured(img) & f).sum())
+            total += int(f.sum())
+    share = flat / total if total else 0.0
+    return share <= UNTEXTURED_SHARE, share
+
+
 def background_surfels(scene, layout: SceneLayout, n: int, *, sh_degree: int, opacity: float,
                        device: torch.device, generator: torch.Generator,
-                       covered_by: np.ndarray | None = None) -> Surfels | None:
+                       covered_by: np.ndarray | None = None, free: list[torch.Tensor] | None = None) -> Surfels | None:
     """``n`` background surfels on the shells of :func:`shell_radii`, seen from ``scene``'s views.
 
     Args:
@@ -114,6 +140,7 @@ def background_surfels(scene, layout: SceneLayout, n: int, *, sh_degree: int, op
         covered_by: float [P, 3] points (internal frame) that already explain their pixels, the
             stereo's confirmed points: seeds come only from :func:`uncovered_pixels` (every pixel
             when ``None``, or when the points cover every pixel of every view).
+        free: those pixels already computed (bool [H, W] per view), in place of ``covered_by``.
 
     Returns:
         :class:`Surfels` (internal frame) or ``None``.
@@ -123,9 +150,10 @@ def background_surfels(scene, layout: SceneLayout, n: int, *, sh_degree: int, op
     radii = shell_radii(layout)
     c = layout.roi_center
     cams = scene.cameras
-    free = None
-    if covered_by is not None and len(covered_by) > 0:
-        free = [f.cpu().numpy() for f in uncovered_pixels(cams, covered_by, device, generator)]
+    if free is None and covered_by is not None and len(covered_by) > 0:
+        free = uncovered_pixels(cams, covered_by, device, generator)
+    if free is not None:
+        free = [f.cpu().numpy() for f in free]
         if not any(f.any() for f in free):
             free = None
     if free is None:
@@ -208,20 +236,12 @@ def contract_steps(means: torch.Tensor, before: torch.Tensor, scale: torch.Tenso
         means.copy_(before + scale[:, None] * (means - before))
 
 
-def prune_background(surfels: Surfels, state: BackgroundState, *, unseen: bool = False) -> tuple[int, int]:
-    """Remove the surfels within ``near`` of a camera centre and, with ``unseen``, those outside the region of
-    interest that no rendered view has shown yet (``view_dirs``, the accumulated directions towards the cameras that
-    saw them, all zero), in one prune and one host read. Returns how many of each went (none when that would be
-    every surfel)."""
-    gone = near = state.near_cameras(surfels.means)
-    counts = [near.sum()]
-    if unseen:
-        never = ~near & state.outside_roi(surfels.means) & (surfels.buffers["view_dirs"] == 0).all(dim=-1)
-        gone = near | never
-        counts.append(never.sum())
-    counts = [int(c) for c in torch.stack(counts).tolist()]
-    k_near, k_never = counts[0], (counts[1] if unseen else 0)
-    if k_near + k_never in (0, len(surfels)):
-        return 0, 0
-    surfels.prune(~gone)
-    return k_near, k_never
+def prune_near_cameras(surfels: Surfels, state: BackgroundState) -> int:
+    """Remove the surfels within ``near`` of a camera centre (one host read); returns how many went (none when that
+    would be every surfel)."""
+    near = state.near_cameras(surfels.means)
+    k = int(near.sum())
+    if k in (0, len(surfels)):
+        return 0
+    surfels.prune(~near)
+    return k

@@ -156,7 +156,7 @@ class FitRun:
         self.background = BackgroundState(self.plan.layout, self.device) if self.plan.background_rule else None
         self.strategy = DensityStrategy(cfg, densify=bool(cfg.densify.enabled), warmup_end=self.warmup_end,
                                         generator=self.gen, record=self.record, timers=self.timers,
-                                        background=self.background, views=len(self.train.cameras))
+                                        background=self.background)
         self.evaluator = Evaluator(self.test, internal.gt_mesh, render=self.render, enabled=self.plan.gt_metrics,
                                    seed=cfg.runtime.seed, images=cfg.runtime.eval_metrics, held_out=held_out)
         self.checkpoints = Checkpointer(self, self.out_dir)
@@ -275,7 +275,6 @@ class FitRun:
         self.record("non_finite", why=why, terms=terms)
         self.opt.zero_grad(set_to_none=True)
         self._restore()
-        self.strategy.rolled_back(self.it)
         if self.failures >= MAX_CONSECUTIVE_FAILURES:
             self.status = "aborted"
             path = self.checkpoints.save(force=True)
@@ -382,7 +381,8 @@ class FitRun:
             self.timeline.carry_over(self.it)
         if not resumed:
             with self.timers("init"):
-                s = scene_surfels(self.train, self.cfg, self.plan.layout, self.device, self.gen, self.background)
+                s = scene_surfels(self.train, self.cfg, self.plan.layout, self.device, self.gen, self.background,
+                                  self.record)
                 with section("init_setup"):
                     self.set_surfels(s)
         if self.progress:

@@ -46,7 +46,8 @@ from ..camera import Camera
 from ..multiview_ncc import source_params
 from ..plane_sweep import LevelPlanes, SweepReference, plane_costs
 
-__all__ = ["MVSPoints", "TorchCam", "TorchCams", "confirmed_points", "gray", "plane_sweep_points", "select_neighbours"]
+__all__ = ["MVSPoints", "TorchCam", "TorchCams", "confirmed_points", "gray", "plane_sweep_points", "select_neighbours",
+           "untextured"]
 
 _NEIGHBOURS = 4  # source views per reference view
 _BEST_ANGLE = 12.0  # degrees: preferred triangulation angle at the region of interest
@@ -216,6 +217,14 @@ def _n_planes(ref: TorchCam, src: TorchCam, lo: float, hi: float) -> int:
         return _MAX_PLANES
     travel = float(torch.hypot(u[1] - u[0], v[1] - v[0]))
     return int(np.clip(math.ceil(travel), _MIN_PLANES, _MAX_PLANES))
+
+
+def untextured(img: torch.Tensor) -> torch.Tensor:
+    """Bool [H, W]: the pixels of ``img`` (RGB [H, W, 3] in [0, 1]) whose ``_WINDOW`` window's grey variance is below
+    ``_MIN_TEXTURE``, the windows the sweep gives no depth (float64 moments, as the sweep's)."""
+    g = gray(img.double())[None, None]
+    mu = _box(g)[0, 0]
+    return (_box(g * g)[0, 0] - mu * mu).clamp_min(0) < _MIN_TEXTURE
 
 
 def gray(img: torch.Tensor) -> torch.Tensor:
