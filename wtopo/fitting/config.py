@@ -79,7 +79,7 @@ class InitConfig:
     """Surfels drawn in the common volume, or kept of the stereo points, when the scene has no points."""
     background_points: int | None = _f(None, COUNT)
     """Background surfels on shells beyond the cameras; ``None``: the plan's (``num_points`` for a scene,
-    0 for an object)."""
+    0 for an object). A scene seeds none when most of the pixels its stereo left unexplained are untextured."""
 
 
 @dataclass(kw_only=True)
