@@ -139,7 +139,7 @@ def test_shells_are_wanted_only_where_the_unexplained_pixels_hold_texture(free_s
     want_share = (W // 2 - 3) / (W // 2) if free_side == "left" else 0.0
     assert got == wanted and share == pytest.approx(want_share)
     assert (share <= UNTEXTURED_SHARE) == wanted
-    assert shells_wanted(img[None], [torch.zeros(H, W, dtype=torch.bool)]) == (True, 0.0)  # nothing unexplained
+    assert shells_wanted(img[None], [torch.zeros(H, W, dtype=torch.bool)]) == (False, None)  # nothing unexplained
 
 
 @pytest.mark.parametrize("flat_side,seeded", [("right", 0), ("left", 300)])
@@ -164,5 +164,5 @@ def test_a_fit_seeds_shells_only_when_the_stereo_left_texture_unexplained(monkey
                                     lambda name, **kw: events.append((name, kw)))
     assert len(s) == 200 + seeded
     (name, kw), = events
-    assert name == "background_shells" and kw["seeded"] == seeded
+    assert name == "background_shells" and kw["seeded"] == seeded and kw["lens_pruned"] == 0
     assert (kw["untextured_share"] > 0.5) == (seeded == 0)

@@ -142,10 +142,17 @@ def _spread_subset_by_unique(points, n, generator):
     return np.sort(pick)
 
 
-@pytest.mark.parametrize("layout", ["uniform", "layers", "lattice", "duplicates"])
+@pytest.mark.parametrize("layout", ["uniform", "layers", "lattice", "duplicates", "span49", "lattice49"])
 def test_spread_subset_matches_its_definition(layout, device):
+    """On every device (CUDA divides by a host scalar through its reciprocal: 49 * (1 / 49) < 1 would move the
+    farthest points, and a lattice on the finest cells' faces, a cell)."""
     rng = np.random.default_rng(3)
     pts = rng.random((20000, 3)) * np.array([4.0, 1.0, 0.3]) - 2.0
+    if layout in ("span49", "lattice49"):  # the longest side exactly 49, its two extreme points on it
+        pts = rng.random((20000, 3)) * np.array([49.0, 7.0, 3.0])
+        pts[0, 0], pts[1, 0] = 0.0, 49.0
+        if layout == "lattice49":
+            pts = np.round(pts / 49 * 4096) * 49 / 4096
     if layout == "layers":  # a few planes: many empty cells
         pts[:, 2] = np.round(pts[:, 2] * 3) / 3
     elif layout == "lattice":  # points on cell faces of every grid

@@ -143,7 +143,7 @@ class Camera:
 
     def undistort(self, xyd: np.ndarray, iterations: int = 30) -> np.ndarray:
         """Invert :meth:`distort` by Newton's method on normalised coordinates [..., 2] (float64)."""
-        if self.distortion is None:
+        if self.distortion is None or xyd.size == 0:
             return xyd
         k1, k2, p1, p2, k3 = self.distortion
         xy = xyd.copy()
@@ -170,7 +170,9 @@ class Camera:
     # -- rays and projection ---------------------------------------------------------------
     def pixel_directions_camera(self, rows: np.ndarray | None = None, cols: np.ndarray | None = None) -> np.ndarray:
         """Ray directions in camera axes, float64, scaled so that z = 1: through every pixel centre [H, W, 3], or
-        through the centres of the pixels at integer ``rows`` and ``cols`` (two arrays of one shape S) [*S, 3]."""
+        through the centres of the pixels at integer ``rows`` and ``cols`` (two arrays of one shape S) [*S, 3]. With
+        a lens distortion the two agree to float64 rounding (the Newton inversion stops when all its pixels have
+        converged), without one bit for bit."""
         if (rows is None) != (cols is None):
             raise ValueError("pixel_directions_camera needs both rows and cols, or neither")
         if rows is None:

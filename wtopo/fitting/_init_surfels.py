@@ -130,10 +130,12 @@ def spread_subset(points: np.ndarray, n: int, generator: torch.Generator,
     dev = torch.device(device)
     p = torch.as_tensor(np.asarray(points, np.float64)).to(dev)
     lo = p.min(0).values
-    span = float((p.max(0).values - lo).max()) or 1.0
+    span = (p.max(0).values - lo).max()
+    span = torch.where(span > 0, span, torch.ones_like(span))
     order = torch.randperm(len(p), generator=generator).to(dev)
     # finest-grid coordinates in [0, 2**12]: a coarser grid's are these shifted right, exactly, since
-    # scaling by a power of two is exact in floating point (the top face's points sit in an extra cell)
+    # scaling by a power of two is exact in floating point (the top face's points sit in an extra cell). The span
+    # is a tensor: CUDA divides by a host scalar as a product with its reciprocal, which can move a point a cell
     q = torch.floor((p[order] - lo) / span * (1 << _SPREAD_BITS)).long()
     code, by_code = torch.sort(_morton(q), stable=True)
     new_cell = [code[1:] >> (3 * (_SPREAD_BITS - level)) != code[:-1] >> (3 * (_SPREAD_BITS - level))
@@ -223,7 +225,8 @@ def scene_surfels(scene, cfg: FitConfig, layout, device: torch.device, generator
     confirmed points for ``mvs``), plus ``cfg.init.background_points`` background shells seeded where the stereo
     explained nothing, unless most of those pixels are untextured (:func:`~.background.shells_wanted`), none of
     them within ``background``'s near distance of a camera. ``record(event, **fields)`` (optional) receives a
-    "background_shells" event: the shells seeded and the untextured share. Profiled as "init_seed" and
+    "background_shells" event: the shells seeded, the untextured share of the unexplained pixels (``None`` without
+    any, or without stereo points) and the surfels the lens prune then removed. Profiled as "init_seed" and
     "init_shells" (the stereo's own sections inside the first)."""
     with section("init_seed"):
         stereo = stereo_points(scene, layout, device) if cfg.init.source == InitSource.MVS else None
@@ -235,13 +238,15 @@ def scene_surfels(scene, cfg: FitConfig, layout, device: torch.device, generator
             seen = None if stereo is None or len(stereo.points) < MIN_MVS_POINTS else stereo.points
             free = None if seen is None else uncovered_pixels(scene.cameras, seen, device, generator)
             wanted, share = (True, None) if free is None else shells_wanted(scene.images, free)
+            seeded = lens = 0
             if wanted:
                 bg = background_surfels(scene, layout, n_bg, sh_degree=s.sh_degree, opacity=INIT_OPACITY,
                                         device=device, generator=generator, free=free)
                 s.append(*bg.take(slice(None)))
+                seeded = len(bg)
                 if background is not None:  # nothing starts on a lens
-                    prune_near_cameras(s, background)
+                    lens = prune_near_cameras(s, background)
             if record is not None:
-                record("background_shells", seeded=n_bg if wanted else 0,
-                       untextured_share=None if share is None else round(share, 4))
+                record("background_shells", seeded=seeded,
+                       untextured_share=None if share is None else round(share, 4), lens_pruned=lens)
     return s

@@ -18,7 +18,8 @@ surfels from the start, at the distances it plausibly has, and keeps them there:
 * **Only for a far scene.** A shell stands for texture the stereo saw but could not place inside the
   region's depth range. When more than ``UNTEXTURED_SHARE`` of the pixels it left unexplained are
   untextured (the sweep's own window test: they have no depth to find), they are near surfaces of
-  unknown depth and a backdrop, not a far scene, and no shells are seeded (:func:`shells_wanted`;
+  unknown depth and a backdrop, not a far scene, and no shells are seeded, nor when nothing is left
+  unexplained (:func:`shells_wanted`;
   DTU scan24: 85 % untextured, a white table and a black backdrop; the unbounded test scenes
   0-21 %).
 * **Contracted steps.** Adam moves every mean by about the learning rate per step whatever the
@@ -105,12 +106,12 @@ def shells_wanted(images, free: list[torch.Tensor]) -> tuple[bool, float]:
 
     Args:
         images: the training views' RGB images, each [H, W, 3] in [0, 1] (a [V, H, W, 3] tensor or a list).
-        free: :func:`uncovered_pixels` of those views, bool [H, W] each, on the images' device.
+        free: :func:`uncovered_pixels` of those views, bool [H, W] each (any device: moved to the images').
 
     Returns:
-        ``(wanted, share)``: ``share`` of the free pixels whose stereo window is untextured
-        (:func:`wtopo.geometry.mvs.untextured`; 0 without free pixels), ``wanted`` while it is at most
-        :data:`UNTEXTURED_SHARE`.
+        ``(wanted, share)``: ``share`` of the free pixels whose window is untextured
+        (:func:`wtopo.geometry.mvs.untextured`, the sweep's window and threshold), ``wanted`` while it is at most
+        :data:`UNTEXTURED_SHARE`; ``(False, None)`` when the stereo left no pixel unexplained.
     """
     from ..geometry.mvs import untextured
 
@@ -120,7 +121,9 @@ def shells_wanted(images, free: list[torch.Tensor]) -> tuple[bool, float]:
             f = f.to(img.device)
             flat += int((untextured(img) & f).sum())
             total += int(f.sum())
-    share = flat / total if total else 0.0
+    if not total:
+        return False, None
+    share = flat / total
     return share <= UNTEXTURED_SHARE, share
 
 
