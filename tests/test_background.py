@@ -166,3 +166,50 @@ def test_a_fit_seeds_shells_only_when_the_stereo_left_texture_unexplained(monkey
     (name, kw), = events
     assert name == "background_shells" and kw["seeded"] == seeded and kw["lens_pruned"] == 0
     assert (kw["untextured_share"] > 0.5) == (seeded == 0)
+
+
+def test_set_shells_stand_whatever_the_texture(monkeypatch):
+    """init.background_points set in the configuration: the flat case above seeds its shells all the same."""
+    from wtopo.fitting import _init_surfels
+    from wtopo.fitting.config import FitConfig, InitSource
+    from wtopo.geometry.mvs import MVSPoints
+
+    cam = _camera()
+    pts = _left_half_points(cam, W // 2)
+    monkeypatch.setattr(_init_surfels, "stereo_points",
+                        lambda *a: MVSPoints(pts, np.full_like(pts, 0.5), np.tile([0.0, 0.0, 1.0], (len(pts), 1)), 0.5))
+    scene = types.SimpleNamespace(cameras=[cam], images=_half_flat_image("right")[None], points=None)
+    layout = types.SimpleNamespace(camera_centers=cam.center[None], roi_center=np.full(3, 0.5), roi_radius=0.5,
+                                   roi_lower=np.zeros(3), roi_upper=np.ones(3), near=0.01)
+    cfg = FitConfig()
+    cfg.init.source, cfg.init.num_points, cfg.init.background_points, cfg.sh_degree = InitSource.MVS, 200, 300, 0
+    events = []
+    s = _init_surfels.scene_surfels(scene, cfg, layout, torch.device("cpu"), torch.Generator().manual_seed(0), None,
+                                    lambda name, **kw: events.append(kw), forced=True)
+    assert len(s) == 500 and events[0]["seeded"] == 300 and events[0]["untextured_share"] > 0.5
+
+
+def test_the_plan_says_when_the_fit_seeded_no_shells():
+    """revise_plan: a scene's plan of shells becomes none, with the share as the reason; seeded shells (or no
+    event) leave the plan as it was."""
+    import trimesh
+
+    from wtopo import Scene, scenes
+    from wtopo.fitting._init_surfels import revise_plan
+    from wtopo.fitting.config import FitConfig
+    from wtopo.fitting.plan import make_plan
+
+    lit = scenes.from_mesh(trimesh.creation.icosphere(subdivisions=2), n_views=8, resolution=24, rig="sphere",
+                           texture="coffee", name="open")
+    plan = make_plan(Scene(cameras=lit.cameras, images=lit.images, name="open").normalized(), FitConfig(),
+                     torch.device("cpu"))
+    assert plan.background_points > 0
+    assert revise_plan(plan, []) is plan
+    assert revise_plan(plan, [{"event": "background_shells", "seeded": 7, "untextured_share": 0.1}]) is plan
+    got = revise_plan(plan, [{"event": "densify"}, {"event": "background_shells", "seeded": 0,
+                                                    "untextured_share": 0.879}])
+    assert got.background_points == 0 and "88% of the pixels" in got.reasons["background_points"]
+    assert got.to_dict()["background_points"]["value"] == 0 and "no shells" in str(got)
+    assert got.sh_degree == plan.sh_degree and got.layout is plan.layout
+    none_left = revise_plan(plan, [{"event": "background_shells", "seeded": 0, "untextured_share": None}])
+    assert "no pixel unexplained" in none_left.reasons["background_points"]

@@ -22,7 +22,7 @@ from .config import FitConfig, InitConfig, InitSource
 from .surfels import Surfels
 
 __all__ = ["scene_surfels", "initial_surfels", "stereo_points", "common_volume_points", "projected_colors",
-           "spread_subset", "MIN_MVS_POINTS", "INIT_OPACITY"]
+           "spread_subset", "revise_plan", "MIN_MVS_POINTS", "INIT_OPACITY"]
 
 INIT_OPACITY = 0.3
 """Opacity of every initial surfel (scene points, stereo, random and background ones), in (0, 1)."""
@@ -220,11 +220,12 @@ def initial_surfels(scene, cfg: InitConfig, source: InitSource | str, *, sh_degr
 
 
 def scene_surfels(scene, cfg: FitConfig, layout, device: torch.device, generator: torch.Generator,
-                  background: BackgroundState | None, record=None) -> Surfels:
+                  background: BackgroundState | None, record=None, forced: bool = False) -> Surfels:
     """The fit's initial surfels of ``scene`` (its training views): from ``cfg.init.source`` (plane-sweep stereo's
     confirmed points for ``mvs``), plus ``cfg.init.background_points`` background shells seeded where the stereo
-    explained nothing, unless most of those pixels are untextured (:func:`~.background.shells_wanted`), none of
-    them within ``background``'s near distance of a camera. ``record(event, **fields)`` (optional) receives a
+    explained nothing, unless most of those pixels are untextured (:func:`~.background.shells_wanted`; ``forced``:
+    the configuration set their number, which stands), none of them within ``background``'s near distance of a
+    camera. ``record(event, **fields)`` (optional) receives a
     "background_shells" event: the shells seeded, the untextured share of the unexplained pixels (``None`` without
     any, or without stereo points) and the surfels the lens prune then removed. Profiled as "init_seed" and
     "init_shells" (the stereo's own sections inside the first)."""
@@ -238,6 +239,7 @@ def scene_surfels(scene, cfg: FitConfig, layout, device: torch.device, generator
             seen = None if stereo is None or len(stereo.points) < MIN_MVS_POINTS else stereo.points
             free = None if seen is None else uncovered_pixels(scene.cameras, seen, device, generator)
             wanted, share = (True, None) if free is None else shells_wanted(scene.images, free)
+            wanted = wanted or forced
             seeded = lens = 0
             if wanted:
                 bg = background_surfels(scene, layout, n_bg, sh_degree=s.sh_degree, opacity=INIT_OPACITY,
@@ -250,3 +252,17 @@ def scene_surfels(scene, cfg: FitConfig, layout, device: torch.device, generator
                 record("background_shells", seeded=seeded,
                        untextured_share=None if share is None else round(share, 4), lens_pruned=lens)
     return s
+
+
+def revise_plan(plan, events: list[dict]):
+    """``plan`` with the background shells as the initial surfels' ``background_shells`` event in ``events`` found
+    them: none seeded where the plan had some, for the untextured share (``plan`` itself otherwise)."""
+    ev = next((e for e in events if e.get("event") == "background_shells"), None)
+    if ev is None or ev["seeded"] or not plan.background_points:
+        return plan
+    share = ev.get("untextured_share")
+    why = ("scene, but the stereo left no pixel unexplained" if share is None else
+           f"scene, but {share:.0%} of the pixels the stereo left unexplained are untextured: near surfaces and a "
+           "backdrop, not a far scene")
+    return plan.revised("background_points", 0, why + " (no shells)")
+

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import enum
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from types import MappingProxyType
 
 from .config import InitSource, Preset
@@ -101,6 +101,11 @@ class Plan:
     """The decisions the configuration set instead of the plan."""
     layout: SceneLayout | None = field(default=None, repr=False, compare=False)
     """The :class:`~wtopo.fitting.scene_kind.SceneLayout` behind the scene-kind decisions."""
+
+    def revised(self, name: str, value, reason: str) -> Plan:
+        """This plan with decision ``name`` changed to ``value`` for ``reason``: what the fit found once it ran (the
+        background shells, which the initial stereo decides)."""
+        return replace(self, **{name: value}, reasons=MappingProxyType({**self.reasons, name: reason}))
 
     @classmethod
     def decision_names(cls) -> tuple[str, ...]:

@@ -79,7 +79,8 @@ class InitConfig:
     """Surfels drawn in the common volume, or kept of the stereo points, when the scene has no points."""
     background_points: int | None = _f(None, COUNT)
     """Background surfels on shells beyond the cameras; ``None``: the plan's (``num_points`` for a scene,
-    0 for an object). A scene seeds none when most of the pixels its stereo left unexplained are untextured."""
+    0 for an object). Left to the plan, a scene seeds none when most of the pixels its stereo left unexplained are
+    untextured (the printed plan and ``plan.json`` then say so); a number set here is seeded whatever the texture."""
 
 
 @dataclass(kw_only=True)

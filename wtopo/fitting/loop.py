@@ -26,7 +26,7 @@ from .._profile import section
 from .._validate import trusted_values
 from . import presets as _presets
 from ._final_mesh import final_mesh
-from ._init_surfels import scene_surfels
+from ._init_surfels import revise_plan, scene_surfels
 from ._progress import StageBar, StopRequest, frozen_heap
 from ._reinit import tsdf_reinit
 from ._run_state import restore_run_state, run_state
@@ -382,9 +382,10 @@ class FitRun:
         if not resumed:
             with self.timers("init"):
                 s = scene_surfels(self.train, self.cfg, self.plan.layout, self.device, self.gen, self.background,
-                                  self.record)
+                                  self.record, forced="background_points" in self.plan.overrides)
                 with section("init_setup"):
                     self.set_surfels(s)
+        self.plan = revise_plan(self.plan, self.events)
         if self.progress:
             print(self.plan)
             if resumed:
