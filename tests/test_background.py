@@ -142,10 +142,9 @@ def test_shells_are_wanted_only_where_the_unexplained_pixels_hold_texture(free_s
     assert shells_wanted(img[None], [torch.zeros(H, W, dtype=torch.bool)]) == (False, None)  # nothing unexplained
 
 
-@pytest.mark.parametrize("flat_side,seeded", [("right", 0), ("left", 300)])
-def test_a_fit_seeds_shells_only_when_the_stereo_left_texture_unexplained(monkeypatch, flat_side, seeded):
-    """scene_surfels with the stereo explaining the left half: a flat right half gets no shells, a textured one
-    gets them all; either way the event says how many and the untextured share."""
+def _initial_surfels(monkeypatch, flat_side: str, forced: bool = False):
+    """scene_surfels on one view whose left half the stereo explains (a stand-in for its points), the
+    ``flat_side`` half flat: ``(surfels, [(event, fields)])``, 200 stereo surfels and up to 300 shells."""
     from wtopo.fitting import _init_surfels
     from wtopo.fitting.config import FitConfig, InitSource
     from wtopo.geometry.mvs import MVSPoints
@@ -161,7 +160,15 @@ def test_a_fit_seeds_shells_only_when_the_stereo_left_texture_unexplained(monkey
     cfg.init.source, cfg.init.num_points, cfg.init.background_points, cfg.sh_degree = InitSource.MVS, 200, 300, 0
     events = []
     s = _init_surfels.scene_surfels(scene, cfg, layout, torch.device("cpu"), torch.Generator().manual_seed(0), None,
-                                    lambda name, **kw: events.append((name, kw)))
+                                    lambda name, **kw: events.append((name, kw)), forced=forced)
+    return s, events
+
+
+@pytest.mark.parametrize("flat_side,seeded", [("right", 0), ("left", 300)])
+def test_a_fit_seeds_shells_only_when_the_stereo_left_texture_unexplained(monkeypatch, flat_side, seeded):
+    """A flat right half (unexplained) gets no shells, a textured one gets them all; either way the event says how
+    many and the untextured share."""
+    s, events = _initial_surfels(monkeypatch, flat_side)
     assert len(s) == 200 + seeded
     (name, kw), = events
     assert name == "background_shells" and kw["seeded"] == seeded and kw["lens_pruned"] == 0
@@ -170,23 +177,9 @@ def test_a_fit_seeds_shells_only_when_the_stereo_left_texture_unexplained(monkey
 
 def test_set_shells_stand_whatever_the_texture(monkeypatch):
     """init.background_points set in the configuration: the flat case above seeds its shells all the same."""
-    from wtopo.fitting import _init_surfels
-    from wtopo.fitting.config import FitConfig, InitSource
-    from wtopo.geometry.mvs import MVSPoints
-
-    cam = _camera()
-    pts = _left_half_points(cam, W // 2)
-    monkeypatch.setattr(_init_surfels, "stereo_points",
-                        lambda *a: MVSPoints(pts, np.full_like(pts, 0.5), np.tile([0.0, 0.0, 1.0], (len(pts), 1)), 0.5))
-    scene = types.SimpleNamespace(cameras=[cam], images=_half_flat_image("right")[None], points=None)
-    layout = types.SimpleNamespace(camera_centers=cam.center[None], roi_center=np.full(3, 0.5), roi_radius=0.5,
-                                   roi_lower=np.zeros(3), roi_upper=np.ones(3), near=0.01)
-    cfg = FitConfig()
-    cfg.init.source, cfg.init.num_points, cfg.init.background_points, cfg.sh_degree = InitSource.MVS, 200, 300, 0
-    events = []
-    s = _init_surfels.scene_surfels(scene, cfg, layout, torch.device("cpu"), torch.Generator().manual_seed(0), None,
-                                    lambda name, **kw: events.append(kw), forced=True)
-    assert len(s) == 500 and events[0]["seeded"] == 300 and events[0]["untextured_share"] > 0.5
+    s, events = _initial_surfels(monkeypatch, "right", forced=True)
+    (_, kw), = events
+    assert len(s) == 500 and kw["seeded"] == 300 and kw["untextured_share"] > 0.5
 
 
 def test_the_plan_says_when_the_fit_seeded_no_shells():
