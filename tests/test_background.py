@@ -55,7 +55,7 @@ def test_shells_are_seeded_only_on_pixels_the_points_leave_free(device):
     scene, layout = _scene_and_layout(cam)
     pts = _left_half_points(cam, 20)
     s = background_surfels(scene, layout, 400, sh_degree=0, opacity=0.3, device=torch.device(device),
-                           generator=torch.Generator().manual_seed(1), covered_by=pts)
+                           generator=torch.Generator().manual_seed(1), free=uncovered_pixels([cam], pts, device))
     means = s.means.detach().double().cpu().numpy()
     uv, z = cam.project(means)
     assert (z > 0).all()
@@ -74,8 +74,9 @@ def test_without_free_pixels_or_points_every_pixel_may_seed(covered):
     cam = _camera()
     scene, layout = _scene_and_layout(cam)
     pts = {"none": None, "everything": _left_half_points(cam, W), "empty": np.zeros((0, 3))}[covered]
+    free = None if pts is None else uncovered_pixels([cam], pts)
     s = background_surfels(scene, layout, 2000, sh_degree=0, opacity=0.3, device=torch.device("cpu"),
-                           generator=torch.Generator().manual_seed(2), covered_by=pts)
+                           generator=torch.Generator().manual_seed(2), free=free)
     uv, _ = cam.project(s.means.detach().double().numpy())
     col = np.floor(uv[:, 0]).astype(int)
     assert len(s) == 2000 and col.min() < 3 and col.max() > W - 4  # seeds across the whole image

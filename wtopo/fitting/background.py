@@ -115,12 +115,12 @@ def shells_wanted(images, free: list[torch.Tensor]) -> tuple[bool, float]:
     """
     from ..geometry.mvs import untextured
 
-    flat = total = 0
+    counts = []
     with torch.no_grad():
         for img, f in zip(images, free):
             f = f.to(img.device)
-            flat += int((untextured(img) & f).sum())
-            total += int(f.sum())
+            counts.append(torch.stack([(untextured(img) & f).sum(), f.sum()]))
+    flat, total = torch.stack(counts).sum(0).tolist() if counts else (0, 0)  # one host read for every view
     if not total:
         return False, None
     share = flat / total
@@ -129,7 +129,7 @@ def shells_wanted(images, free: list[torch.Tensor]) -> tuple[bool, float]:
 
 def background_surfels(scene, layout: SceneLayout, n: int, *, sh_degree: int, opacity: float,
                        device: torch.device, generator: torch.Generator,
-                       covered_by: np.ndarray | None = None, free: list[torch.Tensor] | None = None) -> Surfels | None:
+                       free: list[torch.Tensor] | None = None) -> Surfels | None:
     """``n`` background surfels on the shells of :func:`shell_radii`, seen from ``scene``'s views.
 
     Args:
@@ -140,10 +140,8 @@ def background_surfels(scene, layout: SceneLayout, n: int, *, sh_degree: int, op
         opacity: initial opacity in (0, 1).
         device: torch device of the result.
         generator: seeds the views, pixels and shells (CPU generator).
-        covered_by: float [P, 3] points (internal frame) that already explain their pixels, the
-            stereo's confirmed points: seeds come only from :func:`uncovered_pixels` (every pixel
-            when ``None``, or when the points cover every pixel of every view).
-        free: those pixels already computed (bool [H, W] per view), in place of ``covered_by``.
+        free: the pixels seeds may come from, bool [H, W] per view (:func:`uncovered_pixels` of the stereo's
+            confirmed points); every pixel when ``None`` or when none is free.
 
     Returns:
         :class:`Surfels` (internal frame) or ``None``.
@@ -153,8 +151,6 @@ def background_surfels(scene, layout: SceneLayout, n: int, *, sh_degree: int, op
     radii = shell_radii(layout)
     c = layout.roi_center
     cams = scene.cameras
-    if free is None and covered_by is not None and len(covered_by) > 0:
-        free = uncovered_pixels(cams, covered_by, device, generator)
     if free is not None:
         free = [f.cpu().numpy() for f in free]
         if not any(f.any() for f in free):

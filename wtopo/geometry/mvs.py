@@ -219,12 +219,18 @@ def _n_planes(ref: TorchCam, src: TorchCam, lo: float, hi: float) -> int:
     return int(np.clip(math.ceil(travel), _MIN_PLANES, _MAX_PLANES))
 
 
+def _window_moments(g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean and variance [H, W] float64 of the ``_WINDOW`` window around each pixel of the grey image ``g`` [H, W]
+    (float64: a flat window's variance is a difference of near-equal sums)."""
+    r = g.double()[None, None]
+    mu = _box(r)[0, 0]
+    return mu, (_box(r * r)[0, 0] - mu * mu).clamp_min(0)
+
+
 def untextured(img: torch.Tensor) -> torch.Tensor:
-    """Bool [H, W]: the pixels of ``img`` (RGB [H, W, 3] in [0, 1]) whose ``_WINDOW`` window's grey variance is below
-    ``_MIN_TEXTURE``, the windows the sweep gives no depth (float64 moments, as the sweep's)."""
-    g = gray(img.double())[None, None]
-    mu = _box(g)[0, 0]
-    return (_box(g * g)[0, 0] - mu * mu).clamp_min(0) < _MIN_TEXTURE
+    """Bool [H, W]: the pixels of ``img`` (RGB [H, W, 3] in [0, 1]) whose window's grey variance is below
+    ``_MIN_TEXTURE``, the windows the sweep gives no depth (:func:`_window_moments`, as the sweep's)."""
+    return _window_moments(gray(img.double()))[1] < _MIN_TEXTURE
 
 
 def gray(img: torch.Tensor) -> torch.Tensor:
@@ -267,9 +273,7 @@ def _sweep(ref: TorchCam, srcs: list[TorchCam], ref_gray: torch.Tensor, src_gray
     one ``family`` of planes."""
     params = family.params
     n_planes = int(params.shape[0])
-    r = ref_gray.double()[None, None]  # float64: a flat window's variance is a difference of near-equal sums
-    mu = _box(r)[0, 0]
-    mu_r, var_r = mu.float(), (_box(r * r)[0, 0] - mu * mu).clamp_min(0).float()
+    mu_r, var_r = (m.float() for m in _window_moments(ref_gray))
     rows = torch.stack([source_params(ref.cam, src.cam, device=ref_gray.device) for src in srcs])
     planes = params if isinstance(family, _Fronto) else LevelPlanes(params, family.a, family.b, family.lo, family.hi)
     costs = plane_costs(SweepReference(ref_gray, mu_r, var_r, ref.dirs), src_gray, rows, planes, half=_WINDOW // 2,
