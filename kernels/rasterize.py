@@ -2,7 +2,8 @@
 """Warp kernels of the Gaussian-surfel rasterizer (2D Gaussian splatting, ray-splat intersection).
 
 Kernels are generic over float32/float64 (``typing.Any`` arguments). The per-surfel
-:func:`prepare_surfels_kernel` is differentiated by Warp's autodiff (straight-line code); the
+:func:`prepare_surfels_kernel` is differentiated by Warp's autodiff (straight-line code; a render that nothing
+differentiates runs :func:`prepare_records_kernel`, the same arithmetic with the packing fused in); the
 per-pixel compositing kernels have explicit adjoints (:func:`~.rasterize_backward.render_backward_kernel`
 in :mod:`.rasterize_backward`, reverse traversal with the saved final transmittance) and compile with
 ``enable_backward=False``.
@@ -132,6 +133,43 @@ def sh_color(sh: wp.array2d[Any], i: int, degree: int, d: Any):
     return wp.vector(wp.max(c[0] + half, zero), wp.max(c[1] + half, zero), wp.max(c[2] + half, zero))
 
 
+@wp.func
+def surfel_frame(p: Any, q: Any, s: Any, cam: Any):
+    """A surfel's ``(uax, vax, nrm, auv, nrm_face, m2, zc)`` from its centre, rotation and scales (module
+    docstring); ``m2`` is 0 for a centre at or behind the near plane (culled there, never read)."""
+    f_ref = p[0]
+    tu, tv, n = quat_axes(q, QUAT_MIN_SQ)
+    su = wp.max(s[0], type(f_ref)(SCALE_MIN))
+    sv = wp.max(s[1], type(f_ref)(SCALE_MIN))
+    U = tu / su
+    V = tv / sv
+    view = p - cam.center
+    auv = wp.vector(-wp.dot(view, U), -wp.dot(view, V), -wp.dot(view, n))
+    # facing the camera: dot(normal, centre - camera) < 0
+    facing = n
+    if wp.dot(n, view) > type(f_ref)(0.0):
+        facing = -n
+    pc = cam_point(cam, p)
+    m2 = wp.vector(type(f_ref)(0.0), type(f_ref)(0.0))
+    if pc[2] > cam.near:
+        m2 = project_pixel(cam, pc)
+    return U, V, n, auv, facing, m2, pc[2]
+
+
+@wp.func
+def surfel_color(sh: wp.array2d[Any], i: int, sh_degree: int, view: Any):
+    """Surfel ``i``'s colour seen along ``view`` (centre - camera): its SH of ``sh_degree`` (:func:`sh_color`), or
+    ``sh[i, 0]`` as it is for ``sh_degree < 0`` (plain RGB)."""
+    c = sh[i, 0]
+    if sh_degree >= 0:
+        vl2 = wp.dot(view, view)
+        d = wp.vector(type(vl2)(0.0), type(vl2)(0.0), type(vl2)(1.0))
+        if vl2 > type(vl2)(1.0e-30):
+            d = view / wp.sqrt(vl2)
+        c = sh_color(sh, i, sh_degree, d)
+    return c
+
+
 @wp.kernel
 def prepare_surfels_kernel(
     offset: int,
@@ -154,37 +192,44 @@ def prepare_surfels_kernel(
     cam = cams[0]
     i = wp.tid() + offset
     p = means[i]
-    f_ref = p[0]
-    tu, tv, n = quat_axes(quats[i], QUAT_MIN_SQ)
-    s = scales[i]
-    su = wp.max(s[0], type(f_ref)(SCALE_MIN))
-    sv = wp.max(s[1], type(f_ref)(SCALE_MIN))
-    U = tu / su
-    V = tv / sv
+    U, V, n, a, facing, c2, z = surfel_frame(p, quats[i], scales[i], cam)
     uax[i] = U
     vax[i] = V
     nrm[i] = n
-    view = p - cam.center
-    auv[i] = wp.vector(-wp.dot(view, U), -wp.dot(view, V), -wp.dot(view, n))
-    # facing the camera: dot(normal, centre - camera) < 0
-    if wp.dot(n, view) > type(f_ref)(0.0):
-        nrm_face[i] = -n
-    else:
-        nrm_face[i] = n
-    pc = cam_point(cam, p)
-    zc[i] = pc[2]
-    if pc[2] > cam.near:
-        m2[i] = project_pixel(cam, pc)
-    else:
-        m2[i] = wp.vector(type(f_ref)(0.0), type(f_ref)(0.0))  # culled by the near plane; never read
-    if sh_degree < 0:
-        color[i] = sh[i, 0]
-    else:
-        vl2 = wp.dot(view, view)
-        d = wp.vector(type(f_ref)(0.0), type(f_ref)(0.0), type(f_ref)(1.0))
-        if vl2 > type(f_ref)(1.0e-30):
-            d = view / wp.sqrt(vl2)
-        color[i] = sh_color(sh, i, sh_degree, d)
+    auv[i] = a
+    nrm_face[i] = facing
+    m2[i] = c2
+    zc[i] = z
+    color[i] = surfel_color(sh, i, sh_degree, p - cam.center)
+
+
+@wp.kernel(enable_backward=False)
+def prepare_records_kernel(
+    offset: int,
+    means: wp.array[Any],
+    quats: wp.array[Any],
+    scales: wp.array[Any],
+    sh: wp.array2d[Any],
+    cams: wp.array[Any],
+    sh_degree: int,
+    cutoff: wp.array[Any],
+    geo4: wp.array2d[Any],
+    nrm_face: wp.array[Any],
+    color: wp.array[Any],
+):
+    """:func:`prepare_surfels_kernel` then :func:`pack_surfels_kernel` in one pass, for a forward that nothing
+    differentiates: each record written as its four quads (the layout :func:`~.rasterize_warp.staged_record`
+    reads), with the facing normal and the colour; the intermediate per-surfel arrays are never written."""
+    cam = cams[0]
+    i = wp.tid() + offset
+    p = means[i]
+    U, V, n, a, facing, c2, z = surfel_frame(p, quats[i], scales[i], cam)
+    geo4[i, 0] = wp.vector(U[0], U[1], U[2], V[0])
+    geo4[i, 1] = wp.vector(V[1], V[2], n[0], n[1])
+    geo4[i, 2] = wp.vector(n[2], a[0], a[1], a[2])
+    geo4[i, 3] = wp.vector(c2[0], c2[1], z, cutoff[i])
+    nrm_face[i] = facing
+    color[i] = surfel_color(sh, i, sh_degree, p - cam.center)
 
 
 @wp.func
@@ -410,5 +455,5 @@ def render_forward_kernel(
 
 
 # one compile of this module with every overload (see kernels/rasterize_records.py)
-for _kernel in (prepare_surfels_kernel, pack_surfels_kernel, render_forward_kernel):
+for _kernel in (prepare_surfels_kernel, prepare_records_kernel, pack_surfels_kernel, render_forward_kernel):
     declare_float_overloads(_kernel)

@@ -115,6 +115,32 @@ def test_bridge_partial_requires_grad(device):
     assert y.grad is None
 
 
+@pytest.mark.parametrize("mode", ["no_grad", "no input requiring grad", "a non-differentiable input"])
+def test_an_op_no_gradient_can_reach_runs_without_a_tape(device, mode):
+    """Where no gradient can flow, the op runs with no tape active (``active_tape()`` is None inside ``run``) and
+    gives the values of a taped run, as plain tensors."""
+    seen = []
+
+    def run(x, y):
+        seen.append(_bridge.active_tape())
+        return _run(x, y)
+
+    diff = (True, mode != "a non-differentiable input")
+    op = _bridge.WarpOp("square_sum", run, (wp.float32, wp.float32), (diff[0] and diff[1], True), (True, False))
+    x = torch.randn(5, device=device, requires_grad=mode != "no input requiring grad")
+    y = torch.randn(5, device=device)
+    if mode == "a non-differentiable input":
+        op = _bridge.WarpOp("square_sum", run, (wp.float32, wp.float32), (False, True), (True, False))
+    with torch.no_grad() if mode == "no_grad" else torch.enable_grad():
+        out, flag = _bridge.apply(op, x, y)
+    assert seen == [None]
+    assert not out.requires_grad and out.grad_fn is None
+    torch.testing.assert_close(out, x.detach() ** 2 + 3 * y)
+    assert bool((flag == 1).all())
+    taped, _ = _bridge.apply(_op(torch.float32), x.detach().requires_grad_(True), y)
+    torch.testing.assert_close(out, taped.detach(), rtol=0, atol=0)
+
+
 @pytest.mark.parametrize("n", [0, 1, 4095, 4096, 100_003])
 def test_launch_split_covers_every_item(n):
     """Visit every item exactly once when a launch is split across threads (sizes straddle the chunk)."""

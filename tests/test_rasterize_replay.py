@@ -12,9 +12,10 @@ import dataclasses
 
 import pytest
 import torch
-from graph_standins import latest_state, static_buffers
+from graph_standins import fixed_outputs, latest_state, static_buffers
 from raster_cases import IMAGES, camera, surfels
 
+import wtopo
 from wtopo._profile import section
 from wtopo.ops import RasterConfig, rasterize_surfels
 from wtopo.rasterize import _replay
@@ -24,7 +25,9 @@ from wtopo.rasterize import _replay
 def _fresh(device, monkeypatch):
     """Replays on, no shape known; on the CPU the capture is the buffer-keeping stand-in."""
     _replay.reset()
-    monkeypatch.setattr(_replay, "_MAKE", None if str(device).startswith("cuda") else static_buffers)
+    cuda = str(device).startswith("cuda")
+    monkeypatch.setattr(_replay, "_MAKE", None if cuda else static_buffers)
+    monkeypatch.setattr(_replay, "_CAPTURE", None if cuda else fixed_outputs)
     yield
     _replay.reset()
 
@@ -99,17 +102,85 @@ def test_replayed_calls_equal_eager_calls(device, sh):
     assert _replay.failure is None
 
 
-def test_forward_without_gradients_replays(device):
+def _same_forward(out, want):
+    for k in (*IMAGES, "visibility", "radii", "means2d", "clip"):
+        torch.testing.assert_close(getattr(out, k), getattr(want, k), rtol=0, atol=0, msg=k)
+    assert (out.near, out.far) == (want.near, want.far)
+    assert not out.rgb.requires_grad and not out.means2d.requires_grad
+
+
+def _turned(cam, angle):
+    """``cam`` turned by ``angle`` about the vertical axis through the origin (the same size: the same shape)."""
+    c, s = torch.cos(torch.tensor(angle)).item(), torch.sin(torch.tensor(angle)).item()
+    eye = [0.3 * c - 3.0 * s, -0.2, 0.3 * s - 3.0 * c]
+    return wtopo.Camera.look_at(eye, [0, 0, 0], [0, -1, 0], fov_x=0.9, width=cam.width, height=cam.height)
+
+
+@pytest.mark.parametrize("mode", ["no_grad", "no input requiring grad"])
+def test_a_forward_replay_reads_the_callers_tensors_where_they_lie(device, mode):
+    """Calls no gradient can reach, their tensors updated in place (a loop's parameters): the capture after
+    EAGER_CALLS reads them where they lie, with no copies, and every replay equals the eager render of what they
+    hold at that call, in each of two views of one size taken in turn."""
+    cams = [camera(), _turned(camera(), 0.4)]
+    params = surfels(300, dtype=torch.float32, device=device)
+    if mode != "no_grad":
+        params = [p.detach() for p in params]
+    for k in range(_replay.EAGER_CALLS + 4):
+        with torch.no_grad():
+            params[0].add_(0.002)
+            params[4].mul_(0.99)
+            out = rasterize_surfels(*params, cams[k % 2], background=BG)
+            _same_forward(out, _eager(params, cams[k % 2]))
+    shape = _shape()
+    assert shape.replays == 4 and shape.graphed.reads is not None and shape.graphed.inputs is None
+
+
+def test_a_forward_replay_of_moved_tensors_renders_them_and_then_copies(device):
+    """A call whose tensors lie elsewhere than the in-place capture reads renders eagerly (exact), and the shape
+    is captured again copying its inputs, so tensors made afresh at every call replay too."""
+    cam = camera()
+    params = [p.detach() for p in surfels(300, dtype=torch.float32, device=device)]
+    for _ in range(_replay.EAGER_CALLS):
+        rasterize_surfels(*params, cam, background=BG)
+    assert _shape().graphed.reads is not None
+    kept = []
+    for k in range(_replay.EAGER_CALLS + 3):
+        fresh = [p + 0.001 * (k + 1) * (j == 0) for j, p in enumerate(params)]  # new tensors, new addresses
+        kept.append(fresh)  # held: no address is handed back to a later call
+        out = rasterize_surfels(*fresh, cam, background=BG)
+        _same_forward(out, _eager(fresh, cam))
+    shape = _shape()
+    assert shape.replays == 3 and shape.graphed.reads is None and shape.graphed.inputs is not None
+    assert not shape.steady
+
+
+def test_a_forward_replays_outputs_are_the_callers(device):
+    """What a forward replay returned survives the next replay of other values."""
+    cam = camera()
+    params = [p.detach() for p in surfels(300, dtype=torch.float32, device=device)]
+    for _ in range(_replay.EAGER_CALLS):
+        rasterize_surfels(*params, cam, background=BG)
+    out = rasterize_surfels(*params, cam, background=BG)
+    held = {k: getattr(out, k) for k in (*IMAGES, "visibility", "radii", "means2d")}
+    copies = {k: v.clone() for k, v in held.items()}
+    params[0].add_(0.05)
+    nxt = rasterize_surfels(*params, cam, background=(0.9, 0.1, 0.1))
+    assert _shape().replays == 2 and not torch.equal(nxt.rgb, out.rgb)
+    for k, v in held.items():
+        torch.testing.assert_close(v, copies[k], rtol=0, atol=0, msg=k)
+
+
+def test_forward_and_differentiable_calls_are_shapes_apart(device):
+    """The same surfels rendered with and without gradients: two shapes, each captured in its own way."""
     cam = camera()
     params = surfels(300, dtype=torch.float32, device=device)
-    with torch.no_grad():
-        for _ in range(_replay.EAGER_CALLS + 2):
-            out = rasterize_surfels(*params, cam, background=BG)
-        want = _eager(params, cam)
-    assert _shape().replays == 2
-    for k in (*IMAGES, "visibility", "radii", "means2d"):
-        torch.testing.assert_close(getattr(out, k), getattr(want, k), rtol=0, atol=0, msg=k)
-    assert not out.rgb.requires_grad and not out.means2d.requires_grad
+    for _ in range(_replay.EAGER_CALLS + 1):
+        rasterize_surfels(*params, cam, background=BG)
+        with torch.no_grad():
+            rasterize_surfels(*params, cam, background=BG)
+    grad_shape, fwd_shape = _replay._shapes.values()
+    assert grad_shape.replays == 1 and fwd_shape.replays == 1
+    assert isinstance(fwd_shape.graphed, _replay._Forward) and not isinstance(grad_shape.graphed, _replay._Forward)
 
 
 def test_what_a_caller_holds_survives_the_next_call(device):

@@ -262,10 +262,22 @@ def active_tape() -> wp.Tape | None:
 
 
 def apply(op: WarpOp, *tensors) -> tuple[torch.Tensor, ...]:
-    """Run ``op`` on torch tensors and return torch outputs that carry gradients as declared."""
+    """Run ``op`` on torch tensors and return torch outputs that carry gradients as declared.
+
+    Where no gradient can flow (grad mode off, or no differentiable input requires grad) the op runs with no tape
+    active: :func:`active_tape` is ``None``, so it records no adjoint and need not allocate gradient arrays."""
     if len(tensors) != len(op.in_dtypes):
         raise RuntimeError(f"{op.name}: got {len(tensors)} inputs, expected {len(op.in_dtypes)}")
-    return _WarpFunction.apply(op, *tensors)
+    if torch.is_grad_enabled() and any(isinstance(t, torch.Tensor) and d and t.requires_grad
+                                       for t, d in zip(tensors, op.differentiable_inputs)):
+        return _WarpFunction.apply(op, *tensors)
+    device = next(t.device for t in tensors if isinstance(t, torch.Tensor))
+    wdev = warp_device(device)
+    with _on_torch_stream(wdev, device):
+        outs = op.run(*(to_warp(t, dt) if isinstance(t, torch.Tensor) else t for t, dt in zip(tensors, op.in_dtypes)))
+    if len(outs) != len(op.differentiable_outputs):
+        raise RuntimeError(f"{op.name}: run returned {len(outs)} outputs, expected {len(op.differentiable_outputs)}")
+    return tuple(as_torch(o) for o in outs)
 
 
 def cpu_threads() -> int:

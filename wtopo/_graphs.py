@@ -13,7 +13,7 @@ import torch
 
 from ._validate import trusted_values
 
-__all__ = ["collector_off", "make_graphed", "on_device"]
+__all__ = ["capture_forward", "collector_off", "make_graphed", "on_device"]
 
 
 @contextlib.contextmanager
@@ -39,6 +39,28 @@ def make_graphed(fn, args: tuple, *, warmup: int, make=None):
     with collector_off(), trusted_values(), warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="The AccumulateGrad node's stream does not match")
         return (make or torch.cuda.make_graphed_callables)(fn, samples, num_warmup_iters=warmup)
+
+
+def capture_forward(fn, args: tuple, *, warmup: int, capture=None) -> tuple:
+    """``fn(*args)`` captured as one CUDA graph with autograd off: ``(replay, outputs)``, where ``replay()`` runs
+    the graph again on whatever ``args``' memory then holds and leaves its results in ``outputs`` (the graph's
+    own buffers, overwritten by each replay). ``warmup`` eager runs on a side stream come first (Warp's modules
+    load, the caching allocator settles); values are trusted and the collector is off, as in :func:`make_graphed`.
+    ``capture``: a stand-in of this signature (tests)."""
+    if capture is not None:
+        return capture(fn, args, warmup)
+    device = args[0].device
+    with collector_off(), trusted_values(), torch.no_grad():
+        side = torch.cuda.Stream(device)
+        side.wait_stream(torch.cuda.current_stream(device))
+        with torch.cuda.stream(side):
+            for _ in range(warmup):
+                fn(*args)
+        torch.cuda.current_stream(device).wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            outs = tuple(fn(*args))
+    return graph.replay, outs
 
 
 def on_device(device: torch.device):

@@ -170,7 +170,8 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
         if bool((kinds == int(_k.KIND_NODE)).any()):
             faces = _cancel_folded_faces(wp.to_torch(faces), wp.to_torch(vert_kind))
 
-    if field.requires_grad:
+    tape = _bridge.active_tape()
+    if field.requires_grad and tape is not None:
 
         def backward():
             # One launch: several vertices scatter into the same node, and Warp's CPU atomics are
@@ -179,7 +180,6 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
                       inputs=[field, grid, vert_node, vert_kind, verts.grad], outputs=[field.grad],
                       device=device, record_tape=False)
 
-        tape = _bridge.active_tape()
         tape.record_func(backward, [verts, field])
     return verts, faces
 

@@ -106,7 +106,9 @@ def rasterize_surfels(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
         On CUDA, after two calls of one shape (surfel count, colour layout, image size, settings, which inputs
         require grad) with both clip planes defaulted, that shape's op is captured as a CUDA graph and later calls
         replay it: the same values, two host reads a call (the argument checks, then the pair count), outputs
-        and gradients that are the caller's own copies. A call made while an earlier replay of its shape still
+        and gradients that are the caller's own copies. A call no gradient can reach replays the forward alone,
+        reading the surfel tensors where they lie while the caller keeps passing tensors at the same addresses
+        (parameters updated in place), else copying them in. A call made while an earlier replay of its shape still
         awaits its backward renders eagerly; a replayed render is differentiated once (a second backward raises;
         ``RasterConfig(replay=False)`` renders every call eagerly). ``wtopo.rasterize._replay`` has the details.
 

@@ -7,7 +7,8 @@ row and the kernels' camera record without its clip planes); :func:`render_tenso
 ``_rasterize_trusted(..., defer_count=True)`` renders, with the sort sized for a given number of (tile, surfel)
 pairs and no host read or host-side state: the clip planes and the record are made on the device, the pair count
 comes back as a tensor for the caller to post to the capacity. :func:`pair_budget` rounds a pair count to the
-size a capture sorts for; :func:`check_replay` compares a capture's first replay with its function run eagerly.
+size a capture sorts for; :func:`check_replay` and :func:`check_outputs` compare a capture's first replay with its
+function run eagerly.
 """
 
 from __future__ import annotations
@@ -101,16 +102,21 @@ def pair_budget(capacity: int, limit: int) -> int:
     return min(int(limit), max(int(capacity), math.ceil(2 ** (math.ceil(2 * math.log2(max(capacity, 1))) / 2))))
 
 
-def check_replay(graphed, fn, args: tuple) -> None:
-    """Raise unless a replay of ``graphed`` on ``args`` gives ``fn``'s outputs and the gradients of a fixed scalar
-    of its images w.r.t. the inputs that require them."""
-    diff = [a for a in args if a.requires_grad]
-    got, want = graphed(*args), fn(*args)
+def check_outputs(got: tuple, want: tuple) -> None:
+    """Raise unless a replay's outputs ``got`` equal ``want``, the captured function's run eagerly."""
     for k, (a, b) in enumerate(zip(got, want)):
         if not torch.allclose(a.detach().double(), b.detach().double(), rtol=_CHECK_RTOL, atol=_CHECK_ATOL,
                               equal_nan=True):
             raise RuntimeError(f"output {k} of a replay differs from the eager render by "
                                f"{float((a.detach().double() - b.detach().double()).abs().max()):.3g}")
+
+
+def check_replay(graphed, fn, args: tuple) -> None:
+    """Raise unless a replay of ``graphed`` on ``args`` gives ``fn``'s outputs and the gradients of a fixed scalar
+    of its images w.r.t. the inputs that require them."""
+    diff = [a for a in args if a.requires_grad]
+    got, want = graphed(*args), fn(*args)
+    check_outputs(got, want)
     g = torch.Generator().manual_seed(0)
     weights = [torch.rand(got[k].shape, generator=g, dtype=got[k].dtype).to(got[k].device) for k in range(6)]
     grads = [torch.autograd.grad(sum((o[k] * w).sum() for k, w in enumerate(weights)), diff, allow_unused=True)

@@ -32,6 +32,10 @@ PREFETCH_BATCH = 32
 # runs the per-pixel kernels as CUDA does (same results bit for bit, kept for comparison in tests and benchmarks).
 CPU_TILE_KERNELS = True
 
+# A render that nothing differentiates (no tape) prepares and packs its records in one kernel
+# (kernels/rasterize.py, prepare_records_kernel); False: the two kernels of a differentiable render.
+FUSED_FORWARD = True
+
 _compiled: set = set()
 _compile_lock = threading.Lock()
 
@@ -123,11 +127,21 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
     def run(means, quats, scales, opacities, sh, means2d):
         n = means.shape[0]
         with section("rasterize_forward"):
-            prep = _bridge.empty_group(n, (v3, v3, v3, v3, v3, v2, s, v3), wdev, requires_grad=True)
-            uax, vax, nrm, auv, nrm_face, m2, zc, color = prep
+            tape = _bridge.active_tape()  # None: no gradient can flow (the bridge's no-grad path), none allocated
+            grad = tape is not None
+            geo = _bridge.empty_struct(n, _k.SURFEL[s], wdev)
             prep_in = [means, quats, scales, sh, cam_rec, sh_degree]
-            _bridge.launch_split(_k.prepare_surfels_kernel, n, prep_in, prep, device=wdev)
-            tape = _bridge.active_tape()
+            if not grad and FUSED_FORWARD:
+                # nothing differentiates this render: the records, facing normals and colours in one pass
+                nrm_face, color = _bridge.empty(n, v3, wdev), _bridge.empty(n, v3, wdev)
+                _bridge.launch_split(_k.prepare_records_kernel, n, [*prep_in, bins.cutoff],
+                                     [_bridge.quad_view(geo, v4), nrm_face, color], device=wdev)
+            else:
+                prep = _bridge.empty_group(n, (v3, v3, v3, v3, v3, v2, s, v3), wdev, requires_grad=grad)
+                uax, vax, nrm, auv, nrm_face, m2, zc, color = prep
+                _bridge.launch_split(_k.prepare_surfels_kernel, n, prep_in, prep, device=wdev)
+                _bridge.launch_split(_k.pack_surfels_kernel, n, [uax, vax, nrm, auv, m2, zc, bins.cutoff], [geo],
+                                     device=wdev)
             if tape is not None and n > 0:
                 # Warp autodiff's adjoint of the preparation (replayed after the pixel adjoint below, which writes
                 # the gradients it reads); the camera record gets none (no gradient array)
@@ -137,7 +151,7 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
                         _bridge.launch_adjoint(_k.prepare_surfels_kernel, n, [0, *prep_in, *prep], adj, device=wdev)
 
                 tape.record_func(prep_backward, [a for a in (*prep_in[:4], *prep) if a.grad is not None])
-            outs = [_bridge.empty((h, w), t, wdev, requires_grad=True) for t in (v3, s, s, s, v3, s)]
+            outs = [_bridge.empty((h, w), t, wdev, requires_grad=grad) for t in (v3, s, s, s, v3, s)]
             rgb, alpha, depth, median, normal, dist = outs
             t_final = _bridge.empty((h, w), s, wdev)
             sums = _bridge.empty((h, w), v3, wdev)
@@ -147,9 +161,6 @@ def _make_run(bins: _Bins, rays: torch.Tensor, cam_rec, bg_wp, sh_degree: int, c
             # one worker (CUDA): the kernel counts straight into the output, no per-worker buffer to sum
             vis_w = (visibility.reshape((1, n)) if workers == 1
                      else _bridge.empty((workers, n), wp.int32, wdev, zero=True))
-            geo = _bridge.empty_struct(n, _k.SURFEL[s], wdev)
-            _bridge.launch_split(_k.pack_surfels_kernel, n, [uax, vax, nrm, auv, m2, zc, bins.cutoff], [geo],
-                                 device=wdev)
             surf = [geo, nrm_face, color, opacities, bg_wp, ts, tiles_x]
             if tiles:
                 done = _bridge.empty((h, w), wp.int32, wdev)
