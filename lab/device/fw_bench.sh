@@ -5,7 +5,8 @@
 # installs Warp, Open3D, the wheels and this tree's wtopo, builds gsplat's JIT (into $S/torch_ext), runs the
 # replay's, the bridge's and the rasterizer paths' tests on CUDA, then lab/raster_forward.py --rounds 10 --profile
 # (gsplat's rasterization_2dgs and ours alternately, 100k and 1M surfels at 800 px, and the kernel table of each
-# forward) into $OUT/fw.
+# forward), then bench_rasterize_gpu.py --only rasterizer (forward and forward + backward, public and fit paths), into
+# $OUT/fw.
 source lab/device/lease_env.sh
 export TORCH_EXTENSIONS_DIR=$S/torch_ext TORCH_CUDA_ARCH_LIST=9.0
 t0=$(date +%s)
@@ -19,4 +20,7 @@ mkdir -p $OUT/fw
 echo "tests done after $(( $(date +%s) - t0 )) s"
 (cd /tmp && timeout 240 python3 $R/lab/raster_forward.py --rounds 10 --profile > $OUT/fw/raster_forward.txt 2>&1)
 tail -n 80 $OUT/fw/raster_forward.txt
+echo "forward done after $(( $(date +%s) - t0 )) s"
+(cd /tmp && timeout 200 python3 $R/benchmarks/bench_rasterize_gpu.py --device cuda:0 --only rasterizer \
+  --out $OUT/fw 2>&1 | tail -n 30)
 echo "bench done after $(( $(date +%s) - t0 )) s"
