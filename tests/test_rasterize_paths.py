@@ -230,8 +230,8 @@ def test_a_render_without_gradients_equals_a_differentiable_one(device, dtype, s
 
     params = surfels(400, dtype=dtype, device=device, sh=sh)
     with torch.no_grad():
-        params[0][:5] = params[0][:5] * 0.0 + torch.tensor([0.3, -0.2, -3.4], dtype=dtype)  # behind the camera
-        params[1][5:10] = torch.tensor([0.7071, 0.7071, 0.0, 0.0], dtype=dtype)  # edge-on to the view
+        params[0][:5] = torch.tensor([0.3, -0.2, -3.4], dtype=dtype, device=device)  # behind the camera
+        params[1][5:10] = torch.tensor([0.7071, 0.7071, 0.0, 0.0], dtype=dtype, device=device)  # edge-on to the view
     cam = camera(45, 33, distortion=(0.05, -0.01, 0.001, 0.0, 0.0))
     cfg = RasterConfig(replay=False)
     want = rasterize_surfels(*params, cam, background=(0.1, 0.2, 0.3), config=cfg)
