@@ -141,6 +141,15 @@ def test_an_op_no_gradient_can_reach_runs_without_a_tape(device, mode):
     torch.testing.assert_close(out, taped.detach(), rtol=0, atol=0)
 
 
+def test_an_untaped_op_inside_a_callers_tape_does_not_record_on_it(device):
+    """With a tape of the caller's open, an op no gradient can reach takes the taped path, which refuses the foreign
+    tape, instead of recording its launches on it."""
+    x = torch.randn(5, device=device)
+    with wp.Tape() as tape, torch.no_grad(), pytest.raises(RuntimeError, match="tape"):
+        _bridge.apply(_op(torch.float32), x, x)
+    assert not tape.launches
+
+
 @pytest.mark.parametrize("n", [0, 1, 4095, 4096, 100_003])
 def test_launch_split_covers_every_item(n):
     """Visit every item exactly once when a launch is split across threads (sizes straddle the chunk)."""

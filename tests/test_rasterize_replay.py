@@ -8,6 +8,7 @@ planes and a profiled section all render eagerly."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 
 import pytest
@@ -129,6 +130,8 @@ def test_a_forward_replay_reads_the_callers_tensors_where_they_lie(device, mode)
         with torch.no_grad():
             params[0].add_(0.002)
             params[4].mul_(0.99)
+        with torch.no_grad() if mode == "no_grad" else contextlib.nullcontext():
+            assert torch.is_grad_enabled() == (mode != "no_grad")
             out = rasterize_surfels(*params, cams[k % 2], background=BG)
             _same_forward(out, _eager(params, cams[k % 2]))
     shape = _shape()
@@ -166,8 +169,49 @@ def test_a_forward_replays_outputs_are_the_callers(device):
     params[0].add_(0.05)
     nxt = rasterize_surfels(*params, cam, background=(0.9, 0.1, 0.1))
     assert _shape().replays == 2 and not torch.equal(nxt.rgb, out.rgb)
+    _same_forward(nxt, _eager(params, cam, background=(0.9, 0.1, 0.1)))  # this call's background, not the last
     for k, v in held.items():
         torch.testing.assert_close(v, copies[k], rtol=0, atol=0, msg=k)
+
+
+def test_a_forward_replay_with_more_pairs_than_it_sorts_for_renders_exactly(device):
+    """A forward replay whose view outgrew the capture renders eagerly (exact); the shape is captured again for the
+    larger count, in place, and replays."""
+    cam = camera()
+    params = [p.detach() for p in surfels(300, dtype=torch.float32, device=device, scale=(0.01, 0.03))]
+    for _ in range(_replay.EAGER_CALLS):
+        rasterize_surfels(*params, cam, background=BG)
+    small = _shape().most_pairs
+    params[2].mul_(8.0)
+    out = rasterize_surfels(*params, cam, background=BG)
+    assert _shape().replays == 0 and _shape().most_pairs > small
+    _same_forward(out, _eager(params, cam))
+    out = rasterize_surfels(*params, cam, background=BG)
+    assert _shape().replays == 1 and _shape().graphed.reads is not None
+    _same_forward(out, _eager(params, cam))
+
+
+@pytest.mark.parametrize("case", ["raises", "disagrees"])
+def test_a_forward_capture_that_fails_or_disagrees(device, case, monkeypatch):
+    """A forward capture that raises leaves its shape eager with a warning; one whose first replay differs from
+    the eager render of that call turns replays off for the process."""
+    def broken(fn, args, warmup):
+        if case == "raises":
+            raise RuntimeError("no capture here")
+        replay, outs = fixed_outputs(fn, args, warmup)
+        return (lambda: (replay(), outs[0].add_(1e-3))), outs
+
+    monkeypatch.setattr(_replay, "_CAPTURE", broken)
+    cam = camera()
+    params = [p.detach() for p in surfels(300, dtype=torch.float32, device=device)]
+    with pytest.warns(RuntimeWarning, match="no capture here" if case == "raises" else "output 0 of a replay differs"):
+        for _ in range(_replay.EAGER_CALLS):
+            rasterize_surfels(*params, cam, background=BG)
+    if case == "raises":
+        assert _shape().failed and _replay.failure is None
+    else:
+        assert _replay.failure is not None
+    _same_forward(rasterize_surfels(*params, cam, background=BG), _eager(params, cam))
 
 
 def test_forward_and_differentiable_calls_are_shapes_apart(device):

@@ -5,7 +5,8 @@ An op describes itself as a :class:`WarpOp`: a ``run`` callable that takes Warp 
 input tensors and returns Warp output arrays, recording its launches on the active
 :class:`warp.Tape` (plain ``wp.launch`` calls are recorded automatically; ops with explicit adjoint
 kernels register them with :meth:`warp.Tape.record_func`). :func:`apply` wraps that in a
-``torch.autograd.Function``:
+``torch.autograd.Function`` (where no gradient can flow, :func:`apply` runs ``run`` with no tape and returns plain
+tensors):
 
 * forward: tensors are made contiguous and viewed as Warp arrays without a copy (inputs that
   require grad get a zeroed gradient buffer owned by torch, which Warp views), launches run on the
@@ -157,8 +158,9 @@ class WarpOp:
 
     Args:
         name: op name used in error messages.
-        run: ``run(*warp_inputs) -> tuple[wp.array, ...]``; called inside an active
-            :class:`warp.Tape` on the inputs' device. Differentiable outputs must be allocated with
+        run: ``run(*warp_inputs) -> tuple[wp.array, ...]``; called on the inputs' device inside an active
+            :class:`warp.Tape` where a gradient can flow, else with none (:func:`active_tape` is ``None``; the
+            outputs then need no gradient arrays). Differentiable outputs of a taped run must be allocated with
             ``requires_grad=True``.
         in_dtypes: Warp dtype per input tensor (``None`` keeps the tensor's scalar dtype).
         differentiable_inputs: per input, whether a gradient may flow into it.
@@ -265,11 +267,13 @@ def apply(op: WarpOp, *tensors) -> tuple[torch.Tensor, ...]:
     """Run ``op`` on torch tensors and return torch outputs that carry gradients as declared.
 
     Where no gradient can flow (grad mode off, or no differentiable input requires grad) the op runs with no tape
-    active: :func:`active_tape` is ``None``, so it records no adjoint and need not allocate gradient arrays."""
+    active: :func:`active_tape` is ``None``, so it records no adjoint and need not allocate gradient arrays. A tape
+    already active (a caller's own, or another thread's op: Warp keeps one per process) takes the taped path, which
+    refuses it, rather than having this op's launches recorded on it."""
     if len(tensors) != len(op.in_dtypes):
         raise RuntimeError(f"{op.name}: got {len(tensors)} inputs, expected {len(op.in_dtypes)}")
-    if torch.is_grad_enabled() and any(isinstance(t, torch.Tensor) and d and t.requires_grad
-                                       for t, d in zip(tensors, op.differentiable_inputs)):
+    if active_tape() is not None or (torch.is_grad_enabled() and any(
+            isinstance(t, torch.Tensor) and d and t.requires_grad for t, d in zip(tensors, op.differentiable_inputs))):
         return _WarpFunction.apply(op, *tensors)
     device = next(t.device for t in tensors if isinstance(t, torch.Tensor))
     wdev = warp_device(device)

@@ -41,6 +41,17 @@ def make_graphed(fn, args: tuple, *, warmup: int, make=None):
         return (make or torch.cuda.make_graphed_callables)(fn, samples, num_warmup_iters=warmup)
 
 
+_side_streams: dict = {}
+
+
+def _side_stream(device: torch.device):
+    """One warm-up stream per device for every capture (each stream costs the bridge a Warp handle it keeps)."""
+    key = torch.device(device).index if torch.device(device).index is not None else torch.cuda.current_device()
+    if key not in _side_streams:
+        _side_streams[key] = torch.cuda.Stream(device)
+    return _side_streams[key]
+
+
 def capture_forward(fn, args: tuple, *, warmup: int, capture=None) -> tuple:
     """``fn(*args)`` captured as one CUDA graph with autograd off: ``(replay, outputs)``, where ``replay()`` runs
     the graph again on whatever ``args``' memory then holds and leaves its results in ``outputs`` (the graph's
@@ -51,7 +62,7 @@ def capture_forward(fn, args: tuple, *, warmup: int, capture=None) -> tuple:
         return capture(fn, args, warmup)
     device = args[0].device
     with collector_off(), trusted_values(), torch.no_grad():
-        side = torch.cuda.Stream(device)
+        side = _side_stream(device)
         side.wait_stream(torch.cuda.current_stream(device))
         with torch.cuda.stream(side):
             for _ in range(warmup):
