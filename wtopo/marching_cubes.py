@@ -153,7 +153,7 @@ def _run(level: float, lower: Sequence[float], upper: Sequence[float], field: wp
         tail = torch.stack([wp.to_torch(a)[-1] for a in tails]).tolist()
     n_verts, n_faces = tail[0] + tail[1], tail[2] + tail[3]
 
-    verts = wp.empty(n_verts, dtype=vec, device=device, requires_grad=True)
+    verts = wp.empty(n_verts, dtype=vec, device=device, requires_grad=_bridge.active_tape() is not None)
     faces = wp.empty((n_faces, 3), dtype=wp.int32, device=device)
     if n_verts == 0:
         return verts, faces

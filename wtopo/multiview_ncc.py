@@ -141,7 +141,8 @@ def window_ncc_costs(depth: torch.Tensor, normal: torch.Tensor, alpha: torch.Ten
     def run(d, n, a, yy, xx, gray, mean, var, dirs, length, im0, im1, prm):
         dev = d.device
         count = yy.shape[0]
-        cost = _bridge.empty(count, s, dev, requires_grad=True)
+        tape = _bridge.active_tape()  # None: nothing differentiates this call, no gradient array
+        cost = _bridge.empty(count, s, dev, requires_grad=tape is not None)
         ok = _bridge.empty(count, s, dev)
         stats = _bridge.empty((count, _MAX_SOURCES), v4, dev)
         _bridge.launch_split(forward_kernel, count, [d, n, a, yy, xx, gray, mean, var, dirs, length, im0, im1, prm,
@@ -161,7 +162,6 @@ def window_ncc_costs(depth: torch.Tensor, normal: torch.Tensor, alpha: torch.Ten
             _bridge.launch(scatter_kernel, dim=count, inputs=[yy, xx, gwd, gwn], outputs=[gd, gn], device=dev,
                       record_tape=False)
 
-        tape = _bridge.active_tape()
         if tape is not None:
             tape.record_func(backward, [cost, *([d] if d.requires_grad else []), *([n] if n.requires_grad else [])])
         return cost, ok

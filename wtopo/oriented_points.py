@@ -42,9 +42,10 @@ def _op(dtype: torch.dtype, samples: int, params: tuple) -> _bridge.WarpOp:
     def run(means, quats, scales, opacities, sign):
         n = means.shape[0]
         dev = means.device
-        points = _bridge.empty(n * samples, v3, dev, requires_grad=True, zero=True)
-        normals = _bridge.empty(n * samples, v3, dev, requires_grad=True, zero=True)
-        weights = _bridge.empty(n * samples, sc, dev, requires_grad=True, zero=True)
+        grad = _bridge.active_tape() is not None  # no tape: nothing differentiates this call
+        points = _bridge.empty(n * samples, v3, dev, requires_grad=grad, zero=True)
+        normals = _bridge.empty(n * samples, v3, dev, requires_grad=grad, zero=True)
+        weights = _bridge.empty(n * samples, sc, dev, requires_grad=grad, zero=True)
         if n > 0:
             _bridge.launch(oriented_points_kernel, dim=n,
                       inputs=[means, quats, scales, opacities, sign, samples, *consts],

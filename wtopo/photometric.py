@@ -68,8 +68,9 @@ def _maps(pred: torch.Tensor, target: torch.Tensor, win: torch.Tensor, c1: float
         hv, wv = h - k + 1, w - k + 1
         dev = x.device
         rows = _bridge.empty((h, wv, c), v5, dev)
-        l1 = _bridge.empty((h, w, c), s, dev, requires_grad=True)
-        ssim = _bridge.empty((hv, wv, c), s, dev, requires_grad=True)
+        tape = _bridge.active_tape()  # None: nothing differentiates this call, no gradient arrays
+        l1 = _bridge.empty((h, w, c), s, dev, requires_grad=tape is not None)
+        ssim = _bridge.empty((hv, wv, c), s, dev, requires_grad=tape is not None)
         partials = _bridge.empty((hv, wv, c), v3, dev)
         _bridge.launch(_k.ssim_rows_kernel, dim=(h, w, c), inputs=[x, y, window], outputs=[rows, l1], device=dev,
                   record_tape=False)
@@ -85,7 +86,6 @@ def _maps(pred: torch.Tensor, target: torch.Tensor, win: torch.Tensor, c1: float
             _bridge.launch(_k.photometric_grad_kernel, dim=(h, w, c), inputs=[x, y, cols, l1.grad, window],
                       outputs=[x.grad], device=dev, record_tape=False)
 
-        tape = _bridge.active_tape()
         if tape is not None:
             tape.record_func(backward, [l1, ssim, *([x] if x.requires_grad else [])])
         return l1, ssim

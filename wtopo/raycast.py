@@ -165,13 +165,13 @@ class _Launcher:
 
 def _shade_run(verts, faces, face_id, origins, directions):
     n = face_id.shape[0]
-    depth = _bridge.empty(n, verts.dtype._wp_scalar_type_, verts.device, requires_grad=True, zero=True)
-    normal = _bridge.empty(n, verts.dtype, verts.device, requires_grad=True, zero=True)
+    tape = _bridge.active_tape()  # None: nothing differentiates this call, no gradient arrays
+    depth = _bridge.empty(n, verts.dtype._wp_scalar_type_, verts.device, requires_grad=tape is not None, zero=True)
+    normal = _bridge.empty(n, verts.dtype, verts.device, requires_grad=tape is not None, zero=True)
     inputs = [verts, faces, face_id, origins, directions]
     # per-ray disjoint writes: split over CPU threads; the adjoint scatters into verts.grad with
     # atomics, so it is one launch, registered on the bridge's tape by hand
     _bridge.launch_split(_k.shade_hits_kernel, n, inputs, [depth, normal], device=verts.device, min_chunk=16384)
-    tape = _bridge.active_tape()
     if tape is not None and verts.requires_grad:
 
         def backward():

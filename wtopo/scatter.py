@@ -103,11 +103,12 @@ def _scatter_op(dtype: torch.dtype, resolution: int, channels: int) -> _bridge.W
 
     def run(points, values):
         grid = wp.zeros(resolution ** 3, dtype=vc, device=points.device)
-        # The bridge copies the upstream gradient into grid.grad before anything reads it (one output),
-        # so it is left unzeroed: that spares touching R^3*C fresh pages in every forward.
-        grid.grad = wp.empty_like(grid)
+        tape = _bridge.active_tape()  # None: nothing differentiates this call (the final re-mesh), no gradient grid
+        if tape is not None:
+            # The bridge copies the upstream gradient into grid.grad before anything reads it (one output),
+            # so it is left unzeroed: that spares touching R^3*C fresh pages in every forward.
+            grid.grad = wp.empty_like(grid)
         scatter_launch(points, values, resolution, grid)
-        tape = _bridge.active_tape()
         if tape is not None:
             def backward():
                 if values.requires_grad:
@@ -125,9 +126,9 @@ def _sample_op(dtype: torch.dtype, resolution: int, channels: int) -> _bridge.Wa
     v3, vc = _types(dtype, channels)
 
     def run(grid, points):
-        out = wp.zeros(points.shape[0], dtype=vc, device=points.device, requires_grad=True)
+        tape = _bridge.active_tape()  # None: nothing differentiates this call, no gradient array
+        out = wp.zeros(points.shape[0], dtype=vc, device=points.device, requires_grad=tape is not None)
         sample_launch(grid, points, resolution, out)
-        tape = _bridge.active_tape()
         if tape is not None:
             def backward():
                 if grid.requires_grad:
