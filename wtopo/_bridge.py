@@ -175,6 +175,13 @@ class WarpOp:
     extra: dict = field(default_factory=dict)
 
 
+def _ran(op: WarpOp, outs) -> tuple:
+    """``op.run``'s outputs, checked to be as many as ``op`` declares."""
+    if len(outs) != len(op.differentiable_outputs):
+        raise RuntimeError(f"{op.name}: run returned {len(outs)} outputs, expected {len(op.differentiable_outputs)}")
+    return outs
+
+
 class _WarpFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, op: WarpOp, *tensors):
@@ -195,10 +202,7 @@ class _WarpFunction(torch.autograd.Function):
                     in_grads.append([arr, _grad_buffer(arr, t)])
                 wp_inputs.append(arr)
             with tape:
-                outs = op.run(*wp_inputs)
-        if len(outs) != len(op.differentiable_outputs):
-            want = len(op.differentiable_outputs)
-            raise RuntimeError(f"{op.name}: run returned {len(outs)} outputs, expected {want}")
+                outs = _ran(op, op.run(*wp_inputs))
         torch_outs = []
         for o, diff in zip(outs, op.differentiable_outputs):
             if diff and o.grad is None:
@@ -279,9 +283,7 @@ def apply(op: WarpOp, *tensors) -> tuple[torch.Tensor, ...]:
     wdev = warp_device(device)
     with _on_torch_stream(wdev, device):
         outs = op.run(*(to_warp(t, dt) if isinstance(t, torch.Tensor) else t for t, dt in zip(tensors, op.in_dtypes)))
-    if len(outs) != len(op.differentiable_outputs):
-        raise RuntimeError(f"{op.name}: run returned {len(outs)} outputs, expected {len(op.differentiable_outputs)}")
-    return tuple(as_torch(o) for o in outs)
+    return tuple(as_torch(o) for o in _ran(op, outs))
 
 
 def cpu_threads() -> int:

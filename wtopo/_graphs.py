@@ -46,7 +46,8 @@ _side_streams: dict = {}
 
 def _side_stream(device: torch.device):
     """One warm-up stream per device for every capture (each stream costs the bridge a Warp handle it keeps)."""
-    key = torch.device(device).index if torch.device(device).index is not None else torch.cuda.current_device()
+    device = torch.device(device)
+    key = torch.cuda.current_device() if device.index is None else device.index
     if key not in _side_streams:
         _side_streams[key] = torch.cuda.Stream(device)
     return _side_streams[key]

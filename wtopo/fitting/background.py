@@ -101,7 +101,7 @@ def uncovered_pixels(cameras, points, device: torch.device | str = "cpu",
     return out
 
 
-def shells_wanted(images, free: list[torch.Tensor]) -> tuple[bool, float]:
+def shells_wanted(images, free: list[torch.Tensor]) -> tuple[bool, float | None]:
     """Whether the pixels the stereo left unexplained call for background shells, and the untextured share of them.
 
     Args:

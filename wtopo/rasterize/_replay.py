@@ -223,8 +223,9 @@ def _capture(shape: _Shape, inputs: tuple, camera, sh_degree, bg: torch.Tensor, 
     fn = _function(Size(camera.width, camera.height), sh_degree, background, config,
                    pair_budget(shape.most_pairs, config.max_intersections))
     view = view_inputs(camera, means.device, means.dtype, config)
-    shift = torch.zeros(means.shape[0], 2, dtype=means.dtype, device=means.device, requires_grad=True)
-    args = (*inputs, shift, *view)
+    if grad:  # the screen-space carrier: a zero leaf requiring grad
+        args = (*inputs, torch.zeros(means.shape[0], 2, dtype=means.dtype, device=means.device, requires_grad=True),
+                *view)
     with on_device(means.device), torch.enable_grad() if grad else torch.no_grad():
         try:
             if grad:
