@@ -146,3 +146,86 @@ def test_the_roi_score_of_the_truth_is_one_and_of_a_moved_mesh_lower(exch_env, t
     row = _result(ex, tmp_path / "moved", mesh=moved)
     # the ground and every horizontal face miss by 4 tau; the sides of the mug and the torus slide along themselves
     assert row["roi_f1"] < 0.6 and row["roi_precision"] < 0.6 and row["roi_recall"] < 0.6
+
+
+def _fake_pgsr(monkeypatch, calls, mesh_scale=1.0):
+    """``run_pgsr``'s children stood in for: each training and meshing records its command and peak, meshing writes
+    a TSDF mesh (a box, scaled to tell runs apart), the held-out renders write ``views.npz``."""
+    import json
+
+    import run_pgsr
+    import trimesh
+
+    def run(cmd, cwd, log, **env):
+        calls.append((os.path.basename(cwd), cmd))
+        if "_peak.py" in os.path.basename(cmd[1]):
+            with open(cmd[2], "w") as f:
+                json.dump({"peak_gpu_bytes": 1000 if cmd[3] == "train.py" else 10}, f)
+            if cmd[3] == "render.py":
+                mesh = os.path.join(cmd[cmd.index("-m") + 1], "mesh")
+                os.makedirs(mesh, exist_ok=True)
+                trimesh.creation.box(extents=[mesh_scale] * 3).export(os.path.join(mesh, "tsdf_fusion_post.ply"))
+        else:  # _peer_views.py pgsr MODEL IT EXCHANGE VIEWS
+            np.savez(cmd[-1], rgb=np.zeros((1, 4, 4, 3), np.float16), n=7, peak=20)
+
+    monkeypatch.setattr(run_pgsr, "_run", run)
+    return run_pgsr
+
+
+def test_the_authors_mesh_stage_starts_from_an_earlier_warmup(exch, tmp_path, monkeypatch):
+    """``run_pgsr.py --from-warmup``: the mesh stage of the TopoSurfel authors' code, in a second lease, from an
+    earlier ``--no-mesh-stage`` run's result folder. No warm-up trains again, the mesh stage starts from that
+    warm-up's TSDF mesh, and its time and peak memory count in the result's."""
+    import json
+
+    for name in ("pgsr_dpsr", "pgsr_init"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "train.py").write_text("")
+    ck = ["--checkout", str(tmp_path / "pgsr_dpsr"), "--init-checkout", str(tmp_path / "pgsr_init")]
+    calls = []
+    run_pgsr = _fake_pgsr(monkeypatch, calls, mesh_scale=0.5)
+    run_pgsr.main([exch.root, str(tmp_path / "warm"), *ck, "--no-mesh-stage", "--warmup-iterations", "300"])
+    first = json.loads((tmp_path / "warm" / "run.json").read_text())
+    assert first["warmup_iterations"] == 300 and first["mesh_stage_iterations"] is None
+    assert [c[0] for c in calls] == ["pgsr_init"] * 3  # train, mesh, held-out views of plain PGSR
+    first["wall_s"] = 1234.0  # as if the warm-up had taken a lease's worth
+    (tmp_path / "warm" / "run.json").write_text(json.dumps(first))
+
+    calls.clear()
+    run_pgsr = _fake_pgsr(monkeypatch, calls, mesh_scale=2.0)
+    run_pgsr.main([exch.root, str(tmp_path / "whole"), *ck, "--from-warmup", str(tmp_path / "warm"),
+                   "--iterations", "100"])
+    assert [c[0] for c in calls] == ["pgsr_dpsr"] * 3  # no warm-up: the mesh stage, its mesh, its views
+    train = calls[0][1]
+    assert train[3] == "train.py" and train[train.index("--iterations") + 1] == "100"
+    src = train[train.index("-s") + 1]
+    with open(os.path.join(src, "mesh_init.ply"), "rb") as f, \
+            open(tmp_path / "warm" / "warmup" / "mesh" / "tsdf_fusion_post.ply", "rb") as g:
+        assert f.read() == g.read()  # the earlier warm-up's mesh, as it left it
+    whole = json.loads((tmp_path / "whole" / "run.json").read_text())
+    assert whole["warmup_iterations"] == 300 and whole["mesh_stage_iterations"] == 100
+    assert whole["iterations"] == 400 and whole["system"] == "PGSR+DPSR (authors', 300 + 100 it.)"
+    assert whole["wall_s"] >= 1234.0 and whole["warmup_train_s"] == first["warmup_train_s"]
+    assert whole["peak_gpu_bytes"] == max(first["peak_gpu_bytes"], 1000) and "an earlier run" in whole["warmup_from"]
+    assert not (tmp_path / "whole" / "warmup").exists()  # nothing of the warm-up was run or copied here
+
+
+def test_a_mesh_stage_without_a_whole_warmup_is_refused(exch, tmp_path, monkeypatch):
+    import json
+
+    calls = []
+    run_pgsr = _fake_pgsr(monkeypatch, calls)
+    (tmp_path / "pgsr_dpsr").mkdir()
+    (tmp_path / "pgsr_dpsr" / "train.py").write_text("")
+    ck = ["--checkout", str(tmp_path / "pgsr_dpsr"), "--init-checkout", str(tmp_path / "pgsr_dpsr")]
+    with pytest.raises(SystemExit, match="no run.json"):
+        run_pgsr.main([exch.root, str(tmp_path / "o"), *ck, "--from-warmup", str(tmp_path)])
+    (tmp_path / "w" / "warmup" / "mesh").mkdir(parents=True)
+    (tmp_path / "w" / "warmup" / "mesh" / "tsdf_fusion_post.ply").write_text("ply")
+    (tmp_path / "w" / "run.json").write_text(json.dumps({"warmup_iterations": 30000, "mesh_stage_iterations": 10000,
+                                                          "wall_s": 5.0}))
+    with pytest.raises(SystemExit, match="mesh_stage_iterations=10000"):
+        run_pgsr.main([exch.root, str(tmp_path / "o"), *ck, "--from-warmup", str(tmp_path / "w")])
+    with pytest.raises(SystemExit):  # argparse: the mesh stage cannot also be left out
+        run_pgsr.main([exch.root, str(tmp_path / "o"), *ck, "--from-warmup", str(tmp_path / "w"), "--no-mesh-stage"])
+    assert calls == []  # nothing ran

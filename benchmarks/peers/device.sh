@@ -10,7 +10,8 @@
 # SYSTEM: wtopo, wtopo_noloop, gsplat, 2dgs, pgsr, pgsr_nomesh (WTOPO_ARGS, GSPLAT_ARGS, PGSR_ARGS: extra arguments
 # of run_wtopo.py, run_gsplat.py, run_pgsr.py, e.g. WTOPO_ARGS="--set ..." or PGSR_ARGS="--warmup-iterations 2000").
 # pgsr runs the TopoSurfel authors' code whole (PGSR warm-up, then its DPSR mesh stage) and also writes
-# pgsr_nomesh from its warm-up, unless pgsr_nomesh is launched too (then a run of its own, the warm-up twice).
+# pgsr_nomesh from its warm-up, unless pgsr_nomesh is launched too (then a run of its own, the warm-up twice) or
+# PGSR_ARGS="--from-warmup DIR" starts its mesh stage from an earlier pgsr_nomesh result (run_pgsr.py says how).
 # $STAGE holds: big.part* (split xz tar of the unpacked Warp and
 # Open3D wheels) and/or whl/*.whl (trimesh, plyfile, gsplat), peers/2dgs (a 2d-gaussian-splatting checkout with
 # its submodules: diff-surfel-rasterization with third_party/glm, simple-knn), peers/pgsr_dpsr (Fan-Treasure/pgsr_dpsr
@@ -107,7 +108,7 @@ launch)
           c=("$PY" "$HERE/run_pgsr.py" "$e" "$out" --checkout "$STAGE/peers/pgsr_dpsr"
              --init-checkout "$STAGE/peers/pgsr_init" ${PGSR_ARGS:-})
           if [ "$s" = pgsr_nomesh ]; then c+=(--no-mesh-stage)
-          elif [[ " $* " != *" pgsr_nomesh "* ]]; then
+          elif [[ " $* " != *" pgsr_nomesh "* && " ${PGSR_ARGS:-} " != *" --from-warmup "* ]]; then
             c+=(--nomesh-out "$STAGE/res/$name/pgsr_nomesh"); rm -rf "$STAGE/res/$name/pgsr_nomesh"
           fi ;;
         *) echo "unknown system $s"; exit 2 ;;

@@ -27,13 +27,18 @@ importable, and ``shims/`` (pytorch3d, pymeshlab, kaolin, igl stand-ins) on the 
 
     python benchmarks/peers/run_pgsr.py EXCH OUT --checkout PATH [--init-checkout PATH] [--no-mesh-stage]
         [--iterations 10000] [--warmup-iterations 30000] [--nomesh-out DIR] [--mesh-only ITERATION]
+        [--from-warmup DIR]
 
 ``--nomesh-out DIR`` also writes the warm-up's own result (plain PGSR, timed alone) from the same run.
+``--from-warmup DIR`` runs stage 2 alone from an earlier ``--no-mesh-stage`` run's result folder (the mesh
+stage reads nothing of the warm-up but its TSDF mesh): the whole recipe in two leases, each under a
+lease's device time, with the warm-up's time and peak memory counted in the result's.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import subprocess
@@ -97,7 +102,16 @@ def main(argv=None) -> None:
     ap.add_argument("--mesh-only", type=int, default=None, metavar="ITERATION",
                     help="skip training: mesh and render this iteration's checkpoint of an earlier run "
                          "(the final stage's: the warm-up's with --no-mesh-stage)")
+    ap.add_argument("--from-warmup", default=None, metavar="DIR",
+                    help="skip the warm-up: start the mesh stage from an earlier --no-mesh-stage run's result "
+                         "folder DIR (its warmup/mesh/tsdf_fusion_post.ply and run.json, e.g. carried from "
+                         "another machine); its time and peak memory count in the result's")
     a = ap.parse_args(argv)
+    if a.from_warmup and (a.no_mesh_stage or a.mesh_only is not None or a.nomesh_out):
+        ap.error("--from-warmup starts the mesh stage: not with --no-mesh-stage, --mesh-only or --nomesh-out")
+    earlier = _earlier_warmup(a.from_warmup, a.out) if a.from_warmup else None
+    if earlier:
+        a.warmup_iterations = earlier["warmup_iterations"]
 
     load(a.exchange)  # fails before any training on a folder that is not an exchange folder
     head = os.path.abspath(a.checkout)
@@ -139,9 +153,12 @@ def main(argv=None) -> None:
             lap(prefix + "mesh_s")
 
         if a.mesh_only is None:
-            shutil.rmtree(warm, ignore_errors=True)
             shutil.rmtree(model, ignore_errors=True)
-            stage("warmup_", init, warm, a.warmup_iterations)  # 1. plain PGSR (de24f1a) and its TSDF mesh
+            if earlier:
+                warm = earlier["dir"]
+            else:
+                shutil.rmtree(warm, ignore_errors=True)
+                stage("warmup_", init, warm, a.warmup_iterations)  # 1. plain PGSR (de24f1a) and its TSDF mesh
             if not a.no_mesh_stage:
                 # 2. mesh stage: pgsr_dpsr from the warm-up's mesh
                 shutil.copyfile(os.path.join(warm, "mesh", "tsdf_fusion_post.ply"), os.path.join(src, "mesh_init.ply"))
@@ -149,6 +166,10 @@ def main(argv=None) -> None:
         else:
             stage("", final_ckout, final, it, train=False)
         wall = time.perf_counter() - t0
+        if earlier:  # the earlier warm-up's time and peak count in: the whole recipe's figures
+            wall += earlier["wall_s"]
+            times = {**earlier["times"], **times}
+            peaks.append(earlier["peak_json"])
         done = a.mesh_only is None
         warm_it = a.mesh_only if a.no_mesh_stage and not done else a.warmup_iterations
         if a.no_mesh_stage:
@@ -156,13 +177,39 @@ def main(argv=None) -> None:
                     run=_run_json(warm_it, None, wall if done else None,
                                   times if done else {}, peaks if done else None))
         else:
-            _finish(a.out, a.exchange, model, head, it, log, system=_system(a.warmup_iterations, it),
-                    run=_run_json(a.warmup_iterations, it, wall if done else None,
-                                  times if done else {}, peaks if done else None))
+            run = _run_json(a.warmup_iterations, it, wall if done else None, times if done else {},
+                            peaks if done else None)
+            if earlier:
+                run["warmup_from"] = earlier["from"]
+            _finish(a.out, a.exchange, model, head, it, log, system=_system(a.warmup_iterations, it), run=run)
             if a.nomesh_out and done:  # the warm-up alone is plain PGSR: its own result, its own time
                 _finish(a.nomesh_out, a.exchange, warm, init, warm_it, log, system=_system(warm_it, None),
                         run=_run_json(warm_it, None, times["warmup_train_s"] + times["warmup_mesh_s"],
                                       {k: times[k] for k in ("warmup_train_s", "warmup_mesh_s")}, peaks[:2]))
+
+
+def _earlier_warmup(result: str, out: str) -> dict:
+    """An earlier ``--no-mesh-stage`` run's warm-up, read from its result folder ``result``: ``dir`` (its
+    ``warmup`` model folder, holding ``mesh/tsdf_fusion_post.ply``), ``warmup_iterations``, ``wall_s``, ``times``
+    (its training and meshing seconds), ``peak_json`` (its peak GPU memory, written under ``out`` in
+    ``_peak.py``'s form) and ``from`` (what ran it: its system and wall time, for ``run.json``)."""
+    run_json = os.path.join(result, "run.json")
+    mesh = os.path.join(result, "warmup", "mesh", "tsdf_fusion_post.ply")
+    for path in (run_json, mesh):
+        if not os.path.isfile(path):
+            sys.exit(f"--from-warmup: no {os.path.relpath(path, result)} in {result}")
+    run = read_json(run_json)
+    if run.get("mesh_stage_iterations") is not None or run.get("wall_s") is None:
+        sys.exit(f"--from-warmup: {run_json} is not a whole warm-up's (--no-mesh-stage) result: "
+                 f"mesh_stage_iterations={run.get('mesh_stage_iterations')}, wall_s={run.get('wall_s')}")
+    os.makedirs(out, exist_ok=True)
+    peak_json = os.path.join(out, "peak_earlier_warmup.json")
+    with open(peak_json, "w") as f:
+        json.dump({"peak_gpu_bytes": int(run.get("peak_gpu_bytes") or 0)}, f)
+    return {"dir": os.path.join(result, "warmup"), "warmup_iterations": int(run["warmup_iterations"]),
+            "wall_s": float(run["wall_s"]), "peak_json": peak_json,
+            "times": {k: float(run[k]) for k in ("warmup_train_s", "warmup_mesh_s")},
+            "from": f"an earlier run: {run.get('system')}, {float(run['wall_s']):.0f} s ({os.path.abspath(result)})"}
 
 
 def _system(warmup_it: int, mesh_it) -> str:
