@@ -229,3 +229,25 @@ def test_a_mesh_stage_without_a_whole_warmup_is_refused(exch, tmp_path, monkeypa
     with pytest.raises(SystemExit):  # argparse: the mesh stage cannot also be left out
         run_pgsr.main([exch.root, str(tmp_path / "o"), *ck, "--from-warmup", str(tmp_path / "w"), "--no-mesh-stage"])
     assert calls == []  # nothing ran
+
+
+def test_2dgs_reads_a_masked_capture_s_masks_as_its_images_alpha(exch, tmp_path):
+    """``run_2dgs.py``'s source folder: on a masked capture the training images are RGBA, their colours the
+    exchange's byte for byte and their alpha its masks (2DGS keeps an RGBA image's alpha as the view's mask and its
+    TSDF fuses no depth outside it); the COLMAP model is copied, not linked (2DGS writes beside it)."""
+    import run_2dgs
+    from PIL import Image
+
+    src = run_2dgs.source_folder(exch.root, str(tmp_path / "source"))
+    names = sorted(os.listdir(os.path.join(src, "images")))
+    assert names == [f"{i:04d}.png" for i in exch.train]
+    for name in names[:3]:
+        im = Image.open(os.path.join(src, "images", name))
+        assert im.mode == "RGBA"
+        rgba = np.asarray(im)
+        want = np.asarray(Image.open(os.path.join(exch.root, "colmap", "images", name)).convert("RGB"))
+        np.testing.assert_array_equal(rgba[..., :3], want)
+        np.testing.assert_array_equal(rgba[..., 3] > 127, exch.mask(int(name[:4])))
+    for name in ("cameras.txt", "images.txt", "points3D.txt"):
+        path = os.path.join(src, "sparse", "0", name)
+        assert not os.path.islink(path) and os.path.getsize(path) > 0

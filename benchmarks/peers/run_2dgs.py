@@ -5,7 +5,12 @@ Runs the checkout's own ``train.py`` and ``render.py`` with its DTU recipe (``--
 --lambda_dist 1000``, 30,000 iterations; mesh: ``--num_cluster 1 --voxel_size 0.004 --sdf_trunc 0.016
 --depth_trunc 3.0``, the post-processed ``fuse_post.ply``) on the exchange folder's COLMAP model at its
 full resolution, then renders the held-out views with the checkout's renderer (``_peer_views.py``).
-The checkout's CUDA extensions (``diff_surfel_rasterization``, ``simple_knn``) must be importable.
+On a masked capture its source folder's images carry the masks as their alpha channel, the form 2DGS
+reads masks in (its loader keeps an RGBA image's alpha as the view's mask): training still sees the
+photographs' colours alone, and its TSDF fusion leaves the depth outside the masks out
+(``utils/mesh_utils.py``, ``extract_mesh_bounded(mask_backgrond=True)``); without them it fuses whatever
+depth its splats give the empty background too. The checkout's CUDA extensions
+(``diff_surfel_rasterization``, ``simple_knn``) must be importable.
 
     python benchmarks/peers/run_2dgs.py EXCH OUT --checkout PATH [--iterations 30000]
 """
@@ -34,6 +39,28 @@ def _run(cmd: list[str], cwd: str, log) -> None:
     subprocess.run(cmd, cwd=cwd, stdout=log, stderr=subprocess.STDOUT, check=True)
 
 
+def source_folder(exchange: str, dst: str) -> str:
+    """2DGS's source folder for the exchange folder's COLMAP model: the model itself for a capture without
+    masks; for a masked one a copy under ``dst`` whose training images are RGBA, the mask as alpha (the
+    colours byte for byte the exchange's)."""
+    from PIL import Image
+
+    ex = load(exchange)
+    col = os.path.abspath(os.path.join(exchange, "colmap"))
+    if not ex.masked:
+        return col
+    os.makedirs(os.path.join(dst, "sparse", "0"), exist_ok=True)
+    os.makedirs(os.path.join(dst, "images"), exist_ok=True)
+    for name in ("cameras.txt", "images.txt", "points3D.txt"):  # copies: 2DGS writes points3D.ply beside them
+        shutil.copyfile(os.path.join(col, "sparse", "0", name), os.path.join(dst, "sparse", "0", name))
+    for name in sorted(os.listdir(os.path.join(col, "images"))):
+        rgb = Image.open(os.path.join(col, "images", name)).convert("RGB")
+        mask = Image.open(os.path.join(exchange, "masks", name)).convert("L")
+        rgb.putalpha(mask)
+        rgb.save(os.path.join(dst, "images", name))
+    return os.path.abspath(dst)
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("exchange")
@@ -48,7 +75,7 @@ def main(argv=None) -> None:
     import trimesh
 
     load(a.exchange)  # fails before any training on a folder that is not an exchange folder
-    src = os.path.abspath(os.path.join(a.exchange, "colmap"))
+    src = source_folder(a.exchange, os.path.join(a.out, "source"))
     model = os.path.abspath(os.path.join(a.out, "model"))
     it = a.mesh_only or a.iterations
     if a.mesh_only is None:
@@ -81,7 +108,9 @@ def main(argv=None) -> None:
            # the training process's peak; unknown when only an earlier run's checkpoint was meshed
            "peak_gpu_bytes": (max(int(v["peak"]), read_json(peak)["peak_gpu_bytes"])
                               if a.mesh_only is None and os.path.exists(peak) else None),
-           "recipe": "2DGS DTU: --depth_ratio 1.0 --lambda_dist 1000; TSDF 0.004/0.016/3.0, 1 cluster"}
+           "recipe": "2DGS DTU: --depth_ratio 1.0 --lambda_dist 1000; TSDF 0.004/0.016/3.0, 1 cluster"
+                     + ("; masks as the images' alpha (the TSDF fuses no depth outside them)" if load(a.exchange).masked
+                        else "")}
     system = "2DGS" if it == 30_000 else f"2DGS ({it:,} it.)"
     write_result(a.out, system=system, mesh=mesh, renders=v["rgb"].astype(np.float32), run=run)
 
