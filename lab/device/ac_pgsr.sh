@@ -3,7 +3,7 @@
 # the warm-up but its TSDF mesh, so the warm-up's result folder travels from the first lease to the second
 # (run_pgsr.py --from-warmup), and the row counts both leases' time and the larger peak.
 #   lease 1, after the p1 and p2 staging calls, carrying .stage/p3 .stage/gl .stage/small (+ .stage/dtu_raw for DTU):
-#     SCENE=bunny64 bash lab/device/ac_pgsr.sh warmup      # launches pgsr_nomesh, waits, scores, packs
+#     SCENE=bunny64 [BESIDE="chair torus_sparse"] bash lab/device/ac_pgsr.sh warmup   # launches, waits, scores
 #     SCENE=bunny64 bash lab/device/ac_pgsr.sh wait        # again within 30 s until scored
 #     SCENE=bunny64 bash lab/device/ac_pgsr.sh pack        # until "all parts sent"
 #   then copy the returned $OUT/ac/warm_SCENE.part* to .stage/warm/ here.
@@ -22,15 +22,17 @@ setup() {  # $1: the peer folders to stage
   # bunny64 is the built-in bunny at 64 views of 512 px (peers.md's run); the benchmark's scenes export by name
   [ $SCENE = bunny64 ] && [ ! -f $S/exch/bunny64/meta.json ] && python3 benchmarks/peers/export.py bunny \
     $S/exch/bunny64 --views 64 --resolution 512 --name bunny64 > $S/exch_bunny64.log 2>&1 &
-  lease_prepare $( [ $SCENE = bunny64 ] || echo $SCENE)
+  lease_prepare $( [ $SCENE = bunny64 ] || echo $SCENE) ${BESIDE:-}
   wait
   echo "staged and built after $(( $(date +%s) - t0 )) s"
 }
 case $step in
 warmup)
-  setup "pgsr_dpsr pgsr_init"
+  # BESIDE="chair torus_sparse": 2DGS at its 30,000 iterations on those scenes beside the warm-up (they end first)
+  setup "pgsr_dpsr pgsr_init ${BESIDE:+2dgs}"
   STAGE=$S bash $D launch "$S/exch/$SCENE" -- pgsr_nomesh
-  SYS=pgsr_nomesh ;;
+  for sc in ${BESIDE:-}; do STAGE=$S bash $D launch "$S/exch/$sc" -- 2dgs; done
+  SYS="pgsr_nomesh${BESIDE:+ 2dgs}" ;;
 meshstage)
   mkdir -p $S/warm/$SCENE
   cat .stage/warm/warm_$SCENE.part* | xz -d | tar -x -C $S/warm/$SCENE || exit 1
@@ -60,4 +62,4 @@ pack)
 esac
 echo $SYS > $S/ac_system
 TAG=ac SYSTEMS=$SYS WAIT=$(( 560 - ($(date +%s) - t0) )) bash lab/device/w_wait.sh
-[ "$SYS" = pgsr_nomesh ] && [ -f $S/scored/$SCENE ] && echo "scored: now SCENE=$SCENE bash lab/device/ac_pgsr.sh pack"
+[ "${SYS%% *}" = pgsr_nomesh ] && [ -f $S/scored/$SCENE ] && echo "scored: now SCENE=$SCENE bash lab/device/ac_pgsr.sh pack"
