@@ -189,6 +189,7 @@ def test_the_authors_mesh_stage_starts_from_an_earlier_warmup(exch, tmp_path, mo
     assert first["warmup_iterations"] == 300 and first["mesh_stage_iterations"] is None
     assert [c[0] for c in calls] == ["pgsr_init"] * 3  # train, mesh, held-out views of plain PGSR
     first["wall_s"] = 1234.0  # as if the warm-up had taken a lease's worth
+    first["peak_gpu_bytes"] = 5000  # and more memory than the mesh stage
     (tmp_path / "warm" / "run.json").write_text(json.dumps(first))
 
     calls.clear()
@@ -206,11 +207,13 @@ def test_the_authors_mesh_stage_starts_from_an_earlier_warmup(exch, tmp_path, mo
     assert whole["warmup_iterations"] == 300 and whole["mesh_stage_iterations"] == 100
     assert whole["iterations"] == 400 and whole["system"] == "PGSR+DPSR (authors', 300 + 100 it.)"
     assert whole["wall_s"] >= 1234.0 and whole["warmup_train_s"] == first["warmup_train_s"]
-    assert whole["peak_gpu_bytes"] == max(first["peak_gpu_bytes"], 1000) and "an earlier run" in whole["warmup_from"]
+    assert whole["peak_gpu_bytes"] == 5000 and "an earlier run" in whole["warmup_from"]
     assert not (tmp_path / "whole" / "warmup").exists()  # nothing of the warm-up was run or copied here
 
 
-def test_a_mesh_stage_without_a_whole_warmup_is_refused(exch, tmp_path, monkeypatch):
+def test_a_mesh_stage_without_a_whole_warmup_of_its_scene_is_refused(exch, exch_env, tmp_path, monkeypatch):
+    """Before anything runs: no warm-up there, a result that is not a whole warm-up's (a mesh stage's, no time, no
+    peak), a warm-up of another scene, and --from-warmup beside an option that leaves the mesh stage out."""
     import json
 
     calls = []
@@ -222,12 +225,20 @@ def test_a_mesh_stage_without_a_whole_warmup_is_refused(exch, tmp_path, monkeypa
         run_pgsr.main([exch.root, str(tmp_path / "o"), *ck, "--from-warmup", str(tmp_path)])
     (tmp_path / "w" / "warmup" / "mesh").mkdir(parents=True)
     (tmp_path / "w" / "warmup" / "mesh" / "tsdf_fusion_post.ply").write_text("ply")
-    (tmp_path / "w" / "run.json").write_text(json.dumps({"warmup_iterations": 30000, "mesh_stage_iterations": 10000,
-                                                          "wall_s": 5.0}))
-    with pytest.raises(SystemExit, match="mesh_stage_iterations=10000"):
-        run_pgsr.main([exch.root, str(tmp_path / "o"), *ck, "--from-warmup", str(tmp_path / "w")])
-    with pytest.raises(SystemExit):  # argparse: the mesh stage cannot also be left out
-        run_pgsr.main([exch.root, str(tmp_path / "o"), *ck, "--from-warmup", str(tmp_path / "w"), "--no-mesh-stage"])
+    whole = {"warmup_iterations": 30000, "mesh_stage_iterations": None, "wall_s": 5.0, "peak_gpu_bytes": 7,
+             "warmup_train_s": 4.0, "warmup_mesh_s": 1.0, "exchange": run_pgsr._exchange_id(exch.root)}
+    for bad, what in (({"mesh_stage_iterations": 10000}, "mesh_stage_iterations=10000"),
+                      ({"wall_s": None}, "wall_s=None"), ({"peak_gpu_bytes": None}, "peak_gpu_bytes=None")):
+        (tmp_path / "w" / "run.json").write_text(json.dumps({**whole, **bad}))
+        with pytest.raises(SystemExit, match=what):
+            run_pgsr.main([exch.root, str(tmp_path / "o"), *ck, "--from-warmup", str(tmp_path / "w")])
+    (tmp_path / "w" / "run.json").write_text(json.dumps(whole))
+    with pytest.raises(SystemExit, match="not of 'mug_torus_env:"):  # the warm-up is the bunny's
+        run_pgsr.main([exch_env[0].root, str(tmp_path / "o"), *ck, "--from-warmup", str(tmp_path / "w")])
+    for other in (["--no-mesh-stage"], ["--mesh-only", "300"], ["--nomesh-out", str(tmp_path / "n")]):
+        with pytest.raises(SystemExit) as e:  # argparse's refusal, with a warm-up that would otherwise do
+            run_pgsr.main([exch.root, str(tmp_path / "o"), *ck, "--from-warmup", str(tmp_path / "w"), *other])
+        assert e.value.code == 2
     assert calls == []  # nothing ran
 
 
@@ -251,3 +262,11 @@ def test_2dgs_reads_a_masked_capture_s_masks_as_its_images_alpha(exch, tmp_path)
     for name in ("cameras.txt", "images.txt", "points3D.txt"):
         path = os.path.join(src, "sparse", "0", name)
         assert not os.path.islink(path) and os.path.getsize(path) > 0
+
+
+def test_2dgs_reads_a_capture_without_masks_from_the_exchange_s_own_model(exch_env, tmp_path):
+    import run_2dgs
+
+    ex, _ = exch_env
+    src = run_2dgs.source_folder(ex.root, str(tmp_path / "source"))
+    assert src == os.path.abspath(os.path.join(ex.root, "colmap")) and not (tmp_path / "source").exists()

@@ -108,7 +108,7 @@ launch)
           c=("$PY" "$HERE/run_pgsr.py" "$e" "$out" --checkout "$STAGE/peers/pgsr_dpsr"
              --init-checkout "$STAGE/peers/pgsr_init" ${PGSR_ARGS:-})
           if [ "$s" = pgsr_nomesh ]; then c+=(--no-mesh-stage)
-          elif [[ " $* " != *" pgsr_nomesh "* && " ${PGSR_ARGS:-} " != *" --from-warmup "* ]]; then
+          elif [[ " $* " != *" pgsr_nomesh "* && " ${PGSR_ARGS:-} " != *"--from-warmup"* ]]; then
             c+=(--nomesh-out "$STAGE/res/$name/pgsr_nomesh"); rm -rf "$STAGE/res/$name/pgsr_nomesh"
           fi ;;
         *) echo "unknown system $s"; exit 2 ;;

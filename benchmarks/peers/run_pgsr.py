@@ -109,7 +109,7 @@ def main(argv=None) -> None:
     a = ap.parse_args(argv)
     if a.from_warmup and (a.no_mesh_stage or a.mesh_only is not None or a.nomesh_out):
         ap.error("--from-warmup starts the mesh stage: not with --no-mesh-stage, --mesh-only or --nomesh-out")
-    earlier = _earlier_warmup(a.from_warmup, a.out) if a.from_warmup else None
+    earlier = _earlier_warmup(a.from_warmup, a.out, a.exchange) if a.from_warmup else None
     if earlier:
         a.warmup_iterations = earlier["warmup_iterations"]
 
@@ -188,9 +188,19 @@ def main(argv=None) -> None:
                                       {k: times[k] for k in ("warmup_train_s", "warmup_mesh_s")}, peaks[:2]))
 
 
-def _earlier_warmup(result: str, out: str) -> dict:
-    """An earlier ``--no-mesh-stage`` run's warm-up, read from its result folder ``result``: ``dir`` (its
-    ``warmup`` model folder, holding ``mesh/tsdf_fusion_post.ply``), ``warmup_iterations``, ``wall_s``, ``times``
+def _exchange_id(exchange: str) -> str:
+    """The exchange folder's name and a digest of its training views' COLMAP poses: a warm-up carried to another
+    machine is checked to be of the same scene."""
+    import hashlib
+
+    with open(os.path.join(exchange, "colmap", "sparse", "0", "images.txt"), "rb") as f:
+        digest = hashlib.sha1(f.read()).hexdigest()[:12]
+    return f"{load(exchange).meta['name']}:{digest}"
+
+
+def _earlier_warmup(result: str, out: str, exchange: str) -> dict:
+    """An earlier ``--no-mesh-stage`` run's warm-up on ``exchange``, read from its result folder ``result``: ``dir``
+    (its ``warmup`` model folder, holding ``mesh/tsdf_fusion_post.ply``), ``warmup_iterations``, ``wall_s``, ``times``
     (its training and meshing seconds), ``peak_json`` (its peak GPU memory, written under ``out`` in
     ``_peak.py``'s form) and ``from`` (what ran it: its system and wall time, for ``run.json``)."""
     run_json = os.path.join(result, "run.json")
@@ -199,13 +209,17 @@ def _earlier_warmup(result: str, out: str) -> dict:
         if not os.path.isfile(path):
             sys.exit(f"--from-warmup: no {os.path.relpath(path, result)} in {result}")
     run = read_json(run_json)
-    if run.get("mesh_stage_iterations") is not None or run.get("wall_s") is None:
+    if run.get("mesh_stage_iterations") is not None or run.get("wall_s") is None or run.get("peak_gpu_bytes") is None:
         sys.exit(f"--from-warmup: {run_json} is not a whole warm-up's (--no-mesh-stage) result: "
-                 f"mesh_stage_iterations={run.get('mesh_stage_iterations')}, wall_s={run.get('wall_s')}")
+                 f"mesh_stage_iterations={run.get('mesh_stage_iterations')}, wall_s={run.get('wall_s')}, "
+                 f"peak_gpu_bytes={run.get('peak_gpu_bytes')}")
+    if run.get("exchange") != _exchange_id(exchange):
+        sys.exit(f"--from-warmup: {run_json} is a warm-up of exchange={run.get('exchange')!r}, not of "
+                 f"{_exchange_id(exchange)!r} ({exchange})")
     os.makedirs(out, exist_ok=True)
     peak_json = os.path.join(out, "peak_earlier_warmup.json")
     with open(peak_json, "w") as f:
-        json.dump({"peak_gpu_bytes": int(run.get("peak_gpu_bytes") or 0)}, f)
+        json.dump({"peak_gpu_bytes": int(run["peak_gpu_bytes"])}, f)
     return {"dir": os.path.join(result, "warmup"), "warmup_iterations": int(run["warmup_iterations"]),
             "wall_s": float(run["wall_s"]), "peak_json": peak_json,
             "times": {k: float(run[k]) for k in ("warmup_train_s", "warmup_mesh_s")},
@@ -245,6 +259,7 @@ def _finish(out: str, exchange: str, model: str, checkout: str, it: int, log, *,
     v = np.load(views)
     peaks = run.pop("_peaks")
     run["surfels"] = int(v["n"])
+    run["exchange"] = _exchange_id(exchange)
     # the processes' peaks (training, meshing, held-out renders); unknown for an earlier run's training
     gpu = [read_json(p)["peak_gpu_bytes"] for p in peaks or () if os.path.exists(p)] + [int(v["peak"])]
     run["peak_gpu_bytes"] = None if peaks is None else max(gpu)
