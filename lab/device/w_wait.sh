@@ -1,6 +1,7 @@
 # The calls after w_suite.sh (within 30 s of the last): waits up to WAIT seconds for every launched system of every
 # exported scene ($S/res/SCENE/SYSTEM.rc, written by device.sh launch), then scores each finished scene into
-# $OUT/$TAG/rows_SCENE.json with its meshes side by side (SCENE.png) and each system's log's end in logs.txt. A
+# $OUT/$TAG/rows_SCENE.json with its meshes side by side (SCENE.png) and each system's log's end in logs.txt; with
+# RENDERS=1 also every held-out view's photo, renders and errors (SCENE_renders.png; a call brings back 8 files). A
 # scene is scored once.
 source lab/device/lease_env.sh
 t0=$(date +%s)
@@ -27,7 +28,7 @@ score_finished() {
     done
     [ $busy = 1 ] || [ ${#dirs[@]} = 0 ] && continue
     timeout 200 python3 benchmarks/peers/score.py $S/exch/$sc "${dirs[@]}" --out $OUT/$TAG/rows_$sc.json \
-      --pictures $OUT/$TAG > $S/score_${TAG}_$sc.log 2>&1
+      --pictures $OUT/$TAG ${RENDERS:+--render-pictures $OUT/$TAG} > $S/score_${TAG}_$sc.log 2>&1
     tail -n 4 $S/score_${TAG}_$sc.log | cut -c1-300
     for d in "${dirs[@]}"; do  # each system's own log's end, for a row that needs explaining (one file a call)
       { echo "== $d"; tail -n 25 $d.log; [ -f $d/log.txt ] && tail -c 3000 $d/log.txt; } >> $OUT/$TAG/logs.txt
