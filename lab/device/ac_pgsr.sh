@@ -17,9 +17,11 @@ source lab/device/lease_env.sh
 t0=$(date +%s)
 SCENE=${SCENE:-bunny64}
 step=${1:-wait}
-setup() {  # $1: the peer folders to stage
+setup() {  # $1: the peer folders to stage, $2: the modules their builds must make importable
   mkdir -p $S/whl $S/gl $S/peers
-  cp .stage/p3/* $S/ && cp .stage/small/whl/* $S/whl/ && cp .stage/gl/* $S/gl/
+  # every staged wheel but gsplat's: nothing here runs gsplat, and its JIT build would take the cores the peers'
+  # CUDA builds need
+  cp .stage/p3/* $S/ && cp .stage/gl/* $S/gl/ && ls .stage/small/whl/*.whl | grep -v /gsplat- | xargs -I{} cp {} $S/whl/
   for p in $1; do cp -r .stage/small/peers/$p $S/peers/; done
   lease_install || exit 1
   # bunny64 is the built-in bunny at 64 views of 512 px (peers.md's run); the benchmark's scenes export by name
@@ -27,12 +29,13 @@ setup() {  # $1: the peer folders to stage
     $S/exch/bunny64 --views 64 --resolution 512 --name bunny64 > $S/exch_bunny64.log 2>&1 &
   lease_prepare $( [ $SCENE = bunny64 ] || echo $SCENE) ${BESIDE:-}
   wait
+  for m in $2; do python3 -c "import $m" 2>&1 | tail -n 1 | sed "s/^/import $m: /"; done  # a failed build shows here
   echo "staged and built after $(( $(date +%s) - t0 )) s"
 }
 case $step in
 warmup)
   # BESIDE="chair torus_sparse": 2DGS at its 30,000 iterations on those scenes beside the warm-up (they end first)
-  setup "pgsr_dpsr pgsr_init ${BESIDE:+2dgs}"
+  setup "pgsr_dpsr pgsr_init ${BESIDE:+2dgs}" "diff_plane_rasterization simple_knn._C ${BESIDE:+diff_surfel_rasterization}"
   STAGE=$S bash $D launch "$S/exch/$SCENE" -- pgsr_nomesh
   for sc in ${BESIDE:-}; do STAGE=$S bash $D launch "$S/exch/$sc" -- 2dgs; done
   SYS="pgsr_nomesh${BESIDE:+ 2dgs}" ;;
@@ -41,7 +44,7 @@ meshstage)
   mkdir -p $S/warm/$SCENE
   cat $S/warmparts/warm_$SCENE.part?? | xz -d | tar -x -C $S/warm/$SCENE || exit 1
   ls -la $S/warm/$SCENE $S/warm/$SCENE/warmup/mesh
-  setup "pgsr_dpsr pgsr_init nvdiffrast diso"
+  setup "pgsr_dpsr pgsr_init nvdiffrast diso" "diff_plane_rasterization simple_knn._C nvdiffrast.torch diso"
   PGSR_ARGS="--from-warmup $S/warm/$SCENE" STAGE=$S bash $D launch "$S/exch/$SCENE" -- pgsr
   SYS=pgsr ;;
 wait) SYS=$(cat $S/ac_system) ;;
