@@ -3,12 +3,15 @@
 # the warm-up but its TSDF mesh, so the warm-up's result folder travels from the first lease to the second
 # (run_pgsr.py --from-warmup), and the row counts both leases' time and the larger peak (with BESIDE, the warm-up's
 # time is of a GPU shared with 2DGS's runs: an upper bound, as every time in peers.md).
-#   lease 1, after the p1 and p2 staging calls, carrying .stage/p3 .stage/gl .stage/small (+ .stage/dtu_raw for DTU):
+# Both leases should read one exchange folder (the warm-up names its exchange and the mesh stage checks it): after the
+# p1 and p2 staging calls, a call carrying .stage/exch runs `mkdir -p /root/peers/exch && cp -r .stage/exch/bunny64
+# /root/peers/exch/` (the bunny64 the other systems' rows read; without it setup exports one on the machine).
+#   lease 1, then carrying .stage/p3 .stage/gl .stage/small (+ .stage/dtu_raw for DTU):
 #     SCENE=bunny64 [BESIDE="chair torus_sparse"] bash lab/device/ac_pgsr.sh warmup   # launches, waits, scores
 #     SCENE=bunny64 bash lab/device/ac_pgsr.sh wait        # again within 30 s until scored
 #     SCENE=bunny64 bash lab/device/ac_pgsr.sh pack        # until "all parts sent"
 #   then put the returned $OUT/ac/warm_SCENE.part?? here in folders of at most four, .stage/warm/1, .stage/warm/2, ...
-#   lease 2, after p1 and p2, one call per folder, each carrying that folder alone:
+#   lease 2, after p1, p2 and the exchange's call, one call per folder, each carrying that folder alone:
 #     SCENE=bunny64 bash lab/device/ac_pgsr.sh carry
 #   then, carrying .stage/p3 .stage/gl .stage/small (+ .stage/dtu_raw):
 #     SCENE=bunny64 bash lab/device/ac_pgsr.sh meshstage   # unpacks the warm-up, launches pgsr from it, waits
