@@ -27,11 +27,7 @@ setup() {  # $1: the peer folders to stage, $2: the modules their builds must ma
   cp .stage/p3/* $S/ && cp .stage/gl/* $S/gl/ && ls .stage/small/whl/*.whl | grep -v /gsplat- | xargs -I{} cp {} $S/whl/
   for p in $1; do cp -r .stage/small/peers/$p $S/peers/; done
   lease_install || exit 1
-  # bunny64 is the built-in bunny at 64 views of 512 px (peers.md's run); the benchmark's scenes export by name
-  [ $SCENE = bunny64 ] && [ ! -f $S/exch/bunny64/meta.json ] && python3 benchmarks/peers/export.py bunny \
-    $S/exch/bunny64 --views 64 --resolution 512 --name bunny64 > $S/exch_bunny64.log 2>&1 &
-  lease_prepare $( [ $SCENE = bunny64 ] || echo $SCENE) ${BESIDE:-}
-  wait
+  lease_prepare $SCENE ${BESIDE:-}
   for m in $2; do python3 -c "import $m" 2>&1 | tail -n 1 | sed "s/^/import $m: /"; done  # a failed build shows here
   echo "staged and built after $(( $(date +%s) - t0 )) s"
 }

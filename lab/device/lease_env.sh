@@ -2,7 +2,7 @@
 # the environment the peers' runs need (site-packages, shims, unbuffered logs, the staged libGL).
 #   lease_install            usd-core, then device.sh install (Warp, Open3D, wheels, wtopo)
 #   lease_dtu                install once, export DTU scan24 from .stage/dtu_raw once
-#   lease_prepare SCENE...   export each scene (a name of export.py; dtu_scan24 from .stage/dtu_raw) in the
+#   lease_prepare SCENE...   export each scene (a name of export.py; dtu_scan24 from .stage/dtu_raw; bunny64) in the
 #                            background while gsplat's JIT build runs, then wait for both
 S=/root/peers
 D=benchmarks/peers/device.sh
@@ -27,8 +27,11 @@ lease_dtu() {
 lease_prepare() {
   for sc in "$@"; do
     [ -f "$S/exch/$sc/meta.json" ] && continue
-    src=$sc; [ "$sc" = dtu_scan24 ] && src=.stage/dtu_raw/dtu_scan24
-    python3 benchmarks/peers/export.py $src "$S/exch/$sc" --name $sc > $S/exch_$sc.log 2>&1 &
+    # dtu_scan24 from the carried raw scene; bunny64 the built-in bunny at 64 views of 512 px (peers.md's run; or
+    # carry .stage/exch/bunny64 into $S/exch, the folder the earlier rows read); any other a name of scenes.py
+    args=($sc); [ "$sc" = dtu_scan24 ] && args=(.stage/dtu_raw/dtu_scan24)
+    [ "$sc" = bunny64 ] && args=(bunny --views 64 --resolution 512)
+    python3 benchmarks/peers/export.py "${args[@]}" "$S/exch/$sc" --name $sc > $S/exch_$sc.log 2>&1 &
   done
   MAX_JOBS=12 STAGE=$S timeout 400 bash $D build 2>&1 | grep -i "gsplat"
   wait
