@@ -74,7 +74,7 @@ def main(argv=None) -> None:
 
     import trimesh
 
-    load(a.exchange)  # fails before any training on a folder that is not an exchange folder
+    ex = load(a.exchange)  # fails before any training on a folder that is not an exchange folder
     src = source_folder(a.exchange, os.path.join(a.out, "source"))
     model = os.path.abspath(os.path.join(a.out, "model"))
     it = a.mesh_only or a.iterations
@@ -109,8 +109,7 @@ def main(argv=None) -> None:
            "peak_gpu_bytes": (max(int(v["peak"]), read_json(peak)["peak_gpu_bytes"])
                               if a.mesh_only is None and os.path.exists(peak) else None),
            "recipe": "2DGS DTU: --depth_ratio 1.0 --lambda_dist 1000; TSDF 0.004/0.016/3.0, 1 cluster"
-                     + ("; masks as the images' alpha (the TSDF fuses no depth outside them)" if load(a.exchange).masked
-                        else "")}
+                     + ("; masks as the images' alpha (the TSDF fuses no depth outside them)" if ex.masked else "")}
     system = "2DGS" if it == 30_000 else f"2DGS ({it:,} it.)"
     write_result(a.out, system=system, mesh=mesh, renders=v["rgb"].astype(np.float32), run=run)
 
