@@ -7,8 +7,9 @@
 #   STAGE=/tmp/peers bash benchmarks/peers/device.sh wait SECONDS  # until every job ends or SECONDS pass
 #   STAGE=/tmp/peers bash benchmarks/peers/device.sh score OUT_DIR # rows.json, table.md, pictures
 #
-# SYSTEM: wtopo, wtopo_noloop, gsplat, 2dgs, pgsr, pgsr_nomesh (WTOPO_ARGS, GSPLAT_ARGS, PGSR_ARGS: extra arguments
-# of run_wtopo.py, run_gsplat.py, run_pgsr.py, e.g. WTOPO_ARGS="--set ..." or PGSR_ARGS="--warmup-iterations 2000").
+# SYSTEM: wtopo, wtopo_noloop, gsplat, 2dgs, pgsr, pgsr_nomesh (WTOPO_ARGS, GSPLAT_ARGS, TWODGS_ARGS, PGSR_ARGS: extra
+# arguments of run_wtopo.py, run_gsplat.py, run_2dgs.py, run_pgsr.py, e.g. WTOPO_ARGS="--set ..." or
+# PGSR_ARGS="--warmup-iterations 2000").
 # pgsr runs the TopoSurfel authors' code whole (PGSR warm-up, then its DPSR mesh stage) and also writes
 # pgsr_nomesh from its warm-up, unless pgsr_nomesh is launched too (then a run of its own, the warm-up twice) or
 # PGSR_ARGS="--from-warmup DIR" starts its mesh stage from an earlier pgsr_nomesh result (run_pgsr.py says how).
@@ -103,7 +104,7 @@ launch)
         wtopo) c=("$PY" "$HERE/run_wtopo.py" "$e" "$out" ${WTOPO_ARGS:-}) ;;
         wtopo_noloop) c=("$PY" "$HERE/run_wtopo.py" "$e" "$out" --no-loop ${WTOPO_ARGS:-}) ;;
         gsplat) c=("$PY" "$HERE/run_gsplat.py" "$e" "$out" ${GSPLAT_ARGS:-}) ;;
-        2dgs) c=("$PY" "$HERE/run_2dgs.py" "$e" "$out" --checkout "$STAGE/peers/2dgs") ;;
+        2dgs) c=("$PY" "$HERE/run_2dgs.py" "$e" "$out" --checkout "$STAGE/peers/2dgs" ${TWODGS_ARGS:-}) ;;
         pgsr|pgsr_nomesh)
           c=("$PY" "$HERE/run_pgsr.py" "$e" "$out" --checkout "$STAGE/peers/pgsr_dpsr"
              --init-checkout "$STAGE/peers/pgsr_init" ${PGSR_ARGS:-})
