@@ -48,7 +48,17 @@ install)
   fi
   $PY -m pip install -q --no-index --no-deps --no-build-isolation --no-cache-dir --upgrade --target "$SITE" "$REPO" \
     > "$STAGE/logs/wtopo_install.log" 2>&1 || { cat "$STAGE/logs/wtopo_install.log"; exit 1; }
-  $PY -c "import warp, open3d, trimesh, wtopo, plyfile; print('imports ok: warp', warp.__version__, 'open3d', open3d.__version__)"
+  # without Warp staged (lab/device/sl.sh: the peers alone) wtopo does not import, and only the peers can run here
+  $PY -c "
+import importlib, sys
+ok, missing = [], []
+for m in ('warp', 'open3d', 'trimesh', 'plyfile', 'wtopo'):
+    try:
+        ok.append(m + ' ' + getattr(importlib.import_module(m), '__version__', ''))
+    except Exception as e:
+        missing.append(f'{m} ({type(e).__name__})')
+print('imports ok:', ', '.join(ok), '| missing:', ', '.join(missing) or 'none')
+sys.exit(1 if missing else 0)"
   ;;
 build)
   # the peers' CUDA extensions into $SITE (each only where its checkout is staged), gsplat's JIT build into

@@ -1,0 +1,92 @@
+# Lease step sl (#59): the peers' runs (2DGS, the authors' code) in fewer calls and less device time than the other
+# lease scripts, for a lease short of time. Nothing of wtopo runs on the machine: no Warp is staged, the scenes are
+# exported here and carried, and each finished run's result folder comes back in xz parts, to be scored here.
+#   here, once:  .venv/bin/python benchmarks/peers/export.py SCENE .stage/exch/SCENE --name SCENE   (each scene;
+#                bunny64: bunny --views 64 --resolution 512), and .stage/o3d/big.part00: an xz tar of the unpacked
+#                Open3D 0.19 cp312 wheel (39 MB: with .stage/gl and .stage/small one call carries all a peer needs)
+#   1. carrying .stage/o3d .stage/gl .stage/small:   PEERS="2dgs" bash lab/device/sl.sh stage
+#      (PEERS: folders of .stage/small/peers; the authors' code: "pgsr_dpsr pgsr_init" [+ "nvdiffrast diso"])
+#   2. carrying .stage/exch:   SCENES="chair torus_sparse" SYSTEMS=2dgs [TWODGS_ARGS=...] bash lab/device/sl.sh launch
+#   3. within 30 s of each other:   bash lab/device/sl.sh wait   until it says "all results sent"
+#   here: bash lab/device/sl.sh unpack /work/.device/N/sl ...   (each call's files_at/sl) unpacks each complete
+#         result into .stage/slres/SCENE/SYSTEM; then
+#         .venv/bin/python benchmarks/peers/score.py .stage/exch/SCENE .stage/slres/SCENE/* --out rows.json --pictures D
+# A result travels as SCENE__SYSTEM__IofN.txz (10 MiB parts, six a call): its run.json, mesh.ply, renders.npz, logs,
+# and for pgsr_nomesh the warm-up's TSDF mesh the mesh stage reads (run_pgsr.py --from-warmup).
+step=${1:-wait}
+if [ "$step" = unpack ]; then
+  shift
+  set -o pipefail
+  mkdir -p .stage/slres
+  for key in $(for d in "$@"; do ls "$d"; done | grep -E '__[0-9]+of[0-9]+\.txz$' | sed -E 's/__[0-9]+of[0-9]+\.txz$//' | sort -u); do
+    sc=${key%%__*}; sys=${key#*__}
+    parts=($(for d in "$@"; do ls "$d"/${key}__*of*.txz 2>/dev/null; done | awk -F/ '{print $NF "\t" $0}' | sort -u -k1,1 | cut -f2))
+    m=$(basename "${parts[0]}" .txz); m=${m##*of}
+    if [ "${#parts[@]}" != "$((10#$m))" ]; then echo "$sc/$sys: ${#parts[@]} of $m parts here"; continue; fi
+    rm -rf .stage/slres/$sc/$sys && mkdir -p .stage/slres/$sc/$sys
+    cat "${parts[@]}" | xz -d | tar -x -C .stage/slres/$sc/$sys && echo "$sc/$sys: unpacked into .stage/slres/$sc/$sys" \
+      || echo "$sc/$sys: unpacking failed"
+  done
+  exit 0
+fi
+source lab/device/lease_env.sh
+t0=$(date +%s)
+case $step in
+stage)
+  mkdir -p $S/whl $S/gl $S/peers
+  cp .stage/o3d/* $S/ && cp .stage/gl/* $S/gl/ && ls .stage/small/whl/*.whl | grep -v /gsplat- | xargs -I{} cp {} $S/whl/
+  for p in ${PEERS:-2dgs}; do cp -r .stage/small/peers/$p $S/peers/; done
+  # device.sh install: Open3D, the wheels, the GL libraries (and wtopo's sources, which cannot import without Warp)
+  STAGE=$S bash $D install 2>&1 | tail -n 8
+  export LD_LIBRARY_PATH=$S/gl/root/usr/lib/x86_64-linux-gnu
+  python3 -c "import open3d, trimesh, plyfile; print('open3d', open3d.__version__, 'trimesh', trimesh.__version__)"
+  MAX_JOBS=16 STAGE=$S timeout 520 bash $D build 2>&1 | grep -v "^$" | tail -n 12
+  echo "staged after $(( $(date +%s) - t0 )) s"
+  exit 0 ;;
+launch)
+  mkdir -p $S/exch
+  for sc in ${SCENES:?SCENES names the scenes}; do
+    [ -f .stage/exch/$sc/meta.json ] || { echo "no .stage/exch/$sc carried"; exit 1; }
+    rm -rf $S/exch/$sc && cp -r .stage/exch/$sc $S/exch/
+  done
+  for sc in $SCENES; do STAGE=$S bash $D launch "$S/exch/$sc" -- ${SYSTEMS:?SYSTEMS names the systems}; done
+  WAIT=$(( 560 - ($(date +%s) - t0) )) ;;
+wait) ;;
+*) echo "unknown step $step"; exit 2 ;;
+esac
+end=$(( t0 + ${WAIT:-540} ))
+P=$S/slpack
+mkdir -p $P/sent $OUT/sl
+jobs_left() { local n=0; for d in $S/res/*/*/; do [ -f ${d%/}.rc ] || n=$((n + 1)); done; echo $n; }
+unsent() { local n=0; for f in $P/*.txz; do [ -f "$f" ] && [ ! -f $P/sent/${f##*/} ] && n=$((n + 1)); done; echo $n; }
+pack_finished() {  # each finished run once: its result's files, xz in 10 MiB parts named SCENE__SYSTEM__IofN.txz
+  for d in $S/res/*/*/; do
+    d=${d%/}; sys=${d##*/}; sc=$(basename $(dirname $d))
+    [ -f $d.rc ] && [ ! -f $P/$sc.$sys.done ] || continue
+    cp $d.log $d/device.log 2>/dev/null
+    files=()
+    for f in run.json mesh.ply renders.npz device.log log.txt warmup/mesh/tsdf_fusion_post.ply; do
+      [ -f $d/$f ] && { [ $f != warmup/mesh/tsdf_fusion_post.ply ] || [ $sys = pgsr_nomesh ]; } && files+=($f)
+    done
+    rm -f $P/tmp.*
+    tar -C $d -c "${files[@]}" | xz -T0 -6 | split -b 10M - $P/tmp.
+    m=$(ls $P/tmp.* | wc -l); i=0
+    for f in $(ls $P/tmp.*); do i=$((i + 1)); mv $f $(printf "$P/%s__%s__%02dof%02d.txz" $sc $sys $i $m); done
+    touch $P/$sc.$sys.done
+    echo "$sc/$sys: rc $(cat $d.rc), ${files[*]} in $m parts"
+  done
+}
+while [ "$(date +%s)" -lt $end ]; do
+  pack_finished
+  [ "$(jobs_left)" = 0 ] || [ "$(unsent)" -ge 6 ] && break
+  sleep 10
+done
+pack_finished
+n=0
+for f in $P/*.txz; do
+  [ -f "$f" ] && [ ! -f $P/sent/${f##*/} ] && [ $n -lt 6 ] && cp $f $OUT/sl/ && touch $P/sent/${f##*/} && n=$((n + 1))
+done
+for d in $S/res/*/*/; do d=${d%/}; echo "$d rc=$(cat $d.rc 2>/dev/null || echo running): $(tail -n 1 $d.log | cut -c1-200)"; done
+ls $OUT/sl
+if [ "$(jobs_left)" = 0 ] && [ "$(unsent)" = 0 ]; then echo "all results sent"
+else echo "$(jobs_left) runs going, $(unsent) parts to send after $(( $(date +%s) - t0 )) s: call wait again"; fi
