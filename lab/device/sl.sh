@@ -5,7 +5,8 @@
 #                bunny64: bunny --views 64 --resolution 512), and .stage/o3d/big.part00: an xz tar of the unpacked
 #                Open3D 0.19 cp312 wheel (39 MB: with .stage/gl and .stage/small one call carries all a peer needs)
 #   1. carrying .stage/o3d .stage/gl .stage/small:   PEERS="2dgs" bash lab/device/sl.sh stage
-#      (PEERS: folders of .stage/small/peers; the authors' code: "pgsr_dpsr pgsr_init" [+ "nvdiffrast diso"])
+#      (PEERS: folders of .stage/small/peers; the authors' code: "pgsr_dpsr pgsr_init" [+ "nvdiffrast diso"]; with
+#      the tree the carry must stay under 64 MiB: SMALL=DIR reads a copy of .stage/small holding only what is needed)
 #   2. carrying .stage/exch:   SCENES="chair torus_sparse" SYSTEMS=2dgs [TWODGS_ARGS=...] bash lab/device/sl.sh launch
 #   3. within 30 s of each other:   bash lab/device/sl.sh wait   until it says "all results sent"
 #   here: bash lab/device/sl.sh unpack /work/.device/N/sl ...   (each call's files_at/sl) unpacks each complete
@@ -34,8 +35,9 @@ t0=$(date +%s)
 case $step in
 stage)
   mkdir -p $S/whl $S/gl $S/peers
-  cp .stage/o3d/* $S/ && cp .stage/gl/* $S/gl/ && ls .stage/small/whl/*.whl | grep -v /gsplat- | xargs -I{} cp {} $S/whl/
-  for p in ${PEERS:-2dgs}; do cp -r .stage/small/peers/$p $S/peers/; done
+  SMALL=${SMALL:-.stage/small}
+  cp .stage/o3d/* $S/ && cp .stage/gl/* $S/gl/ && ls $SMALL/whl/*.whl | grep -v /gsplat- | xargs -I{} cp {} $S/whl/
+  for p in ${PEERS:-2dgs}; do cp -r $SMALL/peers/$p $S/peers/; done
   # device.sh install: Open3D, the wheels, the GL libraries (and wtopo's sources, which cannot import without Warp)
   STAGE=$S bash $D install 2>&1 | tail -n 8
   export LD_LIBRARY_PATH=$S/gl/root/usr/lib/x86_64-linux-gnu
