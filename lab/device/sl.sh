@@ -3,17 +3,21 @@
 # exported here and carried, and each finished run's result folder comes back in xz parts, to be scored here.
 #   here, once:  .venv/bin/python benchmarks/peers/export.py SCENE .stage/exch/SCENE --name SCENE   (each scene;
 #                bunny64: bunny --views 64 --resolution 512), and .stage/o3d/big.part00: an xz tar of the unpacked
-#                Open3D 0.19 cp312 wheel (39 MB: with .stage/gl and .stage/small one call carries all a peer needs)
-#   1. carrying .stage/o3d .stage/gl .stage/small:   PEERS="2dgs" bash lab/device/sl.sh stage
-#      (PEERS: folders of .stage/small/peers; the authors' code: "pgsr_dpsr pgsr_init" [+ "nvdiffrast diso"]; with
-#      the tree the carry must stay under 64 MiB: SMALL=DIR reads a copy of .stage/small holding only what is needed)
+#                Open3D 0.19 cp312 wheel (39 MB: with .stage/gl and .stage/smallpeers one call carries all a peer needs)
+#   1. carrying .stage/o3d .stage/gl .stage/smallpeers:   PEERS="2dgs" bash lab/device/sl.sh stage
+#      (.stage/smallpeers: .stage/small without gsplat's wheel, which nothing here runs; the carry and the tree must
+#      stay under 64 MiB. PEERS: folders of its peers/; the authors' code: "pgsr_dpsr pgsr_init nvdiffrast diso")
 #   2. carrying .stage/exch:   SCENES="chair torus_sparse" SYSTEMS=2dgs [TWODGS_ARGS=...] bash lab/device/sl.sh launch
 #   3. within 30 s of each other:   bash lab/device/sl.sh wait   until it says "all results sent"
 #   here: bash lab/device/sl.sh unpack /work/.device/N/sl ...   (each call's files_at/sl) unpacks each complete
 #         result into .stage/slres/SCENE/SYSTEM; then
 #         .venv/bin/python benchmarks/peers/score.py .stage/exch/SCENE .stage/slres/SCENE/* --out rows.json --pictures D
 # A result travels as SCENE__SYSTEM__IofN.txz (10 MiB parts, six a call): its run.json, mesh.ply, renders.npz, logs,
-# and for pgsr_nomesh the warm-up's TSDF mesh the mesh stage reads (run_pgsr.py --from-warmup).
+# and for pgsr_nomesh the warm-up's TSDF mesh the mesh stage reads. The authors' code at its published counts takes
+# two leases: the warm-up (SYSTEMS=pgsr_nomesh) in one; in the next, after step 1, one call per folder .stage/warm/N
+# holding at most five of the warm-up's parts, carrying that folder alone:   bash lab/device/sl.sh warm
+# then step 2 with SYSTEMS=pgsr FROM_WARMUP=1: each scene's mesh stage starts from its carried warm-up
+# (run_pgsr.py --from-warmup; the row counts both stages' time and the larger peak).
 step=${1:-wait}
 if [ "$step" = unpack ]; then
   shift
@@ -35,7 +39,7 @@ t0=$(date +%s)
 case $step in
 stage)
   mkdir -p $S/whl $S/gl $S/peers
-  SMALL=${SMALL:-.stage/small}
+  SMALL=${SMALL:-.stage/smallpeers}
   cp .stage/o3d/* $S/ && cp .stage/gl/* $S/gl/ && ls $SMALL/whl/*.whl | grep -v /gsplat- | xargs -I{} cp {} $S/whl/
   for p in ${PEERS:-2dgs}; do cp -r $SMALL/peers/$p $S/peers/; done
   # device.sh install: Open3D, the wheels, the GL libraries (and wtopo's sources, which cannot import without Warp)
@@ -51,9 +55,24 @@ launch)
     [ -f .stage/exch/$sc/meta.json ] || { echo "no .stage/exch/$sc carried"; exit 1; }
     rm -rf $S/exch/$sc && cp -r .stage/exch/$sc $S/exch/
   done
-  for sc in $SCENES; do STAGE=$S bash $D launch "$S/exch/$sc" -- ${SYSTEMS:?SYSTEMS names the systems}; done
-  WAIT=$(( 560 - ($(date +%s) - t0) )) ;;
+  for sc in $SCENES; do
+    if [ -n "${FROM_WARMUP:-}" ]; then  # the warm-up's parts carried by the warm step, unpacked for the mesh stage
+      parts=($(ls $S/warmparts/${sc}__pgsr_nomesh__*of*.txz 2>/dev/null))
+      m=$(basename "${parts[0]:-x__00of00}" .txz); m=${m##*of}
+      [ ${#parts[@]} -gt 0 ] && [ "${#parts[@]}" = "$((10#$m))" ] \
+        || { echo "$sc: ${#parts[@]} of the warm-up's $m parts carried"; exit 1; }
+      rm -rf $S/warm/$sc && mkdir -p $S/warm/$sc
+      cat "${parts[@]}" | xz -d | tar -x -C $S/warm/$sc || { echo "$sc: unpacking the warm-up failed"; exit 1; }
+      PGSR_ARGS="--from-warmup $S/warm/$sc" STAGE=$S bash $D launch "$S/exch/$sc" -- ${SYSTEMS:?}
+    else
+      STAGE=$S bash $D launch "$S/exch/$sc" -- ${SYSTEMS:?SYSTEMS names the systems}
+    fi
+  done
+  WAIT=$(( ${WAIT:-560} - ($(date +%s) - t0) )) ;;
 wait) ;;
+warm)
+  mkdir -p $S/warmparts && cp .stage/warm/*/*__pgsr_nomesh__*of*.txz $S/warmparts/ && ls -la $S/warmparts
+  exit 0 ;;
 *) echo "unknown step $step"; exit 2 ;;
 esac
 end=$(( t0 + ${WAIT:-540} ))
