@@ -8,6 +8,7 @@
 #      (.stage/smallpeers: .stage/small without gsplat's wheel, which nothing here runs; the carry and the tree must
 #      stay under 64 MiB. PEERS: folders of its peers/; the authors' code: "pgsr_dpsr pgsr_init nvdiffrast diso")
 #   2. carrying .stage/exch:   SCENES="chair torus_sparse" SYSTEMS=2dgs [TWODGS_ARGS=...] bash lab/device/sl.sh launch
+#      (a scene's own systems: SCENES="bunny64:pgsr_nomesh chair:2dgs torus_sparse:2dgs")
 #   3. within 30 s of each other:   bash lab/device/sl.sh wait   until it says "all results sent"
 #   here: bash lab/device/sl.sh unpack /work/.device/N/sl ...   (each call's files_at/sl) unpacks each complete
 #         result into .stage/slres/SCENE/SYSTEM; then
@@ -51,11 +52,14 @@ stage)
   exit 0 ;;
 launch)
   mkdir -p $S/exch
-  for sc in ${SCENES:?SCENES names the scenes}; do
+  for job in ${SCENES:?SCENES names the scenes}; do
+    sc=${job%%:*}
     [ -f .stage/exch/$sc/meta.json ] || { echo "no .stage/exch/$sc carried"; exit 1; }
     rm -rf $S/exch/$sc && cp -r .stage/exch/$sc $S/exch/
   done
-  for sc in $SCENES; do
+  for job in $SCENES; do
+    # SCENE runs SYSTEMS; SCENE:SYS1,SYS2 its own systems (e.g. "bunny64:pgsr_nomesh chair:2dgs")
+    sc=${job%%:*}; SYSTEMS=${SYSTEMS:-}; [ "$job" != "$sc" ] && SYSTEMS=${job#*:} && SYSTEMS=${SYSTEMS//,/ }
     if [ -n "${FROM_WARMUP:-}" ]; then  # the warm-up's parts carried by the warm step, unpacked for the mesh stage
       parts=($(ls $S/warmparts/${sc}__pgsr_nomesh__*of*.txz 2>/dev/null))
       m=$(basename "${parts[0]:-x__00of00}" .txz); m=${m##*of}
