@@ -13,30 +13,58 @@
 #   here: bash lab/device/sl.sh unpack /work/.device/N/sl ...   (each call's files_at/sl) unpacks each complete
 #         result into .stage/slres/SCENE/SYSTEM; then
 #         .venv/bin/python benchmarks/peers/score.py .stage/exch/SCENE .stage/slres/SCENE/* --out rows.json --pictures D
-# A result travels as SCENE__SYSTEM__IofN.txz (10 MiB parts, six a call): its run.json, mesh.ply, renders.npz, logs,
-# and for pgsr_nomesh the warm-up's TSDF mesh the mesh stage reads. The authors' code at its published counts takes
+# A result travels as SCENE__SYSTEM__IofN.txz (10 MiB parts, six a call; RESEND=1 sends every part again): its
+# run.json, mesh.ply, renders.npz and logs; for pgsr_nomesh the warm-up's TSDF mesh the mesh stage reads in place of
+# mesh.ply, which is that mesh again (unpack restores it). The authors' code at its published counts takes
 # two leases: the warm-up (SYSTEMS=pgsr_nomesh) in one; in the next, after step 1, one call per folder .stage/warm/N
 # holding at most five of the warm-up's parts, carrying that folder alone:   bash lab/device/sl.sh warm
 # then step 2 with SYSTEMS=pgsr FROM_WARMUP=1: each scene's mesh stage starts from its carried warm-up
 # (run_pgsr.py --from-warmup; the row counts both stages' time and the larger peak).
 step=${1:-wait}
+set -o pipefail
+shopt -s nullglob
+complete_parts() {  # $1: SCENE__SYSTEM, then folders: the N parts of one packing in order, or fail
+  local key=$1 files m i f want out=()
+  shift
+  files=($(for d in "$@"; do for f in "$d"/${key}__*of*.txz; do echo "$f"; done; done \
+    | awk -F/ '{print $NF "\t" $0}' | sort -u -k1,1 | cut -f2))
+  [ ${#files[@]} -gt 0 ] || return 1
+  m=$(basename "${files[0]}" .txz); m=${m##*of}
+  [ ${#files[@]} = $((10#$m)) ] || return 1  # missing parts, or parts of two packings
+  for i in $(seq 1 $((10#$m))); do
+    want=$(printf "%s__%02dof%s.txz" "$key" $i "$m")
+    f=$(printf "%s\n" "${files[@]}" | grep -F "/$want" | head -n 1)
+    [ -n "$f" ] || return 1
+    out+=("$f")
+  done
+  printf "%s\n" "${out[@]}"
+}
+unpack_parts() {  # $1: SCENE__SYSTEM, $2: destination folder, then folders: replaces $2 only on a whole unpack
+  local key=$1 dest=$2 parts tmp
+  shift 2
+  parts=($(complete_parts "$key" "$@")) || { echo "${key/__//}: not every part is here"; return 1; }
+  mkdir -p "$(dirname "$dest")" && tmp=$(mktemp -d "$(dirname "$dest")/.unpack.XXXX") || return 1
+  if cat "${parts[@]}" | xz -d | tar -x -C "$tmp"; then
+    rm -rf "$dest" && mv "$tmp" "$dest"
+  else
+    rm -rf "$tmp"; echo "${key/__//}: unpacking failed"; return 1
+  fi
+}
 if [ "$step" = unpack ]; then
   shift
-  set -o pipefail
-  mkdir -p .stage/slres
-  for key in $(for d in "$@"; do ls "$d"; done | grep -E '__[0-9]+of[0-9]+\.txz$' | sed -E 's/__[0-9]+of[0-9]+\.txz$//' | sort -u); do
-    sc=${key%%__*}; sys=${key#*__}
-    parts=($(for d in "$@"; do ls "$d"/${key}__*of*.txz 2>/dev/null; done | awk -F/ '{print $NF "\t" $0}' | sort -u -k1,1 | cut -f2))
-    m=$(basename "${parts[0]}" .txz); m=${m##*of}
-    if [ "${#parts[@]}" != "$((10#$m))" ]; then echo "$sc/$sys: ${#parts[@]} of $m parts here"; continue; fi
-    rm -rf .stage/slres/$sc/$sys && mkdir -p .stage/slres/$sc/$sys
-    cat "${parts[@]}" | xz -d | tar -x -C .stage/slres/$sc/$sys && echo "$sc/$sys: unpacked into .stage/slres/$sc/$sys" \
-      || echo "$sc/$sys: unpacking failed"
+  for key in $(for d in "$@"; do ls "$d"; done | grep -E '__[0-9]+of[0-9]+\.txz$' | sed -E 's/__[0-9]+of[0-9]+\.txz$//' \
+               | sort -u); do
+    sc=${key%%__*}; sys=${key#*__}; dest=.stage/slres/$sc/$sys
+    unpack_parts "$key" "$dest" "$@" || continue
+    [ -f $dest/mesh.ply ] || [ ! -f $dest/warmup/mesh/tsdf_fusion_post.ply ] || cp $dest/warmup/mesh/tsdf_fusion_post.ply $dest/mesh.ply
+    echo "$sc/$sys: unpacked into $dest"
   done
   exit 0
 fi
 source lab/device/lease_env.sh
 t0=$(date +%s)
+P=$S/slpack
+mkdir -p $P/sent
 case $step in
 stage)
   mkdir -p $S/whl $S/gl $S/peers
@@ -50,6 +78,9 @@ stage)
   MAX_JOBS=16 STAGE=$S timeout 520 bash $D build 2>&1 | grep -v "^$" | tail -n 12
   echo "staged after $(( $(date +%s) - t0 )) s"
   exit 0 ;;
+warm)
+  mkdir -p $S/warmparts && cp .stage/warm/*/*__pgsr_nomesh__*of*.txz $S/warmparts/ && ls -la $S/warmparts
+  exit 0 ;;
 launch)
   mkdir -p $S/exch
   for job in ${SCENES:?SCENES names the scenes}; do
@@ -59,59 +90,73 @@ launch)
   done
   for job in $SCENES; do
     # SCENE runs SYSTEMS; SCENE:SYS1,SYS2 its own systems (e.g. "bunny64:pgsr_nomesh chair:2dgs")
-    sc=${job%%:*}; SYSTEMS=${SYSTEMS:-}; [ "$job" != "$sc" ] && SYSTEMS=${job#*:} && SYSTEMS=${SYSTEMS//,/ }
-    if [ -n "${FROM_WARMUP:-}" ]; then  # the warm-up's parts carried by the warm step, unpacked for the mesh stage
-      parts=($(ls $S/warmparts/${sc}__pgsr_nomesh__*of*.txz 2>/dev/null))
-      m=$(basename "${parts[0]:-x__00of00}" .txz); m=${m##*of}
-      [ ${#parts[@]} -gt 0 ] && [ "${#parts[@]}" = "$((10#$m))" ] \
-        || { echo "$sc: ${#parts[@]} of the warm-up's $m parts carried"; exit 1; }
-      rm -rf $S/warm/$sc && mkdir -p $S/warm/$sc
-      cat "${parts[@]}" | xz -d | tar -x -C $S/warm/$sc || { echo "$sc: unpacking the warm-up failed"; exit 1; }
-      PGSR_ARGS="--from-warmup $S/warm/$sc" STAGE=$S bash $D launch "$S/exch/$sc" -- ${SYSTEMS:?}
-    else
-      STAGE=$S bash $D launch "$S/exch/$sc" -- ${SYSTEMS:?SYSTEMS names the systems}
+    sc=${job%%:*}; sys=${SYSTEMS:-}
+    [ "$job" != "$sc" ] && { sys=${job#*:}; sys=${sys//,/ }; }
+    [ -n "$sys" ] || { echo "$sc: no systems (SYSTEMS, or SCENE:SYSTEMS)"; exit 1; }
+    for s in $sys pgsr_nomesh; do  # a run launched again is packed and sent again
+      rm -f $P/$sc.$s.done $P/${sc}__${s}__*.txz $P/sent/${sc}__${s}__*.txz
+    done
+    pgsr_args=${PGSR_ARGS:-}
+    if [ -n "${FROM_WARMUP:-}" ] && [[ " $sys " == *" pgsr "* ]]; then
+      # the warm-up's parts, carried by the warm step, for the mesh stage (run_pgsr.py checks it is this scene's)
+      unpack_parts ${sc}__pgsr_nomesh $S/warm/$sc $S/warmparts || exit 1
+      pgsr_args="$pgsr_args --from-warmup $S/warm/$sc"
     fi
+    PGSR_ARGS=$pgsr_args STAGE=$S bash $D launch "$S/exch/$sc" -- $sys
   done
-  WAIT=$(( ${WAIT:-560} - ($(date +%s) - t0) )) ;;
+  WAIT=${WAIT:-560} ;;
 wait) ;;
-warm)
-  mkdir -p $S/warmparts && cp .stage/warm/*/*__pgsr_nomesh__*of*.txz $S/warmparts/ && ls -la $S/warmparts
-  exit 0 ;;
 *) echo "unknown step $step"; exit 2 ;;
 esac
 end=$(( t0 + ${WAIT:-540} ))
-P=$S/slpack
-mkdir -p $P/sent $OUT/sl
-jobs_left() { local n=0; for d in $S/res/*/*/; do [ -f ${d%/}.rc ] || n=$((n + 1)); done; echo $n; }
-unsent() { local n=0; for f in $P/*.txz; do [ -f "$f" ] && [ ! -f $P/sent/${f##*/} ] && n=$((n + 1)); done; echo $n; }
+mkdir -p $OUT/sl
+[ -n "${RESEND:-}" ] && rm -f $P/sent/*
+runs=($S/res/*/*.log)
+[ ${#runs[@]} -gt 0 ] || { echo "no runs under $S/res (a fresh machine? launch first)"; exit 3; }
+jobs_left() { local n=0 l; for l in $S/res/*/*.log; do [ -f ${l%.log}.rc ] || n=$((n + 1)); done; echo $n; }
+unpacked() {
+  local n=0 l d
+  for l in $S/res/*/*.log; do
+    d=${l%.log}; [ -f $d.rc ] && [ ! -f $P/$(basename $(dirname $d)).${d##*/}.done ] && n=$((n + 1))
+  done
+  echo $n
+}
+unsent() { local n=0 f; for f in $P/*.txz; do [ -f $P/sent/${f##*/} ] || n=$((n + 1)); done; echo $n; }
 pack_finished() {  # each finished run once: its result's files, xz in 10 MiB parts named SCENE__SYSTEM__IofN.txz
-  for d in $S/res/*/*/; do
-    d=${d%/}; sys=${d##*/}; sc=$(basename $(dirname $d))
+  local l d sys sc files f m i tmps
+  for l in $S/res/*/*.log; do
+    d=${l%.log}; sys=${d##*/}; sc=$(basename $(dirname $d))
     [ -f $d.rc ] && [ ! -f $P/$sc.$sys.done ] || continue
-    cp $d.log $d/device.log 2>/dev/null
+    if [ $sys = pgsr ] && [ -d ${d%/*}/pgsr_nomesh ] && [ ! -f ${d%/*}/pgsr_nomesh.log ]; then
+      # pgsr launched alone writes its warm-up's own result beside it (--nomesh-out): sent as a run of its own
+      cp $d.rc ${d%/*}/pgsr_nomesh.rc && echo "written by the pgsr run beside it" > ${d%/*}/pgsr_nomesh.log
+    fi
+    cp $l $d/device.log 2>/dev/null
     files=()
-    for f in run.json mesh.ply renders.npz device.log log.txt warmup/mesh/tsdf_fusion_post.ply; do
-      [ -f $d/$f ] && { [ $f != warmup/mesh/tsdf_fusion_post.ply ] || [ $sys = pgsr_nomesh ]; } && files+=($f)
-    done
+    for f in run.json renders.npz device.log log.txt; do [ -f $d/$f ] && files+=($f); done
+    if [ $sys = pgsr_nomesh ] && [ -f $d/warmup/mesh/tsdf_fusion_post.ply ]; then files+=(warmup/mesh/tsdf_fusion_post.ply)
+    elif [ -f $d/mesh.ply ]; then files+=(mesh.ply); fi
     rm -f $P/tmp.*
-    tar -C $d -c "${files[@]}" | xz -T0 -6 | split -b 10M - $P/tmp.
-    m=$(ls $P/tmp.* | wc -l); i=0
-    for f in $(ls $P/tmp.*); do i=$((i + 1)); mv $f $(printf "$P/%s__%s__%02dof%02d.txz" $sc $sys $i $m); done
+    if ! tar -C $d -c "${files[@]}" | xz -T0 -6 | split -b 10M - $P/tmp.; then
+      echo "$sc/$sys: packing failed"; continue
+    fi
+    tmps=($P/tmp.*); m=${#tmps[@]}; i=0
+    for f in "${tmps[@]}"; do i=$((i + 1)); mv $f $(printf "$P/%s__%s__%02dof%02d.txz" $sc $sys $i $m); done
     touch $P/$sc.$sys.done
     echo "$sc/$sys: rc $(cat $d.rc), ${files[*]} in $m parts"
   done
 }
 while [ "$(date +%s)" -lt $end ]; do
   pack_finished
-  [ "$(jobs_left)" = 0 ] || [ "$(unsent)" -ge 6 ] && break
+  [ "$(jobs_left)" = 0 ] && [ "$(unpacked)" = 0 ] || [ "$(unsent)" -ge 6 ] && break
   sleep 10
 done
-pack_finished
+pack_finished; pack_finished  # the second pass packs a warm-up that a pgsr run's end revealed
 n=0
 for f in $P/*.txz; do
-  [ -f "$f" ] && [ ! -f $P/sent/${f##*/} ] && [ $n -lt 6 ] && cp $f $OUT/sl/ && touch $P/sent/${f##*/} && n=$((n + 1))
+  [ ! -f $P/sent/${f##*/} ] && [ $n -lt 6 ] && cp $f $OUT/sl/ && touch $P/sent/${f##*/} && n=$((n + 1))
 done
-for d in $S/res/*/*/; do d=${d%/}; echo "$d rc=$(cat $d.rc 2>/dev/null || echo running): $(tail -n 1 $d.log | cut -c1-200)"; done
+for l in $S/res/*/*.log; do d=${l%.log}; echo "$d rc=$(cat $d.rc 2>/dev/null || echo running): $(tail -n 1 $l | cut -c1-200)"; done
 ls $OUT/sl
-if [ "$(jobs_left)" = 0 ] && [ "$(unsent)" = 0 ]; then echo "all results sent"
+if [ "$(jobs_left)" = 0 ] && [ "$(unpacked)" = 0 ] && [ "$(unsent)" = 0 ]; then echo "all results sent"
 else echo "$(jobs_left) runs going, $(unsent) parts to send after $(( $(date +%s) - t0 )) s: call wait again"; fi
