@@ -7,7 +7,8 @@
 #   1. carrying .stage/o3d .stage/gl .stage/smallpeers:   PEERS="2dgs" bash lab/device/sl.sh stage
 #      (.stage/smallpeers: .stage/small without gsplat's wheel, which nothing here runs; the carry and the tree must
 #      stay under 64 MiB. PEERS: folders of its peers/; the authors' code: "pgsr_dpsr pgsr_init nvdiffrast diso")
-#   2. carrying .stage/exch:   SCENES="chair torus_sparse" SYSTEMS=2dgs [TWODGS_ARGS=...] bash lab/device/sl.sh launch
+#   2. carrying .stage/exch (or the scenes' folders, .stage/exch/SCENE each, to stay under 64 MiB):
+#        SCENES="chair torus_sparse" SYSTEMS=2dgs [TWODGS_ARGS=...] bash lab/device/sl.sh launch
 #      (a scene's own systems: SCENES="bunny64:pgsr_nomesh chair:2dgs torus_sparse:2dgs")
 #   3. within 30 s of each other:   bash lab/device/sl.sh wait   until it says "all results sent"
 #   here: bash lab/device/sl.sh unpack /work/.device/N/sl ...   (each call's files_at/sl) unpacks each complete
