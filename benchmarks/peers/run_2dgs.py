@@ -101,10 +101,14 @@ def main(argv=None) -> None:
         _run([py, os.path.join(HERE, "_peer_views.py"), "2dgs", model, str(it), os.path.abspath(a.exchange), views],
              a.checkout, log)
     mesh = trimesh.load(os.path.join(model, "train", f"ours_{it}", "fuse_post.ply"), process=False)
+    # the TSDF mesh before its largest-piece step (--num_cluster 1): how much of the surface that step dropped
+    raw = os.path.join(model, "train", f"ours_{it}", "fuse.ply")
+    raw_faces = len(trimesh.load(raw, process=False).faces) if os.path.exists(raw) else None
     v = np.load(views)
     if a.mesh_only is not None:
         wall = t_train = None  # an earlier run's training time is not known here
     run = {"wall_s": wall, "train_s": t_train, "iterations": it, "surfels": int(v["n"]),
+           "tsdf_faces_before_largest_piece": raw_faces,
            # the training process's peak; unknown when only an earlier run's checkpoint was meshed
            "peak_gpu_bytes": (max(int(v["peak"]), read_json(peak)["peak_gpu_bytes"])
                               if a.mesh_only is None and os.path.exists(peak) else None),
