@@ -110,6 +110,7 @@ launch)
     name=$(basename "$e")
     for s in "$@"; do
       out=$STAGE/res/$name/$s
+      nomesh=""
       case $s in
         wtopo) c=("$PY" "$HERE/run_wtopo.py" "$e" "$out" ${WTOPO_ARGS:-}) ;;
         wtopo_noloop) c=("$PY" "$HERE/run_wtopo.py" "$e" "$out" --no-loop ${WTOPO_ARGS:-}) ;;
@@ -120,12 +121,17 @@ launch)
              --init-checkout "$STAGE/peers/pgsr_init" ${PGSR_ARGS:-})
           if [ "$s" = pgsr_nomesh ]; then c+=(--no-mesh-stage)
           elif [[ " $* " != *" pgsr_nomesh "* && " ${PGSR_ARGS:-} " != *"--from-warmup"* ]]; then
-            c+=(--nomesh-out "$STAGE/res/$name/pgsr_nomesh"); rm -rf "$STAGE/res/$name/pgsr_nomesh"
+            nomesh=$STAGE/res/$name/pgsr_nomesh
+            c+=(--nomesh-out "$nomesh"); rm -rf "$nomesh" "$nomesh.rc"
           fi ;;
         *) echo "unknown system $s"; exit 2 ;;
       esac
       rm -rf "$out" "$out.rc"; mkdir -p "$out"
       job="$(printf '%q ' "${c[@]}") > $out.log 2>&1; echo \$? > $out.rc"
+      if [ -n "$nomesh" ]; then  # the warm-up's own result is a job of its own to wait on, ending with pgsr's
+        echo "written by $name/pgsr beside it (--nomesh-out): its log is $out.log" > "$nomesh.log"
+        job="$job; cp $out.rc $nomesh.rc"
+      fi
       if [ -n "${SERIAL:-}" ]; then : > "$out.log"; chain="${chain:+$chain; }$job"; echo "queued $name/$s"; continue; fi
       setsid nohup bash -c "$job" >/dev/null 2>&1 &
       echo "launched $name/$s"

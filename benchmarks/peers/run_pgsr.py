@@ -213,9 +213,10 @@ def _earlier_warmup(result: str, out: str, exchange: str) -> dict:
         sys.exit(f"--from-warmup: {run_json} is not a whole warm-up's (--no-mesh-stage) result: "
                  f"mesh_stage_iterations={run.get('mesh_stage_iterations')}, wall_s={run.get('wall_s')}, "
                  f"peak_gpu_bytes={run.get('peak_gpu_bytes')}")
-    if run.get("exchange") != _exchange_id(exchange):
+    want = _exchange_id(exchange)
+    if run.get("exchange") != want:
         sys.exit(f"--from-warmup: {run_json} is a warm-up of exchange={run.get('exchange')!r}, not of "
-                 f"{_exchange_id(exchange)!r} ({exchange})")
+                 f"{want!r} ({exchange})")
     os.makedirs(out, exist_ok=True)
     peak_json = os.path.join(out, "peak_earlier_warmup.json")
     with open(peak_json, "w") as f:

@@ -128,10 +128,6 @@ pack_finished() {  # each finished run once: its result's files, xz in 10 MiB pa
   for l in $S/res/*/*.log; do
     d=${l%.log}; sys=${d##*/}; sc=$(basename $(dirname $d))
     [ -f $d.rc ] && [ ! -f $P/$sc.$sys.done ] || continue
-    if [ $sys = pgsr ] && [ -d ${d%/*}/pgsr_nomesh ] && [ ! -f ${d%/*}/pgsr_nomesh.log ]; then
-      # pgsr launched alone writes its warm-up's own result beside it (--nomesh-out): sent as a run of its own
-      cp $d.rc ${d%/*}/pgsr_nomesh.rc && echo "written by the pgsr run beside it" > ${d%/*}/pgsr_nomesh.log
-    fi
     cp $l $d/device.log 2>/dev/null
     files=()
     for f in run.json renders.npz device.log log.txt; do [ -f $d/$f ] && files+=($f); done
@@ -152,7 +148,7 @@ while [ "$(date +%s)" -lt $end ]; do
   [ "$(jobs_left)" = 0 ] && [ "$(unpacked)" = 0 ] || [ "$(unsent)" -ge 6 ] && break
   sleep 10
 done
-pack_finished; pack_finished  # the second pass packs a warm-up that a pgsr run's end revealed
+pack_finished
 n=0
 for f in $P/*.txz; do
   [ ! -f $P/sent/${f##*/} ] && [ $n -lt 6 ] && cp $f $OUT/sl/ && touch $P/sent/${f##*/} && n=$((n + 1))
