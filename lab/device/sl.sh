@@ -1,9 +1,11 @@
 # Lease step sl (#59): the peers' runs (2DGS, the authors' code) in fewer calls and less device time than the other
 # lease scripts, for a lease short of time. Nothing of wtopo runs on the machine: no Warp is staged, the scenes are
 # exported here and carried, and each finished run's result folder comes back in xz parts, to be scored here.
-#   here, once:  .venv/bin/python benchmarks/peers/export.py SCENE .stage/exch/SCENE --name SCENE   (each scene;
-#                bunny64: bunny --views 64 --resolution 512), and .stage/o3d/big.part00: an xz tar of the unpacked
-#                Open3D 0.19 cp312 wheel (39 MB: with .stage/gl and .stage/smallpeers one call carries all a peer needs)
+#   here, once (a new checkout: about 5 minutes; fetch the peers' mirrors first, stage.sh says which):
+#                bash lab/device/stage.sh wheels gl peers o3d smallpeers sl_exch
+#                (.stage/exch/SCENE per scene, bunny64 the bunny at 64 views of 512 px; .stage/o3d/big.part00, an xz
+#                tar of the unpacked Open3D 0.19 cp312 wheel, 39 MB: with .stage/gl and .stage/smallpeers one call
+#                carries all a peer needs)
 #   1. carrying .stage/o3d .stage/gl .stage/smallpeers:   PEERS="2dgs" bash lab/device/sl.sh stage
 #      (.stage/smallpeers: .stage/small without gsplat's wheel, which nothing here runs; the carry and the tree must
 #      stay under 64 MiB. PEERS: folders of its peers/; the authors' code: "pgsr_dpsr pgsr_init nvdiffrast diso")

@@ -27,7 +27,15 @@
 # Carrying it (64 MiB a call, 6.6 MB of it the working tree): four calls, e.g. p1; p2; p3 + small + gl (58 MB);
 # usd + exch + dtu_raw (60 MB). p3 + usd alone is 68 MB: too much for one call.
 #
-# Usage:  bash lab/device/stage.sh [STEP...]      STEP: big wheels usd gl peers exch (default: all of them)
+# What lab/device/sl.sh (the peers alone, no Warp) carries instead, made by the steps `sl`, about 5 minutes:
+#   o3d/big.part00     one xz tar of the unpacked Open3D wheel alone, minus O3D_DROP (39 MB)
+#   smallpeers/        small/ without gsplat's wheel (12 MB; needs the steps wheels and peers)
+#   exch/SCENE         export.py's folder of each scene in SL_SCENES (default: the nine object scenes; bunny64 is
+#                      bunny at 64 views of 512 px), about 40 s each
+#   bash lab/device/stage.sh wheels gl peers o3d smallpeers sl_exch
+#
+# Usage:  bash lab/device/stage.sh [STEP...]      STEP: big wheels usd gl peers exch o3d smallpeers sl_exch
+#         (default: big wheels usd gl peers exch)
 # Time on this 2-core machine (shared with other work): about 12 minutes in all, nearly all of it `big` (676 s:
 # download, xz -9 -T2 of 593 MB to 141 MB, then the import test from the extracted parts); wheels, usd, gl,
 # peers take a few seconds each, exch about a minute. Needs network for pip download / apt-get download.
@@ -229,12 +237,44 @@ print('RaycastingScene distance from the centre:', d)
       && git show e77081a:wtopo/geometry/mesh_policy.py > "$OUT/mesh_policy_numpy.py" \
       && rm -rf "$OUT/old" && mkdir -p "$OUT/old" && git archive e77081a | tar -x -C "$OUT/old")
     ;;
-  *) echo "unknown step $step (big wheels usd gl peers exch)"; exit 2 ;;
+  o3d)
+    mkdir -p "$TMP/dl" "$TMP/un"
+    pipdl -d "$TMP/dl" "open3d==$O3D_VER"
+    unzip -q -o "$TMP"/dl/open3d-*.whl -d "$TMP/un"
+    for p in "${O3D_DROP[@]}"; do
+      [ -e "$TMP/un/$p" ] || { echo "O3D_DROP: $p not in the wheel"; exit 1; }
+      rm -rf "${TMP:?}/un/$p"
+    done
+    rm -rf "$OUT/o3d"; mkdir -p "$OUT/o3d"
+    (cd "$TMP/un" && tar --sort=name --owner=0 --group=0 --numeric-owner -cf - -- *) \
+      | xz -9 -T"$XZ_THREADS" > "$OUT/o3d/big.part00"
+    rm -rf "$TMP/un" "$TMP/dl"
+    ls -l "$OUT/o3d/big.part00"
+    ;;
+  smallpeers)
+    [ -d "$OUT/small/whl" ] && [ -d "$OUT/small/peers/2dgs" ] || { echo "smallpeers: run the steps wheels and peers first"; exit 1; }
+    rm -rf "$OUT/smallpeers" && cp -r "$OUT/small" "$OUT/smallpeers" && rm -f "$OUT"/smallpeers/whl/gsplat-*.whl
+    du -sh "$OUT/smallpeers"
+    ;;
+  sl_exch)
+    mkdir -p "$OUT/exch"
+    for sc in ${SL_SCENES:-bunny64 chair torus bowl blob_flat mug chair_sparse torus_sparse mug_sparse}; do
+      rm -rf "${OUT:?}/exch/$sc"
+      if [ "$sc" = bunny64 ]; then
+        (cd "$REPO" && "$PY" benchmarks/peers/export.py bunny "$OUT/exch/bunny64" --views 64 --resolution 512 --name bunny64)
+      else
+        (cd "$REPO" && "$PY" benchmarks/peers/export.py "$sc" "$OUT/exch/$sc" --name "$sc")
+      fi
+    done
+    strip_ignored "$OUT/exch"
+    du -sh "$OUT"/exch/*
+    ;;
+  *) echo "unknown step $step (big wheels usd gl peers exch o3d smallpeers sl_exch)"; exit 2 ;;
   esac
   echo "== $step: $(( $(date +%s) - t0 )) s"
 done
 
 du -sh "$OUT"/*/ 2>/dev/null || true; du -sh "$OUT"/small/*/ "$OUT"/small/peers/*/ 2>/dev/null || true
 ls -la "$OUT"/p[0-9]*/ 2>/dev/null || true
-small_exch=$(du -cb "$OUT/small" "$OUT/exch" "$OUT/dtu_raw" 2>/dev/null | tail -1 | cut -f1)
+small_exch=$(du -cb "$OUT/small" "$OUT/exch" "$OUT/dtu_raw" 2>/dev/null | tail -1 | cut -f1 || true)
 echo "small + exch + dtu_raw: $small_exch bytes (one device call carries 67108864 with the working tree)"
