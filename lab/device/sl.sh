@@ -1,7 +1,7 @@
 # Lease step sl (#59): the peers' runs (2DGS, the authors' code) in fewer calls and less device time than the other
 # lease scripts, for a lease short of time. Nothing of wtopo runs on the machine: no Warp is staged, the scenes are
 # exported here and carried, and each finished run's result folder comes back in xz parts, to be scored here.
-#   here, once (a new checkout: about 5 minutes; fetch the peers' mirrors first, stage.sh says which):
+#   here, once (a new checkout: about 8 minutes; fetch the peers' mirrors first, stage.sh says which):
 #                bash lab/device/stage.sh wheels gl peers o3d smallpeers sl_exch
 #                (.stage/exch/SCENE per scene, bunny64 the bunny at 64 views of 512 px; .stage/o3d/big.part00, an xz
 #                tar of the unpacked Open3D 0.19 cp312 wheel, 39 MB: with .stage/gl and .stage/smallpeers one call

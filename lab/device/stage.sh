@@ -27,15 +27,17 @@
 # Carrying it (64 MiB a call, 6.6 MB of it the working tree): four calls, e.g. p1; p2; p3 + small + gl (58 MB);
 # usd + exch + dtu_raw (60 MB). p3 + usd alone is 68 MB: too much for one call.
 #
-# What lab/device/sl.sh (the peers alone, no Warp) carries instead, made by the steps `sl`, about 5 minutes:
+# What lab/device/sl.sh (the peers alone, no Warp) carries instead, made by the steps `o3d`, `smallpeers` and
+# `sl_exch` (about 8 minutes with wheels, gl and peers):
 #   o3d/big.part00     one xz tar of the unpacked Open3D wheel alone, minus O3D_DROP (39 MB)
 #   smallpeers/        small/ without gsplat's wheel (12 MB; needs the steps wheels and peers)
 #   exch/SCENE         export.py's folder of each scene in SL_SCENES (default: the nine object scenes; bunny64 is
-#                      bunny at 64 views of 512 px), about 40 s each
+#                      bunny at 64 views of 512 px), about 40 s each; nine scenes are about 115 MB, so a call
+#                      carries a few .stage/exch/SCENE folders, not .stage/exch (lease.sh a's cp -r .stage/exch/*)
 #   bash lab/device/stage.sh wheels gl peers o3d smallpeers sl_exch
 #
 # Usage:  bash lab/device/stage.sh [STEP...]      STEP: big wheels usd gl peers exch o3d smallpeers sl_exch
-#         (default: big wheels usd gl peers exch)
+#         (default: wheels usd gl peers exch big)
 # Time on this 2-core machine (shared with other work): about 12 minutes in all, nearly all of it `big` (676 s:
 # download, xz -9 -T2 of 593 MB to 141 MB, then the import test from the extracted parts); wheels, usd, gl,
 # peers take a few seconds each, exch about a minute. Needs network for pip download / apt-get download.
@@ -219,7 +221,7 @@ print('RaycastingScene distance from the centre:', d)
     du -sh "$P"/*
     ;;
   exch)
-    rm -rf "$OUT/exch"; mkdir -p "$OUT/exch"
+    rm -rf "$OUT/exch/bunny64" "$OUT/exch/dtu_scan24"; mkdir -p "$OUT/exch"   # sl_exch's other scenes stay
     (cd "$REPO" && "$PY" benchmarks/peers/export.py bunny "$OUT/exch/bunny64" --views 64 --resolution 512 --name bunny64)
     # DTU's initial points are plane-sweep stereo: over 25 minutes on this 2-core CPU (never finished here), seconds
     # on the GPU. Default: the raw scene goes as dtu_raw/dtu_scan24 (11 MB) and lease.sh d exports it on the GPU
@@ -253,7 +255,9 @@ print('RaycastingScene distance from the centre:', d)
     ;;
   smallpeers)
     [ -d "$OUT/small/whl" ] && [ -d "$OUT/small/peers/2dgs" ] || { echo "smallpeers: run the steps wheels and peers first"; exit 1; }
-    rm -rf "$OUT/smallpeers" && cp -r "$OUT/small" "$OUT/smallpeers" && rm -f "$OUT"/smallpeers/whl/gsplat-*.whl
+    rm -rf "$OUT/smallpeers"
+    cp -r "$OUT/small" "$OUT/smallpeers"
+    rm -f "$OUT"/smallpeers/whl/gsplat-*.whl
     du -sh "$OUT/smallpeers"
     ;;
   sl_exch)
