@@ -209,6 +209,21 @@ def test_the_authors_mesh_stage_starts_from_an_earlier_warmup(exch, tmp_path, mo
     assert whole["wall_s"] >= 1234.0 and whole["warmup_train_s"] == first["warmup_train_s"]
     assert whole["peak_gpu_bytes"] == 5000 and "an earlier run" in whole["warmup_from"]
     assert not (tmp_path / "whole" / "warmup").exists()  # nothing of the warm-up was run or copied here
+    assert "device" in whole and "warmup_device" in whole  # which GPU each stage ran on (None on this CPU machine)
+
+    # a short check of the DPSR half: more mesh-stage arguments, named in the system; no warm-up checkout needed
+    calls.clear()
+    ck_no_init = ["--checkout", str(tmp_path / "pgsr_dpsr"), "--init-checkout", str(tmp_path / "absent")]
+    run_pgsr.main([exch.root, str(tmp_path / "smoke"), *ck_no_init, "--from-warmup", str(tmp_path / "warm"),
+                   "--iterations", "100", "--mesh-train-args", "--mesh_from_iter 20"])
+    train = calls[0][1]
+    assert train[-2:] == ["--mesh_from_iter", "20"] and "--mesh_from_iter" not in calls[1][1]  # not render.py
+    smoke = json.loads((tmp_path / "smoke" / "run.json").read_text())
+    assert smoke["system"] == "PGSR+DPSR (authors', 300 + 100 it.) [--mesh_from_iter 20]"
+    assert smoke["mesh_train_args"] == "--mesh_from_iter 20"
+    with pytest.raises(SystemExit) as e:  # the warm-up alone has no mesh stage to pass them to
+        run_pgsr.main([exch.root, str(tmp_path / "o"), *ck, "--no-mesh-stage", "--mesh-train-args", "--x 1"])
+    assert e.value.code == 2
 
 
 def test_a_mesh_stage_without_a_whole_warmup_of_its_scene_is_refused(exch, exch_env, tmp_path, monkeypatch):

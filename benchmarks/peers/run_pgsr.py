@@ -27,12 +27,15 @@ importable, and ``shims/`` (pytorch3d, pymeshlab, kaolin, igl stand-ins) on the 
 
     python benchmarks/peers/run_pgsr.py EXCH OUT --checkout PATH [--init-checkout PATH] [--no-mesh-stage]
         [--iterations 10000] [--warmup-iterations 30000] [--nomesh-out DIR] [--mesh-only ITERATION]
-        [--from-warmup DIR]
+        [--from-warmup DIR] [--mesh-train-args "ARGS"]
 
 ``--nomesh-out DIR`` also writes the warm-up's own result (plain PGSR, timed alone) from the same run.
 ``--from-warmup DIR`` runs stage 2 alone from an earlier ``--no-mesh-stage`` run's result folder (the mesh
 stage reads nothing of the warm-up but its TSDF mesh): the whole recipe in two leases, each under a
-lease's device time, with the warm-up's time and peak memory counted in the result's.
+lease's device time, with the warm-up's time and peak memory counted in the result's. ``--mesh-train-args``
+passes more arguments to the mesh stage's ``train.py`` (a short check of its DPSR half before a whole run, e.g.
+``--mesh-train-args=--mesh_from_iter=200``, one word for ``device.sh``'s ``PGSR_ARGS``): the result's system name
+then says so. ``run.json`` names the GPU each stage ran on.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -106,7 +110,13 @@ def main(argv=None) -> None:
                     help="skip the warm-up: start the mesh stage from an earlier --no-mesh-stage run's result "
                          "folder DIR (its warmup/mesh/tsdf_fusion_post.ply and run.json, e.g. carried from "
                          "another machine); its time and peak memory count in the result's")
+    ap.add_argument("--mesh-train-args", default="", metavar="ARGS",
+                    help="more arguments of the mesh stage's train.py, one string (e.g. \"--mesh_from_iter 200\" "
+                         "for a short check of its DPSR half): not the published recipe, and the system name says so")
     a = ap.parse_args(argv)
+    extra = shlex.split(a.mesh_train_args)
+    if extra and a.no_mesh_stage:
+        ap.error("--mesh-train-args: --no-mesh-stage runs no mesh stage")
     if a.from_warmup and (a.no_mesh_stage or a.mesh_only is not None or a.nomesh_out):
         ap.error("--from-warmup starts the mesh stage: not with --no-mesh-stage, --mesh-only or --nomesh-out")
     earlier = _earlier_warmup(a.from_warmup, a.out, a.exchange) if a.from_warmup else None
@@ -116,7 +126,8 @@ def main(argv=None) -> None:
     load(a.exchange)  # fails before any training on a folder that is not an exchange folder
     head = os.path.abspath(a.checkout)
     init = os.path.abspath(a.init_checkout or os.path.join(os.path.dirname(head), "pgsr_init"))
-    for path, what in ((init, "--init-checkout"), (head, "--checkout")):
+    # --from-warmup runs no warm-up: its checkout is not needed
+    for path, what in ((head, "--checkout"),) + (() if earlier else ((init, "--init-checkout"),)):
         if not os.path.exists(os.path.join(path, "train.py")):
             sys.exit(f"{what}: no train.py in {path}")
     out = os.path.abspath(a.out)
@@ -142,11 +153,11 @@ def main(argv=None) -> None:
             times[name] = now - t
             t = now
 
-        def stage(prefix, ckout, model_dir, iterations, train=True):
+        def stage(prefix, ckout, model_dir, iterations, train=True, more=()):
             """``train.py`` then ``render.py`` (its TSDF mesh) of one stage, each timed and its peak recorded."""
             if train:
                 _run(peak(prefix + "train") + ["train.py", "-s", src, "-m", model_dir, *TRAIN_ARGS, "--test_iterations",
-                                               "-1", "--iterations", str(iterations)], ckout, log)
+                                               "-1", "--iterations", str(iterations), *more], ckout, log)
                 lap(prefix + "train_s")
             _run(peak(prefix + "mesh") + ["render.py", "-m", model_dir, *MESH_ARGS, "--iteration", str(iterations)],
                  ckout, log, OMP_NUM_THREADS="4")
@@ -162,7 +173,7 @@ def main(argv=None) -> None:
             if not a.no_mesh_stage:
                 # 2. mesh stage: pgsr_dpsr from the warm-up's mesh
                 shutil.copyfile(os.path.join(warm, "mesh", "tsdf_fusion_post.ply"), os.path.join(src, "mesh_init.ply"))
-                stage("", head, model, a.iterations)
+                stage("", head, model, a.iterations, more=extra)
         else:
             stage("", final_ckout, final, it, train=False)
         wall = time.perf_counter() - t0
@@ -179,9 +190,16 @@ def main(argv=None) -> None:
         else:
             run = _run_json(a.warmup_iterations, it, wall if done else None, times if done else {},
                             peaks if done else None)
+            if extra:
+                run["mesh_train_args"] = a.mesh_train_args
             if earlier:
                 run["warmup_from"] = earlier["from"]
-            _finish(a.out, a.exchange, model, head, it, log, system=_system(a.warmup_iterations, it), run=run)
+                run["warmup_device"] = earlier["device"]
+            system = _system(a.warmup_iterations, it) + (f" [{a.mesh_train_args}]" if extra else "")
+            _finish(a.out, a.exchange, model, head, it, log, system=system, run=run)
+            if earlier and run.get("device") != earlier["device"]:
+                print(f"run_pgsr: the warm-up ran on {earlier['device']}, the mesh stage on {run.get('device')}: "
+                      "the row's time adds two GPUs' times", file=sys.stderr)
             if a.nomesh_out and done:  # the warm-up alone is plain PGSR: its own result, its own time
                 _finish(a.nomesh_out, a.exchange, warm, init, warm_it, log, system=_system(warm_it, None),
                         run=_run_json(warm_it, None, times["warmup_train_s"] + times["warmup_mesh_s"],
@@ -189,12 +207,15 @@ def main(argv=None) -> None:
 
 
 def _exchange_id(exchange: str) -> str:
-    """The exchange folder's name and a digest of its training views' COLMAP poses: a warm-up carried to another
-    machine is checked to be of the same scene."""
+    """The exchange folder's name and a digest of its training views' COLMAP cameras and poses: a warm-up carried
+    to another machine is checked to be of the same scene at the same resolution."""
     import hashlib
 
-    with open(os.path.join(exchange, "colmap", "sparse", "0", "images.txt"), "rb") as f:
-        digest = hashlib.sha1(f.read()).hexdigest()[:12]
+    h = hashlib.sha1()
+    for name in ("cameras.txt", "images.txt"):
+        with open(os.path.join(exchange, "colmap", "sparse", "0", name), "rb") as f:
+            h.update(f.read())
+    digest = h.hexdigest()[:12]
     return f"{load(exchange).meta['name']}:{digest}"
 
 
@@ -224,7 +245,17 @@ def _earlier_warmup(result: str, out: str, exchange: str) -> dict:
     return {"dir": os.path.join(result, "warmup"), "warmup_iterations": int(run["warmup_iterations"]),
             "wall_s": float(run["wall_s"]), "peak_json": peak_json,
             "times": {k: float(run[k]) for k in ("warmup_train_s", "warmup_mesh_s")},
+            "device": run.get("device"),
             "from": f"an earlier run: {run.get('system')}, {float(run['wall_s']):.0f} s ({os.path.abspath(result)})"}
+
+
+def _device_name():
+    """The GPU this process sees (its training children see the same), or None without one."""
+    try:
+        import torch
+    except ImportError:
+        return None
+    return torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
 
 
 def _system(warmup_it: int, mesh_it) -> str:
@@ -261,6 +292,7 @@ def _finish(out: str, exchange: str, model: str, checkout: str, it: int, log, *,
     peaks = run.pop("_peaks")
     run["surfels"] = int(v["n"])
     run["exchange"] = _exchange_id(exchange)
+    run["device"] = _device_name()
     # the processes' peaks (training, meshing, held-out renders); unknown for an earlier run's training
     gpu = [read_json(p)["peak_gpu_bytes"] for p in peaks or () if os.path.exists(p)] + [int(v["peak"])]
     run["peak_gpu_bytes"] = None if peaks is None else max(gpu)

@@ -22,7 +22,11 @@
 # two leases: the warm-up (SYSTEMS=pgsr_nomesh) in one; in the next, after step 1, one call per folder .stage/warm/N
 # holding at most five of the warm-up's parts, carrying that folder alone:   bash lab/device/sl.sh warm
 # then step 2 with SYSTEMS=pgsr FROM_WARMUP=1: each scene's mesh stage starts from its carried warm-up
-# (run_pgsr.py --from-warmup; the row counts both stages' time and the larger peak).
+# (run_pgsr.py --from-warmup; the row counts both stages' time and the larger peak). Its DPSR half (from iteration
+# 5,000) has never run on a GPU: a short check first costs little, e.g.
+#   SCENES=bunny64 SYSTEMS=pgsr FROM_WARMUP=1 PGSR_ARGS="--iterations 600 --mesh-train-args=--mesh_from_iter=200"
+# (device.sh splits PGSR_ARGS at spaces: the = forms keep it one argument)
+# (its rate per iteration from the log's timestamps; the row is labelled with those arguments, not a table row).
 step=${1:-wait}
 set -o pipefail
 shopt -s nullglob
@@ -100,6 +104,9 @@ launch)
       rm -f $P/$sc.$s.done $P/${sc}__${s}__*.txz $P/sent/${sc}__${s}__*.txz
     done
     pgsr_args=${PGSR_ARGS:-}
+    if [ -n "${FROM_WARMUP:-}" ] && [[ " $sys " == *" pgsr_nomesh "* ]]; then
+      echo "$sc: FROM_WARMUP starts pgsr's mesh stage from the carried warm-up; pgsr_nomesh would train it again"; exit 1
+    fi
     if [ -n "${FROM_WARMUP:-}" ] && [[ " $sys " == *" pgsr "* ]]; then
       # the warm-up's parts, carried by the warm step, for the mesh stage (run_pgsr.py checks it is this scene's)
       unpack_parts ${sc}__pgsr_nomesh $S/warm/$sc $S/warmparts || exit 1
