@@ -115,15 +115,15 @@ def main(argv=None) -> None:
                          "for a short check of its DPSR half): not the published recipe, and the system name says so")
     a = ap.parse_args(argv)
     extra = shlex.split(a.mesh_train_args)
-    if extra and a.no_mesh_stage:
-        ap.error("--mesh-train-args: --no-mesh-stage runs no mesh stage")
+    if extra and (a.no_mesh_stage or a.mesh_only is not None):
+        ap.error("--mesh-train-args: --no-mesh-stage and --mesh-only train no mesh stage")
     if a.from_warmup and (a.no_mesh_stage or a.mesh_only is not None or a.nomesh_out):
         ap.error("--from-warmup starts the mesh stage: not with --no-mesh-stage, --mesh-only or --nomesh-out")
-    earlier = _earlier_warmup(a.from_warmup, a.out, a.exchange) if a.from_warmup else None
+    ex_id = _exchange_id(a.exchange)  # fails before any training on a folder that is not an exchange folder
+    earlier = _earlier_warmup(a.from_warmup, a.out, ex_id) if a.from_warmup else None
     if earlier:
         a.warmup_iterations = earlier["warmup_iterations"]
 
-    load(a.exchange)  # fails before any training on a folder that is not an exchange folder
     head = os.path.abspath(a.checkout)
     init = os.path.abspath(a.init_checkout or os.path.join(os.path.dirname(head), "pgsr_init"))
     # --from-warmup runs no warm-up: its checkout is not needed
@@ -184,7 +184,7 @@ def main(argv=None) -> None:
         done = a.mesh_only is None
         warm_it = a.mesh_only if a.no_mesh_stage and not done else a.warmup_iterations
         if a.no_mesh_stage:
-            _finish(a.out, a.exchange, warm, init, warm_it, log, system=_system(warm_it, None),
+            _finish(a.out, a.exchange, ex_id, warm, init, warm_it, log, system=_system(warm_it, None),
                     run=_run_json(warm_it, None, wall if done else None,
                                   times if done else {}, peaks if done else None))
         else:
@@ -196,12 +196,12 @@ def main(argv=None) -> None:
                 run["warmup_from"] = earlier["from"]
                 run["warmup_device"] = earlier["device"]
             system = _system(a.warmup_iterations, it) + (f" [{a.mesh_train_args}]" if extra else "")
-            _finish(a.out, a.exchange, model, head, it, log, system=system, run=run)
+            _finish(a.out, a.exchange, ex_id, model, head, it, log, system=system, run=run)
             if earlier and run.get("device") != earlier["device"]:
                 print(f"run_pgsr: the warm-up ran on {earlier['device']}, the mesh stage on {run.get('device')}: "
                       "the row's time adds two GPUs' times", file=sys.stderr)
             if a.nomesh_out and done:  # the warm-up alone is plain PGSR: its own result, its own time
-                _finish(a.nomesh_out, a.exchange, warm, init, warm_it, log, system=_system(warm_it, None),
+                _finish(a.nomesh_out, a.exchange, ex_id, warm, init, warm_it, log, system=_system(warm_it, None),
                         run=_run_json(warm_it, None, times["warmup_train_s"] + times["warmup_mesh_s"],
                                       {k: times[k] for k in ("warmup_train_s", "warmup_mesh_s")}, peaks[:2]))
 
@@ -211,19 +211,20 @@ def _exchange_id(exchange: str) -> str:
     to another machine is checked to be of the same scene at the same resolution."""
     import hashlib
 
+    name = load(exchange).meta["name"]
     h = hashlib.sha1()
-    for name in ("cameras.txt", "images.txt"):
-        with open(os.path.join(exchange, "colmap", "sparse", "0", name), "rb") as f:
+    for txt in ("cameras.txt", "images.txt"):
+        with open(os.path.join(exchange, "colmap", "sparse", "0", txt), "rb") as f:
             h.update(f.read())
-    digest = h.hexdigest()[:12]
-    return f"{load(exchange).meta['name']}:{digest}"
+    return f"{name}:{h.hexdigest()[:12]}"
 
 
-def _earlier_warmup(result: str, out: str, exchange: str) -> dict:
-    """An earlier ``--no-mesh-stage`` run's warm-up on ``exchange``, read from its result folder ``result``: ``dir``
-    (its ``warmup`` model folder, holding ``mesh/tsdf_fusion_post.ply``), ``warmup_iterations``, ``wall_s``, ``times``
-    (its training and meshing seconds), ``peak_json`` (its peak GPU memory, written under ``out`` in
-    ``_peak.py``'s form) and ``from`` (what ran it: its system and wall time, for ``run.json``)."""
+def _earlier_warmup(result: str, out: str, want: str) -> dict:
+    """An earlier ``--no-mesh-stage`` run's warm-up on the exchange folder whose ``_exchange_id`` is ``want``, read
+    from its result folder ``result``: ``dir`` (its ``warmup`` model folder, holding ``mesh/tsdf_fusion_post.ply``),
+    ``warmup_iterations``, ``wall_s``, ``times`` (its training and meshing seconds), ``peak_json`` (its peak GPU
+    memory, written under ``out`` in ``_peak.py``'s form), ``device`` (its GPU) and ``from`` (what ran it: its system
+    and wall time, for ``run.json``)."""
     run_json = os.path.join(result, "run.json")
     mesh = os.path.join(result, "warmup", "mesh", "tsdf_fusion_post.ply")
     for path in (run_json, mesh):
@@ -234,10 +235,8 @@ def _earlier_warmup(result: str, out: str, exchange: str) -> dict:
         sys.exit(f"--from-warmup: {run_json} is not a whole warm-up's (--no-mesh-stage) result: "
                  f"mesh_stage_iterations={run.get('mesh_stage_iterations')}, wall_s={run.get('wall_s')}, "
                  f"peak_gpu_bytes={run.get('peak_gpu_bytes')}")
-    want = _exchange_id(exchange)
     if run.get("exchange") != want:
-        sys.exit(f"--from-warmup: {run_json} is a warm-up of exchange={run.get('exchange')!r}, not of "
-                 f"{want!r} ({exchange})")
+        sys.exit(f"--from-warmup: {run_json} is a warm-up of exchange={run.get('exchange')!r}, not of {want!r}")
     os.makedirs(out, exist_ok=True)
     peak_json = os.path.join(out, "peak_earlier_warmup.json")
     with open(peak_json, "w") as f:
@@ -279,8 +278,10 @@ def _run_json(warmup_it: int, mesh_it, wall, times: dict, peaks) -> dict:
                        "--ncc_scale 0.5; TSDF voxel 0.002, truncation 0.008, max depth 5.0, 1 cluster")}
 
 
-def _finish(out: str, exchange: str, model: str, checkout: str, it: int, log, *, system: str, run: dict) -> None:
-    """Render the held-out views of ``model`` at ``it`` and write the result folder ``out``."""
+def _finish(out: str, exchange: str, exchange_id: str, model: str, checkout: str, it: int, log, *, system: str,
+            run: dict) -> None:
+    """Render the held-out views of ``model`` at ``it`` and write the result folder ``out`` (``exchange_id``:
+    ``_exchange_id(exchange)``, recorded for a later ``--from-warmup``)."""
     import trimesh
 
     os.makedirs(out, exist_ok=True)
@@ -291,7 +292,7 @@ def _finish(out: str, exchange: str, model: str, checkout: str, it: int, log, *,
     v = np.load(views)
     peaks = run.pop("_peaks")
     run["surfels"] = int(v["n"])
-    run["exchange"] = _exchange_id(exchange)
+    run["exchange"] = exchange_id
     run["device"] = _device_name()
     # the processes' peaks (training, meshing, held-out renders); unknown for an earlier run's training
     gpu = [read_json(p)["peak_gpu_bytes"] for p in peaks or () if os.path.exists(p)] + [int(v["peak"])]

@@ -104,13 +104,15 @@ launch)
       rm -f $P/$sc.$s.done $P/${sc}__${s}__*.txz $P/sent/${sc}__${s}__*.txz
     done
     pgsr_args=${PGSR_ARGS:-}
-    if [ -n "${FROM_WARMUP:-}" ] && [[ " $sys " == *" pgsr_nomesh "* ]]; then
-      echo "$sc: FROM_WARMUP starts pgsr's mesh stage from the carried warm-up; pgsr_nomesh would train it again"; exit 1
-    fi
-    if [ -n "${FROM_WARMUP:-}" ] && [[ " $sys " == *" pgsr "* ]]; then
-      # the warm-up's parts, carried by the warm step, for the mesh stage (run_pgsr.py checks it is this scene's)
-      unpack_parts ${sc}__pgsr_nomesh $S/warm/$sc $S/warmparts || exit 1
-      pgsr_args="$pgsr_args --from-warmup $S/warm/$sc"
+    if [ -n "${FROM_WARMUP:-}" ]; then
+      if [[ " $sys " == *" pgsr_nomesh "* ]]; then
+        echo "$sc: FROM_WARMUP starts pgsr's mesh stage from the carried warm-up; pgsr_nomesh would train it again"
+        exit 1
+      elif [[ " $sys " == *" pgsr "* ]]; then
+        # the warm-up's parts, carried by the warm step, for the mesh stage (run_pgsr.py checks it is this scene's)
+        unpack_parts ${sc}__pgsr_nomesh $S/warm/$sc $S/warmparts || exit 1
+        pgsr_args="$pgsr_args --from-warmup $S/warm/$sc"
+      fi
     fi
     PGSR_ARGS=$pgsr_args STAGE=$S bash $D launch "$S/exch/$sc" -- $sys
   done

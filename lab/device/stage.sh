@@ -107,6 +107,29 @@ PIPDL=(--only-binary=:all: --python-version 3.12 --implementation cp --no-deps
        --platform manylinux2014_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux_2_27_x86_64
        --platform manylinux_2_28_x86_64 --platform manylinux_2_31_x86_64 --platform manylinux_2_34_x86_64)
 
+# the wheels named (pip specs), unpacked into $TMP/un less O3D_DROP, as one xz tar (names sorted: it extracts into
+# site-packages) written to $1
+wheels_xz() {
+  local dest=$1 w p; shift
+  mkdir -p "$TMP/dl" "$TMP/un"
+  pipdl -d "$TMP/dl" "$@"
+  for w in "$TMP"/dl/*.whl; do unzip -q -o "$w" -d "$TMP/un"; done
+  for p in "${O3D_DROP[@]}"; do
+    [ -e "$TMP/un/$p" ] || { echo "O3D_DROP: $p not in the wheel"; exit 1; }
+    rm -rf "${TMP:?}/un/$p"
+  done
+  du -sh "$TMP/un"
+  (cd "$TMP/un" && tar --sort=name --owner=0 --group=0 --numeric-owner -cf - -- *) | xz -9 -T"$XZ_THREADS" > "$dest"
+  rm -rf "$TMP/un" "$TMP/dl"
+  ls -l "$dest"
+}
+# export.py's folder of a scene of scenes.py, or bunny64: the built-in bunny at 64 views of 512 px
+export_scene() {
+  local args=("$1"); [ "$1" = bunny64 ] && args=(bunny --views 64 --resolution 512)
+  rm -rf "${OUT:?}/exch/$1"
+  (cd "$REPO" && "$PY" benchmarks/peers/export.py "${args[@]}" "$OUT/exch/$1" --name "$1")
+}
+
 TMP=$(mktemp -d "${TMPDIR:-/tmp}/stage.XXXXXX")
 [ "${KEEP_TMP:-0}" = 1 ] || trap 'rm -rf "$TMP"' EXIT
 mkdir -p "$OUT"
@@ -120,23 +143,11 @@ for step in "${steps[@]}"; do
   t0=$(date +%s)
   case $step in
   big)
-    mkdir -p "$TMP/dl" "$TMP/un"
-    pipdl -d "$TMP/dl" "warp-lang==$WARP_VER" "open3d==$O3D_VER"
-    for w in "$TMP"/dl/*.whl; do unzip -q -o "$w" -d "$TMP/un"; done
-    for p in "${O3D_DROP[@]}"; do
-      [ -e "$TMP/un/$p" ] || { echo "O3D_DROP: $p not in the wheel"; exit 1; }
-      rm -rf "${TMP:?}/un/$p"
-    done
-    du -sh "$TMP/un"
-    # one tar of the unpacked contents (warp/, open3d/, their .dist-info), names sorted: extracts into site-packages
-    (cd "$TMP/un" && tar --sort=name --owner=0 --group=0 --numeric-owner -cf - -- *) \
-      | xz -9 -T"$XZ_THREADS" > "$TMP/big.tar.xz"
-    ls -l "$TMP/big.tar.xz"
+    wheels_xz "$TMP/big.tar.xz" "warp-lang==$WARP_VER" "open3d==$O3D_VER"   # warp/, open3d/, their .dist-info
     rm -rf "$OUT"/p[0-9]*
     split -b "$PART_BYTES" -d -a 2 "$TMP/big.tar.xz" "$TMP/big.part"
     i=1
     for f in "$TMP"/big.part*; do mkdir -p "$OUT/p$i"; mv "$f" "$OUT/p$i/"; i=$((i + 1)); done
-    rm -rf "$TMP/un" "$TMP/dl"
     if [ "$TEST_IMPORT" = 1 ] && command -v python3.12 >/dev/null && PYENV_VERSION=${PYENV_VERSION:-3.12.1} python3.12 -V >/dev/null 2>&1; then
       # the device's import path: the parts, extracted, with benchmarks/peers/shims (plotly, dash, addict);
       # open3d's import also needs numpy, scikit-learn, PyYAML, Pillow, pandas, tqdm (in the GPU image)
@@ -221,8 +232,8 @@ print('RaycastingScene distance from the centre:', d)
     du -sh "$P"/*
     ;;
   exch)
-    rm -rf "$OUT/exch/bunny64" "$OUT/exch/dtu_scan24"; mkdir -p "$OUT/exch"   # sl_exch's other scenes stay
-    (cd "$REPO" && "$PY" benchmarks/peers/export.py bunny "$OUT/exch/bunny64" --views 64 --resolution 512 --name bunny64)
+    rm -rf "$OUT/exch/dtu_scan24"; mkdir -p "$OUT/exch"   # sl_exch's other scenes stay
+    export_scene bunny64
     # DTU's initial points are plane-sweep stereo: over 25 minutes on this 2-core CPU (never finished here), seconds
     # on the GPU. Default: the raw scene goes as dtu_raw/dtu_scan24 (11 MB) and lease.sh d exports it on the GPU
     # machine when exch/dtu_scan24/meta.json is absent. EXPORT_DTU=1: export it here instead.
@@ -240,18 +251,8 @@ print('RaycastingScene distance from the centre:', d)
       && rm -rf "$OUT/old" && mkdir -p "$OUT/old" && git archive e77081a | tar -x -C "$OUT/old")
     ;;
   o3d)
-    mkdir -p "$TMP/dl" "$TMP/un"
-    pipdl -d "$TMP/dl" "open3d==$O3D_VER"
-    unzip -q -o "$TMP"/dl/open3d-*.whl -d "$TMP/un"
-    for p in "${O3D_DROP[@]}"; do
-      [ -e "$TMP/un/$p" ] || { echo "O3D_DROP: $p not in the wheel"; exit 1; }
-      rm -rf "${TMP:?}/un/$p"
-    done
     rm -rf "$OUT/o3d"; mkdir -p "$OUT/o3d"
-    (cd "$TMP/un" && tar --sort=name --owner=0 --group=0 --numeric-owner -cf - -- *) \
-      | xz -9 -T"$XZ_THREADS" > "$OUT/o3d/big.part00"
-    rm -rf "$TMP/un" "$TMP/dl"
-    ls -l "$OUT/o3d/big.part00"
+    wheels_xz "$OUT/o3d/big.part00" "open3d==$O3D_VER"
     ;;
   smallpeers)
     [ -d "$OUT/small/whl" ] && [ -d "$OUT/small/peers/2dgs" ] || { echo "smallpeers: run the steps wheels and peers first"; exit 1; }
@@ -263,12 +264,7 @@ print('RaycastingScene distance from the centre:', d)
   sl_exch)
     mkdir -p "$OUT/exch"
     for sc in ${SL_SCENES:-bunny64 chair torus bowl blob_flat mug chair_sparse torus_sparse mug_sparse}; do
-      rm -rf "${OUT:?}/exch/$sc"
-      if [ "$sc" = bunny64 ]; then
-        (cd "$REPO" && "$PY" benchmarks/peers/export.py bunny "$OUT/exch/bunny64" --views 64 --resolution 512 --name bunny64)
-      else
-        (cd "$REPO" && "$PY" benchmarks/peers/export.py "$sc" "$OUT/exch/$sc" --name "$sc")
-      fi
+      export_scene "$sc"
     done
     strip_ignored "$OUT/exch"
     du -sh "$OUT"/exch/*
