@@ -19,12 +19,12 @@
 # A result travels as SCENE__SYSTEM__IofN.txz (10 MiB parts, six a call; RESEND=1 sends every part again): its
 # run.json, mesh.ply, renders.npz and logs; for pgsr_nomesh the warm-up's TSDF mesh the mesh stage reads in place of
 # mesh.ply, which is that mesh again (unpack restores it). The authors' code at its published counts takes
-# two leases: the warm-up (SYSTEMS=pgsr_nomesh) in one; in the next, after step 1, one call per folder .stage/warm/N
-# holding at most five of the warm-up's parts, carrying that folder alone:   bash lab/device/sl.sh warm
+# at least two leases: the warm-up (SYSTEMS=pgsr_nomesh) in one; in the next, after step 1, one call per folder
+# .stage/warm/N holding at most five of the warm-up's parts, carrying that folder alone:   bash lab/device/sl.sh warm
 # then step 2 with SYSTEMS=pgsr FROM_WARMUP=1: each scene's mesh stage starts from its carried warm-up
-# (run_pgsr.py --from-warmup; the row counts both stages' time and the larger peak). Its DPSR loop (from iteration
-# 5,000) ran 1.3 s an iteration beside two 2DGS runs (benchmarks/peers.md); its rate alone, which decides whether
-# the mesh stage fits a lease, takes a short run alone on the GPU, e.g.
+# (run_pgsr.py --from-warmup; the row counts both stages' time and the larger peak). Its DPSR loop (after iteration
+# 5,000) ran 1.3 s an iteration beside two 2DGS runs; the mesh stage fits one lease only at about 0.25 s alone
+# (benchmarks/peers.md). Its rate alone takes a short run alone on the GPU, e.g.
 #   SCENES=torus_sparse:pgsr PGSR_ARGS="--warmup-iterations 1000 --iterations 400 --mesh-train-args=--mesh_from_iter=100"
 # (device.sh splits PGSR_ARGS at spaces: the = forms keep it one argument)
 # (its rate per iteration from the log's timestamps; the row is labelled with those arguments, not a table row).
