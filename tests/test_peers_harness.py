@@ -159,9 +159,10 @@ def _fake_pgsr(monkeypatch, calls, mesh_scale=1.0):
     def run(cmd, cwd, log, **env):
         calls.append((os.path.basename(cwd), cmd))
         if "_peak.py" in os.path.basename(cmd[1]):
+            script = cmd[4] if cmd[3].endswith("_dpsr_cache.py") else cmd[3]
             with open(cmd[2], "w") as f:
-                json.dump({"peak_gpu_bytes": 1000 if cmd[3] == "train.py" else 10}, f)
-            if cmd[3] == "render.py":
+                json.dump({"peak_gpu_bytes": 1000 if script == "train.py" else 10}, f)
+            if script == "render.py":
                 mesh = os.path.join(cmd[cmd.index("-m") + 1], "mesh")
                 os.makedirs(mesh, exist_ok=True)
                 trimesh.creation.box(extents=[mesh_scale] * 3).export(os.path.join(mesh, "tsdf_fusion_post.ply"))
@@ -224,6 +225,121 @@ def test_the_authors_mesh_stage_starts_from_an_earlier_warmup(exch, tmp_path, mo
     with pytest.raises(SystemExit) as e:  # the warm-up alone has no mesh stage to pass them to
         run_pgsr.main([exch.root, str(tmp_path / "o"), *ck, "--no-mesh-stage", "--mesh-train-args", "--x 1"])
     assert e.value.code == 2
+
+    # the DPSR grids kept on the GPU: the mesh stage's train.py runs under _dpsr_cache.py, render.py does not
+    calls.clear()
+    run_pgsr.main([exch.root, str(tmp_path / "cached"), *ck, "--from-warmup", str(tmp_path / "warm"),
+                   "--iterations", "100", "--cache-dpsr-grids"])
+    train, render = calls[0][1], calls[1][1]
+    assert train[3].endswith("_dpsr_cache.py") and train[4] == "train.py" and render[3] == "render.py"
+    cached = json.loads((tmp_path / "cached" / "run.json").read_text())
+    assert cached["system"] == "PGSR+DPSR (authors', 300 + 100 it.) [DPSR grids on the GPU]"
+    assert cached["dpsr_grids_cached"] is True and cached["peak_gpu_bytes"] == 5000
+    with pytest.raises(SystemExit) as e:
+        run_pgsr.main([exch.root, str(tmp_path / "o"), *ck, "--no-mesh-stage", "--cache-dpsr-grids"])
+    assert e.value.code == 2
+
+
+# The authors' DPSR forward as it handles its grids (``nvdiffrast_utils/dpsr.py``): the frequency grid made anew
+# on the CPU each call, scaled in place, moved to the points' device, and the filter moved there each call too.
+_FAKE_DPSR = '''
+import numpy as np
+import torch
+
+MADE = [0]
+
+
+def fftfreqs(res, dtype=torch.float32, exact=True):
+    MADE[0] += 1
+    f = [torch.tensor(np.fft.fftfreq(r, d=1 / r), dtype=dtype) for r in res[:-1]]
+    f.append(torch.tensor(np.fft.rfftfreq(res[-1], d=1 / res[-1]), dtype=dtype))
+    return torch.stack(torch.meshgrid(f, indexing="ij"), dim=-1)
+
+
+class DPSR(torch.nn.Module):
+    def __init__(self, res, sig=2.0):
+        super().__init__()
+        self.res = res
+        w = fftfreqs(res, dtype=torch.float64)
+        self.G = torch.exp(-0.5 * (sig * 2 * w.norm(dim=-1) / res[0]) ** 2).float()[..., None, None]
+        self.omega = fftfreqs(res)
+
+    def forward(self, V, N):
+        idx = (V.clamp(0, 0.999) * torch.tensor(self.res, dtype=V.dtype)).long()
+        flat = (idx[..., 0] * self.res[1] + idx[..., 1]) * self.res[2] + idx[..., 2]
+        grid = torch.zeros(V.shape[0], 3, int(np.prod(self.res)), dtype=V.dtype)
+        grid = grid.index_add(2, flat[0], N[0].T[None]).view(V.shape[0], 3, *self.res)
+        spec = torch.fft.rfftn(grid, dim=(2, 3, 4)).permute(0, 2, 3, 4, 1)[..., None] * self.G.to(V.device)
+        omega = fftfreqs(self.res, dtype=torch.float32).unsqueeze(-1)
+        omega *= 2 * np.pi
+        omega = omega.to(V.device)
+        div = (1j * spec[..., 0] * omega[..., 0]).sum(-1)
+        phi = div / (-(omega[..., 0] ** 2).sum(-1) + 1e-6)
+        return torch.fft.irfftn(phi, s=self.res, dim=(1, 2, 3))
+'''
+
+
+def _fake_dpsr_package(root):
+    (root / "nvdiffrast_utils").mkdir()
+    (root / "nvdiffrast_utils" / "__init__.py").write_text("")
+    (root / "nvdiffrast_utils" / "dpsr.py").write_text(_FAKE_DPSR)
+
+
+def test_the_dpsr_grid_cache_gives_the_authors_values_and_gradients(tmp_path, monkeypatch):
+    """``_dpsr_cache.install``: the patched forward returns the same field and gradients as the authors' on
+    every call (the in-place scaling does not reach the cache), builds the grid once after the first call, and
+    leaves ``__init__``'s own grid alone; installing twice changes nothing."""
+    import importlib
+
+    import _dpsr_cache
+    import torch
+
+    _fake_dpsr_package(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    dpsr = importlib.import_module("nvdiffrast_utils.dpsr")
+    gen = torch.Generator().manual_seed(0)
+    V = torch.rand(1, 40, 3, generator=gen)
+    N = torch.nn.functional.normalize(torch.randn(1, 40, 3, generator=gen), dim=-1).requires_grad_()
+    model = dpsr.DPSR((8, 8, 6))
+
+    def field():
+        N.grad = None
+        phi = model(V, N)
+        (phi * torch.linspace(-1, 1, phi.numel()).view_as(phi)).sum().backward()
+        return phi.detach(), N.grad.clone()
+
+    want = field()
+    _dpsr_cache.install(dpsr)
+    _dpsr_cache.install(dpsr)
+    made = dpsr.MADE[0]
+    for _ in range(3):
+        got = field()
+        assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+    assert dpsr.MADE[0] == made + 1  # one grid for the three calls
+    assert dpsr.fftfreqs.__name__ == "fftfreqs" and dpsr.fftfreqs.__module__ == "nvdiffrast_utils.dpsr"
+    dpsr.DPSR((4, 4, 4))
+    assert dpsr.MADE[0] == made + 3  # __init__ makes its filter's and its own grid as the authors' code does
+
+
+def test_the_dpsr_grid_cache_runs_the_script_as_main(tmp_path):
+    """``_peak.py OUT _dpsr_cache.py train.py ARGS`` in a checkout: ``train.py`` runs as ``__main__`` with its own
+    arguments and finds the checkout's ``DPSR`` patched."""
+    import json
+    import subprocess
+
+    _fake_dpsr_package(tmp_path)
+    (tmp_path / "train.py").write_text(
+        "import json, sys\n"
+        "from nvdiffrast_utils import dpsr\n"
+        "if __name__ == '__main__':\n"
+        "    json.dump({'argv': sys.argv, 'cached': getattr(dpsr.DPSR.forward, '_grids_cached', False)},\n"
+        "              open('seen.json', 'w'))\n")
+    subprocess.run([sys.executable, os.path.join(PEERS, "_peak.py"), str(tmp_path / "peak.json"),
+                    os.path.join(PEERS, "_dpsr_cache.py"), "train.py", "-s", "src", "--iterations", "7"],
+                   cwd=tmp_path, check=True)
+    seen = json.loads((tmp_path / "seen.json").read_text())
+    assert seen == {"argv": ["train.py", "-s", "src", "--iterations", "7"], "cached": True}
+    assert "peak_gpu_bytes" in json.loads((tmp_path / "peak.json").read_text())
 
 
 def test_a_mesh_stage_without_a_whole_warmup_of_its_scene_is_refused(exch, exch_env, tmp_path, monkeypatch):

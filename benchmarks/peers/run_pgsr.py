@@ -27,15 +27,18 @@ importable, and ``shims/`` (pytorch3d, pymeshlab, kaolin, igl stand-ins) on the 
 
     python benchmarks/peers/run_pgsr.py EXCH OUT --checkout PATH [--init-checkout PATH] [--no-mesh-stage]
         [--iterations 10000] [--warmup-iterations 30000] [--nomesh-out DIR] [--mesh-only ITERATION]
-        [--from-warmup DIR] [--mesh-train-args "ARGS"]
+        [--from-warmup DIR] [--mesh-train-args "ARGS"] [--cache-dpsr-grids]
 
 ``--nomesh-out DIR`` also writes the warm-up's own result (plain PGSR, timed alone) from the same run.
 ``--from-warmup DIR`` runs stage 2 alone from an earlier ``--no-mesh-stage`` run's result folder (the mesh
-stage reads nothing of the warm-up but its TSDF mesh): the whole recipe in two leases, each under a
-lease's device time, with the warm-up's time and peak memory counted in the result's. ``--mesh-train-args``
+stage reads nothing of the warm-up but its TSDF mesh): the whole recipe in two leases, with the warm-up's
+time and peak memory counted in the result's. ``--mesh-train-args``
 passes more arguments to the mesh stage's ``train.py`` (a short check of its DPSR half before a whole run, e.g.
 ``--mesh-train-args=--mesh_from_iter=200``, one word for ``device.sh``'s ``PGSR_ARGS``): the result's system name
-then says so. ``run.json`` names the GPU each stage ran on.
+then says so. ``--cache-dpsr-grids`` runs the mesh stage's ``train.py`` under ``_dpsr_cache.py``: its DPSR
+builds its 512^3 frequency grid on the CPU and copies it and its filter to the GPU every iteration (about 1 GiB),
+which bounds its loop by the host; the cache keeps them on the GPU, the same values, and the system name says
+so. ``run.json`` names the GPU each stage ran on.
 """
 
 from __future__ import annotations
@@ -113,10 +116,14 @@ def main(argv=None) -> None:
     ap.add_argument("--mesh-train-args", default="", metavar="ARGS",
                     help="more arguments of the mesh stage's train.py, one string (e.g. \"--mesh_from_iter 200\" "
                          "for a short check of its DPSR half): not the published recipe, and the system name says so")
+    ap.add_argument("--cache-dpsr-grids", action="store_true",
+                    help="the mesh stage's DPSR keeps its frequency grid and filter on the GPU instead of building "
+                         "and copying them every iteration (_dpsr_cache.py): the same values, less time; the "
+                         "system name says so")
     a = ap.parse_args(argv)
     extra = shlex.split(a.mesh_train_args)
-    if extra and (a.no_mesh_stage or a.mesh_only is not None):
-        ap.error("--mesh-train-args: --no-mesh-stage and --mesh-only train no mesh stage")
+    if (extra or a.cache_dpsr_grids) and (a.no_mesh_stage or a.mesh_only is not None):
+        ap.error("--mesh-train-args, --cache-dpsr-grids: --no-mesh-stage and --mesh-only train no mesh stage")
     if a.from_warmup and (a.no_mesh_stage or a.mesh_only is not None or a.nomesh_out):
         ap.error("--from-warmup starts the mesh stage: not with --no-mesh-stage, --mesh-only or --nomesh-out")
     ex_id = _exchange_id(a.exchange)  # fails before any training on a folder that is not an exchange folder
@@ -153,11 +160,12 @@ def main(argv=None) -> None:
             times[name] = now - t
             t = now
 
-        def stage(prefix, ckout, model_dir, iterations, train=True, more=()):
+        def stage(prefix, ckout, model_dir, iterations, train=True, more=(), launcher=()):
             """``train.py`` then ``render.py`` (its TSDF mesh) of one stage, each timed and its peak recorded."""
             if train:
-                _run(peak(prefix + "train") + ["train.py", "-s", src, "-m", model_dir, *TRAIN_ARGS, "--test_iterations",
-                                               "-1", "--iterations", str(iterations), *more], ckout, log)
+                _run(peak(prefix + "train") + [*launcher, "train.py", "-s", src, "-m", model_dir, *TRAIN_ARGS,
+                                               "--test_iterations", "-1", "--iterations", str(iterations), *more],
+                     ckout, log)
                 lap(prefix + "train_s")
             _run(peak(prefix + "mesh") + ["render.py", "-m", model_dir, *MESH_ARGS, "--iteration", str(iterations)],
                  ckout, log, OMP_NUM_THREADS="4")
@@ -173,7 +181,8 @@ def main(argv=None) -> None:
             if not a.no_mesh_stage:
                 # 2. mesh stage: pgsr_dpsr from the warm-up's mesh
                 shutil.copyfile(os.path.join(warm, "mesh", "tsdf_fusion_post.ply"), os.path.join(src, "mesh_init.ply"))
-                stage("", head, model, a.iterations, more=extra)
+                stage("", head, model, a.iterations, more=extra,
+                      launcher=[os.path.join(HERE, "_dpsr_cache.py")] if a.cache_dpsr_grids else [])
         else:
             stage("", final_ckout, final, it, train=False)
         wall = time.perf_counter() - t0
@@ -192,10 +201,13 @@ def main(argv=None) -> None:
                             peaks if done else None)
             if extra:
                 run["mesh_train_args"] = a.mesh_train_args
+            if a.cache_dpsr_grids:
+                run["dpsr_grids_cached"] = True
             if earlier:
                 run["warmup_from"] = earlier["from"]
                 run["warmup_device"] = earlier["device"]
-            system = _system(a.warmup_iterations, it) + (f" [{a.mesh_train_args}]" if extra else "")
+            system = (_system(a.warmup_iterations, it) + (f" [{a.mesh_train_args}]" if extra else "")
+                      + (" [DPSR grids on the GPU]" if a.cache_dpsr_grids else ""))
             _finish(a.out, a.exchange, ex_id, model, head, it, log, system=system, run=run)
             if earlier and run.get("device") != earlier["device"]:
                 print(f"run_pgsr: the warm-up ran on {earlier['device']}, the mesh stage on {run.get('device')}: "

@@ -24,10 +24,9 @@
 # then step 2 with SYSTEMS=pgsr FROM_WARMUP=1: each scene's mesh stage starts from its carried warm-up
 # (run_pgsr.py --from-warmup; the row counts both stages' time and the larger peak). Its DPSR loop (after iteration
 # 5,000) ran 1.3 s an iteration beside two 2DGS runs; the mesh stage fits one lease only at about 0.25 s alone
-# (benchmarks/peers.md). Its rate alone takes a short run alone on the GPU, e.g.
-#   SCENES=torus_sparse:pgsr PGSR_ARGS="--warmup-iterations 1000 --iterations 400 --mesh-train-args=--mesh_from_iter=100"
-# (device.sh splits PGSR_ARGS at spaces: the = forms keep it one argument)
-# (its rate per iteration from the log's timestamps; the row is labelled with those arguments, not a table row).
+# (benchmarks/peers.md). lab/device/dpsr_rate.sh measures its rate alone, as published and with
+# PGSR_ARGS=--cache-dpsr-grids (its grids kept on the GPU), after step 1 and before any launch.
+# (device.sh splits PGSR_ARGS at spaces: use the = forms, e.g. --mesh-train-args=--mesh_from_iter=200).
 step=${1:-wait}
 set -o pipefail
 shopt -s nullglob
