@@ -265,9 +265,9 @@ class DPSR(torch.nn.Module):
         self.omega = fftfreqs(res)
 
     def forward(self, V, N):
-        idx = (V.clamp(0, 0.999) * torch.tensor(self.res, dtype=V.dtype)).long()
+        idx = (V.clamp(0, 0.999) * torch.tensor(self.res, dtype=V.dtype, device=V.device)).long()
         flat = (idx[..., 0] * self.res[1] + idx[..., 1]) * self.res[2] + idx[..., 2]
-        grid = torch.zeros(V.shape[0], 3, int(np.prod(self.res)), dtype=V.dtype)
+        grid = torch.zeros(V.shape[0], 3, int(np.prod(self.res)), dtype=V.dtype, device=V.device)
         grid = grid.index_add(2, flat[0], N[0].T[None]).view(V.shape[0], 3, *self.res)
         spec = torch.fft.rfftn(grid, dim=(2, 3, 4)).permute(0, 2, 3, 4, 1)[..., None] * self.G.to(V.device)
         omega = fftfreqs(self.res, dtype=torch.float32).unsqueeze(-1)
@@ -285,10 +285,12 @@ def _fake_dpsr_package(root):
     (root / "nvdiffrast_utils" / "dpsr.py").write_text(_FAKE_DPSR)
 
 
-def test_the_dpsr_grid_cache_gives_the_authors_values_and_gradients(tmp_path, monkeypatch):
+def test_the_dpsr_grid_cache_gives_the_authors_values_and_gradients(tmp_path, monkeypatch, device):
     """``_dpsr_cache.install``: the patched forward returns the same field and gradients as the authors' on
-    every call (the in-place scaling does not reach the cache), builds the grid once after the first call, and
-    leaves ``__init__``'s own grid alone; installing twice changes nothing."""
+    every call (the in-place scaling does not reach the cache), for two grids of different resolutions, builds
+    each grid once, moves the filter to the points' device once, and leaves ``__init__``'s own grid alone;
+    installing twice changes nothing. The points sit in distinct cells, so no two scatter into one sum and the
+    forward is deterministic on any device."""
     import importlib
 
     import _dpsr_cache
@@ -296,29 +298,38 @@ def test_the_dpsr_grid_cache_gives_the_authors_values_and_gradients(tmp_path, mo
 
     _fake_dpsr_package(tmp_path)
     monkeypatch.syspath_prepend(str(tmp_path))
+    for name in ("nvdiffrast_utils", "nvdiffrast_utils.dpsr"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
     dpsr = importlib.import_module("nvdiffrast_utils.dpsr")
     gen = torch.Generator().manual_seed(0)
-    V = torch.rand(1, 40, 3, generator=gen)
-    N = torch.nn.functional.normalize(torch.randn(1, 40, 3, generator=gen), dim=-1).requires_grad_()
-    model = dpsr.DPSR((8, 8, 6))
 
-    def field():
+    def inputs(res):
+        cells = torch.randperm(int(np.prod(res)), generator=gen)[:40]
+        ijk = torch.stack([cells // (res[1] * res[2]), cells // res[2] % res[1], cells % res[2]], -1)
+        V = ((ijk + 0.5) / torch.tensor(res))[None].to(device)
+        N = torch.nn.functional.normalize(torch.randn(1, 40, 3, generator=gen), dim=-1).to(device)
+        return V, N.requires_grad_()
+
+    def field(model, V, N):
         N.grad = None
         phi = model(V, N)
-        (phi * torch.linspace(-1, 1, phi.numel()).view_as(phi)).sum().backward()
+        (phi * torch.linspace(-1, 1, phi.numel(), device=device).view_as(phi)).sum().backward()
         return phi.detach(), N.grad.clone()
 
-    want = field()
+    runs = [(dpsr.DPSR(res), *inputs(res)) for res in ((8, 8, 6), (6, 4, 8))]
+    want = [field(*r) for r in runs]
     _dpsr_cache.install(dpsr)
     _dpsr_cache.install(dpsr)
     made = dpsr.MADE[0]
     for _ in range(3):
-        got = field()
-        assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
-    assert dpsr.MADE[0] == made + 1  # one grid for the three calls
+        for r, w in zip(runs, want):
+            got = field(*r)
+            assert torch.equal(got[0], w[0]) and torch.equal(got[1], w[1])
+    assert dpsr.MADE[0] == made + 2  # one grid per resolution for the six calls
+    assert all(r[0].G.device == r[1].device for r in runs)  # the filter moved once, to the points' device
     assert dpsr.fftfreqs.__name__ == "fftfreqs" and dpsr.fftfreqs.__module__ == "nvdiffrast_utils.dpsr"
     dpsr.DPSR((4, 4, 4))
-    assert dpsr.MADE[0] == made + 3  # __init__ makes its filter's and its own grid as the authors' code does
+    assert dpsr.MADE[0] == made + 4  # __init__ makes its filter's and its own grid as the authors' code does
 
 
 def test_the_dpsr_grid_cache_runs_the_script_as_main(tmp_path):
