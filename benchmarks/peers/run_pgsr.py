@@ -31,14 +31,14 @@ importable, and ``shims/`` (pytorch3d, pymeshlab, kaolin, igl stand-ins) on the 
 
 ``--nomesh-out DIR`` also writes the warm-up's own result (plain PGSR, timed alone) from the same run.
 ``--from-warmup DIR`` runs stage 2 alone from an earlier ``--no-mesh-stage`` run's result folder (the mesh
-stage reads nothing of the warm-up but its TSDF mesh): the whole recipe in two leases, with the warm-up's
-time and peak memory counted in the result's. ``--mesh-train-args``
-passes more arguments to the mesh stage's ``train.py`` (a short check of its DPSR half before a whole run, e.g.
-``--mesh-train-args=--mesh_from_iter=200``, one word for ``device.sh``'s ``PGSR_ARGS``): the result's system name
-then says so. ``--cache-dpsr-grids`` runs the mesh stage's ``train.py`` under ``_dpsr_cache.py``: its DPSR
-builds its 512^3 frequency grid on the CPU and copies it and its filter to the GPU every iteration (about 1 GiB),
-which bounds its loop by the host; the cache keeps them on the GPU, the same values, and the system name says
-so. ``run.json`` names the GPU each stage ran on.
+stage reads nothing of the warm-up but its TSDF mesh): the recipe in two leases, with the warm-up's time and
+peak memory counted in the result's. ``--mesh-train-args`` passes more arguments to the mesh stage's
+``train.py`` (a short check of its DPSR half before a whole run, e.g. ``--mesh-train-args=--mesh_from_iter=200``,
+one word for ``device.sh``'s ``PGSR_ARGS``): the result's system name then says so. ``--cache-dpsr-grids``
+runs the mesh stage's ``train.py`` under ``_dpsr_cache.py``: its DPSR builds its 512^3 frequency grid on the
+CPU and copies it and its filter to the GPU every iteration (about 1 GiB), which bounds its loop by the host;
+the cache keeps them on the GPU, the same values, and the system name says so. ``run.json`` names the GPU each
+stage ran on.
 """
 
 from __future__ import annotations
