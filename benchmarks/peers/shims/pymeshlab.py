@@ -21,6 +21,8 @@ Any other filter raises.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = ["Mesh", "MeshSet", "PercentageValue", "PureValue", "PyMeshLabException"]
@@ -155,41 +157,47 @@ def _close_holes(m: Mesh, maxholesize: int = 30, **_ignored) -> None:
 
 
 def _ear_cut(v: np.ndarray, loop: list[int], edges: set) -> list[tuple[int, int, int]]:
-    """Triangles filling the hole bounded by ``loop`` (vertex ids along the border half-edges)."""
+    """Triangles filling the hole bounded by ``loop`` (vertex ids along the border half-edges).
+
+    Each step cuts the best ear (convex first, then the best-shaped, the first of equals) whose new edge is not
+    already in ``edges``; a cut changes only its two neighbours' ears, so only those are scored again.
+    """
     faces = []
     ring = list(loop)
+    pos = dict(zip(ring, v[ring].tolist()))
     # the fill's orientation: new faces run against the border half-edges, so their normals follow the
     # reversed loop's Newell normal
     p = v[ring[::-1]]
-    nh = np.cross(p, np.roll(p, -1, axis=0)).sum(0)
+    nh = np.cross(p, np.roll(p, -1, axis=0)).sum(0).tolist()
+    k3 = 2.0 * math.sqrt(3.0)
 
-    def ear(i):
-        a, b, c = ring[i - 1], ring[i], ring[(i + 1) % len(ring)]
-        tri = (a, c, b)  # contains b->a and c->b, the twins of the border half-edges a->b and b->c
-        pa, pb, pc = v[a], v[b], v[c]
-        nrm = np.cross(pc - pa, pb - pa)
-        area2 = np.linalg.norm(nrm)
-        e2 = ((pb - pa) ** 2).sum() + ((pc - pb) ** 2).sum() + ((pa - pc) ** 2).sum()
-        quality = 2 * np.sqrt(3) * area2 / e2 if e2 > 0 else 0.0  # 1 for an equilateral triangle
-        convex = float(np.dot(nrm, nh)) > 0
-        return (convex, quality), tri
+    def score(i: int) -> tuple[bool, float]:
+        (ax, ay, az), (bx, by, bz), (cx, cy, cz) = pos[ring[i - 1]], pos[ring[i]], pos[ring[(i + 1) % len(ring)]]
+        ux, uy, uz, wx, wy, wz = cx - ax, cy - ay, cz - az, bx - ax, by - ay, bz - az
+        nx, ny, nz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx  # (c - a) x (b - a)
+        e2 = (wx * wx + wy * wy + wz * wz) + ((cx - bx) ** 2 + (cy - by) ** 2 + (cz - bz) ** 2) + (
+            ux * ux + uy * uy + uz * uz)
+        quality = k3 * math.sqrt(nx * nx + ny * ny + nz * nz) / e2 if e2 > 0 else 0.0  # 1 for an equilateral one
+        return nx * nh[0] + ny * nh[1] + nz * nh[2] > 0, quality
 
+    scores = [score(i) for i in range(len(ring))]
     while len(ring) > 3:
-        best = None
+        best = -1
         for i in range(len(ring)):
-            score, tri = ear(i)
             a, c = ring[i - 1], ring[(i + 1) % len(ring)]
             if (min(a, c), max(a, c)) in edges:
                 continue  # the new edge would be a third face's on an existing edge
-            if best is None or score > best[0]:
-                best = (score, tri, i)
-        if best is None:
+            if best < 0 or scores[i] > scores[best]:
+                best = i
+        if best < 0:
             return faces  # no ear can be cut without a non-manifold edge: leave the rest open
-        _, tri, i = best
-        faces.append(tri)
-        a, c = tri[0], tri[1]
+        a, b, c = ring[best - 1], ring[best], ring[(best + 1) % len(ring)]
+        faces.append((a, c, b))  # contains b->a and c->b, the twins of the border half-edges a->b and b->c
         edges.add((min(a, c), max(a, c)))
-        del ring[i]
+        del ring[best]
+        del scores[best]
+        for i in (best - 1, best % len(ring)):  # a's ear and c's ear now span the new edge
+            scores[i] = score(i)
     faces.append((ring[0], ring[2], ring[1]))
     return faces
 
