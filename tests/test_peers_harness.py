@@ -159,9 +159,17 @@ def _fake_pgsr(monkeypatch, calls, mesh_scale=1.0):
     def run(cmd, cwd, log, **env):
         calls.append((os.path.basename(cwd), cmd))
         if "_peak.py" in os.path.basename(cmd[1]):
-            script = cmd[4] if cmd[3].endswith("_dpsr_cache.py") else cmd[3]
+            script = next(c for c in cmd[3:] if c in ("train.py", "render.py"))  # after the launchers
             with open(cmd[2], "w") as f:
                 json.dump({"peak_gpu_bytes": 1000 if script == "train.py" else 10}, f)
+            if "PGSR_SPLIT_STOP" in env:  # _pgsr_split.py's checkpoint and the state beside it
+                model, it = cmd[cmd.index("-m") + 1], env["PGSR_SPLIT_STOP"]
+                os.makedirs(os.path.join(model, "app_model", f"iteration_{it}"), exist_ok=True)
+                for name in (f"chkpnt{it}.pth", f"chkpnt{it}_state.pth", f"app_model/iteration_{it}/app.pth"):
+                    open(os.path.join(model, name), "w").close()
+            if "PGSR_SPLIT_TIMES" in env:
+                with open(env["PGSR_SPLIT_TIMES"], "w") as f:
+                    json.dump({"setup_s": 0.25}, f)
             if script == "render.py":
                 mesh = os.path.join(cmd[cmd.index("-m") + 1], "mesh")
                 os.makedirs(mesh, exist_ok=True)
@@ -412,3 +420,57 @@ def test_2dgs_reads_a_capture_without_masks_from_the_exchange_s_own_model(exch_e
     ex, _ = exch_env
     src = run_2dgs.source_folder(ex.root, str(tmp_path / "source"))
     assert src == os.path.abspath(os.path.join(ex.root, "colmap")) and not (tmp_path / "source").exists()
+
+
+def test_the_authors_mesh_stage_stops_at_a_checkpoint_and_resumes(exch, tmp_path, monkeypatch):
+    """``run_pgsr.py --stop-at N`` then ``--resume`` (in a later lease, OUT carried): the mesh stage's ``train.py``
+    runs under ``_pgsr_split.py``, writes its checkpoint and stops without a mesh; the resume restarts from that
+    checkpoint and its state, and the result counts every part's time and the warm-up's, less the restart's setup.
+    Splits that would change the camera order, and a resume of another run, are refused before anything runs."""
+    import json
+
+    (tmp_path / "pgsr_dpsr").mkdir()
+    (tmp_path / "pgsr_dpsr" / "train.py").write_text("")
+    ck = ["--checkout", str(tmp_path / "pgsr_dpsr"), "--init-checkout", str(tmp_path / "absent")]
+    calls = []
+    run_pgsr = _fake_pgsr(monkeypatch, calls)
+    (tmp_path / "pgsr_init").mkdir()
+    (tmp_path / "pgsr_init" / "train.py").write_text("")
+    run_pgsr.main([exch.root, str(tmp_path / "warm"), "--checkout", str(tmp_path / "pgsr_dpsr"), "--no-mesh-stage",
+                   "--warmup-iterations", "300"])
+    out, views = tmp_path / "split", len(exch.train)
+    base = [exch.root, str(out), *ck, "--iterations", str(10 * views), "--cache-dpsr-grids"]
+    for bad in (views + 1, 10 * views, 0):
+        with pytest.raises(SystemExit, match="multiple of the"):
+            run_pgsr.main([*base, "--from-warmup", str(tmp_path / "warm"), "--stop-at", str(bad)])
+    with pytest.raises(SystemExit, match="no split.json"):
+        run_pgsr.main([*base, "--resume"])
+
+    calls.clear()
+    run_pgsr.main([*base, "--from-warmup", str(tmp_path / "warm"), "--stop-at", str(4 * views)])
+    assert len(calls) == 1  # training only: no mesh, no held-out views, no result
+    train = calls[0][1]
+    assert [os.path.basename(c) for c in train[3:6]] == ["_pgsr_split.py", "_dpsr_cache.py", "train.py"]
+    assert train[train.index("--checkpoint_iterations") + 1] == str(4 * views)
+    split = json.loads((out / "split.json").read_text())
+    assert split["stopped_at"] == 4 * views and not (out / "run.json").exists()
+    assert all((out / f).is_file() for f in split["carry"]) and "mesh_init.ply" in split["carry"]
+    assert split["wall_s"] >= split["times"]["warmup_train_s"] and split["peak_gpu_bytes"] == 1000
+
+    with pytest.raises(SystemExit, match="stopped a run with iterations="):  # another run's split
+        run_pgsr.main([exch.root, str(out), *ck, "--iterations", str(20 * views), "--cache-dpsr-grids", "--resume"])
+    with pytest.raises(SystemExit, match="multiple of the"):  # not beyond where it stopped
+        run_pgsr.main([*base, "--resume", "--stop-at", str(2 * views)])
+
+    calls.clear()
+    run_pgsr.main([*base, "--resume"])
+    train = calls[0][1]
+    ckpt = train[train.index("--start_checkpoint") + 1]
+    assert ckpt == str(out / "model" / f"chkpnt{4 * views}.pth") and "--checkpoint_iterations" not in train
+    assert [c[1][3] for c in calls[1:2]] == ["render.py"]  # now its TSDF mesh, then the held-out views
+    whole = json.loads((out / "run.json").read_text())
+    assert whole["system"] == (f"PGSR+DPSR (authors', 300 + {10 * views} it.) [DPSR grids on the GPU] "
+                               f"[split at {4 * views}]")
+    assert whole["split_at"] == [4 * views] and whole["split_restart_s"] == [0.25]
+    assert whole["warmup_train_s"] == split["times"]["warmup_train_s"] and "an earlier run" in whole["warmup_from"]
+    assert whole["wall_s"] >= split["wall_s"] - 0.25 and whole["peak_gpu_bytes"] == 1000

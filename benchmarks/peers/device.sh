@@ -120,13 +120,17 @@ launch)
           c=("$PY" "$HERE/run_pgsr.py" "$e" "$out" --checkout "$STAGE/peers/pgsr_dpsr"
              --init-checkout "$STAGE/peers/pgsr_init" ${PGSR_ARGS:-})
           if [ "$s" = pgsr_nomesh ]; then c+=(--no-mesh-stage)
-          elif [[ " $* " != *" pgsr_nomesh "* && " ${PGSR_ARGS:-} " != *"--from-warmup"* ]]; then
+          elif [[ " $* " != *" pgsr_nomesh "* && " ${PGSR_ARGS:-} " != *"--from-warmup"*
+                  && " ${PGSR_ARGS:-} " != *"--resume"* && " ${PGSR_ARGS:-} " != *"--stop-at"* ]]; then
             nomesh=$STAGE/res/$name/pgsr_nomesh
             c+=(--nomesh-out "$nomesh"); rm -rf "$nomesh" "$nomesh.rc"
           fi ;;
         *) echo "unknown system $s"; exit 2 ;;
       esac
-      rm -rf "$out" "$out.rc"; mkdir -p "$out"
+      rm -f "$out.rc"
+      # --resume goes on with the stopped run in $out (its split.json and checkpoint)
+      [[ $s = pgsr && " ${PGSR_ARGS:-} " = *" --resume "* ]] || rm -rf "$out"
+      mkdir -p "$out"
       job="$(printf '%q ' "${c[@]}") > $out.log 2>&1; echo \$? > $out.rc"
       if [ -n "$nomesh" ]; then  # the warm-up's own result is a job of its own to wait on, ending with pgsr's
         echo "written by $name/pgsr beside it (--nomesh-out): its log is $out.log" > "$nomesh.log"

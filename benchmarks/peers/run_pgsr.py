@@ -27,7 +27,7 @@ importable, and ``shims/`` (pytorch3d, pymeshlab, kaolin, igl stand-ins) on the 
 
     python benchmarks/peers/run_pgsr.py EXCH OUT --checkout PATH [--init-checkout PATH] [--no-mesh-stage]
         [--iterations 10000] [--warmup-iterations 30000] [--nomesh-out DIR] [--mesh-only ITERATION]
-        [--from-warmup DIR] [--mesh-train-args "ARGS"] [--cache-dpsr-grids]
+        [--from-warmup DIR] [--mesh-train-args "ARGS"] [--cache-dpsr-grids] [--stop-at ITERATION] [--resume]
 
 ``--nomesh-out DIR`` also writes the warm-up's own result (plain PGSR, timed alone) from the same run.
 ``--from-warmup DIR`` runs stage 2 alone from an earlier ``--no-mesh-stage`` run's result folder (the mesh
@@ -39,6 +39,12 @@ runs the mesh stage's ``train.py`` under ``_dpsr_cache.py``: its DPSR builds its
 CPU and copies it and its filter to the GPU every iteration (about 1 GiB), which bounds its loop by the host;
 the cache keeps them on the GPU, the same values, and the system name says so. ``run.json`` names the GPU each
 stage ran on.
+
+``--stop-at N`` ends the mesh stage after its checkpoint of iteration N, a multiple of the number of training views
+(``_pgsr_split.py`` says why), and ``--resume`` goes on from it in OUT, on this machine or another: the published
+mesh stage in two leases or more. OUT's ``split.json`` names the files a resume needs (``carry``) and holds the
+parts' figures so far; the result counts every part's time, less the setup each restart repeats (recorded as
+``split_restart_s``), the largest peak, and its system name says where it was split.
 """
 
 from __future__ import annotations
@@ -116,6 +122,12 @@ def main(argv=None) -> None:
     ap.add_argument("--mesh-train-args", default="", metavar="ARGS",
                     help="more arguments of the mesh stage's train.py, one string (e.g. \"--mesh_from_iter 200\" "
                          "for a short check of its DPSR half): not the published recipe, and the system name says so")
+    ap.add_argument("--stop-at", type=int, default=None, metavar="ITERATION",
+                    help="end the mesh stage after its checkpoint of ITERATION (a multiple of the number of training "
+                         "views, below --iterations): OUT then holds what --resume needs, and no result")
+    ap.add_argument("--resume", action="store_true",
+                    help="go on with the mesh stage that --stop-at ended in OUT (carried from another machine, its "
+                         "split.json's files), to --iterations or to the next --stop-at")
     ap.add_argument("--cache-dpsr-grids", action="store_true",
                     help="the mesh stage's DPSR keeps its frequency grid and filter on the GPU instead of building "
                          "and copying them every iteration (_dpsr_cache.py): the same values, less time; the "
@@ -126,7 +138,20 @@ def main(argv=None) -> None:
         ap.error("--mesh-train-args, --cache-dpsr-grids: --no-mesh-stage and --mesh-only train no mesh stage")
     if a.from_warmup and (a.no_mesh_stage or a.mesh_only is not None or a.nomesh_out):
         ap.error("--from-warmup starts the mesh stage: not with --no-mesh-stage, --mesh-only or --nomesh-out")
+    split_args = a.stop_at is not None or a.resume
+    if split_args and (a.no_mesh_stage or a.mesh_only is not None or a.nomesh_out):
+        ap.error("--stop-at, --resume split the mesh stage: not with --no-mesh-stage, --mesh-only or --nomesh-out")
+    if a.resume and a.from_warmup:
+        ap.error("--resume: the warm-up is the stopped run's (its split.json): not with --from-warmup")
     ex_id = _exchange_id(a.exchange)  # fails before any training on a folder that is not an exchange folder
+    split = _read_split(a, ex_id) if a.resume else None
+    if split:
+        a.warmup_iterations = split["warmup_iterations"]
+    if a.stop_at is not None:
+        views, done_it = len(load(a.exchange).train), split["stopped_at"] if split else 0
+        if not (done_it < a.stop_at < a.iterations) or a.stop_at % views:
+            sys.exit(f"--stop-at {a.stop_at}: not a multiple of the {views} training views between the iteration "
+                     f"the mesh stage starts from ({done_it}) and --iterations ({a.iterations}), both excluded")
     earlier = _earlier_warmup(a.from_warmup, a.out, ex_id) if a.from_warmup else None
     if earlier:
         a.warmup_iterations = earlier["warmup_iterations"]
@@ -134,7 +159,7 @@ def main(argv=None) -> None:
     head = os.path.abspath(a.checkout)
     init = os.path.abspath(a.init_checkout or os.path.join(os.path.dirname(head), "pgsr_init"))
     # --from-warmup runs no warm-up: its checkout is not needed
-    for path, what in ((head, "--checkout"),) + (() if earlier else ((init, "--init-checkout"),)):
+    for path, what in ((head, "--checkout"),) + (() if earlier or split else ((init, "--init-checkout"),)):
         if not os.path.exists(os.path.join(path, "train.py")):
             sys.exit(f"{what}: no train.py in {path}")
     out = os.path.abspath(a.out)
@@ -160,36 +185,65 @@ def main(argv=None) -> None:
             times[name] = now - t
             t = now
 
-        def stage(prefix, ckout, model_dir, iterations, train=True, more=(), launcher=()):
+        def stage(prefix, ckout, model_dir, iterations, train=True, more=(), launcher=(), env=None, mesh=True):
             """``train.py`` then ``render.py`` (its TSDF mesh) of one stage, each timed and its peak recorded."""
             if train:
                 _run(peak(prefix + "train") + [*launcher, "train.py", "-s", src, "-m", model_dir, *TRAIN_ARGS,
                                                "--test_iterations", "-1", "--iterations", str(iterations), *more],
-                     ckout, log)
+                     ckout, log, **(env or {}))
                 lap(prefix + "train_s")
+            if not mesh:
+                return
             _run(peak(prefix + "mesh") + ["render.py", "-m", model_dir, *MESH_ARGS, "--iteration", str(iterations)],
                  ckout, log, OMP_NUM_THREADS="4")
             lap(prefix + "mesh_s")
 
         if a.mesh_only is None:
-            shutil.rmtree(model, ignore_errors=True)
+            if split:
+                shutil.copyfile(os.path.join(out, "mesh_init.ply"), os.path.join(src, "mesh_init.ply"))
+            else:
+                shutil.rmtree(model, ignore_errors=True)
             if earlier:
                 warm = earlier["dir"]
-            else:
+            elif not split:
                 shutil.rmtree(warm, ignore_errors=True)
                 stage("warmup_", init, warm, a.warmup_iterations)  # 1. plain PGSR (de24f1a) and its TSDF mesh
             if not a.no_mesh_stage:
                 # 2. mesh stage: pgsr_dpsr from the warm-up's mesh
-                shutil.copyfile(os.path.join(warm, "mesh", "tsdf_fusion_post.ply"), os.path.join(src, "mesh_init.ply"))
-                stage("", head, model, a.iterations, more=extra,
-                      launcher=[os.path.join(HERE, "_dpsr_cache.py")] if a.cache_dpsr_grids else [])
+                if not split:
+                    shutil.copyfile(os.path.join(warm, "mesh", "tsdf_fusion_post.ply"),
+                                    os.path.join(src, "mesh_init.ply"))
+                launcher = ([os.path.join(HERE, "_pgsr_split.py")] if split_args else []) + (
+                    [os.path.join(HERE, "_dpsr_cache.py")] if a.cache_dpsr_grids else [])
+                more, env = list(extra), {}
+                if a.stop_at is not None:
+                    more += ["--checkpoint_iterations", str(a.stop_at)]
+                    env["PGSR_SPLIT_STOP"] = str(a.stop_at)
+                if split:
+                    ckpt = os.path.join(model, f"chkpnt{split['stopped_at']}")
+                    more += ["--start_checkpoint", ckpt + ".pth"]
+                    env["PGSR_SPLIT_STATE"] = ckpt + "_state.pth"
+                    env["PGSR_SPLIT_TIMES"] = os.path.join(out, "restart_times.json")
+                stage("", head, model, a.iterations, more=more, launcher=launcher, env=env, mesh=a.stop_at is None)
+                if split:  # this restart's setup (reading the scene, the initial mesh, the checkpoint) counts once
+                    restart = read_json(env["PGSR_SPLIT_TIMES"])["setup_s"]
+                    times["train_s"] -= restart
+                    split["restart_s"].append(restart)
         else:
             stage("", final_ckout, final, it, train=False)
         wall = time.perf_counter() - t0
-        if earlier:  # the earlier warm-up's time and peak count in: the whole recipe's figures
+        if split:  # the parts before: their time and peak, the warm-up's included
+            wall += split["wall_s"] - split["restart_s"][-1]
+            times = {**split["times"], **times, "train_s": split["times"]["train_s"] + times["train_s"]}
+            peaks.append(_peak_file(out, "peak_earlier_parts.json", split["peak_gpu_bytes"]))
+            earlier = split["earlier"]
+        elif earlier:  # the earlier warm-up's time and peak count in: the whole recipe's figures
             wall += earlier["wall_s"]
             times = {**earlier["times"], **times}
             peaks.append(earlier["peak_json"])
+        if a.stop_at is not None:
+            _write_split(out, a, ex_id, earlier, split, wall, times, peaks)
+            return
         done = a.mesh_only is None
         warm_it = a.mesh_only if a.no_mesh_stage and not done else a.warmup_iterations
         if a.no_mesh_stage:
@@ -206,8 +260,12 @@ def main(argv=None) -> None:
             if earlier:
                 run["warmup_from"] = earlier["from"]
                 run["warmup_device"] = earlier["device"]
+            if split:
+                run["split_at"], run["split_restart_s"] = split["split_at"], split["restart_s"]
+                run["split_devices"] = split["devices"]
             system = (_system(a.warmup_iterations, it) + (f" [{a.mesh_train_args}]" if extra else "")
-                      + (" [DPSR grids on the GPU]" if a.cache_dpsr_grids else ""))
+                      + (" [DPSR grids on the GPU]" if a.cache_dpsr_grids else "")
+                      + (f" [split at {', '.join(f'{i:,}' for i in split['split_at'])}]" if split else ""))
             _finish(a.out, a.exchange, ex_id, model, head, it, log, system=system, run=run)
             if earlier and run.get("device") != earlier["device"]:
                 print(f"run_pgsr: the warm-up ran on {earlier['device']}, the mesh stage on {run.get('device')}: "
@@ -249,15 +307,67 @@ def _earlier_warmup(result: str, out: str, want: str) -> dict:
                  f"peak_gpu_bytes={run.get('peak_gpu_bytes')}")
     if run.get("exchange") != want:
         sys.exit(f"--from-warmup: {run_json} is a warm-up of exchange={run.get('exchange')!r}, not of {want!r}")
-    os.makedirs(out, exist_ok=True)
-    peak_json = os.path.join(out, "peak_earlier_warmup.json")
-    with open(peak_json, "w") as f:
-        json.dump({"peak_gpu_bytes": int(run["peak_gpu_bytes"])}, f)
+    peak_json = _peak_file(out, "peak_earlier_warmup.json", run["peak_gpu_bytes"])
     return {"dir": os.path.join(result, "warmup"), "warmup_iterations": int(run["warmup_iterations"]),
             "wall_s": float(run["wall_s"]), "peak_json": peak_json,
             "times": {k: float(run[k]) for k in ("warmup_train_s", "warmup_mesh_s")},
             "device": run.get("device"),
             "from": f"an earlier run: {run.get('system')}, {float(run['wall_s']):.0f} s ({os.path.abspath(result)})"}
+
+
+def _peak_file(out: str, name: str, peak_bytes: int) -> str:
+    """An earlier process's peak GPU memory written under ``out`` in ``_peak.py``'s form; its path."""
+    os.makedirs(out, exist_ok=True)
+    path = os.path.join(out, name)
+    with open(path, "w") as f:
+        json.dump({"peak_gpu_bytes": int(peak_bytes)}, f)
+    return path
+
+
+def _split_key(a, ex_id: str) -> dict:
+    """What a resume must share with the run it goes on with."""
+    return {"exchange": ex_id, "iterations": a.iterations, "mesh_train_args": a.mesh_train_args,
+            "dpsr_grids_cached": bool(a.cache_dpsr_grids)}
+
+
+def _read_split(a, ex_id: str) -> dict:
+    """OUT's ``split.json`` (``_write_split``), checked against this run's arguments and for its files."""
+    path = os.path.join(a.out, "split.json")
+    if not os.path.isfile(path):
+        sys.exit(f"--resume: no split.json in {a.out} (a --stop-at run's folder, with its carried files)")
+    split = read_json(path)
+    for k, v in _split_key(a, ex_id).items():
+        if split["key"][k] != v:
+            sys.exit(f"--resume: {path} stopped a run with {k}={split['key'][k]!r}, this one has {v!r}")
+    missing = [f for f in split["carry"] if not os.path.isfile(os.path.join(a.out, f))]
+    if missing:
+        sys.exit(f"--resume: {a.out} lacks {', '.join(missing)} (split.json's carry)")
+    split["restart_s"] = list(split["restart_s"])
+    return split
+
+
+def _write_split(out: str, a, ex_id: str, earlier, split, wall: float, times: dict, peaks: list) -> None:
+    """After ``--stop-at``: OUT's ``split.json``, what ``--resume`` reads (the figures so far; ``carry``: the files
+    it needs, relative to OUT)."""
+    it = a.stop_at
+    ckpt = [f"model/chkpnt{it}.pth", f"model/chkpnt{it}_state.pth", f"model/app_model/iteration_{it}/app.pth"]
+    missing = [f for f in ckpt if not os.path.isfile(os.path.join(out, f))]
+    if missing:
+        sys.exit(f"run_pgsr: the mesh stage ended without its checkpoint of iteration {it}: no {', '.join(missing)}")
+    if not split:
+        shutil.copyfile(os.path.join(out, "source", "mesh_init.ply"), os.path.join(out, "mesh_init.ply"))
+    prev = split or {"split_at": [], "restart_s": [], "devices": []}
+    doc = {"key": _split_key(a, ex_id), "stopped_at": it, "warmup_iterations": a.warmup_iterations,
+           "wall_s": wall, "times": times, "peak_gpu_bytes": max(read_json(p)["peak_gpu_bytes"] for p in peaks),
+           "split_at": [*prev["split_at"], it], "restart_s": prev["restart_s"],
+           "devices": [*prev["devices"], _device_name()],
+           "earlier": None if not earlier else {"from": earlier["from"], "device": earlier["device"]},
+           "carry": ["split.json", "mesh_init.ply", *ckpt]}
+    with open(os.path.join(out, "split.json.part"), "w") as f:
+        json.dump(doc, f, indent=1)
+    os.replace(os.path.join(out, "split.json.part"), os.path.join(out, "split.json"))
+    print(f"run_pgsr: the mesh stage stopped after iteration {it}; carry {', '.join(doc['carry'])} (under {out}) "
+          "and go on with --resume", file=sys.stderr)
 
 
 def _device_name():

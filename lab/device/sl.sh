@@ -27,6 +27,12 @@
 # (benchmarks/peers.md). lab/device/dpsr_rate.sh measures its rate alone, as published and with
 # PGSR_ARGS=--cache-dpsr-grids (its grids kept on the GPU), after step 1 and before any launch.
 # (device.sh splits PGSR_ARGS at spaces: use the = forms, e.g. --mesh-train-args=--mesh_from_iter=200).
+# Its loop runs 0.40-0.48 s an iteration alone with its grids cached, so the mesh stage itself takes two leases:
+# PGSR_ARGS="--cache-dpsr-grids --stop-at=N" (N a multiple of the scene's training views) ends it at its checkpoint,
+# and the wait step sends what --resume needs (split.json's carry) as SCENE__pgsr parts; here
+#   bash lab/device/sl.sh splitstage SCENE /work/.device/N/sl ...   groups them into .stage/splitin/K (six parts each);
+# in the next lease, after step 1, one call per folder, carrying it alone:   bash lab/device/sl.sh splitin
+# then step 2 with SYSTEMS=pgsr RESUME=1 and the same PGSR_ARGS less --stop-at (or a later one).
 step=${1:-wait}
 set -o pipefail
 shopt -s nullglob
@@ -57,6 +63,16 @@ unpack_parts() {  # $1: SCENE__SYSTEM, $2: destination folder, then folders: rep
     rm -rf "$tmp"; echo "${key/__//}: unpacking failed"; return 1
   fi
 }
+if [ "$step" = splitstage ]; then
+  sc=${2:?SCENE}; shift 2
+  parts=($(complete_parts ${sc}__pgsr "$@")) || { echo "$sc/pgsr: not every part is here"; exit 1; }
+  rm -rf .stage/splitin && i=0
+  for f in "${parts[@]}"; do
+    k=$(printf ".stage/splitin/%02d" $((i / 6 + 1))); mkdir -p $k && cp "$f" $k/ && i=$((i + 1))
+  done
+  ls .stage/splitin
+  exit 0
+fi
 if [ "$step" = unpack ]; then
   shift
   for key in $(for d in "$@"; do ls "$d"; done | grep -E '__[0-9]+of[0-9]+\.txz$' | sed -E 's/__[0-9]+of[0-9]+\.txz$//' \
@@ -88,6 +104,9 @@ stage)
 warm)
   mkdir -p $S/warmparts && cp .stage/warm/*/*__pgsr_nomesh__*of*.txz $S/warmparts/ && ls -la $S/warmparts
   exit 0 ;;
+splitin)
+  mkdir -p $S/splitparts && cp .stage/splitin/*/*__pgsr__*of*.txz $S/splitparts/ && ls $S/splitparts | wc -l
+  exit 0 ;;
 launch)
   mkdir -p $S/exch
   for job in ${SCENES:?SCENES names the scenes}; do
@@ -113,6 +132,12 @@ launch)
         unpack_parts ${sc}__pgsr_nomesh $S/warm/$sc $S/warmparts || exit 1
         pgsr_args="$pgsr_args --from-warmup $S/warm/$sc"
       fi
+    fi
+    if [ -n "${RESUME:-}" ]; then
+      [ "$sys" = pgsr ] || { echo "$sc: RESUME goes on with pgsr's stopped mesh stage alone (SYSTEMS=pgsr)"; exit 1; }
+      # the stopped run's folder, as its wait step sent it; device.sh launch keeps it for --resume
+      unpack_parts ${sc}__pgsr $S/res/$sc/pgsr $S/splitparts || exit 1
+      pgsr_args="$pgsr_args --resume"
     fi
     PGSR_ARGS=$pgsr_args STAGE=$S bash $D launch "$S/exch/$sc" -- $sys
   done
@@ -143,7 +168,10 @@ pack_finished() {  # each finished run once: its result's files, xz in 10 MiB pa
     files=()
     for f in run.json renders.npz device.log log.txt; do [ -f $d/$f ] && files+=($f); done
     if [ $sys = pgsr_nomesh ] && [ -f $d/warmup/mesh/tsdf_fusion_post.ply ]; then files+=(warmup/mesh/tsdf_fusion_post.ply)
-    elif [ -f $d/mesh.ply ]; then files+=(mesh.ply); fi
+    elif [ -f $d/mesh.ply ]; then files+=(mesh.ply)
+    elif [ -f $d/split.json ]; then  # a mesh stage stopped at its checkpoint (--stop-at): what --resume needs
+      files+=($(python3 -c "import json, sys; print(' '.join(json.load(open(sys.argv[1]))['carry']))" $d/split.json))
+    fi
     rm -f $P/tmp.*
     if ! tar -C $d -c "${files[@]}" | xz -T0 -6 | split -b 10M - $P/tmp.; then
       echo "$sc/$sys: packing failed"; continue

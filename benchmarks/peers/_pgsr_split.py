@@ -1,0 +1,161 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Run ``pgsr_dpsr``'s ``train.py`` so that its mesh stage can stop at a checkpoint and go on from it in another
+process, on another machine (``run_pgsr.py --stop-at`` / ``--resume``: the published 10,000 iterations do not fit
+one device lease).
+
+python _pgsr_split.py [NEXT_LAUNCHER] train.py ARGS...   (in the checkout, under ``_peak.py``)
+
+Environment: ``PGSR_SPLIT_STOP=N`` ends the process once the checkpoint of iteration N is written (with
+``--checkpoint_iterations N``); ``PGSR_SPLIT_STATE=PATH`` puts back the state saved beside the checkpoint that
+``--start_checkpoint`` restores; ``PGSR_SPLIT_TIMES=PATH`` receives the seconds from this launcher's start to the
+first training iteration (the setup a restart repeats).
+
+Their checkpoint (``chkpntN.pth``: ``GaussianModel.capture()``; ``app_model/iteration_N``) holds the splats, their
+optimizer state and densification statistics. Their ``train.py`` carries more from one iteration to the next,
+which this launcher writes beside the checkpoint (``chkpntN_state.pth``, atomically) and puts back:
+
+* ``GaussianModel`` attributes outside ``capture()``: the per-splat view-direction sums, the mesh guidance (face
+  centroids, visibility and normals) and each splat's cached guidance normal and its reliability;
+* which splats a training view has seen since the splat count last changed (``train.py``'s local
+  ``observe_count``, whose mask selects the points of the DPSR proxy): tracked here by the same rule, and after the
+  restart OR-ed into the mask passed to ``extract_oriented_pointcloud`` until the splat count changes, so the mask
+  is the uninterrupted run's;
+* the appearance model's optimizer state (its weights are in their checkpoint);
+* the random states of Python, NumPy and torch (CPU and every CUDA device), put back at the first iteration after
+  the restart, after the setup has drawn its own numbers.
+
+The camera order is not state: ``train.py`` draws views from a shuffled stack that it refills when empty, so a
+split at a multiple of the number of training views finds the stack empty in both runs (``run_pgsr.py`` refuses
+other iterations). With that, the restarted run draws the same numbers as the uninterrupted one; GPU kernels that
+sum in varying order still differ from run to run, as they do between two uninterrupted runs.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import runpy
+import sys
+import time
+
+import numpy as np
+import torch
+
+_GM_STATE = ("view_dir_accumulation", "mesh_guidance_cached_normals", "mesh_guidance_cached_reliable",
+             "mesh_guidance_face_centroids", "mesh_guidance_face_visible", "mesh_guidance_face_normals")
+
+
+def _rng_state() -> dict:
+    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
+
+
+def _set_rng_state(s: dict) -> None:
+    random.setstate(s["python"])
+    np.random.set_state(s["numpy"])
+    torch.set_rng_state(s["torch"])
+    if s["cuda"]:
+        torch.cuda.set_rng_state_all(s["cuda"])
+
+
+def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str | None = None,
+            times: str | None = None, t0: float | None = None) -> None:
+    """Patch the classes of the modules ``gaussian_model`` (the checkout's ``scene.gaussian_model``) and
+    ``app_model`` (``scene.app_model``) in place; the arguments are the environment's (module docstring)."""
+    GM, App = gaussian_model.GaussianModel, app_model.AppModel
+    if getattr(GM, "_split_installed", False):
+        return
+    t0 = time.perf_counter() if t0 is None else t0
+    live: dict = {}  # the GaussianModel train.py trains, and what a restart put back
+    pending: dict = {}
+
+    capture, restore, add_stat = GM.capture, GM.restore, GM.add_view_dir_stat
+    extract, update_lr = GM.extract_oriented_pointcloud, GM.update_learning_rate
+    save_weights, load_weights = App.save_weights, App.load_weights
+
+    def seen_now(g):
+        """The splats seen since the count last changed: tracked here, and what a restart put back while valid."""
+        seen, back = getattr(g, "_split_seen", None), live.get("seen")
+        if back is not None and seen is not None and back.shape == seen.shape:
+            return seen | back.to(seen.device)
+        return seen
+
+    def p_capture(self):
+        live["g"] = self
+        return capture(self)
+
+    def p_add_view_dir_stat(self, cam_center, visibility_filter):
+        out = add_stat(self, cam_center, visibility_filter)
+        n = self.get_xyz.shape[0]
+        seen = getattr(self, "_split_seen", None)
+        if seen is None or seen.shape[0] != n:  # train.py resets observe_count so, before this call
+            seen = torch.zeros((n,), dtype=torch.bool, device=visibility_filter.device)
+            if live.get("seen") is not None and live["seen"].shape[0] != n:
+                live["seen"] = None  # the count changed since the restart: theirs starts afresh too
+        self._split_seen = seen | visibility_filter
+        return out
+
+    def p_extract(self, *args, **kwargs):
+        mask = kwargs.get("visibility_mask")
+        back = live.get("seen")
+        if mask is not None and back is not None and back.shape == mask.shape:
+            kwargs["visibility_mask"] = mask | back.to(mask.device)
+        return extract(self, *args, **kwargs)
+
+    def p_update_learning_rate(self, iteration):
+        if "rng" in pending:  # the first iteration after a restart: the setup has drawn its numbers by now
+            _set_rng_state(pending.pop("rng"))
+        if times and "setup" not in live:
+            live["setup"] = time.perf_counter() - t0
+            with open(times, "w") as f:
+                json.dump({"setup_s": live["setup"]}, f)
+        return update_lr(self, iteration)
+
+    def p_save_weights(self, model_path, iteration):
+        save_weights(self, model_path, iteration)
+        ckpt = os.path.join(model_path, f"chkpnt{iteration}.pth")
+        if "g" not in live or not os.path.isfile(ckpt):
+            return  # the end of training, not a checkpoint
+        g = live["g"]
+        blob = {"iteration": int(iteration), "gaussians": {k: getattr(g, k, None) for k in _GM_STATE},
+                "seen": seen_now(g), "app_optimizer": self.optimizer.state_dict(), "rng": _rng_state()}
+        path = os.path.join(model_path, f"chkpnt{iteration}_state.pth")
+        torch.save(blob, path + ".part")
+        os.replace(path + ".part", path)
+        if stop_at is not None and int(iteration) == stop_at:
+            print(f"\n[_pgsr_split] stopped after the checkpoint of iteration {iteration}", flush=True)
+            sys.exit(0)
+
+    def p_restore(self, model_args, training_args):
+        restore(self, model_args, training_args)
+        live["g"] = self
+        if state:
+            blob = torch.load(state, map_location="cpu", weights_only=False)
+            dev = self._xyz.device
+            for k, v in blob["gaussians"].items():
+                setattr(self, k, v.to(dev) if torch.is_tensor(v) else v)
+            live["seen"] = None if blob["seen"] is None else blob["seen"].to(dev)
+            pending["rng"], pending["app_optimizer"] = blob["rng"], blob["app_optimizer"]
+
+    def p_load_weights(self, model_path, iteration=-1):
+        load_weights(self, model_path, iteration)
+        if "app_optimizer" in pending:
+            self.optimizer.load_state_dict(pending.pop("app_optimizer"))
+
+    GM.capture, GM.restore, GM.add_view_dir_stat = p_capture, p_restore, p_add_view_dir_stat
+    GM.extract_oriented_pointcloud, GM.update_learning_rate = p_extract, p_update_learning_rate
+    App.save_weights, App.load_weights = p_save_weights, p_load_weights
+    GM._split_installed = True
+
+
+if __name__ == "__main__":
+    start = time.perf_counter()
+    sys.argv = sys.argv[1:]
+    from scene import app_model as _app  # the checkout, first on the path (``_peak.py``)
+    from scene import gaussian_model as _gm
+
+    stop = os.environ.get("PGSR_SPLIT_STOP")
+    install(_gm, _app, stop_at=int(stop) if stop else None, state=os.environ.get("PGSR_SPLIT_STATE") or None,
+            times=os.environ.get("PGSR_SPLIT_TIMES") or None, t0=start)
+    runpy.run_path(sys.argv[0], run_name="__main__")
