@@ -7,8 +7,9 @@ python _pgsr_split.py [NEXT_LAUNCHER] train.py ARGS...   (in the checkout, under
 
 Environment: ``PGSR_SPLIT_STOP=N`` ends the process once the checkpoint of iteration N is written (with
 ``--checkpoint_iterations N``); ``PGSR_SPLIT_STATE=PATH`` puts back the state saved beside the checkpoint that
-``--start_checkpoint`` restores; ``PGSR_SPLIT_TIMES=PATH`` receives the seconds from this launcher's start to the
-first training iteration (the setup a restart repeats).
+``--start_checkpoint`` restores; ``PGSR_SPLIT_TIMES=PATH`` receives the time of the first training iteration's start
+(``first_iteration_at``, seconds since the epoch; the launcher that started the process subtracts its start: the
+setup a restart repeats) and the seconds to it from this launcher's start (``setup_s``).
 
 Their checkpoint (``chkpntN.pth``: ``GaussianModel.capture()``; ``app_model/iteration_N``) holds the splats, their
 optimizer state and densification statistics. Their ``train.py`` carries more from one iteration to the next,
@@ -16,13 +17,17 @@ which this launcher writes beside the checkpoint (``chkpntN_state.pth``, atomica
 
 * ``GaussianModel`` attributes outside ``capture()``: the per-splat view-direction sums, the mesh guidance (face
   centroids, visibility and normals) and each splat's cached guidance normal and its reliability;
-* which splats a training view has seen since the splat count last changed (``train.py``'s local
-  ``observe_count``, whose mask selects the points of the DPSR proxy): tracked here by the same rule, and after the
-  restart OR-ed into the mask passed to ``extract_oriented_pointcloud`` until the splat count changes, so the mask
-  is the uninterrupted run's;
+* which splats a training view has seen since ``train.py`` last cleared its local ``observe_count`` (whose mask
+  selects the points of the DPSR proxy; cleared after every 100th iteration and when the splat count changes):
+  tracked here by the same rules, and after the restart OR-ed into the mask passed to
+  ``extract_oriented_pointcloud`` until the next clearing, so the mask is the uninterrupted run's;
 * the appearance model's optimizer state (its weights are in their checkpoint);
 * the random states of Python, NumPy and torch (CPU and every CUDA device), put back at the first iteration after
   the restart, after the setup has drawn its own numbers.
+
+A resume also lets their ``train.py``'s ``torch.load`` of its own checkpoint read it whole
+(``TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD``): it holds NumPy scalars (the scene scale, the schedule's learning rate),
+which torch's default weights-only loading refuses.
 
 The camera order is not state: ``train.py`` draws views from a shuffled stack that it refills when empty, so a
 split at a multiple of the number of training views finds the stack empty in both runs (``run_pgsr.py`` refuses
@@ -42,6 +47,7 @@ import time
 import numpy as np
 import torch
 
+OBSERVE_CLEARED_EVERY = 100  # their train.py: ``if iteration % 100 == 0: observe_count.zero_()`` after backward
 _GM_STATE = ("view_dir_accumulation", "mesh_guidance_cached_normals", "mesh_guidance_cached_reliable",
              "mesh_guidance_face_centroids", "mesh_guidance_face_visible", "mesh_guidance_face_normals")
 
@@ -104,12 +110,15 @@ def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str
         return extract(self, *args, **kwargs)
 
     def p_update_learning_rate(self, iteration):
+        if iteration % OBSERVE_CLEARED_EVERY == 1:  # train.py cleared its observe_count after the last iteration
+            self._split_seen = None
+            live["seen"] = None
         if "rng" in pending:  # the first iteration after a restart: the setup has drawn its numbers by now
             _set_rng_state(pending.pop("rng"))
         if times and "setup" not in live:
             live["setup"] = time.perf_counter() - t0
             with open(times, "w") as f:
-                json.dump({"setup_s": live["setup"]}, f)
+                json.dump({"first_iteration_at": time.time(), "setup_s": live["setup"]}, f)
         return update_lr(self, iteration)
 
     def p_save_weights(self, model_path, iteration):
@@ -118,6 +127,7 @@ def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str
         if "g" not in live or not os.path.isfile(ckpt):
             return  # the end of training, not a checkpoint
         g = live["g"]
+        # (at a multiple of 100 train.py has just cleared its own: the restart's first iteration clears this one)
         blob = {"iteration": int(iteration), "gaussians": {k: getattr(g, k, None) for k in _GM_STATE},
                 "seen": seen_now(g), "app_optimizer": self.optimizer.state_dict(), "rng": _rng_state()}
         path = os.path.join(model_path, f"chkpnt{iteration}_state.pth")
@@ -156,6 +166,8 @@ if __name__ == "__main__":
     from scene import gaussian_model as _gm
 
     stop = os.environ.get("PGSR_SPLIT_STOP")
+    if os.environ.get("PGSR_SPLIT_STATE"):  # their checkpoint holds NumPy scalars: torch.load must read it whole
+        os.environ["TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD"] = "1"
     install(_gm, _app, stop_at=int(stop) if stop else None, state=os.environ.get("PGSR_SPLIT_STATE") or None,
             times=os.environ.get("PGSR_SPLIT_TIMES") or None, t0=start)
     runpy.run_path(sys.argv[0], run_name="__main__")

@@ -224,9 +224,10 @@ def main(argv=None) -> None:
                     more += ["--start_checkpoint", ckpt + ".pth"]
                     env["PGSR_SPLIT_STATE"] = ckpt + "_state.pth"
                     env["PGSR_SPLIT_TIMES"] = os.path.join(out, "restart_times.json")
+                launched = time.time()
                 stage("", head, model, a.iterations, more=more, launcher=launcher, env=env, mesh=a.stop_at is None)
-                if split:  # this restart's setup (reading the scene, the initial mesh, the checkpoint) counts once
-                    restart = read_json(env["PGSR_SPLIT_TIMES"])["setup_s"]
+                if split:  # this restart's setup (Python, the scene, the initial mesh, the checkpoint) counts once
+                    restart = read_json(env["PGSR_SPLIT_TIMES"])["first_iteration_at"] - launched
                     times["train_s"] -= restart
                     split["restart_s"].append(restart)
         else:

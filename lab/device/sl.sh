@@ -30,7 +30,8 @@
 # Its loop runs 0.40-0.48 s an iteration alone with its grids cached, so the mesh stage itself takes two leases:
 # PGSR_ARGS="--cache-dpsr-grids --stop-at=N" (N a multiple of the scene's training views) ends it at its checkpoint,
 # and the wait step sends what --resume needs (split.json's carry) as SCENE__pgsr parts; here
-#   bash lab/device/sl.sh splitstage SCENE /work/.device/N/sl ...   groups them into .stage/splitin/K (six parts each);
+#   bash lab/device/sl.sh splitstage SCENE /work/.device/N/sl ...   groups them into .stage/splitin/K (five parts:
+#   with the tree, under a call's 64 MiB);
 # in the next lease, after step 1, one call per folder, carrying it alone:   bash lab/device/sl.sh splitin
 # then step 2 with SYSTEMS=pgsr RESUME=1 and the same PGSR_ARGS less --stop-at (or a later one).
 step=${1:-wait}
@@ -68,7 +69,7 @@ if [ "$step" = splitstage ]; then
   parts=($(complete_parts ${sc}__pgsr "$@")) || { echo "$sc/pgsr: not every part is here"; exit 1; }
   rm -rf .stage/splitin && i=0
   for f in "${parts[@]}"; do
-    k=$(printf ".stage/splitin/%02d" $((i / 6 + 1))); mkdir -p $k && cp "$f" $k/ && i=$((i + 1))
+    k=$(printf ".stage/splitin/%02d" $((i / 5 + 1))); mkdir -p $k && cp "$f" $k/ && i=$((i + 1))
   done
   ls .stage/splitin
   exit 0
