@@ -467,7 +467,9 @@ def test_the_authors_mesh_stage_stops_at_a_checkpoint_and_resumes(exch, tmp_path
         run_pgsr.main([*base, "--resume", "--stop-at", str(2 * views)])
 
     calls.clear()
+    (out / "model" / "app_model" / "iteration_9999").mkdir()  # as an earlier attempt to resume would leave
     run_pgsr.main([*base, "--resume"])
+    assert os.listdir(out / "model" / "app_model") == [f"iteration_{4 * views}"]  # their restart loads the highest
     train = calls[0][1]
     ckpt = train[train.index("--start_checkpoint") + 1]
     assert ckpt == str(out / "model" / f"chkpnt{4 * views}.pth") and "--checkpoint_iterations" not in train

@@ -201,6 +201,11 @@ def main(argv=None) -> None:
         if a.mesh_only is None:
             if split:
                 shutil.copyfile(os.path.join(out, "mesh_init.ply"), os.path.join(src, "mesh_init.ply"))
+                # a resume run before left later appearance weights, which their restart would load (the highest)
+                apps = os.path.join(model, "app_model")
+                for d in os.listdir(apps):
+                    if d.startswith("iteration_") and int(d.split("_")[1]) > split["stopped_at"]:
+                        shutil.rmtree(os.path.join(apps, d))
             else:
                 shutil.rmtree(model, ignore_errors=True)
             if earlier:
