@@ -188,9 +188,9 @@ app.save_weights(a.m, a.iterations)
 '''
 
 
-@pytest.fixture
-def checkout(tmp_path):
-    root = tmp_path / "checkout"
+@pytest.fixture(scope="module")
+def checkout(tmp_path_factory):
+    root = tmp_path_factory.mktemp("split") / "checkout"
     (root / "scene").mkdir(parents=True)
     (root / "scene" / "__init__.py").write_text("from scene.gaussian_model import GaussianModel\n")
     (root / "scene" / "gaussian_model.py").write_text(_GAUSSIAN_MODEL)
@@ -221,10 +221,11 @@ def _split_run(checkout, tmp, at, **resume_env):
     return _parts(log), times
 
 
-@pytest.fixture
-def whole(checkout, tmp_path):
-    log = tmp_path / "whole.jsonl"
-    _train(checkout, tmp_path / "whole", log, launcher=False)
+@pytest.fixture(scope="module")
+def whole(checkout, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("whole")
+    log = tmp / "whole.jsonl"
+    _train(checkout, tmp / "whole", log, launcher=False)
     (part,) = _parts(log)
     return part
 
