@@ -163,14 +163,19 @@ def _fake_pgsr(monkeypatch, calls, mesh_scale=1.0):
             script = next(c for c in cmd[3:] if c in ("train.py", "render.py"))  # after the launchers
             with open(cmd[2], "w") as f:
                 json.dump({"peak_gpu_bytes": 1000 if script == "train.py" else 10}, f)
-            if "PGSR_SPLIT_STOP" in env:  # _pgsr_split.py's checkpoint and the state beside it
-                model, it = cmd[cmd.index("-m") + 1], env["PGSR_SPLIT_STOP"]
+            # _pgsr_split.py: --stop-at's iteration, or --stop-after's (two rounds of the views if the time is short)
+            it = env.get("PGSR_SPLIT_STOP")
+            if "PGSR_SPLIT_STOP_AFTER" in env and float(env["PGSR_SPLIT_STOP_AFTER"]) < 100:
+                it = str(2 * int(env["PGSR_SPLIT_VIEWS"]))
+            if it:  # its checkpoint and the state beside it
+                model = cmd[cmd.index("-m") + 1]
                 os.makedirs(os.path.join(model, "app_model", f"iteration_{it}"), exist_ok=True)
                 for name in (f"chkpnt{it}.pth", f"chkpnt{it}_state.pth", f"app_model/iteration_{it}/app.pth"):
                     open(os.path.join(model, name), "w").close()
             if "PGSR_SPLIT_TIMES" in env:  # as if its first iteration began 0.25 s after now
                 with open(env["PGSR_SPLIT_TIMES"], "w") as f:
-                    json.dump({"first_iteration_at": time.time() + 0.25, "setup_s": 0.2}, f)
+                    json.dump({"first_iteration_at": time.time() + 0.25, "setup_s": 0.2,
+                               **({"stopped_at": int(it)} if it else {})}, f)
             if script == "render.py":
                 mesh = os.path.join(cmd[cmd.index("-m") + 1], "mesh")
                 os.makedirs(mesh, exist_ok=True)
@@ -483,3 +488,18 @@ def test_the_authors_mesh_stage_stops_at_a_checkpoint_and_resumes(exch, tmp_path
     # this part took well under a second (its training less the 0.25 s restart, its mesh): an hour and less than 1 s
     assert 3600.0 - 0.5 < whole["wall_s"] < 3600.0 + 1.0
     assert 3000.0 - 0.5 < whole["train_s"] < 3000.0 + 0.5 and whole["train_s"] != 3000.0
+
+    # --stop-after: where it stopped comes back from the launcher; a long enough time trains to the end
+    calls.clear()
+    run_pgsr.main([*base[:1], str(tmp_path / "timed"), *base[2:], "--from-warmup", str(tmp_path / "warm"),
+                   "--stop-after", "60"])
+    train = calls[0][1]
+    assert "--checkpoint_iterations" not in train and len(calls) == 1
+    timed = json.loads((tmp_path / "timed" / "split.json").read_text())
+    assert timed["stopped_at"] == 2 * views and timed["split_at"] == [2 * views]
+    calls.clear()
+    run_pgsr.main([*base[:1], str(tmp_path / "timed"), *base[2:], "--resume", "--stop-after", "500"])
+    assert [c[1][3] for c in calls[1:2]] == ["render.py"]  # it got to the end first: its mesh and result
+    assert json.loads((tmp_path / "timed" / "run.json").read_text())["split_at"] == [2 * views]
+    with pytest.raises(SystemExit):
+        run_pgsr.main([*base, "--resume", "--stop-at", str(6 * views), "--stop-after", "5"])

@@ -282,3 +282,18 @@ def test_their_checkpoint_needs_more_than_torch_s_weights_only_load(checkout, tm
            "--start_checkpoint", str(model / "chkpnt30.pth")]
     run = subprocess.run(cmd, cwd=checkout, env=env, capture_output=True, text=True)
     assert run.returncode != 0 and "Weights only load failed" in run.stderr
+
+
+def test_a_stop_after_some_time_checkpoints_at_a_multiple_of_the_views(checkout, tmp_path, whole):
+    """``PGSR_SPLIT_STOP_AFTER``: the launcher writes the checkpoint itself, at the first multiple of the views
+    after the time (at once here: 6, the first multiple trained), and the resume trains as the uninterrupted run;
+    a time longer than the training leaves it to the end, with no stop recorded."""
+    model, log, times = tmp_path / "model", tmp_path / "log.jsonl", tmp_path / "times.json"
+    _train(checkout, model, log, PGSR_SPLIT_STOP_AFTER=0, PGSR_SPLIT_VIEWS=6, PGSR_SPLIT_TIMES=times)
+    assert json.loads(times.read_text())["stopped_at"] == 6
+    _train(checkout, model, log, "--start_checkpoint", str(model / "chkpnt6.pth"),
+           PGSR_SPLIT_STATE=model / "chkpnt6_state.pth", PGSR_SPLIT_STOP_AFTER=3600, PGSR_SPLIT_VIEWS=6,
+           PGSR_SPLIT_TIMES=times)
+    first, second = _parts(log)
+    assert len(first["log"]) == 6 and first["log"] + second["log"] == whole["log"] and second["xyz"] == whole["xyz"]
+    assert "stopped_at" not in json.loads(times.read_text())

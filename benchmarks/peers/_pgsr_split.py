@@ -5,11 +5,18 @@ one device lease).
 
 python _pgsr_split.py [NEXT_LAUNCHER] train.py ARGS...   (in the checkout, under ``_peak.py``)
 
-Environment: ``PGSR_SPLIT_STOP=N`` ends the process once the checkpoint of iteration N is written (with
-``--checkpoint_iterations N``); ``PGSR_SPLIT_STATE=PATH`` puts back the state saved beside the checkpoint that
-``--start_checkpoint`` restores; ``PGSR_SPLIT_TIMES=PATH`` receives the time of the first training iteration's start
-(``first_iteration_at``, seconds since the epoch; the launcher that started the process subtracts its start: the
-setup a restart repeats) and the seconds to it from this launcher's start (``setup_s``).
+Environment:
+
+* ``PGSR_SPLIT_STOP=N`` ends the process once the checkpoint of iteration N is written (with
+  ``--checkpoint_iterations N``);
+* ``PGSR_SPLIT_STOP_AFTER=SECONDS`` with ``PGSR_SPLIT_VIEWS=K`` ends it at the first iteration N, a multiple of K,
+  that ends SECONDS or more after this launcher's start, writing the checkpoint there as ``train.py``'s own would
+  be (a lease's time is known, the loop's rate less so);
+* ``PGSR_SPLIT_STATE=PATH`` puts back the state saved beside the checkpoint that ``--start_checkpoint`` restores;
+* ``PGSR_SPLIT_TIMES=PATH`` receives the time of the first training iteration's start (``first_iteration_at``,
+  seconds since the epoch; the launcher that started the process subtracts its start: the setup a restart
+  repeats), the seconds to it from this launcher's start (``setup_s``) and, when the process stops at a
+  checkpoint, its iteration (``stopped_at``).
 
 Their checkpoint (``chkpntN.pth``: ``GaussianModel.capture()``; ``app_model/iteration_N``) holds the splats, their
 optimizer state and densification statistics. Their ``train.py`` carries more from one iteration to the next,
@@ -66,19 +73,22 @@ def _set_rng_state(s: dict) -> None:
 
 
 def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str | None = None,
-            times: str | None = None, t0: float | None = None) -> None:
+            times: str | None = None, t0: float | None = None, stop_after: float | None = None,
+            views: int | None = None, model_path: str | None = None) -> None:
     """Patch the classes of the modules ``gaussian_model`` (the checkout's ``scene.gaussian_model``) and
     ``app_model`` (``scene.app_model``) in place; the arguments are the environment's (module docstring)."""
     GM, App = gaussian_model.GaussianModel, app_model.AppModel
     if getattr(GM, "_split_installed", False):
         return
     t0 = time.perf_counter() if t0 is None else t0
-    live: dict = {}  # the GaussianModel train.py trains, and what a restart put back
+    live: dict = {"stop_at": stop_at}  # the models train.py trains, what a restart put back, where to stop
     pending: dict = {}
+    if stop_after is not None and not (views and model_path):
+        raise ValueError("_pgsr_split: a stop after some time needs the views' number and the model path")
 
     capture, restore, add_stat = GM.capture, GM.restore, GM.add_view_dir_stat
     extract, update_lr = GM.extract_oriented_pointcloud, GM.update_learning_rate
-    save_weights, load_weights = App.save_weights, App.load_weights
+    save_weights, load_weights, app_init = App.save_weights, App.load_weights, App.__init__
 
     def seen_now(g):
         """The splats seen since the count last changed: tracked here, and what a restart put back while valid."""
@@ -109,16 +119,30 @@ def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str
             kwargs["visibility_mask"] = mask | back.to(mask.device)
         return extract(self, *args, **kwargs)
 
+    def write_times(**more):
+        if times:
+            live["times"] = {**live.get("times", {}), **more}
+            with open(times, "w") as f:
+                json.dump(live["times"], f)
+
     def p_update_learning_rate(self, iteration):
         if iteration % OBSERVE_CLEARED_EVERY == 1:  # train.py cleared its observe_count after the last iteration
             self._split_seen = None
             live["seen"] = None
+        live.setdefault("first", iteration)
+        done = iteration - 1  # the state now is the state at the end of that iteration
+        if (stop_after is not None and done >= live["first"] and done % views == 0
+                and time.perf_counter() - t0 >= stop_after):
+            live["stop_at"], live["g"] = done, self
+            ckpt = os.path.join(model_path, f"chkpnt{done}.pth")
+            torch.save((capture(self), done), ckpt + ".part")  # as train.py's checkpoint of that iteration
+            os.replace(ckpt + ".part", ckpt)
+            live["app"].save_weights(model_path, done)  # then the state beside it, and the process ends
         if "rng" in pending:  # the first iteration after a restart: the setup has drawn its numbers by now
             _set_rng_state(pending.pop("rng"))
-        if times and "setup" not in live:
+        if "setup" not in live:
             live["setup"] = time.perf_counter() - t0
-            with open(times, "w") as f:
-                json.dump({"first_iteration_at": time.time(), "setup_s": live["setup"]}, f)
+            write_times(first_iteration_at=time.time(), setup_s=live["setup"])
         return update_lr(self, iteration)
 
     def p_save_weights(self, model_path, iteration):
@@ -133,7 +157,8 @@ def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str
         path = os.path.join(model_path, f"chkpnt{iteration}_state.pth")
         torch.save(blob, path + ".part")
         os.replace(path + ".part", path)
-        if stop_at is not None and int(iteration) == stop_at:
+        if live["stop_at"] is not None and int(iteration) == live["stop_at"]:
+            write_times(stopped_at=int(iteration))
             print(f"\n[_pgsr_split] stopped after the checkpoint of iteration {iteration}", flush=True)
             sys.exit(0)
 
@@ -148,6 +173,10 @@ def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str
             live["seen"] = None if blob["seen"] is None else blob["seen"].to(dev)
             pending["rng"], pending["app_optimizer"] = blob["rng"], blob["app_optimizer"]
 
+    def p_app_init(self, *args, **kwargs):
+        app_init(self, *args, **kwargs)
+        live["app"] = self
+
     def p_load_weights(self, model_path, iteration=-1):
         load_weights(self, model_path, iteration)
         if "app_optimizer" in pending:
@@ -155,7 +184,7 @@ def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str
 
     GM.capture, GM.restore, GM.add_view_dir_stat = p_capture, p_restore, p_add_view_dir_stat
     GM.extract_oriented_pointcloud, GM.update_learning_rate = p_extract, p_update_learning_rate
-    App.save_weights, App.load_weights = p_save_weights, p_load_weights
+    App.save_weights, App.load_weights, App.__init__ = p_save_weights, p_load_weights, p_app_init
     GM._split_installed = True
 
 
@@ -165,9 +194,13 @@ if __name__ == "__main__":
     from scene import app_model as _app  # the checkout, first on the path (``_peak.py``)
     from scene import gaussian_model as _gm
 
-    stop = os.environ.get("PGSR_SPLIT_STOP")
+    stop, after = os.environ.get("PGSR_SPLIT_STOP"), os.environ.get("PGSR_SPLIT_STOP_AFTER")
+    argv = sys.argv[1:]
+    model = next((argv[i + 1] for i, w in enumerate(argv[:-1]) if w in ("-m", "--model_path")), None)
     if os.environ.get("PGSR_SPLIT_STATE"):  # their checkpoint holds NumPy scalars: torch.load must read it whole
         os.environ["TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD"] = "1"
     install(_gm, _app, stop_at=int(stop) if stop else None, state=os.environ.get("PGSR_SPLIT_STATE") or None,
-            times=os.environ.get("PGSR_SPLIT_TIMES") or None, t0=start)
+            times=os.environ.get("PGSR_SPLIT_TIMES") or None, t0=start,
+            stop_after=float(after) if after else None, views=int(os.environ.get("PGSR_SPLIT_VIEWS") or 0),
+            model_path=model)
     runpy.run_path(sys.argv[0], run_name="__main__")

@@ -121,7 +121,7 @@ launch)
              --init-checkout "$STAGE/peers/pgsr_init" ${PGSR_ARGS:-})
           if [ "$s" = pgsr_nomesh ]; then c+=(--no-mesh-stage)
           elif [[ " $* " != *" pgsr_nomesh "* && " ${PGSR_ARGS:-} " != *"--from-warmup"*
-                  && " ${PGSR_ARGS:-} " != *"--resume"* && " ${PGSR_ARGS:-} " != *"--stop-at"* ]]; then
+                  && " ${PGSR_ARGS:-} " != *"--resume"* && " ${PGSR_ARGS:-} " != *"--stop-a"* ]]; then  # --stop-at, --stop-after
             nomesh=$STAGE/res/$name/pgsr_nomesh
             c+=(--nomesh-out "$nomesh"); rm -rf "$nomesh" "$nomesh.rc"
           fi ;;

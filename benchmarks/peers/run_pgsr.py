@@ -27,7 +27,8 @@ importable, and ``shims/`` (pytorch3d, pymeshlab, kaolin, igl stand-ins) on the 
 
     python benchmarks/peers/run_pgsr.py EXCH OUT --checkout PATH [--init-checkout PATH] [--no-mesh-stage]
         [--iterations 10000] [--warmup-iterations 30000] [--nomesh-out DIR] [--mesh-only ITERATION]
-        [--from-warmup DIR] [--mesh-train-args "ARGS"] [--cache-dpsr-grids] [--stop-at ITERATION] [--resume]
+        [--from-warmup DIR] [--mesh-train-args "ARGS"] [--cache-dpsr-grids] [--stop-at ITERATION | --stop-after S]
+        [--resume]
 
 ``--nomesh-out DIR`` also writes the warm-up's own result (plain PGSR, timed alone) from the same run.
 ``--from-warmup DIR`` runs stage 2 alone from an earlier ``--no-mesh-stage`` run's result folder (the mesh
@@ -41,10 +42,11 @@ the cache keeps them on the GPU, the same values, and the system name says so. `
 stage ran on.
 
 ``--stop-at N`` ends the mesh stage after its checkpoint of iteration N, a multiple of the number of training views
-(``_pgsr_split.py`` says why), and ``--resume`` goes on from it in OUT, on this machine or another: the published
-mesh stage in two leases or more. OUT's ``split.json`` names the files a resume needs (``carry``) and holds the
-parts' figures so far; the result counts every part's time, less the setup each restart repeats (recorded as
-``split_restart_s``), the largest peak, and its system name says where it was split.
+(``_pgsr_split.py`` says why), ``--stop-after SECONDS`` at the first such iteration that its ``train.py`` ends
+SECONDS after its start (for a lease of known length), and ``--resume`` goes on from it in OUT, on this machine
+or another: the published mesh stage in two leases or more. OUT's ``split.json`` names the files a resume needs
+(``carry``) and holds the parts' figures so far; the result counts every part's time, less the setup each
+restart repeats (recorded as ``split_restart_s``), the largest peak, and its system name says where it was split.
 """
 
 from __future__ import annotations
@@ -125,6 +127,9 @@ def main(argv=None) -> None:
     ap.add_argument("--stop-at", type=int, default=None, metavar="ITERATION",
                     help="end the mesh stage after its checkpoint of ITERATION (a multiple of the number of training "
                          "views, below --iterations): OUT then holds what --resume needs, and no result")
+    ap.add_argument("--stop-after", type=float, default=None, metavar="SECONDS",
+                    help="as --stop-at, at the first multiple of the number of training views that the mesh stage's "
+                         "train.py ends SECONDS or more after its start (it goes on to the end if it gets there first)")
     ap.add_argument("--resume", action="store_true",
                     help="go on with the mesh stage that --stop-at ended in OUT (carried from another machine, its "
                          "split.json's files), to --iterations or to the next --stop-at")
@@ -138,9 +143,15 @@ def main(argv=None) -> None:
         ap.error("--mesh-train-args, --cache-dpsr-grids: --no-mesh-stage and --mesh-only train no mesh stage")
     if a.from_warmup and (a.no_mesh_stage or a.mesh_only is not None or a.nomesh_out):
         ap.error("--from-warmup starts the mesh stage: not with --no-mesh-stage, --mesh-only or --nomesh-out")
-    split_args = a.stop_at is not None or a.resume
+    if a.stop_at is not None and a.stop_after is not None:
+        ap.error("--stop-at, --stop-after: one or the other")
+    if a.stop_after is not None and a.stop_after <= 0:
+        ap.error(f"--stop-after {a.stop_after}: seconds, more than 0")
+    split_args = a.stop_at is not None or a.stop_after is not None or a.resume
+    stopped = None  # the iteration a split mesh stage stopped at
     if split_args and (a.no_mesh_stage or a.mesh_only is not None or a.nomesh_out):
-        ap.error("--stop-at, --resume split the mesh stage: not with --no-mesh-stage, --mesh-only or --nomesh-out")
+        ap.error("--stop-at, --stop-after, --resume split the mesh stage: not with --no-mesh-stage, --mesh-only or "
+                 "--nomesh-out")
     if a.resume and a.from_warmup:
         ap.error("--resume: the warm-up is the stopped run's (its split.json): not with --from-warmup")
     ex_id = _exchange_id(a.exchange)  # fails before any training on a folder that is not an exchange folder
@@ -221,16 +232,28 @@ def main(argv=None) -> None:
                 launcher = ([os.path.join(HERE, "_pgsr_split.py")] if split_args else []) + (
                     [os.path.join(HERE, "_dpsr_cache.py")] if a.cache_dpsr_grids else [])
                 more, env = list(extra), {}
+                if split_args:
+                    env["PGSR_SPLIT_TIMES"] = os.path.join(out, "part_times.json")
+                    if os.path.exists(env["PGSR_SPLIT_TIMES"]):
+                        os.remove(env["PGSR_SPLIT_TIMES"])
                 if a.stop_at is not None:
                     more += ["--checkpoint_iterations", str(a.stop_at)]
                     env["PGSR_SPLIT_STOP"] = str(a.stop_at)
+                if a.stop_after is not None:
+                    env["PGSR_SPLIT_STOP_AFTER"] = str(a.stop_after)
+                    env["PGSR_SPLIT_VIEWS"] = str(len(load(a.exchange).train))
                 if split:
                     ckpt = os.path.join(model, f"chkpnt{split['stopped_at']}")
                     more += ["--start_checkpoint", ckpt + ".pth"]
                     env["PGSR_SPLIT_STATE"] = ckpt + "_state.pth"
-                    env["PGSR_SPLIT_TIMES"] = os.path.join(out, "restart_times.json")
                 launched = time.time()
-                stage("", head, model, a.iterations, more=more, launcher=launcher, env=env, mesh=a.stop_at is None)
+                stage("", head, model, a.iterations, more=more, launcher=launcher, env=env, mesh=False)
+                # where it stopped: --stop-at's iteration, or --stop-after's; none if it trained to the end
+                stopped = read_json(env["PGSR_SPLIT_TIMES"]).get("stopped_at") if split_args else None
+                if stopped is None:
+                    stage("", head, model, a.iterations, train=False)
+                elif a.stop_at is not None and stopped != a.stop_at:
+                    sys.exit(f"run_pgsr: the mesh stage stopped at {stopped}, not at --stop-at {a.stop_at}")
                 if split:  # this restart's setup (Python, the scene, the initial mesh, the checkpoint) counts once
                     restart = read_json(env["PGSR_SPLIT_TIMES"])["first_iteration_at"] - launched
                     times["train_s"] -= restart
@@ -247,8 +270,8 @@ def main(argv=None) -> None:
             wall += earlier["wall_s"]
             times = {**earlier["times"], **times}
             peaks.append(earlier["peak_json"])
-        if a.stop_at is not None:
-            _write_split(out, a, ex_id, earlier, split, wall, times, peaks)
+        if a.mesh_only is None and not a.no_mesh_stage and stopped is not None:
+            _write_split(out, a, ex_id, stopped, earlier, split, wall, times, peaks)
             return
         done = a.mesh_only is None
         warm_it = a.mesh_only if a.no_mesh_stage and not done else a.warmup_iterations
@@ -352,10 +375,9 @@ def _read_split(a, ex_id: str) -> dict:
     return split
 
 
-def _write_split(out: str, a, ex_id: str, earlier, split, wall: float, times: dict, peaks: list) -> None:
-    """After ``--stop-at``: OUT's ``split.json``, what ``--resume`` reads (the figures so far; ``carry``: the files
-    it needs, relative to OUT)."""
-    it = a.stop_at
+def _write_split(out: str, a, ex_id: str, it: int, earlier, split, wall: float, times: dict, peaks: list) -> None:
+    """After the mesh stage stopped at its checkpoint of iteration ``it`` (``--stop-at``, ``--stop-after``): OUT's
+    ``split.json``, what ``--resume`` reads (the figures so far; ``carry``: the files it needs, relative to OUT)."""
     ckpt = [f"model/chkpnt{it}.pth", f"model/chkpnt{it}_state.pth", f"model/app_model/iteration_{it}/app.pth"]
     missing = [f for f in ckpt if not os.path.isfile(os.path.join(out, f))]
     if missing:

@@ -28,12 +28,13 @@
 # PGSR_ARGS=--cache-dpsr-grids (its grids kept on the GPU), after step 1 and before any launch.
 # (device.sh splits PGSR_ARGS at spaces: use the = forms, e.g. --mesh-train-args=--mesh_from_iter=200).
 # Its loop runs 0.40-0.48 s an iteration alone with its grids cached, so the mesh stage itself takes two leases:
-# PGSR_ARGS="--cache-dpsr-grids --stop-at=N" (N a multiple of the scene's training views) ends it at its checkpoint,
+# PGSR_ARGS="--cache-dpsr-grids --stop-after=SECONDS" (or --stop-at=N, N a multiple of the scene's training views)
+# ends it at its checkpoint,
 # and the wait step sends what --resume needs (split.json's carry) as SCENE__pgsr parts; here
 #   bash lab/device/sl.sh splitstage SCENE /work/.device/N/sl ...   groups them into .stage/splitin/K (five parts:
 #   with the tree, under a call's 64 MiB);
 # in the next lease, after step 1, one call per folder, carrying it alone:   bash lab/device/sl.sh splitin
-# then step 2 with SYSTEMS=pgsr RESUME=1 and the same PGSR_ARGS less --stop-at (or a later one).
+# then step 2 with SYSTEMS=pgsr RESUME=1 and the same PGSR_ARGS (a --stop-after for this lease, or none).
 step=${1:-wait}
 set -o pipefail
 shopt -s nullglob
