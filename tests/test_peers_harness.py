@@ -501,5 +501,7 @@ def test_the_authors_mesh_stage_stops_at_a_checkpoint_and_resumes(exch, tmp_path
     run_pgsr.main([*base[:1], str(tmp_path / "timed"), *base[2:], "--resume", "--stop-after", "500"])
     assert [c[1][3] for c in calls[1:2]] == ["render.py"]  # it got to the end first: its mesh and result
     assert json.loads((tmp_path / "timed" / "run.json").read_text())["split_at"] == [2 * views]
+    with pytest.raises(SystemExit, match="split_done.json"):  # finished: nothing to go on with
+        run_pgsr.main([*base[:1], str(tmp_path / "timed"), *base[2:], "--resume"])
     with pytest.raises(SystemExit):
         run_pgsr.main([*base, "--resume", "--stop-at", str(6 * views), "--stop-after", "5"])

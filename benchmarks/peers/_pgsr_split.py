@@ -195,8 +195,12 @@ if __name__ == "__main__":
     from scene import gaussian_model as _gm
 
     stop, after = os.environ.get("PGSR_SPLIT_STOP"), os.environ.get("PGSR_SPLIT_STOP_AFTER")
-    argv = sys.argv[1:]
-    model = next((argv[i + 1] for i, w in enumerate(argv[:-1]) if w in ("-m", "--model_path")), None)
+    model = None  # train.py's model folder: its parser keeps the last -m / --model_path
+    for i, w in enumerate(sys.argv):
+        if w in ("-m", "--model_path") and i + 1 < len(sys.argv):
+            model = sys.argv[i + 1]
+        elif w.startswith("--model_path="):
+            model = w.split("=", 1)[1]
     if os.environ.get("PGSR_SPLIT_STATE"):  # their checkpoint holds NumPy scalars: torch.load must read it whole
         os.environ["TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD"] = "1"
     install(_gm, _app, stop_at=int(stop) if stop else None, state=os.environ.get("PGSR_SPLIT_STATE") or None,

@@ -131,8 +131,8 @@ def main(argv=None) -> None:
                     help="as --stop-at, at the first multiple of the number of training views that the mesh stage's "
                          "train.py ends SECONDS or more after its start (it goes on to the end if it gets there first)")
     ap.add_argument("--resume", action="store_true",
-                    help="go on with the mesh stage that --stop-at ended in OUT (carried from another machine, its "
-                         "split.json's files), to --iterations or to the next --stop-at")
+                    help="go on with the mesh stage that --stop-at or --stop-after ended in OUT (carried from another "
+                         "machine, its split.json's files), to --iterations or to the next stop")
     ap.add_argument("--cache-dpsr-grids", action="store_true",
                     help="the mesh stage's DPSR keeps its frequency grid and filter on the GPU instead of building "
                          "and copying them every iteration (_dpsr_cache.py): the same values, less time; the "
@@ -250,10 +250,10 @@ def main(argv=None) -> None:
                 stage("", head, model, a.iterations, more=more, launcher=launcher, env=env, mesh=False)
                 # where it stopped: --stop-at's iteration, or --stop-after's; none if it trained to the end
                 stopped = read_json(env["PGSR_SPLIT_TIMES"]).get("stopped_at") if split_args else None
+                if a.stop_at is not None and stopped != a.stop_at:
+                    sys.exit(f"run_pgsr: the mesh stage stopped at {stopped}, not at --stop-at {a.stop_at}")
                 if stopped is None:
                     stage("", head, model, a.iterations, train=False)
-                elif a.stop_at is not None and stopped != a.stop_at:
-                    sys.exit(f"run_pgsr: the mesh stage stopped at {stopped}, not at --stop-at {a.stop_at}")
                 if split:  # this restart's setup (Python, the scene, the initial mesh, the checkpoint) counts once
                     restart = read_json(env["PGSR_SPLIT_TIMES"])["first_iteration_at"] - launched
                     times["train_s"] -= restart
@@ -296,6 +296,8 @@ def main(argv=None) -> None:
                       + (" [DPSR grids on the GPU]" if a.cache_dpsr_grids else "")
                       + (f" [split at {', '.join(f'{i:,}' for i in split['split_at'])}]" if split else ""))
             _finish(a.out, a.exchange, ex_id, model, head, it, log, system=system, run=run)
+            if split:  # finished: a later --resume has nothing to go on with
+                os.replace(os.path.join(out, "split.json"), os.path.join(out, "split_done.json"))
             if earlier and run.get("device") != earlier["device"]:
                 print(f"run_pgsr: the warm-up ran on {earlier['device']}, the mesh stage on {run.get('device')}: "
                       "the row's time adds two GPUs' times", file=sys.stderr)
@@ -363,7 +365,8 @@ def _read_split(a, ex_id: str) -> dict:
     """OUT's ``split.json`` (``_write_split``), checked against this run's arguments and for its files."""
     path = os.path.join(a.out, "split.json")
     if not os.path.isfile(path):
-        sys.exit(f"--resume: no split.json in {a.out} (a --stop-at run's folder, with its carried files)")
+        sys.exit(f"--resume: no split.json in {a.out} (the folder of a run that --stop-at or --stop-after ended, "
+                 "with its carried files; a finished one keeps it as split_done.json)")
     split = read_json(path)
     for k, v in _split_key(a, ex_id).items():
         if split["key"][k] != v:

@@ -171,7 +171,7 @@ pack_finished() {  # each finished run once: its result's files, xz in 10 MiB pa
     for f in run.json renders.npz device.log log.txt; do [ -f $d/$f ] && files+=($f); done
     if [ $sys = pgsr_nomesh ] && [ -f $d/warmup/mesh/tsdf_fusion_post.ply ]; then files+=(warmup/mesh/tsdf_fusion_post.ply)
     elif [ -f $d/mesh.ply ]; then files+=(mesh.ply)
-    elif [ -f $d/split.json ]; then  # a mesh stage stopped at its checkpoint (--stop-at): what --resume needs
+    elif [ -f $d/split.json ]; then  # a mesh stage stopped at its checkpoint (--stop-at, --stop-after): --resume's
       files+=($(python3 -c "import json, sys; print(' '.join(json.load(open(sys.argv[1]))['carry']))" $d/split.json))
     fi
     rm -f $P/tmp.*
