@@ -72,6 +72,12 @@ def _set_rng_state(s: dict) -> None:
         torch.cuda.set_rng_state_all(s["cuda"])
 
 
+def _save(obj, path: str) -> None:
+    """``torch.save`` whole or not at all: a process ended mid-write leaves no half file under ``path``."""
+    torch.save(obj, path + ".part")
+    os.replace(path + ".part", path)
+
+
 def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str | None = None,
             times: str | None = None, t0: float | None = None, stop_after: float | None = None,
             views: int | None = None, model_path: str | None = None) -> None:
@@ -90,12 +96,12 @@ def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str
     extract, update_lr = GM.extract_oriented_pointcloud, GM.update_learning_rate
     save_weights, load_weights, app_init = App.save_weights, App.load_weights, App.__init__
 
+    # live["seen"], what a restart put back, is dropped when train.py would clear its mask (p_add_view_dir_stat,
+    # p_update_learning_rate): while it is there it has the splat count's shape
     def seen_now(g):
-        """The splats seen since the count last changed: tracked here, and what a restart put back while valid."""
+        """The splats seen since train.py last cleared its mask: tracked here, and what a restart put back."""
         seen, back = getattr(g, "_split_seen", None), live.get("seen")
-        if back is not None and seen is not None and back.shape == seen.shape:
-            return seen | back.to(seen.device)
-        return seen
+        return seen if back is None or seen is None else seen | back
 
     def p_capture(self):
         live["g"] = self
@@ -113,10 +119,9 @@ def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str
         return out
 
     def p_extract(self, *args, **kwargs):
-        mask = kwargs.get("visibility_mask")
-        back = live.get("seen")
-        if mask is not None and back is not None and back.shape == mask.shape:
-            kwargs["visibility_mask"] = mask | back.to(mask.device)
+        mask, back = kwargs.get("visibility_mask"), live.get("seen")
+        if mask is not None and back is not None:
+            kwargs["visibility_mask"] = mask | back
         return extract(self, *args, **kwargs)
 
     def write_times(**more):
@@ -134,9 +139,7 @@ def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str
         if (stop_after is not None and done >= live["first"] and done % views == 0
                 and time.perf_counter() - t0 >= stop_after):
             live["stop_at"], live["g"] = done, self
-            ckpt = os.path.join(model_path, f"chkpnt{done}.pth")
-            torch.save((capture(self), done), ckpt + ".part")  # as train.py's checkpoint of that iteration
-            os.replace(ckpt + ".part", ckpt)
+            _save((capture(self), done), os.path.join(model_path, f"chkpnt{done}.pth"))  # as train.py's own
             live["app"].save_weights(model_path, done)  # then the state beside it, and the process ends
         if "rng" in pending:  # the first iteration after a restart: the setup has drawn its numbers by now
             _set_rng_state(pending.pop("rng"))
@@ -154,9 +157,7 @@ def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str
         # (at a multiple of 100 train.py has just cleared its own: the restart's first iteration clears this one)
         blob = {"iteration": int(iteration), "gaussians": {k: getattr(g, k, None) for k in _GM_STATE},
                 "seen": seen_now(g), "app_optimizer": self.optimizer.state_dict(), "rng": _rng_state()}
-        path = os.path.join(model_path, f"chkpnt{iteration}_state.pth")
-        torch.save(blob, path + ".part")
-        os.replace(path + ".part", path)
+        _save(blob, os.path.join(model_path, f"chkpnt{iteration}_state.pth"))
         if live["stop_at"] is not None and int(iteration) == live["stop_at"]:
             write_times(stopped_at=int(iteration))
             print(f"\n[_pgsr_split] stopped after the checkpoint of iteration {iteration}", flush=True)

@@ -248,14 +248,15 @@ def main(argv=None) -> None:
                     env["PGSR_SPLIT_STATE"] = ckpt + "_state.pth"
                 launched = time.time()
                 stage("", head, model, a.iterations, more=more, launcher=launcher, env=env, mesh=False)
+                part = read_json(env["PGSR_SPLIT_TIMES"]) if split_args else {}
                 # where it stopped: --stop-at's iteration, or --stop-after's; none if it trained to the end
-                stopped = read_json(env["PGSR_SPLIT_TIMES"]).get("stopped_at") if split_args else None
+                stopped = part.get("stopped_at")
                 if a.stop_at is not None and stopped != a.stop_at:
                     sys.exit(f"run_pgsr: the mesh stage stopped at {stopped}, not at --stop-at {a.stop_at}")
                 if stopped is None:
                     stage("", head, model, a.iterations, train=False)
                 if split:  # this restart's setup (Python, the scene, the initial mesh, the checkpoint) counts once
-                    restart = read_json(env["PGSR_SPLIT_TIMES"])["first_iteration_at"] - launched
+                    restart = part["first_iteration_at"] - launched
                     times["train_s"] -= restart
                     split["restart_s"].append(restart)
         else:
@@ -270,7 +271,7 @@ def main(argv=None) -> None:
             wall += earlier["wall_s"]
             times = {**earlier["times"], **times}
             peaks.append(earlier["peak_json"])
-        if a.mesh_only is None and not a.no_mesh_stage and stopped is not None:
+        if stopped is not None:
             _write_split(out, a, ex_id, stopped, earlier, split, wall, times, peaks)
             return
         done = a.mesh_only is None
@@ -374,7 +375,6 @@ def _read_split(a, ex_id: str) -> dict:
     missing = [f for f in split["carry"] if not os.path.isfile(os.path.join(a.out, f))]
     if missing:
         sys.exit(f"--resume: {a.out} lacks {', '.join(missing)} (split.json's carry)")
-    split["restart_s"] = list(split["restart_s"])
     return split
 
 
