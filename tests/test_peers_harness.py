@@ -16,18 +16,13 @@ sys.path.insert(0, PEERS)
 
 from _result import write_result  # noqa: E402
 from exchange import export, load  # noqa: E402
+from peers_fakes import fake_pgsr, small_exchange  # noqa: E402
 from score import render_pictures, score  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def exch(tmp_path_factory):
-    from wtopo import scenes
-
-    root = str(tmp_path_factory.mktemp("exch") / "bunny16")
-    scene = scenes.load("bunny", n_views=16, resolution=48)
-    scene.name = "bunny16"
-    export(scene, root, test_every=4, n_points=500)
-    return load(root)
+    return small_exchange(tmp_path_factory)
 
 
 def _result(ex, out, *, renders=None, mesh=None):
@@ -148,45 +143,6 @@ def test_the_roi_score_of_the_truth_is_one_and_of_a_moved_mesh_lower(exch_env, t
     assert row["roi_f1"] < 0.6 and row["roi_precision"] < 0.6 and row["roi_recall"] < 0.6
 
 
-def _fake_pgsr(monkeypatch, calls, mesh_scale=1.0):
-    """``run_pgsr``'s children stood in for: each training and meshing records its command and peak, meshing writes
-    a TSDF mesh (a box, scaled to tell runs apart), the held-out renders write ``views.npz``."""
-    import json
-    import time
-
-    import run_pgsr
-    import trimesh
-
-    def run(cmd, cwd, log, **env):
-        calls.append((os.path.basename(cwd), cmd))
-        if "_peak.py" in os.path.basename(cmd[1]):
-            script = next(c for c in cmd[3:] if c in ("train.py", "render.py"))  # after the launchers
-            with open(cmd[2], "w") as f:
-                json.dump({"peak_gpu_bytes": 1000 if script == "train.py" else 10}, f)
-            # _pgsr_split.py: --stop-at's iteration, or --stop-after's (two rounds of the views if the time is short)
-            it = env.get("PGSR_SPLIT_STOP")
-            if "PGSR_SPLIT_STOP_AFTER" in env and float(env["PGSR_SPLIT_STOP_AFTER"]) < 100:
-                it = str(2 * int(env["PGSR_SPLIT_VIEWS"]))
-            if it:  # its checkpoint and the state beside it
-                model = cmd[cmd.index("-m") + 1]
-                os.makedirs(os.path.join(model, "app_model", f"iteration_{it}"), exist_ok=True)
-                for name in (f"chkpnt{it}.pth", f"chkpnt{it}_state.pth", f"app_model/iteration_{it}/app.pth"):
-                    open(os.path.join(model, name), "w").close()
-            if "PGSR_SPLIT_TIMES" in env:  # as if its first iteration began 0.25 s after now
-                with open(env["PGSR_SPLIT_TIMES"], "w") as f:
-                    json.dump({"first_iteration_at": time.time() + 0.25, "setup_s": 0.2,
-                               **({"stopped_at": int(it)} if it else {})}, f)
-            if script == "render.py":
-                mesh = os.path.join(cmd[cmd.index("-m") + 1], "mesh")
-                os.makedirs(mesh, exist_ok=True)
-                trimesh.creation.box(extents=[mesh_scale] * 3).export(os.path.join(mesh, "tsdf_fusion_post.ply"))
-        else:  # _peer_views.py pgsr MODEL IT EXCHANGE VIEWS
-            np.savez(cmd[-1], rgb=np.zeros((1, 4, 4, 3), np.float16), n=7, peak=20)
-
-    monkeypatch.setattr(run_pgsr, "_run", run)
-    return run_pgsr
-
-
 def test_the_authors_mesh_stage_starts_from_an_earlier_warmup(exch, tmp_path, monkeypatch):
     """``run_pgsr.py --from-warmup``: the mesh stage of the TopoSurfel authors' code, in a second lease, from an
     earlier ``--no-mesh-stage`` run's result folder. No warm-up trains again, the mesh stage starts from that
@@ -198,7 +154,7 @@ def test_the_authors_mesh_stage_starts_from_an_earlier_warmup(exch, tmp_path, mo
         (tmp_path / name / "train.py").write_text("")
     ck = ["--checkout", str(tmp_path / "pgsr_dpsr"), "--init-checkout", str(tmp_path / "pgsr_init")]
     calls = []
-    run_pgsr = _fake_pgsr(monkeypatch, calls, mesh_scale=0.5)
+    run_pgsr = fake_pgsr(monkeypatch, calls, mesh_scale=0.5)
     run_pgsr.main([exch.root, str(tmp_path / "warm"), *ck, "--no-mesh-stage", "--warmup-iterations", "300"])
     first = json.loads((tmp_path / "warm" / "run.json").read_text())
     assert first["warmup_iterations"] == 300 and first["mesh_stage_iterations"] is None
@@ -208,7 +164,7 @@ def test_the_authors_mesh_stage_starts_from_an_earlier_warmup(exch, tmp_path, mo
     (tmp_path / "warm" / "run.json").write_text(json.dumps(first))
 
     calls.clear()
-    run_pgsr = _fake_pgsr(monkeypatch, calls, mesh_scale=2.0)
+    run_pgsr = fake_pgsr(monkeypatch, calls, mesh_scale=2.0)
     run_pgsr.main([exch.root, str(tmp_path / "whole"), *ck, "--from-warmup", str(tmp_path / "warm"),
                    "--iterations", "100"])
     assert [c[0] for c in calls] == ["pgsr_dpsr"] * 3  # no warm-up: the mesh stage, its mesh, its views
@@ -373,7 +329,7 @@ def test_a_mesh_stage_without_a_whole_warmup_of_its_scene_is_refused(exch, exch_
     import json
 
     calls = []
-    run_pgsr = _fake_pgsr(monkeypatch, calls)
+    run_pgsr = fake_pgsr(monkeypatch, calls)
     (tmp_path / "pgsr_dpsr").mkdir()
     (tmp_path / "pgsr_dpsr" / "train.py").write_text("")
     ck = ["--checkout", str(tmp_path / "pgsr_dpsr"), "--init-checkout", str(tmp_path / "pgsr_dpsr")]
@@ -426,82 +382,3 @@ def test_2dgs_reads_a_capture_without_masks_from_the_exchange_s_own_model(exch_e
     ex, _ = exch_env
     src = run_2dgs.source_folder(ex.root, str(tmp_path / "source"))
     assert src == os.path.abspath(os.path.join(ex.root, "colmap")) and not (tmp_path / "source").exists()
-
-
-def test_the_authors_mesh_stage_stops_at_a_checkpoint_and_resumes(exch, tmp_path, monkeypatch):
-    """``run_pgsr.py --stop-at N`` then ``--resume`` (in a later lease, OUT carried): the mesh stage's ``train.py``
-    runs under ``_pgsr_split.py``, writes its checkpoint and stops without a mesh; the resume restarts from that
-    checkpoint and its state, and the result counts every part's time and the warm-up's, less the restart's setup.
-    Splits that would change the camera order, and a resume of another run, are refused before anything runs."""
-    import json
-
-    (tmp_path / "pgsr_dpsr").mkdir()
-    (tmp_path / "pgsr_dpsr" / "train.py").write_text("")
-    ck = ["--checkout", str(tmp_path / "pgsr_dpsr"), "--init-checkout", str(tmp_path / "absent")]
-    calls = []
-    run_pgsr = _fake_pgsr(monkeypatch, calls)
-    (tmp_path / "pgsr_init").mkdir()
-    (tmp_path / "pgsr_init" / "train.py").write_text("")
-    run_pgsr.main([exch.root, str(tmp_path / "warm"), "--checkout", str(tmp_path / "pgsr_dpsr"), "--no-mesh-stage",
-                   "--warmup-iterations", "300"])
-    out, views = tmp_path / "split", len(exch.train)
-    base = [exch.root, str(out), *ck, "--iterations", str(10 * views), "--cache-dpsr-grids"]
-    for bad in (views + 1, 10 * views, 0):
-        with pytest.raises(SystemExit, match="multiple of the"):
-            run_pgsr.main([*base, "--from-warmup", str(tmp_path / "warm"), "--stop-at", str(bad)])
-    with pytest.raises(SystemExit, match="no split.json"):
-        run_pgsr.main([*base, "--resume"])
-
-    calls.clear()
-    run_pgsr.main([*base, "--from-warmup", str(tmp_path / "warm"), "--stop-at", str(4 * views)])
-    assert len(calls) == 1  # training only: no mesh, no held-out views, no result
-    train = calls[0][1]
-    assert [os.path.basename(c) for c in train[3:6]] == ["_pgsr_split.py", "_dpsr_cache.py", "train.py"]
-    assert train[train.index("--checkpoint_iterations") + 1] == str(4 * views)
-    split = json.loads((out / "split.json").read_text())
-    assert split["stopped_at"] == 4 * views and not (out / "run.json").exists()
-    assert all((out / f).is_file() for f in split["carry"]) and "mesh_init.ply" in split["carry"]
-    assert split["wall_s"] >= split["times"]["warmup_train_s"] and split["peak_gpu_bytes"] == 1000
-    # as if the first part had run on a larger GPU for an hour: the result must carry both on
-    split.update(peak_gpu_bytes=7777, wall_s=3600.0, times={**split["times"], "train_s": 3000.0})
-    (out / "split.json").write_text(json.dumps(split))
-
-    with pytest.raises(SystemExit, match="stopped a run with iterations="):  # another run's split
-        run_pgsr.main([exch.root, str(out), *ck, "--iterations", str(20 * views), "--cache-dpsr-grids", "--resume"])
-    with pytest.raises(SystemExit, match="multiple of the"):  # not beyond where it stopped
-        run_pgsr.main([*base, "--resume", "--stop-at", str(2 * views)])
-
-    calls.clear()
-    (out / "model" / "app_model" / "iteration_9999").mkdir()  # as an earlier attempt to resume would leave
-    run_pgsr.main([*base, "--resume"])
-    assert os.listdir(out / "model" / "app_model") == [f"iteration_{4 * views}"]  # their restart loads the highest
-    train = calls[0][1]
-    ckpt = train[train.index("--start_checkpoint") + 1]
-    assert ckpt == str(out / "model" / f"chkpnt{4 * views}.pth") and "--checkpoint_iterations" not in train
-    assert [c[1][3] for c in calls[1:2]] == ["render.py"]  # now its TSDF mesh, then the held-out views
-    whole = json.loads((out / "run.json").read_text())
-    assert whole["system"] == (f"PGSR+DPSR (authors', 300 + {10 * views} it.) [DPSR grids on the GPU] "
-                               f"[split at {4 * views}]")
-    assert whole["split_at"] == [4 * views] and whole["split_restart_s"] == [pytest.approx(0.25, abs=0.2)]
-    assert whole["warmup_train_s"] == split["times"]["warmup_train_s"] and "an earlier run" in whole["warmup_from"]
-    assert whole["peak_gpu_bytes"] == 7777
-    # this part took well under a second (its training less the 0.25 s restart, its mesh): an hour and less than 1 s
-    assert 3600.0 - 0.5 < whole["wall_s"] < 3600.0 + 1.0
-    assert 3000.0 - 0.5 < whole["train_s"] < 3000.0 + 0.5 and whole["train_s"] != 3000.0
-
-    # --stop-after: where it stopped comes back from the launcher; a long enough time trains to the end
-    calls.clear()
-    run_pgsr.main([*base[:1], str(tmp_path / "timed"), *base[2:], "--from-warmup", str(tmp_path / "warm"),
-                   "--stop-after", "60"])
-    train = calls[0][1]
-    assert "--checkpoint_iterations" not in train and len(calls) == 1
-    timed = json.loads((tmp_path / "timed" / "split.json").read_text())
-    assert timed["stopped_at"] == 2 * views and timed["split_at"] == [2 * views]
-    calls.clear()
-    run_pgsr.main([*base[:1], str(tmp_path / "timed"), *base[2:], "--resume", "--stop-after", "500"])
-    assert [c[1][3] for c in calls[1:2]] == ["render.py"]  # it got to the end first: its mesh and result
-    assert json.loads((tmp_path / "timed" / "run.json").read_text())["split_at"] == [2 * views]
-    with pytest.raises(SystemExit, match="split_done.json"):  # finished: nothing to go on with
-        run_pgsr.main([*base[:1], str(tmp_path / "timed"), *base[2:], "--resume"])
-    with pytest.raises(SystemExit):
-        run_pgsr.main([*base, "--resume", "--stop-at", str(6 * views), "--stop-after", "5"])

@@ -113,8 +113,8 @@ class AppModel(torch.nn.Module):
         self.load_state_dict(torch.load(os.path.join(model_path, f"app_model/iteration_{it}/app.pth")))
 '''
 
-# their train.py's loop, as far as state goes (train.py:92-660 of pgsr_dpsr)
-_TRAIN = '''
+# their train.py's setup, as far as state goes (both commits)
+_TRAIN_SETUP = '''
 import argparse, atexit, json, os, random
 from random import randint
 import numpy as np
@@ -140,7 +140,6 @@ if a.start_checkpoint:
     params, first = torch.load(a.start_checkpoint)  # as theirs: torch's default, weights only
     g.restore(params, None)
     app.load_weights(a.m)
-observe = torch.zeros(g.get_xyz.shape[0], dtype=torch.bool)
 stack, log = None, []
 
 
@@ -148,8 +147,11 @@ stack, log = None, []
 def write_log():
     with open(a.log, "a") as f:
         f.write(json.dumps({"log": log, "xyz": g.get_xyz.detach().tolist(), "app": app.w.detach().tolist()}) + "\\n")
+'''
 
-
+# the mesh stage's loop (train.py:92-660 of pgsr_dpsr)
+_TRAIN = _TRAIN_SETUP + '''
+observe = torch.zeros(g.get_xyz.shape[0], dtype=torch.bool)
 for it in range(first + 1, a.iterations + 1):
     g.update_learning_rate(it)
     if it % 10 == 1:
@@ -187,16 +189,56 @@ for it in range(first + 1, a.iterations + 1):
 app.save_weights(a.m, a.iterations)
 '''
 
+# the warm-up's: the plain-PGSR commit (de24f1a), whose GaussianModel has no view directions, mesh guidance or
+# proxy; its appearance model joins after a while, and its multi-view term draws a virtual or a nearest camera
+_WARMUP_GAUSSIAN_MODEL = _GAUSSIAN_MODEL + '''
+
+def _plain_init(self):
+    self.use_app = False
+
+
+GaussianModel.__init__ = _plain_init
+for _name in ("decay_view_dir_stats", "add_view_dir_stat", "extract_oriented_pointcloud", "set_mesh_guidance",
+              "update_mesh_normal_cache", "normals"):
+    delattr(GaussianModel, _name)
+'''
+_WARMUP_TRAIN = _TRAIN_SETUP + '''
+for it in range(first + 1, a.iterations + 1):
+    g.update_learning_rate(it)
+    if not stack:
+        stack = list(range(len(cams)))
+    cam = stack.pop(randint(0, len(stack) - 1))
+    g.use_app = it > 20
+    x = g.get_xyz
+    near = cams[(cam + 1) % len(cams)] if np.random.random() < 0.5 else -cams[cam]
+    loss = ((x - 0.1 * cams[cam]) ** 2).sum() + random.random() * ((x - 0.05 * near) ** 2).sum()
+    if g.use_app:
+        loss = loss + ((app.w - 1) * torch.randn(3, dtype=torch.float64)).sum() ** 2
+    loss.backward()
+    g.optimizer.step(); app.optimizer.step()
+    g.optimizer.zero_grad(); app.optimizer.zero_grad()
+    if it < DENSIFY_UNTIL and it % 10 == 0:
+        g.densify()
+    log.append([it, cam, float(loss.detach())])
+    if it in a.checkpoint_iterations:
+        torch.save((g.capture(), it), os.path.join(a.m, f"chkpnt{it}.pth"))
+        app.save_weights(a.m, it)
+app.save_weights(a.m, a.iterations)
+'''
+
+
+def _checkout(root, gaussian_model, train):
+    (root / "scene").mkdir(parents=True)
+    (root / "scene" / "__init__.py").write_text("from scene.gaussian_model import GaussianModel\n")
+    (root / "scene" / "gaussian_model.py").write_text(gaussian_model)
+    (root / "scene" / "app_model.py").write_text(_APP_MODEL)
+    (root / "train.py").write_text(train)
+    return root
+
 
 @pytest.fixture(scope="module")
 def checkout(tmp_path_factory):
-    root = tmp_path_factory.mktemp("split") / "checkout"
-    (root / "scene").mkdir(parents=True)
-    (root / "scene" / "__init__.py").write_text("from scene.gaussian_model import GaussianModel\n")
-    (root / "scene" / "gaussian_model.py").write_text(_GAUSSIAN_MODEL)
-    (root / "scene" / "app_model.py").write_text(_APP_MODEL)
-    (root / "train.py").write_text(_TRAIN)
-    return root
+    return _checkout(tmp_path_factory.mktemp("split") / "checkout", _GAUSSIAN_MODEL, _TRAIN)
 
 
 def _train(checkout, model, log, *args, launcher=True, **env):
@@ -297,3 +339,27 @@ def test_a_stop_after_some_time_checkpoints_at_a_multiple_of_the_views(checkout,
     first, second = _parts(log)
     assert len(first["log"]) == 6 and first["log"] + second["log"] == whole["log"] and second["xyz"] == whole["xyz"]
     assert "stopped_at" not in json.loads(times.read_text())
+
+
+@pytest.fixture(scope="module")
+def warmup_checkout(tmp_path_factory):
+    return _checkout(tmp_path_factory.mktemp("split") / "warmup", _WARMUP_GAUSSIAN_MODEL, _WARMUP_TRAIN)
+
+
+@pytest.mark.parametrize("at", [30, 198])
+def test_a_stopped_and_resumed_warmup_trains_as_the_uninterrupted_one(warmup_checkout, tmp_path, at):
+    """The warm-up's ``train.py`` (the plain-PGSR commit's) under the same launcher: what its classes lack is neither
+    patched nor saved, and the restart trains as the uninterrupted run; without the state beside the checkpoint
+    (the random states, the appearance model's optimizer) it does not."""
+    log = tmp_path / "whole.jsonl"
+    _train(warmup_checkout, tmp_path / "whole", log, launcher=False)
+    (whole,) = _parts(log)
+    (first, second), _ = _split_run(warmup_checkout, tmp_path, at)
+    assert first["log"] + second["log"] == whole["log"] and second["xyz"] == whole["xyz"]
+    assert second["app"] == whole["app"]
+    state = torch.load(tmp_path / "model" / f"chkpnt{at}_state.pth", weights_only=False)
+    assert state["gaussians"] == {} and state["seen"] is None
+    (tmp_path / "bare").mkdir()
+    (first, second), _ = _split_run(warmup_checkout, tmp_path / "bare", at, PGSR_SPLIT_STATE=None,
+                                    TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD=1)
+    assert first["log"] + second["log"] != whole["log"]

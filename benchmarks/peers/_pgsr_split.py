@@ -1,7 +1,9 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Run ``pgsr_dpsr``'s ``train.py`` so that its mesh stage can stop at a checkpoint and go on from it in another
-process, on another machine (``run_pgsr.py --stop-at`` / ``--resume``: the published 10,000 iterations do not fit
-one device lease).
+"""Run ``pgsr_dpsr``'s ``train.py`` so that a stage can stop at a checkpoint and go on from it in another process,
+on another machine (``run_pgsr.py --stop-at`` / ``--resume``: the published 30,000 + 10,000 iterations do not fit
+one device lease). The mesh stage runs the newest commit's ``train.py``; the warm-up (``--no-mesh-stage``) the
+plain-PGSR commit's, which has the same loop, checkpoint and appearance model without the mesh stage's view
+directions, mesh guidance and proxy: what a class lacks is neither saved nor patched.
 
 python _pgsr_split.py [NEXT_LAUNCHER] train.py ARGS...   (in the checkout, under ``_peak.py``)
 
@@ -92,8 +94,9 @@ def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str
     if stop_after is not None and not (views and model_path):
         raise ValueError("_pgsr_split: a stop after some time needs the views' number and the model path")
 
-    capture, restore, add_stat = GM.capture, GM.restore, GM.add_view_dir_stat
-    extract, update_lr = GM.extract_oriented_pointcloud, GM.update_learning_rate
+    capture, restore, update_lr = GM.capture, GM.restore, GM.update_learning_rate
+    # the mesh stage's alone (the warm-up's GaussianModel has neither)
+    add_stat, extract = getattr(GM, "add_view_dir_stat", None), getattr(GM, "extract_oriented_pointcloud", None)
     save_weights, load_weights, app_init = App.save_weights, App.load_weights, App.__init__
 
     # live["seen"], what a restart put back, is dropped when train.py would clear its mask (p_add_view_dir_stat,
@@ -155,7 +158,7 @@ def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str
             return  # the end of training, not a checkpoint
         g = live["g"]
         # (at a multiple of 100 train.py has just cleared its own: the restart's first iteration clears this one)
-        blob = {"iteration": int(iteration), "gaussians": {k: getattr(g, k, None) for k in _GM_STATE},
+        blob = {"iteration": int(iteration), "gaussians": {k: getattr(g, k) for k in _GM_STATE if hasattr(g, k)},
                 "seen": seen_now(g), "app_optimizer": self.optimizer.state_dict(), "rng": _rng_state()}
         _save(blob, os.path.join(model_path, f"chkpnt{iteration}_state.pth"))
         if live["stop_at"] is not None and int(iteration) == live["stop_at"]:
@@ -183,8 +186,11 @@ def install(gaussian_model, app_model, *, stop_at: int | None = None, state: str
         if "app_optimizer" in pending:
             self.optimizer.load_state_dict(pending.pop("app_optimizer"))
 
-    GM.capture, GM.restore, GM.add_view_dir_stat = p_capture, p_restore, p_add_view_dir_stat
-    GM.extract_oriented_pointcloud, GM.update_learning_rate = p_extract, p_update_learning_rate
+    GM.capture, GM.restore, GM.update_learning_rate = p_capture, p_restore, p_update_learning_rate
+    if add_stat is not None:
+        GM.add_view_dir_stat = p_add_view_dir_stat
+    if extract is not None:
+        GM.extract_oriented_pointcloud = p_extract
     App.save_weights, App.load_weights, App.__init__ = p_save_weights, p_load_weights, p_app_init
     GM._split_installed = True
 

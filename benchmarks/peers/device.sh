@@ -13,6 +13,8 @@
 # pgsr runs the TopoSurfel authors' code whole (PGSR warm-up, then its DPSR mesh stage) and also writes
 # pgsr_nomesh from its warm-up, unless pgsr_nomesh is launched too (then a run of its own, the warm-up twice) or
 # PGSR_ARGS="--from-warmup DIR" starts its mesh stage from an earlier pgsr_nomesh result (run_pgsr.py says how).
+# PGSR_ARGS="--stop-after=SECONDS" ends pgsr's mesh stage (pgsr_nomesh's warm-up) at a checkpoint, and "--resume"
+# goes on with it in the same folder (run_pgsr.py --stop-at / --stop-after / --resume).
 # $STAGE holds: big.part* (split xz tar of the unpacked Warp and
 # Open3D wheels) and/or whl/*.whl (trimesh, plyfile, gsplat), peers/2dgs (a 2d-gaussian-splatting checkout with
 # its submodules: diff-surfel-rasterization with third_party/glm, simple-knn), peers/pgsr_dpsr (Fan-Treasure/pgsr_dpsr
@@ -129,14 +131,15 @@ launch)
       esac
       rm -f "$out.rc"
       # --resume goes on with the stopped run in $out (its split.json and checkpoint)
-      [[ $s = pgsr && " ${PGSR_ARGS:-} " = *" --resume "* ]] || rm -rf "$out"
+      [[ $s = pgsr* && " ${PGSR_ARGS:-} " = *" --resume "* ]] || rm -rf "$out"
       mkdir -p "$out"
       job="$(printf '%q ' "${c[@]}") > $out.log 2>&1; echo \$? > $out.rc"
       if [ -n "$nomesh" ]; then  # the warm-up's own result is a job of its own to wait on, ending with pgsr's
         echo "written by $name/pgsr beside it (--nomesh-out): its log is $out.log" > "$nomesh.log"
         job="$job; cp $out.rc $nomesh.rc"
       fi
-      if [ -n "${SERIAL:-}" ]; then : > "$out.log"; chain="${chain:+$chain; }$job"; echo "queued $name/$s"; continue; fi
+      : > "$out.log"  # there at once: a wait right after the launch finds the job
+      if [ -n "${SERIAL:-}" ]; then chain="${chain:+$chain; }$job"; echo "queued $name/$s"; continue; fi
       setsid nohup bash -c "$job" >/dev/null 2>&1 &
       echo "launched $name/$s"
     done

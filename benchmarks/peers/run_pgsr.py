@@ -41,11 +41,12 @@ CPU and copies it and its filter to the GPU every iteration (about 1 GiB), which
 the cache keeps them on the GPU, the same values, and the system name says so. ``run.json`` names the GPU each
 stage ran on.
 
-``--stop-at N`` ends the mesh stage after its checkpoint of iteration N, a multiple of the number of training views
-(``_pgsr_split.py`` says why), ``--stop-after SECONDS`` at the first such iteration that its ``train.py`` ends
-SECONDS after its start (for a lease of known length), and ``--resume`` goes on from it in OUT, on this machine
-or another: the published mesh stage in two leases or more. OUT's ``split.json`` names the files a resume needs
-(``carry``) and holds the parts' figures so far; the result counts every part's time, less the setup each
+``--stop-at N`` ends the mesh stage (with ``--no-mesh-stage``, the warm-up) after its checkpoint of iteration N, a
+multiple of the number of training views (``_pgsr_split.py`` says why), ``--stop-after SECONDS`` at the first such
+iteration that its ``train.py`` ends SECONDS after its start (for a lease of known length), and ``--resume`` goes
+on from it in OUT, on this machine or another: each published stage in two leases or more. A split warm-up's
+result starts a mesh stage (``--from-warmup``) as a whole one's does. OUT's ``split.json`` names the files a resume
+needs (``carry``) and holds the parts' figures so far; the result counts every part's time, less the setup each
 restart repeats (recorded as ``split_restart_s``), the largest peak, and its system name says where it was split.
 """
 
@@ -64,6 +65,7 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
+from _pgsr_parts import drop_later_app_weights, read_split, stage_of, write_split  # noqa: E402
 from _result import read_json, write_result  # noqa: E402
 from exchange import load  # noqa: E402
 
@@ -125,14 +127,15 @@ def main(argv=None) -> None:
                     help="more arguments of the mesh stage's train.py, one string (e.g. \"--mesh_from_iter 200\" "
                          "for a short check of its DPSR half): not the published recipe, and the system name says so")
     ap.add_argument("--stop-at", type=int, default=None, metavar="ITERATION",
-                    help="end the mesh stage after its checkpoint of ITERATION (a multiple of the number of training "
-                         "views, below --iterations): OUT then holds what --resume needs, and no result")
+                    help="end the mesh stage (the warm-up with --no-mesh-stage) after its checkpoint of ITERATION (a "
+                         "multiple of the number of training views, below the stage's iterations): OUT then holds "
+                         "what --resume needs, and no result")
     ap.add_argument("--stop-after", type=float, default=None, metavar="SECONDS",
-                    help="as --stop-at, at the first multiple of the number of training views that the mesh stage's "
+                    help="as --stop-at, at the first multiple of the number of training views that the stage's "
                          "train.py ends SECONDS or more after its start (it goes on to the end if it gets there first)")
     ap.add_argument("--resume", action="store_true",
-                    help="go on with the mesh stage that --stop-at or --stop-after ended in OUT (carried from another "
-                         "machine, its split.json's files), to --iterations or to the next stop")
+                    help="go on with the stage that --stop-at or --stop-after ended in OUT (carried from another "
+                         "machine, its split.json's files), to its end or to the next stop")
     ap.add_argument("--cache-dpsr-grids", action="store_true",
                     help="the mesh stage's DPSR keeps its frequency grid and filter on the GPU instead of building "
                          "and copying them every iteration (_dpsr_cache.py): the same values, less time; the "
@@ -149,28 +152,30 @@ def main(argv=None) -> None:
         ap.error(f"--stop-after {a.stop_after}: seconds, more than 0")
     split_args = a.stop_at is not None or a.stop_after is not None or a.resume
     stopped = None  # the iteration a split mesh stage stopped at
-    if split_args and (a.no_mesh_stage or a.mesh_only is not None or a.nomesh_out):
-        ap.error("--stop-at, --stop-after, --resume split the mesh stage: not with --no-mesh-stage, --mesh-only or "
-                 "--nomesh-out")
+    if split_args and (a.mesh_only is not None or a.nomesh_out):
+        ap.error("--stop-at, --stop-after, --resume split a stage's training: not with --mesh-only or --nomesh-out "
+                 "(split the warm-up as a --no-mesh-stage run of its own)")
     if a.resume and a.from_warmup:
         ap.error("--resume: the warm-up is the stopped run's (its split.json): not with --from-warmup")
     ex_id = _exchange_id(a.exchange)  # fails before any training on a folder that is not an exchange folder
-    split = _read_split(a, ex_id) if a.resume else None
+    split = read_split(a, ex_id) if a.resume else None
     if split:
         a.warmup_iterations = split["warmup_iterations"]
     if a.stop_at is not None:
         views, done_it = len(load(a.exchange).train), split["stopped_at"] if split else 0
-        if not (done_it < a.stop_at < a.iterations) or a.stop_at % views:
+        last = stage_of(a)[1]
+        if not (done_it < a.stop_at < last) or a.stop_at % views:
             sys.exit(f"--stop-at {a.stop_at}: not a multiple of the {views} training views between the iteration "
-                     f"the mesh stage starts from ({done_it}) and --iterations ({a.iterations}), both excluded")
+                     f"the stage starts from ({done_it}) and its iterations ({last}), both excluded")
     earlier = _earlier_warmup(a.from_warmup, a.out, ex_id) if a.from_warmup else None
     if earlier:
         a.warmup_iterations = earlier["warmup_iterations"]
 
     head = os.path.abspath(a.checkout)
     init = os.path.abspath(a.init_checkout or os.path.join(os.path.dirname(head), "pgsr_init"))
-    # --from-warmup runs no warm-up: its checkout is not needed
-    for path, what in ((head, "--checkout"),) + (() if earlier or split else ((init, "--init-checkout"),)):
+    # --from-warmup, or a resumed mesh stage, runs no warm-up: its checkout is not needed
+    for path, what in ((head, "--checkout"),) + (
+            () if earlier or (split and not a.no_mesh_stage) else ((init, "--init-checkout"),)):
         if not os.path.exists(os.path.join(path, "train.py")):
             sys.exit(f"{what}: no train.py in {path}")
     out = os.path.abspath(a.out)
@@ -209,62 +214,70 @@ def main(argv=None) -> None:
                  ckout, log, OMP_NUM_THREADS="4")
             lap(prefix + "mesh_s")
 
+        def trained(prefix, ckout, model_dir, iterations, more=(), launcher=()):
+            """A stage's ``train.py`` (under ``_pgsr_split.py`` when split), then its mesh unless it stopped at a
+            checkpoint; the iteration it stopped at (--stop-at's, or --stop-after's), None if it trained to the end."""
+            more, env = list(more), {}
+            if split_args:
+                launcher = [os.path.join(HERE, "_pgsr_split.py"), *launcher]
+                env["PGSR_SPLIT_TIMES"] = os.path.join(out, "part_times.json")
+                if os.path.exists(env["PGSR_SPLIT_TIMES"]):
+                    os.remove(env["PGSR_SPLIT_TIMES"])
+            if a.stop_at is not None:
+                more += ["--checkpoint_iterations", str(a.stop_at)]
+                env["PGSR_SPLIT_STOP"] = str(a.stop_at)
+            if a.stop_after is not None:
+                env["PGSR_SPLIT_STOP_AFTER"] = str(a.stop_after)
+                env["PGSR_SPLIT_VIEWS"] = str(len(load(a.exchange).train))
+            if split:
+                ckpt = os.path.join(model_dir, f"chkpnt{split['stopped_at']}")
+                more += ["--start_checkpoint", ckpt + ".pth"]
+                env["PGSR_SPLIT_STATE"] = ckpt + "_state.pth"
+            launched = time.time()
+            stage(prefix, ckout, model_dir, iterations, more=more, launcher=launcher, env=env, mesh=False)
+            part = read_json(env["PGSR_SPLIT_TIMES"]) if split_args else {}
+            stopped = part.get("stopped_at")
+            if a.stop_at is not None and stopped != a.stop_at:
+                sys.exit(f"run_pgsr: the stage stopped at {stopped}, not at --stop-at {a.stop_at}")
+            if stopped is None:
+                stage(prefix, ckout, model_dir, iterations, train=False)
+            if split:  # this restart's setup (Python, the scene, the initial mesh, the checkpoint) counts once
+                restart = part["first_iteration_at"] - launched
+                times[prefix + "train_s"] -= restart
+                split["restart_s"].append(restart)
+            return stopped
+
         if a.mesh_only is None:
             if split:
-                shutil.copyfile(os.path.join(out, "mesh_init.ply"), os.path.join(src, "mesh_init.ply"))
-                # a resume run before left later appearance weights, which their restart would load (the highest)
-                apps = os.path.join(model, "app_model")
-                for d in os.listdir(apps):
-                    if d.startswith("iteration_") and int(d.split("_")[1]) > split["stopped_at"]:
-                        shutil.rmtree(os.path.join(apps, d))
+                if not a.no_mesh_stage:
+                    shutil.copyfile(os.path.join(out, "mesh_init.ply"), os.path.join(src, "mesh_init.ply"))
+                drop_later_app_weights(os.path.join(out, stage_of(a)[0]), split["stopped_at"])
             else:
                 shutil.rmtree(model, ignore_errors=True)
             if earlier:
                 warm = earlier["dir"]
             elif not split:
                 shutil.rmtree(warm, ignore_errors=True)
-                stage("warmup_", init, warm, a.warmup_iterations)  # 1. plain PGSR (de24f1a) and its TSDF mesh
-            if not a.no_mesh_stage:
-                # 2. mesh stage: pgsr_dpsr from the warm-up's mesh
-                if not split:
+            if a.no_mesh_stage:  # 1. plain PGSR (de24f1a) and its TSDF mesh: the result
+                stopped = trained("warmup_", init, warm, a.warmup_iterations)
+            else:
+                if not (earlier or split):  # 1. the warm-up, whose TSDF mesh is the mesh stage's start
+                    stage("warmup_", init, warm, a.warmup_iterations)
                     shutil.copyfile(os.path.join(warm, "mesh", "tsdf_fusion_post.ply"),
                                     os.path.join(src, "mesh_init.ply"))
-                launcher = ([os.path.join(HERE, "_pgsr_split.py")] if split_args else []) + (
-                    [os.path.join(HERE, "_dpsr_cache.py")] if a.cache_dpsr_grids else [])
-                more, env = list(extra), {}
-                if split_args:
-                    env["PGSR_SPLIT_TIMES"] = os.path.join(out, "part_times.json")
-                    if os.path.exists(env["PGSR_SPLIT_TIMES"]):
-                        os.remove(env["PGSR_SPLIT_TIMES"])
-                if a.stop_at is not None:
-                    more += ["--checkpoint_iterations", str(a.stop_at)]
-                    env["PGSR_SPLIT_STOP"] = str(a.stop_at)
-                if a.stop_after is not None:
-                    env["PGSR_SPLIT_STOP_AFTER"] = str(a.stop_after)
-                    env["PGSR_SPLIT_VIEWS"] = str(len(load(a.exchange).train))
-                if split:
-                    ckpt = os.path.join(model, f"chkpnt{split['stopped_at']}")
-                    more += ["--start_checkpoint", ckpt + ".pth"]
-                    env["PGSR_SPLIT_STATE"] = ckpt + "_state.pth"
-                launched = time.time()
-                stage("", head, model, a.iterations, more=more, launcher=launcher, env=env, mesh=False)
-                part = read_json(env["PGSR_SPLIT_TIMES"]) if split_args else {}
-                # where it stopped: --stop-at's iteration, or --stop-after's; none if it trained to the end
-                stopped = part.get("stopped_at")
-                if a.stop_at is not None and stopped != a.stop_at:
-                    sys.exit(f"run_pgsr: the mesh stage stopped at {stopped}, not at --stop-at {a.stop_at}")
-                if stopped is None:
-                    stage("", head, model, a.iterations, train=False)
-                if split:  # this restart's setup (Python, the scene, the initial mesh, the checkpoint) counts once
-                    restart = part["first_iteration_at"] - launched
-                    times["train_s"] -= restart
-                    split["restart_s"].append(restart)
+                elif earlier:
+                    shutil.copyfile(os.path.join(warm, "mesh", "tsdf_fusion_post.ply"),
+                                    os.path.join(src, "mesh_init.ply"))
+                # 2. mesh stage: pgsr_dpsr from the warm-up's mesh
+                stopped = trained("", head, model, a.iterations, more=extra,
+                                  launcher=[os.path.join(HERE, "_dpsr_cache.py")] if a.cache_dpsr_grids else [])
         else:
             stage("", final_ckout, final, it, train=False)
         wall = time.perf_counter() - t0
         if split:  # the parts before: their time and peak, the warm-up's included
+            key = "warmup_train_s" if a.no_mesh_stage else "train_s"
             wall += split["wall_s"] - split["restart_s"][-1]
-            times = {**split["times"], **times, "train_s": split["times"]["train_s"] + times["train_s"]}
+            times = {**split["times"], **times, key: split["times"][key] + times[key]}
             peaks.append(_peak_file(out, "peak_earlier_parts.json", split["peak_gpu_bytes"]))
             earlier = split["earlier"]
         elif earlier:  # the earlier warm-up's time and peak count in: the whole recipe's figures
@@ -272,14 +285,18 @@ def main(argv=None) -> None:
             times = {**earlier["times"], **times}
             peaks.append(earlier["peak_json"])
         if stopped is not None:
-            _write_split(out, a, ex_id, stopped, earlier, split, wall, times, peaks)
+            write_split(out, a, ex_id, stopped, earlier, split, wall, times,
+                        max(read_json(p)["peak_gpu_bytes"] for p in peaks), _device_name())
             return
         done = a.mesh_only is None
         warm_it = a.mesh_only if a.no_mesh_stage and not done else a.warmup_iterations
+        split_name = f" [split at {', '.join(f'{i:,}' for i in split['split_at'])}]" if split else ""
+        split_run = {"split_at": split["split_at"], "split_restart_s": split["restart_s"],
+                     "split_devices": split["devices"]} if split else {}
         if a.no_mesh_stage:
-            _finish(a.out, a.exchange, ex_id, warm, init, warm_it, log, system=_system(warm_it, None),
-                    run=_run_json(warm_it, None, wall if done else None,
-                                  times if done else {}, peaks if done else None))
+            run = _run_json(warm_it, None, wall if done else None, times if done else {}, peaks if done else None)
+            _finish(a.out, a.exchange, ex_id, warm, init, warm_it, log, system=_system(warm_it, None) + split_name,
+                    run={**run, **split_run})
         else:
             run = _run_json(a.warmup_iterations, it, wall if done else None, times if done else {},
                             peaks if done else None)
@@ -290,15 +307,10 @@ def main(argv=None) -> None:
             if earlier:
                 run["warmup_from"] = earlier["from"]
                 run["warmup_device"] = earlier["device"]
-            if split:
-                run["split_at"], run["split_restart_s"] = split["split_at"], split["restart_s"]
-                run["split_devices"] = split["devices"]
+            run.update(split_run)
             system = (_system(a.warmup_iterations, it) + (f" [{a.mesh_train_args}]" if extra else "")
-                      + (" [DPSR grids on the GPU]" if a.cache_dpsr_grids else "")
-                      + (f" [split at {', '.join(f'{i:,}' for i in split['split_at'])}]" if split else ""))
+                      + (" [DPSR grids on the GPU]" if a.cache_dpsr_grids else "") + split_name)
             _finish(a.out, a.exchange, ex_id, model, head, it, log, system=system, run=run)
-            if split:  # finished: a later --resume has nothing to go on with
-                os.replace(os.path.join(out, "split.json"), os.path.join(out, "split_done.json"))
             if earlier and run.get("device") != earlier["device"]:
                 print(f"run_pgsr: the warm-up ran on {earlier['device']}, the mesh stage on {run.get('device')}: "
                       "the row's time adds two GPUs' times", file=sys.stderr)
@@ -306,6 +318,8 @@ def main(argv=None) -> None:
                 _finish(a.nomesh_out, a.exchange, ex_id, warm, init, warm_it, log, system=_system(warm_it, None),
                         run=_run_json(warm_it, None, times["warmup_train_s"] + times["warmup_mesh_s"],
                                       {k: times[k] for k in ("warmup_train_s", "warmup_mesh_s")}, peaks[:2]))
+        if split:  # finished: a later --resume has nothing to go on with
+            os.replace(os.path.join(out, "split.json"), os.path.join(out, "split_done.json"))
 
 
 def _exchange_id(exchange: str) -> str:
@@ -354,51 +368,6 @@ def _peak_file(out: str, name: str, peak_bytes: int) -> str:
     with open(path, "w") as f:
         json.dump({"peak_gpu_bytes": int(peak_bytes)}, f)
     return path
-
-
-def _split_key(a, ex_id: str) -> dict:
-    """What a resume must share with the run it goes on with."""
-    return {"exchange": ex_id, "iterations": a.iterations, "mesh_train_args": a.mesh_train_args,
-            "dpsr_grids_cached": bool(a.cache_dpsr_grids)}
-
-
-def _read_split(a, ex_id: str) -> dict:
-    """OUT's ``split.json`` (``_write_split``), checked against this run's arguments and for its files."""
-    path = os.path.join(a.out, "split.json")
-    if not os.path.isfile(path):
-        sys.exit(f"--resume: no split.json in {a.out} (the folder of a run that --stop-at or --stop-after ended, "
-                 "with its carried files; a finished one keeps it as split_done.json)")
-    split = read_json(path)
-    for k, v in _split_key(a, ex_id).items():
-        if split["key"][k] != v:
-            sys.exit(f"--resume: {path} stopped a run with {k}={split['key'][k]!r}, this one has {v!r}")
-    missing = [f for f in split["carry"] if not os.path.isfile(os.path.join(a.out, f))]
-    if missing:
-        sys.exit(f"--resume: {a.out} lacks {', '.join(missing)} (split.json's carry)")
-    return split
-
-
-def _write_split(out: str, a, ex_id: str, it: int, earlier, split, wall: float, times: dict, peaks: list) -> None:
-    """After the mesh stage stopped at its checkpoint of iteration ``it`` (``--stop-at``, ``--stop-after``): OUT's
-    ``split.json``, what ``--resume`` reads (the figures so far; ``carry``: the files it needs, relative to OUT)."""
-    ckpt = [f"model/chkpnt{it}.pth", f"model/chkpnt{it}_state.pth", f"model/app_model/iteration_{it}/app.pth"]
-    missing = [f for f in ckpt if not os.path.isfile(os.path.join(out, f))]
-    if missing:
-        sys.exit(f"run_pgsr: the mesh stage ended without its checkpoint of iteration {it}: no {', '.join(missing)}")
-    if not split:
-        shutil.copyfile(os.path.join(out, "source", "mesh_init.ply"), os.path.join(out, "mesh_init.ply"))
-    prev = split or {"split_at": [], "restart_s": [], "devices": []}
-    doc = {"key": _split_key(a, ex_id), "stopped_at": it, "warmup_iterations": a.warmup_iterations,
-           "wall_s": wall, "times": times, "peak_gpu_bytes": max(read_json(p)["peak_gpu_bytes"] for p in peaks),
-           "split_at": [*prev["split_at"], it], "restart_s": prev["restart_s"],
-           "devices": [*prev["devices"], _device_name()],
-           "earlier": None if not earlier else {"from": earlier["from"], "device": earlier["device"]},
-           "carry": ["split.json", "mesh_init.ply", *ckpt]}
-    with open(os.path.join(out, "split.json.part"), "w") as f:
-        json.dump(doc, f, indent=1)
-    os.replace(os.path.join(out, "split.json.part"), os.path.join(out, "split.json"))
-    print(f"run_pgsr: the mesh stage stopped after iteration {it}; carry {', '.join(doc['carry'])} (under {out}) "
-          "and go on with --resume", file=sys.stderr)
 
 
 def _device_name():

@@ -35,6 +35,9 @@
 #   with the tree, under a call's 64 MiB);
 # in the next lease, after step 1, one call per folder, carrying it alone:   bash lab/device/sl.sh splitin
 # then step 2 with SYSTEMS=pgsr RESUME=1 and the same PGSR_ARGS (a --stop-after for this lease, or none).
+# The warm-up splits the same way, should its 30,000 iterations not fit a lease: SCENES=SCENE:pgsr_nomesh with
+# PGSR_ARGS="--stop-after=SECONDS"; SYSTEM=pgsr_nomesh bash lab/device/sl.sh splitstage SCENE ...; next lease,
+# splitin, then SCENES=SCENE:pgsr_nomesh RESUME=1 (its finished result is then the warm-up FROM_WARMUP carries).
 step=${1:-wait}
 set -o pipefail
 shopt -s nullglob
@@ -67,7 +70,8 @@ unpack_parts() {  # $1: SCENE__SYSTEM, $2: destination folder, then folders: rep
 }
 if [ "$step" = splitstage ]; then
   sc=${2:?SCENE}; shift 2
-  parts=($(complete_parts ${sc}__pgsr "$@")) || { echo "$sc/pgsr: not every part is here"; exit 1; }
+  sy=${SYSTEM:-pgsr}  # pgsr_nomesh: its stopped warm-up
+  parts=($(complete_parts ${sc}__$sy "$@")) || { echo "$sc/$sy: not every part is here"; exit 1; }
   rm -rf .stage/splitin && i=0
   for f in "${parts[@]}"; do
     k=$(printf ".stage/splitin/%02d" $((i / 5 + 1))); mkdir -p $k && cp "$f" $k/ && i=$((i + 1))
@@ -107,7 +111,7 @@ warm)
   mkdir -p $S/warmparts && cp .stage/warm/*/*__pgsr_nomesh__*of*.txz $S/warmparts/ && ls -la $S/warmparts
   exit 0 ;;
 splitin)
-  mkdir -p $S/splitparts && cp .stage/splitin/*/*__pgsr__*of*.txz $S/splitparts/ && ls $S/splitparts | wc -l
+  mkdir -p $S/splitparts && cp .stage/splitin/*/*__pgsr*__*of*.txz $S/splitparts/ && ls $S/splitparts | wc -l
   exit 0 ;;
 launch)
   mkdir -p $S/exch
@@ -136,9 +140,10 @@ launch)
       fi
     fi
     if [ -n "${RESUME:-}" ]; then
-      [ "$sys" = pgsr ] || { echo "$sc: RESUME goes on with pgsr's stopped mesh stage alone (SYSTEMS=pgsr)"; exit 1; }
+      [ "$sys" = pgsr ] || [ "$sys" = pgsr_nomesh ] || {
+        echo "$sc: RESUME goes on with one stopped run: pgsr's mesh stage or pgsr_nomesh's warm-up"; exit 1; }
       # the stopped run's folder, as its wait step sent it; device.sh launch keeps it for --resume
-      unpack_parts ${sc}__pgsr $S/res/$sc/pgsr $S/splitparts || exit 1
+      unpack_parts ${sc}__$sys $S/res/$sc/$sys $S/splitparts || exit 1
       pgsr_args="$pgsr_args --resume"
     fi
     PGSR_ARGS=$pgsr_args STAGE=$S bash $D launch "$S/exch/$sc" -- $sys
@@ -171,7 +176,7 @@ pack_finished() {  # each finished run once: its result's files, xz in 10 MiB pa
     for f in run.json renders.npz device.log log.txt; do [ -f $d/$f ] && files+=($f); done
     if [ $sys = pgsr_nomesh ] && [ -f $d/warmup/mesh/tsdf_fusion_post.ply ]; then files+=(warmup/mesh/tsdf_fusion_post.ply)
     elif [ -f $d/mesh.ply ]; then files+=(mesh.ply)
-    elif [ -f $d/split.json ]; then  # a mesh stage stopped at its checkpoint (--stop-at, --stop-after): --resume's
+    elif [ -f $d/split.json ]; then  # a stage stopped at its checkpoint (--stop-at, --stop-after): --resume's
       files+=($(python3 -c "import json, sys; print(' '.join(json.load(open(sys.argv[1]))['carry']))" $d/split.json))
     fi
     rm -f $P/tmp.*
