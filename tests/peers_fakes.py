@@ -28,7 +28,8 @@ def small_exchange(tmp_path_factory):
 
 
 def fake_pgsr(monkeypatch, calls, mesh_scale=1.0):
-    """``run_pgsr``'s children stood in for: each training and meshing records its command and peak, meshing writes
+    """``run_pgsr``'s children stood in for: each records its folder, command and environment in ``calls``; training
+    and meshing record their peak, meshing writes
     a TSDF mesh (a box, scaled to tell runs apart), the held-out renders write ``views.npz``."""
     import json
     import time
@@ -37,7 +38,7 @@ def fake_pgsr(monkeypatch, calls, mesh_scale=1.0):
     import trimesh
 
     def run(cmd, cwd, log, **env):
-        calls.append((os.path.basename(cwd), cmd))
+        calls.append((os.path.basename(cwd), cmd, env))
         if "_peak.py" in os.path.basename(cmd[1]):
             script = next(c for c in cmd[3:] if c in ("train.py", "render.py"))  # after the launchers
             with open(cmd[2], "w") as f:

@@ -31,6 +31,7 @@ def read_split(a, ex_id: str) -> dict:
         sys.exit(f"--resume: no split.json in {a.out} (the folder of a run that --stop-at or --stop-after ended, "
                  "with its carried files; a finished one keeps it as split_done.json)")
     split = read_json(path)
+    split["key"].setdefault("stage", "model")  # written before the warm-up could split: a mesh stage's
     for k, v in split_key(a, ex_id).items():
         if split["key"].get(k) != v:
             sys.exit(f"--resume: {path} stopped a run with {k}={split['key'].get(k)!r}, this one has {v!r}")

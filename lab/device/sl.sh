@@ -30,7 +30,7 @@
 # Its loop runs 0.40-0.48 s an iteration alone with its grids cached, so the mesh stage itself takes two leases:
 # PGSR_ARGS="--cache-dpsr-grids --stop-after=SECONDS" (or --stop-at=N, N a multiple of the scene's training views)
 # ends it at its checkpoint,
-# and the wait step sends what --resume needs (split.json's carry) as SCENE__pgsr parts; here
+# and the wait step sends what --resume needs (split.json's carry) as SCENE__pgsr__split parts; here
 #   bash lab/device/sl.sh splitstage SCENE /work/.device/N/sl ...   groups them into .stage/splitin/K (five parts:
 #   with the tree, under a call's 64 MiB);
 # in the next lease, after step 1, one call per folder, carrying it alone:   bash lab/device/sl.sh splitin
@@ -44,7 +44,7 @@ shopt -s nullglob
 complete_parts() {  # $1: SCENE__SYSTEM, then folders: the N parts of one packing in order, or fail
   local key=$1 files m i f want out=()
   shift
-  files=($(for d in "$@"; do for f in "$d"/${key}__*of*.txz; do echo "$f"; done; done \
+  files=($(for d in "$@"; do for f in "$d"/${key}__[0-9]*of[0-9]*.txz; do echo "$f"; done; done \
     | awk -F/ '{print $NF "\t" $0}' | sort -u -k1,1 | cut -f2))
   [ ${#files[@]} -gt 0 ] || return 1
   m=$(basename "${files[0]}" .txz); m=${m##*of}
@@ -71,7 +71,7 @@ unpack_parts() {  # $1: SCENE__SYSTEM, $2: destination folder, then folders: rep
 if [ "$step" = splitstage ]; then
   sc=${2:?SCENE}; shift 2
   sy=${SYSTEM:-pgsr}  # pgsr_nomesh: its stopped warm-up
-  parts=($(complete_parts ${sc}__$sy "$@")) || { echo "$sc/$sy: not every part is here"; exit 1; }
+  parts=($(complete_parts ${sc}__${sy}__split "$@")) || { echo "$sc/$sy: not every stopped part is here"; exit 1; }
   rm -rf .stage/splitin && i=0
   for f in "${parts[@]}"; do
     k=$(printf ".stage/splitin/%02d" $((i / 5 + 1))); mkdir -p $k && cp "$f" $k/ && i=$((i + 1))
@@ -111,7 +111,7 @@ warm)
   mkdir -p $S/warmparts && cp .stage/warm/*/*__pgsr_nomesh__*of*.txz $S/warmparts/ && ls -la $S/warmparts
   exit 0 ;;
 splitin)
-  mkdir -p $S/splitparts && cp .stage/splitin/*/*__pgsr*__*of*.txz $S/splitparts/ && ls $S/splitparts | wc -l
+  mkdir -p $S/splitparts && cp .stage/splitin/*/*__split__*of*.txz $S/splitparts/ && ls $S/splitparts | wc -l
   exit 0 ;;
 launch)
   mkdir -p $S/exch
@@ -143,7 +143,7 @@ launch)
       [ "$sys" = pgsr ] || [ "$sys" = pgsr_nomesh ] || {
         echo "$sc: RESUME goes on with one stopped run: pgsr's mesh stage or pgsr_nomesh's warm-up"; exit 1; }
       # the stopped run's folder, as its wait step sent it; device.sh launch keeps it for --resume
-      unpack_parts ${sc}__$sys $S/res/$sc/$sys $S/splitparts || exit 1
+      unpack_parts ${sc}__${sys}__split $S/res/$sc/$sys $S/splitparts || exit 1
       pgsr_args="$pgsr_args --resume"
     fi
     PGSR_ARGS=$pgsr_args STAGE=$S bash $D launch "$S/exch/$sc" -- $sys
@@ -167,24 +167,25 @@ unpacked() {
 }
 unsent() { local n=0 f; for f in $P/*.txz; do [ -f $P/sent/${f##*/} ] || n=$((n + 1)); done; echo $n; }
 pack_finished() {  # each finished run once: its result's files, xz in 10 MiB parts named SCENE__SYSTEM__IofN.txz
-  local l d sys sc files f m i tmps
+  local l d sys sc files f m i tmps name
   for l in $S/res/*/*.log; do
     d=${l%.log}; sys=${d##*/}; sc=$(basename $(dirname $d))
     [ -f $d.rc ] && [ ! -f $P/$sc.$sys.done ] || continue
     cp $l $d/device.log 2>/dev/null
-    files=()
+    files=(); name=$sys
     for f in run.json renders.npz device.log log.txt; do [ -f $d/$f ] && files+=($f); done
     if [ $sys = pgsr_nomesh ] && [ -f $d/warmup/mesh/tsdf_fusion_post.ply ]; then files+=(warmup/mesh/tsdf_fusion_post.ply)
     elif [ -f $d/mesh.ply ]; then files+=(mesh.ply)
     elif [ -f $d/split.json ]; then  # a stage stopped at its checkpoint (--stop-at, --stop-after): --resume's
       files+=($(python3 -c "import json, sys; print(' '.join(json.load(open(sys.argv[1]))['carry']))" $d/split.json))
+      name=${sys}__split  # parts of their own: never taken for a finished result's
     fi
     rm -f $P/tmp.*
     if ! tar -C $d -c "${files[@]}" | xz -T0 -6 | split -b 10M - $P/tmp.; then
       echo "$sc/$sys: packing failed"; continue
     fi
     tmps=($P/tmp.*); m=${#tmps[@]}; i=0
-    for f in "${tmps[@]}"; do i=$((i + 1)); mv $f $(printf "$P/%s__%s__%02dof%02d.txz" $sc $sys $i $m); done
+    for f in "${tmps[@]}"; do i=$((i + 1)); mv $f $(printf "$P/%s__%s__%02dof%02d.txz" $sc $name $i $m); done
     touch $P/$sc.$sys.done
     echo "$sc/$sys: rc $(cat $d.rc), ${files[*]} in $m parts"
   done
