@@ -200,7 +200,11 @@ n=0
 for f in $P/*.txz; do
   [ ! -f $P/sent/${f##*/} ] && [ $n -lt 6 ] && cp $f $OUT/sl/ && touch $P/sent/${f##*/} && n=$((n + 1))
 done
-for l in $S/res/*/*.log; do d=${l%.log}; echo "$d rc=$(cat $d.rc 2>/dev/null || echo running): $(tail -n 1 $l | cut -c1-200)"; done
+for l in $S/res/*/*.log; do
+  d=${l%.log}; echo "$d rc=$(cat $d.rc 2>/dev/null || echo running): $(tail -n 1 $l | cut -c1-200)"
+  # a running peer's progress bar (train.py's tqdm, in the run's log.txt): its iteration and rate
+  [ -f $d.rc ] || [ ! -f $d/log.txt ] || tail -c 20000 $d/log.txt | tr '\r' '\n' | grep -a "progress" | tail -n 1 | cut -c1-160
+done
 ls $OUT/sl
 if [ "$(jobs_left)" = 0 ] && [ "$(unpacked)" = 0 ] && [ "$(unsent)" = 0 ]; then echo "all results sent"
 else echo "$(jobs_left) runs going, $(unsent) parts to send after $(( $(date +%s) - t0 )) s: call wait again"; fi
