@@ -19,8 +19,9 @@
 # A result travels as SCENE__SYSTEM__IofN.txz (10 MiB parts, six a call; RESEND=1 sends every part again): its
 # run.json, mesh.ply, renders.npz and logs; for pgsr_nomesh the warm-up's TSDF mesh the mesh stage reads in place of
 # mesh.ply, which is that mesh again (unpack restores it). The authors' code at its published counts takes
-# at least two leases: the warm-up (SYSTEMS=pgsr_nomesh) in one; in the next, after step 1, one call per folder
-# .stage/warm/N holding at most five of the warm-up's parts, carrying that folder alone:   bash lab/device/sl.sh warm
+# at least two leases: the warm-up (SYSTEMS=pgsr_nomesh) in one; here
+#   bash lab/device/sl.sh warmstage SCENE /work/.device/N/sl ...   groups its result's parts into .stage/warm/K;
+# in the next, after step 1, one call per folder .stage/warm/K, carrying it alone:   bash lab/device/sl.sh warm
 # then step 2 with SYSTEMS=pgsr FROM_WARMUP=1: each scene's mesh stage starts from its carried warm-up
 # (run_pgsr.py --from-warmup; the row counts both stages' time and the larger peak). Its DPSR loop (after iteration
 # 5,000) ran 1.3 s an iteration beside two 2DGS runs; the mesh stage fits one lease only at about 0.25 s alone
@@ -68,15 +69,19 @@ unpack_parts() {  # $1: SCENE__SYSTEM, $2: destination folder, then folders: rep
     rm -rf "$tmp"; echo "${key/__//}: unpacking failed"; return 1
   fi
 }
-if [ "$step" = splitstage ]; then
+if [ "$step" = splitstage ] || [ "$step" = warmstage ]; then
+  # here: the parts a later lease carries in, five a folder (with the tree, under a call's 64 MiB): splitstage a
+  # stopped run's (SYSTEM=pgsr, or pgsr_nomesh for a stopped warm-up) into .stage/splitin/K, for splitin;
+  # warmstage a finished warm-up's result into .stage/warm/K, for warm and FROM_WARMUP
   sc=${2:?SCENE}; shift 2
-  sy=${SYSTEM:-pgsr}  # pgsr_nomesh: its stopped warm-up
-  parts=($(complete_parts ${sc}__${sy}__split "$@")) || { echo "$sc/$sy: not every stopped part is here"; exit 1; }
-  rm -rf .stage/splitin && i=0
+  if [ "$step" = splitstage ]; then key=${sc}__${SYSTEM:-pgsr}__split; dest=.stage/splitin
+  else key=${sc}__pgsr_nomesh; dest=.stage/warm; fi
+  parts=($(complete_parts $key "$@")) || { echo "${key//__//}: not every part is here"; exit 1; }
+  rm -rf $dest && i=0
   for f in "${parts[@]}"; do
-    k=$(printf ".stage/splitin/%02d" $((i / 5 + 1))); mkdir -p $k && cp "$f" $k/ && i=$((i + 1))
+    k=$(printf "$dest/%02d" $((i / 5 + 1))); mkdir -p $k && cp "$f" $k/ && i=$((i + 1))
   done
-  ls .stage/splitin
+  ls $dest
   exit 0
 fi
 if [ "$step" = unpack ]; then
@@ -108,7 +113,7 @@ stage)
   echo "staged after $(( $(date +%s) - t0 )) s"
   exit 0 ;;
 warm)
-  mkdir -p $S/warmparts && cp .stage/warm/*/*__pgsr_nomesh__*of*.txz $S/warmparts/ && ls -la $S/warmparts
+  mkdir -p $S/warmparts && cp .stage/warm/*/*__pgsr_nomesh__[0-9]*of*.txz $S/warmparts/ && ls -la $S/warmparts
   exit 0 ;;
 splitin)
   mkdir -p $S/splitparts && cp .stage/splitin/*/*__split__*of*.txz $S/splitparts/ && ls $S/splitparts | wc -l
