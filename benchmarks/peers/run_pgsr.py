@@ -151,7 +151,7 @@ def main(argv=None) -> None:
     if a.stop_after is not None and a.stop_after <= 0:
         ap.error(f"--stop-after {a.stop_after}: seconds, more than 0")
     split_args = a.stop_at is not None or a.stop_after is not None or a.resume
-    stopped = None  # the iteration a split mesh stage stopped at
+    stopped = None  # the iteration a split stage stopped at
     if split_args and (a.mesh_only is not None or a.nomesh_out):
         ap.error("--stop-at, --stop-after, --resume split a stage's training: not with --mesh-only or --nomesh-out "
                  "(split the warm-up as a --no-mesh-stage run of its own)")
@@ -263,9 +263,7 @@ def main(argv=None) -> None:
             else:
                 if not (earlier or split):  # 1. the warm-up, whose TSDF mesh is the mesh stage's start
                     stage("warmup_", init, warm, a.warmup_iterations)
-                    shutil.copyfile(os.path.join(warm, "mesh", "tsdf_fusion_post.ply"),
-                                    os.path.join(src, "mesh_init.ply"))
-                elif earlier:
+                if not split:  # (a resume put back the stopped run's copy above)
                     shutil.copyfile(os.path.join(warm, "mesh", "tsdf_fusion_post.ply"),
                                     os.path.join(src, "mesh_init.ply"))
                 # 2. mesh stage: pgsr_dpsr from the warm-up's mesh

@@ -23,10 +23,8 @@
 #   bash lab/device/sl.sh warmstage SCENE /work/.device/N/sl ...   groups its result's parts into .stage/warm/K;
 # in the next, after step 1, one call per folder .stage/warm/K, carrying it alone:   bash lab/device/sl.sh warm
 # then step 2 with SYSTEMS=pgsr FROM_WARMUP=1: each scene's mesh stage starts from its carried warm-up
-# (run_pgsr.py --from-warmup; the row counts both stages' time and the larger peak). Its DPSR loop (after iteration
-# 5,000) ran 1.3 s an iteration beside two 2DGS runs; the mesh stage fits one lease only at about 0.25 s alone
-# (benchmarks/peers.md). lab/device/dpsr_rate.sh measures its rate alone, as published and with
-# PGSR_ARGS=--cache-dpsr-grids (its grids kept on the GPU), after step 1 and before any launch.
+# (run_pgsr.py --from-warmup; the row counts both stages' time and the larger peak). lab/device/dpsr_rate.sh
+# measures its DPSR loop's rate alone, as published and with PGSR_ARGS=--cache-dpsr-grids, after step 1.
 # (device.sh splits PGSR_ARGS at spaces: use the = forms, e.g. --mesh-train-args=--mesh_from_iter=200).
 # Its loop runs 0.40-0.48 s an iteration alone with its grids cached, so the mesh stage itself takes two leases:
 # PGSR_ARGS="--cache-dpsr-grids --stop-after=SECONDS" (or --stop-at=N, N a multiple of the scene's training views)
