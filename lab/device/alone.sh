@@ -12,6 +12,8 @@
 # in 10 MiB parts, so call sl.sh wait again until it says "all results sent"):
 #   .stage/exch/bowl    SCENES=bowl:wtopo WAIT=540 bash lab/device/sl.sh launch
 #   .stage/exch/mug     SCENES=mug:wtopo WAIT=540 bash lab/device/sl.sh launch
+# The steps may follow sl.sh stage and run beside a peer's run (Open3D is then left as that stage installed it); for
+# a time alone, launch each fit only once the peers have stopped and their results are packed.
 # and here: bash lab/device/sl.sh unpack /work/.device/N/sl ...; then score.py as for the peers (sl.sh says how).
 source lab/device/lease_env.sh
 t0=$(date +%s)
@@ -26,6 +28,11 @@ part)  # whatever this call carries of the Warp and Open3D parts, the libGL debs
 install)  # usd-core, then device.sh install: Warp and Open3D from the parts, the wheels, the libGL debs, wtopo
   n=$(ls $S/big.part* 2>/dev/null | wc -l)
   [ "$n" = 3 ] || { echo "$n of the three big.part files staged: run the part step for each"; exit 1; }
+  if [ -d $S/site/open3d ] && [ ! -d $S/site/warp ]; then
+    # sl.sh stage ran first (a peer may be running from it): take only Warp from the parts, so that device.sh
+    # install never rewrites the Open3D a running peer has loaded
+    cat $S/big.part* | xz -d -T0 | tar -x -C $S/site --wildcards 'warp/*' 'warp_lang-*' || exit 1
+  fi
   lease_install || exit 1
   python3 -c "import warp, wtopo; warp.init(); print('warp', warp.__version__, 'cuda', warp.is_cuda_available())"
   ;;
