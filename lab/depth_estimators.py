@@ -13,7 +13,8 @@ z-depth, as % of the true mesh's diagonal (+: behind the surface):
               takes
   argmax_w    the contribution of largest blending weight (where the surfel itself lies)
   expected    the alpha-weighted mean
-and the argmax_w error by quartile of that surfel's larger scale. Nothing imports it.
+and the argmax_w error by quartile of that surfel's larger scale; and how many contributions a pixel composites
+before its transmittance crosses 0.5, and how many weigh more than 0.05. Nothing imports it.
 """
 
 import json
@@ -37,11 +38,8 @@ def _composite(z, a, order):
     before each contribution, weights and the index of the contribution where the transmittance crosses 0.5."""
     z, a = z[order], a[order]
     tb = np.concatenate([[1.0], np.cumprod(1 - a)[:-1]])
-    go_on = np.cumsum(tb * (1 - a) < 1e-4) == 0
-    if go_on.any():
-        z, a, tb = z[go_on], a[go_on], tb[go_on]
-    else:
-        z, a, tb = z[:1], a[:1], tb[:1]
+    go_on = np.cumsum(tb * (1 - a) < 1e-4) == 0  # alpha <= 0.99: the first contribution always stays
+    z, a, tb = z[go_on], a[go_on], tb[go_on]
     w = a * tb
     return z, a, tb, w, int(np.flatnonzero(tb > 0.5).max())
 
@@ -61,7 +59,7 @@ def main(run: str) -> None:
     tu, tv, nrm = ref.quat_axes_ref(quats)
     U, V = tu / scales[:, 0:1].clamp_min(1e-30), tv / scales[:, 1:2].clamp_min(1e-30)
     err = {k: [] for k in ESTIMATORS}
-    size = []
+    size, crossing, layers = [], [], []
     rng = np.random.default_rng(0)
     for vi in range(0, len(train.cameras), 3):
         cam = train.cameras[vi]
@@ -70,7 +68,7 @@ def main(run: str) -> None:
         pix = torch.as_tensor(rng.choice(np.flatnonzero(inside), 400, replace=False))
         pc = means @ t(cam.R).T + t(cam.t)
         zc = pc[:, 2]
-        near = 0.2 * float(zc.median())
+        near = 0.05 * float(zc[zc > 0].median())  # the renderer's default near plane (RasterConfig.near_fraction)
         d = cam.pixel_rays("cpu", torch.float64)[1].reshape(-1, 3)[pix]
         a0 = t(cam.center) - means
         dn = (d[:, None, :] * nrm[None]).sum(-1)
@@ -97,6 +95,8 @@ def main(run: str) -> None:
             if tb[-1] * (1 - a_s[-1]) > 0.5:  # less than 0.5 opacity: the fusion leaves the pixel out
                 continue
             err["median"].append(zs[k])
+            crossing.append(k + 1)
+            layers.append(int((w > 0.05).sum()))
             if k > 0:
                 frac = (tb[k] - 0.5) / max(tb[k] * a_s[k], 1e-9)
                 err["interp"].append(zs[k - 1] + (zs[k] - zs[k - 1]) * frac)
@@ -113,6 +113,8 @@ def main(run: str) -> None:
         e = np.array(err[key]) / diag * 100
         print(f"{key:10s} {len(e)} pixels: mean {e.mean():+.4f} median {np.median(e):+.4f} mean |e| "
               f"{np.abs(e).mean():.4f} (% of the diagonal, + behind)")
+    print(f"the transmittance crosses 0.5 at contribution {np.quantile(crossing, [0.1, 0.5, 0.9])} (10/50/90 %); "
+          f"contributions of weight > 0.05: {np.quantile(layers, [0.1, 0.5, 0.9])}")
     size = np.array(size)
     e = np.array(err["argmax_w"]) / diag * 100
     for q0, q1 in [(0, 0.25), (0.25, 0.5), (0.5, 0.75), (0.75, 1.0)]:
