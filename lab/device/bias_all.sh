@@ -11,8 +11,9 @@
 # the bunny's depth offset from 0.28 to 0.20 % of the diagonal (medians) and its Chamfer from 0.200 to 0.181 %. After
 # the staging calls of
 # lab/device/alone.sh (p1, p2, p3, then install), in one call:   bash lab/device/bias_all.sh
-# then `TAG=b_ WAIT=540 bash lab/device/wait_fits.sh` calls (within 30 s of each other) until it has scored every
-# scene into $OUT/b_/rows_SCENE.json; then `bash lab/device/bias_all.sh signed` prints each mesh's signed offset
+# then `TAG=b_ WAIT=180 bash lab/device/wait_fits.sh` calls (within 30 s of each other; the call that finds every fit
+# done scores the four scenes, up to 100 s each, inside the call's 600 s) until it has scored every scene into
+# $OUT/b_/rows_SCENE.json; then `bash lab/device/bias_all.sh signed` prints each mesh's signed offset
 # (lab/signed_error.py). Three fits at a time (the chains side by side): the times compare within a lease, not
 # with fits alone.
 source lab/device/lease_env.sh
