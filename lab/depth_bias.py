@@ -18,8 +18,21 @@ import sys
 import numpy as np
 import torch
 
-from wtopo import ops, scenes
+from wtopo import fit, ops, scenes
+from wtopo.cli import _apply_set
+from wtopo.fitting.config import FitConfig
 from wtopo.io.ply import read_surfels_ply
+
+
+def fit_without_polish(out: str, args: list[str]) -> tuple[str, dict]:
+    """``args``: ``[SCENE] [--set key=value ...]``. Fits SCENE (default bunny) on the CPU with no polish, so the
+    surfels written to ``out`` are the ones the final mesh was fused from; returns the scene's name and the report.
+    The lab scripts that change one mechanism before calling it (ncc_coverage.py, mask_warmup_only.py) share it."""
+    name = args[0] if args and not args[0].startswith("--") else "bunny"
+    cfg = FitConfig()
+    for kv in ["polish.iterations=0", *(args[i + 1] for i, a in enumerate(args) if a == "--set")]:
+        _apply_set(cfg, kv)
+    return name, fit(scenes.load(name), cfg, out_dir=out, progress=False).report
 
 
 def main(run: str, name: str = "bunny") -> None:

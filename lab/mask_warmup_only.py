@@ -12,10 +12,7 @@ polish, writes the run to OUT and prints lab/depth_bias.py's offsets. Nothing im
 import os
 import sys
 
-from wtopo import fit, scenes
-from wtopo.cli import _apply_set
 from wtopo.fitting import objective
-from wtopo.fitting.config import FitConfig
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import depth_bias  # noqa: E402
@@ -34,15 +31,10 @@ def _warmup_mask_only(self, stage, it, vi, surfels, proxy, **kw):
 
 
 def main(argv: list[str]) -> None:
-    out, rest = argv[0], argv[1:]
-    name = rest[0] if rest and not rest[0].startswith("--") else "bunny"
-    cfg = FitConfig()
-    for kv in ["polish.iterations=0", *(rest[i + 1] for i, a in enumerate(rest) if a == "--set")]:
-        _apply_set(cfg, kv)
     objective.Objective.__call__ = _warmup_mask_only
-    r = fit(scenes.load(name), cfg, out_dir=out, progress=False).report
+    name, r = depth_bias.fit_without_polish(argv[0], argv[1:])
     print(f"{name}, the mask term in the warm-up only: Chamfer {r.get('chamfer')} F {r.get('f_score')}")
-    depth_bias.main(out, name)
+    depth_bias.main(argv[0], name)
 
 
 if __name__ == "__main__":

@@ -12,10 +12,7 @@ lab/depth_bias.py's rendered-depth offsets. Nothing imports it.
 import os
 import sys
 
-from wtopo import fit, scenes
-from wtopo.cli import _apply_set
 from wtopo.fitting import objective
-from wtopo.fitting.config import FitConfig
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import depth_bias  # noqa: E402
@@ -23,14 +20,8 @@ import depth_bias  # noqa: E402
 
 def main(argv: list[str]) -> None:
     out, fraction, pixels = argv[0], float(argv[1]), int(argv[2])
-    rest = argv[3:]
-    name = rest[0] if rest and not rest[0].startswith("--") else "bunny"
-    cfg = FitConfig()
-    for kv in ["polish.iterations=0", *(rest[i + 1] for i, a in enumerate(rest) if a == "--set")]:
-        _apply_set(cfg, kv)
     objective._MULTIVIEW_FRACTION, objective._MULTIVIEW_PIXELS = fraction, pixels
-    result = fit(scenes.load(name), cfg, out_dir=out, progress=False)
-    r = result.report
+    name, r = depth_bias.fit_without_polish(out, argv[3:])
     print(f"{name}, multi-view pixels 1/{1 / fraction:g} of a view, at most {pixels}: Chamfer "
           f"{r.get('chamfer')} F {r.get('f_score')}")
     depth_bias.main(out, name)
