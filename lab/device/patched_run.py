@@ -1,5 +1,6 @@
-"""benchmarks/peers/run_wtopo.py with lab/hard_views.py installed first when HARD_VIEWS is set (its power): the same
-arguments, the same result folder (for lab/device/d40.sh)."""
+"""benchmarks/peers/run_wtopo.py with lab/hard_views.py installed first when HARD_VIEWS is set (its power), and with
+the mask term kept through the warm-up only when MASK_WARMUP_ONLY is set (lab/mask_warmup_only.py): the same
+arguments, the same result folder (for lab/device/d40.sh and bias_all.sh)."""
 import os
 import sys
 
@@ -13,6 +14,11 @@ if __name__ == "__main__":
 
         seed = next((int(a.split("=", 1)[1]) for a in sys.argv if a.startswith("runtime.seed=")), 0)
         hard_views.install(float(os.environ["HARD_VIEWS"]), seed)
+    if os.environ.get("MASK_WARMUP_ONLY"):
+        import mask_warmup_only
+        from wtopo.fitting import objective
+
+        objective.Objective.__call__ = mask_warmup_only._warmup_mask_only
     import run_wtopo
 
     run_wtopo.main(sys.argv[1:])
