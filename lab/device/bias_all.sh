@@ -7,21 +7,23 @@
 #             0.181 %, but the chairs and the bowl 4-10 % farther;
 #   maskwarm  the mask term through the warm-up only (lab/mask_warmup_only.py; PGSR has none): on the CPU bunny the
 #             mesh moved from 0.057 to 0.036 % inside at the same Chamfer;
+#   trunc     the final fusion truncated at TRUNC (2) voxels, not 4 (lab/final_truncation.py): fused from the true
+#             depths, 4 voxels thicken the thin chair; 2 do not;
 #   faces     about twice the re-initialisation's surfels (a TSDF of 192 voxels, up to FACES = 200,000 faces; the
 #             CPU bunny's 128-voxel mesh has 72,097, under the CUDA cap of 100,000).
 # After the staging calls of lab/device/alone.sh (p1, p2, p3, then install), in one call:   bash lab/device/bias_all.sh
 # then `TAG=b_ WAIT=180 bash lab/device/wait_fits.sh` calls (within 30 s of each other; the call that finds every fit
 # done scores the scenes, up to 100 s each, inside the call's 600 s) until it has scored every scene into
 # $OUT/b_/rows_SCENE.json; then `bash lab/device/bias_all.sh signed` prints each mesh's signed offset
-# (lab/signed_error.py) and re-initialisation counts. The chains share the GPU: their times compare within a lease,
-# not with fits alone.
+# (lab/signed_error.py, every mesh's) and re-initialisation counts. The chains share the GPU: their times compare
+# within a lease, not with fits alone. rows_2026-12-07a: SCENES="bunny64 chair", then SCENES=bowl.
 source lab/device/lease_env.sh
 t0=$(date +%s)
 SCENES=${SCENES:-bunny64 bowl chair mug}
 CHAINS=${CHAINS:-default filter maskwarm}
 FACES=${FACES:-200000}
 if [ "${1:-}" = signed ]; then
-  for sc in $SCENES; do python3 lab/signed_error.py $S/exch/$sc/gt.ply $S/res/$sc/wtopo_b_*/mesh.ply 2>&1 | tail -n 2
+  for sc in $SCENES; do python3 lab/signed_error.py $S/exch/$sc/gt.ply $S/res/$sc/wtopo_b_*/mesh.ply 2>&1 | grep mesh.ply
     for d in $S/res/$sc/wtopo_b_*/; do  # what the variant changed: the re-initialisation's surfels
       grep -ho '"reinit_[a-z_]*": *[0-9]*' $(find $d -name report.json) 2>/dev/null | tr '\n' ' '; echo " $d"
     done
@@ -52,6 +54,7 @@ for c in $CHAINS; do
     faces) chain b_faces - --set tsdf.resolution=192 --set tsdf.max_faces=$FACES ;;
     filter) chain b_filter - --set filter_sigma=${FILTER:-0.15} ;;
     maskwarm) chain b_maskwarm MASK_WARMUP_ONLY=1 ;;
+    trunc) chain b_trunc FINAL_TRUNCATION=${TRUNC:-2} ;;
     *) echo "unknown chain $c"; exit 1 ;;
   esac
 done

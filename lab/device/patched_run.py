@@ -1,5 +1,6 @@
 """benchmarks/peers/run_wtopo.py with lab/hard_views.py installed first when HARD_VIEWS is set (its power), and with
-the mask term kept through the warm-up only when MASK_WARMUP_ONLY is set (lab/mask_warmup_only.py): the same
+the mask term kept through the warm-up only when MASK_WARMUP_ONLY is set (lab/mask_warmup_only.py), and with the
+final fusion's truncation at FINAL_TRUNCATION voxels when that is set (lab/final_truncation.py): the same
 arguments, the same result folder (for lab/device/d40.sh and bias_all.sh)."""
 import os
 import sys
@@ -19,6 +20,10 @@ if __name__ == "__main__":
         from wtopo.fitting import objective
 
         objective.Objective.__call__ = mask_warmup_only._warmup_mask_only
+    if os.environ.get("FINAL_TRUNCATION"):
+        import final_truncation
+
+        final_truncation.install()
     import run_wtopo
 
     run_wtopo.main(sys.argv[1:])
