@@ -5,10 +5,12 @@
 
 The final TSDF fusion truncates at ``wtopo.fitting.stages.TRUNCATION_VOXELS`` (4) voxels. Fused from the true depth
 maps at the CPU plan's grid, that thickens the thin chair (+0.046 % of the diagonal on the mean, mean unsigned
-0.109 %; at 2 voxels -0.040 % and 0.068 %) and leaves the compact blob on the truth (lab/silhouette_excess.py,
-design/decisions.md). ``install()`` sets FINAL_TRUNCATION voxels for the final fusion only (the re-initialisation's
-keeps 4), patched into ``wtopo.fitting._final_mesh``; lab/hard.py then runs one fit at a time (``--jobs`` processes
-would not see the patch), and lab/device/patched_run.py installs it under FINAL_TRUNCATION. Nothing imports it.
+0.109 %; at 2 voxels -0.040 % and 0.068 %: inside by as much) and leaves the compact blob on the truth
+(lab/silhouette_excess.py, design/decisions.md). ``install()`` sets FINAL_TRUNCATION voxels for the final fusion
+only (the re-initialisation's keeps 4), patched into ``wtopo.fitting._final_mesh``; lab/hard.py then runs one fit at
+a time (``--jobs`` processes would not see the patch); lab/device/patched_run.py installs it under
+FINAL_TRUNCATION, nothing else imports it. Rejected at the CPU default (lab/hard.md "trunc2"): the torus +38 %, the
+mug +58 %.
 """
 
 import os

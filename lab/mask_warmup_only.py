@@ -9,7 +9,7 @@ transparent for the TSDF re-initialisation. PGSR has no mask term. This keeps th
 it from the co-evolution on (``Objective.__call__`` patched here), fits SCENE (default bunny) on the CPU without the
 polish, writes the run to OUT and prints lab/depth_bias.py's offsets; or, after ``hard``, runs lab/hard.py with the
 patch (one fit at a time: ``--jobs`` processes would not see it). lab/device/patched_run.py applies the same patch
-under MASK_WARMUP_ONLY. Nothing imports it.
+under MASK_WARMUP_ONLY; nothing else imports it.
 """
 
 import os

@@ -10,9 +10,11 @@ training views. The silhouette's outward shift is the rendered alpha's sum minus
 boundary pixels [px]: what the fit's photometric and mask terms pull the surface in against. Rendered by the kernel
 (``wtopo.ops.rasterize_surfels``) and, in a band of pixels around the boundary, by the brute-force reference
 (``tests/reference/rasterize.py``) as is and with the filter branch's opacity scaled by Mip-Splatting's amplitude
-``sqrt(det S / det(S + sigma^2 I))`` (S: the surfel's projected covariance [px^2]), a low-pass that preserves the
-surfel's coverage. Also fuses the scene's true depth maps as the final fusion does, to show that the fusion itself
-lies on the truth (lab/suite_signed.py's offsets). Nothing imports it.
+``sqrt(det S / det(S + sigma^2 I))`` (S: the surfel's projected covariance [px^2]); exact for Mip-Splatting's
+convolved footprint, an approximation for this rasterizer's max of the surfel's Gaussian and the filter's (an edge-on
+surfel loses all of its filter branch). First fuses the scene's true depth maps as the final fusion does (the CPU
+plan's grid and truncation, a narrower truncation, a finer grid), with lab/suite_signed.py's offsets: what the fusion
+itself adds. Nothing imports it.
 """
 
 import inspect
@@ -112,13 +114,14 @@ def main(names: list[str]) -> None:
         lo, hi = gt.bounds
         side = float(np.max(hi - lo))
         lo, hi = lo - 0.05 * side, hi + 0.05 * side
-        for res in (126, 252):  # about the CPU plan's final grid, and twice as fine
+        for res, trunc in ((126, 4), (126, 2), (252, 4)):  # about the CPU plan's grid and truncation, then not
             voxel = side * 1.1 / res
             m = fuse_depths(scene.cameras, [np.asarray(d, np.float32) for d in scene.depths],
-                            [np.asarray(c, np.float32) for c in scene.images], FusionBounds(lo, hi, voxel, 4 * voxel))
+                            [np.asarray(c, np.float32) for c in scene.images],
+                            FusionBounds(lo, hi, voxel, trunc * voxel))
             s = suite_signed.offsets(gt, m)
-            print(f"  the true depths fused at {res}: mean offset {s.mean():+.4f} % of the diagonal, "
-                  f"{(s < 0).mean() * 100:.0f} % inside, mean unsigned {np.abs(s).mean():.4f} %")
+            print(f"  the true depths fused at {res}, truncated at {trunc} voxels: mean offset {s.mean():+.4f} % of "
+                  f"the diagonal, {(s < 0).mean() * 100:.0f} % inside, mean unsigned {np.abs(s).mean():.4f} %")
         if os.environ.get("FUSION_ONLY"):
             continue
         for spacing, std, op in CASES:

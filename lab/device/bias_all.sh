@@ -4,11 +4,11 @@
 #   default   the CUDA default;
 #   filter    the render's low-pass narrowed from the CUDA plan's 0.25 px to FILTER (0.15): at the CPU default 0.15 px
 #             brought the bunny's depth offset from 0.28 to 0.20 % of the diagonal and its Chamfer from 0.200 to
-#             0.181 %, but the chairs and the bowl 4-10 % farther;
+#             0.181 %, but the chair, chair_box and the bowl 4-10 % farther;
 #   maskwarm  the mask term through the warm-up only (lab/mask_warmup_only.py; PGSR has none): on the CPU bunny the
-#             mesh moved from 0.057 to 0.036 % inside at the same Chamfer;
+#             mesh moved from 0.057 to 0.036 % inside, Chamfer 0.2015 against 0.200 %, F 0.946 against 0.954;
 #   trunc     the final fusion truncated at TRUNC (2) voxels, not 4 (lab/final_truncation.py): fused from the true
-#             depths, 4 voxels thicken the thin chair; 2 do not;
+#             depths, 4 voxels thicken the thin chair (at the CPU default the torus +38 %, the mug +58 %);
 #   faces     about twice the re-initialisation's surfels (a TSDF of 192 voxels, up to FACES = 200,000 faces; the
 #             CPU bunny's 128-voxel mesh has 72,097, under the CUDA cap of 100,000).
 # After the staging calls of lab/device/alone.sh (p1, p2, p3, then install), in one call:   bash lab/device/bias_all.sh
