@@ -1,20 +1,18 @@
 # SPDX-License-Identifier: Apache-2.0
 """The final fusion's truncation in voxels (#59: wtopo's meshes lie inside the surface, design/decisions.md).
 
-    FINAL_TRUNCATION=2 .venv/bin/python lab/final_truncation.py hard [lab/hard.py's arguments]
+    FINAL_TRUNCATION=2 .venv/bin/python lab/patched_hard.py [lab/hard.py's arguments]
 
 The final TSDF fusion truncates at ``wtopo.fitting.stages.TRUNCATION_VOXELS`` (4) voxels. Fused from the true depth
 maps at the CPU plan's grid, that thickens the thin chair (+0.046 % of the diagonal on the mean, mean unsigned
 0.109 %; at 2 voxels -0.040 % and 0.068 %: inside by as much) and leaves the compact blob on the truth
 (lab/silhouette_excess.py, design/decisions.md). ``install()`` sets FINAL_TRUNCATION voxels for the final fusion
-only (the re-initialisation's keeps 4), patched into ``wtopo.fitting._final_mesh``; lab/hard.py then runs one fit at
-a time (``--jobs`` processes would not see the patch); lab/device/patched_run.py installs it under
-FINAL_TRUNCATION, nothing else imports it. Rejected at the CPU default (lab/hard.md "trunc2"): the torus +38 %, the
+only (the re-initialisation's keeps 4), patched into ``wtopo.fitting._final_mesh`` (lab/fit_patches.py's
+FINAL_TRUNCATION). Rejected at the CPU default (lab/hard.md "trunc2"): the torus +38 %, the
 mug +58 %.
 """
 
 import os
-import sys
 
 
 def install() -> float:
@@ -24,13 +22,3 @@ def install() -> float:
     value = float(os.environ.get("FINAL_TRUNCATION", "2"))
     _final_mesh.TRUNCATION_VOXELS = value
     return value
-
-
-if __name__ == "__main__":
-    if len(sys.argv) < 2 or sys.argv[1] != "hard":
-        sys.exit(__doc__)
-    install()
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    import hard
-
-    sys.exit(hard.main(sys.argv[2:]))

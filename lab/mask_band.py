@@ -1,19 +1,17 @@
 # SPDX-License-Identifier: Apache-2.0
 """The mask term blind to a ring just outside the mask (#59: wtopo's meshes lie inside the surface, decisions.md).
 
-    .venv/bin/python lab/mask_band.py hard [lab/hard.py's arguments]      (MASK_BAND=1: the ring's width [px])
+    MASK_BAND=1 .venv/bin/python lab/patched_hard.py [lab/hard.py's arguments]      (MASK_BAND: the ring's width [px])
 
 Surfels placed exactly on the truth render a silhouette 0.7-1 px wider than the truth's at the CPU plan's 0.35-px
 low-pass (lab/silhouette_excess.py): every edge-on surfel near the limb adds its low-pass disk, and a stack of
 semi-transparent surfels saturates their sum. The mask term's binary cross-entropy then pulls the surface in until
 the halo fits inside the mask. Here the term ignores the pixels outside the mask within MASK_BAND pixels of it
 (a square dilation), so the halo costs nothing there while the inside still has to be covered and the farther
-outside empty. ``wtopo.fitting.pixel_terms.mask_loss`` is patched; lab/hard.py then runs one fit at a time (``--jobs``
-processes would not see the patch). Nothing imports it.
+outside empty. ``install()`` patches ``wtopo.fitting.pixel_terms.mask_loss`` (lab/fit_patches.py's MASK_BAND).
 """
 
 import os
-import sys
 
 import torch
 import torch.nn.functional as F
@@ -33,11 +31,6 @@ def banded_mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return F.binary_cross_entropy(a, m, weight=weight, reduction="sum") / weight.sum().clamp_min(1.0)
 
 
-if __name__ == "__main__":
-    if len(sys.argv) < 2 or sys.argv[1] != "hard":
-        sys.exit(__doc__)
+def install() -> None:
+    """Use :func:`banded_mask_loss` in every fit of this process."""
     pixel_terms.mask_loss = banded_mask_loss
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    import hard
-
-    sys.exit(hard.main(sys.argv[2:]))

@@ -2,14 +2,12 @@
 """The mask term in the warm-up only (#59: wtopo's meshes lie inside the surface; design/decisions.md).
 
     .venv/bin/python lab/mask_warmup_only.py OUT [SCENE] [--set key=value ...]
-    .venv/bin/python lab/mask_warmup_only.py hard [lab/hard.py's arguments]
 
 Without its mask term the CPU bunny's mesh no longer lies inside the surface, but a short warm-up without it ends too
 transparent for the TSDF re-initialisation. PGSR has no mask term. This keeps the term through the warm-up and drops
 it from the co-evolution on (``Objective.__call__`` patched here), fits SCENE (default bunny) on the CPU without the
-polish, writes the run to OUT and prints lab/depth_bias.py's offsets; or, after ``hard``, runs lab/hard.py with the
-patch (one fit at a time: ``--jobs`` processes would not see it). lab/device/patched_run.py applies the same patch
-under MASK_WARMUP_ONLY; nothing else imports it.
+polish, writes the run to OUT and prints lab/depth_bias.py's offsets. ``install()`` is lab/fit_patches.py's
+MASK_WARMUP_ONLY (the hard suite: lab/patched_hard.py).
 """
 
 import os
@@ -33,12 +31,13 @@ def _warmup_mask_only(self, stage, it, vi, surfels, proxy, **kw):
         self.mask_weight = keep
 
 
-def main(argv: list[str]) -> None:
+def install() -> None:
+    """Keep the mask term through the warm-up only, in every fit of this process."""
     objective.Objective.__call__ = _warmup_mask_only
-    if argv[0] == "hard":
-        import hard
 
-        sys.exit(hard.main(argv[1:]))
+
+def main(argv: list[str]) -> None:
+    install()
     name, r = depth_bias.fit_without_polish(argv[0], argv[1:])
     print(f"{name}, the mask term in the warm-up only: Chamfer {r.get('chamfer')} F {r.get('f_score')}")
     depth_bias.main(argv[0], name)

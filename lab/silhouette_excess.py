@@ -32,7 +32,8 @@ sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 from reference import rasterize as ref  # noqa: E402
 
 import hard  # noqa: E402
-import suite_signed  # noqa: E402
+from signed_error import TruthPlanes  # noqa: E402
+from suite_signed import SAMPLES  # noqa: E402
 from wtopo import ops  # noqa: E402
 from wtopo.fitting.tsdf import FusionBounds, fuse_depths  # noqa: E402
 
@@ -114,12 +115,13 @@ def main(names: list[str]) -> None:
         lo, hi = gt.bounds
         side = float(np.max(hi - lo))
         lo, hi = lo - 0.05 * side, hi + 0.05 * side
+        planes = TruthPlanes(gt, SAMPLES[0])
         for res, trunc in ((126, 4), (126, 2), (252, 4)):  # about the CPU plan's grid and truncation, then not
             voxel = side * 1.1 / res
             m = fuse_depths(scene.cameras, [np.asarray(d, np.float32) for d in scene.depths],
                             [np.asarray(c, np.float32) for c in scene.images],
                             FusionBounds(lo, hi, voxel, trunc * voxel))
-            s = suite_signed.offsets(gt, m)
+            s = planes.offsets(m, SAMPLES[1])
             print(f"  the true depths fused at {res}, truncated at {trunc} voxels: mean offset {s.mean():+.4f} % of "
                   f"the diagonal, {(s < 0).mean() * 100:.0f} % inside, mean unsigned {np.abs(s).mean():.4f} %")
         if os.environ.get("FUSION_ONLY"):

@@ -6,7 +6,8 @@ the surface").
 
 Each RUN_DIR is a lab/hard.py seed folder (``<run-dir>/<label>/seed0``) holding ``SCENE_default/mesh.ply``. For each
 scene the truth is lab/hard.py's own (``_build``) and each mesh's signed offset is lab/signed_error.py's: the mean,
-the median, the share inside and the mean unsigned offset, as % of the truth's diagonal. Nothing imports it.
+the median, the share inside and the mean unsigned offset, as % of the truth's diagonal. lab/silhouette_excess.py
+uses its sample counts.
 """
 
 import argparse
@@ -15,18 +16,12 @@ import sys
 
 import numpy as np
 import trimesh
-from scipy.spatial import cKDTree
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import hard  # noqa: E402
+from signed_error import TruthPlanes  # noqa: E402
 
-
-def offsets(truth: trimesh.Trimesh, mesh: trimesh.Trimesh) -> np.ndarray:
-    """Each of 200,000 mesh samples' offset from the plane of its nearest truth sample [% of the diagonal]."""
-    diag = float(np.linalg.norm(truth.bounds[1] - truth.bounds[0]))
-    tp, ti = trimesh.sample.sample_surface(truth, 2_000_000, seed=1)
-    _, i = cKDTree(tp).query(pts := trimesh.sample.sample_surface(mesh, 200_000, seed=0)[0])
-    return np.einsum("ij,ij->i", pts - tp[i], truth.face_normals[ti][i]) / diag * 100.0
+SAMPLES = (2_000_000, 200_000)  # (truth, mesh)
 
 
 def main(argv=None) -> None:
@@ -37,12 +32,12 @@ def main(argv=None) -> None:
     print("| scene | run | mean signed | median | inside | mean unsigned |")
     print("|---|---|---|---|---|---|")
     for name in a.scenes:
-        truth = hard._build(name)[1]
+        planes = TruthPlanes(hard._build(name)[1], SAMPLES[0])  # one per scene, for every run's mesh
         for run in a.runs:
             path = os.path.join(run, f"{name}_default", "mesh.ply")
             if not os.path.exists(path):
                 continue
-            s = offsets(truth, trimesh.load(path, force="mesh"))
+            s = planes.offsets(trimesh.load(path, force="mesh"), SAMPLES[1])
             print(f"| {name} | {run} | {s.mean():+.4f} | {np.median(s):+.4f} | {(s < 0).mean() * 100:.0f} % "
                   f"| {np.abs(s).mean():.4f} |", flush=True)
 
