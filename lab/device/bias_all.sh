@@ -9,6 +9,10 @@
 #             mesh moved from 0.057 to 0.036 % inside, Chamfer 0.2015 against 0.200 %, F 0.946 against 0.954;
 #   trunc     the final fusion truncated at TRUNC (2) voxels, not 4 (lab/final_truncation.py): fused from the true
 #             depths, 4 voxels thicken the thin chair (at the CPU default the torus +38 %, the mug +58 %);
+#   ring      the photometric and mask terms blind to a RING (1) px ring outside the mask (lab/ring_blind.py): on the
+#             CPU suite the blob 0.234 -> 0.105 %, the torus 0.143 -> 0.075 %, the chairs +37-38 %;
+#   ringdecay ring, and the fusion's weights behind a view's depth fading out from DECAY (2) voxels
+#             (lab/fusion_decay.py): the true depths fused no longer thicken the thin chair;
 #   faces     about twice the re-initialisation's surfels (a TSDF of 192 voxels, up to FACES = 200,000 faces; the
 #             CPU bunny's 128-voxel mesh has 72,097, under the CUDA cap of 100,000).
 # After the staging calls of lab/device/alone.sh (p1, p2, p3, then install), in one call:   bash lab/device/bias_all.sh
@@ -55,6 +59,8 @@ for c in $CHAINS; do
     filter) chain b_filter - --set filter_sigma=${FILTER:-0.15} ;;
     maskwarm) chain b_maskwarm MASK_WARMUP_ONLY=1 ;;
     trunc) chain b_trunc FINAL_TRUNCATION=${TRUNC:-2} ;;
+    ring) chain b_ring RING_BLIND=${RING:-1} ;;
+    ringdecay) chain b_ringdecay "RING_BLIND=${RING:-1} FUSION_DECAY=${DECAY:-2}" ;;
     *) echo "unknown chain $c"; exit 1 ;;
   esac
 done
