@@ -7,40 +7,26 @@ and what it measured.
     MASK_BAND=N           the mask term blind to an N-px ring outside the mask (lab/mask_band.py)
     FINAL_TRUNCATION=V    the final fusion truncated at V voxels, not 4 (lab/final_truncation.py)
     FUSION_DECAY=V        fusion weights fading out from V voxels behind a view's depth (lab/fusion_decay.py)
+    FUSION_MASKED=1       the TSDF stages fuse no rendered depth outside the view's mask (lab/fusion_masked.py)
     RING_BLIND=N          the photometric and mask terms blind to an N-px ring outside the mask (lab/ring_blind.py)
 
 Only in-process fits see a patch: lab/hard.py's ``--jobs`` processes would not. Nothing in the product imports it.
 """
 
+import importlib
 import os
+
+# each variable and the lab module whose install() applies its patch, in the order they are installed
+PATCHES = [("MASK_WARMUP_ONLY", "mask_warmup_only"), ("MASK_BAND", "mask_band"),
+           ("FINAL_TRUNCATION", "final_truncation"), ("FUSION_DECAY", "fusion_decay"),
+           ("FUSION_MASKED", "fusion_masked"), ("RING_BLIND", "ring_blind")]
 
 
 def install_from_env() -> list[str]:
     """Install every patch its variable asks for; returns the variables that were set."""
     used = []
-    if os.environ.get("MASK_WARMUP_ONLY"):
-        import mask_warmup_only
-
-        mask_warmup_only.install()
-        used.append("MASK_WARMUP_ONLY")
-    if os.environ.get("MASK_BAND"):
-        import mask_band
-
-        mask_band.install()
-        used.append("MASK_BAND")
-    if os.environ.get("FINAL_TRUNCATION"):
-        import final_truncation
-
-        final_truncation.install()
-        used.append("FINAL_TRUNCATION")
-    if os.environ.get("FUSION_DECAY"):
-        import fusion_decay
-
-        fusion_decay.install()
-        used.append("FUSION_DECAY")
-    if os.environ.get("RING_BLIND"):
-        import ring_blind
-
-        ring_blind.install()
-        used.append("RING_BLIND")
+    for var, module in PATCHES:
+        if os.environ.get(var):
+            importlib.import_module(module).install()
+            used.append(var)
     return used

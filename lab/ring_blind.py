@@ -3,12 +3,16 @@
 surface, design/decisions.md).
 
     RING_BLIND=1 .venv/bin/python lab/patched_hard.py [lab/hard.py's arguments]      (RING_BLIND: the ring's width [px])
+    RING_TERMS=photo (or mask): only that term is blind to the ring
+    RING_MASK_TARGET=0.5: the mask term's target in the ring is that opacity (the photometric term stays blind)
 
 lab/mask_band.py made only the mask term blind to the ring; the blob's offset did not move, and the photometric term
 still sees the low-pass's halo against the black background there. Here, in the RING_BLIND pixels outside the mask
 nearest it (a square dilation), the rendered colour is replaced by the photograph's and the rendered opacity by the
 mask's before any term reads them, so neither the photometric term (L1 and SSIM) nor the mask term pulls on them.
-``install()`` patches ``wtopo.fitting.pixel_terms._inputs`` (lab/fit_patches.py's RING_BLIND).
+``install()`` patches ``wtopo.fitting.pixel_terms._inputs`` (lab/fit_patches.py's RING_BLIND). The photometric half
+is the product's since lab/hard.md "ringphoto" (``wtopo.fitting.pixel_terms.halo_ring``), so on today's tree
+RING_TERMS=photo changes nothing and RING_BLIND=1 adds the mask term's blindness.
 """
 
 import os
@@ -19,6 +23,8 @@ import torch.nn.functional as F
 from wtopo.fitting import pixel_terms
 
 BAND = int(os.environ.get("RING_BLIND", "1"))
+TERMS = os.environ.get("RING_TERMS", "photo,mask").split(",")  # which terms are blind: photo, mask or both
+SOFT = os.environ.get("RING_MASK_TARGET")  # the mask term's target opacity in the ring, in place of blindness
 _inputs = pixel_terms._inputs
 
 
@@ -35,8 +41,13 @@ def blind_inputs(ts, render, image, mask, rays, windows):
     if mask is None or ts.mask <= 0:
         return tuple(args)
     r = ring(mask)
-    args[0] = torch.where(r[..., None], image.to(args[0].dtype), args[0])
-    args[1] = torch.where(r, mask.to(args[1].dtype), args[1])
+    if "photo" in TERMS:
+        args[0] = torch.where(r[..., None], image.to(args[0].dtype), args[0])
+    if SOFT is not None:
+        k = next(i for i, a in enumerate(args) if a is image) + 1  # the mask follows the photograph
+        args[k] = torch.where(r, torch.full_like(args[k], float(SOFT)), args[k])
+    elif "mask" in TERMS:
+        args[1] = torch.where(r, mask.to(args[1].dtype), args[1])
     return tuple(args)
 
 

@@ -48,8 +48,10 @@ def _view(device, seed: int, vi: int = 0):
 
 
 def _direct(ts, render, image, mask, rays, windows, seed: int = 0, vi: int = 0):
-    """The terms as the objective wrote them before they were one function (the multi-view term by its class)."""
-    out = [photometric(render.rgb, image, ts.dssim)]
+    """The terms as the objective wrote them before they were one function (the multi-view term by its class), the
+    photometric term on the photograph's colour in the mask's halo ring."""
+    rgb = render.rgb if mask is None else torch.where(P.halo_ring(mask)[..., None], image, render.rgb)
+    out = [photometric(rgb, image, ts.dssim)]
     if ts.mask:
         out.append(ts.mask * mask_loss(render.alpha, mask.to(render.alpha.dtype)))
     if ts.normal:
@@ -150,3 +152,53 @@ def test_the_multiview_term_needs_its_windows():
         P.PixelTerms()(ts, render, image, mask, rays, None)
     with pytest.raises(ValueError, match=r"got \(1, 3\)"):
         P.PixelTerms()(ts, render, image, mask, rays, windows._replace(images=windows.images[:1]))
+
+
+def test_the_halo_ring_is_the_border_just_outside_the_mask():
+    """Analytic: a 3 x 3 square's ring of width 1 is the 5 x 5 square around it less the square (16 pixels), of width
+    2 the 7 x 7 one less it (40); a float mask is inside from 0.5; the ring stops at the image's edge."""
+    m = torch.zeros(10, 12, dtype=torch.bool)
+    m[3:6, 4:7] = True
+    want = torch.zeros_like(m)
+    want[2:7, 3:8] = True
+    want &= ~m
+    assert torch.equal(P.halo_ring(m), want) and int(P.halo_ring(m).sum()) == 16
+    assert int(P.halo_ring(m, 2).sum()) == 40 and not (P.halo_ring(m, 2) & m).any()
+    soft = m.float() * 0.6 + 0.3 * (~m).float()  # 0.6 inside, 0.3 outside
+    assert torch.equal(P.halo_ring(soft), want)
+    corner = torch.zeros(4, 4, dtype=torch.bool)
+    corner[0, 0] = True
+    assert P.halo_ring(corner).nonzero().tolist() == [[0, 1], [1, 0], [1, 1]]
+    assert not P.halo_ring(torch.ones(5, 5, dtype=torch.bool)).any()
+    with pytest.raises(ValueError, match="width must be at least 1 pixel, got 0"):
+        P.halo_ring(m, 0)
+
+
+@pytest.mark.parametrize("dssim", [0.0, 0.2])
+def test_a_halo_just_outside_the_mask_costs_the_photometric_term_nothing(device, dssim, monkeypatch):
+    """A render equal to the photograph inside the mask, with a bright halo in the one-pixel ring outside it (what
+    surfels on the true surface render at its limb), scores 0 with the mask (L1 and SSIM alike) and has no gradient
+    there; the same halo one pixel farther out, or without the mask, costs and pulls."""
+    monkeypatch.setattr(P, "GRAPHS", False)
+    g = torch.Generator().manual_seed(0)
+    H, W = 24, 20
+    mask = torch.zeros(H, W, dtype=torch.bool)
+    mask[6:18, 5:15] = True
+    image = torch.where(mask[..., None], torch.rand(H, W, 3, generator=g) * 0.8 + 0.1, torch.zeros(H, W, 3))
+    ring = P.halo_ring(mask)
+    far = P.halo_ring(mask, 2) & ~ring
+    ts = P.TermSet(dssim)
+
+    def cost(halo):
+        rgb = torch.where(halo[..., None], torch.full((H, W, 3), 0.7), image).to(device).requires_grad_()
+        render = types.SimpleNamespace(rgb=rgb)
+        value = P.PixelTerms()(ts, render, image.to(device), mask.to(device), None)[0]
+        value.backward()
+        return float(value.detach()), rgb.grad.abs().sum(-1).cpu()
+
+    value, grad = cost(ring)
+    assert value == 0.0 and torch.count_nonzero(grad[ring]) == 0
+    value, grad = cost(far)
+    assert value > 1e-3 and torch.count_nonzero(grad[far]) == int(far.sum())
+    rgb = torch.where(ring[..., None], torch.full((H, W, 3), 0.7), image).to(device)
+    assert float(P.PixelTerms()(ts, types.SimpleNamespace(rgb=rgb), image.to(device), None, None)[0]) > 1e-3

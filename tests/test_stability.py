@@ -168,16 +168,25 @@ def case_tiny_scales() -> str:
 
 
 def case_huge_lr() -> str:
-    """Every learning rate 1000x the default: the fit stays finite and still makes a mesh."""
+    """Every learning rate 1000x the default: the fit stays finite and either makes a mesh or aborts with the typed
+    error that says nothing is left to mesh (STABILITY.md: "restore last good state or abort"). Which of the two is
+    chance: at these steps the surfels scatter, and over seeds 0-3 the fit kept enough of them for a mesh in 3 of 4
+    runs before the photometric term's halo ring and in 1 of 4 after it (seed 0 had kept 60 surfels and 100 faces)."""
     cfg = tiny_config()
     from unittest import mock
 
     from wtopo.fitting import loop
+    from wtopo.fitting.tsdf import TSDFEmptyError
 
     for f in ("means", "means_final", "quats", "scales", "opacities", "sh_dc"):
         setattr(cfg.optim, f, 1000.0 * getattr(cfg.optim, f))
     with mock.patch.object(loop, "_SH_REST_LR", 1000.0 * loop._SH_REST_LR):
-        return _check_fit(_fit(sphere_scene(), cfg))
+        try:
+            res = _fit(sphere_scene(), cfg)
+        except TSDFEmptyError as e:
+            assert "the TSDF fusion and the proxy mesh are both empty" in str(e), str(e)
+            return f"aborted: {e}"
+    return _check_fit(res)
 
 
 def case_prune_everything() -> str:
@@ -403,8 +412,7 @@ CASES: dict[str, Case] = {
     "offset_1e6": Case(_transformed_case(1.0, 1e6), slow=True),
     "grazing_rig": Case(case_grazing_rig, slow=True),
     "scales_1e-8": Case(case_tiny_scales, slow=True),
-    # completes, finite: with the centre-tested visual hull's smaller region the 1000x steps carried every surfel
-    # out and the fit raised TSDFEmptyError; since the footprint hull's region (wider at 32 px) it makes a mesh
+    # finite, and a mesh or the typed abort (which one is chance at these steps: the case's docstring)
     "lr_x1000": Case(case_huge_lr, slow=True),
     "prune_everything": Case(case_prune_everything, slow=True),
     "tsdf_empty": Case(case_tsdf_empty, slow=True),

@@ -11,6 +11,8 @@
 #             depths, 4 voxels thicken the thin chair (at the CPU default the torus +38 %, the mug +58 %);
 #   ring      the photometric and mask terms blind to a RING (1) px ring outside the mask (lab/ring_blind.py): on the
 #             CPU suite the blob 0.234 -> 0.105 %, the torus 0.143 -> 0.075 %, the chairs +37-38 %;
+#   ringphoto the photometric term alone blind to that ring (the mask term sees it);
+#   ringsoft  the photometric term blind to the ring, the mask term's target there SOFT (0.5), not 0;
 #   ringdecay ring, and the fusion's weights behind a view's depth fading out from DECAY (2) voxels
 #             (lab/fusion_decay.py): the true depths fused no longer thicken the thin chair;
 #   faces     about twice the re-initialisation's surfels (a TSDF of 192 voxels, up to FACES = 200,000 faces; the
@@ -60,9 +62,12 @@ for c in $CHAINS; do
     maskwarm) chain b_maskwarm MASK_WARMUP_ONLY=1 ;;
     trunc) chain b_trunc FINAL_TRUNCATION=${TRUNC:-2} ;;
     ring) chain b_ring RING_BLIND=${RING:-1} ;;
+    ringphoto) chain b_ringphoto "RING_BLIND=${RING:-1} RING_TERMS=photo" ;;
+    ringsoft) chain b_ringsoft "RING_BLIND=${RING:-1} RING_MASK_TARGET=${SOFT:-0.5}" ;;
     ringdecay) chain b_ringdecay "RING_BLIND=${RING:-1} FUSION_DECAY=${DECAY:-2}" ;;
     *) echo "unknown chain $c"; exit 1 ;;
   esac
 done
 echo "chains $CHAINS of $(echo $SCENES | wc -w) fits launched after $(( $(date +%s) - t0 )) s"
+[ -n "${NOWAIT:-}" ] && exit 0  # NOWAIT=1: launch only (several calls of this script in one command), then wait_fits.sh
 TAG=b_ WAIT=$(( 560 - ($(date +%s) - t0) )) bash lab/device/wait_fits.sh

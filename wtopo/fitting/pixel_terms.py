@@ -25,6 +25,7 @@ import dataclasses
 import warnings
 
 import torch
+import torch.nn.functional as F
 
 from .._graphs import make_graphed
 from ..depth_normals import depth_normals
@@ -32,12 +33,17 @@ from ..multiview_ncc import ReferenceWindows
 from .losses import distortion, mask_loss, normal_consistency, photometric
 from .multiview import Windows, ncc_loss
 
-__all__ = ["PixelTerms", "TermSet", "GRAPHS", "ALPHA_COVERED"]
+__all__ = ["PixelTerms", "TermSet", "GRAPHS", "ALPHA_COVERED", "HALO_RING", "halo_ring"]
 
 GRAPHS = True
 """False: the terms run eagerly on CUDA too (for comparison in benchmarks and tests)."""
 ALPHA_COVERED = 0.5
 """A pixel is covered by the surfels when their rendered opacity reaches this."""
+HALO_RING = 1
+"""Width [pixels] of the ring just outside a view's mask that the photometric term does not compare: surfels lying
+exactly on the true surface render a silhouette about 0.3-1 px wider than the mask (each edge-on surfel's low-pass
+disk and its own tail past a curved limb), and comparing that halo with the black background pulls the whole surface
+inward (design/decisions.md, "Kept: the photometric term is blind to a 1-px ring outside the mask")."""
 _CHECK_RTOL = 1e-5  # a first replay farther than this from the eager terms leaves the set eager
 _GRAPHS_KEPT = 16  # captured sets kept (a fit uses a few: the term sets of its stages at its views' sizes)
 
@@ -70,14 +76,32 @@ class TermSet:
         return ("photo", *(n for n in ("mask", "normal", "distortion", "multiview") if getattr(self, n) > 0))
 
 
+def halo_ring(mask: torch.Tensor, width: int = HALO_RING) -> torch.Tensor:
+    """The pixels outside ``mask`` within ``width`` pixels of it (Chebyshev distance: a square dilation), bool [H, W].
+
+    Args:
+        mask: the view's object mask [H, W], bool or float (inside where >= 0.5).
+        width: the ring's width [pixels], at least 1.
+    """
+    if width < 1:
+        raise ValueError(f"width must be at least 1 pixel, got {width}")
+    inside = mask.to(torch.float32) >= 0.5
+    grown = F.max_pool2d(inside[None, None].to(torch.float32), 2 * width + 1, stride=1, padding=width)[0, 0]
+    return (grown > 0.5) & ~inside
+
+
 def _inputs(ts: TermSet, render, image, mask, rays, windows: Windows | None) -> tuple[torch.Tensor, ...]:
     """The tensors the terms read: rgb, [alpha], [normal], [distortion], [median depth], image, [mask], [median
     depth, ray origins, ray directions], [the multi-view windows' tensors]. Each is differentiable exactly when a
     term differentiates it (a graph's backward takes the gradient of every input that requires one): the opacity
     only through the mask term (the others read its value), the depth only through the multi-view term (the depth
-    normals are a fixed target)."""
+    normals are a fixed target). With a mask, the colour in its :func:`halo_ring` is the photograph's (no gradient
+    there)."""
     mv = ts.multiview > 0
-    diff = [render.rgb]
+    rgb = render.rgb
+    if mask is not None:
+        rgb = torch.where(halo_ring(mask)[..., None], image.to(rgb.dtype), rgb)
+    diff = [rgb]
     if ts.mask > 0:
         diff.append(render.alpha)
     elif ts.normal > 0 or mv:
@@ -157,7 +181,8 @@ class PixelTerms:
             render: the rasterizer's output of the view (``rgb``, ``alpha``, ``normal``, ``distortion``,
                 ``median_depth``).
             image: the view's photograph [H, W, 3].
-            mask: the view's object mask [H, W] (bool or float), needed when ``ts.mask > 0``.
+            mask: the view's object mask [H, W] (bool or float), needed when ``ts.mask > 0``; with it, the
+                photometric term ignores the :func:`halo_ring` (:data:`HALO_RING` px) outside the mask.
             rays: the view's ``(origins, directions)`` [H, W, 3] (:meth:`wtopo.Camera.pixel_rays`), needed when
                 ``ts.normal > 0``.
             windows: the multi-view term's windows (:meth:`~wtopo.fitting.multiview.MultiViewNCC.draw`), needed
