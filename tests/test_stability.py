@@ -169,7 +169,8 @@ def case_tiny_scales() -> str:
 
 def case_huge_lr() -> str:
     """Every learning rate 1000x the default: the fit stays finite and either makes a mesh or aborts with the typed
-    error that says nothing is left to mesh (STABILITY.md: "restore last good state or abort"). Which of the two is
+    error that says nothing is left to mesh, its surfels finite when it gave up (the shared STABILITY.md: "restore
+    last good state or abort; never write NaN"). Which of the two is
     chance: at these steps the surfels scatter, and over seeds 0-3 the fit kept enough of them for a mesh in 3 of 4
     runs before the photometric term's halo ring and in 1 of 4 after it (seed 0 had kept 60 surfels and 100 faces)."""
     cfg = tiny_config()
@@ -180,12 +181,23 @@ def case_huge_lr() -> str:
 
     for f in ("means", "means_final", "quats", "scales", "opacities", "sh_dc"):
         setattr(cfg.optim, f, 1000.0 * getattr(cfg.optim, f))
-    with mock.patch.object(loop, "_SH_REST_LR", 1000.0 * loop._SH_REST_LR):
+    meshed = []  # the surfels the final mesh was made from
+    final_mesh = loop.final_mesh
+
+    def recording_final_mesh(surfels, *args, **kwargs):
+        meshed.append(surfels)
+        return final_mesh(surfels, *args, **kwargs)
+
+    with mock.patch.object(loop, "_SH_REST_LR", 1000.0 * loop._SH_REST_LR), \
+            mock.patch.object(loop, "final_mesh", recording_final_mesh):
         try:
             res = _fit(sphere_scene(), cfg)
         except TSDFEmptyError as e:
             assert "the TSDF fusion and the proxy mesh are both empty" in str(e), str(e)
-            return f"aborted: {e}"
+            assert meshed, "the fit gave up before its final mesh"
+            for k, p in meshed[-1].params.items():
+                _assert_finite(f"surfel {k}", p)
+            return f"{len(meshed[-1])} finite surfels, then the typed abort: {e}"
     return _check_fit(res)
 
 

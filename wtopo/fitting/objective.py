@@ -119,7 +119,7 @@ class Objective:
                                                    "half": windows.half}
             ts = TermSet(_DSSIM, mask=self.mask_weight if masked else 0.0, normal=lc.normal if normal_on else 0.0,
                          distortion=lc.distortion if dist_on else 0.0, **mv_terms)
-            values = self.pixel_terms(ts, out, img, self.train.masks[vi] if masked else None,
+            values = self.pixel_terms(ts, out, img, None if self.train.masks is None else self.train.masks[vi],
                                       cam.pixel_rays(out.alpha.device) if ts.normal > 0 else None, windows)
             L.update(zip(ts.names, values.unbind()))
             if mv_on and windows is None:  # a view too small for a window: the term is there, and zero

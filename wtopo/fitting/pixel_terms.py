@@ -41,9 +41,10 @@ ALPHA_COVERED = 0.5
 """A pixel is covered by the surfels when their rendered opacity reaches this."""
 HALO_RING = 1
 """Width [pixels] of the ring just outside a view's mask that the photometric term does not compare: surfels lying
-exactly on the true surface render a silhouette about 0.3-1 px wider than the mask (each edge-on surfel's low-pass
-disk and its own tail past a curved limb), and comparing that halo with the black background pulls the whole surface
-inward (design/decisions.md, "Kept: the photometric term is blind to a 1-px ring outside the mask")."""
+exactly on the true surface render a silhouette wider than the mask (0.7-1 px at the CPU plan's 0.35-px low-pass,
+0.3-0.5 px at 0.15 px: each edge-on surfel's low-pass disk and its own tail past a curved limb), and comparing that
+halo with the black background pulled the whole surface inward (design/decisions.md, "Kept: the photometric term
+is blind to a 1-px ring outside the mask")."""
 _CHECK_RTOL = 1e-5  # a first replay farther than this from the eager terms leaves the set eager
 _GRAPHS_KEPT = 16  # captured sets kept (a fit uses a few: the term sets of its stages at its views' sizes)
 
