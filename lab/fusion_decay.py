@@ -3,6 +3,8 @@
 by the fusion, design/decisions.md "Open: wtopo's meshes lie inside the surface").
 
     FUSION_DECAY=1 .venv/bin/python lab/patched_hard.py [lab/hard.py's arguments]
+    FUSION_DECAY=2 DECAY_THIN_ONLY=1 ...   the final fusion only, and only where the co-evolution found thin parts
+                                           (its "final_grid_thin" event: the finer final grid's rule)
     FUSION_DECAY=1 FUSION_ONLY=1 .venv/bin/python lab/fusion_decay.py chair blob_flat    (the true depths fused)
 
 The fusion (kernels/tsdf_fusion.py) gives every view whose depth lies within the truncation in front of a node
@@ -58,9 +60,34 @@ def install() -> float:
     mod = importlib.util.module_from_spec(spec)
     sys.modules["tsdf_fusion_decay"] = mod
     spec.loader.exec_module(mod)
-    for m in (tf, _fusion, _slab):
-        m._k = mod
+    if os.environ.get("DECAY_THIN_ONLY"):
+        _install_thin_only(mod, (tf, _fusion, _slab))
+    else:
+        for m in (tf, _fusion, _slab):
+            m._k = mod
     return decay
+
+
+def _install_thin_only(mod, modules) -> None:
+    """The decaying kernel for the final fusion of fits whose co-evolution recorded "final_grid_thin" only."""
+    from wtopo.fitting import loop
+
+    final_mesh = loop.final_mesh
+
+    def thin_final_mesh(*args, **kwargs):
+        run = kwargs["record"].__self__
+        if not any(e["event"] == "final_grid_thin" for e in run.events):
+            return final_mesh(*args, **kwargs)
+        old = [m._k for m in modules]
+        for m in modules:
+            m._k = mod
+        try:
+            return final_mesh(*args, **kwargs)
+        finally:
+            for m, k in zip(modules, old):
+                m._k = k
+
+    loop.final_mesh = thin_final_mesh
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 # Lease step "bias" (#59: wtopo's meshes lie inside the surface, benchmarks/peers.md's bunny64 note, design/decisions.md
 # "Open: wtopo's meshes lie inside the surface"): chains of fits side by side, each over SCENES (bunny64, where the
 # authors' warm-up is closer, and the dense bowl, chair and mug), one per name in CHAINS:
-#   default   the CUDA default;
+#   default   the CUDA default (since 418e1f9 with the photometric term blind to the ring outside the mask);
 #   filter    the render's low-pass narrowed from the CUDA plan's 0.25 px to FILTER (0.15): at the CPU default 0.15 px
 #             brought the bunny's depth offset from 0.28 to 0.20 % of the diagonal and its Chamfer from 0.200 to
 #             0.181 %, but the chair, chair_box and the bowl 4-10 % farther;
@@ -13,6 +13,7 @@
 #             CPU suite the blob 0.234 -> 0.105 %, the torus 0.143 -> 0.075 %, the chairs +37-38 %;
 #   ringphoto the photometric term alone blind to that ring (the mask term sees it);
 #   ringsoft  the photometric term blind to the ring, the mask term's target there SOFT (0.5), not 0;
+#   decay     the fusion's weights behind a view's depth fading out from DECAY (2) voxels (lab/fusion_decay.py);
 #   ringdecay ring, and the fusion's weights behind a view's depth fading out from DECAY (2) voxels
 #             (lab/fusion_decay.py): the true depths fused no longer thicken the thin chair;
 #   faces     about twice the re-initialisation's surfels (a TSDF of 192 voxels, up to FACES = 200,000 faces; the
@@ -64,6 +65,7 @@ for c in $CHAINS; do
     ring) chain b_ring RING_BLIND=${RING:-1} ;;
     ringphoto) chain b_ringphoto "RING_BLIND=${RING:-1} RING_TERMS=photo" ;;
     ringsoft) chain b_ringsoft "RING_BLIND=${RING:-1} RING_MASK_TARGET=${SOFT:-0.5}" ;;
+    decay) chain b_decay FUSION_DECAY=${DECAY:-2} ;;
     ringdecay) chain b_ringdecay "RING_BLIND=${RING:-1} FUSION_DECAY=${DECAY:-2}" ;;
     *) echo "unknown chain $c"; exit 1 ;;
   esac
