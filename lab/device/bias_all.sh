@@ -14,6 +14,7 @@
 #   ringphoto the photometric term alone blind to that ring (the mask term sees it);
 #   ringsoft  the photometric term blind to the ring, the mask term's target there SOFT (0.5), not 0;
 #   decay     the fusion's weights behind a view's depth fading out from DECAY (2) voxels (lab/fusion_decay.py);
+#   thindecay that fading in the final fusion only, of fits whose co-evolution found thin parts;
 #   ringdecay ring, and the fusion's weights behind a view's depth fading out from DECAY (2) voxels
 #             (lab/fusion_decay.py): the true depths fused no longer thicken the thin chair;
 #   faces     about twice the re-initialisation's surfels (a TSDF of 192 voxels, up to FACES = 200,000 faces; the
@@ -66,6 +67,7 @@ for c in $CHAINS; do
     ringphoto) chain b_ringphoto "RING_BLIND=${RING:-1} RING_TERMS=photo" ;;
     ringsoft) chain b_ringsoft "RING_BLIND=${RING:-1} RING_MASK_TARGET=${SOFT:-0.5}" ;;
     decay) chain b_decay FUSION_DECAY=${DECAY:-2} ;;
+    thindecay) chain b_thindecay "FUSION_DECAY=${DECAY:-2} DECAY_THIN_ONLY=1" ;;
     ringdecay) chain b_ringdecay "RING_BLIND=${RING:-1} FUSION_DECAY=${DECAY:-2}" ;;
     *) echo "unknown chain $c"; exit 1 ;;
   esac
