@@ -170,6 +170,8 @@ def test_the_halo_ring_is_the_border_just_outside_the_mask():
     corner[0, 0] = True
     assert P.halo_ring(corner).nonzero().tolist() == [[0, 1], [1, 0], [1, 1]]
     assert not P.halo_ring(torch.ones(5, 5, dtype=torch.bool)).any()
+    stacked = torch.stack([m, m.flip(0), torch.zeros_like(m)])  # views' masks at once: each view's own ring
+    assert torch.equal(P.halo_ring(stacked), torch.stack([P.halo_ring(x) for x in stacked]))
     with pytest.raises(ValueError, match="width must be at least 1 pixel, got 0"):
         P.halo_ring(m, 0)
 
@@ -198,6 +200,10 @@ def test_a_halo_just_outside_the_mask_costs_the_photometric_term_nothing(device,
 
     value, grad = cost(ring)
     assert value == 0.0 and torch.count_nonzero(grad[ring]) == 0
+    rgb = torch.where(ring[..., None], torch.full((H, W, 3), 0.7), image).to(device)
+    kept = P.PixelTerms()(ts, types.SimpleNamespace(rgb=rgb), image.to(device), mask.to(device), None,
+                          ring=ring.to(device))[0]  # the caller's ring in place of the mask's
+    assert float(kept) == 0.0
     value, grad = cost(far)
     assert value > 1e-3 and torch.count_nonzero(grad[far]) == int(far.sum())
     rgb = torch.where(ring[..., None], torch.full((H, W, 3), 0.7), image).to(device)

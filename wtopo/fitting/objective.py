@@ -13,7 +13,7 @@ import torch
 from .config import FitConfig, stage_iteration
 from .losses import mesh_depth_loss, mesh_normal_loss, scale_regularizer
 from .multiview import MultiViewNCC
-from .pixel_terms import ALPHA_COVERED, PixelTerms, TermSet
+from .pixel_terms import ALPHA_COVERED, PixelTerms, TermSet, halo_ring
 from .proxy import ProxyMesh, ProxyResult
 from .stages import ROI_EXTENT, Renderer, Stage
 from .surfels import Surfels
@@ -91,6 +91,7 @@ class Objective:
         self.mesh_every = max(1, int(mesh_every))
         self.mesh_terms = True
         self.pixel_terms = PixelTerms()
+        self.rings = None if train.masks is None else halo_ring(train.masks)  # [V, H, W]: each view's, once
 
     def __call__(self, stage: Stage, it: int, vi: int, surfels: Surfels, proxy: ProxyMesh, *,
                  defer_count: bool = False) -> Terms:
@@ -119,8 +120,10 @@ class Objective:
                                                    "half": windows.half}
             ts = TermSet(_DSSIM, mask=self.mask_weight if masked else 0.0, normal=lc.normal if normal_on else 0.0,
                          distortion=lc.distortion if dist_on else 0.0, **mv_terms)
-            values = self.pixel_terms(ts, out, img, None if self.train.masks is None else self.train.masks[vi],
-                                      cam.pixel_rays(out.alpha.device) if ts.normal > 0 else None, windows)
+            masks = self.train.masks
+            values = self.pixel_terms(ts, out, img, None if masks is None else masks[vi],
+                                      cam.pixel_rays(out.alpha.device) if ts.normal > 0 else None, windows,
+                                      None if masks is None else self.rings[vi])
             L.update(zip(ts.names, values.unbind()))
             if mv_on and windows is None:  # a view too small for a window: the term is there, and zero
                 L["multiview"] = out.median_depth.sum() * 0.0

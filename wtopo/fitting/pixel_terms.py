@@ -78,30 +78,33 @@ class TermSet:
 
 
 def halo_ring(mask: torch.Tensor, width: int = HALO_RING) -> torch.Tensor:
-    """The pixels outside ``mask`` within ``width`` pixels of it (Chebyshev distance: a square dilation), bool [H, W].
+    """The pixels outside ``mask`` within ``width`` pixels of it (Chebyshev distance: a square dilation), bool
+    [..., H, W].
 
     Args:
-        mask: the view's object mask [H, W], bool or float (inside where >= 0.5).
+        mask: object masks [..., H, W] (one view's, or the views' stacked), bool or float (inside where >= 0.5).
         width: the ring's width [pixels], at least 1.
     """
     if width < 1:
         raise ValueError(f"width must be at least 1 pixel, got {width}")
     inside = mask.to(torch.float32) >= 0.5
-    grown = F.max_pool2d(inside[None, None].to(torch.float32), 2 * width + 1, stride=1, padding=width)[0, 0]
+    flat = inside.reshape(-1, 1, *inside.shape[-2:]).to(torch.float32)
+    grown = F.max_pool2d(flat, 2 * width + 1, stride=1, padding=width).reshape(inside.shape)
     return (grown > 0.5) & ~inside
 
 
-def _inputs(ts: TermSet, render, image, mask, rays, windows: Windows | None) -> tuple[torch.Tensor, ...]:
+def _inputs(ts: TermSet, render, image, mask, rays, windows: Windows | None,
+            ring: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
     """The tensors the terms read: rgb, [alpha], [normal], [distortion], [median depth], image, [mask], [median
     depth, ray origins, ray directions], [the multi-view windows' tensors]. Each is differentiable exactly when a
     term differentiates it (a graph's backward takes the gradient of every input that requires one): the opacity
     only through the mask term (the others read its value), the depth only through the multi-view term (the depth
-    normals are a fixed target). With a mask, the colour in its :func:`halo_ring` is the photograph's (no gradient
-    there)."""
+    normals are a fixed target). With a mask, the colour in its :func:`halo_ring` (``ring`` when given) is the
+    photograph's (no gradient there)."""
     mv = ts.multiview > 0
     rgb = render.rgb
     if mask is not None:
-        rgb = torch.where(halo_ring(mask)[..., None], image.to(rgb.dtype), rgb)
+        rgb = torch.where((halo_ring(mask) if ring is None else ring)[..., None], image.to(rgb.dtype), rgb)
     diff = [rgb]
     if ts.mask > 0:
         diff.append(render.alpha)
@@ -174,7 +177,8 @@ class PixelTerms:
         self.failures: dict[str, str] = {}
 
     def __call__(self, ts: TermSet, render, image: torch.Tensor, mask: torch.Tensor | None,
-                 rays: tuple[torch.Tensor, torch.Tensor] | None, windows: Windows | None = None) -> torch.Tensor:
+                 rays: tuple[torch.Tensor, torch.Tensor] | None, windows: Windows | None = None,
+                 ring: torch.Tensor | None = None) -> torch.Tensor:
         """The weighted terms of ``ts`` [len(ts.names)], differentiable w.r.t. the render's images.
 
         Args:
@@ -188,11 +192,12 @@ class PixelTerms:
                 ``ts.normal > 0``.
             windows: the multi-view term's windows (:meth:`~wtopo.fitting.multiview.MultiViewNCC.draw`), needed
                 when ``ts.multiview > 0`` (``ts.sources`` images, ``ts.half`` their half side).
+            ring: ``halo_ring(mask)`` when the caller keeps it (a fit computes each view's once), else ``None``.
         """
         if ts.multiview > 0 and (windows is None or len(windows.images) != ts.sources or windows.half != ts.half):
             raise ValueError(f"the multi-view term of {ts} needs windows of {ts.sources} images and half side "
                              f"{ts.half}, got {None if windows is None else (len(windows.images), windows.half)}")
-        args = _inputs(ts, render, image, mask, rays, windows)
+        args = _inputs(ts, render, image, mask, rays, windows, ring)
         rgb = render.rgb
         if not (GRAPHS and (rgb.is_cuda or self._make is not None) and torch.is_grad_enabled()):
             return _terms_fn(ts)(*args)
