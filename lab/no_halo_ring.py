@@ -4,7 +4,8 @@ a paired check at another seed.
 
     NO_HALO_RING=1 .venv/bin/python lab/patched_hard.py [lab/hard.py's arguments]
 
-``install()`` makes ``halo_ring`` (the pixel terms' and the objective's) return no pixel (lab/fit_patches.py's NO_HALO_RING).
+``install()`` makes ``halo_ring`` (the pixel terms' and the objective's) return no pixel
+(lab/fit_patches.py's NO_HALO_RING).
 """
 
 import torch

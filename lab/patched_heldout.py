@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
-"""lab/heldout.py with lab/fit_patches.py's patches installed first (the held-out check of a candidate set on the
-hard suite; give each patched run its own ``--tag``):
+"""lab/heldout.py with lab/fit_patches.py's patches installed first.
+
+The held-out check of a candidate set on the hard suite; give each patched run its own ``--tag``:
 
     FUSION_DECAY=2 DECAY_THIN_ONLY=1 .venv/bin/python lab/patched_heldout.py --scene table 0 default OUT --tag thindecay
 """
