@@ -17,6 +17,10 @@
 #   thindecay that fading in the final fusion only, of fits whose co-evolution found thin parts;
 #   ringdecay ring, and the fusion's weights behind a view's depth fading out from DECAY (2) voxels
 #             (lab/fusion_decay.py): the true depths fused no longer thicken the thin chair;
+#   proxy     the proxy's Poisson grid at PROXY (320) nodes, not the plan's 128-256 (bunny64: 208, a cell of two pixel
+#             footprints; design/decisions.md "Where bunny64's gap to PGSR is now": the coarse proxy rounds the
+#             concave and sharp places where wtopo's mesh is farther than PGSR's);
+#   sigma     the Poisson solve's smoothing at SIGMA (0.5) cells, not 1;
 #   faces     about twice the re-initialisation's surfels (a TSDF of 192 voxels, up to FACES = 200,000 faces; the
 #             CPU bunny's 128-voxel mesh has 72,097, under the CUDA cap of 100,000).
 # After the staging calls of lab/device/alone.sh (p1, p2, p3, then install), in one call:   bash lab/device/bias_all.sh
@@ -60,6 +64,8 @@ for c in $CHAINS; do
   case $c in
     default) chain b_default - ;;
     faces) chain b_faces - --set tsdf.resolution=192 --set tsdf.max_faces=$FACES ;;
+    proxy) chain b_proxy - --set mesh.resolution=${PROXY:-320} ;;
+    sigma) chain b_sigma - --set mesh.sigma=${SIGMA:-0.5} ;;
     filter) chain b_filter - --set filter_sigma=${FILTER:-0.15} ;;
     maskwarm) chain b_maskwarm MASK_WARMUP_ONLY=1 ;;
     trunc) chain b_trunc FINAL_TRUNCATION=${TRUNC:-2} ;;
