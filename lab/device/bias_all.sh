@@ -20,7 +20,9 @@
 #   proxy     the proxy's Poisson grid at PROXY (320) nodes, not the plan's 128-256 (bunny64: 208, a cell of two pixel
 #             footprints; design/decisions.md "Where bunny64's gap to PGSR is now": the coarse proxy rounds the
 #             concave and sharp places where wtopo's mesh is farther than PGSR's);
-#   sigma     the Poisson solve's smoothing at SIGMA (0.5) cells, not 1;
+#   sigma     the Poisson solve's smoothing at SIGMA (0.5) cells, not 1 (both chains also move which fits find thin
+#             parts, whose rule measures on the proxy's grid and its smoothing: on the CPU a fixed 128 grid left the
+#             chair's unfound, +36 %; compare each report's "coevolution" entry);
 #   faces     about twice the re-initialisation's surfels (a TSDF of 192 voxels, up to FACES = 200,000 faces; the
 #             CPU bunny's 128-voxel mesh has 72,097, under the CUDA cap of 100,000).
 # After the staging calls of lab/device/alone.sh (p1, p2, p3, then install), in one call:   bash lab/device/bias_all.sh
