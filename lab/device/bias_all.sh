@@ -30,7 +30,10 @@
 # done scores the scenes, up to 100 s each, inside the call's 600 s) until it has scored every scene into
 # $OUT/b_/rows_SCENE.json; then `bash lab/device/bias_all.sh signed` prints each mesh's signed offset
 # (lab/signed_error.py, every mesh's) and re-initialisation counts. The chains share the GPU: their times compare
-# within a lease, not with fits alone. rows_2026-12-07a: SCENES="bunny64 chair", then SCENES=bowl.
+# within a lease, not with fits alone. rows_2026-12-07a: SCENES="bunny64 chair", then SCENES=bowl. rows_2026-12-07c
+# (eight fits at once, after alone.sh install in the same call): the exports first, SCENES="bunny64 chair bowl mug"
+# CHAINS=" " NOWAIT=1, then for each scene SCENES=$sc CHAINS="default filter" NOWAIT=1, then
+# TAG=b_ WAIT=... PAR=1 bash lab/device/wait_fits.sh and this script's signed step.
 source lab/device/lease_env.sh
 t0=$(date +%s)
 SCENES=${SCENES:-bunny64 bowl chair mug}
