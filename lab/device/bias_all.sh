@@ -23,6 +23,8 @@
 #   sigma     the Poisson solve's smoothing at SIGMA (0.5) cells, not 1 (both chains also move which fits find thin
 #             parts, whose rule measures on the proxy's grid and its smoothing: on the CPU a fixed 128 grid left the
 #             chair's unfound, +36 %; compare each report's "coevolution" entry);
+#   nooutline the final mesh left where the fusion put it (final.outline=false; the default since the outline offset
+#             moves a masked object's mesh until its silhouettes cover the training masks, wtopo/geometry/outline.py);
 #   faces     about twice the re-initialisation's surfels (a TSDF of 192 voxels, up to FACES = 200,000 faces; the
 #             CPU bunny's 128-voxel mesh has 72,097, under the CUDA cap of 100,000).
 # After the staging calls of lab/device/alone.sh (p1, p2, p3, then install), in one call:   bash lab/device/bias_all.sh
@@ -68,6 +70,7 @@ chain() {  # NAME ENV ARGS...: every scene's fit, one after another, in one deta
 for c in $CHAINS; do
   case $c in
     default) chain b_default - ;;
+    nooutline) chain b_nooutline - --set final.outline=false ;;
     faces) chain b_faces - --set tsdf.resolution=192 --set tsdf.max_faces=$FACES ;;
     proxy) chain b_proxy - --set mesh.resolution=${PROXY:-320} ;;
     sigma) chain b_sigma - --set mesh.sigma=${SIGMA:-0.5} ;;

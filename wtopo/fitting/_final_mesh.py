@@ -15,6 +15,7 @@ import trimesh
 from .. import _bridge
 from .._profile import section
 from ..geometry.mesh_policy import crop_near_cameras, crop_to_box, supported_components, supported_faces
+from ..geometry.outline import offset_along_normals, outline_offset
 from ..geometry.winding import is_closed
 from . import densify as dens
 from .config import FitConfig, NormalFlip
@@ -34,10 +35,15 @@ _SNAP_CELLS = 1.5  # re-mesh vertices within this many grid cells of the mesh mo
 # faces that fail form a region smaller than this many voxels squared (supported_faces; design/decisions.md)
 _FACE_SUPPORT_VOXELS = 2.0
 _FACE_REGION_VOXELS2 = 100.0
+_OUTLINE_MAX_PIXELS = 1.0  # the outline offset moves the mesh at most this many pixel footprints
+# ... and only when this share of the views find the silhouette on the same side of the mask's outline: a thin part
+# whose outline is a few pixels of legs and slats gives offsets of either sign around zero (design/decisions.md)
+_OUTLINE_AGREEMENT = 0.9
 
 
 def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: Renderer, proxy: ProxyMesh,
-               guided: bool, tsdf_info: dict, record: Record, layout: SceneLayout | None = None) -> trimesh.Trimesh:
+               guided: bool, tsdf_info: dict, record: Record, layout: SceneLayout | None = None,
+               masks: Sequence | None = None) -> trimesh.Trimesh:
     """The returned mesh in the internal frame: TSDF of rendered depth, or the Poisson proxy when that is empty.
 
     Args:
@@ -52,6 +58,8 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
         layout: scene kind and region of interest; a scene's mesh is its region of interest's
             surface, open, with no face within ``layout.near`` of a camera centre
             (:mod:`.mesh_policy`). Objects are closed. Both keep the components the views support.
+        masks: the training views' masks [H, W] (``None``: none): with ``final.outline`` an object's mesh then
+            moves along its normals until its silhouettes cover them (:func:`_outline`).
 
     Raises:
         TSDFEmptyError: the TSDF fusion and the proxy mesh are both empty.
@@ -119,7 +127,29 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
     if len(mesh.faces) == 0:
         raise TSDFEmptyError("the final mesh is empty after the meshing policy (nothing in the region of interest "
                              "that the views support)")
+    if fc.outline and masks is not None and not scene:
+        with section("outline"):
+            mesh = _outline(mesh, cameras, masks, record=record, device=dev)
     return mesh
+
+
+def _outline(mesh: trimesh.Trimesh, cameras: Sequence, masks: Sequence, *, record: Record,
+             device: torch.device) -> trimesh.Trimesh:
+    """``mesh`` moved along its normals by :func:`~wtopo.geometry.outline.outline_offset`'s distance (scaled down to
+    at most :data:`_OUTLINE_MAX_PIXELS` footprints) when at least :data:`_OUTLINE_AGREEMENT` of the views used agree
+    on its sign; records ``"outline_offset"`` (the median offset in pixels, the 10th-90th percentiles over the views,
+    the share that agree, the views used, the distance moved in the internal frame: 0 when not moved)."""
+    off = outline_offset(mesh.vertices, mesh.faces, cameras, masks, device=device)
+    if len(off.views) == 0:
+        record("outline_offset", pixels=0.0, agree=0.0, views=0, distance=0.0)
+        return mesh
+    px = off.median_pixels
+    agree = float(np.mean(np.sign(off.pixels) == np.sign(px))) if px != 0 else 0.0
+    moved = off.distance * min(1.0, _OUTLINE_MAX_PIXELS / max(abs(px), 1e-12)) if agree >= _OUTLINE_AGREEMENT else 0.0
+    spread = [round(float(q), 4) for q in np.percentile(off.pixels, [10, 90])]
+    record("outline_offset", pixels=round(px, 4), spread=spread, agree=round(agree, 3), views=int(len(off.views)),
+           distance=moved)
+    return offset_along_normals(mesh, moved) if moved else mesh
 
 
 def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record,

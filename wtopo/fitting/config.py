@@ -163,6 +163,9 @@ class FinalConfig:
     within the preset's range)."""
     watertight: bool = True
     """Objects: Poisson re-meshes a fused mesh that is not closed. Scenes are never closed."""
+    outline: bool = True
+    """Masked objects: the mesh moves along its normals until its ray-cast silhouettes cover the training masks
+    (:func:`wtopo.geometry.outline.outline_offset`, the median over the views, at most one pixel footprint)."""
 
 
 @dataclass(kw_only=True)

@@ -1,0 +1,119 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The outline offset (wtopo/geometry/outline.py): how far a mesh's silhouettes lie inside the masks, and the
+final mesh moved by it (wtopo/fitting/_final_mesh.py)."""
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from mesh_scenes import depths_of, ring_cameras
+
+_R = 0.5
+
+
+def _sphere(radius):
+    return trimesh.creation.icosphere(subdivisions=5, radius=radius)
+
+
+def _masks(mesh, cams):
+    return [d > 0 for d in depths_of(mesh, cams)]
+
+
+@pytest.mark.parametrize("delta", [0.006, -0.006, 0.0])
+def test_outline_offset_measures_a_sphere_grown_or_shrunk_by_a_known_distance(delta):
+    from wtopo.geometry.outline import outline_offset
+
+    cams = ring_cameras(n=6, radius=4.0, size=320)
+    off = outline_offset(_sphere(_R).vertices, _sphere(_R).faces, cams, _masks(_sphere(_R + delta), cams))
+    # a pixel here is 4 * 2 tan(0.45) / 320 = 0.012 at the centre: delta is half of one; the same icosphere (scaled)
+    # makes the masks, so its facets cancel; what is left is the pixel grid's (+-20 % of delta at 320 px, 6 % at 640)
+    assert list(off.views) == list(range(6))
+    assert off.distance == pytest.approx(delta, abs=0.0015), (off.distance, off.pixels)
+    if delta:
+        assert np.sign(off.median_pixels) == np.sign(delta) and 0.3 < abs(off.median_pixels) < 0.8
+
+
+def test_offset_along_normals_grows_a_closed_mesh_and_keeps_its_faces_and_colours():
+    from wtopo.geometry.outline import offset_along_normals
+
+    s = _sphere(_R)
+    s.visual.vertex_colors = np.tile([10, 20, 30, 255], (len(s.vertices), 1))
+    out = offset_along_normals(s, 0.01)
+    r = np.linalg.norm(out.vertices, axis=1)
+    assert np.allclose(r, _R + 0.01, atol=1e-6) and out.is_watertight
+    assert np.array_equal(out.faces, s.faces) and np.array_equal(out.visual.vertex_colors, s.visual.vertex_colors)
+    assert np.allclose(s.vertices, _sphere(_R).vertices)  # the input is left as it was
+    assert offset_along_normals(s, 0.0).vertices.shape == s.vertices.shape
+
+
+def test_outline_offset_leaves_out_views_cut_by_the_frame_and_tiny_masks():
+    from wtopo.geometry.outline import outline_offset
+
+    cams = ring_cameras(n=4, radius=4.0, size=64)
+    masks = _masks(_sphere(_R), cams)
+    masks[1] = np.ones_like(masks[1])  # touches the border: the frame's outline, not the object's
+    masks[2] = np.zeros_like(masks[2])
+    masks[2][30:33, 30:33] = True  # 9 pixels
+    off = outline_offset(_sphere(_R).vertices, _sphere(_R).faces, cams, masks)
+    assert list(off.views) == [0, 3] and len(off.pixels) == 2
+    none = outline_offset(_sphere(_R).vertices, _sphere(_R).faces, cams[1:2], masks[1:2])
+    assert none.distance == 0.0 and len(none.views) == 0 and none.median_pixels == 0.0
+    # float masks (a fit's, as torch tensors) threshold at 0.5
+    soft = [torch.as_tensor(m, dtype=torch.float32) * 0.9 for m in _masks(_sphere(_R), cams)]
+    assert outline_offset(_sphere(_R).vertices, _sphere(_R).faces, cams, soft).distance == pytest.approx(0.0, abs=2e-3)
+
+
+def test_outline_offset_rejects_masks_that_do_not_match_the_cameras():
+    from wtopo.geometry.outline import outline_offset
+
+    cams = ring_cameras(n=2, size=32)
+    s = _sphere(_R)
+    with pytest.raises(ValueError, match=r"one entry per camera \(2\), got 1"):
+        outline_offset(s.vertices, s.faces, cams, [np.zeros((32, 32))])
+    with pytest.raises(ValueError, match=r"masks\[1\] must have its camera's shape \(32, 32\), got \(16, 32\)"):
+        outline_offset(s.vertices, s.faces, cams, [np.zeros((32, 32)), np.zeros((16, 32))])
+    with pytest.raises(ValueError, match=r"masks\[0\] has non-finite values"):
+        outline_offset(s.vertices, s.faces, cams, [np.full((32, 32), np.nan), np.zeros((32, 32))])
+
+
+def test_the_final_mesh_of_a_masked_object_moves_onto_the_masks_and_records_it():
+    from wtopo.fitting._final_mesh import _OUTLINE_MAX_PIXELS, _outline
+
+    cams = ring_cameras(n=6, radius=4.0, size=320)
+    events = []
+    record = lambda e, **k: events.append((e, k))  # noqa: E731
+    out = _outline(_sphere(_R), cams, _masks(_sphere(_R + 0.006), cams), record=record, device=torch.device("cpu"))
+    assert np.median(np.linalg.norm(out.vertices, axis=1)) == pytest.approx(_R + 0.006, abs=0.0015)
+    name, info = events[0]
+    assert name == "outline_offset" and info["views"] == 6 and 0.3 < info["pixels"] < 0.8
+    assert info["distance"] == pytest.approx(np.median(np.linalg.norm(out.vertices, axis=1)) - _R, rel=0.01)
+    # at most _OUTLINE_MAX_PIXELS footprints (0.012 here): masks 0.075 wider (about 6 px) move the mesh by one
+    events.clear()
+    far = _outline(_sphere(_R), cams, _masks(_sphere(_R + 0.075), cams), record=record, device=torch.device("cpu"))
+    info = events[0][1]
+    assert info["pixels"] > 4 and _OUTLINE_MAX_PIXELS == 1.0
+    grown = float(np.median(np.linalg.norm(far.vertices, axis=1))) - _R
+    assert grown == pytest.approx(info["distance"], rel=0.01) and 0.009 < grown < 0.016
+    # no usable view: the mesh is returned as it was
+    events.clear()
+    same = _outline(_sphere(_R), cams[:1], [np.ones((320, 320), bool)], record=record, device=torch.device("cpu"))
+    assert np.array_equal(same.vertices, _sphere(_R).vertices) and events[0][1]["views"] == 0
+
+
+def test_the_final_mesh_stays_where_the_views_disagree_on_the_side():
+    from wtopo.fitting._final_mesh import _OUTLINE_AGREEMENT, _outline
+
+    cams = ring_cameras(n=6, radius=4.0, size=320)
+    grown, shrunk = _masks(_sphere(_R + 0.006), cams), _masks(_sphere(_R - 0.006), cams)
+    events = []
+    record = lambda e, **k: events.append((e, k))  # noqa: E731
+    # four views grown, two shrunk: the median says grow, but only 4/6 of the views agree (a thin part's outline)
+    mixed = grown[:4] + shrunk[4:]
+    out = _outline(_sphere(_R), cams, mixed, record=record, device=torch.device("cpu"))
+    info = events[0][1]
+    assert _OUTLINE_AGREEMENT == 0.9 and info["agree"] == pytest.approx(4 / 6, abs=1e-3) and info["pixels"] > 0
+    assert info["distance"] == 0.0 and np.array_equal(out.vertices, _sphere(_R).vertices)
+    # all six agree: moved
+    events.clear()
+    _outline(_sphere(_R), cams, grown, record=record, device=torch.device("cpu"))
+    assert events[0][1]["agree"] == 1.0 and events[0][1]["distance"] > 0
