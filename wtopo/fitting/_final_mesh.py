@@ -43,7 +43,7 @@ _OUTLINE_AGREEMENT = 0.9
 
 def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: Renderer, proxy: ProxyMesh,
                guided: bool, tsdf_info: dict, record: Record, layout: SceneLayout | None = None,
-               masks: Sequence | None = None) -> trimesh.Trimesh:
+               masks: Sequence | None = None, thin: bool = False) -> trimesh.Trimesh:
     """The returned mesh in the internal frame: TSDF of rendered depth, or the Poisson proxy when that is empty.
 
     Args:
@@ -60,6 +60,9 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
             (:mod:`.mesh_policy`). Objects are closed. Both keep the components the views support.
         masks: the training views' masks [H, W] (``None``: none): with ``final.outline`` an object's mesh then
             moves along its normals until its silhouettes cover them (:func:`_outline`).
+        thin: the co-evolution found the object too thin for its mesh terms (:mod:`.thin_parts`): its outline is
+            mostly thin parts, whose thickness the fusion gets wrong by more than a pixel either way, so the mesh
+            stays where the fusion put it (recorded as ``"outline_offset"`` with ``skipped``).
 
     Raises:
         TSDFEmptyError: the TSDF fusion and the proxy mesh are both empty.
@@ -128,8 +131,11 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
         raise TSDFEmptyError("the final mesh is empty after the meshing policy (nothing in the region of interest "
                              "that the views support)")
     if fc.outline and masks is not None and not scene:
-        with section("outline"):
-            mesh = _outline(mesh, cameras, masks, record=record, device=dev)
+        if thin:
+            record("outline_offset", skipped="thin parts", distance=0.0)
+        else:
+            with section("outline"):
+                mesh = _outline(mesh, cameras, masks, record=record, device=dev)
     return mesh
 
 

@@ -438,7 +438,8 @@ class FitRun:
             guided = self.cfg.coevolution.enabled and self.it > self.warmup_end
             return final_mesh(self.surfels, self.train.cameras, self._final_config(), render=self.render,
                               proxy=self.proxy, guided=guided, tsdf_info=self.tsdf_info, record=self.record,
-                              layout=self.plan.layout, masks=self.train.masks)
+                              layout=self.plan.layout, masks=self.train.masks,
+                              thin=not self.coevolution_info.get("mesh_terms", True))
 
     def _evaluate(self, stage: Stage, mesh: trimesh.Trimesh | None = None) -> dict:
         with self.timers("evaluate"):
