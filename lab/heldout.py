@@ -16,6 +16,10 @@ and two that are not thin:
   top: a deep concavity that few views see into (as the suite's cup, without its handle);
 - ``pretzel``: two tori (major radius 0.3, minor 0.1) fused side by side, genus 2.
 
+Added after the outline offset's gates were set, to check them on scenes nothing was tuned on: ``bench`` (seat and
+back slats 0.03-0.04 thick) and ``rack`` (a pole 0.05 across on splayed feet), thin; ``pebble`` (a bumpy ellipsoid),
+``crossing`` (two fused capsules) and ``mushroom`` (a cap on a stem 0.16 across), not.
+
     PYTHONPATH=. .venv/bin/python lab/heldout.py [--scene NAME] SEED on|off|noloop|default OUT \
         [--views 32] [--resolution 128] [--device cpu] [--set KEY=VALUE ...]
 
@@ -91,12 +95,76 @@ def pretzel_sdf(p):
     return np.minimum(torus((-0.3, 0, 0)), torus((0.3, 0, 0)))
 
 
+def _capsule(p, a, b, r):
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    ab = b - a
+    t = np.clip(((p - a) @ ab) / (ab @ ab), 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[..., None] * ab), axis=-1) - r
+
+
+def bench_sdf(p):
+    """A slatted bench: five seat slats 0.04 thick with 0.03 gaps, two back slats, two side frames of 0.04 boards."""
+    parts = [hs._box(p, (0, -0.16 + 0.07 * k, 0.42), (0.5, 0.02, 0.02)) for k in range(5)]  # seat slats
+    parts += [hs._box(p, (0, 0.19, z), (0.5, 0.015, 0.04)) for z in (0.6, 0.75)]  # back slats
+    for sx in (-1, 1):
+        parts.append(hs._box(p, (0.45 * sx, -0.14, 0.2), (0.02, 0.02, 0.2)))  # front leg
+        parts.append(hs._box(p, (0.45 * sx, 0.17, 0.4), (0.02, 0.02, 0.4)))  # back leg, up to the back rest
+        parts.append(hs._box(p, (0.45 * sx, 0.0, 0.39), (0.02, 0.19, 0.02)))  # seat rail
+    return np.min(parts, axis=0)
+
+
+def rack_sdf(p):
+    """A coat rack: a pole 0.05 across, 1.2 tall, on four splayed feet, four hooks near its top."""
+    parts = [hs._cylinder_z(p, (0, 0, 0.6), 0.025, 0.6)]
+    for k in range(4):
+        a = np.pi / 2 * k + np.pi / 4
+        c, s_ = np.cos(a), np.sin(a)
+        parts.append(_capsule(p, (0, 0, 0.15), (0.3 * c, 0.3 * s_, 0.0), 0.02))  # foot
+        parts.append(_capsule(p, (0, 0, 1.05), (0.14 * c, 0.14 * s_, 1.15), 0.015))  # hook
+    return np.min(parts, axis=0)
+
+
+def pebble_sdf(p):
+    """An ellipsoid 0.5 x 0.35 x 0.25 (half axes) with shallow bumps: compact and smooth."""
+    r = np.array([0.5, 0.35, 0.25])
+    k0 = np.linalg.norm(p / r, axis=-1)
+    k1 = np.maximum(np.linalg.norm(p / r ** 2, axis=-1), 1e-9)
+    bumps = 0.012 * np.sin(9 * p[..., 0]) * np.sin(11 * p[..., 1]) * np.sin(7 * p[..., 2] + 1.0)
+    return k0 * (k0 - 1.0) / k1 + bumps  # the ellipsoid's distance, to first order (exact on its axes)
+
+
+def crossing_sdf(p):
+    """Two capsules 0.14 in radius crossing at right angles, fused with a smooth fillet: compact with concave
+    creases."""
+    a = _capsule(p, (-0.45, 0, 0), (0.45, 0, 0), 0.14)
+    b = _capsule(p, (0, -0.4, 0.05), (0, 0.4, 0.05), 0.14)
+    k = 0.06  # polynomial smooth minimum
+    h = np.clip(0.5 + 0.5 * (b - a) / k, 0.0, 1.0)
+    return b * (1 - h) + a * h - k * h * (1 - h)
+
+
+def mushroom_sdf(p):
+    """A cap (a half-ellipsoid 0.35 wide, 0.2 tall, 0.05 thick underneath) on a stem 0.08 in radius."""
+    r = np.linalg.norm(p[..., :2], axis=-1)
+    z = p[..., 2]
+    cap = np.maximum((np.hypot(r / 0.35, (z - 0.45) / 0.2) - 1.0) * 0.2, 0.45 - z)
+    cap = np.minimum(cap, np.maximum(r - 0.35, np.abs(z - 0.425) - 0.025))  # the cap's underside, 0.05 thick
+    stem = np.maximum(r - 0.08, np.abs(z - 0.22) - 0.22)
+    return np.minimum(cap, stem)
+
+
 SCENES = {  # sdf, lower and upper corners of its grid
     "table": (table_sdf, (-0.56, -0.38, -0.03), (0.56, 0.38, 0.78)),
     "stool": (stool_sdf, (-0.34, -0.34, -0.03), (0.34, 0.34, 0.68)),
     "shelf": (shelf_sdf, (-0.38, -0.18, -0.03), (0.38, 0.18, 0.93)),
     "vase": (vase_sdf, (-0.32, -0.32, -0.03), (0.32, 0.32, 0.83)),
     "pretzel": (pretzel_sdf, (-0.75, -0.45, -0.15), (0.75, 0.45, 0.15)),
+    # added 2026-12-07 for the outline offset's gates, after they were set (lab/hard.md "outline_new")
+    "bench": (bench_sdf, (-0.55, -0.22, -0.03), (0.55, 0.24, 0.83)),
+    "rack": (rack_sdf, (-0.35, -0.35, -0.03), (0.35, 0.35, 1.23)),
+    "pebble": (pebble_sdf, (-0.55, -0.4, -0.3), (0.55, 0.4, 0.3)),
+    "crossing": (crossing_sdf, (-0.62, -0.57, -0.18), (0.62, 0.57, 0.23)),
+    "mushroom": (mushroom_sdf, (-0.38, -0.38, -0.03), (0.38, 0.38, 0.68)),
 }
 MODES = {"on": ["optim.means_thin_decay=0.5"], "off": ["optim.means_thin_decay=0"],
          "noloop": ["coevolution.enabled=false"], "default": []}

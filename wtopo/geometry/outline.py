@@ -99,7 +99,10 @@ def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *,
         px = float(mk.sum() - hit.sum()) / length
         inner = hit.copy()  # the silhouette's own pixels: a hit whose four neighbours are all hits is not one
         inner[1:-1, 1:-1] &= hit[:-2, 1:-1] & hit[2:, 1:-1] & hit[1:-1, :-2] & hit[1:-1, 2:]
-        z = float(np.median(r.depth.cpu().numpy()[hit & ~inner]))
+        z = r.depth.cpu().numpy()[hit & ~inner]
+        z = float(np.median(z)) if len(z) else float("nan")
+        if not (np.isfinite(px) and np.isfinite(z) and z > 0):
+            continue  # no outline pixel (the silhouette fills the frame) or a degenerate hit
         pix.append(px)
         dist.append(px * z / float(cam.K[0, 0]))
         used.append(i)
