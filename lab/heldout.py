@@ -18,7 +18,9 @@ and two that are not thin:
 
 Added after the outline offset's gates were set, to check them on scenes nothing was tuned on: ``bench`` (seat and
 back slats 0.03-0.04 thick) and ``rack`` (a pole 0.05 across on splayed feet), thin; ``pebble`` (a bumpy ellipsoid),
-``crossing`` (two fused capsules) and ``mushroom`` (a cap on a stem 0.16 across), not.
+``crossing`` (two fused capsules) and ``mushroom`` (a cap on a stem 0.16 across), not; then, after the rack showed
+the thin gate wrong (lab/hard.md "outline_new"), ``ladder`` (rails and round rungs), ``grille`` (a frame of bars
+0.02-0.04 across) and ``lamp`` (a pole 0.03 across, a conical shade 0.02 thick), thin.
 
     PYTHONPATH=. .venv/bin/python lab/heldout.py [--scene NAME] SEED on|off|noloop|default OUT \
         [--views 32] [--resolution 128] [--device cpu] [--set KEY=VALUE ...]
@@ -153,6 +155,36 @@ def mushroom_sdf(p):
     return np.minimum(cap, stem)
 
 
+def ladder_sdf(p):
+    """A step ladder's front: two rails 0.05 x 0.03, leaning 10 degrees, five round rungs 0.035 across."""
+    lean = p[..., 1] - 0.18 * p[..., 2]  # the rails' plane tilts back with height
+    q = np.stack([p[..., 0], lean, p[..., 2]], axis=-1)
+    parts = [hs._box(q, (0.2 * sx, 0.0, 0.5), (0.025, 0.015, 0.5)) for sx in (-1, 1)]
+    parts += [np.hypot(q[..., 1], q[..., 2] - z) - 0.0175 + 0 * q[..., 0] for z in (0.15, 0.33, 0.51, 0.69, 0.87)]
+    parts[2:] = [np.maximum(r, np.abs(q[..., 0]) - 0.2) for r in parts[2:]]  # rungs end at the rails
+    return np.min(parts, axis=0)
+
+
+def grille_sdf(p):
+    """A radiator grille: a frame 0.8 x 0.5 of 0.04 bars and nine vertical bars 0.02 across, 0.06 deep."""
+    parts = [hs._box(p, (0, 0, z), (0.4, 0.03, 0.02)) for z in (0.02, 0.48)]
+    parts += [hs._box(p, (x, 0, 0.25), (0.02, 0.03, 0.25)) for x in (-0.38, 0.38)]
+    parts += [hs._box(p, (x, 0, 0.25), (0.01, 0.03, 0.23)) for x in np.linspace(-0.3, 0.3, 9)]
+    return np.min(parts, axis=0)
+
+
+def lamp_sdf(p):
+    """A floor lamp: a disc base 0.25 across, a pole 0.03 across, a conical shade (walls 0.02 thick) closed on top."""
+    r = np.linalg.norm(p[..., :2], axis=-1)
+    z = p[..., 2]
+    base = np.maximum(r - 0.125, np.abs(z - 0.015) - 0.015)
+    pole = np.maximum(r - 0.015, np.abs(z - 0.5) - 0.5)
+    cone_r = 0.08 + 0.5 * (0.98 - z)  # the shade's radius: 0.08 at its top (z 0.98), 0.18 at its rim (z 0.78)
+    shade = np.maximum(np.abs(r - cone_r) * 0.9 - 0.01, np.abs(z - 0.88) - 0.1)
+    cap = np.maximum(r - 0.085, np.abs(z - 0.97) - 0.01)  # closes the shade's top onto the pole
+    return np.min([base, pole, shade, cap], axis=0)
+
+
 SCENES = {  # sdf, lower and upper corners of its grid
     "table": (table_sdf, (-0.56, -0.38, -0.03), (0.56, 0.38, 0.78)),
     "stool": (stool_sdf, (-0.34, -0.34, -0.03), (0.34, 0.34, 0.68)),
@@ -165,6 +197,9 @@ SCENES = {  # sdf, lower and upper corners of its grid
     "pebble": (pebble_sdf, (-0.55, -0.4, -0.3), (0.55, 0.4, 0.3)),
     "crossing": (crossing_sdf, (-0.62, -0.57, -0.18), (0.62, 0.57, 0.23)),
     "mushroom": (mushroom_sdf, (-0.38, -0.38, -0.03), (0.38, 0.38, 0.68)),
+    "ladder": (ladder_sdf, (-0.26, -0.06, -0.03), (0.26, 0.26, 1.03)),
+    "grille": (grille_sdf, (-0.43, -0.06, -0.03), (0.43, 0.06, 0.53)),
+    "lamp": (lamp_sdf, (-0.22, -0.22, -0.03), (0.22, 0.22, 1.01)),
 }
 MODES = {"on": ["optim.means_thin_decay=0.5"], "off": ["optim.means_thin_decay=0"],
          "noloop": ["coevolution.enabled=false"], "default": []}

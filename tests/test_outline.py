@@ -100,20 +100,21 @@ def test_the_final_mesh_of_a_masked_object_moves_onto_the_masks_and_records_it()
     assert np.array_equal(same.vertices, _sphere(_R).vertices) and events[0][1]["views"] == 0
 
 
-def test_the_final_mesh_stays_where_the_views_disagree_on_the_side():
-    from wtopo.fitting._final_mesh import _OUTLINE_AGREEMENT, _outline
+def test_a_thin_object_moves_inward_only():
+    """A silhouette wider than the masks is too wide wherever it is; one short of them on thin parts is parts
+    missing or rounded there (the held-out shelf), so a thin object's mesh never grows."""
+    from wtopo.fitting._final_mesh import _outline
 
     cams = ring_cameras(n=6, radius=4.0, size=320)
-    grown, shrunk = _masks(_sphere(_R + 0.006), cams), _masks(_sphere(_R - 0.006), cams)
     events = []
     record = lambda e, **k: events.append((e, k))  # noqa: E731
-    # four views grown, two shrunk: the median says grow, but only 4/6 of the views agree (a thin part's outline)
-    mixed = grown[:4] + shrunk[4:]
-    out = _outline(_sphere(_R), cams, mixed, record=record, device=torch.device("cpu"))
-    info = events[0][1]
-    assert _OUTLINE_AGREEMENT == 0.9 and info["agree"] == pytest.approx(4 / 6, abs=1e-3) and info["pixels"] > 0
-    assert info["distance"] == 0.0 and np.array_equal(out.vertices, _sphere(_R).vertices)
-    # all six agree: moved
+    same = _outline(_sphere(_R), cams, _masks(_sphere(_R + 0.006), cams), record=record, device=torch.device("cpu"),
+                    thin=True)
+    assert np.array_equal(same.vertices, _sphere(_R).vertices)
+    assert events[0][1]["distance"] == 0.0 and events[0][1]["skipped"].startswith("thin parts")
+    assert events[0][1]["pixels"] > 0
     events.clear()
-    _outline(_sphere(_R), cams, grown, record=record, device=torch.device("cpu"))
-    assert events[0][1]["agree"] == 1.0 and events[0][1]["distance"] > 0
+    shrunk = _outline(_sphere(_R), cams, _masks(_sphere(_R - 0.006), cams), record=record, device=torch.device("cpu"),
+                      thin=True)
+    assert events[0][1]["distance"] < 0 and "skipped" not in events[0][1]
+    assert np.median(np.linalg.norm(shrunk.vertices, axis=1)) == pytest.approx(_R - 0.006, abs=0.0015)

@@ -159,18 +159,23 @@ def test_the_thin_decay_acts_only_where_the_rule_refined_the_grid(tiny, monkeypa
 
 
 
-def test_an_object_too_thin_for_the_mesh_terms_keeps_its_fused_outline(tiny):  # noqa: F811
-    """The outline offset (wtopo/geometry/outline.py) moves a masked object's final mesh onto the masks, but not
-    where the thin-part rule turned the mesh terms off: there the outline is mostly thin parts."""
+def test_the_final_mesh_hears_whether_the_object_was_too_thin_for_the_mesh_terms(tiny):  # noqa: F811
+    """The outline offset (wtopo/geometry/outline.py) moves a masked object's final mesh onto the masks; where the
+    thin-part rule turned the mesh terms off it may only move inward (tests/test_outline.py has that rule)."""
+    from unittest import mock
+
+    from wtopo.fitting import _final_mesh
     from wtopo.fitting.loop import FitRun
 
-    for limit, skipped in ((0.0, True), (1.0, False)):
+    for limit, thin in ((0.0, True), (1.0, False)):
         cfg = _config(10, 8)
         cfg.coevolution.enabled = True
         cfg.losses.mesh_thin_limit = limit
         run = FitRun(tiny, cfg, None, progress=False)
         run._start()
         run._thin_parts()
-        run._final_mesh()
+        with mock.patch.object(_final_mesh, "_outline", wraps=_final_mesh._outline) as spy:
+            run._final_mesh()
+        assert spy.call_args.kwargs["thin"] is thin
         (ev,) = [e for e in run.events if e["event"] == "outline_offset"]
-        assert ("skipped" in ev) is skipped and (ev["distance"] == 0.0 if skipped else ev["views"] > 0), ev
+        assert ev["views"] > 0 and ("skipped" in ev) == (thin and ev["pixels"] > 0), ev

@@ -36,9 +36,6 @@ _SNAP_CELLS = 1.5  # re-mesh vertices within this many grid cells of the mesh mo
 _FACE_SUPPORT_VOXELS = 2.0
 _FACE_REGION_VOXELS2 = 100.0
 _OUTLINE_MAX_PIXELS = 1.0  # the outline offset moves the mesh at most this many pixel footprints
-# ... and only when this share of the views find the silhouette on the same side of the mask's outline: a thin part
-# whose outline is a few pixels of legs and slats gives offsets of either sign around zero (design/decisions.md)
-_OUTLINE_AGREEMENT = 0.9
 
 
 def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: Renderer, proxy: ProxyMesh,
@@ -61,8 +58,7 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
         masks: the training views' masks [H, W] (``None``: none): with ``final.outline`` an object's mesh then
             moves along its normals until its silhouettes cover them (:func:`_outline`).
         thin: the co-evolution found the object too thin for its mesh terms (:mod:`.thin_parts`): its outline is
-            mostly thin parts, whose thickness the fusion gets wrong by more than a pixel either way, so the mesh
-            stays where the fusion put it (recorded as ``"outline_offset"`` with ``skipped``).
+            mostly thin parts, so the mesh may only move inward (:func:`_outline`).
 
     Raises:
         TSDFEmptyError: the TSDF fusion and the proxy mesh are both empty.
@@ -131,30 +127,30 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
         raise TSDFEmptyError("the final mesh is empty after the meshing policy (nothing in the region of interest "
                              "that the views support)")
     if fc.outline and masks is not None and not scene:
-        if thin:
-            record("outline_offset", skipped="thin parts", distance=0.0)
-        else:
-            with section("outline"):
-                mesh = _outline(mesh, cameras, masks, record=record, device=dev)
+        with section("outline"):
+            mesh = _outline(mesh, cameras, masks, record=record, device=dev, thin=thin)
     return mesh
 
 
 def _outline(mesh: trimesh.Trimesh, cameras: Sequence, masks: Sequence, *, record: Record,
-             device: torch.device) -> trimesh.Trimesh:
+             device: torch.device, thin: bool = False) -> trimesh.Trimesh:
     """``mesh`` moved along its normals by :func:`~wtopo.geometry.outline.outline_offset`'s distance (scaled down to
-    at most :data:`_OUTLINE_MAX_PIXELS` footprints) when at least :data:`_OUTLINE_AGREEMENT` of the views used agree
-    on its sign; records ``"outline_offset"`` (the median offset in pixels, the 10th-90th percentiles over the views,
-    the share that agree, the views used, the distance moved in the internal frame: 0 when not moved)."""
+    at most :data:`_OUTLINE_MAX_PIXELS` footprints); a ``thin`` object only inward: a silhouette wider than the masks
+    is too wide wherever it is, but one short of them on thin parts is parts missing or rounded there, not an
+    offset. Records ``"outline_offset"`` (the median offset in pixels, the 10th-90th percentiles over the views, the
+    views used, the distance moved in the internal frame: 0 when not moved, and ``skipped`` when the thin rule held
+    it)."""
     off = outline_offset(mesh.vertices, mesh.faces, cameras, masks, device=device)
     if len(off.views) == 0:
-        record("outline_offset", pixels=0.0, agree=0.0, views=0, distance=0.0)
+        record("outline_offset", pixels=0.0, views=0, distance=0.0)
         return mesh
     px = off.median_pixels
-    agree = float(np.mean(np.sign(off.pixels) == np.sign(px))) if px != 0 else 0.0
-    moved = off.distance * min(1.0, _OUTLINE_MAX_PIXELS / max(abs(px), 1e-12)) if agree >= _OUTLINE_AGREEMENT else 0.0
+    moved = off.distance * min(1.0, _OUTLINE_MAX_PIXELS / max(abs(px), 1e-12))
+    extra = {}
+    if thin and moved > 0:
+        moved, extra = 0.0, {"skipped": "thin parts: a silhouette short of the masks there is parts missing"}
     spread = [round(float(q), 4) for q in np.percentile(off.pixels, [10, 90])]
-    record("outline_offset", pixels=round(px, 4), spread=spread, agree=round(agree, 3), views=int(len(off.views)),
-           distance=moved)
+    record("outline_offset", pixels=round(px, 4), spread=spread, views=int(len(off.views)), distance=moved, **extra)
     return offset_along_normals(mesh, moved) if moved else mesh
 
 

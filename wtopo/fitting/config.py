@@ -165,7 +165,8 @@ class FinalConfig:
     """Objects: Poisson re-meshes a fused mesh that is not closed. Scenes are never closed."""
     outline: bool = True
     """Masked objects: the mesh moves along its normals until its ray-cast silhouettes cover the training masks
-    (:func:`wtopo.geometry.outline.outline_offset`, the median over the views, at most one pixel footprint)."""
+    (:func:`wtopo.geometry.outline.outline_offset`, the median over the views, at most one pixel footprint; an
+    object too thin for the mesh terms only inward)."""
 
 
 @dataclass(kw_only=True)
