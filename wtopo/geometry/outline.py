@@ -78,7 +78,7 @@ def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *,
     Raises:
         ValueError: ``cameras`` and ``masks`` differ in length, or a mask's shape is not its camera's.
     """
-    from ..raycast import raycast_mesh
+    from ..raycast import MeshRaycaster
 
     if len(cameras) != len(masks):
         raise ValueError(f"masks must have one entry per camera ({len(cameras)}), got {len(masks)}")
@@ -86,12 +86,13 @@ def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *,
     v = torch.as_tensor(np.asarray(verts.detach().cpu() if torch.is_tensor(verts) else verts), dtype=torch.float32)
     f = torch.as_tensor(np.asarray(faces.cpu() if torch.is_tensor(faces) else faces), dtype=torch.int32)
     v, f = v.to(device), f.to(device)
+    caster = MeshRaycaster()  # one BVH for every view (the vertices do not move between them)
     dist, pix, used = [], [], []
     for i, (cam, mk) in enumerate(zip(cameras, arrays)):
         if mk.sum() < _MIN_PIXELS or mk[0].any() or mk[-1].any() or mk[:, 0].any() or mk[:, -1].any():
             continue
         with torch.no_grad():
-            r = raycast_mesh(v, f, cam)
+            r = caster.raycast(v, f, cam)
         hit = r.mask.cpu().numpy().astype(bool)
         if hit.sum() < _MIN_PIXELS:
             continue
