@@ -72,7 +72,7 @@ def test_outline_offset_rejects_masks_that_do_not_match_the_cameras():
         outline_offset(s.vertices, s.faces, cams, [np.zeros((32, 32))])
     with pytest.raises(ValueError, match=r"masks\[1\] must have its camera's shape \(32, 32\), got \(16, 32\)"):
         outline_offset(s.vertices, s.faces, cams, [np.zeros((32, 32)), np.zeros((16, 32))])
-    with pytest.raises(ValueError, match=r"masks\[0\] has non-finite values"):
+    with pytest.raises(ValueError, match=r"masks\[0\] must be finite, got 1024 non-finite values"):
         outline_offset(s.vertices, s.faces, cams, [np.full((32, 32), np.nan), np.zeros((32, 32))])
 
 
@@ -118,3 +118,51 @@ def test_a_thin_object_moves_inward_only():
                       thin=True)
     assert events[0][1]["distance"] < 0 and "skipped" not in events[0][1]
     assert np.median(np.linalg.norm(shrunk.vertices, axis=1)) == pytest.approx(_R - 0.006, abs=0.0015)
+
+
+def test_outline_offset_is_the_median_over_views_of_unlike_footprints():
+    """Each view's offset times its own footprint; the median keeps one view whose mask is far off out of it."""
+    from wtopo.geometry.outline import outline_offset
+
+    cams = ring_cameras(n=3, radius=4.0, size=320) + ring_cameras(n=3, radius=6.0, size=320)
+    masks = _masks(_sphere(_R + 0.006), cams)
+    masks[1] = _masks(_sphere(_R + 0.06), cams[1:2])[0]  # one view's mask drawn about 5 px wide
+    off = outline_offset(_sphere(_R).vertices, _sphere(_R).faces, cams, masks)
+    near, far = off.footprints[[0, 2]], off.footprints[3:]
+    assert np.all(far > 1.4 * near.max()), off.footprints  # the farther ring's pixels are larger
+    assert off.pixels[1] > 3 and np.all(off.pixels[[0, 2, 3, 4, 5]] < 1)
+    # the farther ring's silhouettes are 27 px in radius: its pixel grid reads 0.0078 (the mean of the six: 0.0155)
+    assert off.distance == pytest.approx(0.006, abs=0.002), (off.distance, off.pixels)
+    assert off.capped(1.0) == off.distance and off.capped(0.1) == pytest.approx(0.1 * np.median(off.footprints))
+
+
+def test_a_move_that_does_not_bring_the_outline_closer_is_undone():
+    """A mesh wound inward has normals that point in: growing it along them shrinks it, the silhouettes fall
+    farther short of the masks, and the move is undone."""
+    from wtopo.fitting._final_mesh import _outline
+
+    cams = ring_cameras(n=6, radius=4.0, size=320)
+    inverted = trimesh.Trimesh(_sphere(_R).vertices, _sphere(_R).faces[:, ::-1], process=False)
+    events = []
+    out = _outline(inverted, cams, _masks(_sphere(_R + 0.006), cams), record=lambda e, **k: events.append((e, k)),
+                   device=torch.device("cpu"))
+    info = events[0][1]
+    assert np.array_equal(out.vertices, inverted.vertices) and info["distance"] == 0.0
+    assert info["pixels"] > 0.3 and info["undone"] > info["pixels"], info
+
+
+def test_non_finite_vertices_are_refused_by_the_measure_and_left_by_the_final_mesh():
+    from wtopo.fitting._final_mesh import _outline
+    from wtopo.geometry.outline import outline_offset
+
+    cams = ring_cameras(n=2, size=32)
+    s = _sphere(_R)
+    v = s.vertices.copy()
+    v[3] = np.nan
+    with pytest.raises(ValueError, match=r"verts must be finite, got 1 non-finite rows"):
+        outline_offset(v, s.faces, cams, _masks(s, cams))
+    events = []
+    bad = trimesh.Trimesh(v, s.faces, process=False)
+    assert _outline(bad, cams, _masks(s, cams), record=lambda e, **k: events.append((e, k)),
+                    device=torch.device("cpu")) is bad
+    assert events == [("outline_offset", {"skipped": "non-finite vertices", "distance": 0.0})]

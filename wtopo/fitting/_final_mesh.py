@@ -55,10 +55,12 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
         layout: scene kind and region of interest; a scene's mesh is its region of interest's
             surface, open, with no face within ``layout.near`` of a camera centre
             (:mod:`.mesh_policy`). Objects are closed. Both keep the components the views support.
-        masks: the training views' masks [H, W] (``None``: none): with ``final.outline`` an object's mesh then
-            moves along its normals until its silhouettes cover them (:func:`_outline`).
+        masks: the training views' masks, one [H, W] per camera (bool or float in [0, 1]; a [N, H, W] tensor
+            works), or ``None``: with ``final.outline`` an object's mesh then moves along its normals until its
+            silhouettes cover them (:func:`_outline`).
         thin: the co-evolution found the object too thin for its mesh terms (:mod:`.thin_parts`): its outline is
-            mostly thin parts, so the mesh may only move inward (:func:`_outline`).
+            mostly thin parts, so the mesh may only move inward (:func:`_outline`). A fit without the co-evolution
+            measures no thin parts and passes ``False``.
 
     Raises:
         TSDFEmptyError: the TSDF fusion and the proxy mesh are both empty.
@@ -134,24 +136,39 @@ def final_mesh(surfels: Surfels, cameras: Sequence, cfg: FitConfig, *, render: R
 
 def _outline(mesh: trimesh.Trimesh, cameras: Sequence, masks: Sequence, *, record: Record,
              device: torch.device, thin: bool = False) -> trimesh.Trimesh:
-    """``mesh`` moved along its normals by :func:`~wtopo.geometry.outline.outline_offset`'s distance (scaled down to
-    at most :data:`_OUTLINE_MAX_PIXELS` footprints); a ``thin`` object only inward: a silhouette wider than the masks
-    is too wide wherever it is, but one short of them on thin parts is parts missing or rounded there, not an
-    offset. Records ``"outline_offset"`` (the median offset in pixels, the 10th-90th percentiles over the views, the
-    views used, the distance moved in the internal frame: 0 when not moved, and ``skipped`` when the thin rule held
-    it)."""
+    """``mesh`` moved along its normals by :func:`~wtopo.geometry.outline.outline_offset`'s distance, at most
+    :data:`_OUTLINE_MAX_PIXELS` times the views' median footprint; a ``thin`` object only inward: a silhouette wider
+    than the masks is too wide wherever it is, but one short of them on thin parts is parts missing or rounded
+    there, not an offset. The move is measured again and undone when it did not bring the silhouettes closer to the
+    masks (a part wound inward moves the wrong way). Records ``"outline_offset"``: the median offset in pixels, the
+    10th-90th percentiles over the views, the views used and the distance moved in the internal frame (0 when not
+    moved), with ``skipped`` when the thin rule held it or ``undone`` (the median offset after the move) when it was
+    undone."""
+    if not np.isfinite(np.asarray(mesh.vertices)).all():
+        record("outline_offset", skipped="non-finite vertices", distance=0.0)
+        return mesh
     off = outline_offset(mesh.vertices, mesh.faces, cameras, masks, device=device)
     if len(off.views) == 0:
         record("outline_offset", pixels=0.0, views=0, distance=0.0)
         return mesh
     px = off.median_pixels
-    moved = off.distance * min(1.0, _OUTLINE_MAX_PIXELS / max(abs(px), 1e-12))
-    extra = {}
+    moved = off.capped(_OUTLINE_MAX_PIXELS)
+    info = {"pixels": round(px, 4), "spread": [round(float(q), 4) for q in np.percentile(off.pixels, [10, 90])],
+            "views": int(len(off.views))}
     if thin and moved > 0:
-        moved, extra = 0.0, {"skipped": "thin parts: a silhouette short of the masks there is parts missing"}
-    spread = [round(float(q), 4) for q in np.percentile(off.pixels, [10, 90])]
-    record("outline_offset", pixels=round(px, 4), spread=spread, views=int(len(off.views)), distance=moved, **extra)
-    return offset_along_normals(mesh, moved) if moved else mesh
+        record("outline_offset", **info, distance=0.0,
+               skipped="thin parts: a silhouette short of the masks there is parts missing")
+        return mesh
+    if moved == 0.0:
+        record("outline_offset", **info, distance=0.0)
+        return mesh
+    out = offset_along_normals(mesh, moved)
+    after = outline_offset(out.vertices, out.faces, cameras, masks, device=device).median_pixels
+    if abs(after) >= abs(px):
+        record("outline_offset", **info, distance=0.0, undone=round(after, 4))
+        return mesh
+    record("outline_offset", **info, distance=moved)
+    return out
 
 
 def poisson_remesh(mesh: trimesh.Trimesh, cfg: FitConfig, *, record: Record,

@@ -33,11 +33,14 @@ class OutlineOffset:
         distance: the median over the used views of each view's offset times its footprint, in the cameras'
             units: + where the silhouettes lie inside the masks (the mesh should grow), - outside.
         pixels: each used view's offset, in pixels (float64 [U]).
+        footprints: each used view's pixel footprint at its silhouette's outline, ``z / fx`` in the cameras' units
+            (float64 [U]).
         views: the indices of the used views (int64 [U]), in ``cameras``' order.
     """
 
     distance: float
     pixels: np.ndarray
+    footprints: np.ndarray
     views: np.ndarray
 
     @property
@@ -45,13 +48,20 @@ class OutlineOffset:
         """The median of :attr:`pixels` (0 when no view was used)."""
         return float(np.median(self.pixels)) if len(self.pixels) else 0.0
 
+    def capped(self, max_pixels: float) -> float:
+        """:attr:`distance` limited to ``max_pixels`` times the median footprint (0 when no view was used)."""
+        if not len(self.footprints):
+            return 0.0
+        limit = float(max_pixels) * float(np.median(self.footprints))
+        return float(np.clip(self.distance, -limit, limit))
+
 
 def _mask_array(i: int, mask, camera) -> np.ndarray:
     m = mask.detach().cpu().numpy() if torch.is_tensor(mask) else np.asarray(mask)
     if m.shape != (camera.height, camera.width):
         raise ValueError(f"masks[{i}] must have its camera's shape ({camera.height}, {camera.width}), got {m.shape}")
     if m.dtype != bool and not np.all(np.isfinite(m)):
-        raise ValueError(f"masks[{i}] has non-finite values")
+        raise ValueError(f"masks[{i}] must be finite, got {int(np.sum(~np.isfinite(m)))} non-finite values")
     return m >= 0.5
 
 
@@ -76,18 +86,22 @@ def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *,
         :class:`OutlineOffset` (``distance`` 0 and no views when none could be used). Not differentiable.
 
     Raises:
-        ValueError: ``cameras`` and ``masks`` differ in length, or a mask's shape is not its camera's.
+        ValueError: ``cameras`` and ``masks`` differ in length, a mask's shape is not its camera's, a mask or a
+            vertex is not finite.
     """
     from ..raycast import MeshRaycaster
 
     if len(cameras) != len(masks):
         raise ValueError(f"masks must have one entry per camera ({len(cameras)}), got {len(masks)}")
     arrays = [_mask_array(i, m, c) for i, (m, c) in enumerate(zip(masks, cameras))]
-    v = torch.as_tensor(np.asarray(verts.detach().cpu() if torch.is_tensor(verts) else verts), dtype=torch.float32)
-    f = torch.as_tensor(np.asarray(faces.cpu() if torch.is_tensor(faces) else faces), dtype=torch.int32)
+    v = torch.as_tensor(np.ascontiguousarray(verts.detach().cpu() if torch.is_tensor(verts) else verts),
+                        dtype=torch.float32)
+    f = torch.as_tensor(np.ascontiguousarray(faces.cpu() if torch.is_tensor(faces) else faces), dtype=torch.int32)
+    if not bool(torch.isfinite(v).all()):
+        raise ValueError(f"verts must be finite, got {int((~torch.isfinite(v)).any(dim=-1).sum())} non-finite rows")
     v, f = v.to(device), f.to(device)
-    caster = MeshRaycaster()  # one BVH for every view (the vertices do not move between them)
-    dist, pix, used = [], [], []
+    caster = MeshRaycaster()  # one BVH, built at the first view (the vertices do not move between them)
+    dist, pix, feet, used = [], [], [], []
     for i, (cam, mk) in enumerate(zip(cameras, arrays)):
         if mk.sum() < _MIN_PIXELS or mk[0].any() or mk[-1].any() or mk[:, 0].any() or mk[:, -1].any():
             continue
@@ -105,15 +119,23 @@ def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *,
         if not (np.isfinite(px) and np.isfinite(z) and z > 0):
             continue  # no outline pixel (the silhouette fills the frame) or a degenerate hit
         pix.append(px)
-        dist.append(px * z / float(cam.K[0, 0]))
+        feet.append(z / float(cam.K[0, 0]))
+        dist.append(px * feet[-1])
         used.append(i)
     return OutlineOffset(float(np.median(dist)) if dist else 0.0, np.asarray(pix, dtype=np.float64),
-                         np.asarray(used, dtype=np.int64))
+                         np.asarray(feet, dtype=np.float64), np.asarray(used, dtype=np.int64))
 
 
 def offset_along_normals(mesh: trimesh.Trimesh, distance: float) -> trimesh.Trimesh:
-    """A copy of ``mesh`` (its faces and vertex colours kept) with every vertex moved ``distance`` along its
-    area-weighted vertex normal (outward for a closed, outward-wound mesh: + grows it)."""
+    """A copy of ``mesh`` (its faces and vertex colours kept) with every vertex moved along its vertex normal.
+
+    Args:
+        mesh: the mesh; its vertex normals (trimesh's, area-weighted) point outward for a closed, outward-wound mesh.
+        distance: how far, in the mesh's units: + along the normals (grows an outward-wound mesh), - against them.
+
+    Returns:
+        The moved copy (``mesh`` itself is not changed). Not differentiable.
+    """
     out = mesh.copy()
     if len(mesh.faces) and distance != 0.0:
         out.vertices = np.asarray(mesh.vertices, dtype=np.float64) + mesh.vertex_normals * float(distance)
