@@ -6,24 +6,24 @@
 
 SCENE: a name of lab/heldout.py (its 32-view rig at 128 px is rebuilt); RUN_DIR: a fit of it made with
 ``--set final.outline=false`` (or before the outline existed), whose ``mesh.ply`` is in the scene's frame. Prints
-the median offset in pixels (and the views' 10th-90th percentiles), then the mesh's Chamfer (% of the truth's
-diagonal, 200,000 samples) before and after moving it by the offset, capped at one footprint as the product does.
-The fits are deterministic, so that mesh is the one the product moves. The product's thin rule (an object whose
-mesh terms were off only moves inward) is not applied here: the run's report says whether it holds. Nothing imports
+the product's ``outline_offset`` record (wtopo.fitting._final_mesh._outline on the scene's training views, with
+the run's thin-part decision from its report.json), then the mesh's Chamfer (% of the truth's diagonal, 200,000
+samples) before and after. The fits are deterministic, so that mesh is the one the product moves. Nothing imports
 it.
 """
 
+import json
 import os
 import sys
 
-import numpy as np
+import torch
 import trimesh
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import hard_scenes as hs  # noqa: E402
 import heldout  # noqa: E402
 from wtopo import scenes  # noqa: E402
-from wtopo.geometry.outline import offset_along_normals, outline_offset  # noqa: E402
+from wtopo.fitting._final_mesh import _outline  # noqa: E402
 from wtopo.metrics import chamfer  # noqa: E402
 
 
@@ -35,14 +35,15 @@ def main(name: str, run: str) -> None:
                           seed=7, up=(0, 0, 1), n_test=hs.N_TEST, name=name)
     train = sc.split("train")
     mesh = trimesh.load(os.path.join(run, "mesh.ply"), process=False)
-    off = outline_offset(mesh.vertices, mesh.faces, train.cameras, list(train.masks))
-    px = off.median_pixels
-    moved = off.distance * min(1.0, 1.0 / max(abs(px), 1e-12))
+    with open(os.path.join(run, "report.json")) as f:
+        thin = not json.load(f).get("coevolution", {}).get("mesh_terms", True)
+    events = []
+    moved = _outline(mesh, train.cameras, list(train.masks), record=lambda e, **k: events.append(k),
+                     device=torch.device("cpu"), thin=thin)
     before = chamfer(mesh, gt, n_samples=200_000).chamfer_rel * 100
-    after = chamfer(offset_along_normals(mesh, moved), gt, n_samples=200_000).chamfer_rel * 100
-    p10, p90 = np.percentile(off.pixels, [10, 90])
-    print(f"{name}: {px:+.3f} px (views 10-90 % {p10:+.3f}..{p90:+.3f}); Chamfer {before:.4f} -> moved {after:.4f} "
-          f"({100 * (after / before - 1):+.1f} %)")
+    after = chamfer(moved, gt, n_samples=200_000).chamfer_rel * 100
+    change = 100 * (after / before - 1)
+    print(f"{name} (thin {thin}): {events[0]}; Chamfer {before:.4f} -> {after:.4f} ({change:+.1f} %)")
 
 
 if __name__ == "__main__":
