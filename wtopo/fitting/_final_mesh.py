@@ -17,6 +17,7 @@ from .._profile import section
 from ..geometry.mesh_policy import crop_near_cameras, crop_to_box, supported_components, supported_faces
 from ..geometry.outline import offset_along_normals, outline_offset
 from ..geometry.winding import is_closed
+from ..raycast import MeshRaycaster
 from . import densify as dens
 from .config import FitConfig, NormalFlip
 from .proxy import PADDING, ProxyMesh, poisson_mesh
@@ -147,7 +148,8 @@ def _outline(mesh: trimesh.Trimesh, cameras: Sequence, masks: Sequence, *, recor
     if not np.isfinite(np.asarray(mesh.vertices)).all():
         record("outline_offset", skipped="non-finite vertices", distance=0.0)
         return mesh
-    off = outline_offset(mesh.vertices, mesh.faces, cameras, masks, device=device)
+    caster = MeshRaycaster()  # the measure after the move refits its BVH
+    off = outline_offset(mesh.vertices, mesh.faces, cameras, masks, device=device, raycaster=caster)
     if len(off.views) == 0:
         record("outline_offset", pixels=0.0, views=0, distance=0.0)
         return mesh
@@ -163,7 +165,7 @@ def _outline(mesh: trimesh.Trimesh, cameras: Sequence, masks: Sequence, *, recor
         record("outline_offset", **info, distance=0.0)
         return mesh
     out = offset_along_normals(mesh, moved)
-    after = outline_offset(out.vertices, out.faces, cameras, masks, device=device).median_pixels
+    after = outline_offset(out.vertices, out.faces, cameras, masks, device=device, raycaster=caster).median_pixels
     if abs(after) >= abs(px):
         record("outline_offset", **info, distance=0.0, undone=round(after, 4))
         return mesh

@@ -30,18 +30,22 @@ class OutlineOffset:
     """What :func:`outline_offset` measured.
 
     Attributes:
-        distance: the median over the used views of each view's offset times its footprint, in the cameras'
-            units: + where the silhouettes lie inside the masks (the mesh should grow), - outside.
-        pixels: each used view's offset, in pixels (float64 [U]).
+        pixels: each used view's offset, in pixels (float64 [U]): + where the silhouette lies inside the mask (the
+            mesh should grow), - outside.
         footprints: each used view's pixel footprint at its silhouette's outline, ``z / fx`` in the cameras' units
             (float64 [U]).
         views: the indices of the used views (int64 [U]), in ``cameras``' order.
     """
 
-    distance: float
     pixels: np.ndarray
     footprints: np.ndarray
     views: np.ndarray
+
+    @property
+    def distance(self) -> float:
+        """The median over the used views of each view's offset times its footprint, in the cameras' units (0 when
+        no view was used)."""
+        return float(np.median(self.pixels * self.footprints)) if len(self.pixels) else 0.0
 
     @property
     def median_pixels(self) -> float:
@@ -65,8 +69,8 @@ def _mask_array(i: int, mask, camera) -> np.ndarray:
     return m >= 0.5
 
 
-def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *,
-                   device: torch.device | str = "cpu") -> OutlineOffset:
+def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *, device: torch.device | str = "cpu",
+                   raycaster=None) -> OutlineOffset:
     """How far the silhouettes of a mesh lie inside the masks, per view and as one distance.
 
     Per view: ``(mask area - silhouette area) / the mask outline's length``, in pixels (the silhouette is the
@@ -81,6 +85,8 @@ def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *,
         cameras: :class:`wtopo.Camera` per view.
         masks: one mask per camera, [H, W] (bool or float, >= 0.5 inside), its camera's size.
         device: where the ray cast runs.
+        raycaster: a :class:`wtopo.raycast.MeshRaycaster` to cast with (``None``: a new one): one that cast this
+            mesh's faces before only refits its BVH to moved vertices.
 
     Returns:
         :class:`OutlineOffset` (``distance`` 0 and no views when none could be used). Not differentiable.
@@ -100,8 +106,8 @@ def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *,
     if not bool(torch.isfinite(v).all()):
         raise ValueError(f"verts must be finite, got {int((~torch.isfinite(v)).any(dim=-1).sum())} non-finite rows")
     v, f = v.to(device), f.to(device)
-    caster = MeshRaycaster()  # one BVH, built at the first view (the vertices do not move between them)
-    dist, pix, feet, used = [], [], [], []
+    caster = MeshRaycaster() if raycaster is None else raycaster  # one BVH for every view
+    pix, feet, used = [], [], []
     for i, (cam, mk) in enumerate(zip(cameras, arrays)):
         if mk.sum() < _MIN_PIXELS or mk[0].any() or mk[-1].any() or mk[:, 0].any() or mk[:, -1].any():
             continue
@@ -120,10 +126,9 @@ def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *,
             continue  # no outline pixel (the silhouette fills the frame) or a degenerate hit
         pix.append(px)
         feet.append(z / float(cam.K[0, 0]))
-        dist.append(px * feet[-1])
         used.append(i)
-    return OutlineOffset(float(np.median(dist)) if dist else 0.0, np.asarray(pix, dtype=np.float64),
-                         np.asarray(feet, dtype=np.float64), np.asarray(used, dtype=np.int64))
+    return OutlineOffset(np.asarray(pix, dtype=np.float64), np.asarray(feet, dtype=np.float64),
+                         np.asarray(used, dtype=np.int64))
 
 
 def offset_along_normals(mesh: trimesh.Trimesh, distance: float) -> trimesh.Trimesh:
