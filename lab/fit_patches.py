@@ -10,6 +10,7 @@ and what it measured.
     FUSION_MASKED=1       the TSDF stages fuse no rendered depth outside the view's mask (lab/fusion_masked.py)
     RING_BLIND=N          the photometric and mask terms blind to an N-px ring outside the mask (lab/ring_blind.py)
     NO_HALO_RING=1        the photometric term sees the ring again, as before halo_ring (lab/no_halo_ring.py)
+    KEEP_PRE_OUTLINE=1    the final mesh before the outline offset kept beside the result (lab/pre_outline.py)
 
 Only in-process fits see a patch: lab/hard.py's ``--jobs`` processes would not. Nothing in the product imports it.
 """
@@ -20,7 +21,8 @@ import os
 # each variable and the lab module whose install() applies its patch, in the order they are installed
 PATCHES = [("MASK_WARMUP_ONLY", "mask_warmup_only"), ("MASK_BAND", "mask_band"),
            ("FINAL_TRUNCATION", "final_truncation"), ("FUSION_DECAY", "fusion_decay"),
-           ("FUSION_MASKED", "fusion_masked"), ("RING_BLIND", "ring_blind"), ("NO_HALO_RING", "no_halo_ring")]
+           ("FUSION_MASKED", "fusion_masked"), ("RING_BLIND", "ring_blind"), ("NO_HALO_RING", "no_halo_ring"),
+           ("KEEP_PRE_OUTLINE", "pre_outline")]
 
 
 def install_from_env() -> list[str]:

@@ -1,6 +1,7 @@
 """benchmarks/peers/run_wtopo.py with lab/hard_views.py installed first when HARD_VIEWS is set (its power), and
 lab/fit_patches.py's patches by their variables: the same arguments, the same result folder (for lab/device/d40.sh
-and bias_all.sh)."""
+and bias_all.sh); with KEEP_PRE_OUTLINE, also the result folder OUT_pre of the mesh before the outline offset
+(lab/pre_outline.py)."""
 import os
 import sys
 
@@ -20,3 +21,7 @@ if __name__ == "__main__":
     import run_wtopo
 
     run_wtopo.main(sys.argv[1:])
+    if os.environ.get("KEEP_PRE_OUTLINE"):
+        import pre_outline
+
+        pre_outline.write_result(sys.argv[2])
