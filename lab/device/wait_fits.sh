@@ -1,6 +1,7 @@
 # The calls after a lease step's detached fits (within 30 s of the last): TAG=m (m_all.sh) or n (n_all.sh). Waits up
 # to WAIT seconds for every $S/res/SCENE/wtopo_TAG* result, then scores each scene's into $OUT/TAG/rows_SCENE.json
-# (PICTURES=SCENE: that scene's held-out renders and errors as well, SCENE_renders.png; PAR=1: the scenes scored at once).
+# (PICTURES=SCENE: that scene's held-out renders and errors as well, SCENE_renders.png; PAR=1: the scenes scored at once;
+# SCORE_TIMEOUT: seconds a scene's scoring may take, 100).
 source lab/device/lease_env.sh
 t0=$(date +%s)
 end=$(( t0 + ${WAIT:-540} ))
@@ -16,7 +17,7 @@ if done_all; then
   for sc in $(ls $S/res); do
     ls -d $S/res/$sc/wtopo_${TAG:-m}*/ > /dev/null 2>&1 || continue
     pics=(); [ "$sc" = "${PICTURES:-}" ] && pics=(--render-pictures $OUT/${TAG:-m})  # held-out renders of one scene
-    timeout 100 python3 benchmarks/peers/score.py $S/exch/$sc $S/res/$sc/wtopo_${TAG:-m}*/ --out $OUT/${TAG:-m}/rows_$sc.json \
+    timeout ${SCORE_TIMEOUT:-100} python3 benchmarks/peers/score.py $S/exch/$sc $S/res/$sc/wtopo_${TAG:-m}*/ --out $OUT/${TAG:-m}/rows_$sc.json \
       "${pics[@]}" > $S/score_${TAG:-m}_$sc.log 2>&1 &
     [ -n "${PAR:-}" ] || wait  # PAR=1: every scene's scoring at once (16 cores), then their logs
   done

@@ -1,0 +1,17 @@
+# Lease step "outline" (#59): the GPU rows of the CUDA default since the outline offset (a1ff951), each fit's mesh
+# before the offset kept beside it (lab/pre_outline.py, bias_all.sh's default chain), on the nine object scenes of
+# benchmarks/peers.md, bunny64 again at seed 1, and, with PROXY_TOO=1, the proxy at 320 nodes on the three ten-view
+# scenes (the 64-view chair came 13-19 % closer with it in three pairs, rows_2026-12-07d-f). After the three
+# staging calls of lab/device/alone.sh part, in one call: bash lab/device/o_all.sh (install, exports, launch; the
+# fits run detached), then `TAG=b_ WAIT=... PAR=1 SCORE_TIMEOUT=200 bash lab/device/wait_fits.sh` calls until
+# every scene is scored. Every fit shares the GPU and its 16 cores: times compare within the lease only.
+t0=$(date +%s)
+bash lab/device/alone.sh install 2>&1 | tail -n 3
+ALL="bunny64 chair bowl mug torus blob_flat chair_sparse torus_sparse mug_sparse"
+SCENES="$ALL" CHAINS=" " NOWAIT=1 bash lab/device/bias_all.sh || exit 1
+for sc in $ALL; do SCENES=$sc CHAINS=default NOWAIT=1 bash lab/device/bias_all.sh; done
+SCENES=bunny64 CHAINS=seed1 NOWAIT=1 bash lab/device/bias_all.sh
+if [ -n "${PROXY_TOO:-}" ]; then
+  for sc in chair_sparse torus_sparse mug_sparse; do SCENES=$sc CHAINS=proxy NOWAIT=1 bash lab/device/bias_all.sh; done
+fi
+echo "o_all.sh: launched after $(( $(date +%s) - t0 )) s"
