@@ -63,6 +63,7 @@ for sc in $SCENES; do [ -f $S/exch/$sc/meta.json ] || { echo "$sc: export failed
 chain() {  # NAME ENV ARGS...: every scene's fit, one after another, in one detached chain (ENV: - or VAR=1)
   local name=$1 env=$2 job="" sc d
   shift 2
+  [ -n "${NOUSD:-}" ] && set -- "$@" --set runtime.usd_every=0  # NOUSD=1: no timeline (usd-core not staged)
   [ "$env" = - ] && env=""
   for sc in $SCENES; do
     d=$S/res/$sc/wtopo_$name; mkdir -p $d
