@@ -5,13 +5,18 @@
 # staging calls of lab/device/alone.sh part, in one call: bash lab/device/o_all.sh (install, exports, launch; the
 # fits run detached), then `TAG=b_ WAIT=... PAR=1 SCORE_TIMEOUT=200 bash lab/device/wait_fits.sh` calls until
 # every scene is scored. Every fit shares the GPU and its 16 cores: times compare within the lease only.
-# NOUSD=1 (exported): the fits write no timeline, so that usd-core need not be staged and the call that carries
-# .stage/p3, .stage/gl and .stage/smallpeers/whl also installs and launches (two staging calls, p1 and p2, before it;
-# the timeline's writing is a few seconds of a fit and no part of its mesh).
+# NOUSD=1 (exported): the fits write no timeline, so that the call that carries .stage/p3, .stage/gl and
+# .stage/smallpeers/whl also installs and launches (two staging calls, p1 and p2, before it; the timeline's writing
+# is a few seconds of a fit and no part of its mesh). The bunny's export still needs usd-core (the bunny is a USD
+# asset): with bunny64 in ALL, a call carrying .stage/usd must install it first (rows_2026-12-07g:
+# `source lab/device/lease_env.sh; python3 -m pip install -q --no-index --no-deps --target $S/site .stage/usd/*.whl`).
 t0=$(date +%s)
 [ -n "${NOUSD:-}" ] && bash lab/device/alone.sh part
 bash lab/device/alone.sh install 2>&1 | tail -n 3
 ALL=${ALL:-bunny64 chair bowl mug torus blob_flat chair_sparse torus_sparse mug_sparse}
+if [[ " $ALL " == *" bunny64 "* ]] && ! PYTHONPATH=/root/peers/site python3 -c "import pxr" 2>/dev/null; then
+  echo "bunny64's export needs usd-core: carry .stage/usd and install it first (above)"; exit 1
+fi
 SCENES="$ALL" CHAINS=" " NOWAIT=1 bash lab/device/bias_all.sh || exit 1
 for sc in $ALL; do SCENES=$sc CHAINS=default NOWAIT=1 bash lab/device/bias_all.sh; done
 SCENES=bunny64 CHAINS=seed1 NOWAIT=1 bash lab/device/bias_all.sh

@@ -5,6 +5,7 @@
 source lab/device/lease_env.sh
 t0=$(date +%s)
 end=$(( t0 + ${WAIT:-540} ))
+shopt -s nullglob  # no result folder at all (every launch failed): nothing to wait for
 done_all() {
   # a fit that ended without its result (a chain's .rc, lab/device/bias_all.sh) counts as done: its log says why
   for d in $S/res/*/wtopo_${TAG:-m}*/; do [ -f "$d/run.json" ] || [ -f "${d%/}.rc" ] || return 1; done
