@@ -33,6 +33,7 @@ def install() -> None:
             # the folder OUT_pre exists before OUT's run.json, so that a waiting script waits for both
             os.makedirs(_pre_folder(os.path.dirname(os.path.abspath(out_dir))), exist_ok=True)
             run.sim.to_world(_kept.get("mesh", mesh_int)).export(os.path.join(out_dir, FILE))
+        _kept.clear()  # the next fit of this process (lab/hard.py runs several) keeps its own
         return finish(run, mesh_int, scene, out_dir)
 
     _final_mesh._outline, _api._finish = kept_outline, kept_finish
