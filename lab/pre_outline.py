@@ -6,8 +6,9 @@ on a GPU, where two fits of one scene differ by several per cent, is measured wi
 
 ``install()`` wraps ``_final_mesh._outline`` to remember the mesh it was given and ``_api._finish`` to write that
 mesh, in the caller's frame, as ``OUT/run/mesh_pre_outline.ply``; lab/device/patched_run.py then writes the result
-folder ``OUT_pre`` beside ``OUT`` (the same renders and times, that mesh). A fit whose outline step did not run
-writes its final mesh there (the two folders then score alike).
+folder ``OUT_pre`` beside ``OUT`` (the same renders and times, that mesh). A fit whose outline step did not make its
+final mesh writes its final mesh there (the two folders then score alike). The file's export is inside the fit's
+timed span (a second or less).
 """
 
 import json
@@ -24,16 +25,21 @@ def install() -> None:
     outline, finish = _final_mesh._outline, _api._finish
 
     def kept_outline(mesh, *args, **kwargs):
-        _kept["mesh"] = mesh
-        return outline(mesh, *args, **kwargs)
+        out = outline(mesh, *args, **kwargs)
+        _kept.update(mesh=mesh, out=out)
+        return out
 
     def kept_finish(run, mesh_int, scene, out_dir):
+        # the mesh the outline step was given, only when this fit's outline step made its final mesh (a fit that
+        # raised after it leaves a stale entry; a fit resumed after its mesh, or without masks, runs no outline step)
+        pre = _kept["mesh"] if _kept.get("out") is mesh_int else mesh_int
+        _kept.clear()
         if out_dir is not None:
             os.makedirs(out_dir, exist_ok=True)
-            # the folder OUT_pre exists before OUT's run.json, so that a waiting script waits for both
-            os.makedirs(_pre_folder(os.path.dirname(os.path.abspath(out_dir))), exist_ok=True)
-            run.sim.to_world(_kept.get("mesh", mesh_int)).export(os.path.join(out_dir, FILE))
-        _kept.clear()  # the next fit of this process (lab/hard.py runs several) keeps its own
+            if os.path.basename(os.path.normpath(out_dir)) == "run":  # run_wtopo.py's OUT/run: patched_run.py's
+                # result folder OUT_pre exists before OUT's run.json, so that a waiting script waits for both
+                os.makedirs(_pre_folder(os.path.dirname(os.path.abspath(out_dir))), exist_ok=True)
+            run.sim.to_world(pre).export(os.path.join(out_dir, FILE))
         return finish(run, mesh_int, scene, out_dir)
 
     _final_mesh._outline, _api._finish = kept_outline, kept_finish

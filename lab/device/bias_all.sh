@@ -47,7 +47,7 @@ FACES=${FACES:-200000}
 if [ "${1:-}" = signed ]; then
   for sc in $SCENES; do python3 lab/signed_error.py $S/exch/$sc/gt.ply $S/res/$sc/wtopo_b_*/mesh.ply 2>&1 | grep mesh.ply
     for d in $S/res/$sc/wtopo_b_*/; do  # what the variant changed: the re-initialisation's surfels
-      grep -ho '"reinit_[a-z_]*": *[0-9]*' $(find $d -name report.json) 2>/dev/null | tr '\n' ' '; echo " $d"
+      grep -ho '"reinit_[a-z_]*": *[0-9]*' $(find $d -name report.json) /dev/null 2>/dev/null | tr '\n' ' '; echo " $d"
     done
   done
   exit 0
@@ -65,9 +65,9 @@ chain() {  # NAME ENV ARGS...: every scene's fit, one after another, in one deta
   shift 2
   [ -n "${NOUSD:-}" ] && set -- "$@" --set runtime.usd_every=0  # NOUSD=1: no timeline (usd-core not staged)
   [ "$env" = - ] && env=""
-  for sc in $SCENES; do
+  for sc in $SCENES; do  # $d.rc when the fit ends, and ${d}_pre.rc for lab/pre_outline.py's folder (KEEP_PRE_OUTLINE)
     d=$S/res/$sc/wtopo_$name; mkdir -p $d
-    job="${job:+$job; }$env timeout 900 python3 lab/device/patched_run.py $S/exch/$sc $d --label wtopo_$name $* > $d.log 2>&1; echo \$? > $d.rc"
+    job="${job:+$job; }$env timeout 900 python3 lab/device/patched_run.py $S/exch/$sc $d --label wtopo_$name $* > $d.log 2>&1; echo \$? | tee $d.rc > ${d}_pre.rc"
   done
   setsid nohup bash -c "$job" > /dev/null 2>&1 < /dev/null &
 }

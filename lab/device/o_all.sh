@@ -14,11 +14,13 @@
 # the outline offset take three calls, `bash lab/device/alone.sh part` carrying .stage/p1, then .stage/p2, then
 # `export NOUSD=1 ALL="chair bowl mug torus blob_flat chair_sparse"; bash lab/device/o_all.sh; TAG=b_ WAIT=...
 # PAR=1 SCORE_TIMEOUT=150 bash lab/device/wait_fits.sh` carrying .stage/p3 .stage/gl .stage/smallpeers/whl.
+source lab/device/lease_env.sh
+set -o pipefail
 t0=$(date +%s)
 [ -n "${NOUSD:-}" ] && bash lab/device/alone.sh part
-bash lab/device/alone.sh install 2>&1 | tail -n 3
+bash lab/device/alone.sh install 2>&1 | tail -n 3 || { echo "install failed"; exit 1; }
 ALL=${ALL:-bunny64 chair bowl mug torus blob_flat chair_sparse torus_sparse mug_sparse}
-if [[ " $ALL " == *" bunny64 "* ]] && ! PYTHONPATH=/root/peers/site python3 -c "import pxr" 2>/dev/null; then
+if [[ " $ALL " == *" bunny64 "* ]] && ! python3 -c "import pxr" 2>/dev/null; then
   echo "bunny64's export needs usd-core: carry .stage/usd and install it first (above)"; exit 1
 fi
 SCENES="$ALL" CHAINS=" " NOWAIT=1 bash lab/device/bias_all.sh || exit 1

@@ -24,4 +24,4 @@ if __name__ == "__main__":
     if os.environ.get("KEEP_PRE_OUTLINE"):
         import pre_outline
 
-        pre_outline.write_result(sys.argv[2])
+        pre_outline.write_result(sys.argv[2])  # run_wtopo.py's OUT: its arguments begin EXCH OUT (bias_all.sh)
