@@ -45,23 +45,22 @@ def install() -> None:
     _final_mesh._outline, _api._finish = kept_outline, kept_finish
 
 
-def _pre_folder(out: str, suffix: str = "_pre") -> str:
-    return out.rstrip("/") + suffix
+def _pre_folder(out: str) -> str:
+    return out.rstrip("/") + "_pre"
 
 
-def write_result(out: str, file: str = FILE, suffix: str = "_pre", what: str = "before the outline offset") -> str:
-    """The result folder ``OUT_pre`` (``OUT`` + ``suffix``) beside the fit's ``out``: its renders, its run.json under
-    the system name "... (WHAT)", ``run/FILE`` as ``mesh.ply``; run.json last and renamed into place, so that a
-    waiting script (lab/device/wait_fits.sh) never scores a half-written folder. lab/post_polish.py writes its
-    folder with it too."""
+def write_result(out: str) -> str:
+    """The result folder ``OUT_pre`` beside the fit's ``out``: its renders, its run.json under the system name
+    "... (before the outline offset)", ``run/mesh_pre_outline.ply`` as ``mesh.ply``; run.json last and renamed
+    into place, so that a waiting script (lab/device/wait_fits.sh) never scores a half-written folder."""
     out = os.path.abspath(out)
-    dst = _pre_folder(out, suffix)
+    dst = _pre_folder(out)
     os.makedirs(dst, exist_ok=True)
-    shutil.copy(os.path.join(out, "run", file), os.path.join(dst, "mesh.ply"))
+    shutil.copy(os.path.join(out, "run", FILE), os.path.join(dst, "mesh.ply"))
     shutil.copy(os.path.join(out, "renders.npz"), os.path.join(dst, "renders.npz"))
     with open(os.path.join(out, "run.json")) as f:
         run = json.load(f)
-    run["system"] = run.get("system", "wtopo") + f" ({what})"
+    run["system"] = run.get("system", "wtopo") + " (before the outline offset)"
     with open(os.path.join(dst, ".run.json.tmp"), "w") as f:
         json.dump(run, f, indent=1)
     os.replace(os.path.join(dst, ".run.json.tmp"), os.path.join(dst, "run.json"))

@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The polish after the final mesh (``FitConfig.polish``): photometric iterations that move the surfels and their
-held-out PSNR, never the mesh; resumable within it; planned only after a proxy-mesh loop."""
+"""The polish (``FitConfig.polish``): photometric iterations after the co-evolution that move the surfels, their
+held-out PSNR and the final mesh fused from them last; resumable within it; planned only after a proxy-mesh loop."""
 
 from __future__ import annotations
 
@@ -29,35 +29,47 @@ def _config(polish: int) -> FitConfig:
                             eval_every=10, checkpoint_every=10, polish=polish)
 
 
-def test_the_polish_moves_the_surfels_and_keeps_the_mesh(tiny):
+def test_the_polish_moves_the_surfels_and_the_mesh_is_fused_after_it(tiny):
     base = fit(tiny, _config(0), progress=False)
     pol = fit(tiny, _config(10), progress=False)
     assert base.report["iterations"] == 42 and pol.report["iterations"] == 52
-    # the mesh is made before the polish, from the same surfels
-    np.testing.assert_array_equal(pol.mesh.faces, base.mesh.faces)
-    np.testing.assert_array_equal(pol.mesh.vertices, base.mesh.vertices)
     assert any(not torch.equal(pol.surfels.params[k], base.surfels.params[k]) for k in base.surfels.params)
+    # the final mesh is made last, from the polished surfels: not the mesh of the fit that stops at the loop's end
+    assert len(pol.mesh.faces) and (len(pol.mesh.vertices) != len(base.mesh.vertices)
+                                    or not np.array_equal(pol.mesh.vertices, base.mesh.vertices))
     stages = [r["stage"] for r in pol.history]
-    k = stages.index("final")
-    assert set(stages[k + 1:]) == {"polish"} and "polish" not in stages[:k] + [r["stage"] for r in base.history]
-    final, last = pol.history[k], pol.history[-1]
+    assert stages[-1] == "final" and stages.count("final") == 1 and "polish" in stages
+    k = stages.index("polish")
+    assert set(stages[k:-1]) == {"polish"} and "coevolution" in stages[:k]
+    assert "polish" not in [r["stage"] for r in base.history]
+    last = pol.history[-1]
     assert last["iteration"] == 52
-    # the report: the surfels' figures after the polish, the mesh's from the final evaluation
-    assert pol.report["psnr"] == last["psnr"] and pol.report["psnr"] != final["psnr"]
-    assert pol.report["chamfer"] == final["chamfer"] == base.report["chamfer"] and "chamfer" not in last
+    # the report: the surfels' and the mesh's figures from the final evaluation, after the polish
+    assert pol.report["psnr"] == last["psnr"] and pol.report["chamfer"] == last["chamfer"]
     # the polish trains on the photographs alone: no mesh term in its losses, which the co-evolution had
     coevo = next(r for r in pol.history if r["stage"] == "coevolution")
+    polish = last  # its losses are those since the last evaluation (at 50): the polish's last iterations
     assert any(k.startswith("mesh_") for k in coevo["losses"])
-    assert last["losses"] and not any(k.startswith("mesh_") for k in last["losses"])
+    assert polish["losses"] and not any(k.startswith("mesh_") for k in polish["losses"])
     # nor a geometric regulariser: the photometric, mask and scale terms only
     assert {"normal", "distortion"} <= set(coevo["losses"])
-    assert set(last["losses"]) <= {"photo", "mask", "scale", "total"}
+    assert set(polish["losses"]) <= {"photo", "mask", "scale", "total"}
     assert pol.plan.polish_iterations == 10 and "polish_iterations" in pol.plan.overrides
 
 
-def test_a_fit_interrupted_in_its_polish_resumes_with_its_mesh(tiny, tmp_path):
-    """The mesh made before the polish comes back from the checkpoint (vertex colours included: an open mesh
-    keeps the fusion's), and the history is the uninterrupted one's."""
+def _same_mesh(a: trimesh.Trimesh, b: trimesh.Trimesh) -> None:
+    """Two meshes fused from surfels that agree within RESUME_TOL: the same surface (vertex by vertex where the
+    marching cubes made the same triangles, which float32 sums in the same order give here)."""
+    assert abs(len(a.faces) - len(b.faces)) <= 0.01 * len(b.faces)
+    if len(a.faces) == len(b.faces) and np.array_equal(a.faces, b.faces):
+        np.testing.assert_allclose(a.vertices, b.vertices, rtol=0, atol=1e-4)
+    else:  # a sign flip at a grid node moved a few triangles: the surfaces still agree
+        assert abs(a.area - b.area) <= 0.01 * b.area
+
+
+def test_a_fit_interrupted_in_its_polish_resumes_and_fuses_its_mesh_after_it(tiny, tmp_path):
+    """An interrupted fit returns a mesh of the surfels it has; resumed, it finishes the polish and fuses the mesh
+    the uninterrupted fit made (vertex colours too: an open mesh keeps the fusion's), with the same history."""
     def config():
         cfg = _config(10)
         cfg.final.watertight = False  # no Poisson re-mesh: the fused mesh with its colours is the result
@@ -68,23 +80,23 @@ def test_a_fit_interrupted_in_its_polish_resumes_with_its_mesh(tiny, tmp_path):
     cfg = config()
     cfg.runtime.stop_at = 47
     part = fit(tiny, cfg, out_dir=tmp_path / "part", progress=False)
-    assert part.report["status"] == "interrupted" and part.report["iterations"] == 47
-    np.testing.assert_array_equal(part.mesh.faces, full.mesh.faces)  # the mesh was made at 42
+    assert part.report["status"] == "interrupted" and part.report["iterations"] == 47 and len(part.mesh.faces)
+    assert part.history[-1]["stage"] == "final" and part.history[-1]["iteration"] == 47
     cfg.runtime.stop_at = None
     resumed = fit(tiny, cfg, out_dir=tmp_path / "part", progress=False)
     assert resumed.report["status"] == "completed" and resumed.report["iterations"] == 52
-    np.testing.assert_array_equal(resumed.mesh.faces, full.mesh.faces)
-    np.testing.assert_allclose(resumed.mesh.vertices, full.mesh.vertices, rtol=0, atol=1e-12)
-    np.testing.assert_array_equal(resumed.mesh.visual.vertex_colors, full.mesh.visual.vertex_colors)
-    assert resumed.report["chamfer"] == full.report["chamfer"]
-    assert [(r["iteration"], r["stage"]) for r in resumed.history] == [(r["iteration"], r["stage"])
-                                                                      for r in full.history]
     for k, v in full.surfels.params.items():
         torch.testing.assert_close(resumed.surfels.params[k], v, atol=RESUME_TOL, rtol=RESUME_TOL)
-    # a completed fit resumed again does nothing more and returns the same mesh
+    _same_mesh(resumed.mesh, full.mesh)
+    assert resumed.mesh.visual.kind == "vertex"
+    assert resumed.report["chamfer"] == pytest.approx(full.report["chamfer"], rel=1e-3)
+    # the interrupted fit's final record is not in its checkpoint: the resumed history is the uninterrupted one's
+    assert [(r["iteration"], r["stage"]) for r in resumed.history] == [(r["iteration"], r["stage"])
+                                                                      for r in full.history]
+    # a completed fit resumed again iterates no more and fuses the same mesh
     again = fit(tiny, cfg, out_dir=tmp_path / "part", progress=False)
     assert again.report["iterations"] == 52
-    np.testing.assert_array_equal(again.mesh.faces, full.mesh.faces)
+    _same_mesh(again.mesh, resumed.mesh)
 
 
 def test_the_plan_polishes_only_after_a_proxy_mesh_loop(tiny):

@@ -3,8 +3,7 @@
 # authors' warm-up is closer, and the dense bowl, chair and mug), one per name in CHAINS:
 #   default   the CUDA default (since 418e1f9 with the photometric term blind to the ring outside the mask, since
 #             a1ff951 with the outline offset), and beside it, as wtopo_b_default_pre, the same fit's mesh before the
-#             outline offset (lab/pre_outline.py: the offset's gain without the run-to-run spread), and as
-#             wtopo_b_default_post a second mesh fused after the polish (lab/post_polish.py);
+#             outline offset (lab/pre_outline.py: the offset's gain without the run-to-run spread);
 #   seedN     the same at seed N (seed1, seed2, ...);
 #   filter    the render's low-pass narrowed from the CUDA plan's 0.25 px to FILTER (0.15): at the CPU default 0.15 px
 #             brought the bunny's depth offset from 0.28 to 0.20 % of the diagonal and its Chamfer from 0.200 to
@@ -66,16 +65,16 @@ chain() {  # NAME ENV ARGS...: every scene's fit, one after another, in one deta
   shift 2
   [ -n "${NOUSD:-}" ] && set -- "$@" --set runtime.usd_every=0  # NOUSD=1: no timeline (usd-core not staged)
   [ "$env" = - ] && env=""
-  for sc in $SCENES; do  # $d.rc when the fit ends, ${d}_pre.rc / _post.rc for KEEP_PRE_OUTLINE's / KEEP_POST_POLISH's folders
+  for sc in $SCENES; do  # $d.rc when the fit ends, and ${d}_pre.rc for lab/pre_outline.py's folder (KEEP_PRE_OUTLINE)
     d=$S/res/$sc/wtopo_$name; mkdir -p $d
-    job="${job:+$job; }$env timeout 900 python3 lab/device/patched_run.py $S/exch/$sc $d --label wtopo_$name $* > $d.log 2>&1; echo \$? | tee $d.rc ${d}_pre.rc > ${d}_post.rc"
+    job="${job:+$job; }$env timeout 900 python3 lab/device/patched_run.py $S/exch/$sc $d --label wtopo_$name $* > $d.log 2>&1; echo \$? | tee $d.rc > ${d}_pre.rc"
   done
   setsid nohup bash -c "$job" > /dev/null 2>&1 < /dev/null &
 }
 for c in $CHAINS; do
   case $c in
-    default) chain b_default "KEEP_PRE_OUTLINE=1 KEEP_POST_POLISH=1" ;;
-    seed[0-9]*) chain b_$c "KEEP_PRE_OUTLINE=1 KEEP_POST_POLISH=1" --set runtime.seed=${c#seed} ;;
+    default) chain b_default KEEP_PRE_OUTLINE=1 ;;
+    seed[0-9]*) chain b_$c KEEP_PRE_OUTLINE=1 --set runtime.seed=${c#seed} ;;
     nooutline) chain b_nooutline - --set final.outline=false ;;
     faces) chain b_faces - --set tsdf.resolution=192 --set tsdf.max_faces=$FACES ;;
     proxy) chain b_proxy - --set mesh.resolution=${PROXY:-320} ;;

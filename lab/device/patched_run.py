@@ -1,8 +1,7 @@
 """benchmarks/peers/run_wtopo.py with lab/hard_views.py installed first when HARD_VIEWS is set (its power), and
 lab/fit_patches.py's patches by their variables: the same arguments, the same result folder (for lab/device/d40.sh
 and bias_all.sh); with KEEP_PRE_OUTLINE, also the result folder OUT_pre of the mesh before the outline offset
-(lab/pre_outline.py); with KEEP_POST_POLISH, OUT_post of a second mesh fused after the polish
-(lab/post_polish.py)."""
+(lab/pre_outline.py)."""
 import os
 import sys
 
@@ -26,7 +25,3 @@ if __name__ == "__main__":
         import pre_outline
 
         pre_outline.write_result(sys.argv[2])  # run_wtopo.py's OUT: its arguments begin EXCH OUT (bias_all.sh)
-    if os.environ.get("KEEP_POST_POLISH"):
-        import post_polish
-
-        post_polish.write_result(sys.argv[2])

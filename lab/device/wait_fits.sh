@@ -17,6 +17,7 @@ if done_all; then
   # a call brings back a limited number of files: the rows only, the logs stay on the machine
   for sc in $(ls $S/res); do
     ls -d $S/res/$sc/wtopo_${TAG:-m}*/ > /dev/null 2>&1 || continue
+    [[ " ${SKIP:-} " == *" $sc "* ]] && continue  # SKIP="SCENE ...": scored already (by an earlier call)
     pics=(); [ "$sc" = "${PICTURES:-}" ] && pics=(--render-pictures $OUT/${TAG:-m})  # held-out renders of one scene
     timeout ${SCORE_TIMEOUT:-100} python3 benchmarks/peers/score.py $S/exch/$sc $S/res/$sc/wtopo_${TAG:-m}*/ --out $OUT/${TAG:-m}/rows_$sc.json \
       "${pics[@]}" > $S/score_${TAG:-m}_$sc.log 2>&1 &

@@ -93,7 +93,7 @@ def _report(run: FitRun, mesh_world: trimesh.Trimesh, scene) -> dict:
         "events": run.events[-50:],
     }
     rep["scene_kind"] = run.cfg.kind.value
-    # the surfels' figures from the last evaluation (after the polish, when one ran), the mesh's from the final one
+    # the surfels' and the mesh's figures from the final evaluation (after the polish, when one ran)
     made = next((r for r in reversed(run.history) if r.get("stage") == "final"), final)
     for k in ("psnr", "ssim", "psnr_on", "image_metrics_on"):
         if k in final:
@@ -158,8 +158,8 @@ def fit(scene, config: FitConfig | None = None, *, out_dir: str | os.PathLike | 
     Stages: initialisation (scene points or the cameras' common volume), photometric warm-up with
     density control, TSDF re-initialisation, co-evolution with the differentiable proxy mesh
     (oriented points -> Poisson -> marching cubes -> ray cast; mesh-depth and mesh-normal losses),
-    a final TSDF fusion of rendered surfel depth and, after a proxy-mesh loop, a photometric polish
-    of the surfels (the mesh stays as made). A stage plan decided from the scene says which parts
+    after a proxy-mesh loop a photometric polish of the surfels, then a final TSDF fusion of their rendered
+    depth. A stage plan decided from the scene says which parts
     run and why (printed at the start, ``result.plan``).
 
     With ``out_dir``, checkpoints are written atomically to ``out_dir/checkpoints`` and a run that
@@ -216,10 +216,6 @@ class _NoFinalMesh(FitRun):
     def _final_mesh(self) -> trimesh.Trimesh:
         return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), process=False)
 
-    def restore_checkpoint(self, st: dict) -> None:
-        super().restore_checkpoint(st)
-        self.made_mesh = None  # a checkpoint of `fit` taken in its polish: these surfels have no mesh of their own
-
 
 def fit_surfels(scene, config: FitConfig, *, out_dir: str | os.PathLike, progress: bool = True) -> FitResult:
     """:func:`fit` without its final mesh: the surfels are the result (a chunk of :mod:`wtopo.chunks` whose
@@ -237,7 +233,8 @@ def fit_surfels(scene, config: FitConfig, *, out_dir: str | os.PathLike, progres
     Returns:
         :class:`FitResult` with an empty ``mesh``.
     """
-    # no polish: the merge fuses its mesh from these surfels, which the mesh loop is to have shaped last; the hash
+    # no polish: the merge fuses its mesh from these surfels as the mesh loop left them (a chunk's polish was never
+    # measured against the merged mesh); the hash
     # is the configuration's own, so a chunk directory of `fit` or of an earlier version resumes
     run = _NoFinalMesh(scene, dataclasses.replace(config, polish=PolishConfig(iterations=0)), out_dir, progress)
     run.hash = config_hash(config)

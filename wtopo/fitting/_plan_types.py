@@ -86,7 +86,7 @@ class Plan:
     mesh_loop: bool
     """The proxy-mesh loop runs in the co-evolution; ``coevolution.enabled``."""
     polish_iterations: int
-    """Photometric iterations after the final mesh (the surfels and their renders); ``polish.iterations``."""
+    """Photometric iterations before the final mesh, after the co-evolution; ``polish.iterations``."""
     proxy_level_sigma: float
     """The proxy's zero level (0: global; > 0: local, in Poisson cells); ``mesh.level_sigma``."""
     proxy_clip: bool

@@ -8,7 +8,6 @@ from __future__ import annotations
 from collections import defaultdict
 
 import numpy as np
-import trimesh
 
 from .checkpoint import rng_state, set_rng_state
 from .proxy import ProxyMesh, region_clip
@@ -18,10 +17,10 @@ __all__ = ["run_state", "restore_run_state"]
 
 
 def run_state(run) -> dict:
-    """The stored dictionary of ``run``: the last good surfels and optimiser, loop state, RNGs, config, and the
-    final mesh once it is made (the polish resumes with it)."""
+    """The stored dictionary of ``run``: the last good surfels and optimiser, loop state, RNGs and config (the
+    final mesh is made last, after every checkpoint; a checkpoint of an earlier version, whose polish followed the
+    mesh, may hold a ``final_mesh``, which is not read: the mesh is made again after the polish)."""
     good = run.last_good
-    mesh = run.made_mesh
     return {
         "surfels": good[0] if good is not None else run.surfels.state_dict(),
         "optimizer": good[1] if good is not None else run.opt.state_dict(),
@@ -34,10 +33,6 @@ def run_state(run) -> dict:
                   "prior": run.proxy.prior},
         "tsdf_info": run.tsdf_info, "coevolution_info": run.coevolution_info,
         "total_failures": run.total_failures,
-        "final_mesh": None if mesh is None else {
-            "vertices": np.asarray(mesh.vertices, np.float64), "faces": np.asarray(mesh.faces, np.int32),
-            "vertex_colors": (np.asarray(mesh.visual.vertex_colors, np.uint8) if mesh.visual.kind == "vertex"
-                              else None)},
     }
 
 
@@ -62,6 +57,3 @@ def restore_run_state(run, st: dict) -> None:
     box = None if px["box"] is None else tuple(np.asarray(b) for b in px["box"])
     clip = region_clip(run.cfg.mesh, run.plan.layout)
     run.proxy = ProxyMesh(run.cfg.mesh, box=box, prior=px["prior"], clip=clip)
-    mesh = st.get("final_mesh")  # absent before the polish stage; None until the final mesh is made
-    run.made_mesh = None if mesh is None else trimesh.Trimesh(mesh["vertices"], mesh["faces"], process=False,
-                                                              vertex_colors=mesh.get("vertex_colors"))

@@ -144,9 +144,9 @@ class CoevolutionConfig:
 
 @dataclass(kw_only=True)
 class PolishConfig:
-    """Stage 6, after the final mesh: the surfels train on the photographs alone (no mesh terms, no density control),
-    releasing them from the proxy's pull for ``surfels.ply`` and the held-out renders; the mesh is the one made
-    before it."""
+    """Stage 5, after the co-evolution: the surfels train on the photographs alone (no mesh terms, no density control),
+    releasing them from the proxy's pull; the final mesh is fused from them afterwards (``surfels.ply``, the
+    held-out renders and the mesh all come from the polished surfels)."""
 
     iterations: int | None = _f(None, COUNT)
     """Iterations; ``None``: the plan's (after a proxy-mesh loop half the co-evolution's, none at ``fast``; none
@@ -155,7 +155,7 @@ class PolishConfig:
 
 @dataclass(kw_only=True)
 class FinalConfig:
-    """Stage 5: the returned mesh, TSDF fusion of the rendered surfel depth of every training view."""
+    """Stage 6: the returned mesh, TSDF fusion of the rendered surfel depth of every training view."""
 
     resolution: int | None = _f(None, Range(_GRID_MIN, _TSDF_MAX))
     """TSDF voxels along the longest side of the fusion bounds; ``None``: the plan's (one voxel per 0.8
@@ -242,9 +242,9 @@ class FitConfig:
     coevolution: CoevolutionConfig = field(default_factory=CoevolutionConfig)
     """Stage 4."""
     final: FinalConfig = field(default_factory=FinalConfig)
-    """Stage 5."""
+    """Stage 6 (after the polish)."""
     polish: PolishConfig = field(default_factory=PolishConfig)
-    """Stage 6."""
+    """Stage 5."""
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     """Density control."""
     losses: LossConfig = field(default_factory=LossConfig)

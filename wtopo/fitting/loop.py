@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The fit loop: warm-up, TSDF re-initialisation, co-evolution with the proxy mesh, final mesh, polish.
+"""The fit loop: warm-up, TSDF re-initialisation, co-evolution with the proxy mesh, polish, final mesh.
 
 :class:`FitRun` owns the state of one fit (surfels, optimiser, iteration, history, events) and
 drives the stages; its collaborators each do one thing: :class:`~.objective.Objective` (the loss
@@ -138,7 +138,7 @@ class FitRun:
         self.proxy_mesh: ProxyResult | None = None
         self.tsdf_info: dict = {}
         self._epoch_order: tuple[int, list[int]] = (-1, [])  # (epoch, its view order): see _view
-        self.made_mesh: trimesh.Trimesh | None = None  # the final mesh (internal frame) once made, before the polish
+        self.made_mesh: trimesh.Trimesh | None = None  # the final mesh (internal frame) once made, after the polish
         self.coevolution_info: dict = {}  # the thin-part rule's measure and decision (thin_parts)
         self.status = "running"
         self.surfels: Surfels | None = None
@@ -175,7 +175,8 @@ class FitRun:
 
     @property
     def polish_end(self) -> int:
-        """Iteration at which the polish after the final mesh ends (``polish.iterations`` after the co-evolution)."""
+        """Iteration at which the polish ends and the final mesh is made (``polish.iterations`` after the
+        co-evolution)."""
         return self.total_iterations + int(self.cfg.polish.iterations or 0)
 
     def elapsed(self) -> float:
@@ -447,7 +448,7 @@ class FitRun:
                    "stage_times": {k: round(v, 3) for k, v in self.timers.total.items()},
                    "losses": self.loss_log.take(), "surfels": len(self.surfels),
                    "proxy_faces": 0 if self.proxy_mesh is None else self.proxy_mesh.num_faces}
-            proxy = None if stage == Stage.POLISH else self.proxy_mesh  # the polish's surfels left the proxy
+            proxy = None if stage == Stage.POLISH else self.proxy_mesh  # the polish's surfels leave the proxy
             rec.update(self.evaluator(self.surfels, mesh=mesh, proxy=proxy))
         self.history.append(rec)
         return rec
@@ -463,25 +464,17 @@ class FitRun:
             if not self.stop.requested and self.warmup_end <= self.it < self.total_iterations:
                 self._thin_parts()
                 self._iterate(Stage.COEVOLUTION, self.warmup_end, self.total_iterations)
-            if self.made_mesh is None:  # a fit resumed within its polish has its mesh from the checkpoint
-                if self.it > 0:
-                    self.checkpoints.save()
-                mesh = self._final_mesh()
-                self._evaluate(Stage.FINAL, mesh=mesh)
-                self.made_mesh = mesh
             if not self.stop.requested and self.total_iterations <= self.it < self.polish_end:
                 # the surfels on the photographs alone (the objective's mesh terms and the strategy act only in
-                # the co-evolution); the mesh above stays the result, the surfels and the held-out PSNR move
+                # the co-evolution), released from the proxy's pull before the final mesh is fused from them
                 if self.it == self.total_iterations:
-                    self.snapshot()  # a failed step in the polish comes back to the surfels the mesh was made from
+                    self.snapshot()  # a failed step in the polish comes back to the surfels the loop left
                 self._iterate(Stage.POLISH, self.total_iterations, self.polish_end)
-                stopped = self.stop.requested
-                if stopped:  # as in the other stages, the checkpoint holds no record of the stop
-                    self.checkpoints.save()
-                if self.history[-1]["iteration"] != self.it:  # not evaluated at this iteration already
-                    self._evaluate(Stage.POLISH)
-                if not stopped:
-                    self.checkpoints.save()
+            if self.it > 0:  # as in the other stages, the checkpoint holds no record of a stop
+                self.checkpoints.save()
+            mesh = self._final_mesh()
+            self._evaluate(Stage.FINAL, mesh=mesh)
+            self.made_mesh = mesh
             self.status = "interrupted" if self.stop.requested else "completed"
             if self.timeline is not None:
                 self.timeline.close(self.made_mesh)

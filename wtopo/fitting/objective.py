@@ -107,7 +107,7 @@ class Objective:
         with T("losses"):
             covered = out.alpha.detach() >= ALPHA_COVERED
             late = stage != Stage.WARMUP
-            # the polish (after the final mesh) fits the photographs alone: no geometric regulariser either
+            # the polish (before the final mesh) fits the photographs alone: no geometric regulariser either
             geometric = stage != Stage.POLISH
             masked = self.train.masks is not None and self.mask_weight > 0
             normal_on = geometric and (late or it >= stage_iteration(_NORMAL_START, self.warmup_end))

@@ -235,7 +235,8 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     if plan["mesh_loop"] and b.polish > 0:
         polish, why = round(b.polish * coevo_it), (
             f"{b.polish:g} of the co-evolution's iterations ({preset.value}): the proxy's pull costs the surfels "
-            "held-out PSNR that training on the photographs alone gives back (the mesh is made before)")
+            "held-out PSNR and pulls the mesh over concave places; training on the photographs alone before the "
+            "final mesh gives both back")
     elif plan["mesh_loop"]:
         polish, why = 0, f"{preset.value}: none (the mesh is the result; the surfels stay as the loop left them)"
     else:

@@ -36,9 +36,9 @@ class Budget:
         mesh_every: the co-evolution rebuilds the proxy mesh and applies its terms on every ``mesh_every``-th
             iteration, weighted ``mesh_every`` (the same mean gradient for ``1 / mesh_every`` of the proxy's
             time: on a CPU a proxy iteration costs about twice a photometric one).
-        polish: after a proxy-mesh loop, photometric iterations after the final mesh as a share of the
-            co-evolution's (:class:`~wtopo.fitting.config.PolishConfig`): the surfels' held-out PSNR for time,
-            the mesh unchanged.
+        polish: after a proxy-mesh loop, photometric iterations before the final mesh as a share of the
+            co-evolution's (:class:`~wtopo.fitting.config.PolishConfig`): the surfels' held-out PSNR, and a mesh
+            fused from surfels the proxy no longer pulls, for time.
     """
 
     iterations: tuple[int, int]

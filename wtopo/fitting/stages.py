@@ -47,10 +47,10 @@ class Stage(str, enum.Enum):
     """Re-initialisation of the surfels from a TSDF fusion of their rendered depth."""
     COEVOLUTION = "coevolution"
     """Fit with the differentiable proxy mesh and mesh guidance."""
-    FINAL = "final"
-    """The returned mesh."""
     POLISH = "polish"
-    """After the final mesh: photometric fit only (no mesh terms, guidance or density control)."""
+    """After the co-evolution: photometric fit only (no mesh terms, guidance or density control)."""
+    FINAL = "final"
+    """The returned mesh, fused from the surfels last."""
 
 
 class Renderer:
