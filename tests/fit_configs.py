@@ -20,7 +20,8 @@ def small_fit_config(warmup: int, coevolution: int, *, points: int, grids: tuple
         density_every: ``densify.interval``, a cadence in iterations (3DGS's 100 is too slow here).
         eval_every: iterations between history records (0: only at stage ends).
         checkpoint_every: iterations between checkpoints (0: none on a cadence).
-        polish: iterations after the final mesh (0: none; tests/test_polish.py tests the stage).
+        polish: iterations after the co-evolution, before the final mesh (0: none; tests/test_polish.py tests
+            the stage).
     """
     cfg = FitConfig()
     cfg.warmup.iterations, cfg.coevolution.iterations = warmup, coevolution

@@ -63,6 +63,9 @@ def _same_mesh(a: trimesh.Trimesh, b: trimesh.Trimesh) -> None:
     assert abs(len(a.faces) - len(b.faces)) <= 0.01 * len(b.faces)
     if len(a.faces) == len(b.faces) and np.array_equal(a.faces, b.faces):
         np.testing.assert_allclose(a.vertices, b.vertices, rtol=0, atol=1e-4)
+        if a.visual.kind == "vertex" and b.visual.kind == "vertex":  # colours of surfels equal within RESUME_TOL
+            np.testing.assert_allclose(np.asarray(a.visual.vertex_colors, np.int32),
+                                       np.asarray(b.visual.vertex_colors, np.int32), rtol=0, atol=2)
     else:  # a sign flip at a grid node moved a few triangles: the surfaces still agree
         assert abs(a.area - b.area) <= 0.01 * b.area
 
@@ -89,7 +92,8 @@ def test_a_fit_interrupted_in_its_polish_resumes_and_fuses_its_mesh_after_it(tin
         torch.testing.assert_close(resumed.surfels.params[k], v, atol=RESUME_TOL, rtol=RESUME_TOL)
     _same_mesh(resumed.mesh, full.mesh)
     assert resumed.mesh.visual.kind == "vertex"
-    assert resumed.report["chamfer"] == pytest.approx(full.report["chamfer"], rel=1e-3)
+    # the same surface: a few moved triangles change the sampled Chamfer by a few per cent at most
+    assert resumed.report["chamfer"] == pytest.approx(full.report["chamfer"], rel=0.03)
     # the interrupted fit's final record is not in its checkpoint: the resumed history is the uninterrupted one's
     assert [(r["iteration"], r["stage"]) for r in resumed.history] == [(r["iteration"], r["stage"])
                                                                       for r in full.history]
