@@ -97,9 +97,11 @@ def test_a_fit_interrupted_in_its_polish_resumes_and_fuses_its_mesh_after_it(tin
     # the interrupted fit's final record is not in its checkpoint: the resumed history is the uninterrupted one's
     assert [(r["iteration"], r["stage"]) for r in resumed.history] == [(r["iteration"], r["stage"])
                                                                       for r in full.history]
-    # a completed fit resumed again iterates no more and fuses the same mesh
+    # a completed fit resumed again iterates no more, writes no checkpoint again, and fuses the same mesh
+    stamps = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "part" / "checkpoints").iterdir()}
     again = fit(tiny, cfg, out_dir=tmp_path / "part", progress=False)
     assert again.report["iterations"] == 52
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "part" / "checkpoints").iterdir()} == stamps
     _same_mesh(again.mesh, resumed.mesh)
 
 

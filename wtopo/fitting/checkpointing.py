@@ -118,6 +118,7 @@ class Checkpointer:
         self.out_dir = out_dir
         self.directory = None if out_dir is None else out_dir / "checkpoints"
         self._last_time = time.perf_counter()
+        self.saved_iteration: int | None = None  # the iteration of the checkpoint last written or resumed here
 
     def save(self, *, force: bool = False) -> Path | None:
         """Write a checkpoint now; ``force``: of the last good state as it is (a scheduled one first
@@ -130,7 +131,13 @@ class Checkpointer:
         with r.timers("checkpoint"):
             path = save_checkpoint(self.directory, r.it, r.checkpoint_state(), keep=KEEP_CHECKPOINTS)
         self._last_time = time.perf_counter()
+        self.saved_iteration = r.it
         return path
+
+    def save_once(self) -> Path | None:
+        """:meth:`save`, unless this iteration's checkpoint is already written (by the cadence, or the one this run
+        resumed from): the state has not moved since. ``None`` when nothing was written."""
+        return None if self.saved_iteration == self.run.it else self.save()
 
     def maybe_save(self) -> None:
         """Checkpoint when ``runtime.checkpoint_every`` iterations or :data:`CHECKPOINT_SECONDS` have passed."""
@@ -158,6 +165,7 @@ class Checkpointer:
             raise ValueError(f"{self.out_dir} holds checkpoints this configuration cannot resume ({e}); "
                              "use another out_dir or the configuration of that run") from None
         r.restore_checkpoint(st)
+        self.saved_iteration = r.it
         r.record("resumed", **{"from": st["path"]})
         return True
 

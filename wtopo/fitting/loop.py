@@ -138,7 +138,6 @@ class FitRun:
         self.proxy_mesh: ProxyResult | None = None
         self.tsdf_info: dict = {}
         self._epoch_order: tuple[int, list[int]] = (-1, [])  # (epoch, its view order): see _view
-        self.made_mesh: trimesh.Trimesh | None = None  # the final mesh (internal frame) once made, after the polish
         self.coevolution_info: dict = {}  # the thin-part rule's measure and decision (thin_parts)
         self.status = "running"
         self.surfels: Surfels | None = None
@@ -471,13 +470,12 @@ class FitRun:
                     self.snapshot()  # a failed step in the polish comes back to the surfels the loop left
                 self._iterate(Stage.POLISH, self.total_iterations, self.polish_end)
             if self.it > 0:  # as in the other stages, the checkpoint holds no record of a stop
-                self.checkpoints.save()
+                self.checkpoints.save_once()
             mesh = self._final_mesh()
             self._evaluate(Stage.FINAL, mesh=mesh)
-            self.made_mesh = mesh
             self.status = "interrupted" if self.stop.requested else "completed"
             if self.timeline is not None:
-                self.timeline.close(self.made_mesh)
+                self.timeline.close(mesh)
                 if self.timeline.failure is not None:  # the fit went on without it (warned)
                     self.record("timeline_failed", error=self.timeline.failure)
-        return self.made_mesh
+        return mesh
