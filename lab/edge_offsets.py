@@ -14,14 +14,14 @@ import os
 import sys
 
 import numpy as np
-import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "benchmarks", "peers"))
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path[:0] = [HERE, os.path.join(HERE, "..", "benchmarks", "peers")]
 import exchange  # noqa: E402
 
-from wtopo.raycast import closest_faces  # noqa: E402
+from gap_regions import closest_points  # noqa: E402
 
 BANDS = ((0.0, 0.1), (0.1, 0.3), (0.3, 1.0), (1.0, np.inf))  # distance from a sharp edge, % of the diagonal
 
@@ -37,11 +37,8 @@ def main(root: str, paths: list[str]) -> None:
     along = (ends[:, :1] * (1 - t) + ends[:, 1:] * t).reshape(-1, 3)
     d_edge = 100 * cKDTree(along).query(pts)[0] / diag if len(along) else np.full(len(pts), np.inf)
     for path in paths:
-        m = trimesh.load(path, process=False)
-        _, dist, cp = closest_faces(torch.as_tensor(np.asarray(m.vertices, np.float64)),
-                                    torch.as_tensor(np.asarray(m.faces), dtype=torch.int64), torch.as_tensor(pts),
-                                    max_distance=0.2 * diag)
-        s = np.sign(((cp.numpy() - pts) * nrm).sum(1)) * 100 * dist.numpy() / diag
+        dist, cp = closest_points(trimesh.load(path, process=False), pts, 0.2 * diag)
+        s = np.sign(((cp - pts) * nrm).sum(1)) * 100 * dist / diag
         print(f"{path}: {int(sharp.sum())} sharp edges")
         for lo, hi in BANDS:
             sel = (d_edge >= lo) & (d_edge < hi)

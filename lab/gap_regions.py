@@ -28,7 +28,7 @@ def _load(path: str) -> trimesh.Trimesh:
     return trimesh.load(path, process=False)
 
 
-def _closest(mesh: trimesh.Trimesh, pts: np.ndarray, reach: float):
+def closest_points(mesh: trimesh.Trimesh, pts: np.ndarray, reach: float):
     v = torch.as_tensor(np.asarray(mesh.vertices, np.float64))
     f = torch.as_tensor(np.asarray(mesh.faces), dtype=torch.int64)
     _, dist, cp = closest_faces(v, f, torch.as_tensor(pts), max_distance=reach)
@@ -49,11 +49,11 @@ def main(argv=None) -> None:
     normals = gt.face_normals[fi]
     comp, side = {}, {}
     for name, m in (("A", a), ("B", b)):
-        d, cp = _closest(m, pts, reach)
+        d, cp = closest_points(m, pts, reach)
         comp[name] = 100 * d / diag
         side[name] = np.sign(((cp - pts) * normals).sum(1))
         pm, _ = trimesh.sample.sample_surface(m, 300_000, seed=3)
-        acc = 100 * _closest(gt, pm, reach)[0] / diag
+        acc = 100 * closest_points(gt, pm, reach)[0] / diag
         print(f"{name}: completeness {comp[name].mean():.5f} % accuracy {acc.mean():.5f} % (Chamfer "
               f"{(comp[name].mean() + acc.mean()) / 2:.5f}); accuracy percentiles 50/90/99/99.9 "
               f"{np.round(np.percentile(acc, [50, 90, 99, 99.9]), 4)}")

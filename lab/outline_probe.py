@@ -5,8 +5,9 @@ although their surfaces already lie outside the truth). Nothing imports it.
     PYTHONPATH=. .venv/bin/python lab/outline_probe.py EXCH MESH [MESH ...]
 
 EXCH: an exchange folder of benchmarks/peers/export.py (its training cameras and masks); MESH: a mesh in that
-scene's frame. Per mesh, over the training views whose mask stays inside the frame: the median of the product's
-per-view measure ((mask area - silhouette area) / outline length, wtopo/geometry/outline.py), the pixels the
+scene's frame. Per mesh: the median of the product's per-view measure (``outline_offset``, wtopo/geometry/outline.py:
+(mask area - silhouette area) / outline length) and, over the training views whose mask stays inside the frame, the
+pixels the
 silhouette misses inside the masks and spills outside them, and the share of the missed pixels deeper than 1.5 px
 inside a missed region (a part the mesh lacks, rather than an outline drawn in by a fraction of a pixel).
 """
@@ -22,6 +23,7 @@ from scipy import ndimage
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "benchmarks", "peers"))
 import exchange  # noqa: E402
 
+from wtopo.geometry.outline import outline_offset  # noqa: E402
 from wtopo.raycast import MeshRaycaster  # noqa: E402
 
 
@@ -31,19 +33,18 @@ def probe(ex, path: str) -> str:
     m = trimesh.load(path, process=False)
     v = torch.as_tensor(np.asarray(m.vertices), dtype=torch.float32)
     f = torch.as_tensor(np.asarray(m.faces), dtype=torch.int32)
-    caster = MeshRaycaster()
-    per_view, missed, deep, spilled = [], 0, 0, 0
+    caster = MeshRaycaster()  # one BVH for the product's measure and the pixel counts
+    off = outline_offset(v, f, cams, masks, raycaster=caster)
+    missed, deep, spilled = 0, 0, 0
     for cam, mk in zip(cams, masks):
         if mk[0].any() or mk[-1].any() or mk[:, 0].any() or mk[:, -1].any():
             continue
         hit = caster.raycast(v, f, cam).mask.cpu().numpy().astype(bool)
-        length = float((mk[1:] != mk[:-1]).sum() + (mk[:, 1:] != mk[:, :-1]).sum()) * np.pi / 4
-        per_view.append((mk.sum() - hit.sum()) / length)
         miss = mk & ~hit
         missed += int(miss.sum())
         spilled += int((hit & ~mk).sum())
         deep += int((ndimage.distance_transform_edt(miss) > 1.5).sum())
-    return (f"{path}: per-view offset median {np.median(per_view):+.3f} px over {len(per_view)} views | missed "
+    return (f"{path}: per-view offset median {off.median_pixels:+.3f} px over {len(off.views)} views | missed "
             f"{missed} px ({100 * deep / max(missed, 1):.0f} % deeper than 1.5 px), spilled {spilled} px")
 
 
