@@ -12,7 +12,6 @@ samples) before and after. The fits are deterministic, so that mesh is the one t
 it.
 """
 
-import json
 import os
 import sys
 
@@ -20,25 +19,16 @@ import torch
 import trimesh
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import hard_scenes as hs  # noqa: E402
-import heldout  # noqa: E402
-from wtopo import scenes  # noqa: E402
+from ridge_outline import heldout_fit  # noqa: E402
 from wtopo.fitting._final_mesh import _outline  # noqa: E402
 from wtopo.metrics import chamfer  # noqa: E402
 
 
 def main(name: str, run: str) -> None:
-    hs.MESH_CACHE[:] = [".hardcache"]
-    sdf, lo, hi = heldout.SCENES[name]
-    gt = hs.sdf_mesh(sdf, lo, hi, 0.006)
-    sc = scenes.from_mesh(gt, n_views=32, resolution=128, rig="sphere", texture="coffee", background="black",
-                          seed=7, up=(0, 0, 1), n_test=hs.N_TEST, name=name)
-    train = sc.split("train")
-    mesh = trimesh.load(os.path.join(run, "mesh.ply"), process=False)
-    with open(os.path.join(run, "report.json")) as f:
-        thin = not json.load(f).get("coevolution", {}).get("mesh_terms", True)
+    gt, cameras, masks, thin, path = heldout_fit(name, run)
+    mesh = trimesh.load(path, process=False)
     events = []
-    moved = _outline(mesh, train.cameras, list(train.masks), record=lambda e, **k: events.append(k),
+    moved = _outline(mesh, cameras, masks, record=lambda e, **k: events.append(k),
                      device=torch.device("cpu"), thin=thin)
     before = chamfer(mesh, gt, n_samples=200_000).chamfer_rel * 100
     after = chamfer(moved, gt, n_samples=200_000).chamfer_rel * 100

@@ -2,6 +2,8 @@
 """The outline offset (wtopo/geometry/outline.py): how far a mesh's silhouettes lie inside the masks, and the
 final mesh moved by it (wtopo/fitting/_final_mesh.py)."""
 
+from unittest import mock
+
 import numpy as np
 import pytest
 import torch
@@ -49,7 +51,7 @@ def test_offset_along_normals_grows_a_closed_mesh_and_keeps_its_faces_and_colour
 def test_outline_offset_leaves_out_views_cut_by_the_frame_and_tiny_masks():
     from wtopo.geometry.outline import outline_offset
 
-    cams = ring_cameras(n=4, radius=4.0, size=64)
+    cams = ring_cameras(n=4, radius=4.0, size=192)  # the sphere 25 px in radius: smooth limbs (< 9 px are edges)
     masks = _masks(_sphere(_R), cams)
     masks[1] = np.ones_like(masks[1])  # touches the border: the frame's outline, not the object's
     masks[2] = np.zeros_like(masks[2])
@@ -166,3 +168,81 @@ def test_non_finite_vertices_are_refused_by_the_measure_and_left_by_the_final_me
     assert _outline(bad, cams, _masks(s, cams), record=lambda e, **k: events.append((e, k)),
                     device=torch.device("cpu")) is bad
     assert events == [("outline_offset", {"skipped": "non-finite vertices", "distance": 0.0})]
+
+
+def test_ridge_spread_is_zero_on_planes_small_on_a_wide_sphere_and_large_at_edges():
+    from wtopo.geometry.outline import ridge_spread
+
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))  # 12 triangles, each far wider than a cell: sampled by area
+    pts = np.array([[0.0, 0.0, 0.5], [0.2, -0.3, 0.5], [0.5, 0.0, 0.5], [0.5, 0.2, -0.5], [0.5, 0.5, 0.5]])
+    s = ridge_spread(box.vertices, box.faces, pts, 0.05)
+    assert s[0] == 0.0 and s[1] == 0.0, s  # inside a face: one normal
+    assert np.all((s[2:4] > 0.2) & (s[2:4] <= 1 - np.sqrt(0.5) + 1e-9)), s  # on edges: at most 1 - cos 45 degrees
+    assert 0.3 < s[4] <= 1 - np.sqrt(1 / 3) + 1e-9, s  # at a corner, three sides
+    assert np.all(ridge_spread(box.vertices, box.faces, pts, 0.2) >= s - 1e-9)  # a wider box sees as much bending
+    # a sphere of radius R, cells c: the 27 cells' normals spread about (1.5 c / R)^2 / 3 (about 0.001 here)
+    sp = ridge_spread(_sphere(_R).vertices, _sphere(_R).faces, _sphere(_R).vertices, 0.03)
+    assert np.all(sp < 0.01) and np.median(sp) == pytest.approx((1.5 * 0.03 / _R) ** 2 / 3, rel=0.6)
+    # a point far from the surface or a mesh of no area: no surface in its box (NaN)
+    assert np.isnan(ridge_spread(box.vertices, box.faces, [[3.0, 0.0, 0.0]], 0.05)).all()
+    assert np.isnan(ridge_spread(np.zeros((3, 3)), np.array([[0, 1, 2]]), np.zeros((1, 3)), 0.1)).all()
+    assert np.isnan(ridge_spread(np.zeros((0, 3)), np.zeros((0, 3), int), np.zeros((2, 3)), 0.1)).all()
+    assert ridge_spread(box.vertices, box.faces, np.zeros((0, 3)), 0.1).shape == (0,)
+    with pytest.raises(ValueError, match=r"cell must be a positive distance, got 0.0"):
+        ridge_spread(box.vertices, box.faces, pts, 0.0)
+    with pytest.raises(ValueError, match=r"cell must be a positive distance, got nan"):
+        ridge_spread(box.vertices, box.faces, pts, float("nan"))
+
+
+def _rounded_box(half: float, radius: float, step: float) -> trimesh.Trimesh:
+    """A cube of half-side ``half`` whose edges and corners are rounded to ``radius`` (marching cubes, ``step``)."""
+    from skimage.measure import marching_cubes
+
+    g = np.arange(-half - 3 * step, half + 3 * step + step / 2, step)
+    q = np.abs(g) - (half - radius)
+    x, y, z = q[:, None, None], q[None, :, None], q[None, None, :]
+    outside = np.sqrt(np.maximum(x, 0) ** 2 + np.maximum(y, 0) ** 2 + np.maximum(z, 0) ** 2)
+    sdf = outside + np.minimum(np.maximum(np.maximum(x, y), z), 0.0) - radius
+    v, f, _, _ = marching_cubes(sdf, 0.0, spacing=(step,) * 3)
+    return trimesh.Trimesh(v + g[0], f[:, ::-1], process=False)  # outward
+
+
+def test_a_rounded_box_on_a_sharp_boxs_masks_is_not_moved():
+    """The chair's case (design/decisions.md): a fit rounds a boxy object's edges while its faces lie on the truth.
+    Its silhouettes, drawn by the edges, fall short of the masks everywhere, and counting every outline pixel reads
+    that as a surface inside; the ridge test counts no edge rounded within its finer box (here 1.2 footprints), so
+    the mesh stays. An edge rounded to several footprints is a smooth limb at the pixels' scale."""
+    from wtopo.fitting._final_mesh import _outline
+    from wtopo.geometry import outline
+
+    cams = ring_cameras(n=6, radius=4.0, size=320)  # footprint about 0.012: edges rounded to 1.2 of them
+    mesh = _rounded_box(0.4, 0.015, 0.005)
+    assert mesh.is_watertight
+    masks = _masks(trimesh.creation.box(extents=(0.8, 0.8, 0.8)), cams)
+    with mock.patch.object(outline, "RIDGE_SPREAD", 2.0):  # every outline pixel a smooth limb
+        every = outline.outline_offset(mesh.vertices, mesh.faces, cams, masks)
+    assert every.median_pixels > 0.3, every.pixels
+    off = outline.outline_offset(mesh.vertices, mesh.faces, cams, masks)
+    assert np.all(off.shares < 0.3), off.shares
+    assert abs(off.distance) < 0.15 * np.median(every.footprints), (off.distance, off.pixels, off.shares)
+    events = []
+    out = _outline(mesh, cams, masks, record=lambda e, **k: events.append(k), device=torch.device("cpu"))
+    assert abs(events[0]["distance"]) < 0.15 * np.median(every.footprints), events
+    assert np.abs(out.vertices - mesh.vertices).max() <= abs(events[0]["distance"]) + 1e-12
+
+
+def test_the_offset_of_a_mesh_with_edges_and_smooth_limbs_is_the_smooth_limbs_own():
+    """A sphere beside a box: the masks grow the sphere by 0.006 and draw the box as it is. The measure gives each
+    missed pixel to the nearest outline pixel and counts the sphere's outline alone, so it reads the sphere's 0.006,
+    not that spread over the box's outline as well."""
+    from wtopo.geometry.outline import outline_offset
+
+    cams = ring_cameras(n=6, radius=5.0, size=400)
+    box = trimesh.creation.box(extents=(0.3, 0.3, 0.3)).subdivide().subdivide()
+    box.apply_translation((0.0, 0.0, 0.75))  # above the sphere: both in every view of the ring
+    mesh = trimesh.util.concatenate([_sphere(_R), box])
+    masks = _masks(trimesh.util.concatenate([_sphere(_R + 0.006), box]), cams)
+    off = outline_offset(mesh.vertices, mesh.faces, cams, masks)
+    assert len(off.views) == 6 and np.all((off.shares > 0.5) & (off.shares < 0.95)), off.shares
+    assert off.distance == pytest.approx(0.006, abs=0.0015), (off.distance, off.pixels)
+

@@ -141,22 +141,27 @@ def _outline(mesh: trimesh.Trimesh, cameras: Sequence, masks: Sequence, *, recor
     :data:`_OUTLINE_MAX_PIXELS` times the views' median footprint; a ``thin`` object only inward: a silhouette wider
     than the masks is too wide wherever it is, but one short of them on thin parts is parts missing or rounded
     there, not an offset. The move is measured again and undone when it did not bring the silhouettes closer to the
-    masks (a part wound inward moves the wrong way). Records ``"outline_offset"``: the median offset in pixels, the
-    10th-90th percentiles over the views, the views used and the distance moved in the internal frame (0 when not
-    moved), with ``skipped`` when the thin rule held it or ``undone`` (the median offset after the move) when it was
-    undone."""
+    masks (a part wound inward moves the wrong way). Not moved when the outline lies on edges (too few views with
+    smooth limbs: ``outline_offset`` measures none). Records ``"outline_offset"``: the median offset in pixels, the
+    10th-90th percentiles over the views, the views used, the median share of the outline on smooth limbs and the
+    distance moved in the internal frame (0 when not moved), with ``skipped`` when the thin rule or the edges held
+    it or ``undone`` (the median offset after the move) when it was undone."""
     if not np.isfinite(np.asarray(mesh.vertices)).all():
         record("outline_offset", skipped="non-finite vertices", distance=0.0)
         return mesh
     caster = MeshRaycaster()  # the measure after the move refits its BVH
     off = outline_offset(mesh.vertices, mesh.faces, cameras, masks, device=device, raycaster=caster)
     if len(off.views) == 0:
-        record("outline_offset", pixels=0.0, views=0, distance=0.0)
+        info = {"pixels": 0.0, "views": 0, "distance": 0.0}
+        if len(off.shares):
+            info.update(smooth_share=round(float(np.median(off.shares)), 4),
+                        skipped="the outline lies on edges: a rounded edge draws it in, not a surface inside")
+        record("outline_offset", **info)
         return mesh
     px = off.median_pixels
     moved = off.capped(_OUTLINE_MAX_PIXELS)
     info = {"pixels": round(px, 4), "spread": [round(float(q), 4) for q in np.percentile(off.pixels, [10, 90])],
-            "views": int(len(off.views))}
+            "views": int(len(off.views)), "smooth_share": round(float(np.median(off.shares)), 4)}
     if thin and moved > 0:
         record("outline_offset", **info, distance=0.0,
                skipped="thin parts: a silhouette short of the masks there is parts missing")

@@ -165,8 +165,9 @@ class FinalConfig:
     """Objects: Poisson re-meshes a fused mesh that is not closed. Scenes are never closed."""
     outline: bool = True
     """Masked objects: the mesh moves along its normals until its ray-cast silhouettes cover the training masks
-    (:func:`wtopo.geometry.outline.outline_offset`, the median over the views, at most one pixel footprint; an
-    object too thin for the mesh terms only inward)."""
+    along its smooth limbs (:func:`wtopo.geometry.outline.outline_offset`, the median over the views, at most one
+    pixel footprint; the outline its sharp edges draw is not counted, and a mesh whose outline is all edges stays;
+    an object too thin for the mesh terms only inward)."""
 
 
 @dataclass(kw_only=True)

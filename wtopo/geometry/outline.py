@@ -7,6 +7,12 @@ hold the surface that much inside the object (design/decisions.md, "Kept: the ou
 mesh has no low-pass: ray cast from a training view, its silhouette should cover that view's mask.
 :func:`outline_offset` measures by how much it falls short, in pixels per view and as one distance, and
 :func:`offset_along_normals` moves a mesh by it.
+
+The measure counts only the outline that smooth limbs draw. A fit also rounds a boxy object's sharp edges, and such
+an object's silhouettes are drawn largely by its edges: there the silhouette falls short of the mask because the
+edge is rounded, not because the surface lies inside, and moving every face out by it moves the faces away from
+the truth (a chair: 0.0938 -> 0.1090 % Chamfer, design/decisions.md). :func:`ridge_spread` tells the two apart
+from the mesh: a limb whose surface bends within a few pixels is an edge.
 """
 
 from __future__ import annotations
@@ -18,11 +24,23 @@ import numpy as np
 import torch
 import trimesh
 
-__all__ = ["OutlineOffset", "offset_along_normals", "outline_offset"]
+__all__ = ["OutlineOffset", "offset_along_normals", "outline_offset", "ridge_spread"]
 
 _MIN_PIXELS = 64  # a view whose mask or silhouette covers fewer pixels says nothing about the outline
 # the mask's pixel edges (4-neighbour changes) over-count a curve's length by 4/pi on average over its directions
 _EDGE_LENGTH = np.pi / 4
+# the ridge test: ridge_spread's grid cell, in the views' median pixel footprint (a box 4.5 footprints across) ...
+RIDGE_CELL_PIXELS = 1.5
+# ... and the spread above which a limb's face is an edge: a sphere reads below it when its radius exceeds about
+# 9 footprints, a rounded right-angled edge reads about 0.29
+RIDGE_SPREAD = 0.02
+# a view is measured when at least this many of its outline pixels lie on smooth limbs
+MIN_SMOOTH_PIXELS = 32
+# ... and an edge's spread in that box is more than this share of its spread in cells twice as large: a smooth surface
+# bends about a quarter as much in the finer box (the spread grows with the box's size squared), an edge as much
+RIDGE_GROWTH = 0.5
+_REACH_PIXELS = 8.0  # how far (in footprints) the ridge test looks past an outline pixel's hit, along its face's plane
+_REACH_STEPS = 4  # in steps of 2 footprints: the finer ridge box reaches 1.5 cells (2.25 footprints) each way
 
 
 @dataclass(frozen=True)
@@ -30,16 +48,19 @@ class OutlineOffset:
     """What :func:`outline_offset` measured.
 
     Attributes:
-        pixels: each used view's offset, in pixels (float64 [U]): + where the silhouette lies inside the mask (the
-            mesh should grow), - outside.
+        pixels: each used view's offset along its smooth limbs, in pixels (float64 [U]): + where the silhouette lies
+            inside the mask (the mesh should grow), - outside.
         footprints: each used view's pixel footprint at its silhouette's outline, ``z / fx`` in the cameras' units
             (float64 [U]).
         views: the indices of the used views (int64 [U]), in ``cameras``' order.
+        shares: each measurable view's share of outline pixels on smooth limbs (float64 [M]); the used views are
+            those of them with at least :data:`MIN_SMOOTH_PIXELS` such pixels.
     """
 
     pixels: np.ndarray
     footprints: np.ndarray
     views: np.ndarray
+    shares: np.ndarray
 
     @property
     def distance(self) -> float:
@@ -69,15 +90,120 @@ def _mask_array(i: int, mask, camera) -> np.ndarray:
     return m >= 0.5
 
 
+def ridge_spread(verts, faces, points, cell: float) -> np.ndarray:
+    """How much a mesh bends around each of ``points``: 1 - |the sum of the surface's area-weighted normals| / its
+    area, over the 27 cells of a grid of side ``cell`` around the point's own cell.
+
+    The surface is sampled by area, a few samples a cell (each face at least its centre), so that faces larger than
+    a cell count where their area is.
+
+    Args:
+        verts: vertices [V, 3] (float, NumPy).
+        faces: triangles [F, 3] (integer, NumPy).
+        points: where to evaluate [P, 3] (float, NumPy), e.g. points on the mesh.
+        cell: the grid's cell side, in the vertices' units (> 0; at least 2^-20 of the mesh's extent).
+
+    Returns:
+        float64 [P] in [0, 1]: 0 on a plane, about ``(box half-width / radius)^2 / 3`` on a sphere, up to 0.29 near a
+        right-angled edge however it is rounded within the box (1 - cos 45 degrees, where both sides weigh the same),
+        0.42 at a box's corner, NaN where the box holds no area. Not differentiable.
+
+    Raises:
+        ValueError: ``cell`` is not a positive finite distance.
+    """
+    if not (np.isfinite(cell) and cell > 0):
+        raise ValueError(f"cell must be a positive distance, got {cell}")
+    v = np.asarray(verts, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    q = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(f) == 0 or len(q) == 0:
+        return np.full(len(q), np.nan)
+    tri = v[f]
+    n = 0.5 * np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # area-weighted normals
+    area = np.linalg.norm(n, axis=1)
+    lo = np.minimum(tri.min(axis=(0, 1)), q.min(axis=0))
+    cell = max(float(cell), float(np.ptp(np.concatenate([tri.reshape(-1, 3), q]), axis=0).max()) / 2**20)
+    # samples: the centre, and for a face wider than half a cell a few more a cell, at fixed barycentric points
+    k = np.minimum(np.ceil(4.0 * area / cell**2), 4096).astype(np.int64)
+    k[k < 1] = 1
+    face = np.repeat(np.arange(len(f)), k)
+    first = np.cumsum(k) - k
+    j = np.arange(len(face)) - first[face]
+    u = np.where(j == 0, 1 / 3, (j * 0.6180339887) % 1.0)  # the centre, then a golden-ratio walk over the triangle
+    w = np.where(j == 0, 1 / 3, (j * 0.7548776662) % 1.0)
+    flip = u + w > 1
+    u, w = np.where(flip, 1 - u, u), np.where(flip, 1 - w, w)
+    c = tri[face, 0] + u[:, None] * (tri[face, 1] - tri[face, 0]) + w[:, None] * (tri[face, 2] - tri[face, 0])
+    weight = 1.0 / k[face]
+
+    def cells_of(x):
+        return np.floor((x - lo) / cell).astype(np.int64) + 1  # a free cell on every side
+
+    key = cells_of(c)
+    dims = np.maximum(key.max(axis=0), cells_of(q).max(axis=0)) + 2
+    cells, inv = np.unique(np.ravel_multi_index(key.T, tuple(dims)), return_inverse=True)
+    inv = inv.reshape(-1)
+    cn = np.stack([np.bincount(inv, n[face, i] * weight, len(cells)) for i in range(3)], axis=1)
+    ca = np.bincount(inv, area[face] * weight, len(cells))
+    qk = cells_of(q)
+    box_n, box_a = np.zeros((len(q), 3)), np.zeros(len(q))
+    for d in np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3):
+        code = np.ravel_multi_index((qk + d).T, tuple(dims))
+        at = np.minimum(np.searchsorted(cells, code), len(cells) - 1)
+        hit = cells[at] == code
+        box_n[hit] += cn[at[hit]]
+        box_a[hit] += ca[at[hit]]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        spread = 1.0 - np.linalg.norm(box_n, axis=1) / box_a
+    spread[~(box_a > 0)] = np.nan
+    return np.clip(spread, 0.0, 1.0)
+
+
+def _limb_points(r, cam, hit: np.ndarray, ry: np.ndarray, rx: np.ndarray, v: np.ndarray, f: np.ndarray,
+                 foot: float) -> np.ndarray:
+    """Per outline pixel, [K, S, 3]: its hit point, then points on to where the hit face's plane meets the ray one
+    pixel farther out (towards the nearest missed pixel), at most :data:`_REACH_PIXELS` footprints from the hit, in
+    :data:`_REACH_STEPS` equal steps. A plane seen at a grazing angle ends at an edge far from its outline pixel's
+    hit; one of the points lies near that edge (the last may lie past it, with no surface around)."""
+    from scipy import ndimage
+
+    fid = r.face_id.cpu().numpy()[ry, rx]
+    b = r.bary.cpu().numpy()[ry, rx].astype(np.float64)
+    corners = v[f[fid]]  # [K, 3, 3]
+    at = b[:, :1] * corners[:, 0] + b[:, 1:] * corners[:, 1] + (1.0 - b.sum(axis=1, keepdims=True)) * corners[:, 2]
+    _, (my, mx) = ndimage.distance_transform_edt(hit, return_indices=True)  # each hit's nearest missed pixel
+    out = np.stack([my[ry, rx] - ry, mx[ry, rx] - rx], axis=1).astype(np.float64)
+    out /= np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
+    d = cam.pixel_directions_camera(ry + out[:, 0], rx + out[:, 1]) @ cam.R  # world directions, camera z = 1
+    n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    o = np.asarray(cam.center, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = ((at - o) * n).sum(axis=1) / (d * n).sum(axis=1)
+    step = o + t[:, None] * d - at
+    size = np.linalg.norm(step, axis=1, keepdims=True)
+    reach = _REACH_PIXELS * foot
+    step = np.where(np.isfinite(size) & (t[:, None] > 0), step * np.minimum(1.0, reach / np.maximum(size, 1e-30)), 0.0)
+    return at[:, None] + np.linspace(0.0, 1.0, _REACH_STEPS + 1)[None, :, None] * step[:, None]
+
+
 def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *, device: torch.device | str = "cpu",
                    raycaster=None) -> OutlineOffset:
-    """How far the silhouettes of a mesh lie inside the masks, per view and as one distance.
+    """How far the silhouettes of a mesh lie inside the masks along its smooth limbs, per view and as one distance.
 
-    Per view: ``(mask area - silhouette area) / the mask outline's length``, in pixels (the silhouette is the
-    mesh ray cast through each pixel centre, the mask thresholded at 0.5), times the pixel footprint at the
-    median depth of the silhouette's outline pixels (``z / fx``: the limb, where the offset is). Views whose mask
-    touches the image border (the object is cut off: its outline there is the frame's) or whose mask or silhouette
-    covers fewer than 64 pixels are left out.
+    The silhouette is the mesh ray cast through each pixel centre, the mask thresholded at 0.5. Each pixel where they
+    differ is given to the nearest outline pixel of the silhouette (+1 a mask pixel the silhouette misses, -1 a
+    silhouette pixel outside the mask). An outline pixel lies on an edge when, at its hit or at points on its hit
+    face's plane on to where that meets the next ray out, :func:`ridge_spread` over cells of
+    :data:`RIDGE_CELL_PIXELS` times the views' median footprint is at least :data:`RIDGE_SPREAD` and more than
+    :data:`RIDGE_GROWTH` times that over cells twice as large (a smooth surface bends about a quarter as much in the
+    smaller box, an edge as much); otherwise on a smooth limb. Per view: the pixels given to smooth outline pixels
+    over their share of the outline's length (the mask's, in pixels), times the pixel footprint at the median depth
+    of the silhouette's outline (``z / fx``: the limb, where the offset is); the distance is their median over the
+    views. On a view whose limbs are all smooth this is ``(mask area - silhouette area) / outline length``. Views
+    whose mask touches the image border (the object is cut off: its outline there is the frame's) or whose mask or
+    silhouette covers fewer than 64 pixels are not measurable; views with fewer than :data:`MIN_SMOOTH_PIXELS`
+    outline pixels on smooth limbs are left out (``shares`` says how much of each measurable view's outline was
+    smooth).
 
     Args:
         verts: mesh vertices [V, 3] (NumPy or torch, the cameras' frame and units).
@@ -95,6 +221,8 @@ def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *, device: 
         ValueError: ``cameras`` and ``masks`` differ in length, a mask's shape is not its camera's, a mask or a
             vertex is not finite.
     """
+    from scipy import ndimage
+
     from ..raycast import MeshRaycaster
 
     if len(cameras) != len(masks):
@@ -105,30 +233,56 @@ def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *, device: 
     f = torch.as_tensor(np.ascontiguousarray(faces.cpu() if torch.is_tensor(faces) else faces), dtype=torch.int32)
     if not bool(torch.isfinite(v).all()):
         raise ValueError(f"verts must be finite, got {int((~torch.isfinite(v)).any(dim=-1).sum())} non-finite rows")
-    v, f = v.to(device), f.to(device)
     caster = MeshRaycaster() if raycaster is None else raycaster  # one BVH for every view
-    pix, feet, used = [], [], []
+    seen = []  # per measurable view: its index, outline hit points, pixels given to them, outline length, footprint
+    vd, fd = v.to(device), f.to(device)
+    vn, fn = v.numpy().astype(np.float64), f.numpy().astype(np.int64)
     for i, (cam, mk) in enumerate(zip(cameras, arrays)):
         if mk.sum() < _MIN_PIXELS or mk[0].any() or mk[-1].any() or mk[:, 0].any() or mk[:, -1].any():
             continue
         with torch.no_grad():
-            r = caster.raycast(v, f, cam)
+            r = caster.raycast(vd, fd, cam)
         hit = r.mask.cpu().numpy().astype(bool)
         if hit.sum() < _MIN_PIXELS:
             continue
-        length = float((mk[1:] != mk[:-1]).sum() + (mk[:, 1:] != mk[:, :-1]).sum()) * _EDGE_LENGTH
-        px = float(mk.sum() - hit.sum()) / length
         inner = hit.copy()  # the silhouette's own pixels: a hit whose four neighbours are all hits is not one
         inner[1:-1, 1:-1] &= hit[:-2, 1:-1] & hit[2:, 1:-1] & hit[1:-1, :-2] & hit[1:-1, 2:]
-        z = r.depth.cpu().numpy()[hit & ~inner]
+        rim = hit & ~inner
+        z = r.depth.cpu().numpy()[rim]
         z = float(np.median(z)) if len(z) else float("nan")
-        if not (np.isfinite(px) and np.isfinite(z) and z > 0):
+        if not (np.isfinite(z) and z > 0):
             continue  # no outline pixel (the silhouette fills the frame) or a degenerate hit
-        pix.append(px)
-        feet.append(z / float(cam.K[0, 0]))
-        used.append(i)
+        length = float((mk[1:] != mk[:-1]).sum() + (mk[:, 1:] != mk[:, :-1]).sum()) * _EDGE_LENGTH
+        ry, rx = np.nonzero(rim)
+        slot = np.full(hit.shape, -1, dtype=np.int64)
+        slot[ry, rx] = np.arange(len(ry))
+        diff = mk.astype(np.int64) - hit.astype(np.int64)
+        dy, dx = np.nonzero(diff)
+        _, (ny, nx) = ndimage.distance_transform_edt(~rim, return_indices=True)
+        given = np.bincount(slot[ny[dy, dx], nx[dy, dx]], diff[dy, dx], len(ry))
+        foot = z / float(cam.K[0, 0])
+        seen.append((i, _limb_points(r, cam, hit, ry, rx, vn, fn, foot), given, length, foot))
+    if not seen:
+        return OutlineOffset(np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0))
+    cell = RIDGE_CELL_PIXELS * float(np.median([s[4] for s in seen]))
+    pts = np.concatenate([s[1].reshape(-1, 3) for s in seen])
+    fine, coarse = ridge_spread(vn, fn, pts, cell), ridge_spread(vn, fn, pts, 2.0 * cell)
+    # an edge bends within the finer box about as much as within the coarser one; a smooth surface about a quarter
+    # as much (NaN, no surface in the box where the hit's plane meets the next ray out: it has curved away)
+    edge = ((fine >= RIDGE_SPREAD) & (fine > RIDGE_GROWTH * coarse)).reshape(-1, _REACH_STEPS + 1)
+    smooth_all = ~edge.any(axis=1)
+    pix, feet, used, shares, start = [], [], [], [], 0
+    for i, at, given, length, foot in seen:
+        smooth = smooth_all[start:start + len(at)]
+        start += len(at)
+        shares.append(float(smooth.mean()))
+        if smooth.sum() >= MIN_SMOOTH_PIXELS:
+            # the smooth outline's length: its share of the pixels times the whole outline's length
+            pix.append(float(given[smooth].sum()) / (length * shares[-1]))
+            feet.append(foot)
+            used.append(i)
     return OutlineOffset(np.asarray(pix, dtype=np.float64), np.asarray(feet, dtype=np.float64),
-                         np.asarray(used, dtype=np.int64))
+                         np.asarray(used, dtype=np.int64), np.asarray(shares, dtype=np.float64))
 
 
 def offset_along_normals(mesh: trimesh.Trimesh, distance: float) -> trimesh.Trimesh:
