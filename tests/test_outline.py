@@ -221,7 +221,7 @@ def test_a_rounded_box_on_a_sharp_boxs_masks_is_not_moved():
     masks = _masks(trimesh.creation.box(extents=(0.8, 0.8, 0.8)), cams)
     with mock.patch.object(outline, "RIDGE_SPREAD", 2.0):  # every outline pixel a smooth limb
         every = outline.outline_offset(mesh.vertices, mesh.faces, cams, masks)
-    assert every.median_pixels > 0.3, every.pixels
+    assert len(every.views) == 6 and every.median_pixels > 0.3, every.pixels  # every view measurable
     off = outline.outline_offset(mesh.vertices, mesh.faces, cams, masks)
     assert np.all(off.shares < 0.3), off.shares
     assert abs(off.distance) < 0.15 * np.median(every.footprints), (off.distance, off.pixels, off.shares)
@@ -246,3 +246,16 @@ def test_the_offset_of_a_mesh_with_edges_and_smooth_limbs_is_the_smooth_limbs_ow
     assert len(off.views) == 6 and np.all((off.shares > 0.5) & (off.shares < 0.95)), off.shares
     assert off.distance == pytest.approx(0.006, abs=0.0015), (off.distance, off.pixels)
 
+
+
+def test_a_silhouette_that_spills_past_the_masks_counts_everywhere():
+    """A rounded edge only draws an outline in: where the silhouettes spill past the masks, they are too wide
+    wherever they are, edges included, so every outline pixel counts and a boxy mesh still shrinks onto them."""
+    from wtopo.geometry.outline import outline_offset
+
+    cams = ring_cameras(n=6, radius=4.0, size=320)
+    mesh = _rounded_box(0.4, 0.015, 0.005)
+    masks = _masks(trimesh.creation.box(extents=(0.78, 0.78, 0.78)), cams)  # 0.01 inside each face
+    off = outline_offset(mesh.vertices, mesh.faces, cams, masks)
+    assert len(off.views) == 6 and np.all(off.shares == 1.0), off.shares
+    assert off.distance == pytest.approx(-0.01, abs=0.004), (off.distance, off.pixels)

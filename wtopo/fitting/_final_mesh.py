@@ -141,11 +141,12 @@ def _outline(mesh: trimesh.Trimesh, cameras: Sequence, masks: Sequence, *, recor
     :data:`_OUTLINE_MAX_PIXELS` times the views' median footprint; a ``thin`` object only inward: a silhouette wider
     than the masks is too wide wherever it is, but one short of them on thin parts is parts missing or rounded
     there, not an offset. The move is measured again and undone when it did not bring the silhouettes closer to the
-    masks (a part wound inward moves the wrong way). Not moved when the outline lies on edges (too few views with
-    smooth limbs: ``outline_offset`` measures none). Records ``"outline_offset"``: the median offset in pixels, the
-    10th-90th percentiles over the views, the views used, the median share of the outline on smooth limbs and the
-    distance moved in the internal frame (0 when not moved), with ``skipped`` when the thin rule or the edges held
-    it or ``undone`` (the median offset after the move) when it was undone."""
+    masks (a part wound inward moves the wrong way) or when the moved mesh cannot be measured. Not moved when the
+    outline lies on edges (too few views with smooth limbs: ``outline_offset`` measures none). Records
+    ``"outline_offset"``: the median offset in pixels, the 10th-90th percentiles over the views, the views used, the
+    median share of the outline on smooth limbs and the distance moved in the internal frame (0 when not moved),
+    with ``skipped`` when the thin rule or the edges held it or ``undone`` (the median offset after the move) when it
+    was undone."""
     if not np.isfinite(np.asarray(mesh.vertices)).all():
         record("outline_offset", skipped="non-finite vertices", distance=0.0)
         return mesh
@@ -170,8 +171,9 @@ def _outline(mesh: trimesh.Trimesh, cameras: Sequence, masks: Sequence, *, recor
         record("outline_offset", **info, distance=0.0)
         return mesh
     out = offset_along_normals(mesh, moved)
-    after = outline_offset(out.vertices, out.faces, cameras, masks, device=device, raycaster=caster).median_pixels
-    if abs(after) >= abs(px):
+    again = outline_offset(out.vertices, out.faces, cameras, masks, device=device, raycaster=caster)
+    after = again.median_pixels
+    if len(again.views) == 0 or abs(after) >= abs(px):  # not closer, or no longer measurable: not verified
         record("outline_offset", **info, distance=0.0, undone=round(after, 4))
         return mesh
     record("outline_offset", **info, distance=moved)

@@ -166,7 +166,8 @@ class FinalConfig:
     outline: bool = True
     """Masked objects: the mesh moves along its normals until its ray-cast silhouettes cover the training masks
     along its smooth limbs (:func:`wtopo.geometry.outline.outline_offset`, the median over the views, at most one
-    pixel footprint; the outline its sharp edges draw is not counted, and a mesh whose outline is all edges stays;
+    pixel footprint; where the silhouettes fall short, the outline its sharp edges draw is not counted, and a mesh
+    whose outline is all edges stays;
     an object too thin for the mesh terms only inward)."""
 
 

@@ -145,8 +145,9 @@ def ridge_spread(verts, faces, points, cell: float) -> np.ndarray:
     inv = inv.reshape(-1)
     cn = np.stack([np.bincount(inv, n[face, i] * weight, len(cells)) for i in range(3)], axis=1)
     ca = np.bincount(inv, area[face] * weight, len(cells))
-    qk = cells_of(q)
-    box_n, box_a = np.zeros((len(q), 3)), np.zeros(len(q))
+    qcells, qinv = np.unique(np.ravel_multi_index(cells_of(q).T, tuple(dims)), return_inverse=True)
+    qk = np.stack(np.unravel_index(qcells, tuple(dims)), axis=1)  # each distinct query cell once, in order
+    box_n, box_a = np.zeros((len(qk), 3)), np.zeros(len(qk))
     for d in np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3):
         code = np.ravel_multi_index((qk + d).T, tuple(dims))
         at = np.minimum(np.searchsorted(cells, code), len(cells) - 1)
@@ -156,7 +157,7 @@ def ridge_spread(verts, faces, points, cell: float) -> np.ndarray:
     with np.errstate(invalid="ignore", divide="ignore"):
         spread = 1.0 - np.linalg.norm(box_n, axis=1) / box_a
     spread[~(box_a > 0)] = np.nan
-    return np.clip(spread, 0.0, 1.0)
+    return np.clip(spread, 0.0, 1.0)[qinv.reshape(-1)]
 
 
 def _limb_points(r, cam, hit: np.ndarray, ry: np.ndarray, rx: np.ndarray, v: np.ndarray, f: np.ndarray,
@@ -171,8 +172,13 @@ def _limb_points(r, cam, hit: np.ndarray, ry: np.ndarray, rx: np.ndarray, v: np.
     b = r.bary.cpu().numpy()[ry, rx].astype(np.float64)
     corners = v[f[fid]]  # [K, 3, 3]
     at = b[:, :1] * corners[:, 0] + b[:, 1:] * corners[:, 1] + (1.0 - b.sum(axis=1, keepdims=True)) * corners[:, 2]
-    _, (my, mx) = ndimage.distance_transform_edt(hit, return_indices=True)  # each hit's nearest missed pixel
-    out = np.stack([my[ry, rx] - ry, mx[ry, rx] - rx], axis=1).astype(np.float64)
+    # outward: towards each outline pixel's nearest missed pixel (a distance transform of the silhouette's box, a
+    # missed pixel around it)
+    y0, x0 = ry.min(), rx.min()
+    box = np.pad(hit[y0:ry.max() + 1, x0:rx.max() + 1], 1)
+    _, (my, mx) = ndimage.distance_transform_edt(box, return_indices=True)
+    ly, lx = ry - y0 + 1, rx - x0 + 1
+    out = np.stack([my[ly, lx] - ly, mx[ly, lx] - lx], axis=1).astype(np.float64)
     out /= np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
     d = cam.pixel_directions_camera(ry + out[:, 0], rx + out[:, 1]) @ cam.R  # world directions, camera z = 1
     n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
@@ -199,7 +205,9 @@ def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *, device: 
     smaller box, an edge as much); otherwise on a smooth limb. Per view: the pixels given to smooth outline pixels
     over their share of the outline's length (the mask's, in pixels), times the pixel footprint at the median depth
     of the silhouette's outline (``z / fx``: the limb, where the offset is); the distance is their median over the
-    views. On a view whose limbs are all smooth this is ``(mask area - silhouette area) / outline length``. Views
+    views. On a view whose limbs are all smooth this is ``(mask area - silhouette area) / outline length``, which
+    every view measures instead (``shares`` then 1) when its median over the views is negative: a silhouette that
+    spills past the masks is too wide wherever it is, and a rounded edge only draws an outline in. Views
     whose mask touches the image border (the object is cut off: its outline there is the frame's) or whose mask or
     silhouette covers fewer than 64 pixels are not measurable; views with fewer than :data:`MIN_SMOOTH_PIXELS`
     outline pixels on smooth limbs are left out (``shares`` says how much of each measurable view's outline was
@@ -254,16 +262,26 @@ def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *, device: 
             continue  # no outline pixel (the silhouette fills the frame) or a degenerate hit
         length = float((mk[1:] != mk[:-1]).sum() + (mk[:, 1:] != mk[:, :-1]).sum()) * _EDGE_LENGTH
         ry, rx = np.nonzero(rim)
-        slot = np.full(hit.shape, -1, dtype=np.int64)
-        slot[ry, rx] = np.arange(len(ry))
-        diff = mk.astype(np.int64) - hit.astype(np.int64)
+        # each differing pixel goes to its nearest outline pixel, within the box around the mask and the silhouette
+        # (it holds every differing pixel and every outline pixel)
+        ys, xs = np.nonzero(mk | hit)
+        y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+        slot = np.full((y1 - y0, x1 - x0), -1, dtype=np.int64)
+        slot[ry - y0, rx - x0] = np.arange(len(ry))
+        diff = mk[y0:y1, x0:x1].astype(np.int64) - hit[y0:y1, x0:x1].astype(np.int64)
         dy, dx = np.nonzero(diff)
-        _, (ny, nx) = ndimage.distance_transform_edt(~rim, return_indices=True)
+        _, (ny, nx) = ndimage.distance_transform_edt(slot < 0, return_indices=True)
         given = np.bincount(slot[ny[dy, dx], nx[dy, dx]], diff[dy, dx], len(ry))
         foot = z / float(cam.K[0, 0])
         seen.append((i, _limb_points(r, cam, hit, ry, rx, vn, fn, foot), given, length, foot))
     if not seen:
         return OutlineOffset(np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0))
+    whole = [float(given.sum()) / length for _, _, given, length, _ in seen]
+    if np.median(np.asarray(whole) * np.asarray([s[4] for s in seen])) < 0:
+        # the silhouettes spill past the masks: too wide wherever they are, edges included (a rounded edge only
+        # draws an outline in), so every outline pixel counts
+        return OutlineOffset(np.asarray(whole), np.asarray([s[4] for s in seen]), np.asarray([s[0] for s in seen]),
+                             np.ones(len(seen)))
     cell = RIDGE_CELL_PIXELS * float(np.median([s[4] for s in seen]))
     pts = np.concatenate([s[1].reshape(-1, 3) for s in seen])
     fine, coarse = ridge_spread(vn, fn, pts, cell), ridge_spread(vn, fn, pts, 2.0 * cell)
