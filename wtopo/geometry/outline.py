@@ -24,6 +24,8 @@ import numpy as np
 import torch
 import trimesh
 
+from ..camera import Camera
+
 __all__ = ["OutlineOffset", "offset_along_normals", "outline_offset", "ridge_spread"]
 
 _MIN_PIXELS = 64  # a view whose mask or silhouette covers fewer pixels says nothing about the outline
@@ -139,13 +141,13 @@ def ridge_spread(verts, faces, points, cell: float) -> np.ndarray:
     def cells_of(x):
         return np.floor((x - lo) / cell).astype(np.int64) + 1  # a free cell on every side
 
-    key = cells_of(c)
-    dims = np.maximum(key.max(axis=0), cells_of(q).max(axis=0)) + 2
+    key, qkey = cells_of(c), cells_of(q)
+    dims = np.maximum(key.max(axis=0), qkey.max(axis=0)) + 2
     cells, inv = np.unique(np.ravel_multi_index(key.T, tuple(dims)), return_inverse=True)
     inv = inv.reshape(-1)
     cn = np.stack([np.bincount(inv, n[face, i] * weight, len(cells)) for i in range(3)], axis=1)
     ca = np.bincount(inv, area[face] * weight, len(cells))
-    qcells, qinv = np.unique(np.ravel_multi_index(cells_of(q).T, tuple(dims)), return_inverse=True)
+    qcells, qinv = np.unique(np.ravel_multi_index(qkey.T, tuple(dims)), return_inverse=True)
     qk = np.stack(np.unravel_index(qcells, tuple(dims)), axis=1)  # each distinct query cell once, in order
     box_n, box_a = np.zeros((len(qk), 3)), np.zeros(len(qk))
     for d in np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3):
@@ -160,17 +162,32 @@ def ridge_spread(verts, faces, points, cell: float) -> np.ndarray:
     return np.clip(spread, 0.0, 1.0)[qinv.reshape(-1)]
 
 
-def _limb_points(r, cam, hit: np.ndarray, ry: np.ndarray, rx: np.ndarray, v: np.ndarray, f: np.ndarray,
-                 foot: float) -> np.ndarray:
+@dataclass(frozen=True)
+class _Rim:
+    """One measurable view's outline: its index, camera, silhouette [H, W], outline pixels (rows, cols [K]), their
+    hit faces [K] and barycentrics [K, 2], the pixels given to each [K], the mask outline's length and the footprint."""
+
+    view: int
+    camera: Camera
+    hit: np.ndarray
+    ry: np.ndarray
+    rx: np.ndarray
+    face: np.ndarray
+    bary: np.ndarray
+    given: np.ndarray
+    length: float
+    foot: float
+
+
+def _limb_points(rim: _Rim, v: np.ndarray, f: np.ndarray) -> np.ndarray:
     """Per outline pixel, [K, S, 3]: its hit point, then points on to where the hit face's plane meets the ray one
     pixel farther out (towards the nearest missed pixel), at most :data:`_REACH_PIXELS` footprints from the hit, in
     :data:`_REACH_STEPS` equal steps. A plane seen at a grazing angle ends at an edge far from its outline pixel's
     hit; one of the points lies near that edge (the last may lie past it, with no surface around)."""
     from scipy import ndimage
 
-    fid = r.face_id.cpu().numpy()[ry, rx]
-    b = r.bary.cpu().numpy()[ry, rx].astype(np.float64)
-    corners = v[f[fid]]  # [K, 3, 3]
+    cam, hit, ry, rx, b = rim.camera, rim.hit, rim.ry, rim.rx, rim.bary
+    corners = v[f[rim.face]]  # [K, 3, 3]
     at = b[:, :1] * corners[:, 0] + b[:, 1:] * corners[:, 1] + (1.0 - b.sum(axis=1, keepdims=True)) * corners[:, 2]
     # outward: towards each outline pixel's nearest missed pixel (a distance transform of the silhouette's box, a
     # missed pixel around it)
@@ -187,7 +204,7 @@ def _limb_points(r, cam, hit: np.ndarray, ry: np.ndarray, rx: np.ndarray, v: np.
         t = ((at - o) * n).sum(axis=1) / (d * n).sum(axis=1)
     step = o + t[:, None] * d - at
     size = np.linalg.norm(step, axis=1, keepdims=True)
-    reach = _REACH_PIXELS * foot
+    reach = _REACH_PIXELS * rim.foot
     step = np.where(np.isfinite(size) & (t[:, None] > 0), step * np.minimum(1.0, reach / np.maximum(size, 1e-30)), 0.0)
     return at[:, None] + np.linspace(0.0, 1.0, _REACH_STEPS + 1)[None, :, None] * step[:, None]
 
@@ -242,7 +259,7 @@ def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *, device: 
     if not bool(torch.isfinite(v).all()):
         raise ValueError(f"verts must be finite, got {int((~torch.isfinite(v)).any(dim=-1).sum())} non-finite rows")
     caster = MeshRaycaster() if raycaster is None else raycaster  # one BVH for every view
-    seen = []  # per measurable view: its index, outline hit points, pixels given to them, outline length, footprint
+    seen: list[_Rim] = []
     vd, fd = v.to(device), f.to(device)
     vn, fn = v.numpy().astype(np.float64), f.numpy().astype(np.int64)
     for i, (cam, mk) in enumerate(zip(cameras, arrays)):
@@ -272,35 +289,34 @@ def outline_offset(verts, faces, cameras: Sequence, masks: Sequence, *, device: 
         dy, dx = np.nonzero(diff)
         _, (ny, nx) = ndimage.distance_transform_edt(slot < 0, return_indices=True)
         given = np.bincount(slot[ny[dy, dx], nx[dy, dx]], diff[dy, dx], len(ry))
-        foot = z / float(cam.K[0, 0])
-        seen.append((i, _limb_points(r, cam, hit, ry, rx, vn, fn, foot), given, length, foot))
+        seen.append(_Rim(i, cam, hit, ry, rx, r.face_id.cpu().numpy()[ry, rx],
+                         r.bary.cpu().numpy()[ry, rx].astype(np.float64), given, length, z / float(cam.K[0, 0])))
     if not seen:
         return OutlineOffset(np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0))
-    whole = [float(given.sum()) / length for _, _, given, length, _ in seen]
-    if np.median(np.asarray(whole) * np.asarray([s[4] for s in seen])) < 0:
+    whole = np.asarray([float(s.given.sum()) / s.length for s in seen])
+    feet = np.asarray([s.foot for s in seen])
+    if np.median(whole * feet) < 0:
         # the silhouettes spill past the masks: too wide wherever they are, edges included (a rounded edge only
         # draws an outline in), so every outline pixel counts
-        return OutlineOffset(np.asarray(whole), np.asarray([s[4] for s in seen]), np.asarray([s[0] for s in seen]),
-                             np.ones(len(seen)))
-    cell = RIDGE_CELL_PIXELS * float(np.median([s[4] for s in seen]))
-    pts = np.concatenate([s[1].reshape(-1, 3) for s in seen])
+        return OutlineOffset(whole, feet, np.asarray([s.view for s in seen]), np.ones(len(seen)))
+    cell = RIDGE_CELL_PIXELS * float(np.median(feet))
+    pts = np.concatenate([_limb_points(s, vn, fn).reshape(-1, 3) for s in seen])
     fine, coarse = ridge_spread(vn, fn, pts, cell), ridge_spread(vn, fn, pts, 2.0 * cell)
     # an edge bends within the finer box about as much as within the coarser one; a smooth surface about a quarter
     # as much (NaN, no surface in the box where the hit's plane meets the next ray out: it has curved away)
     edge = ((fine >= RIDGE_SPREAD) & (fine > RIDGE_GROWTH * coarse)).reshape(-1, _REACH_STEPS + 1)
     smooth_all = ~edge.any(axis=1)
-    pix, feet, used, shares, start = [], [], [], [], 0
-    for i, at, given, length, foot in seen:
-        smooth = smooth_all[start:start + len(at)]
-        start += len(at)
+    pix, used, shares, start = [], [], [], 0
+    for k, s in enumerate(seen):
+        smooth = smooth_all[start:start + len(s.ry)]
+        start += len(s.ry)
         shares.append(float(smooth.mean()))
         if smooth.sum() >= MIN_SMOOTH_PIXELS:
             # the smooth outline's length: its share of the pixels times the whole outline's length
-            pix.append(float(given[smooth].sum()) / (length * shares[-1]))
-            feet.append(foot)
-            used.append(i)
-    return OutlineOffset(np.asarray(pix, dtype=np.float64), np.asarray(feet, dtype=np.float64),
-                         np.asarray(used, dtype=np.int64), np.asarray(shares, dtype=np.float64))
+            pix.append(float(s.given[smooth].sum()) / (s.length * shares[-1]))
+            used.append(k)
+    return OutlineOffset(np.asarray(pix, dtype=np.float64), feet[used],
+                         np.asarray([seen[k].view for k in used], dtype=np.int64), np.asarray(shares, dtype=np.float64))
 
 
 def offset_along_normals(mesh: trimesh.Trimesh, distance: float) -> trimesh.Trimesh:
