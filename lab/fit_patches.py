@@ -11,6 +11,8 @@ and what it measured.
     RING_BLIND=N          the photometric and mask terms blind to an N-px ring outside the mask (lab/ring_blind.py)
     NO_HALO_RING=1        the photometric term sees the ring again, as before halo_ring (lab/no_halo_ring.py)
     KEEP_PRE_OUTLINE=1    the final mesh before the outline offset kept beside the result (lab/pre_outline.py)
+    SCENE_FUSION=K:T:F,.. the final fusion again at other grids, truncations, face tolerances (lab/scene_fusion.py)
+    GEO_CONSISTENCY=W     PGSR's multi-view geometric consistency term at weight W (lab/geo_consistency.py)
 
 Only in-process fits see a patch: lab/hard.py's ``--jobs`` processes would not. Nothing in the product imports it.
 """
@@ -22,7 +24,8 @@ import os
 PATCHES = [("MASK_WARMUP_ONLY", "mask_warmup_only"), ("MASK_BAND", "mask_band"),
            ("FINAL_TRUNCATION", "final_truncation"), ("FUSION_DECAY", "fusion_decay"),
            ("FUSION_MASKED", "fusion_masked"), ("RING_BLIND", "ring_blind"), ("NO_HALO_RING", "no_halo_ring"),
-           ("KEEP_PRE_OUTLINE", "pre_outline")]
+           ("KEEP_PRE_OUTLINE", "pre_outline"),
+           ("SCENE_FUSION", "scene_fusion"), ("GEO_CONSISTENCY", "geo_consistency")]
 
 
 def install_from_env() -> list[str]:

@@ -1,7 +1,7 @@
 """benchmarks/peers/run_wtopo.py with lab/hard_views.py installed first when HARD_VIEWS is set (its power), and
 lab/fit_patches.py's patches by their variables: the same arguments, the same result folder (for lab/device/d40.sh
 and bias_all.sh); with KEEP_PRE_OUTLINE, also the result folder OUT_pre of the mesh before the outline offset
-(lab/pre_outline.py)."""
+(lab/pre_outline.py); with SCENE_FUSION, a result folder per fusion variant (lab/scene_fusion.py)."""
 import os
 import sys
 
@@ -25,3 +25,7 @@ if __name__ == "__main__":
         import pre_outline
 
         pre_outline.write_result(sys.argv[2])  # run_wtopo.py's OUT: its arguments begin EXCH OUT (bias_all.sh)
+    if os.environ.get("SCENE_FUSION"):
+        import scene_fusion
+
+        scene_fusion.write_results(sys.argv[2])
