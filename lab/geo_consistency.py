@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""PGSR's multi-view geometric consistency as a lab term (#59: DTU's views' depths disagree three times as much as
-a synthetic scene's, design/decisions.md "Not changed: the scene fusion's grid and the face rule's tolerance").
+"""PGSR's multi-view geometric consistency as a lab term (#59: DTU's scene mesh is rough and holed at the CUDA
+plan's grid, design/decisions.md "Not changed: the scene fusion's grid and the face rule's tolerance").
 
     GEO_CONSISTENCY=W (fit_patches.py)
 
