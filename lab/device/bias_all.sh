@@ -34,6 +34,8 @@
 #             the voxel times K, truncation T voxels, face tolerance F voxels; lab/scene_fusion.py): for dtu_scan24
 #             (exported from .stage/dtu_raw, lease_env.sh's lease_dtu) and the unbounded scenes (design/decisions.md
 #             "Not changed: the scene fusion's grid and the face rule's tolerance"); score.py --pictures draws them.
+#   geo       PGSR's multi-view geometric consistency at weight GEO (0.03; lab/geo_consistency.py): a second render
+#             per step, eager (the graphs replay the first only).
 # After the staging calls of lab/device/alone.sh (p1, p2, p3, then install), in one call:   bash lab/device/bias_all.sh
 # then `TAG=b_ WAIT=180 bash lab/device/wait_fits.sh` calls (within 30 s of each other; the call that finds every fit
 # done scores the scenes, up to 100 s each, inside the call's 600 s) until it has scored every scene into
@@ -93,6 +95,7 @@ for c in $CHAINS; do
     thindecay) chain b_thindecay "FUSION_DECAY=${DECAY:-2} DECAY_THIN_ONLY=1" ;;
     ringdecay) chain b_ringdecay "RING_BLIND=${RING:-1} FUSION_DECAY=${DECAY:-2}" ;;
     fusion) chain b_fusion SCENE_FUSION=${FUSION:-1:4:5,1:4:1e6,0.5:4:2,2:4:2} ;;
+    geo) chain b_geo GEO_CONSISTENCY=${GEO:-0.03} ;;
     *) echo "unknown chain $c"; exit 1 ;;
   esac
 done
