@@ -81,7 +81,6 @@ def main():
     from wtopo.cli import _apply_set
     from wtopo.fitting import _final_mesh as F
     from wtopo.fitting import loop as L
-    from wtopo.fitting import stages as S
     from wtopo.fitting.config import FitConfig
     from wtopo.loaders import load_scene
 
@@ -92,7 +91,8 @@ def main():
     rows = []
 
     def variants(surfels, cameras, cfg, **k):
-        depths, colors = S.render_depths(k["render"], surfels, cameras)
+        saved = (F.render_depths, F.TRUNCATION_VOXELS, F._FACE_SUPPORT_VOXELS)
+        depths, colors = saved[0](k["render"], surfels, cameras)
         np.savez_compressed(os.path.join(a.out, "depths.npz"), *depths)
         dis = disagreement(cameras, depths, colors=colors)
         print(json.dumps({"disagreement": dis}), flush=True)
@@ -117,9 +117,7 @@ def main():
                 print(json.dumps(row), flush=True)
                 sim.to_world(m).export(os.path.join(a.out, f"mesh_{res}_{tr:g}_{face:g}.ply"))
         finally:
-            F.TRUNCATION_VOXELS = 4.0
-            F._FACE_SUPPORT_VOXELS = 2.0
-            F.render_depths = S.render_depths
+            F.render_depths, F.TRUNCATION_VOXELS, F._FACE_SUPPORT_VOXELS = saved
         return real(surfels, cameras, cfg, **k)
 
     fit_patches.install_from_env()  # e.g. GEO_CONSISTENCY (lab/geo_consistency.py)

@@ -1,16 +1,17 @@
 # SPDX-License-Identifier: Apache-2.0
-"""PGSR's multi-view geometric consistency as a lab term (#59: DTU's scene mesh is rough and holed at the CUDA
-plan's grid, design/decisions.md "Not changed: the scene fusion's grid and the face rule's tolerance").
+"""PGSR's multi-view geometric consistency as a lab term (#59: DTU's scene mesh is rough and holed at the CUDA plan's
+grid, design/decisions.md "Not changed: the scene fusion's grid and the face rule's tolerance").
 
     GEO_CONSISTENCY=W (fit_patches.py)
 
-From where the multi-view NCC term starts (mid warm-up) and outside the polish, each step also renders one of the
-view's multi-view neighbours (drawn per iteration) and, for ``_PIXELS`` covered pixels of the reference view: the
-point at the reference's median depth, projected into the neighbour; the neighbour's median depth there
-(bilinear), that point projected back into the reference. The term is PGSR's: the mean over pixels whose round
-trip ends within ``_MAX_PX`` pixels of ``exp(-e).detach() * e``, e the round trip's length in pixels, times W
-(PGSR: 0.03). Gradients reach both renders' depths. Pinhole cameras only (the round trip ignores distortion).
-Costs a second render (forward and backward) per step.
+From where the multi-view NCC term starts (mid warm-up) and outside the polish, each step also renders one of the view's
+multi-view neighbours (drawn per iteration) and, for ``_PIXELS`` pixels drawn over the reference view (those both views
+cover count): the point at the reference's median depth, projected into the neighbour; the neighbour's median depth
+there (bilinear), that point projected back into the reference. The term is PGSR's: the mean over pixels whose round
+trip ends within ``_MAX_PX`` pixels of ``exp(-e).detach() * e``, e the round trip's length in pixels, times W (PGSR:
+0.03). Gradients reach both renders' depths. Pinhole cameras only (the round trip ignores distortion). Costs a second
+render (forward and backward) per step. Does nothing where the plan leaves the multi-view term out (an untextured
+capture).
 """
 
 import torch
@@ -45,7 +46,7 @@ def _backproject(u, v, d, K, R, t):
     return (pc - t) @ R
 
 
-def geo_term(depth_r, alpha_r, cam_r, depth_n, cam_n, gen) -> torch.Tensor:
+def geo_term(depth_r, alpha_r, cam_r, depth_n, alpha_n, cam_n, gen) -> torch.Tensor:
     """The term's value (unweighted) for one reference view and one neighbour; 0 with no pixel that counts."""
     dev = depth_r.device
     H, W = depth_r.shape
@@ -60,9 +61,11 @@ def geo_term(depth_r, alpha_r, cam_r, depth_n, cam_n, gen) -> torch.Tensor:
     Hn, Wn = depth_n.shape
     grid = torch.stack([un / Wn * 2 - 1, vn / Hn * 2 - 1], dim=1).view(1, 1, -1, 2)
     dn = torch.nn.functional.grid_sample(depth_n[None, None], grid, mode="bilinear", align_corners=False,
-                                         padding_mode="zeros").view(-1)
+                                         padding_mode="border").view(-1)
+    an = torch.nn.functional.grid_sample(alpha_n.detach()[None, None], grid, mode="bilinear", align_corners=False,
+                                         padding_mode="border").view(-1)
     ok = ok & (zn.detach() > 0) & (un.detach() >= 0) & (un.detach() < Wn) & (vn.detach() >= 0) & (vn.detach() < Hn)
-    ok = ok & (dn.detach() > 0)
+    ok = ok & (dn.detach() > 0) & (an >= 0.5)
     X2 = _backproject(un, vn, dn, Kn, Rn, tn)
     u2, v2, _ = _project(X2, Kr, Rr, tr)
     e = torch.sqrt((u2 - u0) ** 2 + (v2 - v0) ** 2 + 1e-12)
@@ -88,14 +91,14 @@ def install(weight: float | None = None) -> None:
         out = terms.render
         dev = out.alpha.device
         g = gens.get(dev) or gens.setdefault(dev, torch.Generator(dev))
-        g.manual_seed(1_000_003 * 7 + it)
+        g.manual_seed(1_000_003 * (int(self.cfg.runtime.seed) + 101) + it)  # not the NCC term's pixel stream
         nb = mv.neighbours[vi]
-        n = nb[int(torch.randint(0, len(nb), (1,), generator=g).item())]
+        n = nb[int(torch.randint(0, len(nb), (1,), generator=g, device=dev).item())]
         with self.timers("render"):
             out_n = self.render(surfels, self.train.cameras[n])
         with self.timers("losses"):
             terms.losses["geo"] = wgt * geo_term(out.median_depth, out.alpha, self.train.cameras[vi],
-                                                 out_n.median_depth, self.train.cameras[n], g)
+                                                 out_n.median_depth, out_n.alpha, self.train.cameras[n], g)
         return terms
 
     O.Objective.__call__ = patched

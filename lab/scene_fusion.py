@@ -1,17 +1,17 @@
 # SPDX-License-Identifier: Apache-2.0
 """The final fusion of a fit at other grids, truncations and face-support tolerances, from the same rendered depths
-(#59: DTU's scene mesh is rough and speckled at the CUDA plan's voxel of 0.8 pixel footprints, smooth at the CPU
-plan's 2.6; lab/dtu_fusion.py). Each variant becomes a result folder of its own beside the fit's, so the peers'
-scorer reads the ROI F1 (scenes with a truth) and draws pictures (DTU) for every variant of one fit.
+(#59: DTU's scene mesh is rough and speckled at the CUDA plan's voxel of 0.8 pixel footprints, smooth at the CPU plan's
+2.6; lab/dtu_fusion.py). Each variant becomes a result folder of its own beside the fit's, so the peers' scorer reads
+the ROI F1 (scenes with a truth) and draws pictures (DTU) for every variant of one fit.
 
     SCENE_FUSION="K:T:F[,K:T:F...]" python3 lab/device/patched_run.py EXCH OUT [run_wtopo.py's arguments]
 
 K: the voxel as a multiple of the plan's (2: twice as coarse); T: truncation in voxels (the product's 4); F: the face
-rule's tolerance in voxels (the product's 2). ``install()`` wraps the fit loop's ``final_mesh`` to fuse every variant
-after the product's own mesh (render_depths once), and ``_api._finish`` to write them, in the caller's frame, as
-``OUT/run/mesh_fusion_K_T_F.ply``; lab/device/patched_run.py then writes ``OUT_fusion_K_T_F`` (the fit's renders and
-run.json, that mesh). The variants' fusions run inside the fit's timed span: the times of a patched fit are not the
-product's.
+rule's tolerance in voxels (the product's 2); T and F scale with the voxel in world units. ``install()`` wraps the fit
+loop's ``final_mesh`` to fuse every variant after the product's own mesh (render_depths once), and ``_api._finish`` to
+write them, in the caller's frame, as ``OUT/run/mesh_fusion_K_T_F.ply``; lab/device/patched_run.py then writes
+``OUT_fusion_K_T_F`` (the fit's renders and run.json, that mesh). The variants' fusions run inside the fit's timed span:
+the times of a patched fit are not the product's.
 """
 
 import dataclasses
@@ -19,7 +19,7 @@ import json
 import os
 import shutil
 
-from wtopo.fitting import _api, _final_mesh, loop, stages
+from wtopo.fitting import _api, _final_mesh, loop
 
 _meshes: dict = {}
 last: dict = {}  # the fit's training cameras and rendered (depths, colours), for a lab script's own measures
@@ -39,11 +39,15 @@ def install() -> None:
 
     def fused(surfels, cameras, cfg, **kw):
         mesh = real(surfels, cameras, cfg, **kw)
-        depths = stages.render_depths(kw["render"], surfels, cameras)
+        # what is installed now (another lab patch's render_depths or truncation), used and put back as it was
+        saved = (_final_mesh.render_depths, _final_mesh.TRUNCATION_VOXELS, _final_mesh._FACE_SUPPORT_VOXELS)
+        render_depths, own = saved[0], kw["render"]
+        depths = render_depths(own, surfels, cameras)
         _meshes.clear()
         last.update(cameras=cameras, depths=depths)
         try:
-            _final_mesh.render_depths = lambda *_: depths
+            # the fit's own renderer reads the depths once; another (a chunked merge's unmasked views) renders
+            _final_mesh.render_depths = lambda r, *a: depths if r is own else render_depths(r, *a)
             for k, t, f in variants():
                 _final_mesh.TRUNCATION_VOXELS, _final_mesh._FACE_SUPPORT_VOXELS = t, f
                 res = max(16, int(round(int(cfg.final.resolution) / k)))
@@ -51,8 +55,7 @@ def install() -> None:
                 _meshes[_name(k, t, f)] = real(surfels, cameras, c, **{**kw, "tsdf_info": {},
                                                                        "record": lambda *a, **b: None})
         finally:
-            _final_mesh.render_depths = stages.render_depths
-            _final_mesh.TRUNCATION_VOXELS, _final_mesh._FACE_SUPPORT_VOXELS = stages.TRUNCATION_VOXELS, 2.0
+            _final_mesh.render_depths, _final_mesh.TRUNCATION_VOXELS, _final_mesh._FACE_SUPPORT_VOXELS = saved
         return mesh
 
     def kept_finish(run, mesh_int, scene, out_dir):
