@@ -1,9 +1,9 @@
 # Lease step "alone" (#59): wtopo's time from images to mesh with nothing else on the GPU, on the scenes where a
 # peer's row ran alone (2DGS's bowl and 64-view mug, rows_2026-12-06ah: 301 and 256 s on an H100). wtopo's rows of
 # those scenes shared the GPU with other fits. Here (once): bash lab/device/stage.sh big usd (about 4 minutes:
-# .stage/p1-p3, the xz tar of the Warp and Open3D wheels in 54 MB parts, and .stage/usd), with .stage/gl,
+# .stage/p1-p3, the xz tar of the Warp and Open3D wheels in 47 MB parts, and .stage/usd), with .stage/gl,
 # .stage/smallpeers and .stage/exch/{bowl,mug} from stage.sh's gl, smallpeers and sl_exch steps. One call each,
-# carrying (each under 64 MiB with the 12 MB tree):
+# carrying (each under 64 MiB with the 12.2 MiB tree; 54 MB parts, as before, no longer fit beside it):
 #   .stage/p1                                          bash lab/device/alone.sh part
 #   .stage/p2                                          bash lab/device/alone.sh part
 #   .stage/p3 .stage/gl .stage/smallpeers/whl          bash lab/device/alone.sh part

@@ -5,7 +5,7 @@
 #
 #   p1/big.part00 p2/big.part01 p3/big.part02 ...  one xz tar (xz -9) of the unpacked warp-lang 1.19.0 and open3d
 #                      0.19.0 (cp312 manylinux x86_64) wheels, minus the Open3D parts listed in O3D_DROP below,
-#                      split into parts of at most PART_BYTES (54 MB), one folder each: one part per device call
+#                      split into parts of at most PART_BYTES (47 MB), one folder each: one part per device call
 #                      (a call carries 64 MiB with the 7 MB working tree). device.sh install: cat big.part* | xz -d | tar -x
 #   small/whl/         py3.12 wheels: trimesh, plyfile (latest), gsplat 1.5.3 (PyPI, JIT-built), its pure-python
 #                      requirements (jaxtyping, wadler_lindig, rich, markdown_it_py, mdurl, pygments), ninja and
@@ -49,7 +49,7 @@
 # Each gives a bare git dir /work/.mirror/OWNER+NAME/repo, the default below; override with
 #   M_2DGS M_SURFEL M_GLM M_PGSR M_NVDIFFRAST M_DISO (bare git dirs).
 # Other settings: OUT (default REPO/.stage), PY (export.py's python, default REPO/.venv/bin/python),
-#   PIP (pip for downloads, default REPO/.venv/bin/pip), XZ_THREADS (2), PART_BYTES (54000000),
+#   PIP (pip for downloads, default REPO/.venv/bin/pip), XZ_THREADS (2), PART_BYTES (47000000),
 #   TEST_IMPORT (1: extract the parts and import warp / open3d with a python3.12 venv made in the temp dir;
 #   0: skip), KEEP_TMP (1: keep the temp dir).
 set -euo pipefail
@@ -59,7 +59,7 @@ OUT=${OUT:-$REPO/.stage}
 PY=${PY:-$REPO/.venv/bin/python}
 PIP=${PIP:-$REPO/.venv/bin/pip}
 XZ_THREADS=${XZ_THREADS:-2}
-PART_BYTES=${PART_BYTES:-54000000}
+PART_BYTES=${PART_BYTES:-47000000}
 TEST_IMPORT=${TEST_IMPORT:-1}
 MIR=/work/.mirror
 M_2DGS=${M_2DGS:-$MIR/hbb1+2d-gaussian-splatting/repo}
