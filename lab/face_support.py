@@ -87,20 +87,14 @@ def main():
     a = ap.parse_args()
 
     import wtopo
-    from wtopo import metrics, scenes
+    from final_fusion import roi_scene
+    from wtopo import metrics
     from wtopo.fitting import _final_mesh as F
     from wtopo.fitting import loop as L
     from wtopo.fitting import stages as S
     from wtopo.fitting.config import FitConfig
 
-    kw = dict(n_views=a.views, resolution=(a.width, a.height))
-    if a.scene in scenes.names():
-        scene = scenes.load(a.scene, **kw)
-    else:
-        import scenes as peer_scenes
-        scene = peer_scenes.load(a.scene, **kw)
-    lo, hi = (np.asarray(b, np.float64) for b in scene.info["roi"])
-    tau = 0.005 * float(np.linalg.norm(hi - lo))
+    scene, lo, hi, tau = roi_scene(a.scene, a.views, a.width, a.height)
     sim = scene.normalization()
     rows = []
     real = F.final_mesh

@@ -30,6 +30,21 @@ TRUNCATIONS = (2.0, 4.0, 8.0, 12.0)
 RESOLUTION_FACTORS = (1.0, 0.5)
 
 
+def roi_scene(name: str, views: int, width: int, height: int):
+    """A scene with a truth (a built-in, or a name of benchmarks/peers/scenes.py) at ``views`` views of ``width`` x
+    ``height``, its region of interest (lo, hi) and the ROI F-score's tau (0.5 % of the region's diagonal)."""
+    from wtopo import scenes
+
+    kw = dict(n_views=views, resolution=(width, height))
+    if name in scenes.names():
+        scene = scenes.load(name, **kw)
+    else:
+        import scenes as peer_scenes
+        scene = peer_scenes.load(name, **kw)
+    lo, hi = (np.asarray(b, np.float64) for b in scene.info["roi"])
+    return scene, lo, hi, 0.005 * float(np.linalg.norm(hi - lo))
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("scene")
@@ -43,20 +58,13 @@ def main():
     a = ap.parse_args()
 
     import wtopo
-    from wtopo import metrics, scenes
+    from wtopo import metrics
     from wtopo.cli import _apply_set
     from wtopo.fitting import _final_mesh as F
     from wtopo.fitting import loop as L
     from wtopo.fitting.config import FitConfig
 
-    kw = dict(n_views=a.views, resolution=(a.width, a.height))
-    if a.scene in scenes.names():
-        scene = scenes.load(a.scene, **kw)
-    else:
-        import scenes as peer_scenes
-        scene = peer_scenes.load(a.scene, **kw)
-    lo, hi = (np.asarray(b, np.float64) for b in scene.info["roi"])
-    tau = 0.005 * float(np.linalg.norm(hi - lo))
+    scene, lo, hi, tau = roi_scene(a.scene, a.views, a.width, a.height)
     sim = scene.normalization()
     rows = []
     real = F.final_mesh

@@ -14,6 +14,8 @@ render (forward and backward) per step. Does nothing where the plan leaves the m
 capture).
 """
 
+import random
+
 import torch
 
 from wtopo.fitting import objective as O
@@ -25,10 +27,9 @@ _MAX_PX = 1.0
 
 
 def _pinhole(cam, device):
-    K = torch.as_tensor(cam.K, dtype=torch.float32, device=device)
-    R = torch.as_tensor(cam.R, dtype=torch.float32, device=device)
-    t = torch.as_tensor(cam.t, dtype=torch.float32, device=device)
-    return K, R, t
+    """The camera's K, R, t as float32 tensors on ``device``, made once per camera (Camera.cached)."""
+    return cam.cached(("geo_pinhole", str(device)), lambda: tuple(
+        torch.as_tensor(x, dtype=torch.float32, device=device) for x in (cam.K, cam.R, cam.t)))
 
 
 def _project(X, K, R, t):
@@ -91,9 +92,10 @@ def install(weight: float | None = None) -> None:
         out = terms.render
         dev = out.alpha.device
         g = gens.get(dev) or gens.setdefault(dev, torch.Generator(dev))
-        g.manual_seed(1_000_003 * (int(self.cfg.runtime.seed) + 101) + it)  # not the NCC term's pixel stream
+        seed = 1_000_003 * (int(self.cfg.runtime.seed) + 101) + it  # not the NCC term's pixel stream
+        g.manual_seed(seed)
         nb = mv.neighbours[vi]
-        n = nb[int(torch.randint(0, len(nb), (1,), generator=g, device=dev).item())]
+        n = nb[random.Random(seed).randrange(len(nb))]  # drawn on the host: no device read per step
         with self.timers("render"):
             out_n = self.render(surfels, self.train.cameras[n])
         with self.timers("losses"):

@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """The final fusion of a fit at other grids, truncations and face-support tolerances, from the same rendered depths
 (#59: DTU's scene mesh is rough and speckled at the CUDA plan's voxel of 0.8 pixel footprints, smooth at the CPU plan's
-2.6; lab/dtu_fusion.py). Each variant becomes a result folder of its own beside the fit's, so the peers' scorer reads
+2.6; lab/fusion_fp.py). Each variant becomes a result folder of its own beside the fit's, so the peers' scorer reads
 the ROI F1 (scenes with a truth) and draws pictures (DTU) for every variant of one fit.
 
     SCENE_FUSION="K:T:F[,K:T:F...]" python3 lab/device/patched_run.py EXCH OUT [run_wtopo.py's arguments]
@@ -22,7 +22,8 @@ import shutil
 from wtopo.fitting import _api, _final_mesh, loop
 
 _meshes: dict = {}
-last: dict = {}  # the fit's training cameras and rendered (depths, colours), for a lab script's own measures
+# the fit's training cameras, rendered (depths, colours) and each variant's "mesh_policy" record, for a lab script
+last: dict = {}
 
 
 def variants() -> list[tuple[float, float, float]]:
@@ -44,6 +45,7 @@ def install() -> None:
         render_depths, own = saved[0], kw["render"]
         depths = render_depths(own, surfels, cameras)
         _meshes.clear()
+        last.clear()
         last.update(cameras=cameras, depths=depths)
         try:
             # the fit's own renderer reads the depths once; another (a chunked merge's unmasked views) renders
@@ -52,8 +54,10 @@ def install() -> None:
                 _final_mesh.TRUNCATION_VOXELS, _final_mesh._FACE_SUPPORT_VOXELS = t, f
                 res = max(16, int(round(int(cfg.final.resolution) / k)))
                 c = dataclasses.replace(cfg, final=dataclasses.replace(cfg.final, resolution=res))
-                _meshes[_name(k, t, f)] = real(surfels, cameras, c, **{**kw, "tsdf_info": {},
-                                                                       "record": lambda *a, **b: None})
+                events = {}
+                _meshes[_name(k, t, f)] = real(surfels, cameras, c, **{
+                    **kw, "tsdf_info": {}, "record": lambda e, ev=events, **info: ev.__setitem__(e, info)})
+                last.setdefault("policy", {})[_name(k, t, f)] = events.get("mesh_policy", {})
         finally:
             _final_mesh.render_depths, _final_mesh.TRUNCATION_VOXELS, _final_mesh._FACE_SUPPORT_VOXELS = saved
         return mesh
