@@ -4,6 +4,7 @@
 #   default   the CUDA default (since 418e1f9 with the photometric term blind to the ring outside the mask, since
 #             a1ff951 with the outline offset), and beside it, as wtopo_b_default_pre, the same fit's mesh before the
 #             outline offset (lab/pre_outline.py: the offset's gain without the run-to-run spread);
+#   plain     the CUDA default alone (no second folder: the unbounded scenes and DTU have no outline offset);
 #   seedN     the same at seed N (seed1, seed2, ...);
 #   filter    the render's low-pass narrowed from the CUDA plan's 0.25 px to FILTER (0.15): at the CPU default 0.15 px
 #             brought the bunny's depth offset from 0.28 to 0.20 % of the diagonal and its Chamfer from 0.200 to
@@ -80,6 +81,7 @@ chain() {  # NAME ENV ARGS...: every scene's fit, one after another, in one deta
 for c in $CHAINS; do
   case $c in
     default) chain b_default KEEP_PRE_OUTLINE=1 ;;
+    plain) chain b_plain - ;;
     seed[0-9]*) chain b_$c KEEP_PRE_OUTLINE=1 --set runtime.seed=${c#seed} ;;
     nooutline) chain b_nooutline - --set final.outline=false ;;
     faces) chain b_faces - --set tsdf.resolution=192 --set tsdf.max_faces=$FACES ;;

@@ -36,7 +36,13 @@
 #                      carries a few .stage/exch/SCENE folders, not .stage/exch (lease.sh a's cp -r .stage/exch/*)
 #   bash lab/device/stage.sh wheels gl peers o3d smallpeers sl_exch
 #
-# Usage:  bash lab/device/stage.sh [STEP...]      STEP: big wheels usd gl peers exch o3d smallpeers sl_exch
+# What lab/device/wgeo.sh (wtopo's fits alone, no peer: no Open3D) carries, made by the step `warp` from p1-p3 (about
+# 8 minutes of xz on a busy 2-core machine):
+#   w1/big.part00 w2/big.part01 w3/big.part02   an xz tar of warp/ (without warp/tests) and its .dist-info alone,
+#                      100.5 MB in parts of 47 MB: three calls, the first with small(peers)/whl, the last (6.5 MB)
+#                      with dtu_raw and usd
+#
+# Usage:  bash lab/device/stage.sh [STEP...]      STEP: big wheels usd gl peers exch o3d smallpeers sl_exch warp
 #         (default: wheels usd gl peers exch big)
 # Time on this 2-core machine (shared with other work): about 12 minutes in all, nearly all of it `big` (676 s:
 # download, xz -9 -T2 of 593 MB to 141 MB, then the import test from the extracted parts); wheels, usd, gl,
@@ -171,6 +177,17 @@ print('RaycastingScene distance from the centre:', d)
       echo "big: import test skipped (TEST_IMPORT=$TEST_IMPORT or no python3.12)"
     fi
     ;;
+  warp)
+    ls "$OUT"/p[0-9]*/big.part* > /dev/null || { echo "warp: needs the step big's parts"; exit 1; }
+    rm -rf "$TMP/wsite" "$OUT"/w[0-9]*; mkdir -p "$TMP/wsite"
+    cat "$OUT"/p[0-9]*/big.part* | xz -d -T"$XZ_THREADS" | tar -x -C "$TMP/wsite" --wildcards 'warp/*' 'warp_lang-*'
+    (cd "$TMP/wsite" && tar -c --exclude='warp/tests' warp warp_lang-*) | xz -9e -T"$XZ_THREADS" > "$TMP/warp.tar.xz"
+    rm -rf "$TMP/wsite"
+    split -b "$PART_BYTES" -d -a 2 "$TMP/warp.tar.xz" "$TMP/big.part"
+    i=1
+    for f in "$TMP"/big.part*; do mkdir -p "$OUT/w$i"; mv "$f" "$OUT/w$i/"; i=$((i + 1)); done
+    rm -f "$TMP/warp.tar.xz"
+    ;;
   wheels)
     rm -rf "$OUT/small/whl"; mkdir -p "$OUT/small/whl"
     pipdl -d "$OUT/small/whl" trimesh plyfile "gsplat==$GSPLAT_VER" \
@@ -269,7 +286,7 @@ print('RaycastingScene distance from the centre:', d)
     strip_ignored "$OUT/exch"
     du -sh "$OUT"/exch/*
     ;;
-  *) echo "unknown step $step (big wheels usd gl peers exch o3d smallpeers sl_exch)"; exit 2 ;;
+  *) echo "unknown step $step (big wheels usd gl peers exch o3d smallpeers sl_exch warp)"; exit 2 ;;
   esac
   echo "== $step: $(( $(date +%s) - t0 )) s"
 done
