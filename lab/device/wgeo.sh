@@ -10,6 +10,9 @@
 # launch installs Warp, the wheels and wtopo, exports the scenes (DTU from .stage/dtu_raw), then per scene two fits
 # side by side: b_plain (the default) and b_geo; DTU's plain fit is b_fusion instead (its depths fused again per
 # FUSION variant, default 1:4:5,2:4:2, for the pictures of lab/scene_fusion.py). Every fit shares the GPU.
+# The term's product form (the branch geo-kernel: the Warp op and the plan entry, on for textured scenes) is measured
+# from a checkout of that branch, whose plain chain then has the term: CHAINS="plain" beside a chain with
+# --set losses.multiview_geometric=0 (add one to bias_all.sh there), not the lab patch's geo chain.
 source lab/device/lease_env.sh
 t0=$(date +%s)
 case ${1:-} in
