@@ -106,8 +106,8 @@ def main():
     res = wtopo.fit(scene, cfg, out_dir=a.out, progress=False)
     policy = next((e for e in res.report.get("events", []) if e.get("event") == "mesh_policy"), {})
     rows = [{"variant": "product", "mesh": "mesh.ply", "policy": policy}]
-    rows += [{"variant": name, "mesh": f"mesh_{name}.ply", "policy": policy}
-             for name, policy in scene_fusion.last.get("policy", {}).items()]
+    rows += [{"variant": name, "mesh": f"mesh_{name}.ply", "policy": variant_policy}
+             for name, variant_policy in scene_fusion.last.get("policy", {}).items()]
     for r in rows:
         faces = r.pop("policy", {}).get("faces", {})
         r.update(fused=faces.get("faces"), kept=faces.get("kept"))

@@ -6,7 +6,8 @@
 #   p1/big.part00 p2/big.part01 p3/big.part02 ...  one xz tar (xz -9) of the unpacked warp-lang 1.19.0 and open3d
 #                      0.19.0 (cp312 manylinux x86_64) wheels, minus the Open3D parts listed in O3D_DROP below,
 #                      split into parts of at most PART_BYTES (47 MB), one folder each: one part per device call
-#                      (a call carries 64 MiB with the 7 MB working tree). device.sh install: cat big.part* | xz -d | tar -x
+#                      (a call carries 64 MiB with the 12.2 MiB working tree).
+#                      device.sh install: cat big.part* | xz -d | tar -x
 #   small/whl/         py3.12 wheels: trimesh, plyfile (latest), gsplat 1.5.3 (PyPI, JIT-built), its pure-python
 #                      requirements (jaxtyping, wadler_lindig, rich, markdown_it_py, mdurl, pygments), ninja and
 #                      fast_simplification (cp312 manylinux: trimesh's quadric decimation)
@@ -24,8 +25,9 @@
 #   mesh_policy_numpy.py  e77081a's wtopo/geometry/mesh_policy.py: the support rules before their kernel
 #   old/               `git archive e77081a`: the tree before both (lab/device/s_all.sh's "old" DTU profile)
 #
-# Carrying it (64 MiB a call, 6.6 MB of it the working tree): four calls, e.g. p1; p2; p3 + small + gl (58 MB);
-# usd + exch + dtu_raw (60 MB). p3 + usd alone is 68 MB: too much for one call.
+# Carrying it (64 MiB a call, 12.2 MiB of it the working tree: about 54 MB left): p1; p2; p3 + gl +
+# smallpeers/whl (50 MB); usd + exch + dtu_raw (53 MB); small (16 MB) in a call of its own. p3 + small is 63 MB:
+# too much for one call.
 #
 # What lab/device/sl.sh (the peers alone, no Warp) carries instead, made by the steps `o3d`, `smallpeers` and
 # `sl_exch` (about 8 minutes with wheels, gl and peers):
