@@ -45,10 +45,12 @@ STAGES = {
     "rasterize_backward": ("rasterize_backward",),
     "losses": ("losses",),
     "backward": ("backward",),
-    "proxy": ("oriented_points", "scatter", "poisson", "marching_cubes", "bvh_build", "raycast", "proxy"),
-    "init": ("init",),
-    "tsdf_final": ("tsdf", "tsdf_fusion", "render_depths", "final", "mesh_policy", "repair",
-                   "supported_components"),
+    "optimizer": ("optimizer",),
+    "proxy": ("oriented_points", "scatter", "poisson", "marching_cubes", "bvh_build", "raycast", "proxy", "guidance",
+              "thin_parts"),
+    "init": ("setup", "init", "init_setup", "init_seed", "init_shells", "stereo_sweep", "stereo_confirm"),
+    "tsdf_final": ("tsdf", "tsdf_fusion", "tsdf_upload", "tsdf_blocks", "tsdf_integrate", "render_depths", "final",
+                   "mesh_policy", "repair", "supported_components", "supported_faces", "outline"),
 }
 """Reported stage -> the fit's timer names summed into it; every other timer goes to ``other``."""
 COLUMNS = ("scene", "preset", "scale", "iterations", "wall_s", "cpu_s", "expected_s",

@@ -29,6 +29,38 @@ def test_presets_order_iterations_and_time(device):
     assert budget(Preset.FAST, device) == budget("fast", torch.device(device))
 
 
+@pytest.mark.parametrize("device", ["cpu", "cuda:0"])
+def test_expected_time_grows_with_covered_pixels_proxy_builds_and_a_scene(device):
+    """The time model: more covered pixels, more proxy builds and (on a CPU, where the stereo runs long) a scene
+    each add time; nothing else does."""
+    base = expected_seconds("balanced", device, 1000, 10_000)
+    assert expected_seconds("balanced", device, 1000, 40_000) > base
+    assert expected_seconds("balanced", device, 1000, 10_000, proxy_builds=500) > base
+    scene = expected_seconds("balanced", device, 1000, 10_000, scene=True)
+    assert scene > base if device == "cpu" else scene == base
+    assert expected_seconds("balanced", device, 1000, 10_000, proxy_builds=-3) == base
+
+
+def test_plan_times_the_covered_pixels_and_the_proxy_builds(bunny):
+    """The plan's expected time counts the mask's share of each view and one proxy build per ``mesh_every``
+    co-evolution iterations; without its loop, none."""
+    plan = make_plan(bunny, FitConfig(), CPU)
+    b = budget("balanced", CPU)
+    covered = float(bunny.masks.float().mean()) * (128 * plan.image_scale) ** 2
+    builds = -(-plan.coevolution_iterations // b.mesh_every)
+    n_it = plan.warmup_iterations + plan.coevolution_iterations + plan.polish_iterations
+    assert 0.05 < covered / (128 * plan.image_scale) ** 2 < 0.5
+    # the plan reads the training views' masks; the whole scene's differ from them by a few pixels a view
+    assert plan.expected_seconds == pytest.approx(
+        expected_seconds("balanced", CPU, n_it, covered, proxy_builds=builds), abs=1.0)
+    cfg = FitConfig()
+    cfg.coevolution.enabled = False
+    off = make_plan(bunny, cfg, CPU)
+    n_off = off.warmup_iterations + off.coevolution_iterations + off.polish_iterations
+    assert off.expected_seconds == pytest.approx(expected_seconds("balanced", CPU, n_off, covered), abs=1.0)
+    assert ", 0 proxy builds," in off.reasons["expected_seconds"] and not off.mesh_loop
+
+
 def test_unknown_preset_is_named():
     with pytest.raises(ValueError, match="preset must be one of \\['fast', 'balanced', 'best'\\], got 'quick'"):
         budget("quick", "cpu")

@@ -243,11 +243,14 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
         polish, why = 0, ("no proxy-mesh loop to release the surfels from (on unbounded scenes a polish lowered "
                           "held-out PSNR: bunny_env 28.68 -> 28.50 dB, chair_env 29.93 -> 29.89 on the CPU)")
     plan.set("polish_iterations", polish, why, cfg.polish.iterations)
-    per_view = h * w * float(plan["image_scale"]) ** 2
+    covered = h * w * float(plan["image_scale"]) ** 2 * (float(masks.mean()) if has_masks else 1.0)
     n_it = int(plan["warmup_iterations"]) + coevo_it + int(plan["polish_iterations"])
-    plan.set("expected_seconds", round(_presets.expected_seconds(preset, device, n_it, per_view)),
-             f"{n_it} iterations of {per_view / 1e3:.0f}k-pixel views at the {preset.value} preset's measured cost on "
-             f"{'one H200' if device.type == 'cuda' else f'{torch.get_num_threads()} CPU threads'} (a planning figure)")
+    builds = -(-coevo_it // b.mesh_every) if plan["mesh_loop"] else 0
+    plan.set("expected_seconds", round(_presets.expected_seconds(preset, device, n_it, covered, proxy_builds=builds,
+                                                                 scene=is_scene)),
+             f"{n_it} iterations covering {covered / 1e3:.0f}k pixels a view, {builds} proxy builds, at the "
+             f"{preset.value} preset's measured cost on "
+             f"{'one H100' if device.type == 'cuda' else f'{torch.get_num_threads()} CPU threads'} (a planning figure)")
     if is_scene and not plan["mesh_loop"]:
         reinit, why = False, ("scene without the proxy-mesh loop: nothing would use a re-initialised scaffold, and "
                               "replacing the warm-up's surfels cost DTU scan24 6.0 dB held-out PSNR that the "

@@ -32,7 +32,9 @@ class Budget:
         fixed_s: the model of :func:`expected_seconds`: seconds outside the iterations (initialisation,
             re-initialisation, final mesh) on the reference device.
         iteration_s: seconds per iteration on the reference device, whatever the view's size ...
-        megapixel_s: ... plus these seconds per megapixel of the trained view.
+        megapixel_s: ... plus these seconds per megapixel of the view that the fit covers (its mask's pixels;
+            every pixel without masks, where the surfels fill the frame).
+        proxy_s: seconds per proxy-mesh build (a co-evolution iteration with the proxy and its terms).
         mesh_every: the co-evolution rebuilds the proxy mesh and applies its terms on every ``mesh_every``-th
             iteration, weighted ``mesh_every`` (the same mean gradient for ``1 / mesh_every`` of the proxy's
             time: on a CPU a proxy iteration costs about twice a photometric one).
@@ -50,28 +52,30 @@ class Budget:
     megapixel_s: float
     mesh_every: int = 1
     polish: float = 0.5
+    proxy_s: float = 0.0
+    scene_fixed_s: float = 0.0
+    """Seconds a scene (no masks) adds outside the iterations: the stereo's initial points, its shells."""
 
 
 _REFERENCE_CORES = 2  # the CPU timings below were measured on 2 cores; more cores scale them down
-# CPU (2 idle cores, 2026-12-02, the fit without Open3D): the bunny's fast fit (150 + 150 iterations of 128 px
-# views) took 21.7-22.0 s, about 6 s of it outside the iterations; balanced (400 + 400) 54.7-57.1 s, about 9 s
-# outside them; best (800 + 800, every co-evolution iteration building the proxy) 114 s. CUDA (one H200, alone, warm
-# kernel cache): DTU at the balanced default (5,000 iterations of 137k-pixel views, no mesh loop) 101 s with 20 s
-# outside the iterations (2026-12-04, benchmarks/gpu.md), the 64-view chair (262k-pixel views, the mesh loop) 127 s
-# (2026-12-03, benchmarks/peers.md): 13 ms an iteration plus 32 ms per megapixel of view; fast and best scale the
-# iterations and keep the rates until a GPU front is measured. The CUDA rates date from before the GPU speed work:
-# DTU now takes 27 s on one H100 (2026-12-06, benchmarks/gpu.md), so they overstate a CUDA fit about fourfold
-# until a fit with the mesh loop is timed alone and they are measured again.
-# polish: the CPU balanced bunny (two seeds) gains 0.07-0.10 dB of held-out PSNR at 0.5, 0.15-0.17 at 1 (the same
-# iterations with the loop on: 0.01-0.05); at best 0.09-0.10 at 0.25-0.5 and 0.05 at 1 (design/decisions.md,
-# "Kept: a photometric polish").
+# The time model, fitted to fits timed with nothing else on the machine (wall time of wtopo.fit, images to mesh):
+# CPU: benchmarks/error_vs_runtime.py at 0ce9513 (2026-12-08, 2 cores): the bunny, ring_capsule (objects, 21 % and
+# 17 % of their 128-px views masked in) and bunny_room (a scene) at the three presets and at 0.5x and 1.5x balanced's
+# iterations, 15 fits, every one within 13 % of the model. CUDA (one H100 alone, benchmarks/peers.md): DTU scan24 at
+# the default, 5,000 iterations of 137k-pixel views without the loop, 27-32 s of which 11 s outside the iterations
+# (benchmarks/gpu.md); the bowl, the mug and bunny64, 64 views of 512 px (21-35 % masked in), 6,000 iterations of
+# which 2,000 build the proxy, 87-118 s. A proxy build then costs about 30 ms, a plain iteration 3-4 ms.
 _BUDGETS = {
-    ("cpu", Preset.FAST): Budget((150, 150), 128, (48, 48), (64, 128), 6.0, 0.0, 3.3, mesh_every=2, polish=0.0),
-    ("cpu", Preset.BALANCED): Budget((400, 400), 256, (64, 64), (96, 192), 9.0, 0.010, 3.0, mesh_every=2),
-    ("cpu", Preset.BEST): Budget((800, 800), 256, (64, 64), (96, 192), 9.0, 0.029, 2.2),
-    ("cuda", Preset.FAST): Budget((1500, 1000), 512, (128, 192), (192, 512), 12.0, 0.013, 0.032, polish=0.0),
-    ("cuda", Preset.BALANCED): Budget((3000, 2000), 1024, (128, 256), (192, 768), 20.0, 0.013, 0.032),
-    ("cuda", Preset.BEST): Budget((6000, 4000), 1024, (128, 256), (192, 768), 20.0, 0.013, 0.032),
+    ("cpu", Preset.FAST): Budget((150, 150), 128, (48, 48), (64, 128), 8.0, 0.022, 5.8, mesh_every=2, polish=0.0,
+                                 proxy_s=0.054, scene_fixed_s=12.7),
+    ("cpu", Preset.BALANCED): Budget((400, 400), 256, (64, 64), (96, 192), 8.0, 0.022, 5.8, mesh_every=2,
+                                     proxy_s=0.054, scene_fixed_s=12.7),
+    ("cpu", Preset.BEST): Budget((800, 800), 256, (64, 64), (96, 192), 8.0, 0.022, 5.8, proxy_s=0.054,
+                                 scene_fixed_s=12.7),
+    ("cuda", Preset.FAST): Budget((1500, 1000), 512, (128, 192), (192, 512), 11.0, 0.0028, 0.010, polish=0.0,
+                                  proxy_s=0.031),
+    ("cuda", Preset.BALANCED): Budget((3000, 2000), 1024, (128, 256), (192, 768), 11.0, 0.0028, 0.010, proxy_s=0.031),
+    ("cuda", Preset.BEST): Budget((6000, 4000), 1024, (128, 256), (192, 768), 11.0, 0.0028, 0.010, proxy_s=0.031),
 }
 
 
@@ -93,13 +97,16 @@ def budget(preset: Preset | str, device) -> Budget:
     return _BUDGETS[(_kind(device), p)]
 
 
-def expected_seconds(preset: Preset | str, device, iterations: int, pixels_per_view: float) -> float:
-    """About how long a fit of ``iterations`` iterations on views of ``pixels_per_view`` trained pixels takes
-    under ``preset`` on ``device`` [s]: the preset's fixed time plus ``iterations`` times its time per
-    iteration, on a CPU scaled by ``(2 / cores) ** 0.75`` for more cores than the reference's 2. A planning
-    figure, not a promise: surfel counts, the scene and other load on the machine move it."""
+def expected_seconds(preset: Preset | str, device, iterations: int, pixels_per_view: float, *,
+                     proxy_builds: int = 0, scene: bool = False) -> float:
+    """About how long a fit takes under ``preset`` on ``device`` [s]: the preset's fixed time (more for a
+    ``scene``), ``iterations`` times its time per iteration on views of which the fit covers ``pixels_per_view``
+    pixels (a mask's pixels; every pixel without masks), and ``proxy_builds`` times a proxy-mesh build; on a CPU
+    scaled by ``(2 / cores) ** 0.75`` for more cores than the reference's 2. A planning figure, not a promise:
+    surfel counts, the grids and other load on the machine move it."""
     b = budget(preset, device)
-    t = b.fixed_s + max(0, int(iterations)) * (b.iteration_s + b.megapixel_s * float(pixels_per_view) / 1e6)
+    t = (b.fixed_s + (b.scene_fixed_s if scene else 0.0) + max(0, int(proxy_builds)) * b.proxy_s
+         + max(0, int(iterations)) * (b.iteration_s + b.megapixel_s * float(pixels_per_view) / 1e6))
     if _kind(device) == "cpu":
         import torch
 
