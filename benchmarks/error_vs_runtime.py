@@ -203,6 +203,7 @@ def plot(rows: list[dict], out_png) -> str:
     """Chamfer and 1 - F against wall time, one colour per scene, presets as stars, points in between as dots."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
 
     rows = [r for r in rows if _done(r)]
     if not rows:
@@ -223,6 +224,9 @@ def plot(rows: list[dict], out_png) -> str:
                     ax.annotate(r["preset"], (r["wall_s"], v), fontsize=7, xytext=(4, 4), textcoords="offset points")
         ax.set_xscale("log")
         ax.set_yscale("log")
+        ax.xaxis.set_major_formatter(ScalarFormatter())  # seconds as plain numbers, unlabelled minor ticks
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_xticks([t for t in (10, 20, 50, 100, 200, 500, 1000, 2000) if t <= 1.5 * max(r["wall_s"] for r in rows)])
         ax.set_xlabel("wall time of wtopo.fit [s]")
         ax.set_title(title)
         ax.grid(True, which="both", alpha=0.3)
