@@ -61,10 +61,14 @@ _REFERENCE_CORES = 2  # the CPU timings below were measured on 2 cores; more cor
 # The time model, fitted to fits timed with nothing else on the machine (wall time of wtopo.fit, images to mesh):
 # CPU: benchmarks/error_vs_runtime.py at 0ce9513 (2026-12-08, 2 cores): the bunny, ring_capsule (objects, 21 % and
 # 17 % of their 128-px views masked in) and bunny_room (a scene) at the three presets and at 0.5x and 1.5x balanced's
-# iterations, 15 fits, every one within 13 % of the model. CUDA (one H100 alone, benchmarks/peers.md): DTU scan24 at
-# the default, 5,000 iterations of 137k-pixel views without the loop, 27-32 s of which 11 s outside the iterations
-# (benchmarks/gpu.md); the bowl, the mug and bunny64, 64 views of 512 px (21-35 % masked in), 6,000 iterations of
-# which 2,000 build the proxy, 87-118 s. A proxy build then costs about 30 ms, a plain iteration 3-4 ms.
+# iterations, 15 fits, every one within 13 % of the model (a second run at 4e08b70: within 20 %). CUDA (one H100
+# alone, benchmarks/peers.md): DTU scan24 at the default, 5,000 iterations of 137k-pixel views without the loop,
+# 27-32 s of which 11 s outside the iterations (benchmarks/gpu.md); the bowl, the mug and bunny64, 64 views of 512 px
+# (21-35 % masked in), 6,000 iterations of which 2,000 build the proxy, 87-118 s. A proxy build then costs about
+# 30 ms, a plain iteration 3-4 ms.
+# polish: the CPU balanced bunny (two seeds) gains 0.07-0.10 dB of held-out PSNR at 0.5, 0.15-0.17 at 1 (the same
+# iterations with the loop on: 0.01-0.05); at best 0.09-0.10 at 0.25-0.5 and 0.05 at 1 (design/decisions.md,
+# "Kept: a photometric polish").
 _BUDGETS = {
     ("cpu", Preset.FAST): Budget((150, 150), 128, (48, 48), (64, 128), 8.0, 0.022, 5.8, mesh_every=2, polish=0.0,
                                  proxy_s=0.054, scene_fixed_s=12.7),
