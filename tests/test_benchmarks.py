@@ -58,3 +58,27 @@ def test_bench_fit_runs_and_writes_its_table(tmp_path):
     row = next(line for line in text.splitlines() if line.startswith("| no_mesh_loop | 0 |"))
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert float(cells[4]) > 0.0 and 0.0 <= float(cells[6]) <= 1.0  # Chamfer %, F-score
+
+
+def test_error_vs_runtime_names_every_timer_of_a_fit(tmp_path):
+    """Every timer a fit reports is in one of error_vs_runtime.py's stage columns or its bookkeeping list, so a
+    renamed or new timer cannot fall silently into ``other`` (the columns had lost the initialisation's)."""
+    from wtopo import scenes
+    from wtopo.fitting import FitConfig, fit
+
+    sys.path.insert(0, str(BENCH))
+    try:
+        import error_vs_runtime as evr
+    finally:
+        sys.path.remove(str(BENCH))
+        sys.modules.pop("error_vs_runtime", None)
+    known = {t for timers in evr.STAGES.values() for t in timers} | set(evr.OTHER)
+    assert not set(evr.OTHER) & {t for timers in evr.STAGES.values() for t in timers}
+    cfg = FitConfig()
+    cfg.warmup.iterations, cfg.coevolution.iterations, cfg.polish.iterations = 12, 8, 4
+    cfg.runtime.eval_every, cfg.runtime.usd_every, cfg.runtime.device = 0, 0, "cpu"
+    res = fit(scenes.load("sphere"), cfg, out_dir=str(tmp_path), progress=False)
+    timers = set(res.report["stage_times_s"])
+    assert {"init_seed", "rasterize_forward", "marching_cubes", "tsdf_integrate", "outline"} <= timers  # every stage
+    assert timers <= known, f"timers error_vs_runtime.py does not name: {sorted(timers - known)}"
+
