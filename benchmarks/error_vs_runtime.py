@@ -229,7 +229,9 @@ def plot(rows: list[dict], out_png) -> str:
         ax.set_yscale("log")
         ax.xaxis.set_major_formatter(ScalarFormatter())  # seconds as plain numbers, unlabelled minor ticks
         ax.xaxis.set_minor_formatter(NullFormatter())
-        ax.set_xticks([t for t in (10, 20, 50, 100, 200, 500, 1000, 2000) if t <= 1.5 * max(r["wall_s"] for r in rows)])
+        lo, hi = ax.get_xlim()
+        ax.set_xticks([t for t in (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000) if lo <= t <= hi])
+        ax.set_xlim(lo, hi)
         ax.set_xlabel("wall time of wtopo.fit [s]")
         ax.set_title(title)
         ax.grid(True, which="both", alpha=0.3)

@@ -31,13 +31,13 @@ def test_presets_order_iterations_and_time(device):
 
 @pytest.mark.parametrize("device", ["cpu", "cuda:0"])
 def test_expected_time_grows_with_covered_pixels_proxy_builds_and_a_scene(device):
-    """The time model: more covered pixels, more proxy builds and (on a CPU, where the stereo runs long) a scene
-    each add time; nothing else does."""
+    """The time model: more covered pixels, more proxy builds and (on a CPU, where it runs long) the stereo each
+    add time; nothing else does."""
     base = expected_seconds("balanced", device, 1000, 10_000)
     assert expected_seconds("balanced", device, 1000, 40_000) > base
     assert expected_seconds("balanced", device, 1000, 10_000, proxy_builds=500) > base
-    scene = expected_seconds("balanced", device, 1000, 10_000, scene=True)
-    assert scene > base if device == "cpu" else scene == base
+    stereo = expected_seconds("balanced", device, 1000, 10_000, stereo=True)
+    assert stereo > base if device == "cpu" else stereo == base
     assert expected_seconds("balanced", device, 1000, 10_000, proxy_builds=-3) == base
 
 
@@ -59,6 +59,16 @@ def test_plan_times_the_covered_pixels_and_the_proxy_builds(bunny):
     n_off = off.warmup_iterations + off.coevolution_iterations + off.polish_iterations
     assert off.expected_seconds == pytest.approx(expected_seconds("balanced", CPU, n_off, covered), abs=1.0)
     assert ", 0 proxy builds," in off.reasons["expected_seconds"] and not off.mesh_loop
+    cfg = FitConfig()
+    cfg.losses.mesh_depth = cfg.losses.mesh_normal = 0.0  # the loop runs, but builds no proxy
+    flat = make_plan(bunny, cfg, CPU)
+    assert flat.mesh_loop and flat.expected_seconds == pytest.approx(
+        expected_seconds("balanced", CPU, n_it, covered), abs=1.0)
+    cfg = FitConfig()
+    cfg.init.source = "mvs"  # the stereo's initial surfels, on an object too
+    mvs = make_plan(bunny, cfg, CPU)
+    assert ", the stereo," in mvs.reasons["expected_seconds"] and mvs.expected_seconds == pytest.approx(
+        expected_seconds("balanced", CPU, n_it, covered, proxy_builds=builds, stereo=True), abs=1.0)
 
 
 def test_unknown_preset_is_named():

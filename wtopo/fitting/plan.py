@@ -245,10 +245,13 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     plan.set("polish_iterations", polish, why, cfg.polish.iterations)
     covered = h * w * float(plan["image_scale"]) ** 2 * (float(masks.mean()) if has_masks else 1.0)
     n_it = int(plan["warmup_iterations"]) + coevo_it + int(plan["polish_iterations"])
-    builds = -(-coevo_it // b.mesh_every) if plan["mesh_loop"] else 0
+    mesh_terms = cfg.losses.mesh_depth > 0 or cfg.losses.mesh_normal > 0  # else the loop builds no proxy
+    builds = -(-coevo_it // b.mesh_every) if plan["mesh_loop"] and mesh_terms else 0
+    stereo = InitSource(plan["init_source"]) is InitSource.MVS
     plan.set("expected_seconds", round(_presets.expected_seconds(preset, device, n_it, covered, proxy_builds=builds,
-                                                                 scene=is_scene)),
-             f"{n_it} iterations covering {covered / 1e3:.0f}k pixels a view, {builds} proxy builds, at the "
+                                                                 stereo=stereo)),
+             f"{n_it} iterations covering {covered / 1e3:.0f}k pixels a view, {builds} proxy builds"
+             f"{', the stereo' if stereo else ''}, at the "
              f"{preset.value} preset's measured cost on "
              f"{'one H100' if device.type == 'cuda' else f'{torch.get_num_threads()} CPU threads'} (a planning figure)")
     if is_scene and not plan["mesh_loop"]:

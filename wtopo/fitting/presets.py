@@ -34,7 +34,7 @@ class Budget:
         iteration_s: seconds per iteration on the reference device, whatever the view's size ...
         megapixel_s: ... plus these seconds per megapixel of the view that the fit covers (its mask's pixels;
             every pixel without masks, where the surfels fill the frame).
-        proxy_s: seconds per proxy-mesh build (a co-evolution iteration with the proxy and its terms).
+        proxy_s: seconds a proxy-mesh build adds to its iteration (the proxy, its terms and their backward).
         mesh_every: the co-evolution rebuilds the proxy mesh and applies its terms on every ``mesh_every``-th
             iteration, weighted ``mesh_every`` (the same mean gradient for ``1 / mesh_every`` of the proxy's
             time: on a CPU a proxy iteration costs about twice a photometric one).
@@ -53,29 +53,29 @@ class Budget:
     mesh_every: int = 1
     polish: float = 0.5
     proxy_s: float = 0.0
-    scene_fixed_s: float = 0.0
-    """Seconds a scene (no masks) adds outside the iterations: the stereo's initial points, its shells."""
+    stereo_s: float = 0.0
+    """Seconds the plane-sweep stereo adds when it gives the initial surfels (a scene without points)."""
 
 
 _REFERENCE_CORES = 2  # the CPU timings below were measured on 2 cores; more cores scale them down
 # The time model, fitted to fits timed with nothing else on the machine (wall time of wtopo.fit, images to mesh):
 # CPU: benchmarks/error_vs_runtime.py at 0ce9513 (2026-12-08, 2 cores): the bunny, ring_capsule (objects, 21 % and
-# 17 % of their 128-px views masked in) and bunny_room (a scene) at the three presets and at 0.5x and 1.5x balanced's
-# iterations, 15 fits, every one within 13 % of the model (a second run at 4e08b70: within 20 %). CUDA (one H100
-# alone, benchmarks/peers.md): DTU scan24 at the default, 5,000 iterations of 137k-pixel views without the loop,
-# 27-32 s of which 11 s outside the iterations (benchmarks/gpu.md); the bowl, the mug and bunny64, 64 views of 512 px
-# (21-35 % masked in), 6,000 iterations of which 2,000 build the proxy, 87-118 s. A proxy build then costs about
-# 30 ms, a plain iteration 3-4 ms.
+# 17 % of their 128-px views masked in) and bunny_room (a scene, its surfels from stereo) at the three presets and
+# at 0.5x and 1.5x balanced's iterations, 15 fits, every one within 13 % of the model (a second run at 4e08b70:
+# within 20 %). CUDA (one H100 alone, benchmarks/peers.md): DTU scan24 at the default, 5,000 iterations of
+# 137k-pixel views without the loop, 27-32 s of which 11 s outside the iterations (benchmarks/gpu.md); the bowl,
+# the mug and bunny64, 64 views of 512 px (21-35 % masked in), 6,000 iterations of which 2,000 build the proxy,
+# 87-118 s. A proxy build then costs about 30 ms, a plain iteration 3-4 ms.
 # polish: the CPU balanced bunny (two seeds) gains 0.07-0.10 dB of held-out PSNR at 0.5, 0.15-0.17 at 1 (the same
 # iterations with the loop on: 0.01-0.05); at best 0.09-0.10 at 0.25-0.5 and 0.05 at 1 (design/decisions.md,
 # "Kept: a photometric polish").
 _BUDGETS = {
     ("cpu", Preset.FAST): Budget((150, 150), 128, (48, 48), (64, 128), 8.0, 0.022, 5.8, mesh_every=2, polish=0.0,
-                                 proxy_s=0.054, scene_fixed_s=12.7),
+                                 proxy_s=0.054, stereo_s=12.7),
     ("cpu", Preset.BALANCED): Budget((400, 400), 256, (64, 64), (96, 192), 8.0, 0.022, 5.8, mesh_every=2,
-                                     proxy_s=0.054, scene_fixed_s=12.7),
+                                     proxy_s=0.054, stereo_s=12.7),
     ("cpu", Preset.BEST): Budget((800, 800), 256, (64, 64), (96, 192), 8.0, 0.022, 5.8, proxy_s=0.054,
-                                 scene_fixed_s=12.7),
+                                 stereo_s=12.7),
     ("cuda", Preset.FAST): Budget((1500, 1000), 512, (128, 192), (192, 512), 11.0, 0.0028, 0.010, polish=0.0,
                                   proxy_s=0.031),
     ("cuda", Preset.BALANCED): Budget((3000, 2000), 1024, (128, 256), (192, 768), 11.0, 0.0028, 0.010, proxy_s=0.031),
@@ -102,14 +102,15 @@ def budget(preset: Preset | str, device) -> Budget:
 
 
 def expected_seconds(preset: Preset | str, device, iterations: int, pixels_per_view: float, *,
-                     proxy_builds: int = 0, scene: bool = False) -> float:
-    """About how long a fit takes under ``preset`` on ``device`` [s]: the preset's fixed time (more for a
-    ``scene``), ``iterations`` times its time per iteration on views of which the fit covers ``pixels_per_view``
-    pixels (a mask's pixels; every pixel without masks), and ``proxy_builds`` times a proxy-mesh build; on a CPU
+                     proxy_builds: int = 0, stereo: bool = False) -> float:
+    """About how long a fit takes under ``preset`` on ``device`` [s]: the preset's fixed time (more where
+    ``stereo`` gives the initial surfels), ``iterations`` times its time per iteration on views of which the fit
+    covers ``pixels_per_view`` pixels (a mask's pixels; every pixel without masks), and ``proxy_builds`` times a
+    proxy-mesh build; on a CPU
     scaled by ``(2 / cores) ** 0.75`` for more cores than the reference's 2. A planning figure, not a promise:
     surfel counts, the grids and other load on the machine move it."""
     b = budget(preset, device)
-    t = (b.fixed_s + (b.scene_fixed_s if scene else 0.0) + max(0, int(proxy_builds)) * b.proxy_s
+    t = (b.fixed_s + (b.stereo_s if stereo else 0.0) + max(0, int(proxy_builds)) * b.proxy_s
          + max(0, int(iterations)) * (b.iteration_s + b.megapixel_s * float(pixels_per_view) / 1e6))
     if _kind(device) == "cpu":
         import torch
