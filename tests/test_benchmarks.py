@@ -81,4 +81,3 @@ def test_error_vs_runtime_names_every_timer_of_a_fit(tmp_path):
     timers = set(res.report["stage_times_s"])
     assert {"init_seed", "rasterize_forward", "marching_cubes", "tsdf_integrate", "outline"} <= timers  # every stage
     assert timers <= known, f"timers error_vs_runtime.py does not name: {sorted(timers - known)}"
-

@@ -30,7 +30,7 @@ def test_presets_order_iterations_and_time(device):
 
 
 @pytest.mark.parametrize("device", ["cpu", "cuda:0"])
-def test_expected_time_grows_with_covered_pixels_proxy_builds_and_a_scene(device):
+def test_expected_time_grows_with_covered_pixels_proxy_builds_and_the_stereo(device):
     """The time model: more covered pixels, more proxy builds and (on a CPU, where it runs long) the stereo each
     add time; nothing else does."""
     base = expected_seconds("balanced", device, 1000, 10_000)

@@ -251,8 +251,7 @@ def make_plan(scene, cfg: FitConfig, device: torch.device) -> Plan:
     plan.set("expected_seconds", round(_presets.expected_seconds(preset, device, n_it, covered, proxy_builds=builds,
                                                                  stereo=stereo)),
              f"{n_it} iterations covering {covered / 1e3:.0f}k pixels a view, {builds} proxy builds"
-             f"{', the stereo' if stereo else ''}, at the "
-             f"{preset.value} preset's measured cost on "
+             f"{', the stereo' if stereo else ''}, at the {preset.value} preset's measured cost on "
              f"{'one H100' if device.type == 'cuda' else f'{torch.get_num_threads()} CPU threads'} (a planning figure)")
     if is_scene and not plan["mesh_loop"]:
         reinit, why = False, ("scene without the proxy-mesh loop: nothing would use a re-initialised scaffold, and "
